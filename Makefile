@@ -1,0 +1,33 @@
+# The two set-up commands: `make demo` (closed-loop demo on built-in defaults) and `make test`.
+PYTHON ?= python3
+VENV ?= .venv
+BIN := $(VENV)/bin
+SHARED ?= $(abspath ../shared)
+export CLOUDTRACK_SHARED ?= $(SHARED)
+
+.PHONY: test lint types pytest demo install clean
+
+$(BIN)/.installed: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install -q --upgrade pip
+	$(BIN)/pip install -q -e '.[test]'
+	touch $@
+
+install: $(BIN)/.installed
+
+lint: install
+	$(BIN)/ruff check .
+
+types: install
+	$(BIN)/mypy
+
+pytest: install
+	$(BIN)/python -m pytest
+
+test: lint types pytest
+
+demo: install
+	$(BIN)/cloudtrack-sim run follow --video out/demo.mp4 --plot out/demo.png --json out/demo.json
+
+clean:
+	rm -rf $(VENV) out .mypy_cache .ruff_cache .pytest_cache

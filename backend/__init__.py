@@ -1,0 +1,1 @@
+"""The cloud service: superset detection, margin crops, semantic verification, sessions for many vehicles."""

@@ -1,0 +1,40 @@
+"""Choosing which back-end candidate re-initialises the tracker (CloudTrack paper, eq. C_box)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from behaviors.detection import Detection
+from behaviors.geometry import Box
+
+
+def c_box(prev: Box, cand: Box) -> float:
+    """C_box = sum over d in {x, y} of |c_prev - c_cand| + |s_prev - s_cand| (centres and sizes, pixels, L1)."""
+    return (
+        abs(prev.cx - cand.cx)
+        + abs(prev.cy - cand.cy)
+        + abs(prev.w - cand.w)
+        + abs(prev.h - cand.h)
+    )
+
+
+def select_by_c_box(prev: Box, candidates: Sequence[Detection]) -> Detection | None:
+    """The candidate closest to the last trusted box by C_box; None when there are none.
+
+    Ties go to the earlier candidate so the choice is deterministic.
+    """
+    best: Detection | None = None
+    best_cost = float("inf")
+    for cand in candidates:
+        if not cand.box.is_valid():
+            continue
+        cost = c_box(prev, cand.box)
+        if cost < best_cost:
+            best, best_cost = cand, cost
+    return best
+
+
+def select_by_score(candidates: Sequence[Detection]) -> Detection | None:
+    """The reference code's policy: the candidate with the highest detector score."""
+    valid = [c for c in candidates if c.box.is_valid()]
+    return max(valid, key=lambda c: c.score) if valid else None

@@ -1,0 +1,197 @@
+"""Loading a typed configuration from TOML defaults, a user file, environment variables and flags.
+
+Precedence, lowest first: the schema's defaults (mirrored in `config/*.toml`), the file given with
+`--config`, environment variables `<PREFIX><SECTION>__<KEY>` (e.g. `CLOUDTRACK_MAVLINK__CONNECTION`),
+then `--set section.key=value` flags. Any unknown key, wrong type or out-of-range value raises
+`ConfigError` naming the source, the key and what is allowed.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+from typing import Any, TypeVar
+
+from pydantic import BaseModel, ConfigDict, ValidationError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - exercised on 3.10 only
+    import tomli as tomllib
+
+T = TypeVar("T", bound=BaseModel)
+
+
+class ConfigSection(BaseModel):
+    """Base of every configuration section: unknown keys are errors, values are re-validated on change."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, frozen=True)
+
+
+class ConfigError(Exception):
+    """A configuration that cannot be used; the message names the source, the key and what is allowed."""
+
+
+def _set_nested(target: dict[str, Any], dotted: str, value: Any) -> None:
+    parts = dotted.split(".")
+    node = target
+    for part in parts[:-1]:
+        child = node.setdefault(part, {})
+        if not isinstance(child, dict):
+            raise ConfigError(f"cannot set {dotted!r}: {part!r} is not a section")
+        node = child
+    node[parts[-1]] = value
+
+
+def _deep_merge(base: dict[str, Any], override: Mapping[str, Any]) -> dict[str, Any]:
+    merged = dict(base)
+    for key, value in override.items():
+        if isinstance(value, Mapping) and isinstance(merged.get(key), dict):
+            merged[key] = _deep_merge(merged[key], value)
+        else:
+            merged[key] = value
+    return merged
+
+
+def _parse_scalar(text: str) -> Any:
+    """A flag or environment value: TOML/JSON literal when it parses as one, else the raw string."""
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        pass
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        return text
+
+
+def read_toml(path: Path) -> dict[str, Any]:
+    try:
+        with open(path, "rb") as f:
+            return tomllib.load(f)
+    except FileNotFoundError as exc:
+        raise ConfigError(f"{path}: no such configuration file") from exc
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
+
+
+def env_overrides(prefix: str, environ: Mapping[str, str]) -> dict[str, Any]:
+    """Values from variables named PREFIX + SECTION__KEY, e.g. CLOUDTRACK_MAVLINK__CONNECTION."""
+    result: dict[str, Any] = {}
+    for name, raw in environ.items():
+        if not name.startswith(prefix) or "__" not in name:
+            continue
+        dotted = name[len(prefix) :].lower().replace("__", ".")
+        _set_nested(result, dotted, _parse_scalar(raw))
+    return result
+
+
+def flag_overrides(assignments: Iterable[str]) -> dict[str, Any]:
+    """Values from `--set section.key=value` flags."""
+    result: dict[str, Any] = {}
+    for item in assignments:
+        if "=" not in item:
+            raise ConfigError(f"--set {item!r}: expected section.key=value")
+        key, raw = item.split("=", 1)
+        _set_nested(result, key.strip(), _parse_scalar(raw.strip()))
+    return result
+
+
+def _describe(error: Mapping[str, Any], source_of: Mapping[str, str], allowed: list[str]) -> str:
+    parts = [str(p) for p in error["loc"]]
+    key = ".".join(parts)
+    # The layer that set this key, or the nearest enclosing section that was set.
+    source = next(
+        (source_of[".".join(parts[:n])] for n in range(len(parts), 0, -1) if ".".join(parts[:n]) in source_of),
+        "defaults",
+    )
+    if error["type"] == "extra_forbidden":
+        hint = f" (allowed here: {', '.join(sorted(allowed))})" if allowed else ""
+        return f"{source}: unknown key {key!r}{hint}"
+    return f"{source}: key {key!r}: {error['msg']} (got {error.get('input')!r})"
+
+
+def _sources(layers: list[tuple[str, dict[str, Any]]]) -> dict[str, str]:
+    """Which layer last set each dotted key, for error messages."""
+    source_of: dict[str, str] = {}
+
+    def walk(node: Mapping[str, Any], prefix: str, source: str) -> None:
+        for key, value in node.items():
+            dotted = f"{prefix}{key}"
+            source_of[dotted] = source
+            if isinstance(value, Mapping):
+                walk(value, dotted + ".", source)
+
+    for source, data in layers:
+        walk(data, "", source)
+    return source_of
+
+
+def _allowed_keys(schema: type[BaseModel], loc: tuple[Any, ...]) -> list[str]:
+    model: Any = schema
+    for part in loc[:-1]:
+        field = model.model_fields.get(part) if isinstance(part, str) else None
+        if field is None or not (isinstance(field.annotation, type) and issubclass(field.annotation, BaseModel)):
+            return []
+        model = field.annotation
+    return list(model.model_fields)
+
+
+def load_config(
+    schema: type[T],
+    path: Path | None = None,
+    *,
+    env_prefix: str = "CLOUDTRACK_",
+    environ: Mapping[str, str] | None = None,
+    assignments: Iterable[str] = (),
+) -> T:
+    """Build the effective configuration; raise ConfigError on anything the schema does not allow."""
+    layers: list[tuple[str, dict[str, Any]]] = []
+    if path is not None:
+        layers.append((str(path), read_toml(path)))
+    layers.append(("environment", env_overrides(env_prefix, os.environ if environ is None else environ)))
+    layers.append(("--set", flag_overrides(assignments)))
+    merged: dict[str, Any] = {}
+    for _, data in layers:
+        merged = _deep_merge(merged, data)
+    try:
+        return schema.model_validate(merged)
+    except ValidationError as exc:
+        source_of = _sources(layers)
+        lines = [
+            _describe(err, source_of, _allowed_keys(schema, tuple(err["loc"]))) for err in exc.errors()
+        ]
+        raise ConfigError("invalid configuration:\n  " + "\n  ".join(lines)) from None
+
+
+def dump_toml(config: BaseModel) -> str:
+    """The effective configuration as TOML (sections of scalars, lists and small tables)."""
+
+    def literal(value: Any) -> str:
+        if isinstance(value, bool):
+            return "true" if value else "false"
+        if isinstance(value, (int, float)):
+            return repr(value)
+        if isinstance(value, str):
+            return json.dumps(value)
+        if isinstance(value, (list, tuple)):
+            return "[" + ", ".join(literal(v) for v in value) + "]"
+        if isinstance(value, Mapping):
+            return "{ " + ", ".join(f"{k} = {literal(v)}" for k, v in value.items()) + " }"
+        if value is None:
+            return '""'
+        return json.dumps(str(value))
+
+    data = config.model_dump(mode="json")
+    out: list[str] = []
+    for section, values in data.items():
+        if isinstance(values, Mapping):
+            out.append(f"[{section}]")
+            out.extend(f"{k} = {literal(v)}" for k, v in values.items())
+            out.append("")
+        else:
+            out.insert(0, f"{section} = {literal(values)}")
+    return "\n".join(out)

@@ -1,0 +1,1 @@
+"""The onboard process: camera sources, trackers, back-end client, MAVLink link and the main loop."""

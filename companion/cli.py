@@ -1,0 +1,52 @@
+"""`cloudtrack-companion`: the onboard process and its tools. Each subcommand lives in its own module."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+
+from cloudtrack.logging_setup import add_logging_flags, setup_logging
+
+EXAMPLES = """\
+examples:
+  cloudtrack-companion run --config /etc/cloudtrack/companion.toml
+  cloudtrack-companion config check /etc/cloudtrack/companion.toml
+  cloudtrack-companion config show --set mavlink.connection=serial:/dev/ttyAMA0:921600
+  cloudtrack-companion models list --model-dir ../shared/models
+  cloudtrack-companion models download nano
+  cloudtrack-companion eval ../shared/data/sequences/* --tracker nano --json out/eval.json
+  cloudtrack-companion bench --tracker nano --sequence ../shared/data/sequences/uav123_person12_1
+"""
+
+# Subcommand modules; each defines add_parser(subparsers) and sets `func` on its parser.
+COMMAND_MODULES = (
+    "companion.config_command",
+    "companion.models_command",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="cloudtrack-companion",
+        description="CloudTrack onboard process: track a described person and fly to keep them in view.",
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    add_logging_flags(parser)
+    subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for module_name in COMMAND_MODULES:
+        importlib.import_module(module_name).add_parser(subparsers)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    setup_logging(args.log_level, args.log_json)
+    return int(args.func(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,135 @@
+"""The companion's configuration schema: every section, key, default and allowed range.
+
+`config/companion.toml` mirrors these defaults; `tests/test_config.py` keeps the two in step.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field, model_validator
+
+from cloudtrack.config_files import ConfigSection
+
+TrackerName = Literal["nano", "vit", "dasiamrpn", "csrt", "kcf", "mil", "goturn"]
+
+
+class VehicleConfig(ConfigSection):
+    id: str = Field("drone-1", min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")
+
+
+class CameraConfig(ConfigSection):
+    # V4L2 index ("0"), video file, RTSP/GStreamer URL, or a folder of frames (000001.jpg ...).
+    source: str = "0"
+    width: int = Field(640, ge=64, le=7680)
+    height: int = Field(480, ge=48, le=4320)
+    fps: float = Field(30.0, gt=0, le=240)
+    hfov_deg: float = Field(70.0, gt=1, lt=179)
+    # Negative looks down. With `stabilised` a gimbal holds this pitch against the vehicle's attitude.
+    mount_pitch_deg: float = Field(-45.0, ge=-90, le=30)
+    stabilised: bool = True
+    reconnect_interval_s: float = Field(1.0, gt=0, le=60)
+
+
+class TrackerConfig(ConfigSection):
+    name: TrackerName = "nano"
+    model_dir: str = ""  # empty: --model-dir, then $CLOUDTRACK_MODEL_DIR, then the user cache
+    # t_c per tracker: re-initialise below this score (paper's best values for nano, vit, dasiamrpn).
+    score_threshold: dict[str, float] = Field(
+        default_factory=lambda: {"nano": 0.7, "vit": 0.4, "dasiamrpn": 0.9}
+    )
+    max_jump_fraction: float = Field(0.35, gt=0, le=2.0)  # centre jump per frame, fraction of image diagonal
+    min_box_px: float = Field(4.0, ge=1)
+    appearance_drift_threshold: float = Field(0.5, ge=0, le=1)
+    ring_buffer_frames: int = Field(90, ge=1, le=1000)
+    max_fast_forward_frames: int = Field(45, ge=0, le=1000)
+
+
+class BackendConfig(ConfigSection):
+    url: str = "http://127.0.0.1:8080"
+    token: str = ""  # prefer the environment variable CLOUDTRACK_BACKEND__TOKEN
+    keyframe_interval_s: float = Field(1.0, gt=0, le=60)
+    jpeg_quality: int = Field(80, ge=10, le=100)
+    max_keyframe_width: int = Field(640, ge=64, le=4096)
+    timeout_s: float = Field(5.0, gt=0, le=120)
+    superset: str = ""  # empty: derived from the prompt by the back-end
+
+
+class MavlinkConfig(ConfigSection):
+    # serial:/dev/ttyAMA0:921600, udpin:0.0.0.0:14540, udpout:127.0.0.1:14550, tcp:127.0.0.1:5760
+    connection: str = "udpin:0.0.0.0:14540"
+    target_system: int = Field(1, ge=1, le=255)
+    source_component: int = Field(191, ge=1, le=255)  # MAV_COMP_ID_ONBOARD_COMPUTER
+    autopilot: Literal["auto", "ardupilot", "px4"] = "auto"
+    setpoint_rate_hz: float = Field(15.0, ge=10, le=20)
+    telemetry_rate_hz: float = Field(10.0, gt=0, le=50)
+    # ArduPilot hold: zero velocity in GUIDED, or switch to BRAKE or LOITER. PX4 always uses HOLD.
+    ardupilot_hold: Literal["guided_zero", "brake", "loiter"] = "guided_zero"
+    signing_key: str = ""  # 64 hex chars (32 bytes); prefer CLOUDTRACK_MAVLINK__SIGNING_KEY
+    use_mavsdk: bool = False
+    mavsdk_address: str = "udp://:14541"
+
+
+class SafetyConfig(ConfigSection):
+    """The one place every motion limit lives; the control law's output is clamped to these."""
+
+    max_speed_m_s: float = Field(3.0, gt=0, le=15)
+    max_vertical_speed_m_s: float = Field(1.0, ge=0, le=5)
+    max_yaw_rate_deg_s: float = Field(45.0, gt=0, le=180)
+    min_altitude_m: float = Field(5.0, ge=1, le=500)
+    max_altitude_m: float = Field(60.0, ge=2, le=1000)
+    frame_stale_s: float = Field(0.5, gt=0, le=10)
+    backend_lost_s: float = Field(10.0, gt=0, le=600)
+    heartbeat_timeout_s: float = Field(2.0, gt=0, le=30)
+    loop_stall_s: float = Field(0.5, gt=0, le=10)
+
+    @model_validator(mode="after")
+    def _altitude_band(self) -> SafetyConfig:
+        if self.min_altitude_m >= self.max_altitude_m:
+            raise ValueError(
+                f"min_altitude_m ({self.min_altitude_m}) must be below max_altitude_m ({self.max_altitude_m})"
+            )
+        return self
+
+
+class BehaviorConfig(ConfigSection):
+    standoff_m: float = Field(12.0, gt=1, le=200)
+    search_yaw_rate_deg_s: float = Field(0.0, ge=0, le=30)
+    reverify_interval_s: float = Field(10.0, gt=0, le=600)
+    lost_hold_after_s: float = Field(1.0, ge=0, le=60)
+    lost_action_after_s: float = Field(30.0, gt=0, le=3600)
+    lost_action: Literal["hold", "loiter", "rtl", "land"] = "hold"
+    on_confirm: Literal["follow", "hold", "orbit"] = "follow"
+    orbit_speed_m_s: float = Field(1.0, gt=0, le=10)
+
+
+class ControlConfig(ConfigSection):
+    yaw_kp: float = Field(1.2, ge=0)
+    yaw_ki: float = Field(0.05, ge=0)
+    forward_kp: float = Field(0.4, ge=0)
+    forward_ki: float = Field(0.02, ge=0)
+    lateral_kp: float = Field(0.0, ge=0)
+    yaw_dead_band_deg: float = Field(1.5, ge=0, le=30)
+    distance_dead_band_m: float = Field(0.5, ge=0, le=20)
+    filter_time_constant_s: float = Field(0.15, ge=0, le=5)
+    max_accel_m_s2: float = Field(2.0, gt=0, le=20)
+    max_yaw_accel_deg_s2: float = Field(90.0, gt=0, le=1000)
+
+
+class RecordingConfig(ConfigSection):
+    enabled: bool = True
+    dir: str = "~/.local/share/cloudtrack/records"
+    max_bytes: int = Field(2_000_000_000, ge=1_000_000)
+    video: bool = False
+
+
+class CompanionConfig(ConfigSection):
+    vehicle: VehicleConfig = VehicleConfig()
+    camera: CameraConfig = CameraConfig()
+    tracker: TrackerConfig = TrackerConfig()
+    backend: BackendConfig = BackendConfig()
+    mavlink: MavlinkConfig = MavlinkConfig()
+    safety: SafetyConfig = SafetyConfig()
+    behavior: BehaviorConfig = BehaviorConfig()
+    control: ControlConfig = ControlConfig()
+    recording: RecordingConfig = RecordingConfig()

@@ -1,0 +1,65 @@
+"""`cloudtrack-companion config check|show`: validate a configuration file or print the effective values."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from cloudtrack.config_files import ConfigError, dump_toml, load_config
+from companion.config import CompanionConfig
+
+
+def add_config_flags(parser: argparse.ArgumentParser) -> None:
+    """--config and --set, shared by every subcommand that reads the configuration."""
+    parser.add_argument("--config", type=Path, help="TOML file (defaults: config/companion.toml)")
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help="override one value, e.g. --set safety.max_speed_m_s=2.5 (repeatable)",
+    )
+
+
+def load_from_args(args: argparse.Namespace) -> CompanionConfig:
+    return load_config(CompanionConfig, args.config, assignments=args.set)
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    parser = subparsers.add_parser(
+        "config",
+        help="check a configuration file or show the effective configuration",
+        description="Validate configuration. Exit status 2 names the file, key and what is allowed.",
+        epilog="examples:\n  cloudtrack-companion config check companion.toml\n"
+        "  CLOUDTRACK_SAFETY__MAX_SPEED_M_S=2 cloudtrack-companion config show",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    actions = parser.add_subparsers(dest="action", required=True, metavar="ACTION")
+    check = actions.add_parser("check", help="validate FILE (with environment and --set overrides)")
+    check.add_argument("file", type=Path)
+    check.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
+    check.set_defaults(func=_check)
+    show = actions.add_parser("show", help="print the effective configuration as TOML")
+    add_config_flags(show)
+    show.set_defaults(func=_show)
+
+
+def _check(args: argparse.Namespace) -> int:
+    try:
+        load_config(CompanionConfig, args.file, assignments=args.set)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(f"{args.file}: ok")
+    return 0
+
+
+def _show(args: argparse.Namespace) -> int:
+    try:
+        config = load_from_args(args)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(dump_toml(config))
+    return 0

@@ -1,0 +1,91 @@
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from cloudtrack.model_store import (
+    REGISTRY,
+    FileStatus,
+    ModelError,
+    download,
+    file_status,
+    require,
+    resolve_model_dir,
+)
+
+
+def test_shared_models_verify(models_dir: Path) -> None:
+    for name in ("nano", "vit", "yolox"):
+        for mf in REGISTRY[name].files:
+            assert file_status(models_dir, mf) is FileStatus.VERIFIED, mf.relpath
+        assert all(p.is_file() for p in require(name, models_dir).values())
+
+
+def test_lookup_order(tmp_path: Path) -> None:
+    assert resolve_model_dir("/flag", {"CLOUDTRACK_MODEL_DIR": "/env"}) == Path("/flag")
+    assert resolve_model_dir(None, {"CLOUDTRACK_MODEL_DIR": "/env"}) == Path("/env")
+    cache = resolve_model_dir(None, {})
+    assert cache.parts[-2:] == ("cloudtrack", "models")
+
+
+def test_missing_and_user_supplied_errors_name_file_and_fix(tmp_path: Path) -> None:
+    with pytest.raises(ModelError) as info:
+        require("nano", tmp_path)
+    assert "nanotrack_backbone_sim.onnx" in str(info.value)
+    assert "cloudtrack-companion models download nano" in str(info.value)
+    with pytest.raises(ModelError, match="dasiamrpn_model.onnx"):
+        require("dasiamrpn", tmp_path)
+
+
+def _corrupt_copy(models_dir: Path, tmp_path: Path) -> Path:
+    copy = tmp_path / "models"
+    shutil.copytree(models_dir, copy)
+    target = copy / "vittrack" / "object_tracking_vittrack_2023sep.onnx"
+    target.chmod(0o644)
+    data = bytearray(target.read_bytes())
+    data[1000] ^= 0xFF
+    target.write_bytes(bytes(data))
+    return copy
+
+
+def test_one_flipped_byte_is_corrupt(models_dir: Path, tmp_path: Path) -> None:
+    copy = _corrupt_copy(models_dir, tmp_path)
+    with pytest.raises(ModelError, match="corrupt"):
+        require("vit", copy)
+    assert require("nano", copy)
+
+
+def test_models_list_cli(models_dir: Path, tmp_path: Path) -> None:
+    cmd = [sys.executable, "-m", "companion.cli", "models", "list", "--model-dir"]
+    ok = subprocess.run([*cmd, str(models_dir)], capture_output=True, text=True)
+    assert ok.returncode == 0, ok.stderr
+    for name in ("nano", "vit", "yolox"):
+        assert any(line.split()[:2] == [name, "present+verified"] for line in ok.stdout.splitlines() if line.strip())
+    bad = subprocess.run([*cmd, str(_corrupt_copy(models_dir, tmp_path))], capture_output=True, text=True)
+    assert bad.returncode != 0
+    corrupt_lines = [line for line in bad.stdout.splitlines() if "corrupt" in line]
+    assert len(corrupt_lines) == 1 and "object_tracking_vittrack_2023sep.onnx" in corrupt_lines[0]
+
+
+def test_download_verifies_and_writes_atomically(models_dir: Path, tmp_path: Path) -> None:
+    source = {mf.url: models_dir / mf.relpath for mf in REGISTRY["nano"].files}
+
+    def fetch(url: str, dest: Path) -> None:
+        shutil.copyfile(source[url], dest)
+
+    written = download("nano", tmp_path, fetch=fetch)
+    assert len(written) == 2 and require("nano", tmp_path)
+    assert download("nano", tmp_path, fetch=fetch) == []  # already verified: nothing fetched
+
+
+def test_download_with_wrong_bytes_installs_nothing(tmp_path: Path) -> None:
+    def fetch(url: str, dest: Path) -> None:
+        dest.write_bytes(b"not a model")
+
+    with pytest.raises(ModelError, match="does not match sha256"):
+        download("vit", tmp_path, fetch=fetch)
+    assert not any(tmp_path.rglob("*.onnx")) and not any(tmp_path.rglob("*.part"))
