@@ -1,0 +1,115 @@
+"""YOLOX-nano through onnxruntime: the back-end's offline superset detector (COCO-80 classes).
+
+Pre-processing follows the upstream release: BGR 0-255 float, letterboxed into the top-left corner of a
+416x416 canvas filled with 114, no normalisation. The 2022 export outputs raw grid predictions
+(1, 3549, 85) that are decoded here: strides 8/16/32, centre = (grid + offset) * stride,
+size = exp(log-size) * stride, score = objectness * class probability, then per-class NMS.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import cv2
+import numpy as np
+import onnxruntime as ort
+
+from backend.supersets import COCO_CLASSES, coco_classes_for
+from behaviors.detection import Detection
+from behaviors.geometry import Box
+
+STRIDES = (8, 16, 32)
+PAD_VALUE = 114
+
+
+def _grids(size: int) -> tuple[np.ndarray, np.ndarray]:
+    """Grid cell coordinates and strides for every output row, in the export's order."""
+    cells, strides = [], []
+    for stride in STRIDES:
+        n = size // stride
+        ys, xs = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+        cells.append(np.stack((xs, ys), axis=-1).reshape(-1, 2))
+        strides.append(np.full((n * n, 1), stride))
+    return np.concatenate(cells).astype(np.float32), np.concatenate(strides).astype(np.float32)
+
+
+def nms(boxes_xyxy: np.ndarray, scores: np.ndarray, iou_threshold: float) -> list[int]:
+    """Indices kept by greedy non-maximum suppression, highest score first."""
+    order = np.argsort(-scores, kind="stable")
+    x1, y1, x2, y2 = boxes_xyxy.T
+    areas = np.maximum(0, x2 - x1) * np.maximum(0, y2 - y1)
+    keep: list[int] = []
+    while order.size:
+        i = int(order[0])
+        keep.append(i)
+        rest = order[1:]
+        iw = np.maximum(0, np.minimum(x2[i], x2[rest]) - np.maximum(x1[i], x1[rest]))
+        ih = np.maximum(0, np.minimum(y2[i], y2[rest]) - np.maximum(y1[i], y1[rest]))
+        inter = iw * ih
+        union = areas[i] + areas[rest] - inter
+        overlap = np.where(union > 0, inter / np.maximum(union, 1e-9), 0)
+        order = rest[overlap <= iou_threshold]
+    return keep
+
+
+class YoloxDetector:
+    """`detect(image_bgr, classes)` -> detections in the image's pixels, best first."""
+
+    name = "yolox_nano"
+
+    def __init__(
+        self,
+        model_path: str | Path,
+        score_threshold: float = 0.3,
+        nms_threshold: float = 0.45,
+        input_size: int = 416,
+        threads: int = 0,
+    ) -> None:
+        options = ort.SessionOptions()
+        options.intra_op_num_threads = threads  # 0: onnxruntime's default (all cores)
+        self._session = ort.InferenceSession(str(model_path), options, providers=["CPUExecutionProvider"])
+        self._input_name = self._session.get_inputs()[0].name
+        self.input_size = input_size
+        self.score_threshold = score_threshold
+        self.nms_threshold = nms_threshold
+        self._grid, self._stride = _grids(input_size)
+
+    def _letterbox(self, image_bgr: np.ndarray) -> tuple[np.ndarray, float]:
+        h, w = image_bgr.shape[:2]
+        ratio = min(self.input_size / h, self.input_size / w)
+        nh, nw = max(1, int(round(h * ratio))), max(1, int(round(w * ratio)))
+        canvas = np.full((self.input_size, self.input_size, 3), PAD_VALUE, dtype=np.uint8)
+        canvas[:nh, :nw] = cv2.resize(image_bgr, (nw, nh), interpolation=cv2.INTER_LINEAR)
+        blob = canvas.transpose(2, 0, 1)[None].astype(np.float32)
+        return blob, ratio
+
+    def detect(
+        self, image_bgr: np.ndarray, classes: Sequence[str], frame_id: int | None = None
+    ) -> list[Detection]:
+        if image_bgr.ndim != 3 or image_bgr.shape[2] != 3:
+            raise ValueError(f"expected a BGR image H x W x 3, got shape {image_bgr.shape}")
+        wanted = sorted({COCO_CLASSES.index(c) for name in classes for c in coco_classes_for(name)})
+        blob, ratio = self._letterbox(image_bgr)
+        raw = self._session.run(None, {self._input_name: blob})[0][0]
+        centres = (raw[:, :2] + self._grid) * self._stride
+        sizes = np.exp(np.clip(raw[:, 2:4], -10, 10)) * self._stride
+        class_scores = raw[:, 4:5] * raw[:, 5:][:, wanted]
+        best = class_scores.argmax(axis=1)
+        scores = class_scores[np.arange(len(best)), best]
+        mask = scores >= self.score_threshold
+        if not mask.any():
+            return []
+        centres, sizes, scores, labels = centres[mask], sizes[mask], scores[mask], np.asarray(wanted)[best[mask]]
+        xyxy = np.concatenate((centres - sizes / 2, centres + sizes / 2), axis=1) / ratio
+        h, w = image_bgr.shape[:2]
+        xyxy = np.clip(xyxy, 0, [w, h, w, h])
+        # Class-aware NMS: offset each class so boxes of different classes never suppress each other.
+        offsets = labels[:, None].astype(np.float32) * (max(w, h) + 1)
+        keep = nms(xyxy + offsets, scores, self.nms_threshold)
+        detections = []
+        for i in keep:
+            box = Box.from_xyxy(*(float(v) for v in xyxy[i]))
+            if box.w >= 1 and box.h >= 1:
+                detections.append(Detection(box=box, score=float(scores[i]), label=COCO_CLASSES[int(labels[i])]))
+        return detections
