@@ -40,9 +40,17 @@ class TrackerConfig(ConfigSection):
     )
     max_jump_fraction: float = Field(0.35, gt=0, le=2.0)  # centre jump per frame, fraction of image diagonal
     min_box_px: float = Field(4.0, ge=1)
-    appearance_drift_threshold: float = Field(0.5, ge=0, le=1)
+    appearance_drift_threshold: float = Field(0.6, ge=0, le=1)
     ring_buffer_frames: int = Field(90, ge=1, le=1000)
     max_fast_forward_frames: int = Field(45, ge=0, le=1000)
+    max_jump_box_sizes: float = Field(1.5, gt=0, le=20)  # centre jump per frame, in box sizes (sqrt area)
+    max_scale_change: float = Field(3.0, gt=1, le=100)  # box area ratio per frame beyond which it "collapsed"
+    min_visible_fraction: float = Field(0.5, ge=0, le=1)  # less of the box inside the image: "left_frame"
+    catch_up_per_frame: int = Field(4, ge=1, le=100)  # fast-forward updates per live frame after a re-init
+    # Loss signals in use: tracker_failed, score, left_frame, collapsed, jump, appearance.
+    loss_signals: list[str] = Field(
+        default_factory=lambda: ["tracker_failed", "score", "left_frame", "collapsed", "jump", "appearance"]
+    )
 
 
 class BackendConfig(ConfigSection):
