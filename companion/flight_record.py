@@ -1,0 +1,351 @@
+"""The flight record: one folder per mission, size-capped, that never stops the companion.
+
+A mission folder `<dir>/<UTC start>_<vehicle>_<mission>/` holds:
+  events.jsonl        one JSON object per line: {"t": UTC seconds, "kind": ..., ...fields}; state changes,
+                      back-end answers, supervisor decisions, safety events and the behaviour steps that
+                      `cloudtrack-companion replay` re-runs
+  mavlink-NNN.tlog    every MAVLink message in the tlog format MAVProxy writes and pymavlink reads
+                      (8-byte big-endian microseconds since the epoch, then the raw message)
+  keyframes/NNNNNN.jpg  the keyframes sent to the back-end (the event log names them)
+  video-NNN.mp4       optional camera video with the track box and state drawn on it
+
+Size cap: the records directory as a whole (all missions) stays under `max_bytes`. Over the cap the
+oldest data goes first: whole older missions, then this mission's oldest keyframes and closed tlog/video
+segments. The event log of the running mission is never rotated away. If the cap or the disk leaves no
+room (ENOSPC, read-only, too little free space) recording stops with one warning and every later call
+is a no-op; a flight must never end because its recorder failed.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import re
+import shutil
+import struct
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import IO, Any, Protocol
+
+import numpy as np
+
+from behaviors.geometry import Box
+
+log = logging.getLogger(__name__)
+
+EVENTS_FILE = "events.jsonl"
+KEYFRAMES_DIR = "keyframes"
+# Below this much free space on the file system the recorder stops, leaving room for the OS and its logs.
+DEFAULT_MIN_FREE_BYTES = 64 * 1024 * 1024
+_FREE_CHECK_EVERY_BYTES = 1024 * 1024
+_TLOG_FLUSH_S = 1.0
+
+
+class MissionRecord(Protocol):
+    """What the companion's main loop writes to; `FlightRecorder` is the implementation."""
+
+    def event(self, kind: str, **fields: Any) -> None: ...
+
+    def mavlink(self, raw: bytes, time_s: float | None = None) -> None: ...
+
+    def keyframe(self, jpeg: bytes, frame_id: int) -> str | None: ...
+
+    def video_frame(self, image: np.ndarray, box: Box | None, state: str) -> None: ...
+
+    def close(self) -> None: ...
+
+
+def _safe_name(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "-", text).strip("-")[:48] or "mission"
+
+
+def _tree_size(path: Path) -> int:
+    total = 0
+    for root, _, files in os.walk(path):
+        for name in files:
+            with contextlib.suppress(OSError):  # a file rotated away while we walk
+                total += os.lstat(os.path.join(root, name)).st_size
+    return total
+
+
+class FlightRecorder:
+    """Writes one mission's record. Thread-safe: the main loop and the back-end worker both write events."""
+
+    def __init__(
+        self,
+        root: Path,
+        vehicle_id: str,
+        mission_id: str,
+        max_bytes: int,
+        *,
+        video: bool = False,
+        video_fps: float = 10.0,
+        min_free_bytes: int = DEFAULT_MIN_FREE_BYTES,
+        clock: Callable[[], float] = time.time,
+    ) -> None:
+        self.max_bytes = max_bytes
+        self.segment_bytes = max(4096, max_bytes // 16)
+        self.min_free_bytes = min_free_bytes
+        self._clock = clock
+        self._lock = threading.Lock()
+        self._active = True
+        self._events: IO[str] | None = None
+        self._tlog: IO[bytes] | None = None
+        self._tlog_index = 0
+        self._tlog_bytes = 0
+        self._tlog_flushed = 0.0
+        self._video_wanted = video
+        self._video_fps = video_fps
+        self._video: Any = None  # cv2.VideoWriter, imported only when video is on
+        self._video_index = 0
+        self._video_frames = 0
+        # Oldest first: files of this mission that rotation may delete (closed segments, keyframes).
+        self._rotatable: deque[Path] = deque()
+        self._since_free_check = 0
+        self.root = Path(root).expanduser()
+        started = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime(clock()))
+        self.folder = self.root / f"{started}_{_safe_name(vehicle_id)}_{_safe_name(mission_id)}"
+        try:
+            (self.folder / KEYFRAMES_DIR).mkdir(parents=True, exist_ok=True)
+            self._used = _tree_size(self.root)
+            self._events = open(self.folder / EVENTS_FILE, "a", encoding="utf-8")  # noqa: SIM115 - lives as long as the mission
+            self._check_free_space()
+        except OSError as exc:
+            self._stop(f"cannot create {self.folder}: {exc}")
+            return
+        self._write_event({"kind": "recording_started", "vehicle": vehicle_id, "mission": mission_id})
+
+    @property
+    def active(self) -> bool:
+        """False once recording has stopped (disabled, disk full, cap reached, closed)."""
+        return self._active
+
+    # --- public writers -------------------------------------------------------------------------
+
+    def event(self, kind: str, **fields: Any) -> None:
+        """One line of the event log, stamped with the wall-clock time."""
+        with self._lock:
+            if self._active:
+                self._write_event({"kind": kind, **fields})
+
+    def mavlink(self, raw: bytes, time_s: float | None = None) -> None:
+        """One MAVLink message as received or sent (e.g. `msg.get_msgbuf()`)."""
+        with self._lock:
+            if not self._active:
+                return
+            stamp = self._clock() if time_s is None else time_s
+            record = struct.pack(">Q", int(stamp * 1e6)) + bytes(raw)
+            try:
+                if self._tlog is None or self._tlog_bytes >= self.segment_bytes:
+                    self._roll_tlog()
+                assert self._tlog is not None
+                self._tlog.write(record)
+                self._tlog_bytes += len(record)
+                # Flushed about once a second: a power cut loses at most that much telemetry.
+                now = time.monotonic()
+                if now - self._tlog_flushed >= _TLOG_FLUSH_S:
+                    self._tlog.flush()
+                    self._tlog_flushed = now
+            except OSError as exc:
+                self._stop(f"tlog write failed: {exc}")
+                return
+            self._account(len(record))
+
+    def keyframe(self, jpeg: bytes, frame_id: int) -> str | None:
+        """Store a keyframe sent to the back-end; returns its path relative to the mission folder."""
+        with self._lock:
+            if not self._active:
+                return None
+            relative = f"{KEYFRAMES_DIR}/{frame_id:06d}.jpg"
+            path = self.folder / relative
+            try:
+                path.write_bytes(jpeg)
+            except OSError as exc:
+                path.unlink(missing_ok=True)
+                self._stop(f"keyframe write failed: {exc}")
+                return None
+            self._rotatable.append(path)
+            self._write_event({"kind": "keyframe", "frame_id": frame_id, "file": relative, "bytes": len(jpeg)})
+            self._account(len(jpeg))
+            return relative if self._active else None
+
+    def video_frame(self, image: np.ndarray, box: Box | None, state: str) -> None:
+        """One camera frame for the overlay video (no-op unless video was asked for)."""
+        with self._lock:
+            if not (self._active and self._video_wanted):
+                return
+            try:
+                self._write_video(image, box, state)
+            except (OSError, ValueError) as exc:
+                self._stop(f"video write failed: {exc}")
+
+    def close(self) -> None:
+        """Flush and close everything; safe to call twice and after a failure."""
+        with self._lock:
+            if self._active:
+                self._write_event({"kind": "recording_closed"})
+            self._close_files()
+            self._active = False
+
+    # --- internals (called with the lock held) --------------------------------------------------
+
+    def _write_event(self, entry: Mapping[str, Any]) -> None:
+        line = json.dumps({"t": round(self._clock(), 6), **entry}, default=str, separators=(",", ":")) + "\n"
+        try:
+            assert self._events is not None
+            self._events.write(line)
+            self._events.flush()  # events are rare and precious: on disk before the next one
+        except OSError as exc:
+            self._stop(f"event log write failed: {exc}")
+            return
+        self._account(len(line.encode()))
+
+    def _roll_tlog(self) -> None:
+        if self._tlog is not None:
+            self._tlog.close()
+            self._rotatable.append(self.folder / f"mavlink-{self._tlog_index:03d}.tlog")
+            self._tlog_index += 1
+        self._tlog = open(self.folder / f"mavlink-{self._tlog_index:03d}.tlog", "ab")  # noqa: SIM115 - one segment
+        self._tlog_bytes = 0
+
+    def _write_video(self, image: np.ndarray, box: Box | None, state: str) -> None:
+        import cv2
+
+        height, width = image.shape[:2]
+        path = self.folder / f"video-{self._video_index:03d}.mp4"
+        if self._video is not None and self._video_frames % 30 == 0 and path.stat().st_size >= self.segment_bytes:
+            self._video.release()
+            self._rotatable.append(path)
+            self._video_index += 1
+            self._video = None
+            path = self.folder / f"video-{self._video_index:03d}.mp4"
+        if self._video is None:
+            self._video = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"mp4v"), self._video_fps, (width, height))
+            if not self._video.isOpened():
+                raise OSError(f"cannot open {path} for video")
+            self._video_frames = 0
+        frame = image.copy()
+        if box is not None and box.is_valid():
+            x1, y1, x2, y2 = (int(round(v)) for v in box.xyxy())
+            cv2.rectangle(frame, (x1, y1), (x2, y2), (0, 255, 0), 2)
+        stamp = time.strftime("%H:%M:%S", time.gmtime(self._clock()))
+        cv2.putText(frame, f"{stamp} {state}", (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 255, 255), 2)
+        self._video.write(frame)
+        self._video_frames += 1
+        if self._video_frames % 30 == 0:
+            self._used = _tree_size(self.root)  # the encoder's output size is known only on disk
+            self._enforce_cap()
+
+    def _account(self, written: int) -> None:
+        self._used += written
+        self._since_free_check += written
+        if self._since_free_check >= _FREE_CHECK_EVERY_BYTES:
+            self._since_free_check = 0
+            try:
+                self._check_free_space()
+            except OSError as exc:
+                self._stop(str(exc))
+                return
+        if self._used > self.max_bytes:
+            self._enforce_cap()
+
+    def _check_free_space(self) -> None:
+        free = shutil.disk_usage(self.root).free
+        if free < self.min_free_bytes:
+            raise OSError(f"only {free} bytes free on {self.root} (need {self.min_free_bytes})")
+
+    def _enforce_cap(self) -> None:
+        for victim in self._older_missions():
+            if self._used <= self.max_bytes:
+                return
+            size = _tree_size(victim)
+            shutil.rmtree(victim, ignore_errors=True)
+            self._used -= size
+            log.info("flight record: removed old mission %s (%d bytes) to stay under the cap", victim.name, size)
+        while self._used > self.max_bytes and self._rotatable:
+            victim_file = self._rotatable.popleft()
+            try:
+                size = victim_file.stat().st_size
+                victim_file.unlink()
+            except OSError:
+                continue
+            self._used -= size
+        if self._used > self.max_bytes:
+            self._stop(f"size cap of {self.max_bytes} bytes reached with nothing left to rotate")
+
+    def _older_missions(self) -> list[Path]:
+        """Other mission folders (ours: they hold an event log), oldest first by their UTC-stamped names."""
+        try:
+            folders = [p for p in self.root.iterdir() if p.is_dir() and p != self.folder and (p / EVENTS_FILE).exists()]
+        except OSError:
+            return []
+        return sorted(folders, key=lambda p: p.name)
+
+    def _stop(self, reason: str) -> None:
+        if self._active:
+            log.warning("flight record stopped, the mission continues without recording: %s", reason)
+        self._active = False
+        self._close_files()
+
+    def _close_files(self) -> None:
+        # Closing flushes, which a full disk may refuse too.
+        if self._events is not None:
+            with contextlib.suppress(OSError):
+                self._events.close()
+        if self._tlog is not None:
+            with contextlib.suppress(OSError):
+                self._tlog.close()
+        if self._video is not None:
+            self._video.release()
+        self._events = None
+        self._tlog = None
+        self._video = None
+
+
+class NoRecord:
+    """The record when recording is disabled: every call does nothing."""
+
+    active = False
+
+    def event(self, kind: str, **fields: Any) -> None:
+        pass
+
+    def mavlink(self, raw: bytes, time_s: float | None = None) -> None:
+        pass
+
+    def keyframe(self, jpeg: bytes, frame_id: int) -> str | None:
+        return None
+
+    def video_frame(self, image: np.ndarray, box: Box | None, state: str) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def open_record(
+    enabled: bool, directory: str, max_bytes: int, video: bool, vehicle_id: str, mission_id: str
+) -> FlightRecorder | NoRecord:
+    """The record for a mission from the `[recording]` configuration values."""
+    if not enabled:
+        return NoRecord()
+    return FlightRecorder(Path(directory), vehicle_id, mission_id, max_bytes, video=video)
+
+
+def read_events(folder: Path) -> list[dict[str, Any]]:
+    """The event log of a mission folder; a line cut short by a power loss is skipped, not fatal."""
+    events: list[dict[str, Any]] = []
+    with open(folder / EVENTS_FILE, encoding="utf-8") as f:
+        for line in f:
+            try:
+                entry = json.loads(line)
+            except json.JSONDecodeError:
+                continue
+            if isinstance(entry, dict):
+                events.append(entry)
+    return events
