@@ -1,0 +1,151 @@
+"""Scenario metrics from what the simulator saw: pure functions over recorded samples, no I/O.
+
+Inputs are the camera's ground truth per rendered frame, the setpoints the autopilot received, the
+companion's state changes and the safety events, all on one clock (seconds since the scenario started).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from behaviors.geometry import Box
+
+
+@dataclass(frozen=True)
+class FrameSample:
+    """One rendered frame: where the vehicle and the target were, and the target's box if it was seen."""
+
+    t: float
+    drone_north: float
+    drone_east: float
+    target_north: float
+    target_east: float
+    target_box: Box | None  # None when out of the image or hidden
+    target_visible: float = 0.0
+
+
+@dataclass(frozen=True)
+class SetpointSample:
+    t: float
+    forward: float
+    right: float
+    down: float
+    yaw_rate: float
+
+    @property
+    def horizontal_speed(self) -> float:
+        return math.hypot(self.forward, self.right)
+
+
+@dataclass(frozen=True)
+class TimedEvent:
+    """A companion state change, a safety event or a scripted action, with its time and details."""
+
+    t: float
+    kind: str
+    detail: dict[str, Any] = field(default_factory=dict)
+
+
+SAFETY_KINDS = ("hold", "stop", "watchdog", "mode_change", "link_lost", "backend_lost", "frame_stale", "abort")
+
+
+def following_intervals(states: Sequence[TimedEvent], end_t: float, following: str = "following") -> list[tuple[float, float]]:
+    """Intervals during which the companion's state was `following` (state events carry detail["state"])."""
+    out: list[tuple[float, float]] = []
+    start: float | None = None
+    for ev in sorted(states, key=lambda e: e.t):
+        is_following = str(ev.detail.get("state", "")).lower() == following
+        if is_following and start is None:
+            start = ev.t
+        elif not is_following and start is not None:
+            out.append((start, ev.t))
+            start = None
+    if start is not None:
+        out.append((start, end_t))
+    return out
+
+
+def _inside(t: float, intervals: Sequence[tuple[float, float]]) -> bool:
+    return any(a <= t <= b for a, b in intervals)
+
+
+def percentile(values: Sequence[float], q: float) -> float:
+    """Linear-interpolated percentile (q in 0..100); nan for no values."""
+    if not values:
+        return math.nan
+    s = sorted(values)
+    pos = (len(s) - 1) * q / 100.0
+    lo, hi = math.floor(pos), math.ceil(pos)
+    return s[lo] + (s[hi] - s[lo]) * (pos - lo)
+
+
+def setpoint_rate(setpoints: Sequence[SetpointSample], intervals: Sequence[tuple[float, float]]) -> float:
+    """Setpoints per second received within the intervals (0 for none)."""
+    duration = sum(b - a for a, b in intervals)
+    if duration <= 0:
+        return 0.0
+    return sum(1 for s in setpoints if _inside(s.t, intervals)) / duration
+
+
+def last_setpoint_after(setpoints: Sequence[SetpointSample], t: float) -> float | None:
+    """Seconds from t to the last setpoint received after t; None when none came after t."""
+    later = [s.t for s in setpoints if s.t > t]
+    return max(later) - t if later else None
+
+
+def first_time(events: Sequence[TimedEvent], kind: str) -> float | None:
+    times = [e.t for e in events if e.kind == kind]
+    return min(times) if times else None
+
+
+def summarise(
+    frames: Sequence[FrameSample],
+    setpoints: Sequence[SetpointSample],
+    events: Sequence[TimedEvent],
+    standoff_m: float,
+    image_size: tuple[int, int],
+    end_t: float,
+    outcome: str,
+    min_visible: float = 0.3,
+) -> dict[str, Any]:
+    """The metrics JSON of one vehicle's run (numbers rounded for reading; nan becomes None)."""
+    states = [e for e in events if e.kind == "state"]
+    follow = following_intervals(states, end_t)
+    in_follow = [f for f in frames if _inside(f.t, follow)]
+    w, h = image_size
+    seen = [
+        f for f in in_follow
+        if f.target_box is not None and f.target_visible >= min_visible
+        and 0 <= f.target_box.cx < w and 0 <= f.target_box.cy < h
+    ]
+    pixel_errors = [math.hypot(f.target_box.cx - w / 2, f.target_box.cy - h / 2) for f in seen if f.target_box]
+    standoff_errors = [
+        math.hypot(f.drone_north - f.target_north, f.drone_east - f.target_east) - standoff_m for f in in_follow
+    ]
+    speeds = [s.horizontal_speed for s in setpoints]
+    safety = [
+        {"t": round(e.t, 3), "kind": e.kind, **e.detail} for e in events if e.kind in SAFETY_KINDS
+    ]
+
+    def num(x: float | None, nd: int = 3) -> float | None:
+        return None if x is None or not math.isfinite(x) else round(x, nd)
+
+    return {
+        "outcome": outcome,
+        "time_to_first_candidate_s": num(first_time(events, "candidate")),
+        "time_to_confirmation_s": num(first_time(events, "confirmed")),
+        "follow_time_s": num(sum(b - a for a, b in follow)),
+        "target_in_view_ratio": num(len(seen) / len(in_follow)) if in_follow else None,
+        "pixel_error_mean_px": num(sum(pixel_errors) / len(pixel_errors), 1) if pixel_errors else None,
+        "pixel_error_p95_px": num(percentile(pixel_errors, 95), 1) if pixel_errors else None,
+        "standoff_rmse_m": num(math.sqrt(sum(e * e for e in standoff_errors) / len(standoff_errors)))
+        if standoff_errors else None,
+        "max_commanded_speed_m_s": num(max(speeds)) if speeds else 0.0,
+        "reinits": sum(1 for e in events if e.kind == "reinit"),
+        "setpoint_rate_hz": num(setpoint_rate(setpoints, follow), 1),
+        "setpoints_received": len(setpoints),
+        "safety_events": safety,
+    }

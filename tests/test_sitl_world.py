@@ -1,0 +1,188 @@
+"""The SITL world, camera renderer, frame transport, simulated detector and metrics."""
+
+from __future__ import annotations
+
+import math
+import socket
+import struct
+import time
+
+import cv2
+import numpy as np
+import pytest
+
+from behaviors.camera_model import CameraModel
+from behaviors.geometry import Box
+from sitl.camera_render import Projector, Renderer, VehiclePose, read_timecode
+from sitl.camera_server import CameraServer
+from sitl.frame_transport import HEADER, FrameStreamError, FrameStreamReader, encode_frame, parse_url
+from sitl.metrics import FrameSample, SetpointSample, TimedEvent, last_setpoint_after, percentile, summarise
+from sitl.simulated_detector import DetectorNoise, SimulatedPersonDetector
+from sitl.world import CLOTHING, Person, distractor_world
+
+CAMERA = CameraModel.from_hfov(640, 480, 70.0, -45.0)
+BEHIND = VehiclePose(8.0, 0.0, -10.0)  # 12 m behind the target's start, 10 m up, facing north
+
+
+@pytest.fixture(scope="module")
+def world_and_renderer():
+    world = distractor_world(seed=3, occluder_at_m=15.0)
+    return world, Renderer(world, CAMERA)
+
+
+def test_world_is_deterministic_and_people_walk_at_their_speed() -> None:
+    a, b = distractor_world(seed=7), distractor_world(seed=7)
+    assert a == b
+    assert distractor_world(seed=8).people != a.people
+    target = a.person("target")
+    n0, e0, _ = target.state_at(0.0)
+    n1, e1, heading = target.state_at(10.0)
+    assert math.dist((n0, e0), (n1, e1)) == pytest.approx(15.0, abs=1e-6)
+    assert heading == pytest.approx(0.0)
+    shirts = [p.shirt for p in a.people]
+    assert len(set(shirts)) == len(shirts)
+    assert {p.pose for p in a.people} == {"standing", "sitting", "lying"}
+
+
+def test_person_stops_at_end_and_loops() -> None:
+    p = Person("p", "red", waypoints=((0.0, 0.0), (3.0, 0.0)), speed=1.0)
+    assert p.state_at(100.0)[:2] == (3.0, 0.0)
+    looping = Person("q", "red", waypoints=((0.0, 0.0), (3.0, 0.0)), speed=1.0, loop=True)
+    assert looping.state_at(6.0)[:2] == pytest.approx((0.0, 0.0))
+    assert looping.state_at(4.5)[0] == pytest.approx(1.5)
+
+
+def test_render_draws_every_person_with_a_box_and_the_shirt_colour_in_it(world_and_renderer) -> None:
+    world, renderer = world_and_renderer
+    frame = renderer.render(BEHIND, 0.0, 42)
+    assert frame.image.shape == (480, 640, 3)
+    ids = {tb.person_id for tb in frame.truth}
+    assert ids == {p.person_id for p in world.people}
+    for tb in frame.truth:
+        assert tb.visible > 0.8
+        crop = frame.image[int(tb.box.y) : int(tb.box.y2), int(tb.box.x) : int(tb.box.x2)].reshape(-1, 3).astype(int)
+        shirt = np.array(CLOTHING[tb.shirt])
+        # The torso is painted in the shirt colour: many pixels of the box are that colour.
+        close = np.count_nonzero(np.abs(crop - shirt).sum(axis=1) < 40)
+        assert close >= 0.1 * len(crop), (tb.person_id, close, len(crop))
+    target = next(tb for tb in frame.truth if tb.person_id == "target")
+    # The target is straight ahead, so its box straddles the image's vertical centre line.
+    assert target.box.x < 320 < target.box.x2
+
+
+def test_projection_puts_a_point_on_the_optical_axis_in_the_image_centre() -> None:
+    pose = VehiclePose(0.0, 0.0, -10.0, yaw=math.radians(30))
+    proj = Projector(CAMERA, pose)
+    along = 10.0  # 45 degrees down from 10 m: the axis meets the ground 10 m ahead
+    pt = np.array([[along * math.cos(math.radians(30)), along * math.sin(math.radians(30)), 0.0]])
+    pix, depth = proj.project(pt)
+    assert pix[0] == pytest.approx([320.0, 240.0], abs=1e-6)
+    assert depth[0] == pytest.approx(math.hypot(10, 10))
+
+
+def test_target_under_the_roof_is_reported_hidden(world_and_renderer) -> None:
+    _, renderer = world_and_renderer
+    t = 11.5  # target walked 17 m: under the roof spanning 12.5..17.5 m
+    n = 20.0 + 1.5 * t
+    frame = renderer.render(VehiclePose(n - 12.0, 0.0, -10.0), t, 1)
+    target = next((tb for tb in frame.truth if tb.person_id == "target"), None)
+    assert target is not None and target.visible < 0.2
+
+
+def test_level_camera_sees_sky_above_the_horizon() -> None:
+    import dataclasses
+
+    level = dataclasses.replace(CAMERA, mount_pitch=0.0)
+    frame = Renderer(distractor_world(seed=1), level).render(VehiclePose(0, 0, -10), 0.0, 1)
+    assert tuple(int(c) for c in frame.image[10, 320]) == (215, 190, 160)
+    assert tuple(int(c) for c in frame.image[400, 320]) != (215, 190, 160)
+
+
+def test_timecode_survives_jpeg_and_scaling() -> None:
+    frame = Renderer(distractor_world(seed=2), CAMERA).render(BEHIND, 0.0, 0xABCDE)
+    assert read_timecode(frame.image) == 0xABCDE
+    ok, jpg = cv2.imencode(".jpg", frame.image, [cv2.IMWRITE_JPEG_QUALITY, 50])
+    assert ok and read_timecode(cv2.imdecode(jpg, cv2.IMREAD_COLOR)) == 0xABCDE
+    assert read_timecode(cv2.resize(frame.image, (320, 240)), width=640) == 0xABCDE
+
+
+def test_simulated_detector_finds_people_scales_boxes_and_refuses_other_classes(world_and_renderer) -> None:
+    from backend.supersets import UnknownSupersetError
+
+    _, renderer = world_and_renderer
+    frame = renderer.render(BEHIND, 0.0, 9)
+    exact = SimulatedPersonDetector(lambda fid: frame.truth if fid == 9 else None,
+                                    noise=DetectorNoise(miss_rate=0.0, jitter_px=0.0, false_positives=0.0))
+    found = exact.detect(frame.image, ["person"])
+    assert len(found) == len(frame.truth)
+    half = cv2.resize(frame.image, (320, 240))
+    target = next(tb for tb in frame.truth if tb.person_id == "target")
+    boxes = [d.box for d in exact.detect(half, ["person"])]
+    assert any(abs(b.cx - target.box.cx / 2) < 1.5 and abs(b.h - target.box.h / 2) < 1.5 for b in boxes)
+    with pytest.raises(UnknownSupersetError):
+        exact.detect(frame.image, ["boat"])
+    # An unknown frame (no truth) gives no boxes rather than an error.
+    assert SimulatedPersonDetector(lambda fid: None).detect(frame.image, ["person"]) == []
+    noisy = SimulatedPersonDetector(lambda fid: frame.truth, noise=DetectorNoise(miss_rate=1.0, false_positives=3.0), seed=1)
+    assert noisy.detect(frame.image, ["person"]) == noisy.detect(frame.image, ["person"])  # seeded, repeatable
+
+
+def test_camera_server_streams_frames_with_truth_and_rejects_garbage() -> None:
+    server = CameraServer(distractor_world(seed=4), CAMERA, lambda: BEHIND, fps=30.0).start()
+    try:
+        reader = FrameStreamReader(server.url)
+        first = reader.read()
+        second = reader.read()
+        assert first.image.shape == (480, 640, 3)
+        assert second.frame_id > first.frame_id
+        assert read_timecode(second.image) == second.frame_id
+        assert server.truth(second.frame_id) is not None
+        reader.close()
+    finally:
+        server.stop()
+    with pytest.raises(ValueError, match="sim\\+tcp://HOST:PORT"):
+        parse_url("http://127.0.0.1:80")
+    # A peer that speaks something else: a clear FrameStreamError, not a crash or a giant allocation.
+    listener = socket.create_server(("127.0.0.1", 0))
+    port = listener.getsockname()[1]
+    reader = FrameStreamReader(f"sim+tcp://127.0.0.1:{port}")
+    conn, _ = listener.accept()
+    conn.sendall(b"GET / HTTP/1.1\r\nHost: x\r\n\r\n".ljust(HEADER.size, b"\0"))
+    with pytest.raises(FrameStreamError, match="bad magic"):
+        reader.read()
+    conn.sendall(struct.pack("!4sIddHHI", b"CTF1", 1, 0.0, 0.0, 640, 480, 12))
+    with pytest.raises(FrameStreamError, match="bad frame header"):
+        reader.read()
+    reader.close()
+    conn.close()
+    listener.close()
+    packet = encode_frame(5, 1.0, time.time(), np.zeros((4, 6, 3), np.uint8))
+    assert len(packet) == HEADER.size + 72
+
+
+def test_metrics_summary() -> None:
+    events = [
+        TimedEvent(1.0, "candidate"),
+        TimedEvent(2.0, "state", {"state": "following"}),
+        TimedEvent(2.5, "confirmed"),
+        TimedEvent(6.0, "state", {"state": "holding"}),
+        TimedEvent(6.0, "hold", {"reason": "test"}),
+    ]
+    frames = [
+        FrameSample(t / 10, 0.0, 0.0, 13.0, 0.0, Box.from_center(330, 240, 10, 30) if t % 4 else None, 1.0)
+        for t in range(0, 80)
+    ]
+    setpoints = [SetpointSample(2.0 + i / 15, 1.0, 1.0, 0.0, 0.0) for i in range(60)]
+    m = summarise(frames, setpoints, events, standoff_m=12.0, image_size=(640, 480), end_t=8.0, outcome="ok")
+    assert m["time_to_first_candidate_s"] == 1.0
+    assert m["time_to_confirmation_s"] == 2.5
+    assert m["follow_time_s"] == 4.0
+    assert m["target_in_view_ratio"] == pytest.approx(0.75, abs=0.03)
+    assert m["pixel_error_mean_px"] == 10.0
+    assert m["standoff_rmse_m"] == 1.0
+    assert m["max_commanded_speed_m_s"] == pytest.approx(math.sqrt(2), abs=1e-3)
+    assert m["setpoint_rate_hz"] == pytest.approx(15.0, abs=0.3)
+    assert m["safety_events"] == [{"t": 6.0, "kind": "hold", "reason": "test"}]
+    assert last_setpoint_after(setpoints, 5.0) == pytest.approx(2.0 + 59 / 15 - 5.0)
+    assert last_setpoint_after(setpoints, 100.0) is None
+    assert percentile([1.0, 2.0, 3.0, 4.0], 50) == 2.5
