@@ -90,6 +90,7 @@ class SafetyConfig(ConfigSection):
     backend_lost_s: float = Field(10.0, gt=0, le=600)
     heartbeat_timeout_s: float = Field(2.0, gt=0, le=30)
     loop_stall_s: float = Field(0.5, gt=0, le=10)
+    target_lost_s: float = Field(1.0, gt=0, le=60)  # while following: no trusted target this long -> hold
 
     @model_validator(mode="after")
     def _altitude_band(self) -> SafetyConfig:
