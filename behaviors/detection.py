@@ -24,3 +24,6 @@ class Detection:
     verdict: Verdict = Verdict.UNCERTAIN
     justification: str = ""
     candidate_id: str = ""
+    # Optional appearance signature (e.g. a normalised colour histogram of the crop), plain numbers so
+    # the rejection memory can recognise a rejected person again; empty when the back-end sends none.
+    signature: tuple[float, ...] = ()

@@ -1,0 +1,126 @@
+"""Everything the mission state machine asks the main loop to do. The loop executes them in order.
+
+No action forces the autopilot: mode changes are requests the autopilot may refuse, and setpoints are
+streamed by the link only while the autopilot is in the mode that accepts them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import Enum
+
+from behaviors.detection import Verdict
+from behaviors.geolocation import GeoEstimate
+from behaviors.geometry import Box
+from behaviors.setpoint import Setpoint
+
+
+class FlightMode(str, Enum):
+    """Modes the behaviour may request; the MAVLink layer maps them to ArduPilot/PX4 custom modes."""
+
+    OFFBOARD = "offboard"  # ArduPilot GUIDED, PX4 OFFBOARD
+    LOITER = "loiter"
+    RTL = "rtl"
+    LAND = "land"
+
+
+class QueryPurpose(str, Enum):
+    SEARCH = "search"  # find candidates anywhere in the frame
+    REVERIFY = "reverify"  # check the tracked target again while the supervisor decides
+    REDETECT = "redetect"  # find the lost target near its last position
+
+
+@dataclass(frozen=True)
+class SendSetpoint:
+    """Stream this body-frame velocity (already limited by `apply_limits`) until the next one."""
+
+    setpoint: Setpoint
+
+
+@dataclass(frozen=True)
+class Hold:
+    """Stop: an explicit zero setpoint, then hold position the autopilot's way (`[mavlink] ardupilot_hold`)."""
+
+    reason: str
+
+
+@dataclass(frozen=True)
+class ReleaseControl:
+    """Stop sending setpoints at once and change no mode: the pilot or GCS has taken over."""
+
+    reason: str
+
+
+@dataclass(frozen=True)
+class RequestMode:
+    mode: FlightMode
+    reason: str = ""
+
+
+@dataclass(frozen=True)
+class GcsMessage:
+    """A short status line for the GCS (STATUSTEXT is 50 characters; keep `text` short)."""
+
+    text: str
+    severity: str = "info"  # "info", "warning" or "critical"
+
+
+@dataclass(frozen=True)
+class BackendQuery:
+    """Send the next keyframe to the back-end; the answer comes back as a `BackendAnswer` with `query_id`."""
+
+    query_id: int
+    purpose: QueryPurpose
+    prompt: str
+    superset: str = ""
+    roi: Box | None = None  # camera pixels; None for the whole frame
+
+
+@dataclass(frozen=True)
+class TrackerInit:
+    """(Re-)initialise the tracker on `box` in keyframe `keyframe_id` (-1: the newest frame)."""
+
+    box: Box
+    keyframe_id: int
+    candidate_id: str = ""
+    reinit: bool = False
+
+
+@dataclass(frozen=True)
+class TrackerStop:
+    reason: str = ""
+
+
+@dataclass(frozen=True)
+class ReportCandidate:
+    """Tell the supervisor about the target: sent on arrival, on each re-verification and on confirmation."""
+
+    candidate_id: str
+    justification: str
+    verdict: Verdict
+    position: GeoEstimate | None
+    box: Box
+    status: str  # "awaiting", "reverified" or "confirmed"
+
+
+@dataclass(frozen=True)
+class RememberRejection:
+    """The supervisor rejected this target; the loop may log or persist it (the state already keeps it)."""
+
+    candidate_id: str
+    position: GeoEstimate | None
+    signature: tuple[float, ...] = ()
+
+
+Action = (
+    SendSetpoint
+    | Hold
+    | ReleaseControl
+    | RequestMode
+    | GcsMessage
+    | BackendQuery
+    | TrackerInit
+    | TrackerStop
+    | ReportCandidate
+    | RememberRejection
+)

@@ -1,0 +1,78 @@
+"""Everything the mission state machine reacts to. Each event carries the time it happened (seconds).
+
+The main loop turns its inputs into these values and passes them to `behaviors.mission.step`; the
+flight record stores them (see `behaviors.event_codec`) so a flight can be replayed decision by decision.
+Tracker results and telemetry are the shared value types themselves; both carry `time_s`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from behaviors.detection import Detection
+from behaviors.mission_commands import MissionCommand
+from behaviors.telemetry import Telemetry
+from behaviors.track_result import TrackResult
+
+
+@dataclass(frozen=True)
+class BackendAnswer:
+    """The back-end's answer to a `BackendQuery` (same `query_id`), about keyframe `keyframe_id`.
+
+    Candidate boxes are in the camera's pixels (the client scales them back from the keyframe size).
+    """
+
+    time_s: float
+    query_id: int
+    keyframe_id: int
+    candidates: tuple[Detection, ...] = ()
+
+
+@dataclass(frozen=True)
+class GcsCommand:
+    """A command from the ground (GCS over MAVLink, or the supervisor page through the back-end)."""
+
+    time_s: float
+    command: MissionCommand
+
+
+@dataclass(frozen=True)
+class TimerTick:
+    """The main loop's periodic tick; every timeout in the state machine is checked on these."""
+
+    time_s: float
+
+
+@dataclass(frozen=True)
+class BackendUnreachable:
+    """The back-end watchdog fired: no answer for `[safety] backend_lost_s`."""
+
+    time_s: float
+    reason: str = ""
+
+
+@dataclass(frozen=True)
+class AutopilotLinkLost:
+    """No autopilot heartbeat for `[safety] heartbeat_timeout_s`."""
+
+    time_s: float
+
+
+@dataclass(frozen=True)
+class PilotTakeover:
+    """The pilot or GCS changed the flight mode away from the one that accepts our setpoints."""
+
+    time_s: float
+    mode: str = ""
+
+
+Event = (
+    TrackResult
+    | BackendAnswer
+    | Telemetry
+    | GcsCommand
+    | TimerTick
+    | BackendUnreachable
+    | AutopilotLinkLost
+    | PilotTakeover
+)

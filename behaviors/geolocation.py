@@ -1,0 +1,160 @@
+"""Where on the ground a box's foot point is: flat-ground ray casting from the camera, with an error estimate.
+
+Frames: NED world, FRD body, attitude as ZYX Euler angles (yaw, pitch, roll). The camera looks along the
+body's forward axis pitched by the mount; a stabilised gimbal cancels the vehicle's roll and pitch. A
+pixel's ray is intersected with the ground plane `height_agl` below the camera.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from behaviors.camera_model import CameraModel
+from behaviors.geometry import Box
+from behaviors.telemetry import Telemetry
+
+# WGS-84: local radii of curvature turn metres north/east into degrees without a projection library.
+_A = 6378137.0
+_E2 = 6.69437999014e-3
+# A ray must dip at least this much (sine of the angle below the horizon) to meet the ground.
+_MIN_DIP = 1e-3
+
+Vec3 = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class GeoSigmas:
+    """One-sigma input errors the uncertainty estimate propagates (height, attitude, pixel)."""
+
+    height_m: float = 0.5
+    angle_rad: float = math.radians(1.0)
+    pixel: float = 2.0
+
+
+@dataclass(frozen=True)
+class GeoEstimate:
+    """A ground point: absolute position, offset from the vehicle, ranges and a one-sigma error radius."""
+
+    lat_deg: float
+    lon_deg: float
+    north_m: float
+    east_m: float
+    ground_range_m: float
+    slant_range_m: float
+    sigma_m: float
+
+
+def _rot_x(a: float, v: Vec3) -> Vec3:
+    c, s = math.cos(a), math.sin(a)
+    return (v[0], c * v[1] - s * v[2], s * v[1] + c * v[2])
+
+
+def _rot_y(a: float, v: Vec3) -> Vec3:
+    c, s = math.cos(a), math.sin(a)
+    return (c * v[0] + s * v[2], v[1], -s * v[0] + c * v[2])
+
+
+def _rot_z(a: float, v: Vec3) -> Vec3:
+    c, s = math.cos(a), math.sin(a)
+    return (c * v[0] - s * v[1], s * v[0] + c * v[1], v[2])
+
+
+def pixel_ray_ned(
+    camera: CameraModel, u: float, v: float, roll: float, pitch: float, yaw: float
+) -> Vec3:
+    """The (unnormalised) NED direction of pixel (u, v) for a vehicle at the given attitude."""
+    ray: Vec3 = (1.0, (u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy)  # FRD of the camera
+    ray = _rot_y(camera.mount_pitch, ray)
+    if not camera.stabilised:
+        ray = _rot_y(pitch, _rot_x(roll, ray))
+    return _rot_z(yaw, ray)
+
+
+def _ground_offset(
+    camera: CameraModel, u: float, v: float, height: float, roll: float, pitch: float, yaw: float
+) -> tuple[float, float, float] | None:
+    """(north, east, slant range) of the ground point under pixel (u, v); None when the ray misses."""
+    n, e, d = pixel_ray_ned(camera, u, v, roll, pitch, yaw)
+    norm = math.sqrt(n * n + e * e + d * d)
+    if height <= 0 or d / norm < _MIN_DIP:
+        return None
+    t = height / d
+    return (n * t, e * t, norm * t)
+
+
+def offset_to_latlon(lat_deg: float, lon_deg: float, north_m: float, east_m: float) -> tuple[float, float]:
+    lat = math.radians(lat_deg)
+    w = math.sqrt(1.0 - _E2 * math.sin(lat) ** 2)
+    meridian = _A * (1.0 - _E2) / w**3
+    normal = _A / w
+    return (
+        lat_deg + math.degrees(north_m / meridian),
+        lon_deg + math.degrees(east_m / (normal * max(math.cos(lat), 1e-9))),
+    )
+
+
+def latlon_to_offset(lat0_deg: float, lon0_deg: float, lat_deg: float, lon_deg: float) -> tuple[float, float]:
+    """(north, east) metres of a nearby point from a reference point (inverse of `offset_to_latlon`)."""
+    lat = math.radians(lat0_deg)
+    w = math.sqrt(1.0 - _E2 * math.sin(lat) ** 2)
+    meridian = _A * (1.0 - _E2) / w**3
+    normal = _A / w
+    return (
+        math.radians(lat_deg - lat0_deg) * meridian,
+        math.radians(lon_deg - lon0_deg) * normal * max(math.cos(lat), 1e-9),
+    )
+
+
+def foot_point(box: Box) -> tuple[float, float]:
+    """Where a standing person meets the ground in the image: bottom centre of the box."""
+    return (box.cx, box.y2)
+
+
+def locate_pixel(
+    camera: CameraModel, telemetry: Telemetry, u: float, v: float, sigmas: GeoSigmas = GeoSigmas()
+) -> GeoEstimate | None:
+    """The ground position under pixel (u, v); None for invalid input or a ray at or above the horizon."""
+    t = telemetry
+    values = (u, v, t.height_agl, t.roll, t.pitch, t.yaw, t.lat_deg, t.lon_deg)
+    if not all(math.isfinite(x) for x in values):
+        return None
+    base = _ground_offset(camera, u, v, t.height_agl, t.roll, t.pitch, t.yaw)
+    if base is None:
+        return None
+    north, east, slant = base
+    # First-order propagation: move each input by its sigma and add the ground displacements in quadrature.
+    a = sigmas.angle_rad
+    perturbed = (
+        _ground_offset(camera, u, v, t.height_agl + sigmas.height_m, t.roll, t.pitch, t.yaw),
+        _ground_offset(camera, u, v, t.height_agl, t.roll + a, t.pitch, t.yaw),
+        _ground_offset(camera, u, v, t.height_agl, t.roll, t.pitch, t.yaw + a),
+        _ground_offset(camera, u + sigmas.pixel, v, t.height_agl, t.roll, t.pitch, t.yaw),
+        _ground_offset(camera, u, v + sigmas.pixel, t.height_agl, t.roll, t.pitch, t.yaw),
+        # Pitch error of the camera (gimbal or airframe) moves the ray like a vertical pixel error.
+        _ground_offset(
+            CameraModel(
+                camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy,
+                camera.mount_pitch - a, camera.stabilised,
+            ),
+            u, v, t.height_agl, t.roll, t.pitch, t.yaw,
+        ),
+    )
+    variance = 0.0
+    for p in perturbed:
+        if p is None:
+            variance = math.inf
+            break
+        variance += (p[0] - north) ** 2 + (p[1] - east) ** 2
+    lat, lon = offset_to_latlon(t.lat_deg, t.lon_deg, north, east)
+    return GeoEstimate(lat, lon, north, east, math.hypot(north, east), slant, math.sqrt(variance))
+
+
+def locate_box(
+    camera: CameraModel, telemetry: Telemetry, box: Box, sigmas: GeoSigmas = GeoSigmas()
+) -> GeoEstimate | None:
+    """The ground position of a box's foot point (see `locate_pixel`); None for an invalid box."""
+    if not box.is_valid():
+        return None
+    u, v = foot_point(box)
+    return locate_pixel(camera, telemetry, u, v, sigmas)

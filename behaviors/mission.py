@@ -1,0 +1,549 @@
+"""The follow-and-await-supervisor mission: a pure state machine `step(state, event, config)`.
+
+Every decision the companion makes about the mission is here; the main loop only turns inputs into
+`behaviors.events` and executes the returned `behaviors.actions` in order. No clock, socket or thread:
+times arrive on the events. States and transitions are drawn and explained in docs/behavior.md.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from enum import Enum
+
+from behaviors.actions import (
+    Action,
+    BackendQuery,
+    FlightMode,
+    GcsMessage,
+    Hold,
+    QueryPurpose,
+    ReleaseControl,
+    RememberRejection,
+    ReportCandidate,
+    RequestMode,
+    SendSetpoint,
+    TrackerInit,
+    TrackerStop,
+)
+from behaviors.candidate_selection import c_box, select_by_c_box
+from behaviors.control_law import ControlState, FollowGoal, estimate_distance, follow_step
+from behaviors.detection import Detection, Verdict
+from behaviors.events import (
+    AutopilotLinkLost,
+    BackendAnswer,
+    BackendUnreachable,
+    Event,
+    GcsCommand,
+    PilotTakeover,
+    TimerTick,
+)
+from behaviors.geolocation import GeoEstimate, locate_box
+from behaviors.geometry import Box, iou
+from behaviors.mission_commands import (
+    AbortMission,
+    ConfirmCandidate,
+    RejectCandidate,
+    StartMission,
+    StopTracking,
+    TrackRectangle,
+)
+from behaviors.mission_config import ConfirmAction, LostAction, MissionConfig
+from behaviors.rejection_memory import RejectedTarget, RejectionMemory
+from behaviors.safety_limits import apply_limits
+from behaviors.setpoint import Setpoint
+from behaviors.telemetry import Telemetry
+from behaviors.track_result import TrackResult
+
+
+class MissionState(str, Enum):
+    IDLE = "IDLE"
+    SEARCHING = "SEARCHING"
+    ACQUIRING = "ACQUIRING"
+    FOLLOWING = "FOLLOWING"
+    AWAITING_SUPERVISOR = "AWAITING_SUPERVISOR"
+    CONFIRMED = "CONFIRMED"
+    REJECTED = "REJECTED"
+    LOST = "LOST"
+    ABORTED = "ABORTED"
+
+
+# States in which the companion is commanding the vehicle (a hold is owed when they end).
+ACTIVE = frozenset(
+    {
+        MissionState.SEARCHING,
+        MissionState.ACQUIRING,
+        MissionState.FOLLOWING,
+        MissionState.AWAITING_SUPERVISOR,
+        MissionState.CONFIRMED,
+        MissionState.REJECTED,
+        MissionState.LOST,
+    }
+)
+# States with a target the tracker follows.
+TRACKING = frozenset(
+    {
+        MissionState.ACQUIRING,
+        MissionState.FOLLOWING,
+        MissionState.AWAITING_SUPERVISOR,
+        MissionState.CONFIRMED,
+        MissionState.LOST,
+    }
+)
+_MAX_QUERIES_IN_FLIGHT = 8  # answers to older queries are dropped as stale
+_REVERIFY_MIN_IOU = 0.2
+
+
+@dataclass(frozen=True)
+class Target:
+    """The person being tracked: what the back-end said about them and where they were last seen."""
+
+    candidate_id: str
+    justification: str
+    verdict: Verdict
+    box: Box
+    keyframe_id: int
+    last_seen_s: float
+    position: GeoEstimate | None = None
+    signature: tuple[float, ...] = ()
+    operator_selected: bool = False
+
+
+@dataclass(frozen=True)
+class State:
+    mode: MissionState = MissionState.IDLE
+    since_s: float = 0.0  # when `mode` was entered
+    now_s: float = 0.0  # the newest event time seen
+    mission: StartMission | None = None
+    telemetry: Telemetry | None = None
+    target: Target | None = None
+    resume: MissionState = MissionState.FOLLOWING  # where LOST returns once the target is found again
+    next_query_id: int = 1
+    queries: tuple[tuple[int, QueryPurpose], ...] = ()  # in flight, oldest first
+    last_query_s: float | None = None
+    last_report_s: float | None = None
+    lost_stage: int = 0  # 0: stopped and re-detecting, 1: holding, 2: lost action requested
+    backend_down: bool = False
+    mode_requested: FlightMode | None = None  # the last mode we asked for
+    control: ControlState = ControlState()
+    rejections: RejectionMemory = RejectionMemory()
+    reason: str = ""  # why the current mode was entered
+
+
+Result = tuple[State, tuple[Action, ...]]
+
+
+def initial_state(config: MissionConfig) -> State:
+    return State(rejections=RejectionMemory(radius_m=config.rejection_radius_m, signature_threshold=config.signature_threshold))
+
+
+def step(state: State, event: Event, config: MissionConfig) -> Result:
+    """The next state and the actions to execute, in order, for one event."""
+    if not math.isfinite(event.time_s):
+        return state, (GcsMessage("ignored event with a non-finite time", "warning"),)
+    state = replace(state, now_s=max(state.now_s, event.time_s))
+    if isinstance(event, AutopilotLinkLost):
+        return _abort(state, "autopilot link lost", release=False)
+    if isinstance(event, PilotTakeover):
+        return _abort(state, f"pilot takeover {event.mode}".strip(), release=True)
+    if isinstance(event, GcsCommand):
+        return _command(state, event, config)
+    if isinstance(event, Telemetry):
+        return _telemetry(state, event)
+    if isinstance(event, TrackResult):
+        return _track(state, event, config)
+    if isinstance(event, BackendAnswer):
+        return _answer(state, event, config)
+    if isinstance(event, BackendUnreachable):
+        return _backend_down(state, event)
+    return _tick(state, event, config)
+
+
+# --- transitions -------------------------------------------------------------------------------------
+
+
+def _enter(state: State, mode: MissionState, reason: str, severity: str = "info") -> Result:
+    new = replace(state, mode=mode, since_s=state.now_s, reason=reason)
+    return new, (GcsMessage(f"{mode.value}: {reason}"[:50], severity),)
+
+
+def _abort(state: State, reason: str, release: bool) -> Result:
+    if state.mode is MissionState.ABORTED:
+        return state, ()
+    stop: list[Action] = []
+    if state.mode in ACTIVE:
+        # A pilot's mode change must not be fought with a hold; anything else ends in an explicit hold.
+        stop.append(ReleaseControl(reason) if release else Hold(reason))
+    if state.mode in TRACKING:
+        stop.append(TrackerStop(reason))
+    new, msg = _enter(replace(state, control=ControlState(), queries=()), MissionState.ABORTED, reason, "critical")
+    return new, (*stop, *msg)
+
+
+def _start_search(state: State, reason: str, config: MissionConfig) -> Result:
+    new, msg = _enter(
+        replace(state, target=None, control=ControlState(), lost_stage=0, last_query_s=None),
+        MissionState.SEARCHING,
+        reason,
+    )
+    new, query = _query(new, QueryPurpose.SEARCH, None)
+    return new, (*msg, *_scan(new, config), *query)
+
+
+def _start_lost(state: State, reason: str, config: MissionConfig) -> Result:
+    assert state.target is not None
+    resume = state.mode if state.mode is not MissionState.LOST else state.resume
+    new, msg = _enter(
+        replace(state, resume=resume, control=ControlState(), lost_stage=0, last_query_s=None),
+        MissionState.LOST,
+        reason,
+        "warning",
+    )
+    new, query = _query(new, QueryPurpose.REDETECT, _roi(state.target.box, config))
+    return new, (SendSetpoint(Setpoint.zero()), *msg, *query)
+
+
+def _confirm(state: State, config: MissionConfig) -> Result:
+    target = state.target
+    assert target is not None
+    report = _report(target, "confirmed")
+    if state.mode is MissionState.LOST:
+        new = replace(state, resume=MissionState.CONFIRMED, last_report_s=state.now_s)
+        return new, (report, GcsMessage("CONFIRMED while lost: re-detecting"))
+    new, msg = _enter(replace(state, last_report_s=state.now_s), MissionState.CONFIRMED, "supervisor confirmed")
+    hold: tuple[Action, ...] = ()
+    if config.on_confirm is ConfirmAction.HOLD:
+        hold = (Hold("confirmed: hold"),)
+    return new, (*hold, report, *msg)
+
+
+def _reject(state: State, candidate_id: str) -> Result:
+    target = state.target if state.mode in TRACKING else None
+    if target is None or (candidate_id and candidate_id != target.candidate_id):
+        if not candidate_id:
+            return state, (GcsMessage("reject: no candidate awaiting", "warning"),)
+        # Not the one we track: remember the id so the back-end's candidate is never picked.
+        entry = RejectedTarget(candidate_id=candidate_id, time_s=state.now_s)
+        return replace(state, rejections=state.rejections.remember(entry)), (RememberRejection(candidate_id, None),)
+    entry = RejectedTarget(target.candidate_id, target.position, target.signature, state.now_s)
+    new, msg = _enter(
+        replace(state, rejections=state.rejections.remember(entry), target=None, control=ControlState()),
+        MissionState.REJECTED,
+        "supervisor rejected",
+    )
+    actions: tuple[Action, ...] = (
+        SendSetpoint(Setpoint.zero()),
+        TrackerStop("rejected"),
+        RememberRejection(target.candidate_id, target.position, target.signature),
+        *msg,
+    )
+    return new, actions
+
+
+# --- events ------------------------------------------------------------------------------------------
+
+
+def _command(state: State, event: GcsCommand, config: MissionConfig) -> Result:
+    cmd = event.command
+    if isinstance(cmd, AbortMission):
+        return _abort(state, f"GCS abort {cmd.reason}".strip(), release=False)
+    if isinstance(cmd, StartMission):
+        if not cmd.prompt.strip():
+            return state, (GcsMessage("start refused: empty prompt", "warning"),)
+        keep = state.mission is not None and state.mission.prompt == cmd.prompt
+        rejections = state.rejections if keep else RejectionMemory((), state.rejections.radius_m, state.rejections.signature_threshold)
+        stop: tuple[Action, ...] = (TrackerStop("new mission"),) if state.mode in TRACKING else ()
+        new = replace(state, mission=cmd, rejections=rejections, backend_down=False)
+        new, engage = _engage(new)
+        new, actions = _start_search(new, "mission started", config)
+        return new, (*stop, *engage, *actions)
+    if isinstance(cmd, TrackRectangle):
+        if not cmd.box.is_valid():
+            return state, (GcsMessage("track refused: invalid rectangle", "warning"),)
+        target = Target("operator", "selected by the operator", Verdict.YES, cmd.box, -1, state.now_s, operator_selected=True)
+        new = replace(state, target=target, control=ControlState(), lost_stage=0)
+        new, engage = _engage(new)
+        new, msg = _enter(new, MissionState.CONFIRMED, "operator selected target")
+        return new, (*engage, TrackerInit(cmd.box, -1, "operator"), *msg)
+    if isinstance(cmd, StopTracking):
+        if state.mode not in ACTIVE:
+            return state, ()
+        stop = (TrackerStop("operator stop"),) if state.mode in TRACKING else ()
+        new, msg = _enter(replace(state, target=None, control=ControlState(), queries=()), MissionState.IDLE, "operator stop")
+        return new, (Hold("operator stop"), *stop, *msg)
+    if isinstance(cmd, ConfirmCandidate):
+        current = state.target
+        if current is None or state.mode not in TRACKING or (cmd.candidate_id and cmd.candidate_id != current.candidate_id):
+            return state, (GcsMessage("confirm: no such candidate", "warning"),)
+        if state.mode is MissionState.CONFIRMED:
+            return state, ()
+        return _confirm(state, config)
+    if isinstance(cmd, RejectCandidate):
+        return _reject(state, cmd.candidate_id)
+    return state, ()
+
+
+def _engage(state: State) -> Result:
+    """Ask for the offboard mode only when the mission allows it and the autopilot is not already in it."""
+    if state.mission is None or not state.mission.allow_engage:
+        return state, ()
+    if state.telemetry is not None and state.telemetry.offboard_active:
+        return state, ()
+    return replace(state, mode_requested=FlightMode.OFFBOARD), (RequestMode(FlightMode.OFFBOARD, "mission start"),)
+
+
+def _telemetry(state: State, telemetry: Telemetry) -> Result:
+    previous = state.telemetry
+    new = replace(state, telemetry=telemetry)
+    our_request = state.mode_requested not in (None, FlightMode.OFFBOARD)
+    if (
+        state.mode in ACTIVE
+        and previous is not None
+        and previous.offboard_active
+        and not telemetry.offboard_active
+        and not our_request
+    ):
+        return _abort(new, f"pilot takeover {telemetry.mode}".strip(), release=True)
+    return new, ()
+
+
+def _track(state: State, result: TrackResult, config: MissionConfig) -> Result:
+    target = state.target
+    if state.mode not in TRACKING or target is None or _given_up(state, config):
+        return state, ()
+    if not result.trusted or result.box is None:
+        if state.mode is MissionState.ACQUIRING:
+            return _acquire_timeout(state, config)
+        if state.mode is MissionState.LOST:
+            return state, ()
+        return _start_lost(state, f"tracker lost ({result.lost_reason or 'failed'})", config)
+
+    position = locate_box(config.camera, state.telemetry, result.box) if state.telemetry else None
+    target = replace(target, box=result.box, last_seen_s=result.time_s, position=position or target.position)
+    state = replace(state, target=target)
+    actions: list[Action] = []
+    if state.mode is MissionState.ACQUIRING:
+        state, msg = _enter(state, MissionState.FOLLOWING, f"tracking {target.candidate_id}")
+        actions.extend(msg)
+    elif state.mode is MissionState.LOST:
+        state, msg = _enter(replace(state, lost_stage=0), state.resume, "target re-acquired")
+        actions.extend(msg)
+        if state.mode is MissionState.CONFIRMED and config.on_confirm is ConfirmAction.HOLD:
+            return state, (*actions, Hold("confirmed: hold"))
+
+    if state.mode is MissionState.CONFIRMED and config.on_confirm is ConfirmAction.HOLD:
+        return state, tuple(actions)
+    state, setpoint = _follow(state, result.box, result.time_s, config)
+    actions.extend(setpoint)
+
+    if state.mode is MissionState.FOLLOWING and _arrived(state, result.box, config):
+        state, msg = _enter(replace(state, last_report_s=state.now_s), MissionState.AWAITING_SUPERVISOR, "awaiting supervisor")
+        actions.extend((_report(target, "awaiting"), *msg))
+    return state, tuple(actions)
+
+
+def _answer(state: State, answer: BackendAnswer, config: MissionConfig) -> Result:
+    purpose = dict(state.queries).get(answer.query_id)
+    state = replace(
+        state, queries=tuple(q for q in state.queries if q[0] != answer.query_id), backend_down=False
+    )
+    actions: list[Action] = []
+    if purpose is None:
+        return state, ()
+    if purpose is QueryPurpose.SEARCH and state.mode is MissionState.SEARCHING:
+        chosen = _choose(state, answer.candidates, config)
+        if chosen is None:
+            return state, ()
+        det, position = chosen
+        picked = Target(
+            det.candidate_id, det.justification, det.verdict, det.box, answer.keyframe_id, answer.time_s,
+            position, det.signature,
+        )
+        new, msg = _enter(replace(state, target=picked, control=ControlState()), MissionState.ACQUIRING, f"candidate {det.candidate_id}")
+        return new, (TrackerInit(det.box, answer.keyframe_id, det.candidate_id), *msg)
+    target = state.target
+    if target is None:
+        return state, ()
+    if purpose is QueryPurpose.REVERIFY and state.mode in (MissionState.AWAITING_SUPERVISOR, MissionState.CONFIRMED):
+        tracked = target.box
+        match = max(answer.candidates, key=lambda d: iou(d.box, tracked), default=None)
+        if match is None or iou(match.box, tracked) < _REVERIFY_MIN_IOU:
+            return state, (GcsMessage("re-verify: target not in keyframe", "warning"),)
+        target = replace(target, verdict=match.verdict, justification=match.justification or target.justification)
+        status = "reverified" if state.mode is MissionState.AWAITING_SUPERVISOR else "confirmed"
+        return replace(state, target=target, last_report_s=state.now_s), (_report(target, status),)
+    if purpose is QueryPurpose.REDETECT and state.mode is MissionState.LOST and not _given_up(state, config):
+        usable = [
+            d for d in answer.candidates
+            if d.verdict is not Verdict.NO and not _rejected(state, d, config)
+        ]
+        best = select_by_c_box(target.box, usable)
+        gate = config.reinit_gate * (config.camera.width + config.camera.height)
+        if best is None or c_box(target.box, best.box) > gate:
+            return state, ()
+        target = replace(target, box=best.box, keyframe_id=answer.keyframe_id)
+        actions.append(TrackerInit(best.box, answer.keyframe_id, target.candidate_id, reinit=True))
+        return replace(state, target=target), tuple(actions)
+    return state, ()
+
+
+def _backend_down(state: State, event: BackendUnreachable) -> Result:
+    if state.backend_down:
+        return state, ()
+    new = replace(state, backend_down=True, queries=())
+    msg = GcsMessage(f"back-end unreachable {event.reason}".strip()[:50], "warning")
+    if state.mode in ACTIVE:
+        # Watchdog rule: motion ends with a stop then hold; setpoints resume once the back-end answers.
+        return new, (Hold("back-end unreachable"), msg)
+    return new, (msg,)
+
+
+def _tick(state: State, tick: TimerTick, config: MissionConfig) -> Result:
+    now = state.now_s
+    mode = state.mode
+    if mode is MissionState.REJECTED:
+        return _start_search(state, "searching again", config)
+    if mode is MissionState.SEARCHING:
+        actions: tuple[Action, ...] = ()
+        if _query_due(state, config.query_interval_s):
+            state, actions = _query(state, QueryPurpose.SEARCH, None)
+        return state, (*_scan(state, config), *actions)
+    if mode is MissionState.ACQUIRING:
+        if now - state.since_s > config.acquire_timeout_s:
+            return _acquire_timeout(state, config)
+        return state, ()
+    target = state.target
+    if target is None:
+        return state, ()
+    if mode in (MissionState.FOLLOWING, MissionState.AWAITING_SUPERVISOR, MissionState.CONFIRMED):
+        if now - target.last_seen_s > config.frame_stale_s:
+            return _start_lost(state, "no tracker result", config)
+        if mode is MissionState.AWAITING_SUPERVISOR and _report_due(state, config):
+            state, query = _query(replace(state, last_report_s=now), QueryPurpose.REVERIFY, _roi(target.box, config))
+            return state, query
+        if mode is MissionState.CONFIRMED and _report_due(state, config):
+            return replace(state, last_report_s=now), (_report(target, "confirmed"),)
+        return state, ()
+    if mode is MissionState.LOST:
+        return _lost_tick(state, target, config)
+    return state, ()
+
+
+def _lost_tick(state: State, target: Target, config: MissionConfig) -> Result:
+    if _given_up(state, config):
+        return state, ()
+    elapsed = state.now_s - state.since_s
+    actions: list[Action] = []
+    if state.lost_stage == 0 and elapsed >= config.lost_hold_after_s:
+        state = replace(state, lost_stage=1)
+        actions.append(Hold("target lost"))
+    if state.lost_stage == 1 and elapsed >= config.lost_action_after_s:
+        state = replace(state, lost_stage=2)
+        if config.lost_action is LostAction.HOLD:
+            actions.append(GcsMessage("LOST: still holding, re-detecting", "warning"))
+        else:
+            mode = FlightMode(config.lost_action.value)
+            state = replace(state, mode_requested=mode, queries=())
+            actions.extend(
+                (RequestMode(mode, "target lost"), TrackerStop("target lost"), GcsMessage(f"LOST: requesting {mode.value}", "warning"))
+            )
+            return state, tuple(actions)
+    if _query_due(state, config.query_interval_s):
+        state, query = _query(state, QueryPurpose.REDETECT, _roi(target.box, config))
+        actions.extend(query)
+    return state, tuple(actions)
+
+
+def _given_up(state: State, config: MissionConfig) -> bool:
+    """LOST's action was a mode request (loiter, RTL, land): the mission ends until the GCS restarts it."""
+    return state.mode is MissionState.LOST and state.lost_stage >= 2 and config.lost_action is not LostAction.HOLD
+
+
+# --- helpers -----------------------------------------------------------------------------------------
+
+
+def _acquire_timeout(state: State, config: MissionConfig) -> Result:
+    if state.now_s - state.since_s <= config.acquire_timeout_s:
+        return state, ()
+    new, actions = _start_search(state, "tracker did not lock", config)
+    return new, (TrackerStop("acquire timeout"), *actions)
+
+
+def _query(state: State, purpose: QueryPurpose, roi: Box | None) -> Result:
+    mission = state.mission
+    if mission is None:
+        return state, ()
+    qid = state.next_query_id
+    queries = (*state.queries, (qid, purpose))[-_MAX_QUERIES_IN_FLIGHT:]
+    new = replace(state, next_query_id=qid + 1, queries=queries, last_query_s=state.now_s)
+    return new, (BackendQuery(qid, purpose, mission.prompt, mission.superset, roi),)
+
+
+def _query_due(state: State, interval_s: float) -> bool:
+    return state.last_query_s is None or state.now_s - state.last_query_s >= interval_s
+
+
+def _report_due(state: State, config: MissionConfig) -> bool:
+    return state.last_report_s is None or state.now_s - state.last_report_s >= config.reverify_interval_s
+
+
+def _scan(state: State, config: MissionConfig) -> tuple[Action, ...]:
+    """SEARCHING's setpoint: a slow yaw scan, or standing still; none while the back-end is down."""
+    if state.backend_down:
+        return ()
+    height = state.telemetry.height_agl if state.telemetry is not None else None
+    return (SendSetpoint(apply_limits(Setpoint(yaw_rate=config.search_yaw_rate), config.limits, height)),)
+
+
+def _roi(box: Box, config: MissionConfig) -> Box:
+    """Where to look for a lost target: its last box grown by `redetect_roi_scale`, inside the image."""
+    cam = config.camera
+    grown = Box.from_center(box.cx, box.cy, box.w * config.redetect_roi_scale, box.h * config.redetect_roi_scale)
+    return grown.clamped(cam.width, cam.height)
+
+
+def _follow(state: State, box: Box, time_s: float, config: MissionConfig) -> tuple[State, tuple[Action, ...]]:
+    if state.backend_down:
+        return state, ()
+    telemetry = state.telemetry or Telemetry(time_s, height_agl=math.nan)  # unknown height: zero output
+    confirmed = state.mode is MissionState.CONFIRMED
+    lateral = config.orbit_speed_m_s if confirmed and config.on_confirm is ConfirmAction.ORBIT else 0.0
+    goal = FollowGoal(config.standoff_m, lateral, descent_allowed=confirmed)
+    setpoint, control = follow_step(box, config.camera, telemetry, goal, config.gains, config.limits, state.control, time_s)
+    return replace(state, control=control), (SendSetpoint(setpoint),)
+
+
+def _arrived(state: State, box: Box, config: MissionConfig) -> bool:
+    if state.now_s - state.since_s >= config.approach_timeout_s:
+        return True
+    if state.telemetry is None:
+        return False
+    distance = estimate_distance(config.camera, state.telemetry, box, config.gains.target_height_m)
+    return distance is not None and abs(distance.ground_m - config.standoff_m) <= config.arrive_tolerance_m
+
+
+def _rejected(state: State, det: Detection, config: MissionConfig) -> bool:
+    position = locate_box(config.camera, state.telemetry, det.box) if state.telemetry else None
+    return state.rejections.matches(det.candidate_id, position, det.signature) is not None
+
+
+def _choose(
+    state: State, candidates: Sequence[Detection], config: MissionConfig
+) -> tuple[Detection, GeoEstimate | None] | None:
+    """A verified candidate not rejected before: "yes" first, then "uncertain" if allowed; best score wins."""
+    accepted = [Verdict.YES, Verdict.UNCERTAIN] if config.accept_uncertain else [Verdict.YES]
+    for verdict in accepted:
+        pool = [
+            d for d in candidates
+            if d.verdict is verdict and d.box.is_valid() and not _rejected(state, d, config)
+        ]
+        if pool:
+            best = max(pool, key=lambda d: d.score)
+            position = locate_box(config.camera, state.telemetry, best.box) if state.telemetry else None
+            return best, position
+    return None
+
+
+def _report(target: Target, status: str) -> ReportCandidate:
+    return ReportCandidate(target.candidate_id, target.justification, target.verdict, target.position, target.box, status)
