@@ -1,0 +1,275 @@
+"""The FastAPI application: `create_app(config, detector=..., verifier=...)`.
+
+Routes: `POST /v1/detect`, `GET /health`, `GET /v1/models`, and the session endpoints the companion and
+the supervisor use (rejections, vehicle status, decisions). Shared objects live on `app.state`:
+`config`, `pipeline`, `sessions` (backend.sessions.SessionStore), `scheduler`.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from concurrent.futures import ThreadPoolExecutor
+from typing import Annotated, Any
+
+from fastapi import Depends, FastAPI, File, Form, HTTPException, Path, Query, UploadFile
+from fastapi.concurrency import run_in_threadpool
+from fastapi.encoders import jsonable_encoder
+from pydantic import ValidationError
+
+import cloudtrack
+from backend.auth import Principal, authenticated, require_supervisor, require_vehicle_access
+from backend.config import BackendConfig
+from backend.detectors.factory import build_detector
+from backend.detectors.interface import SupersetDetector
+from backend.fair_queue import FairScheduler, QueueFullError
+from backend.images import ImageError, decode_image
+from backend.pipeline import Pipeline
+from backend.request_limits import BodySizeLimit
+from backend.schemas import (
+    IDENTIFIER,
+    Candidate,
+    Decision,
+    DecisionIn,
+    DetectMeta,
+    DetectResponse,
+    ErrorResponse,
+    HealthResponse,
+    ModelNames,
+    ModelsResponse,
+    Rejection,
+    RejectionIn,
+    Timings,
+    VehicleStatus,
+    VehicleStatusIn,
+)
+from backend.sessions import SessionStore, UnknownCandidateError
+from backend.supersets import UnknownSupersetError, known_supersets, superset_from_prompt
+from backend.supervisor_routes import supervisor_router
+from backend.verifiers.factory import build_verifier
+from backend.verifiers.interface import Verifier
+from behaviors.geometry import Box
+
+ERRORS: dict[int | str, dict[str, Any]] = {
+    status: {"model": ErrorResponse} for status in (400, 401, 403, 404, 413, 415, 422, 429)
+}
+VehicleId = Annotated[str, Path(pattern=IDENTIFIER)]
+MissionId = Annotated[str, Path(pattern=IDENTIFIER)]
+_UNSET = object()
+
+
+def create_app(
+    config: BackendConfig,
+    detector: SupersetDetector | None = None,
+    verifier: Verifier | None | object = _UNSET,
+    sessions: SessionStore | None = None,
+) -> FastAPI:
+    """The service; `detector`/`verifier` override the configured ones (pass verifier=None for none)."""
+    detector = detector if detector is not None else build_detector(config.detector)
+    chosen_verifier: Verifier | None = (
+        build_verifier(config.verifier, config.vlm) if verifier is _UNSET else verifier  # type: ignore[assignment]
+    )
+    pool = ThreadPoolExecutor(max_workers=config.verifier.concurrency, thread_name_prefix="verify")
+    pipeline = Pipeline(
+        detector,
+        chosen_verifier,
+        pool,
+        margin_px=config.crops.margin_px,
+        max_candidates=config.detector.max_candidates,
+        timeout_s=config.verifier.timeout_s,
+        deadline_s=config.verifier.request_deadline_s,
+        uncertain_policy=config.verifier.uncertain_policy,
+    )
+    s = config.sessions
+    @asynccontextmanager
+    async def lifespan(_: FastAPI) -> AsyncIterator[None]:
+        yield
+        pool.shutdown(wait=False, cancel_futures=True)
+
+    app = FastAPI(
+        lifespan=lifespan,
+        title="CloudTrack back-end",
+        version=cloudtrack.__version__,
+        description="Semantic detection for many drones: superset detector, 50 px margin crops, concurrent "
+        "verification, rejection memory per mission. Boxes are [x1, y1, x2, y2] in the sent image's pixels.",
+    )
+    app.state.config = config
+    app.state.pipeline = pipeline
+    app.state.sessions = sessions or SessionStore(
+        s.rejection_similarity, s.rejection_radius_m, s.mission_ttl_s, s.max_rejections_per_mission
+    )
+    app.state.scheduler = FairScheduler(s.detector_concurrency, s.max_queued_per_vehicle)
+    app.state.started = time.time()
+    app.add_middleware(BodySizeLimit, max_bytes=config.server.max_request_bytes)
+
+    _add_detection_routes(app)
+    _add_session_routes(app)
+    app.include_router(supervisor_router(app.state.sessions))
+    return app
+
+
+def _models(app: FastAPI) -> ModelNames:
+    pipeline: Pipeline = app.state.pipeline
+    return ModelNames(detector=pipeline.detector.name, verifier=pipeline.verifier_name)
+
+
+def _add_detection_routes(app: FastAPI) -> None:
+    @app.get("/health", response_model=HealthResponse, tags=["service"])
+    def health() -> HealthResponse:
+        """Liveness and load, without authentication (for load balancers)."""
+        scheduler: FairScheduler = app.state.scheduler
+        return HealthResponse(
+            status="ok",
+            version=cloudtrack.__version__,
+            uptime_s=time.time() - app.state.started,
+            models=_models(app),
+            in_flight=scheduler.running,
+            queued=scheduler.queued,
+        )
+
+    @app.get("/v1/models", response_model=ModelsResponse, responses=ERRORS, tags=["service"])
+    def models(principal: Annotated[Principal, Depends(authenticated)]) -> ModelsResponse:
+        config: BackendConfig = app.state.config
+        names = _models(app)
+        closed_set = config.detector.kind == "yolox"
+        return ModelsResponse(
+            detector=names.detector,
+            detector_kind=config.detector.kind,
+            supersets=known_supersets() if closed_set else [],
+            verifier=names.verifier,
+            verifier_kind=config.verifier.kind if app.state.pipeline.verifier is not None else "none",
+        )
+
+    @app.post("/v1/detect", response_model=DetectResponse, responses=ERRORS, tags=["detection"])
+    async def detect(
+        principal: Annotated[Principal, Depends(authenticated)],
+        image: Annotated[UploadFile, File(description="the keyframe, JPEG or PNG")],
+        meta: Annotated[str, Form(description="JSON object, see DetectMeta", max_length=20_000)],
+    ) -> DetectResponse:
+        """Detect the superset in a keyframe and verify each candidate against the full description."""
+        t_received = time.perf_counter()
+        try:
+            fields = DetectMeta.model_validate_json(meta)
+        except ValidationError as exc:
+            errors = exc.errors(include_url=False, include_context=False)
+            for error in errors:
+                error["loc"] = ("meta", *error["loc"])
+            raise HTTPException(422, jsonable_encoder(errors)) from None
+        require_vehicle_access(principal, fields.vehicle_id)
+        superset = (fields.superset or superset_from_prompt(fields.prompt) or "").strip().lower()
+        if not superset:
+            raise HTTPException(422, "the prompt names no known class; set 'superset' (e.g. \"person\")")
+        data = await image.read()
+        config: BackendConfig = app.state.config
+        t_decode = time.perf_counter()
+        try:
+            frame = await run_in_threadpool(decode_image, data, config.server.max_image_pixels)
+        except ImageError as exc:
+            raise HTTPException(exc.status, str(exc)) from None
+        t_decode = time.perf_counter() - t_decode
+        sessions: SessionStore = app.state.sessions
+        check = sessions.rejection_check(fields.mission_id, fields.vehicle_position)
+        roi = Box.from_xyxy(*fields.roi) if fields.roi else None
+        pipeline: Pipeline = app.state.pipeline
+        t_queued = time.perf_counter()
+        try:
+            async with app.state.scheduler.slot(fields.vehicle_id):
+                t_queue = time.perf_counter() - t_queued
+                result = await run_in_threadpool(pipeline.run, frame, fields.prompt, superset, roi, fields.frame_id, check)
+        except QueueFullError as exc:
+            raise HTTPException(429, f"too many requests waiting for this vehicle: {exc}", headers={"Retry-After": "1"}) from None
+        except UnknownSupersetError as exc:
+            raise HTTPException(422, str(exc)) from None
+        sessions.remember_candidates(fields.mission_id, [(c.detection.candidate_id, c.appearance) for c in result.candidates])
+        return DetectResponse(
+            vehicle_id=fields.vehicle_id,
+            mission_id=fields.mission_id,
+            frame_id=fields.frame_id,
+            capture_time=fields.capture_time,
+            image_size=[int(frame.shape[1]), int(frame.shape[0])],
+            superset=superset,
+            candidates=[
+                Candidate(
+                    candidate_id=c.detection.candidate_id,
+                    box=[round(v, 2) for v in c.detection.box.xyxy()],
+                    score=round(c.detection.score, 4),
+                    label=c.detection.label,
+                    verdict=c.detection.verdict.value,
+                    justification=c.detection.justification,
+                    verifier=c.verifier,
+                    t_verify=round(c.t_verify, 4),
+                    previously_rejected=c.previously_rejected,
+                )
+                for c in result.candidates
+            ],
+            timings=Timings(
+                t_queue=t_queue,
+                t_decode=t_decode,
+                t_detect=result.t_detect,
+                t_verify=result.t_verify,
+                t_total=time.perf_counter() - t_received,
+            ),
+            models=ModelNames(detector=result.detector, verifier=result.verifier),
+        )
+
+
+def _add_session_routes(app: FastAPI) -> None:
+    def store() -> SessionStore:
+        sessions: SessionStore = app.state.sessions
+        return sessions
+
+    @app.post("/v1/missions/{mission_id}/rejections", response_model=Rejection, status_code=201, responses=ERRORS, tags=["sessions"])
+    def add_rejection(
+        mission_id: MissionId, body: RejectionIn, principal: Annotated[Principal, Depends(authenticated)]
+    ) -> Rejection:
+        """Remember a rejected candidate: later look-alikes in this mission are answered "no"."""
+        require_vehicle_access(principal, body.vehicle_id)
+        try:
+            return store().add_rejection(mission_id, body)
+        except UnknownCandidateError as exc:
+            raise HTTPException(404, str(exc)) from None
+        except ValueError as exc:
+            raise HTTPException(422, str(exc)) from None
+
+    @app.get("/v1/missions/{mission_id}/rejections", response_model=list[Rejection], responses=ERRORS, tags=["sessions"])
+    def list_rejections(mission_id: MissionId, principal: Annotated[Principal, Depends(authenticated)]) -> list[Rejection]:
+        return [r for r in store().rejections(mission_id) if principal.may_act_for(r.vehicle_id)]
+
+    @app.post("/v1/vehicles/{vehicle_id}/status", response_model=VehicleStatus, responses=ERRORS, tags=["sessions"])
+    def report_status(
+        vehicle_id: VehicleId, body: VehicleStatusIn, principal: Annotated[Principal, Depends(authenticated)]
+    ) -> VehicleStatus:
+        """The companion's state and the candidate awaiting the supervisor (crop, justification, position)."""
+        require_vehicle_access(principal, vehicle_id)
+        return store().set_status(vehicle_id, body)
+
+    @app.get("/v1/vehicles/{vehicle_id}/status", response_model=VehicleStatus, responses=ERRORS, tags=["sessions"])
+    def get_status(vehicle_id: VehicleId, principal: Annotated[Principal, Depends(authenticated)]) -> VehicleStatus:
+        require_vehicle_access(principal, vehicle_id)
+        status = store().status(vehicle_id)
+        if status is None:
+            raise HTTPException(404, f"vehicle {vehicle_id!r} has not reported a status")
+        return status
+
+    @app.get("/v1/vehicles", response_model=list[VehicleStatus], responses=ERRORS, tags=["sessions"])
+    def list_vehicles(principal: Annotated[Principal, Depends(require_supervisor)]) -> list[VehicleStatus]:
+        return store().statuses()
+
+    @app.post("/v1/vehicles/{vehicle_id}/decisions", response_model=Decision, status_code=201, responses=ERRORS, tags=["sessions"])
+    def decide(
+        vehicle_id: VehicleId, body: DecisionIn, principal: Annotated[Principal, Depends(require_supervisor)]
+    ) -> Decision:
+        """The supervisor confirms or rejects a candidate; a reject also enters the rejection memory."""
+        return store().add_decision(vehicle_id, body)
+
+    @app.get("/v1/vehicles/{vehicle_id}/decisions", response_model=list[Decision], responses=ERRORS, tags=["sessions"])
+    def poll_decisions(
+        vehicle_id: VehicleId,
+        principal: Annotated[Principal, Depends(authenticated)],
+        after: Annotated[int, Query(ge=0, description="last decision_id already seen")] = 0,
+    ) -> list[Decision]:
+        """Decisions for this vehicle newer than `after` (the companion polls this)."""
+        require_vehicle_access(principal, vehicle_id)
+        return store().decisions(vehicle_id, after)
+

@@ -1,0 +1,89 @@
+"""The back-end's configuration schema: every section, key, default and allowed range.
+
+`config/backend.toml` mirrors these defaults; `tests/test_backend_config.py` keeps the two in step.
+Environment overrides use the prefix `CLOUDTRACK_BACKEND_` (e.g. `CLOUDTRACK_BACKEND_SERVER__PORT=9000`)
+so that the companion's own `CLOUDTRACK_<SECTION>__<KEY>` variables never reach this schema.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field
+
+from cloudtrack.config_files import ConfigSection
+
+ENV_PREFIX = "CLOUDTRACK_BACKEND_"
+
+DetectorKind = Literal["yolox", "grounding_dino", "owlv2", "simulated"]
+VerifierKind = Literal["none", "local", "vlm", "cascade"]
+UncertainPolicy = Literal["uncertain", "yes", "no"]
+
+
+class ServerConfig(ConfigSection):
+    host: str = "127.0.0.1"  # behind a TLS reverse proxy; see docs/backend.md
+    port: int = Field(8080, ge=1, le=65535)
+    max_request_bytes: int = Field(2_000_000, ge=10_000, le=100_000_000)
+    max_image_pixels: int = Field(16_000_000, ge=10_000, le=100_000_000)  # decompression-bomb guard
+
+
+class AuthConfig(ConfigSection):
+    # vehicle id -> bearer token. Prefer CLOUDTRACK_BACKEND_AUTH__TOKENS='{"drone-1": "..."}'.
+    tokens: dict[str, str] = Field(default_factory=dict)
+    # Token of the supervisor web page and API (empty: supervisor endpoints refuse every request).
+    supervisor_token: str = ""
+
+
+class DetectorConfig(ConfigSection):
+    kind: DetectorKind = "yolox"
+    model_dir: str = ""  # empty: $CLOUDTRACK_MODEL_DIR, then the user cache
+    score_threshold: float = Field(0.3, ge=0, le=1)
+    nms_threshold: float = Field(0.45, gt=0, le=1)
+    threads: int = Field(0, ge=0, le=64)  # onnxruntime intra-op threads; 0: all cores
+    # Hugging Face model id or local folder for grounding_dino / owlv2.
+    hf_model: str = ""
+    device: str = "cpu"  # torch device for grounding_dino / owlv2, e.g. "cuda"
+    max_candidates: int = Field(10, ge=1, le=100)
+
+
+class CropConfig(ConfigSection):
+    margin_px: int = Field(50, ge=0, le=500)  # the paper's 50 px context margin, clamped to the image
+
+
+class VerifierConfig(ConfigSection):
+    kind: VerifierKind = "local"
+    timeout_s: float = Field(10.0, gt=0, le=300)  # one verification
+    request_deadline_s: float = Field(20.0, gt=0, le=600)  # the whole request, detection included
+    concurrency: int = Field(16, ge=1, le=512)  # verifications in flight, all vehicles together
+    uncertain_policy: UncertainPolicy = "uncertain"  # what an unparseable or timed-out answer becomes
+
+
+class VlmConfig(ConfigSection):
+    base_url: str = "https://api.openai.com/v1"
+    model: str = "gpt-4o-mini"
+    api_key_env: str = "OPENAI_API_KEY"  # the key itself never sits in a file
+    prompt_family: Literal["auto", "gpt", "llava", "paligemma"] = "auto"
+    max_retries: int = Field(2, ge=0, le=10)
+    backoff_s: float = Field(0.5, ge=0, le=30)
+    max_tokens: int = Field(200, ge=1, le=4096)
+    crop_max_side: int = Field(512, ge=32, le=4096)
+    jpeg_quality: int = Field(90, ge=10, le=100)
+
+
+class SessionConfig(ConfigSection):
+    detector_concurrency: int = Field(2, ge=1, le=64)  # requests in the detector at once
+    max_queued_per_vehicle: int = Field(2, ge=1, le=100)  # beyond this a vehicle gets 429
+    rejection_similarity: float = Field(0.85, gt=0, le=1)  # appearance correlation that counts as "same"
+    rejection_radius_m: float = Field(150.0, gt=0, le=10_000)  # vehicle to rejected place, when both known
+    mission_ttl_s: float = Field(6 * 3600.0, gt=0)  # forget a mission this long after its last request
+    max_rejections_per_mission: int = Field(200, ge=1, le=10_000)
+
+
+class BackendConfig(ConfigSection):
+    server: ServerConfig = ServerConfig()
+    auth: AuthConfig = AuthConfig()
+    detector: DetectorConfig = DetectorConfig()
+    crops: CropConfig = CropConfig()
+    verifier: VerifierConfig = VerifierConfig()
+    vlm: VlmConfig = VlmConfig()
+    sessions: SessionConfig = SessionConfig()

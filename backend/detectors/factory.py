@@ -1,0 +1,30 @@
+"""Building the configured superset detector (`[detector] kind`)."""
+
+from __future__ import annotations
+
+from backend.config import DetectorConfig
+from backend.detectors.interface import SupersetDetector
+from cloudtrack.model_store import require, resolve_model_dir
+
+
+def build_detector(config: DetectorConfig) -> SupersetDetector:
+    """The detector for `config.kind`; heavy or optional dependencies are imported only when chosen."""
+    if config.kind == "yolox":
+        from backend.detectors.yolox import YoloxDetector
+
+        paths = require("yolox", resolve_model_dir(config.model_dir or None))
+        return YoloxDetector(paths["yolox_nano.onnx"], config.score_threshold, config.nms_threshold, threads=config.threads)
+    if config.kind in ("grounding_dino", "owlv2"):
+        from backend.detectors.open_vocabulary import OpenVocabularyDetector
+
+        open_vocabulary: SupersetDetector = OpenVocabularyDetector.from_pretrained(
+            config.kind, config.hf_model, config.device, config.score_threshold
+        )
+        return open_vocabulary
+    # The SITL world's detector (ground truth boxes with misses and jitter), owned by the simulator.
+    # The SITL detector answers from the simulated world's ground truth, so only the simulator, which
+    # owns that world, can build it: `cloudtrack-sim` passes it to create_app(detector=...).
+    raise ValueError(
+        "detector kind 'simulated' is built by the simulator (cloudtrack-sim), which passes it to "
+        "backend.app.create_app(detector=...); use 'yolox', 'grounding_dino' or 'owlv2' for a standalone server"
+    )

@@ -1,0 +1,165 @@
+"""One keyframe through the back-end: superset detection -> margin crops -> concurrent verification.
+
+Every candidate is verified at once on a shared, bounded thread pool (`verify_pool`), each with its own
+timeout and all within the request's deadline, so k candidates cost about one verification instead of
+k (the reference code verifies one after another). A verification that fails or runs out of time
+becomes the configured `uncertain_policy` verdict with the reason in its justification.
+"""
+
+from __future__ import annotations
+
+import time
+import uuid
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import TimeoutError as FutureTimeout
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from backend.appearance import descriptor
+from backend.crops import margin_crop
+from backend.detectors.interface import SupersetDetector
+from backend.verifiers.interface import Verifier, VerifierAnswer, VerifierError
+from behaviors.detection import Detection, Verdict
+from behaviors.geometry import Box
+
+# Returns the reason a candidate with this appearance was rejected earlier, or None.
+RejectionCheck = Callable[[list[float]], str | None]
+
+
+@dataclass(frozen=True)
+class VerifiedCandidate:
+    detection: Detection  # box in the request image's pixels, verdict and justification filled in
+    verifier: str
+    t_verify: float
+    appearance: list[float] = field(repr=False, default_factory=list)
+    previously_rejected: bool = False
+
+
+@dataclass(frozen=True)
+class PipelineResult:
+    superset: str
+    candidates: list[VerifiedCandidate]
+    t_detect: float
+    t_verify: float
+    t_total: float
+    detector: str
+    verifier: str
+
+
+def _policy_verdict(policy: str) -> Verdict:
+    return {"yes": Verdict.YES, "no": Verdict.NO}.get(policy, Verdict.UNCERTAIN)
+
+
+class Pipeline:
+    def __init__(
+        self,
+        detector: SupersetDetector,
+        verifier: Verifier | None,
+        verify_pool: ThreadPoolExecutor,
+        margin_px: float = 50,
+        max_candidates: int = 10,
+        timeout_s: float = 10.0,
+        deadline_s: float = 20.0,
+        uncertain_policy: str = "uncertain",
+    ) -> None:
+        self.detector = detector
+        self.verifier = verifier
+        self.verify_pool = verify_pool
+        self.margin_px = margin_px
+        self.max_candidates = max_candidates
+        self.timeout_s = timeout_s
+        self.deadline_s = deadline_s
+        self.uncertain_policy = uncertain_policy
+
+    @property
+    def verifier_name(self) -> str:
+        return self.verifier.name if self.verifier is not None else "none"
+
+    def _detect(self, image: np.ndarray, superset: str, roi: Box | None, frame_id: int | None) -> list[Detection]:
+        if roi is None:
+            return self.detector.detect(image, [superset], frame_id=frame_id)
+        height, width = image.shape[:2]
+        area = roi.clamped(width, height)
+        x1, y1, x2, y2 = int(area.x), int(area.y), int(np.ceil(area.x2)), int(np.ceil(area.y2))
+        if x2 - x1 < 2 or y2 - y1 < 2:
+            return []
+        found = self.detector.detect(np.ascontiguousarray(image[y1:y2, x1:x2]), [superset], frame_id=frame_id)
+        return [replace(d, box=Box(d.box.x + x1, d.box.y + y1, d.box.w, d.box.h)) for d in found]
+
+    def _verify_one(self, crop: np.ndarray, inner: Box, prompt: str, superset: str, timeout_s: float) -> tuple[VerifierAnswer, float]:
+        assert self.verifier is not None
+        start = time.perf_counter()
+        try:
+            answer = self.verifier.verify(crop, inner.xywh(), prompt, superset, timeout_s)
+        except VerifierError as exc:
+            answer = VerifierAnswer(_policy_verdict(self.uncertain_policy), f"verifier failed: {exc}", self.verifier.name)
+        if answer.verdict is Verdict.UNCERTAIN and self.uncertain_policy != "uncertain":
+            answer = VerifierAnswer(_policy_verdict(self.uncertain_policy), answer.justification, answer.verifier)
+        return answer, time.perf_counter() - start
+
+    def run(
+        self,
+        image: np.ndarray,
+        prompt: str,
+        superset: str,
+        roi: Box | None = None,
+        frame_id: int | None = None,
+        rejected: RejectionCheck | None = None,
+        started: float | None = None,
+    ) -> PipelineResult:
+        """Detect, crop and verify; `started` (perf_counter) lets the deadline include queueing time."""
+        t0 = started if started is not None else time.perf_counter()
+        detections = sorted(self._detect(image, superset, roi, frame_id), key=lambda d: -d.score)
+        detections = detections[: self.max_candidates]
+        t_detected = time.perf_counter()
+        candidates: list[VerifiedCandidate | None] = [None] * len(detections)
+        pending: list[tuple[int, Future[tuple[VerifierAnswer, float]]]] = []
+        for i, det in enumerate(detections):
+            det = replace(det, candidate_id=uuid.uuid4().hex[:12])
+            appearance = descriptor(image, det.box)
+            reason = rejected(appearance) if rejected is not None else None
+            if reason is not None:
+                candidates[i] = VerifiedCandidate(
+                    replace(det, verdict=Verdict.NO, justification=reason), "rejection-memory", 0.0, appearance, True
+                )
+            elif self.verifier is None:
+                candidates[i] = VerifiedCandidate(det, "none", 0.0, appearance)
+            else:
+                crop, inner = margin_crop(image, det.box, self.margin_px)
+                candidates[i] = VerifiedCandidate(det, self.verifier.name, 0.0, appearance)
+                future = self.verify_pool.submit(self._verify_one, crop, inner, prompt, superset, self.timeout_s)
+                pending.append((i, future))
+        deadline = t0 + self.deadline_s
+        for i, future in pending:
+            base = candidates[i]
+            assert base is not None
+            wait_s = max(0.0, min(self.timeout_s, deadline - time.perf_counter()))
+            try:
+                answer, t_verify = future.result(timeout=wait_s)
+            except FutureTimeout:
+                future.cancel()  # still queued: never runs; running: its own HTTP timeout ends it
+                answer = VerifierAnswer(
+                    _policy_verdict(self.uncertain_policy),
+                    f"verification timed out (limit {self.timeout_s:.1f} s, request deadline {self.deadline_s:.1f} s)",
+                    base.verifier,
+                )
+                t_verify = time.perf_counter() - t_detected
+            candidates[i] = replace(
+                base,
+                detection=replace(base.detection, verdict=answer.verdict, justification=answer.justification),
+                verifier=answer.verifier,
+                t_verify=t_verify,
+            )
+        t_end = time.perf_counter()
+        return PipelineResult(
+            superset=superset,
+            candidates=[c for c in candidates if c is not None],
+            t_detect=t_detected - t0,
+            t_verify=t_end - t_detected,
+            t_total=t_end - t0,
+            detector=self.detector.name,
+            verifier=self.verifier_name,
+        )
+

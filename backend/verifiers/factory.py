@@ -1,0 +1,22 @@
+"""Building the configured verifier (`[verifier] kind`): none, local, vlm or cascade."""
+
+from __future__ import annotations
+
+from backend.config import VerifierConfig, VlmConfig
+from backend.verifiers.attributes import AttributeVerifier
+from backend.verifiers.cascade import CascadeVerifier
+from backend.verifiers.interface import Verifier
+from backend.verifiers.openai_chat import OpenAIChatVerifier
+
+
+def build_verifier(verifier: VerifierConfig, vlm: VlmConfig) -> Verifier | None:
+    """The verifier for `verifier.kind`; None for "none" (detector only)."""
+    if verifier.kind == "none":
+        return None
+    if verifier.kind == "local":
+        return AttributeVerifier()
+    chat = OpenAIChatVerifier(
+        vlm.base_url, vlm.model, vlm.api_key_env, vlm.prompt_family, vlm.max_retries, vlm.backoff_s,
+        vlm.max_tokens, vlm.crop_max_side, vlm.jpeg_quality,
+    )
+    return chat if verifier.kind == "vlm" else CascadeVerifier(AttributeVerifier(), chat)

@@ -1,0 +1,34 @@
+"""The interface every verifier implements, and what it answers."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from behaviors.detection import Verdict
+
+
+@dataclass(frozen=True)
+class VerifierAnswer:
+    verdict: Verdict
+    justification: str
+    verifier: str  # which verifier decided (a cascade names the stage)
+
+
+class VerifierError(Exception):
+    """The verifier could not answer (HTTP error, refused request, malformed reply)."""
+
+
+class VerifierTimeout(VerifierError):
+    """The verifier did not answer within its time budget."""
+
+
+class Verifier(Protocol):
+    name: str
+
+    def verify(self, crop_bgr: np.ndarray, target_box: tuple[float, float, float, float], prompt: str,
+               superset: str, timeout_s: float) -> VerifierAnswer:
+        """Judge whether the object at `target_box` (x, y, w, h inside the crop) matches `prompt`."""
+        ...
