@@ -1,0 +1,110 @@
+"""Decoding the autopilot's telemetry into `behaviors.telemetry.Telemetry`, and asking for its rates.
+
+ArduPilot sends nothing but HEARTBEAT on a link until asked, so the companion requests every stream it
+reads with MAV_CMD_SET_MESSAGE_INTERVAL (param1 message id, param2 interval in microseconds).
+HEARTBEAT is requested at the telemetry rate too: it carries the mode, and a mode change by the pilot
+must be seen within a fraction of a second to stop streaming setpoints.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import dataclass
+from typing import Any
+
+from behaviors.telemetry import Telemetry
+from companion.autopilot_modes import AutopilotKind, detect_autopilot, is_armed, mode_name, offboard_mode
+
+MSG_ID_HEARTBEAT = 0
+MSG_ID_SYS_STATUS = 1
+MSG_ID_ATTITUDE = 30
+MSG_ID_LOCAL_POSITION_NED = 32
+MSG_ID_GLOBAL_POSITION_INT = 33
+MAV_TYPE_GCS = 6
+MAV_TYPE_ONBOARD_CONTROLLER = 18
+
+
+def stream_intervals_us(rate_hz: float) -> list[tuple[int, float]]:
+    """(message id, interval in microseconds) for each stream the companion keeps current."""
+    fast = 1e6 / rate_hz
+    return [
+        (MSG_ID_ATTITUDE, fast),
+        (MSG_ID_GLOBAL_POSITION_INT, fast),
+        (MSG_ID_LOCAL_POSITION_NED, fast),
+        (MSG_ID_HEARTBEAT, fast),
+        (MSG_ID_SYS_STATUS, max(fast, 1e6)),  # battery and sensor health change slowly
+    ]
+
+
+@dataclass(frozen=True)
+class AutopilotHeartbeat:
+    kind: AutopilotKind
+    mode: str
+    armed: bool
+    time_s: float
+
+
+class TelemetryDecoder:
+    """Keeps the latest value of every field; thread-safe (the reader feeds, the main loop reads)."""
+
+    def __init__(self, target_system: int, forced_kind: AutopilotKind | None = None):
+        self._target_system = target_system
+        self._forced_kind = forced_kind
+        self._lock = threading.Lock()
+        self._fields: dict[str, Any] = {}
+        self._time: float | None = None
+        self.heartbeat: AutopilotHeartbeat | None = None
+        self.battery_remaining: int | None = None
+        self.local_position: tuple[float, float, float] | None = None
+
+    def feed(self, msg: Any, now: float) -> AutopilotHeartbeat | None:
+        """Take one message; returns the decoded HEARTBEAT when `msg` is the autopilot's heartbeat."""
+        if msg.get_srcSystem() != self._target_system:
+            return None
+        mtype = msg.get_type()
+        with self._lock:
+            if mtype == "HEARTBEAT":
+                return self._heartbeat(msg, now)
+            if mtype == "ATTITUDE":
+                self._update(now, roll=msg.roll, pitch=msg.pitch, yaw=msg.yaw)
+            elif mtype == "GLOBAL_POSITION_INT":
+                self._update(
+                    now, lat_deg=msg.lat / 1e7, lon_deg=msg.lon / 1e7, height_agl=msg.relative_alt / 1000.0,
+                    vn=msg.vx / 100.0, ve=msg.vy / 100.0, vd=msg.vz / 100.0,
+                )  # fmt: skip
+            elif mtype == "LOCAL_POSITION_NED":
+                self.local_position = (msg.x, msg.y, msg.z)
+                self._update(now, vn=msg.vx, ve=msg.vy, vd=msg.vz)
+            elif mtype == "SYS_STATUS":
+                self.battery_remaining = msg.battery_remaining
+        return None
+
+    def _heartbeat(self, msg: Any, now: float) -> AutopilotHeartbeat | None:
+        if msg.type in (MAV_TYPE_GCS, MAV_TYPE_ONBOARD_CONTROLLER) or msg.get_srcComponent() != 1:
+            return None  # only the autopilot's own heartbeat tells us its mode
+        kind = self._forced_kind or detect_autopilot(msg.autopilot)
+        if kind is None:
+            return None
+        self.heartbeat = AutopilotHeartbeat(kind, mode_name(kind, msg.custom_mode), is_armed(msg.base_mode), now)
+        return self.heartbeat
+
+    def _update(self, now: float, **values: float) -> None:
+        if all(math.isfinite(v) for v in values.values()):
+            self._fields.update(values)
+            self._time = now
+
+    def snapshot(self) -> Telemetry | None:
+        """The latest vehicle state, or None before any attitude or position arrived."""
+        with self._lock:
+            if self._time is None:
+                return None
+            hb = self.heartbeat
+            mode = hb.mode if hb else ""
+            return Telemetry(
+                time_s=self._time,
+                armed=hb.armed if hb else False,
+                mode=mode,
+                offboard_active=hb is not None and mode == offboard_mode(hb.kind),
+                **self._fields,
+            )
