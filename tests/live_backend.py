@@ -1,0 +1,58 @@
+"""The real back-end (`backend.app.create_app`) served by uvicorn on a loopback port, for end-to-end tests."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+import uvicorn
+
+from backend.app import create_app
+from backend.config import AuthConfig, BackendConfig, DetectorConfig
+
+SUPERVISOR_TOKEN = "supervisor-test-token"
+VEHICLE_TOKENS = {"drone-1": "drone-1-test-token", "drone-2": "drone-2-test-token"}
+
+
+@dataclass(frozen=True)
+class LiveBackend:
+    url: str
+    app: object  # the FastAPI app, for its `state.sessions`
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@contextmanager
+def live_backend(models_dir: Path) -> Iterator[LiveBackend]:
+    """The back-end with YOLOX-nano from the shared models, no verifier, and the test tokens."""
+    config = BackendConfig(
+        auth=AuthConfig(tokens=VEHICLE_TOKENS, supervisor_token=SUPERVISOR_TOKEN),
+        detector=DetectorConfig(kind="yolox", model_dir=str(models_dir)),
+    )
+    app = create_app(config, verifier=None)
+    port = free_port()
+    # A short graceful-shutdown timeout: open Server-Sent Event streams must not hold the test up.
+    server = uvicorn.Server(
+        uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", timeout_graceful_shutdown=1)
+    )
+    thread = threading.Thread(target=server.run, name="live-backend", daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 30
+    while not server.started:
+        if not thread.is_alive() or time.monotonic() > deadline:
+            raise RuntimeError("the back-end did not start")
+        time.sleep(0.02)
+    try:
+        yield LiveBackend(f"http://127.0.0.1:{port}", app)
+    finally:
+        server.should_exit = True
+        thread.join(timeout=15)
