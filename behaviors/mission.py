@@ -126,6 +126,7 @@ class State:
     lost_stage: int = 0  # 0: stopped and re-detecting, 1: holding, 2: lost action requested
     backend_down: bool = False
     mode_requested: FlightMode | None = None  # the last mode we asked for
+    holding: bool = False  # a Hold was sent; the next setpoint first asks for the offboard mode again
     control: ControlState = ControlState()
     rejections: RejectionMemory = RejectionMemory()
     reason: str = ""  # why the current mode was entered
@@ -188,7 +189,8 @@ def _start_search(state: State, reason: str, config: MissionConfig) -> Result:
         reason,
     )
     new, query = _query(new, QueryPurpose.SEARCH, None)
-    return new, (*msg, *_scan(new, config), *query)
+    new, scan = _scan(new, config)
+    return new, (*msg, *scan, *query)
 
 
 def _start_lost(state: State, reason: str, config: MissionConfig) -> Result:
@@ -254,16 +256,16 @@ def _command(state: State, event: GcsCommand, config: MissionConfig) -> Result:
         keep = state.mission is not None and state.mission.prompt == cmd.prompt
         rejections = state.rejections if keep else RejectionMemory((), state.rejections.radius_m, state.rejections.signature_threshold)
         stop: tuple[Action, ...] = (TrackerStop("new mission"),) if state.mode in TRACKING else ()
-        new = replace(state, mission=cmd, rejections=rejections, backend_down=False)
-        new, engage = _engage(new)
+        new = replace(state, mission=cmd, rejections=rejections, backend_down=False, mode_requested=None, holding=False)
+        new, engage = _engage(new, "mission start")
         new, actions = _start_search(new, "mission started", config)
         return new, (*stop, *engage, *actions)
     if isinstance(cmd, TrackRectangle):
         if not cmd.box.is_valid():
             return state, (GcsMessage("track refused: invalid rectangle", "warning"),)
         target = Target("operator", "selected by the operator", Verdict.YES, cmd.box, -1, state.now_s, operator_selected=True)
-        new = replace(state, target=target, control=ControlState(), lost_stage=0)
-        new, engage = _engage(new)
+        new = replace(state, target=target, control=ControlState(), lost_stage=0, mode_requested=None, holding=False)
+        new, engage = _engage(new, "operator target")
         new, msg = _enter(new, MissionState.CONFIRMED, "operator selected target")
         return new, (*engage, TrackerInit(cmd.box, -1, "operator"), *msg)
     if isinstance(cmd, StopTracking):
@@ -284,19 +286,21 @@ def _command(state: State, event: GcsCommand, config: MissionConfig) -> Result:
     return state, ()
 
 
-def _engage(state: State) -> Result:
+def _engage(state: State, reason: str) -> Result:
     """Ask for the offboard mode only when the mission allows it and the autopilot is not already in it."""
     if state.mission is None or not state.mission.allow_engage:
         return state, ()
     if state.telemetry is not None and state.telemetry.offboard_active:
         return state, ()
-    return replace(state, mode_requested=FlightMode.OFFBOARD), (RequestMode(FlightMode.OFFBOARD, "mission start"),)
+    return replace(state, mode_requested=FlightMode.OFFBOARD), (RequestMode(FlightMode.OFFBOARD, reason),)
 
 
 def _telemetry(state: State, telemetry: Telemetry) -> Result:
     previous = state.telemetry
     new = replace(state, telemetry=telemetry)
-    our_request = state.mode_requested not in (None, FlightMode.OFFBOARD)
+    # Leaving offboard is expected after our own hold (PX4 HOLD, ArduPilot BRAKE/LOITER) or mode request;
+    # then only the link's PilotTakeover event, which knows what it asked for, reports a takeover.
+    our_request = state.holding or state.mode_requested not in (None, FlightMode.OFFBOARD)
     if (
         state.mode in ACTIVE
         and previous is not None
@@ -361,7 +365,9 @@ def _answer(state: State, answer: BackendAnswer, config: MissionConfig) -> Resul
             position, det.signature,
         )
         new, msg = _enter(replace(state, target=picked, control=ControlState()), MissionState.ACQUIRING, f"candidate {det.candidate_id}")
-        return new, (TrackerInit(det.box, answer.keyframe_id, det.candidate_id), *msg)
+        # Stop any search scan while the tracker locks on; the link repeats the last setpoint.
+        stop = (SendSetpoint(Setpoint.zero()),) if not state.backend_down else ()
+        return new, (*stop, TrackerInit(det.box, answer.keyframe_id, det.candidate_id), *msg)
     target = state.target
     if target is None:
         return state, ()
@@ -395,7 +401,7 @@ def _backend_down(state: State, event: BackendUnreachable) -> Result:
     msg = GcsMessage(f"back-end unreachable {event.reason}".strip()[:50], "warning")
     if state.mode in ACTIVE:
         # Watchdog rule: motion ends with a stop then hold; setpoints resume once the back-end answers.
-        return new, (Hold("back-end unreachable"), msg)
+        return replace(new, holding=True), (Hold("back-end unreachable"), msg)
     return new, (msg,)
 
 
@@ -408,7 +414,8 @@ def _tick(state: State, tick: TimerTick, config: MissionConfig) -> Result:
         actions: tuple[Action, ...] = ()
         if _query_due(state, config.query_interval_s):
             state, actions = _query(state, QueryPurpose.SEARCH, None)
-        return state, (*_scan(state, config), *actions)
+        state, scan = _scan(state, config)
+        return state, (*scan, *actions)
     if mode is MissionState.ACQUIRING:
         if now - state.since_s > config.acquire_timeout_s:
             return _acquire_timeout(state, config)
@@ -436,7 +443,7 @@ def _lost_tick(state: State, target: Target, config: MissionConfig) -> Result:
     elapsed = state.now_s - state.since_s
     actions: list[Action] = []
     if state.lost_stage == 0 and elapsed >= config.lost_hold_after_s:
-        state = replace(state, lost_stage=1)
+        state = replace(state, lost_stage=1, holding=True)
         actions.append(Hold("target lost"))
     if state.lost_stage == 1 and elapsed >= config.lost_action_after_s:
         state = replace(state, lost_stage=2)
@@ -488,19 +495,28 @@ def _report_due(state: State, config: MissionConfig) -> bool:
     return state.last_report_s is None or state.now_s - state.last_report_s >= config.reverify_interval_s
 
 
-def _scan(state: State, config: MissionConfig) -> tuple[Action, ...]:
+def _scan(state: State, config: MissionConfig) -> Result:
     """SEARCHING's setpoint: a slow yaw scan, or standing still; none while the back-end is down."""
     if state.backend_down:
-        return ()
+        return state, ()
     height = state.telemetry.height_agl if state.telemetry is not None else None
-    return (SendSetpoint(apply_limits(Setpoint(yaw_rate=config.search_yaw_rate), config.limits, height)),)
+    state, engage = _resume_from_hold(state)
+    return state, (*engage, SendSetpoint(apply_limits(Setpoint(yaw_rate=config.search_yaw_rate), config.limits, height)))
 
 
-def _roi(box: Box, config: MissionConfig) -> Box:
+def _resume_from_hold(state: State) -> Result:
+    """Setpoints after a Hold: ask for the offboard mode again when allowed (the hold may have left it)."""
+    if not state.holding:
+        return state, ()
+    return _engage(replace(state, holding=False), "resume after hold")
+
+
+def _roi(box: Box, config: MissionConfig) -> Box | None:
     """Where to look for a lost target: its last box grown by `redetect_roi_scale`, inside the image."""
     cam = config.camera
     grown = Box.from_center(box.cx, box.cy, box.w * config.redetect_roi_scale, box.h * config.redetect_roi_scale)
-    return grown.clamped(cam.width, cam.height)
+    roi = grown.clamped(cam.width, cam.height)
+    return roi if roi.is_valid() else None
 
 
 def _follow(state: State, box: Box, time_s: float, config: MissionConfig) -> tuple[State, tuple[Action, ...]]:
@@ -511,7 +527,8 @@ def _follow(state: State, box: Box, time_s: float, config: MissionConfig) -> tup
     lateral = config.orbit_speed_m_s if confirmed and config.on_confirm is ConfirmAction.ORBIT else 0.0
     goal = FollowGoal(config.standoff_m, lateral, descent_allowed=confirmed)
     setpoint, control = follow_step(box, config.camera, telemetry, goal, config.gains, config.limits, state.control, time_s)
-    return replace(state, control=control), (SendSetpoint(setpoint),)
+    state, engage = _resume_from_hold(replace(state, control=control))
+    return state, (*engage, SendSetpoint(setpoint))
 
 
 def _arrived(state: State, box: Box, config: MissionConfig) -> bool:

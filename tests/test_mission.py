@@ -1,0 +1,506 @@
+"""The mission state machine, table-driven: every state and transition, abort/takeover from every state,
+rejection memory, back-end loss and the offboard rules. Every state is reached by real `step` calls."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import replace
+
+import pytest
+
+from behaviors.actions import (
+    Action,
+    BackendQuery,
+    FlightMode,
+    GcsMessage,
+    Hold,
+    QueryPurpose,
+    ReleaseControl,
+    RememberRejection,
+    ReportCandidate,
+    RequestMode,
+    SendSetpoint,
+    TrackerInit,
+    TrackerStop,
+)
+from behaviors.detection import Detection, Verdict
+from behaviors.events import (
+    AutopilotLinkLost,
+    BackendAnswer,
+    BackendUnreachable,
+    Event,
+    GcsCommand,
+    PilotTakeover,
+    TimerTick,
+)
+from behaviors.geometry import Box
+from behaviors.mission import MissionState, State, initial_state, step
+from behaviors.mission_commands import (
+    AbortMission,
+    ConfirmCandidate,
+    RejectCandidate,
+    StartMission,
+    StopTracking,
+    TrackRectangle,
+)
+from behaviors.mission_config import ConfirmAction, LostAction, MissionConfig
+from behaviors.setpoint import Setpoint
+from behaviors.telemetry import Telemetry
+from behaviors.track_result import TrackResult
+
+CFG = MissionConfig()
+CAM = CFG.camera
+HEIGHT = 20.0
+PROMPT = "an injured man in a gray shirt"
+S = MissionState
+
+
+def box_at(distance_m: float, u: float = CAM.cx, h_px: float = 40.0) -> Box:
+    """A box whose foot point lies `distance_m` ahead on flat ground, seen from HEIGHT with the default camera."""
+    depression = math.atan2(HEIGHT, distance_m)
+    v = CAM.cy + CAM.fy * math.tan(depression + CAM.mount_pitch)
+    return Box.from_center(u, v - h_px / 2.0, 16.0, h_px)
+
+
+FAR = box_at(25.0)
+AT_STANDOFF = box_at(CFG.standoff_m)
+
+
+def telemetry(t: float, offboard: bool = True) -> Telemetry:
+    return Telemetry(t, lat_deg=47.0, lon_deg=8.0, height_agl=HEIGHT, offboard_active=offboard, mode="GUIDED")
+
+
+def candidate(box: Box, cid: str = "c1", verdict: Verdict = Verdict.YES, score: float = 0.9, sig: tuple[float, ...] = ()) -> Detection:
+    return Detection(box, score, verdict=verdict, justification="gray shirt, lying", candidate_id=cid, signature=sig)
+
+
+def tracked(t: float, box: Box | None, ok: bool = True, reason: str = "") -> TrackResult:
+    return TrackResult(int(t * 30), t, box, 0.9 if ok else 0.2, ok, reason)
+
+
+def cmd(t: float, command: object) -> GcsCommand:
+    return GcsCommand(t, command)  # type: ignore[arg-type]
+
+
+def kinds(actions: Sequence[Action]) -> list[str]:
+    return [type(a).__name__ for a in actions]
+
+
+def run(state: State, events: Sequence[Event], config: MissionConfig = CFG) -> tuple[State, tuple[Action, ...]]:
+    actions: tuple[Action, ...] = ()
+    for event in events:
+        state, actions = step(state, event, config)
+    return state, actions
+
+
+def last_query(actions: Sequence[Action]) -> BackendQuery:
+    return [a for a in actions if isinstance(a, BackendQuery)][-1]
+
+
+def reach(mode: MissionState, config: MissionConfig = CFG, allow_engage: bool = False) -> State:
+    """Drive a fresh machine into `mode` through real events (time advances from 0)."""
+    state, _ = run(initial_state(config), [telemetry(0.0)], config)
+    if mode is S.IDLE:
+        return state
+    if mode is S.ABORTED:
+        state, _ = run(state, [cmd(0.1, StartMission(PROMPT)), cmd(0.2, AbortMission())], config)
+        return state
+    state, actions = step(state, cmd(0.1, StartMission(PROMPT, allow_engage=allow_engage)), config)
+    if mode is S.SEARCHING:
+        return state
+    qid = last_query(actions).query_id
+    state, _ = step(state, BackendAnswer(1.0, qid, 30, (candidate(FAR),)), config)
+    if mode is S.ACQUIRING:
+        return state
+    state, _ = step(state, tracked(1.1, FAR), config)
+    if mode is S.FOLLOWING:
+        return state
+    if mode is S.LOST:
+        state, _ = step(state, tracked(1.2, None, ok=False, reason="score"), config)
+        return state
+    state, _ = step(state, tracked(1.2, AT_STANDOFF), config)
+    if mode is S.AWAITING_SUPERVISOR:
+        return state
+    if mode is S.CONFIRMED:
+        state, _ = step(state, cmd(1.3, ConfirmCandidate()), config)
+        return state
+    state, _ = step(state, cmd(1.3, RejectCandidate()), config)
+    assert mode is S.REJECTED
+    return state
+
+
+@pytest.mark.parametrize("mode", list(MissionState))
+def test_every_state_is_reachable(mode: MissionState) -> None:
+    assert reach(mode).mode is mode
+
+
+# (name, start, event, expected mode, expected action kinds in order)
+TRANSITIONS: list[tuple[str, MissionState, Event, MissionState, list[str]]] = [
+    ("idle start", S.IDLE, cmd(1, StartMission(PROMPT)), S.SEARCHING, ["GcsMessage", "SendSetpoint", "BackendQuery"]),
+    ("idle empty prompt", S.IDLE, cmd(1, StartMission("  ")), S.IDLE, ["GcsMessage"]),
+    ("idle operator rectangle", S.IDLE, cmd(1, TrackRectangle(FAR)), S.CONFIRMED, ["TrackerInit", "GcsMessage"]),
+    ("idle bad rectangle", S.IDLE, cmd(1, TrackRectangle(Box(0, 0, 0, 5))), S.IDLE, ["GcsMessage"]),
+    ("idle tick", S.IDLE, TimerTick(5), S.IDLE, []),
+    ("idle tracker result", S.IDLE, tracked(1, FAR), S.IDLE, []),
+    ("idle confirm", S.IDLE, cmd(1, ConfirmCandidate()), S.IDLE, ["GcsMessage"]),
+    ("idle stop", S.IDLE, cmd(1, StopTracking()), S.IDLE, []),
+    ("searching tick early", S.SEARCHING, TimerTick(0.5), S.SEARCHING, ["SendSetpoint"]),
+    ("searching tick due", S.SEARCHING, TimerTick(1.2), S.SEARCHING, ["SendSetpoint", "BackendQuery"]),
+    ("searching answer yes", S.SEARCHING, BackendAnswer(1, 1, 30, (candidate(FAR),)), S.ACQUIRING,
+     ["SendSetpoint", "TrackerInit", "GcsMessage"]),
+    ("searching answer no", S.SEARCHING, BackendAnswer(1, 1, 30, (candidate(FAR, verdict=Verdict.NO),)), S.SEARCHING, []),
+    ("searching answer uncertain", S.SEARCHING, BackendAnswer(1, 1, 30, (candidate(FAR, verdict=Verdict.UNCERTAIN),)),
+     S.SEARCHING, []),
+    ("searching answer empty", S.SEARCHING, BackendAnswer(1, 1, 30, ()), S.SEARCHING, []),
+    ("searching unknown query", S.SEARCHING, BackendAnswer(1, 99, 30, (candidate(FAR),)), S.SEARCHING, []),
+    ("searching stop", S.SEARCHING, cmd(1, StopTracking()), S.IDLE, ["Hold", "GcsMessage"]),
+    ("searching reject unknown id", S.SEARCHING, cmd(1, RejectCandidate("c7")), S.SEARCHING, ["RememberRejection"]),
+    ("searching reject nothing", S.SEARCHING, cmd(1, RejectCandidate()), S.SEARCHING, ["GcsMessage"]),
+    ("acquiring locked", S.ACQUIRING, tracked(1.1, FAR), S.FOLLOWING, ["GcsMessage", "SendSetpoint"]),
+    ("acquiring not yet", S.ACQUIRING, tracked(1.5, None, ok=False), S.ACQUIRING, []),
+    ("acquiring timeout", S.ACQUIRING, TimerTick(4.5), S.SEARCHING,
+     ["TrackerStop", "GcsMessage", "SendSetpoint", "BackendQuery"]),
+    ("acquiring stop", S.ACQUIRING, cmd(1.1, StopTracking()), S.IDLE, ["Hold", "TrackerStop", "GcsMessage"]),
+    ("following far", S.FOLLOWING, tracked(1.2, FAR), S.FOLLOWING, ["SendSetpoint"]),
+    ("following arrived", S.FOLLOWING, tracked(1.2, AT_STANDOFF), S.AWAITING_SUPERVISOR,
+     ["SendSetpoint", "ReportCandidate", "GcsMessage"]),
+    ("following tracker lost", S.FOLLOWING, tracked(1.2, None, ok=False, reason="score"), S.LOST,
+     ["SendSetpoint", "GcsMessage", "BackendQuery"]),
+    ("following stale frames", S.FOLLOWING, TimerTick(1.7), S.LOST, ["SendSetpoint", "GcsMessage", "BackendQuery"]),
+    ("following fresh tick", S.FOLLOWING, TimerTick(1.3), S.FOLLOWING, []),
+    ("following confirm", S.FOLLOWING, cmd(1.2, ConfirmCandidate()), S.CONFIRMED, ["ReportCandidate", "GcsMessage"]),
+    ("following reject", S.FOLLOWING, cmd(1.2, RejectCandidate("c1")), S.REJECTED,
+     ["SendSetpoint", "TrackerStop", "RememberRejection", "GcsMessage"]),
+    ("awaiting tracking", S.AWAITING_SUPERVISOR, tracked(1.25, AT_STANDOFF), S.AWAITING_SUPERVISOR, ["SendSetpoint"]),
+    ("awaiting confirm", S.AWAITING_SUPERVISOR, cmd(1.3, ConfirmCandidate("c1")), S.CONFIRMED,
+     ["ReportCandidate", "GcsMessage"]),
+    ("awaiting confirm wrong id", S.AWAITING_SUPERVISOR, cmd(1.3, ConfirmCandidate("c9")), S.AWAITING_SUPERVISOR,
+     ["GcsMessage"]),
+    ("awaiting reject", S.AWAITING_SUPERVISOR, cmd(1.3, RejectCandidate()), S.REJECTED,
+     ["SendSetpoint", "TrackerStop", "RememberRejection", "GcsMessage"]),
+    ("awaiting tracker lost", S.AWAITING_SUPERVISOR, tracked(1.3, None, ok=False), S.LOST,
+     ["SendSetpoint", "GcsMessage", "BackendQuery"]),
+    ("confirmed tracking", S.CONFIRMED, tracked(1.35, AT_STANDOFF), S.CONFIRMED, ["SendSetpoint"]),
+    ("confirmed again", S.CONFIRMED, cmd(1.35, ConfirmCandidate()), S.CONFIRMED, []),
+    ("confirmed tracker lost", S.CONFIRMED, tracked(1.35, None, ok=False), S.LOST,
+     ["SendSetpoint", "GcsMessage", "BackendQuery"]),
+    ("confirmed supervisor changes mind", S.CONFIRMED, cmd(1.35, RejectCandidate()), S.REJECTED,
+     ["SendSetpoint", "TrackerStop", "RememberRejection", "GcsMessage"]),
+    ("rejected tick", S.REJECTED, TimerTick(1.4), S.SEARCHING, ["GcsMessage", "SendSetpoint", "BackendQuery"]),
+    ("rejected tracker result", S.REJECTED, tracked(1.4, FAR), S.REJECTED, []),
+    ("lost untrusted", S.LOST, tracked(1.3, None, ok=False), S.LOST, []),
+    ("lost recovered", S.LOST, tracked(1.3, FAR), S.FOLLOWING, ["GcsMessage", "SendSetpoint"]),
+    ("lost hold", S.LOST, TimerTick(2.25), S.LOST, ["Hold", "BackendQuery"]),
+    ("lost confirm", S.LOST, cmd(1.3, ConfirmCandidate()), S.LOST, ["ReportCandidate", "GcsMessage"]),
+    ("lost reject", S.LOST, cmd(1.3, RejectCandidate()), S.REJECTED,
+     ["SendSetpoint", "TrackerStop", "RememberRejection", "GcsMessage"]),
+    ("aborted restart", S.ABORTED, cmd(1, StartMission(PROMPT)), S.SEARCHING, ["GcsMessage", "SendSetpoint", "BackendQuery"]),
+    ("aborted tick", S.ABORTED, TimerTick(9), S.ABORTED, []),
+    ("aborted tracker result", S.ABORTED, tracked(1, FAR), S.ABORTED, []),
+    ("aborted confirm", S.ABORTED, cmd(1, ConfirmCandidate()), S.ABORTED, ["GcsMessage"]),
+    ("aborted stop", S.ABORTED, cmd(1, StopTracking()), S.ABORTED, []),
+]
+
+
+@pytest.mark.parametrize(("name", "start", "event", "expected", "expected_kinds"), TRANSITIONS, ids=[t[0] for t in TRANSITIONS])
+def test_transition_table(
+    name: str, start: MissionState, event: Event, expected: MissionState, expected_kinds: list[str]
+) -> None:
+    state, actions = step(reach(start), event, CFG)
+    assert state.mode is expected, name
+    assert kinds(actions) == expected_kinds, name
+
+
+def test_table_covers_every_state_as_a_source() -> None:
+    assert {t[1] for t in TRANSITIONS} == set(MissionState)
+
+
+STOPS: list[tuple[str, Callable[[float], Event], type[Action]]] = [
+    ("gcs abort", lambda t: cmd(t, AbortMission("operator")), Hold),
+    ("autopilot link lost", lambda t: AutopilotLinkLost(t), Hold),
+    ("pilot takeover", lambda t: PilotTakeover(t, "LOITER"), ReleaseControl),
+    ("offboard lost in telemetry", lambda t: telemetry(t, offboard=False), ReleaseControl),
+]
+
+
+@pytest.mark.parametrize("mode", list(MissionState))
+@pytest.mark.parametrize(("cause", "make", "stop"), STOPS, ids=[s[0] for s in STOPS])
+def test_abort_and_takeover_from_every_state(
+    mode: MissionState, cause: str, make: Callable[[float], Event], stop: type[Action]
+) -> None:
+    start = reach(mode)
+    state, actions = step(start, make(5.0), CFG)
+    if cause == "offboard lost in telemetry" and mode in (S.IDLE, S.ABORTED):
+        # Not commanding: a mode change is the pilot's business and nothing to abort.
+        assert state.mode is mode and actions == ()
+        return
+    assert state.mode is S.ABORTED
+    if mode is S.ABORTED:
+        assert actions == ()
+        return
+    commanding = mode not in (S.IDLE,)
+    expected = ([stop.__name__] if commanding else []) + (
+        ["TrackerStop"] if mode in (S.ACQUIRING, S.FOLLOWING, S.AWAITING_SUPERVISOR, S.CONFIRMED, S.LOST) else []
+    ) + ["GcsMessage"]
+    assert kinds(actions) == expected
+    assert isinstance(actions[-1], GcsMessage) and actions[-1].severity == "critical"
+    # Nothing moves the vehicle afterwards, whatever arrives.
+    for event in (tracked(5.1, AT_STANDOFF), TimerTick(50.0), cmd(5.2, ConfirmCandidate())):
+        state, actions = step(state, event, CFG)
+        assert state.mode is S.ABORTED
+        assert not any(isinstance(a, (SendSetpoint, RequestMode, TrackerInit, BackendQuery)) for a in actions)
+
+
+def test_takeover_never_answered_with_a_hold_or_mode_request() -> None:
+    for mode in (S.FOLLOWING, S.CONFIRMED, S.LOST):
+        _, actions = step(reach(mode, allow_engage=True), PilotTakeover(3.0, "POSHOLD"), CFG)
+        assert not any(isinstance(a, (Hold, RequestMode, SendSetpoint)) for a in actions)
+
+
+def test_offboard_requested_only_when_mission_allows_engage() -> None:
+    base, _ = run(initial_state(CFG), [telemetry(0.0, offboard=False)])
+    _, actions = step(base, cmd(0.1, StartMission(PROMPT, allow_engage=False)), CFG)
+    assert not any(isinstance(a, RequestMode) for a in actions)
+    _, actions = step(base, cmd(0.1, StartMission(PROMPT, allow_engage=True)), CFG)
+    assert actions[0] == RequestMode(FlightMode.OFFBOARD, "mission start")
+    # Already in the mode: nothing to ask for.
+    engaged, _ = run(initial_state(CFG), [telemetry(0.0, offboard=True)])
+    _, actions = step(engaged, cmd(0.1, StartMission(PROMPT, allow_engage=True)), CFG)
+    assert not any(isinstance(a, RequestMode) for a in actions)
+
+
+def test_searching_queries_at_the_configured_rate_and_scans() -> None:
+    config = replace(CFG, query_interval_s=2.0, search_yaw_rate=math.radians(10.0))
+    state = reach(S.SEARCHING, config)
+    queries: list[float] = []
+    for i in range(1, 27):
+        t = 0.25 * i  # exact binary fractions: no rounding at the interval boundary
+        state, actions = step(state, TimerTick(t), config)
+        assert isinstance(actions[0], SendSetpoint)
+        assert math.isclose(actions[0].setpoint.yaw_rate, math.radians(10.0))
+        queries += [t for a in actions if isinstance(a, BackendQuery)]
+    assert queries == [2.25, 4.25, 6.25]  # one more went out with the start, at 0.1 s
+    assert last_query(step(state, TimerTick(99.0), config)[1]).purpose is QueryPurpose.SEARCH
+
+
+def test_acquiring_prefers_yes_then_uncertain_by_policy() -> None:
+    state = reach(S.SEARCHING)
+    answer = BackendAnswer(1.0, 1, 30, (
+        candidate(box_at(30, u=200), "u", Verdict.UNCERTAIN, 0.99),
+        candidate(box_at(30, u=500), "y", Verdict.YES, 0.5),
+        candidate(box_at(30, u=400), "y2", Verdict.YES, 0.7),
+    ))
+    new, actions = step(state, answer, CFG)
+    init = [a for a in actions if isinstance(a, TrackerInit)][0]
+    assert init.candidate_id == "y2" and init.keyframe_id == 30 and not init.reinit
+    only_uncertain = BackendAnswer(1.0, 1, 30, (candidate(FAR, "u", Verdict.UNCERTAIN),))
+    assert step(state, only_uncertain, CFG)[0].mode is S.SEARCHING
+    lenient = replace(CFG, accept_uncertain=True)
+    assert step(state, only_uncertain, lenient)[0].mode is S.ACQUIRING
+
+
+def test_following_setpoints_approach_and_turn_towards_the_target() -> None:
+    state = reach(S.FOLLOWING)
+    right_far = box_at(25.0, u=CAM.cx + 120)
+    for i in range(10):
+        state, actions = step(state, tracked(1.2 + 0.05 * i, right_far), CFG)
+    sp = [a for a in actions if isinstance(a, SendSetpoint)][-1].setpoint
+    assert sp.forward > 0 and sp.yaw_rate > 0 and sp.down <= 0
+    assert sp.horizontal_speed <= CFG.limits.max_speed and abs(sp.yaw_rate) <= CFG.limits.max_yaw_rate
+
+
+def test_awaiting_reports_once_then_reverifies_periodically() -> None:
+    state = reach(S.FOLLOWING)
+    state, actions = step(state, tracked(1.2, AT_STANDOFF), CFG)
+    reports = [a for a in actions if isinstance(a, ReportCandidate)]
+    assert len(reports) == 1 and reports[0].status == "awaiting" and reports[0].candidate_id == "c1"
+    assert reports[0].justification == "gray shirt, lying"
+    assert reports[0].position is not None and math.isclose(reports[0].position.ground_range_m, CFG.standoff_m, rel_tol=0.01)
+    reverify: list[BackendQuery] = []
+    t = 1.2
+    while t < 1.2 + 2.5 * CFG.reverify_interval_s:
+        t += 0.1
+        state, actions = step(state, tracked(t, AT_STANDOFF), CFG)
+        assert not any(isinstance(a, ReportCandidate) for a in actions)
+        state, actions = step(state, TimerTick(t), CFG)
+        reverify += [a for a in actions if isinstance(a, BackendQuery)]
+    assert len(reverify) == 2 and all(q.purpose is QueryPurpose.REVERIFY and q.roi is not None for q in reverify)
+    answer = BackendAnswer(t, reverify[-1].query_id, 40, (candidate(AT_STANDOFF, "c1-b", Verdict.YES),))
+    state, actions = step(state, answer, CFG)
+    assert kinds(actions) == ["ReportCandidate"]
+    assert isinstance(actions[0], ReportCandidate) and actions[0].status == "reverified" and actions[0].candidate_id == "c1"
+    missing = BackendAnswer(t, reverify[0].query_id, 41, (candidate(box_at(30, u=50), "other"),))
+    _, actions = step(state, missing, CFG)
+    assert kinds(actions) == ["GcsMessage"]
+
+
+@pytest.mark.parametrize("on_confirm", list(ConfirmAction))
+def test_confirmed_behaviours(on_confirm: ConfirmAction) -> None:
+    config = replace(CFG, on_confirm=on_confirm)
+    state = reach(S.AWAITING_SUPERVISOR, config)
+    state, actions = step(state, cmd(1.3, ConfirmCandidate()), config)
+    assert state.mode is S.CONFIRMED
+    report = [a for a in actions if isinstance(a, ReportCandidate)][0]
+    assert report.status == "confirmed" and report.position is not None
+    assert (Hold("confirmed: hold") in actions) == (on_confirm is ConfirmAction.HOLD)
+    for i in range(20):
+        state, actions = step(state, tracked(1.35 + 0.05 * i, AT_STANDOFF), config)
+    setpoints = [a.setpoint for a in actions if isinstance(a, SendSetpoint)]
+    if on_confirm is ConfirmAction.HOLD:
+        assert setpoints == []
+    elif on_confirm is ConfirmAction.ORBIT:
+        assert setpoints[-1].right > 0.5  # circling sideways while yaw keeps the target centred
+    else:
+        assert abs(setpoints[-1].right) < 1e-9 and abs(setpoints[-1].forward) < 0.2
+
+
+def test_lost_redetects_near_last_position_and_reinitialises_by_c_box() -> None:
+    state = reach(S.FOLLOWING)
+    state, actions = step(state, tracked(1.2, None, ok=False, reason="left_frame"), CFG)
+    query = last_query(actions)
+    assert query.purpose is QueryPurpose.REDETECT and query.roi is not None
+    assert query.roi.x <= FAR.x and query.roi.x2 >= FAR.x2 and query.roi.w < CAM.width
+    near = Box(FAR.x + 6, FAR.y + 3, FAR.w, FAR.h)
+    far_away = Box(5, 5, 60, 120)
+    answer = BackendAnswer(1.5, query.query_id, 45, (
+        candidate(far_away, "z"), candidate(near, "n", Verdict.UNCERTAIN), candidate(FAR, "no", Verdict.NO),
+    ))
+    state, actions = step(state, answer, CFG)
+    assert actions == (TrackerInit(near, 45, "c1", reinit=True),)
+    assert state.mode is S.LOST
+    state, actions = step(state, tracked(1.6, near), CFG)
+    assert state.mode is S.FOLLOWING
+
+
+def test_lost_ignores_candidates_beyond_the_gate() -> None:
+    state = reach(S.LOST)
+    query = state.queries[-1][0]
+    _, actions = step(state, BackendAnswer(1.5, query, 45, (candidate(Box(560, 400, 70, 70), "z"),)), CFG)
+    assert actions == ()
+
+
+@pytest.mark.parametrize("lost_action", list(LostAction))
+def test_lost_holds_then_requests_the_configured_action(lost_action: LostAction) -> None:
+    config = replace(CFG, lost_action=lost_action, lost_hold_after_s=1.0, lost_action_after_s=5.0)
+    state = reach(S.LOST, config)  # entered at t=1.2
+    seen: list[tuple[float, Action]] = []
+    t = 1.2
+    while t < 9.0:
+        t = round(t + 0.1, 3)
+        state, actions = step(state, TimerTick(t), config)
+        seen += [(t, a) for a in actions]
+    holds = [t for t, a in seen if isinstance(a, Hold)]
+    assert len(holds) == 1 and 2.2 <= holds[0] < 2.35
+    requests = [(t, a) for t, a in seen if isinstance(a, RequestMode)]
+    queries_after = [t for t, a in seen if isinstance(a, BackendQuery) and t > 6.3]
+    if lost_action is LostAction.HOLD:
+        assert requests == [] and queries_after  # keeps holding and looking
+        assert state.mode is S.LOST
+        assert step(state, tracked(9.1, FAR), config)[0].mode is S.FOLLOWING
+    else:
+        assert len(requests) == 1 and 6.2 <= requests[0][0] < 6.35
+        assert requests[0][1] == RequestMode(FlightMode(lost_action.value), "target lost")
+        assert queries_after == []
+        # The autopilot leaving offboard because we asked is not a takeover; the mission waits for the GCS.
+        state, actions = run(state, [telemetry(9.1, offboard=False), tracked(9.2, FAR)], config)
+        assert state.mode is S.LOST and actions == ()
+
+
+def test_resuming_after_a_hold_asks_for_offboard_again_when_allowed() -> None:
+    config = replace(CFG, lost_hold_after_s=0.5)
+    state = reach(S.LOST, config, allow_engage=True)
+    state, actions = run(state, [TimerTick(2.0), telemetry(2.1, offboard=False)], config)
+    assert state.mode is S.LOST and state.holding
+    state, actions = step(state, tracked(2.2, FAR), config)
+    assert state.mode is S.FOLLOWING
+    assert kinds(actions) == ["GcsMessage", "RequestMode", "SendSetpoint"]
+
+
+def test_backend_unreachable_stops_motion_until_it_answers() -> None:
+    state = reach(S.FOLLOWING)
+    state, actions = step(state, BackendUnreachable(1.2, "timeout"), CFG)
+    assert kinds(actions) == ["Hold", "GcsMessage"] and state.mode is S.FOLLOWING
+    assert step(state, BackendUnreachable(1.25), CFG)[1] == ()
+    state, actions = step(state, tracked(1.3, FAR), CFG)
+    assert actions == ()  # still tracking, not moving
+    state, actions = step(state, tracked(1.35, None, ok=False), CFG)  # lost while the back-end is down
+    qid = last_query(actions).query_id
+    state, _ = step(state, BackendAnswer(1.4, qid, 50, ()), CFG)
+    assert not state.backend_down
+    state, actions = step(state, tracked(1.45, FAR), CFG)
+    assert state.mode is S.FOLLOWING and "SendSetpoint" in kinds(actions)
+
+
+def test_descent_only_after_confirmation() -> None:
+    high = replace(CFG, limits=replace(CFG.limits, max_altitude=15.0))
+    for mode, allowed in ((S.AWAITING_SUPERVISOR, False), (S.CONFIRMED, True)):
+        state = reach(mode, high)
+        for i in range(5):
+            state, actions = step(state, tracked(1.4 + 0.05 * i, AT_STANDOFF), high)
+        sp = [a for a in actions if isinstance(a, SendSetpoint)][-1].setpoint
+        assert (sp.down > 0) == allowed
+
+
+# --- rejection memory ---------------------------------------------------------------------------------
+
+
+def rejected_then_searching(config: MissionConfig = CFG) -> State:
+    state = reach(S.REJECTED, config)
+    assert len(state.rejections.entries) == 1
+    state, _ = step(state, TimerTick(1.4), config)
+    assert state.mode is S.SEARCHING
+    return state
+
+
+def test_rejected_target_is_not_proposed_again_by_position() -> None:
+    state = rejected_then_searching()
+    qid = state.queries[-1][0]
+    same_place = BackendAnswer(2.0, qid, 60, (candidate(AT_STANDOFF, "new-id"),))
+    assert step(state, same_place, CFG)[0].mode is S.SEARCHING
+    elsewhere = BackendAnswer(2.0, qid, 60, (candidate(AT_STANDOFF, "new-id"), candidate(box_at(30.0, u=100), "p2", score=0.1)))
+    new, actions = step(state, elsewhere, CFG)
+    assert new.mode is S.ACQUIRING
+    assert [a for a in actions if isinstance(a, TrackerInit)][0].candidate_id == "p2"
+
+
+def test_rejected_target_is_recognised_by_signature_and_id() -> None:
+    sig = (0.1, 0.7, 0.2, 0.0)
+    state = reach(S.SEARCHING)
+    state, _ = step(state, BackendAnswer(1.0, 1, 30, (candidate(FAR, "c1", sig=sig),)), CFG)
+    state, _ = run(state, [tracked(1.1, FAR), cmd(1.2, RejectCandidate()), TimerTick(1.3)])
+    assert state.mode is S.SEARCHING and state.rejections.entries[0].signature == sig
+    qid = state.queries[-1][0]
+    # Same person walked elsewhere: position differs, appearance matches.
+    moved = candidate(box_at(40.0, u=600), "x", sig=(0.11, 0.69, 0.2, 0.01))
+    assert step(state, BackendAnswer(2.0, qid, 60, (moved,)), CFG)[0].mode is S.SEARCHING
+    other = candidate(box_at(40.0, u=600), "y", sig=(0.7, 0.1, 0.0, 0.2))
+    assert step(state, BackendAnswer(2.0, qid, 60, (other,)), CFG)[0].mode is S.ACQUIRING
+    # The back-end's id alone is enough too.
+    same_id = candidate(box_at(40.0, u=600), "c1")
+    assert step(state, BackendAnswer(2.0, qid, 60, (same_id,)), CFG)[0].mode is S.SEARCHING
+
+
+def test_rejection_emits_remember_action_and_memory_survives_same_prompt_only() -> None:
+    state = reach(S.AWAITING_SUPERVISOR)
+    state, actions = step(state, cmd(1.3, RejectCandidate()), CFG)
+    remember = [a for a in actions if isinstance(a, RememberRejection)][0]
+    assert remember.candidate_id == "c1" and remember.position is not None
+    same, _ = step(state, cmd(2.0, StartMission(PROMPT)), CFG)
+    assert len(same.rejections.entries) == 1
+    other, _ = step(state, cmd(2.0, StartMission("a child in a red jacket")), CFG)
+    assert other.rejections.entries == ()
+
+
+def test_non_finite_time_is_ignored_with_a_warning() -> None:
+    state = reach(S.FOLLOWING)
+    new, actions = step(state, TimerTick(math.nan), CFG)
+    assert new == state and kinds(actions) == ["GcsMessage"]
+
+
+def test_zero_setpoint_on_entering_lost() -> None:
+    _, actions = step(reach(S.FOLLOWING), tracked(1.2, None, ok=False), CFG)
+    assert actions[0] == SendSetpoint(Setpoint.zero())
+    assert isinstance(actions[1], GcsMessage) and actions[1].severity == "warning"
+    assert isinstance(actions[-1], BackendQuery)
+    assert not any(isinstance(a, (TrackerStop, Hold)) for a in actions)
