@@ -152,9 +152,11 @@ def _add_detection_routes(app: FastAPI) -> None:
         try:
             fields = DetectMeta.model_validate_json(meta)
         except ValidationError as exc:
-            errors = exc.errors(include_url=False, include_context=False)
-            for error in errors:
-                error["loc"] = ("meta", *error["loc"])
+            # Echoing the input back could carry NaN/inf, which JSON cannot encode: loc + msg say enough.
+            errors = [
+                {"type": e["type"], "loc": ["meta", *e["loc"]], "msg": e["msg"]}
+                for e in exc.errors(include_url=False, include_context=False, include_input=False)
+            ]
             raise HTTPException(422, jsonable_encoder(errors)) from None
         require_vehicle_access(principal, fields.vehicle_id)
         superset = (fields.superset or superset_from_prompt(fields.prompt) or "").strip().lower()

@@ -1,0 +1,233 @@
+"""The companion's side of the back-end API: send a keyframe, get verified candidates back.
+
+Keyframes are downscaled to `max_width` and JPEG-encoded before sending (a 640x480 keyframe is about
+30-60 KB at quality 80, against 1.2 MB of pickled raw pixels in the reference code); boxes in the answer
+are scaled back to the caller's pixels. Every HTTP, timeout or format problem raises `BackendError`.
+No server-side imports here: this runs on the drone.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import secrets
+import threading
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+import requests
+
+from behaviors.detection import Detection, Verdict
+from behaviors.geometry import Box
+
+
+class BackendError(Exception):
+    """The back-end did not answer usefully. `status` is the HTTP status (None: no HTTP answer);
+    `retryable` says whether the same request may succeed later (timeouts, 429, 5xx, connection)."""
+
+    def __init__(self, message: str, status: int | None = None, retryable: bool = False) -> None:
+        super().__init__(message)
+        self.status = status
+        self.retryable = retryable
+
+
+@dataclass(frozen=True)
+class DetectReply:
+    detections: list[Detection]  # boxes in the caller's pixels
+    timings: dict[str, float]  # the back-end's t_queue, t_decode, t_detect, t_verify, t_total
+    models: dict[str, str]
+    request_bytes: int  # the whole multipart body
+    jpeg_bytes: int
+    raw: dict[str, Any] = field(repr=False, default_factory=dict)
+
+
+def encode_keyframe(image: np.ndarray, max_width: int, jpeg_quality: int) -> tuple[bytes, float]:
+    """JPEG bytes of the keyframe downscaled to at most `max_width`, and the scale applied (<= 1)."""
+    if image.ndim != 3 or image.shape[2] != 3 or image.size == 0:
+        raise ValueError(f"expected a BGR image H x W x 3, got shape {image.shape}")
+    height, width = image.shape[:2]
+    scale = min(1.0, max_width / width)
+    if scale < 1.0:
+        image = cv2.resize(image, (max_width, max(1, round(height * scale))), interpolation=cv2.INTER_AREA)
+    ok, buffer = cv2.imencode(".jpg", image, [int(cv2.IMWRITE_JPEG_QUALITY), int(jpeg_quality)])
+    if not ok:
+        raise ValueError("JPEG encoding of the keyframe failed")
+    return buffer.tobytes(), scale
+
+
+class BackendClient:
+    def __init__(
+        self,
+        url: str,
+        token: str,
+        timeout_s: float = 5.0,
+        jpeg_quality: int = 80,
+        max_width: int = 640,
+        vehicle_id: str | None = None,
+        mission_id: str | None = None,
+    ) -> None:
+        self.url = url.rstrip("/")
+        self.token = token
+        self.timeout_s = timeout_s
+        self.jpeg_quality = jpeg_quality
+        self.max_width = max_width
+        self.vehicle_id = vehicle_id
+        self.mission_id = mission_id
+        self._local = threading.local()
+        self.last_reply: DetectReply | None = None
+
+    def _session(self) -> requests.Session:
+        session = getattr(self._local, "session", None)
+        if session is None:
+            session = self._local.session = requests.Session()
+            session.headers["Authorization"] = f"Bearer {self.token}"
+        return session
+
+    def _call(self, method: str, path: str, **kwargs: Any) -> Any:
+        try:
+            response = self._session().request(method, self.url + path, timeout=self.timeout_s, **kwargs)
+        except requests.Timeout as exc:
+            raise BackendError(f"back-end {self.url}: no answer within {self.timeout_s:.1f} s", retryable=True) from exc
+        except requests.RequestException as exc:
+            raise BackendError(f"back-end {self.url} unreachable: {exc}", retryable=True) from exc
+        if response.status_code >= 400:
+            try:
+                detail = response.json().get("detail", response.text)
+            except ValueError:
+                detail = response.text[:300]
+            retryable = response.status_code == 429 or response.status_code >= 500
+            raise BackendError(f"back-end {path}: HTTP {response.status_code}: {detail}", response.status_code, retryable)
+        try:
+            return response.json()
+        except ValueError as exc:
+            raise BackendError(f"back-end {path}: answer is not JSON: {response.text[:200]!r}", response.status_code) from exc
+
+    def detect_reply(
+        self,
+        image: np.ndarray,
+        prompt: str,
+        superset: str | None = None,
+        vehicle_id: str | None = None,
+        mission_id: str | None = None,
+        frame_id: int | None = None,
+        capture_time: float | None = None,
+        roi: Box | None = None,
+        vehicle_position: Sequence[float] | None = None,
+    ) -> DetectReply:
+        """Send one keyframe; the full answer with timings and sizes."""
+        vehicle = vehicle_id or self.vehicle_id
+        mission = mission_id or self.mission_id
+        if not vehicle or not mission:
+            raise ValueError("vehicle_id and mission_id are needed (per call or in the BackendClient)")
+        jpeg, scale = encode_keyframe(image, self.max_width, self.jpeg_quality)
+        meta: dict[str, Any] = {"vehicle_id": vehicle, "mission_id": mission, "prompt": prompt}
+        if superset:
+            meta["superset"] = superset
+        if frame_id is not None:
+            meta["frame_id"] = int(frame_id)
+        if capture_time is not None:
+            meta["capture_time"] = float(capture_time)
+        if roi is not None:
+            meta["roi"] = [round(v * scale, 2) for v in roi.xyxy()]
+        if vehicle_position is not None:
+            meta["vehicle_position"] = [float(v) for v in vehicle_position]
+        body, content_type = _multipart(jpeg, json.dumps(meta))
+        # The mission header lets a load balancer keep a mission on one replica (docs/backend.md).
+        headers = {"Content-Type": content_type, "X-CloudTrack-Vehicle": vehicle, "X-CloudTrack-Mission": mission}
+        answer = self._call("POST", "/v1/detect", data=body, headers=headers)
+        try:
+            detections = [
+                Detection(
+                    box=Box.from_xyxy(*(float(v) / scale for v in c["box"])),
+                    score=float(c["score"]),
+                    label=str(c["label"]),
+                    verdict=Verdict(c["verdict"]),
+                    justification=str(c["justification"]),
+                    candidate_id=str(c["candidate_id"]),
+                )
+                for c in answer["candidates"]
+            ]
+            reply = DetectReply(detections, dict(answer["timings"]), dict(answer["models"]), len(body), len(jpeg), answer)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise BackendError(f"back-end /v1/detect: malformed answer: {exc}") from exc
+        self.last_reply = reply
+        return reply
+
+    def detect(
+        self,
+        image: np.ndarray,
+        prompt: str,
+        superset: str | None = None,
+        vehicle_id: str | None = None,
+        mission_id: str | None = None,
+        frame_id: int | None = None,
+        capture_time: float | None = None,
+        roi: Box | None = None,
+        vehicle_position: Sequence[float] | None = None,
+    ) -> list[Detection]:
+        """Candidates for one keyframe, boxes in `image`'s pixels; raises BackendError on any failure."""
+        return self.detect_reply(
+            image, prompt, superset, vehicle_id, mission_id, frame_id, capture_time, roi, vehicle_position
+        ).detections
+
+    def health(self) -> dict[str, Any]:
+        result: dict[str, Any] = self._call("GET", "/health")
+        return result
+
+    def report_status(self, state: str, vehicle_id: str | None = None, **fields: Any) -> dict[str, Any]:
+        """POST the companion's state (and `awaiting` candidate, see backend.schemas.VehicleStatusIn)."""
+        vehicle = vehicle_id or self.vehicle_id
+        body = {"state": state, "mission_id": fields.pop("mission_id", self.mission_id), **fields}
+        result: dict[str, Any] = self._call("POST", f"/v1/vehicles/{vehicle}/status", json=body)
+        return result
+
+    def reject(
+        self,
+        candidate_id: str | None,
+        crop_bgr: np.ndarray | None = None,
+        position: Sequence[float] | None = None,
+        reason: str = "",
+        mission_id: str | None = None,
+    ) -> dict[str, Any]:
+        """Tell the back-end a candidate was rejected so it is not proposed again in this mission."""
+        body: dict[str, Any] = {"vehicle_id": self.vehicle_id, "candidate_id": candidate_id, "reason": reason}
+        if crop_bgr is not None:
+            body["crop_jpeg_b64"] = crop_to_base64(crop_bgr)
+        if position is not None:
+            body["position"] = [float(v) for v in position]
+        result: dict[str, Any] = self._call("POST", f"/v1/missions/{mission_id or self.mission_id}/rejections", json=body)
+        return result
+
+    def decisions(self, after: int = 0, vehicle_id: str | None = None) -> list[dict[str, Any]]:
+        """Supervisor decisions for this vehicle newer than decision id `after`."""
+        result: list[dict[str, Any]] = self._call(
+            "GET", f"/v1/vehicles/{vehicle_id or self.vehicle_id}/decisions", params={"after": after}
+        )
+        return result
+
+
+def crop_to_base64(crop_bgr: np.ndarray, quality: int = 85) -> str:
+    """A crop as base64 JPEG, the form the status and rejection endpoints take."""
+    ok, buffer = cv2.imencode(".jpg", crop_bgr, [int(cv2.IMWRITE_JPEG_QUALITY), quality])
+    if not ok:
+        raise ValueError("JPEG encoding of the crop failed")
+    return base64.b64encode(buffer.tobytes()).decode()
+
+
+def _multipart(jpeg: bytes, meta_json: str) -> tuple[bytes, str]:
+    """The multipart/form-data body (built here so its exact size is known and reported)."""
+    boundary = "cloudtrack-" + secrets.token_hex(12)
+    parts = [
+        f'--{boundary}\r\nContent-Disposition: form-data; name="meta"\r\nContent-Type: application/json\r\n\r\n'.encode()
+        + meta_json.encode()
+        + b"\r\n",
+        f'--{boundary}\r\nContent-Disposition: form-data; name="image"; filename="keyframe.jpg"\r\n'
+        f"Content-Type: image/jpeg\r\n\r\n".encode()
+        + jpeg
+        + b"\r\n",
+        f"--{boundary}--\r\n".encode(),
+    ]
+    return b"".join(parts), f"multipart/form-data; boundary={boundary}"
