@@ -25,6 +25,7 @@ COMMAND_MODULES = (
     "companion.config_command",
     "companion.models_command",
     "companion.service_command",
+    "companion.replay_command",
 )
 
 

@@ -34,7 +34,20 @@ from typing import IO, Any, Protocol
 
 import numpy as np
 
+from behaviors import event_codec
+from behaviors.actions import Action, Hold, ReleaseControl
+from behaviors.events import (
+    AutopilotLinkLost,
+    BackendAnswer,
+    BackendUnreachable,
+    Event,
+    GcsCommand,
+    PilotTakeover,
+)
 from behaviors.geometry import Box
+from behaviors.mission import State, initial_state
+from behaviors.mission_commands import ConfirmCandidate, RejectCandidate, StartMission
+from behaviors.mission_config import MissionConfig
 
 log = logging.getLogger(__name__)
 
@@ -349,3 +362,129 @@ def read_events(folder: Path) -> list[dict[str, Any]]:
             if isinstance(entry, dict):
                 events.append(entry)
     return events
+
+
+class FlightRecordObserver:
+    """The main loop's `LoopObserver` that writes the flight record: one record per mission.
+
+    A record opens when a mission starts (a new `StartMission` in the behaviour state) and closes when
+    the next one starts or at `close()`. It begins with a `replay_start` entry (the mission config and
+    the full behaviour state just before the starting event, both in `behaviors.event_codec` form);
+    then every `step` (event, the actions it produced, the resulting mode) follows, which is all
+    `cloudtrack-companion replay` needs. Readable entries ride along: `state` changes, `backend_answer`,
+    `supervisor_decision`, `safety` (holds, releases, watchdogs) and `health` changes.
+    """
+
+    def __init__(self, config: MissionConfig, open_mission: Callable[[str], MissionRecord]) -> None:
+        self._config = config
+        self._open_mission = open_mission
+        self._record: MissionRecord | None = None
+        self._mission: StartMission | None = None
+        self._before: State = initial_state(config)
+        self._healthy: bool | None = None
+        self._lock = threading.Lock()  # the loop writes steps; link and worker threads write tlog/keyframes
+
+    # --- LoopObserver --------------------------------------------------------------------------
+
+    def on_event(self, event: Event) -> None:
+        pass  # everything is written in on_step, with what the event led to
+
+    def on_step(self, event: Event, state: State, actions: tuple[Action, ...]) -> None:
+        with self._lock:
+            if state.mission is not None and state.mission is not self._mission:
+                self._start(state.mission)
+            record = self._record
+            if record is not None:
+                self._write_step(record, event, state, actions)
+            self._before = state
+
+    def on_health(self, time_s: float, healthy: bool, reasons: tuple[str, ...]) -> None:
+        with self._lock:
+            if healthy is not self._healthy and self._record is not None:
+                self._record.event("health", time_s=time_s, healthy=healthy, reasons=list(reasons))
+            self._healthy = healthy
+
+    # --- other sources -------------------------------------------------------------------------
+
+    def mavlink(self, raw: bytes, time_s: float | None = None) -> None:
+        record = self._record
+        if record is not None:
+            record.mavlink(raw, time_s)
+
+    def keyframe(self, jpeg: bytes, frame_id: int) -> str | None:
+        record = self._record
+        return record.keyframe(jpeg, frame_id) if record is not None else None
+
+    def video_frame(self, image: np.ndarray, box: Box | None, state: str) -> None:
+        record = self._record
+        if record is not None:
+            record.video_frame(image, box, state)
+
+    def close(self) -> None:
+        with self._lock:
+            if self._record is not None:
+                self._record.close()
+                self._record = None
+
+    # --- internals -----------------------------------------------------------------------------
+
+    def _start(self, mission: StartMission) -> None:
+        if self._record is not None:
+            self._record.close()
+        self._mission = mission
+        self._record = self._open_mission(mission.mission_id or "mission")
+        self._record.event(
+            "replay_start",
+            prompt=mission.prompt,
+            config=event_codec.encode(self._config),
+            state=event_codec.encode(self._before),
+        )
+
+    def _write_step(self, record: MissionRecord, event: Event, state: State, actions: tuple[Action, ...]) -> None:
+        record.event(
+            "step",
+            event=event_codec.encode_event(event),
+            actions=[event_codec.encode_action(a) for a in actions],
+            mode=state.mode.value,
+        )
+        if state.mode is not self._before.mode:
+            record.event(
+                "state", time_s=state.now_s, old=self._before.mode.value, new=state.mode.value, reason=state.reason
+            )
+        if isinstance(event, BackendAnswer):
+            record.event(
+                "backend_answer",
+                time_s=event.time_s,
+                query_id=event.query_id,
+                keyframe_id=event.keyframe_id,
+                candidates=[
+                    {"id": c.candidate_id, "verdict": c.verdict.value, "justification": c.justification}
+                    for c in event.candidates
+                ],
+            )
+        elif isinstance(event, GcsCommand) and isinstance(event.command, (ConfirmCandidate, RejectCandidate)):
+            record.event(
+                "supervisor_decision",
+                time_s=event.time_s,
+                decision="confirm" if isinstance(event.command, ConfirmCandidate) else "reject",
+                candidate_id=event.command.candidate_id,
+            )
+        elif isinstance(event, (AutopilotLinkLost, BackendUnreachable, PilotTakeover)):
+            record.event("safety", time_s=event.time_s, what=type(event).__name__)
+        for action in actions:
+            if isinstance(action, (Hold, ReleaseControl)):
+                record.event("safety", time_s=state.now_s, what=type(action).__name__, reason=action.reason)
+
+
+def attach_tlog(connection: Any, sink: FlightRecordObserver | MissionRecord) -> None:
+    """Copy every MAVLink message a pymavlink connection receives or sends into the record's tlog."""
+
+    def received(_conn: Any, msg: Any) -> None:
+        if msg.get_type() != "BAD_DATA":
+            sink.mavlink(msg.get_msgbuf(), getattr(msg, "_timestamp", None))
+
+    def sent(msg: Any) -> None:
+        sink.mavlink(msg.get_msgbuf())
+
+    connection.message_hooks.append(received)
+    connection.mav.set_send_callback(sent)

@@ -14,7 +14,14 @@ from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from behaviors.geometry import Box
-from companion.flight_record import EVENTS_FILE, FlightRecorder, NoRecord, open_record, read_events
+from companion.flight_record import (
+    EVENTS_FILE,
+    FlightRecorder,
+    NoRecord,
+    attach_tlog,
+    open_record,
+    read_events,
+)
 
 START = 1_790_000_000.0  # a fixed UTC time, so the test knows the mission folder's name
 
@@ -193,3 +200,27 @@ def test_disabled_recording_and_torn_last_line(tmp_path: Path) -> None:
         f.write('{"t": 1, "kind": "sta')  # power lost mid-line
     assert [e["kind"] for e in read_events(rec.folder)] == ["recording_started", "state", "recording_closed"]
     json.loads((rec.folder / EVENTS_FILE).read_text().splitlines()[0])
+
+
+def test_attach_tlog_records_messages_sent_and_received_over_a_real_link(tmp_path: Path) -> None:
+    """Two pymavlink endpoints on loopback UDP: the companion's sends and receives both land in the tlog."""
+    from tests.live_backend import free_port
+
+    port = free_port()
+    companion = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=1, source_component=191)
+    autopilot = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1)
+    rec = FlightRecorder(tmp_path, "drone-1", "link", 10_000_000)
+    try:
+        attach_tlog(companion, rec)
+        autopilot.mav.heartbeat_send(mavlink2.MAV_TYPE_QUADROTOR, mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 0)
+        assert companion.recv_match(type="HEARTBEAT", blocking=True, timeout=5) is not None
+        companion.mav.statustext_send(mavlink2.MAV_SEVERITY_INFO, b"companion up")
+    finally:
+        rec.close()
+        companion.close()
+        autopilot.close()
+    log = mavutil.mavlink_connection(str(rec.folder / "mavlink-000.tlog"))
+    types = []
+    while (msg := log.recv_match()) is not None:
+        types.append((msg.get_type(), msg.get_srcComponent()))
+    assert ("HEARTBEAT", 1) in types and ("STATUSTEXT", 191) in types
