@@ -24,6 +24,7 @@ examples:
 COMMAND_MODULES = (
     "companion.config_command",
     "companion.models_command",
+    "companion.run_command",
     "companion.service_command",
     "companion.replay_command",
 )

@@ -78,3 +78,46 @@ class FrameStreamReader:
 
     def close(self) -> None:
         self._sock.close()
+
+
+class StreamCapture:
+    """A `cv2.VideoCapture`-shaped view of the stream, so the companion's LiveSource can read it."""
+
+    def __init__(self, url: str, timeout_s: float = 2.0) -> None:
+        self.url = url
+        try:
+            self._reader: FrameStreamReader | None = FrameStreamReader(url, timeout_s)
+        except OSError:
+            self._reader = None
+
+    def isOpened(self) -> bool:  # noqa: N802 - OpenCV's name
+        return self._reader is not None
+
+    def read(self) -> tuple[bool, np.ndarray | None]:
+        if self._reader is None:
+            return False, None
+        try:
+            return True, self._reader.read().image
+        except (OSError, FrameStreamError):
+            return False, None
+
+    def release(self) -> None:
+        if self._reader is not None:
+            self._reader.close()
+            self._reader = None
+
+
+def register() -> None:
+    """Teach `companion.frame_sources.open_source` the sim+tcp:// scheme (a live, reconnecting source)."""
+    from companion.frame_sources import LiveSource, register_scheme
+
+    def factory(spec: str, options: dict[str, object]) -> LiveSource:
+        parse_url(spec)  # fail at start-up on a malformed URL, not in the reader thread
+        return LiveSource(
+            lambda: StreamCapture(spec),
+            spec,
+            reconnect_interval_s=float(options.get("reconnect_interval_s") or 1.0),  # type: ignore[arg-type]
+            stall_timeout_s=float(options.get("stall_timeout_s") or 2.0),  # type: ignore[arg-type]
+        )
+
+    register_scheme(SCHEME, factory)

@@ -65,7 +65,10 @@ class SimulatedPersonDetector:
             box = Box.from_xyxy(tb.box.x + jit[0], tb.box.y + jit[1], tb.box.x2 + jit[2], tb.box.y2 + jit[3])
             box = box.scaled(scale, scale).clamped(w, h)
             if box.is_valid():
-                out.append(Detection(box, float(np.clip(0.9 * tb.visible + rng.normal(0, 0.03), 0.3, 0.99))))
+                # Like a real detector, more confident on bigger, unoccluded people.
+                size = min(1.0, float(np.sqrt(tb.box.area)) / 40.0)
+                score = 0.5 + 0.45 * size * tb.visible + rng.normal(0, 0.01)
+                out.append(Detection(box, float(np.clip(score, 0.3, 0.99))))
         for _ in range(int(rng.poisson(n.false_positives))):
             bw, bh = rng.uniform(10, 30) * scale, rng.uniform(25, 60) * scale
             x, y = rng.uniform(0, max(1.0, w - bw)), rng.uniform(0, max(1.0, h - bh))

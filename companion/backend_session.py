@@ -1,0 +1,108 @@
+"""The companion's session with the back-end beside the keyframes: status, supervisor decisions, rejections.
+
+A background thread, once a `period_s`: posts the vehicle's status (state, prompt, position and the
+candidate awaiting the supervisor) so the supervisor page shows it, fetches the supervisor's new
+decisions and turns them into Confirm/Reject commands, and sends queued rejections so the back-end
+never proposes a rejected candidate again in this mission. Nothing here blocks the main loop; every
+failure is logged and retried on the next round. `last_success()` feeds the lost-back-end watchdog.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from typing import Any, Protocol
+
+from behaviors.mission_commands import ConfirmCandidate, MissionCommand, RejectCandidate
+
+log = logging.getLogger(__name__)
+
+
+class SessionClient(Protocol):
+    """The parts of `companion.backend_client.BackendClient` the session uses."""
+
+    def report_status(self, state: str, vehicle_id: str | None = None, **fields: Any) -> dict[str, Any]: ...
+
+    def reject(self, candidate_id: str | None, crop_bgr: Any = None, position: Any = None, reason: str = "",
+               mission_id: str | None = None) -> dict[str, Any]: ...
+
+    def decisions(self, after: int = 0, vehicle_id: str | None = None) -> list[dict[str, Any]]: ...
+
+
+class BackendSession:
+    def __init__(self, client: SessionClient, period_s: float = 1.0, clock: Callable[[], float] = time.monotonic) -> None:
+        self._client = client
+        self._period = period_s
+        self._clock = clock
+        self._lock = threading.Lock()
+        self._status: dict[str, Any] | None = None
+        self._rejections: deque[tuple[str, tuple[float, float] | None, str | None]] = deque(maxlen=100)
+        self._commands: deque[MissionCommand] = deque(maxlen=100)
+        self._last_success: float | None = None
+        self._after = 0
+        self._primed = False  # decisions made before we started are history, not commands
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="backend-session", daemon=True)
+
+    def start(self) -> BackendSession:
+        self._thread.start()
+        return self
+
+    def update(self, status: dict[str, Any]) -> None:
+        with self._lock:
+            self._status = dict(status)
+
+    def reject(self, candidate_id: str, position: tuple[float, float] | None) -> None:
+        with self._lock:
+            mission = self._status.get("mission_id") if self._status else None
+            if mission is None:
+                log.warning("rejection of %s not sent: no mission", candidate_id)
+                return
+            self._rejections.append((candidate_id, position, mission))
+
+    def commands(self) -> list[MissionCommand]:
+        with self._lock:
+            drained = list(self._commands)
+            self._commands.clear()
+        return drained
+
+    def last_success(self) -> float | None:
+        with self._lock:
+            return self._last_success
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=1.0)
+
+    def _run(self) -> None:
+        while not self._stop.wait(self._period):
+            try:
+                self._round()
+            except Exception as exc:  # unreachable, refused, malformed: the watchdog sees last_success age
+                log.debug("back-end session round failed: %s", exc)
+
+    def _round(self) -> None:
+        with self._lock:
+            status = dict(self._status) if self._status else None
+            pending = list(self._rejections)
+        if status is not None:
+            fields = {k: v for k, v in status.items() if k != "state" and v is not None}
+            self._client.report_status(str(status.get("state", "IDLE")), **fields)
+        for candidate_id, position, mission in pending:
+            self._client.reject(candidate_id or None, position=position, reason="supervisor rejected",
+                                mission_id=mission)
+            with self._lock:
+                self._rejections.popleft()
+        decisions = self._client.decisions(after=self._after)
+        with self._lock:
+            for d in decisions:
+                self._after = max(self._after, int(d.get("decision_id", 0)))
+                if not self._primed:
+                    continue
+                cid = str(d.get("candidate_id", ""))
+                self._commands.append(ConfirmCandidate(cid) if d.get("action") == "confirm" else RejectCandidate(cid))
+            self._primed = True
+            self._last_success = self._clock()

@@ -1,0 +1,516 @@
+"""THE companion main loop: frames -> tracking front-end -> `behaviors.mission.step` -> actions.
+
+Each iteration turns its inputs into behaviour events (telemetry, GCS commands, the tracker's result on
+the newest frame, back-end answers, watchdog events, a timer tick), runs the pure state machine on each
+and executes the actions it returns: setpoints, holds and mode requests go to the vehicle link, queries
+to the background back-end worker (never waited for), tracker (re-)initialisations to the front-end,
+status lines and candidate reports to the GCS.
+
+Hooks for operations: a `LoopObserver` sees every event and every action (the flight record), and the
+systemd `Notifier` gets READY once the autopilot and the camera are up, WATCHDOG only from a healthy
+iteration, STOPPING on shutdown. `request_stop()` (SIGTERM) ends the loop: the vehicle is told to
+stop (explicit zero, then hold) unless the pilot holds control, the GCS is told, and `run` returns
+within a fraction of a second.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+from behaviors.actions import (
+    Action,
+    BackendQuery,
+    FlightMode,
+    GcsMessage,
+    Hold,
+    ReleaseControl,
+    RememberRejection,
+    ReportCandidate,
+    RequestMode,
+    SendSetpoint,
+    TrackerInit,
+    TrackerStop,
+)
+from behaviors.detection import Detection
+from behaviors.events import (
+    AutopilotLinkLost,
+    BackendAnswer,
+    BackendUnreachable,
+    Event,
+    GcsCommand,
+    PilotTakeover,
+    TimerTick,
+)
+from behaviors.geometry import Box
+from behaviors.mission import ACTIVE, MissionState, State, initial_state, step
+from behaviors.mission_commands import MissionCommand, StartMission
+from behaviors.mission_config import MissionConfig
+from behaviors.setpoint import Setpoint
+from behaviors.telemetry import Telemetry
+from behaviors.track_result import TrackResult
+from companion.backend_worker import BackendWorker
+from companion.frame_sources import Frame, FrameSource
+from companion.safety_watchdog import BACKEND_UNREACHABLE, HEARTBEAT_LOST, SafetyEvent
+from companion.service_notify import Notifier
+
+log = logging.getLogger(__name__)
+
+# A probe id no state-machine query uses: its answer only tells the behaviour the back-end is back.
+PROBE_QUERY_ID = 0
+
+
+class VehicleLink(Protocol):
+    """`companion.vehicle_link.VehicleLink` as the loop uses it (the autopilot, and the GCS through it)."""
+
+    def telemetry(self) -> Telemetry | None: ...
+
+    def commands(self) -> list[MissionCommand]: ...
+
+    def safety_events(self) -> list[SafetyEvent]: ...
+
+    def set_velocity(self, setpoint: Setpoint, descent_allowed: bool = False) -> None: ...
+
+    def hold(self, reason: str) -> None: ...
+
+    def enable_offboard(self) -> None: ...
+
+    def request_offboard(self) -> None: ...
+
+    def release_offboard(self, reason: str) -> None: ...
+
+    def request_mode(self, action: str) -> None: ...
+
+    def kick(self) -> None: ...
+
+    def report_frame(self, when: float | None = None) -> None: ...
+
+    def report_backend_ok(self, when: float | None = None) -> None: ...
+
+    def report_target(self, when: float | None = None) -> None: ...
+
+    def clear_target(self) -> None: ...
+
+    def send_status(self, text: str, severity: int = 6) -> None: ...
+
+    def report_tracking(self, box: Box | None, image_size: tuple[int, int]) -> None: ...
+
+
+class BackendSessionLike(Protocol):
+    """`companion.backend_session.BackendSession`: status for the supervisor page, its decisions, rejections."""
+
+    def update(self, status: dict[str, Any]) -> None: ...
+
+    def reject(self, candidate_id: str, position: tuple[float, float] | None) -> None: ...
+
+    def commands(self) -> list[MissionCommand]: ...
+
+    def last_success(self) -> float | None: ...
+
+
+class TrackingFrontendLike(Protocol):
+    """`companion.tracking_frontend.TrackingFrontend` as the loop uses it."""
+
+    def feed(self, frame: Frame) -> TrackResult: ...
+
+    def start(self, keyframe_id: int, box: Any) -> bool: ...
+
+    def apply_candidates(self, keyframe_id: int, detections: Sequence[Detection]) -> Detection | None: ...
+
+    def stop(self) -> None: ...
+
+
+class LoopObserver(Protocol):
+    """Sees everything the loop decides, in order (flight record, SITL event log, tests)."""
+
+    def on_event(self, event: Event) -> None: ...
+
+    def on_step(self, event: Event, state: State, actions: tuple[Action, ...]) -> None: ...
+
+    def on_health(self, time_s: float, healthy: bool, reasons: tuple[str, ...]) -> None: ...
+
+    def on_safety(self, event: SafetyEvent) -> None: ...
+
+
+@dataclass(frozen=True)
+class LoopSettings:
+    tick_s: float = 0.1  # TimerTick period: every timeout in the state machine is checked on ticks
+    frame_wait_s: float = 0.05  # longest wait for a new frame before the rest of the iteration runs
+    frame_stale_s: float = 0.5  # no frame this long: not healthy (no watchdog ping)
+    loop_stall_s: float = 0.5
+
+
+SEVERITY = {"info": 6, "warning": 4, "critical": 2}  # MAV_SEVERITY for the GCS
+FOLLOWING_STATES = frozenset({MissionState.FOLLOWING, MissionState.AWAITING_SUPERVISOR, MissionState.CONFIRMED})
+
+
+@dataclass
+class LoopStats:
+    iterations: int = 0
+    frames: int = 0
+    events: int = 0
+    actions: int = 0
+    setpoints: int = 0
+    holds: int = 0
+    max_iteration_s: float = 0.0
+
+
+class MissionRunner:
+    """Owns the behaviour state and runs the loop until `request_stop()`."""
+
+    def __init__(
+        self,
+        mission: MissionConfig,
+        frames: FrameSource,
+        frontend: TrackingFrontendLike,
+        vehicle: VehicleLink,
+        backend: BackendWorker,
+        session: BackendSessionLike | None = None,
+        settings: LoopSettings = LoopSettings(),
+        observers: Sequence[LoopObserver] = (),
+        notifier: Notifier | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.mission = mission
+        self.frames = frames
+        self.frontend = frontend
+        self.vehicle = vehicle
+        self.backend = backend
+        self.session = session
+        self.settings = settings
+        self.observers = list(observers)
+        self.notifier = notifier
+        self.clock = clock
+        self.state = initial_state(mission)
+        self.stats = LoopStats()
+        self._stop = threading.Event()
+        self._latest: Frame | None = None
+        self._last_tick = -float("inf")
+        self._ready = False
+        self._pending_since: float | None = None  # oldest back-end request not answered yet
+
+    # ------------------------------------------------------------------------------------------ control
+    def request_stop(self) -> None:
+        """Ask the loop to end (signal-handler safe: only sets an event)."""
+        self._stop.set()
+
+    @property
+    def stopping(self) -> bool:
+        return self._stop.is_set()
+
+    def run(self) -> int:
+        """Loop until `request_stop()`; then stop the vehicle, tell the GCS and return 0."""
+        log.info("main loop started")
+        try:
+            while not self._stop.is_set():
+                self.iterate()
+        finally:
+            self._shutdown()
+        return 0
+
+    # ---------------------------------------------------------------------------------------- iteration
+    def iterate(self) -> None:
+        """One pass: gather events, step the behaviour on each, execute the actions, report health."""
+        started = self.clock()
+        self.vehicle.kick()
+        frame = self.frames.read(timeout_s=self.settings.frame_wait_s)
+        now = self.clock()
+        events: list[Event] = []
+        telemetry = self.vehicle.telemetry()
+        if telemetry is not None and (self.state.telemetry is None or telemetry.time_s > self.state.telemetry.time_s):
+            events.append(telemetry)
+        commands = self.vehicle.commands() + (self.session.commands() if self.session is not None else [])
+        events.extend(GcsCommand(now, cmd) for cmd in commands)
+        events.extend(self._safety_events())
+        if frame is not None:
+            self._latest = frame
+            self.stats.frames += 1
+            self.vehicle.report_frame(frame.capture_time)
+            events.append(self.frontend.feed(frame))
+        answer = self.backend.poll()
+        if answer is not None:
+            self._pending_since = None
+            query_id = int(answer.fields.get("query_id", PROBE_QUERY_ID))
+            events.append(BackendAnswer(now, query_id, answer.frame_id, answer.detections))
+        if now - self._last_tick >= self.settings.tick_s:
+            self._last_tick = now
+            events.append(TimerTick(now))
+        for event in events:
+            self._handle(event)
+        self._feed_watchdogs(now)
+        self._report_health(started)
+
+    def _handle(self, event: Event) -> None:
+        self.stats.events += 1
+        for obs in self.observers:
+            obs.on_event(event)
+        before = self.state
+        if isinstance(event, GcsCommand) and isinstance(event.command, StartMission):
+            self.vehicle.enable_offboard()  # fly once GUIDED/OFFBOARD is selected; never arm, never force
+        self.state, actions = step(self.state, event, self.mission)
+        if self.state.mode is not before.mode:
+            log.info("state %s -> %s (%s)", before.mode.value, self.state.mode.value, self.state.reason)
+        for obs in self.observers:
+            obs.on_step(event, self.state, actions)
+        for action in actions:
+            self._execute(action)
+        if isinstance(event, TrackResult):
+            self._report_track(event)
+
+    def _execute(self, action: Action) -> None:
+        self.stats.actions += 1
+        if isinstance(action, SendSetpoint):
+            self.stats.setpoints += 1
+            self.vehicle.set_velocity(action.setpoint, descent_allowed=self.state.mode is MissionState.CONFIRMED)
+        elif isinstance(action, Hold):
+            self.stats.holds += 1
+            self.vehicle.hold(action.reason)
+        elif isinstance(action, ReleaseControl):
+            self.vehicle.release_offboard(action.reason)
+        elif isinstance(action, RequestMode):
+            if action.mode is FlightMode.OFFBOARD:
+                self.vehicle.request_offboard()
+            else:
+                self.vehicle.request_mode(action.mode.value)
+        elif isinstance(action, GcsMessage):
+            self.vehicle.send_status(action.text, SEVERITY.get(action.severity, 6))
+        elif isinstance(action, BackendQuery):
+            self._submit(action)
+        elif isinstance(action, TrackerInit):
+            self._tracker_init(action)
+        elif isinstance(action, TrackerStop):
+            self.frontend.stop()
+        elif isinstance(action, ReportCandidate):
+            self._report_candidate(action)
+        elif isinstance(action, RememberRejection):
+            position = (action.position.lat_deg, action.position.lon_deg) if action.position is not None else None
+            if self.session is not None:
+                self.session.reject(action.candidate_id, position)
+
+    def _submit(self, query: BackendQuery) -> None:
+        frame = self._latest
+        if frame is None:
+            log.debug("query %d: no frame yet", query.query_id)
+            return
+        fields: dict[str, Any] = {"prompt": query.prompt, "query_id": query.query_id}
+        if query.superset:
+            fields["superset"] = query.superset
+        if query.roi is not None:
+            fields["roi"] = query.roi
+        if self.state.mission is not None and self.state.mission.mission_id:
+            fields["mission_id"] = self.state.mission.mission_id
+        self.backend.submit(frame.frame_id, frame.image, frame.capture_time, **fields)
+        if self._pending_since is None:
+            self._pending_since = self.clock()
+
+    def _tracker_init(self, action: TrackerInit) -> None:
+        newest = self._latest.frame_id if self._latest is not None else 0
+        keyframe = action.keyframe_id if action.keyframe_id >= 0 else newest
+        if action.reinit:
+            chosen = self.frontend.apply_candidates(keyframe, [Detection(action.box, 1.0, candidate_id=action.candidate_id)])
+            if chosen is not None:
+                return
+        self.frontend.start(keyframe, action.box)
+
+    def _report_candidate(self, report: ReportCandidate) -> None:
+        where = ""
+        if report.position is not None:
+            where = f" at {report.position.lat_deg:.6f},{report.position.lon_deg:.6f}"
+        self.vehicle.send_status(f"CANDIDATE {report.status.upper()} {report.candidate_id}{where}", SEVERITY["info"])
+        if self.session is not None:
+            self.session.update(self._status(report))
+
+    def _status(self, report: ReportCandidate | None = None) -> dict[str, Any]:
+        state = self.state
+        status: dict[str, Any] = {"state": state.mode.value}
+        if state.mission is not None:
+            status["prompt"] = state.mission.prompt
+            if state.mission.mission_id:
+                status["mission_id"] = state.mission.mission_id
+        if state.telemetry is not None:
+            status["position"] = [state.telemetry.lat_deg, state.telemetry.lon_deg]
+            status["altitude_m"] = state.telemetry.height_agl
+        if report is not None and report.status != "confirmed":
+            awaiting: dict[str, Any] = {
+                "candidate_id": report.candidate_id or "tracked",
+                "box": list(report.box.xyxy()),
+                "verdict": report.verdict.value,
+                "justification": report.justification[:2000],
+            }
+            if report.position is not None:
+                awaiting["position"] = [report.position.lat_deg, report.position.lon_deg]
+            status["awaiting"] = awaiting
+        return status
+
+    def _report_track(self, result: TrackResult) -> None:
+        cam = self.mission.camera
+        following = self.state.mode in FOLLOWING_STATES
+        self.vehicle.report_tracking(result.box if result.trusted and following else None, (cam.width, cam.height))
+        if following and result.trusted:
+            self.vehicle.report_target(result.time_s)
+        elif not following:
+            self.vehicle.clear_target()
+
+    # ---------------------------------------------------------------------------------------- watchdogs
+    def _safety_events(self) -> list[Event]:
+        """The link's watchdog and mode-policy events as behaviour events (the link already stopped)."""
+        out: list[Event] = []
+        for ev in self.vehicle.safety_events():
+            for obs in self.observers:
+                obs.on_safety(ev)
+            if ev.reason == HEARTBEAT_LOST and ev.action == "stop":
+                out.append(AutopilotLinkLost(ev.time_s))
+            elif ev.reason == BACKEND_UNREACHABLE and ev.action == "stop":
+                out.append(BackendUnreachable(ev.time_s, "no answer"))
+            elif ev.reason == BACKEND_UNREACHABLE and ev.action == "cleared":
+                # The behaviour resumes once the back-end answers: this is that answer (no query of its own).
+                out.append(BackendAnswer(ev.time_s, PROBE_QUERY_ID, -1, ()))
+            elif ev.action == "offboard_ended" and ev.detail.endswith("by pilot or GCS"):
+                out.append(PilotTakeover(ev.time_s, ev.detail.split("->")[-1].split(" by ")[0].strip()))
+        return out
+
+    def _feed_watchdogs(self, now: float) -> None:
+        """The back-end counts as alive while nothing is overdue: an answer, a status report, or no request out."""
+        health = self.backend.health()
+        if not health.busy:
+            self._pending_since = None  # answered or failed: nothing is overdue any more
+        times = [t for t in (health.last_success_time, self.session.last_success() if self.session else None) if t]
+        if self._pending_since is not None:
+            times.append(self._pending_since)  # overdue only backend_lost_s after the request went out
+        elif self.session is None and health.consecutive_failures == 0:
+            times.append(now)
+        if times:
+            self.vehicle.report_backend_ok(max(times))
+        if self.session is not None and self.state.mode is not MissionState.AWAITING_SUPERVISOR:
+            self.session.update(self._status())
+
+    def _report_health(self, started: float) -> None:
+        end = self.clock()
+        duration = end - started
+        self.stats.iterations += 1
+        self.stats.max_iteration_s = max(self.stats.max_iteration_s, duration)
+        reasons: list[str] = []
+        if duration > self.settings.loop_stall_s:
+            reasons.append("loop_stalled")
+        if self.vehicle.telemetry() is None:
+            reasons.append("no_telemetry")
+        if self._latest is None or end - self._latest.capture_time > self.settings.frame_stale_s:
+            reasons.append("no_frames")
+        healthy = not reasons
+        if not self._ready and healthy:
+            self._ready = True
+            log.info("autopilot and camera up: ready")
+            if self.notifier is not None:
+                self.notifier.ready("autopilot and camera up")
+        if healthy and self.notifier is not None:
+            self.notifier.watchdog()
+        for obs in self.observers:
+            obs.on_health(end, healthy, tuple(reasons))
+
+    # ----------------------------------------------------------------------------------------- shutdown
+    def _shutdown(self) -> None:
+        if self.notifier is not None:
+            self.notifier.stopping("companion stopping")
+        try:
+            if self.state.mode in ACTIVE:
+                self.vehicle.hold("companion stopping")
+            self.vehicle.send_status("CloudTrack companion stopping", SEVERITY["warning"])
+        except Exception:  # the link may already be gone; shutting down must still finish
+            log.exception("could not tell the vehicle we are stopping")
+        self.backend.close(timeout_s=0.2)
+        self.frames.close()
+        log.info("main loop stopped (%d iterations, %d frames)", self.stats.iterations, self.stats.frames)
+
+
+def _box(box: Any) -> list[float] | None:
+    return None if box is None else [round(box.x, 1), round(box.y, 1), round(box.w, 1), round(box.h, 1)]
+
+
+def describe_event(event: Event) -> dict[str, Any] | None:
+    """A JSON-ready summary of an event for the event log; None for plain telemetry and ticks (too many)."""
+    if isinstance(event, TrackResult):
+        return {"kind": "track", "t": event.time_s, "frame_id": event.frame_id, "box": _box(event.box),
+                "trusted": event.trusted, "lost_reason": event.lost_reason}
+    if isinstance(event, BackendAnswer):
+        return {"kind": "answer", "t": event.time_s, "query_id": event.query_id, "keyframe_id": event.keyframe_id,
+                "candidates": [{"id": c.candidate_id, "box": _box(c.box), "verdict": c.verdict.value,
+                                "justification": c.justification[:120]} for c in event.candidates]}
+    if isinstance(event, GcsCommand):
+        return {"kind": "command", "t": event.time_s, "command": type(event.command).__name__,
+                **{k: str(v) for k, v in vars(event.command).items()}}
+    if isinstance(event, (AutopilotLinkLost, BackendUnreachable)):
+        return {"kind": type(event).__name__, "t": event.time_s}
+    if not isinstance(event, (Telemetry, TimerTick)):
+        return {"kind": type(event).__name__, "t": event.time_s}
+    return None
+
+
+def describe_action(action: Action, t: float) -> dict[str, Any]:
+    if isinstance(action, SendSetpoint):
+        s = action.setpoint
+        return {"kind": "setpoint", "t": t, "forward": round(s.forward, 3), "right": round(s.right, 3),
+                "down": round(s.down, 3), "yaw_rate": round(s.yaw_rate, 4)}
+    if isinstance(action, TrackerInit):
+        return {"kind": "reinit" if action.reinit else "tracker_init", "t": t, "box": _box(action.box),
+                "keyframe_id": action.keyframe_id, "candidate_id": action.candidate_id}
+    if isinstance(action, ReportCandidate):
+        return {"kind": "candidate_report", "t": t, "status": action.status, "candidate_id": action.candidate_id,
+                "verdict": action.verdict.value, "box": _box(action.box), "justification": action.justification[:120]}
+    if isinstance(action, BackendQuery):
+        return {"kind": "query", "t": t, "query_id": action.query_id, "purpose": action.purpose.value,
+                "prompt": action.prompt, "roi": _box(action.roi)}
+    if isinstance(action, (Hold, ReleaseControl, TrackerStop)):
+        return {"kind": {Hold: "hold", ReleaseControl: "release", TrackerStop: "tracker_stop"}[type(action)], "t": t,
+                "reason": action.reason}
+    if isinstance(action, RequestMode):
+        return {"kind": "request_mode", "t": t, "mode": action.mode.value, "reason": action.reason}
+    if isinstance(action, GcsMessage):
+        return {"kind": "gcs_message", "t": t, "text": action.text, "severity": action.severity}
+    return {"kind": type(action).__name__, "t": t, "candidate_id": getattr(action, "candidate_id", "")}
+
+
+class EventLogObserver:
+    """Writes the loop's decisions as JSON lines (`t` on the monotonic clock) to `write(line)`.
+
+    State changes, every action, tracker results, back-end answers, GCS commands and health changes: the
+    SITL scenario runner reads this to score a run, and it doubles as a readable trace of a flight.
+    """
+
+    def __init__(self, write: Callable[[str], object]) -> None:
+        import json
+
+        self._dumps = json.dumps
+        self._write = write
+        self._mode: MissionState | None = None
+        self._healthy: bool | None = None
+        self._lock = threading.Lock()
+
+    def _emit(self, entry: dict[str, Any]) -> None:
+        with self._lock:
+            self._write(self._dumps(entry, default=str) + "\n")
+
+    def on_event(self, event: Event) -> None:
+        entry = describe_event(event)
+        if entry is not None:
+            self._emit(entry)
+
+    def on_step(self, event: Event, state: State, actions: tuple[Action, ...]) -> None:
+        if state.mode is not self._mode:
+            self._mode = state.mode
+            self._emit({"kind": "state", "t": state.now_s, "state": state.mode.value.lower(), "reason": state.reason,
+                        "prompt": state.mission.prompt if state.mission else ""})
+        for action in actions:
+            self._emit(describe_action(action, state.now_s))
+
+    def on_safety(self, event: SafetyEvent) -> None:
+        self._emit({"kind": "safety", "t": event.time_s, "reason": event.reason, "action": event.action,
+                    "detail": event.detail})
+
+    def on_health(self, time_s: float, healthy: bool, reasons: tuple[str, ...]) -> None:
+        if healthy is not self._healthy:
+            self._healthy = healthy
+            self._emit({"kind": "health", "t": time_s, "healthy": healthy, "reasons": list(reasons)})

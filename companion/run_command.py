@@ -1,0 +1,140 @@
+"""`cloudtrack-companion run`: start the onboard process (camera, tracker, back-end, MAVLink, main loop).
+
+The composition root: it reads the configuration, opens every adapter, hands them to
+`companion.mission_runner.MissionRunner` and runs it until SIGTERM/SIGINT. Anything that cannot start
+(bad configuration, missing weights, unknown camera source) ends with a clear message and status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+from pathlib import Path
+from typing import IO, Any
+
+from behaviors.mission_config import MissionConfig
+from cloudtrack.config_files import ConfigError
+from cloudtrack.model_store import ModelError, resolve_model_dir
+from companion.config import CompanionConfig
+from companion.config_command import add_config_flags, load_from_args
+
+log = logging.getLogger(__name__)
+
+EXAMPLES = """\
+examples:
+  cloudtrack-companion run --config /etc/cloudtrack/companion.toml
+  cloudtrack-companion run --set mavlink.connection=udpout:127.0.0.1:14540 \\
+      --set camera.source=rtsp://192.168.1.10:8554/cam --set backend.url=https://cloudtrack.example.org
+  cloudtrack-companion run --set camera.source=sim+tcp://127.0.0.1:5600 --set tracker.name=csrt \\
+      --events-out out/events.jsonl          # against `cloudtrack-sim` (SITL camera stream)
+"""
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    parser = subparsers.add_parser(
+        "run",
+        help="run the onboard process: track the described person and fly to keep them in view",
+        description=(
+            "Run the companion main loop. It never arms, takes off or lands; it flies only while the autopilot "
+            "is in GUIDED (ArduPilot) or OFFBOARD (PX4), and stops on SIGTERM within 2 s (explicit stop, hold, "
+            "GCS told)."
+        ),
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    add_config_flags(parser)
+    parser.add_argument("--model-dir", help="weights folder (default: tracker.model_dir, $CLOUDTRACK_MODEL_DIR, cache)")
+    parser.add_argument("--events-out", type=Path, metavar="FILE",
+                        help="write every behaviour event and action as JSON lines to FILE ('-': stdout)")
+    parser.set_defaults(func=run)
+
+
+class _QueryService:
+    """Lets the back-end worker carry the behaviour's query id: kept in the answer, not sent on the wire."""
+
+    def __init__(self, client: Any) -> None:
+        self._client = client
+
+    def detect(self, image: Any, **fields: Any) -> Any:
+        fields.pop("query_id", None)
+        return self._client.detect(image, **fields)
+
+
+def mission_config(config: CompanionConfig) -> MissionConfig:
+    return MissionConfig.from_sections(
+        behavior=config.behavior.model_dump(),
+        control=config.control.model_dump(),
+        safety=config.safety.model_dump(),
+        camera=config.camera.model_dump(),
+        backend=config.backend.model_dump(),
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        config = load_from_args(args)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    from companion.backend_client import BackendClient
+    from companion.backend_session import BackendSession
+    from companion.backend_worker import BackendWorker
+    from companion.frame_sources import SourceError, open_source
+    from companion.mission_runner import EventLogObserver, LoopObserver, LoopSettings, MissionRunner
+    from companion.service_notify import ServiceNotifier
+    from companion.tracking_frontend import TrackingFrontend
+    from companion.vehicle_link import VehicleLink
+
+    cam = config.camera
+    model_dir = resolve_model_dir(args.model_dir or config.tracker.model_dir or None)
+    if cam.source.startswith("sim+tcp://"):
+        from sitl.frame_transport import register
+
+        register()
+    try:
+        frontend = TrackingFrontend.from_config(config.tracker, model_dir)
+        frames = open_source(cam.source, width=cam.width, height=cam.height, fps=cam.fps,
+                             reconnect_interval_s=cam.reconnect_interval_s)
+    except (ModelError, SourceError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+    events_file: IO[str] | None = None
+    observers: list[LoopObserver] = []
+    if args.events_out is not None:
+        if str(args.events_out) == "-":
+            events_file = sys.stdout
+        else:
+            args.events_out.parent.mkdir(parents=True, exist_ok=True)
+            events_file = open(args.events_out, "a", buffering=1, encoding="utf-8")  # noqa: SIM115 - closed below
+        observers.append(EventLogObserver(events_file.write))
+
+    link = VehicleLink(config.mavlink, config.safety, (cam.width, cam.height))
+    client = BackendClient(config.backend.url, config.backend.token, config.backend.timeout_s,
+                           config.backend.jpeg_quality, config.backend.max_keyframe_width, vehicle_id=config.vehicle.id)
+    session = BackendSession(client)
+    worker = BackendWorker(_QueryService(client))
+    settings = LoopSettings(frame_stale_s=config.safety.frame_stale_s, loop_stall_s=config.safety.loop_stall_s)
+    runner = MissionRunner(mission_config(config), frames, frontend, link, worker, session, settings, observers,
+                           ServiceNotifier.from_environment())
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: runner.request_stop())
+    try:
+        link.start()
+    except OSError as exc:
+        print(f"error: cannot open the MAVLink link {config.mavlink.connection}: {exc}", file=sys.stderr)
+        frames.close()
+        worker.close()
+        return 2
+    session.start()
+    log.info("companion %s: camera %s, tracker %s, back-end %s, MAVLink %s", config.vehicle.id, cam.source,
+             config.tracker.name, config.backend.url, config.mavlink.connection)
+    try:
+        return runner.run()
+    finally:
+        session.close()
+        link.close()
+        if events_file is not None and events_file is not sys.stdout:
+            events_file.close()
