@@ -21,7 +21,16 @@ lint: install
 types: install
 	$(BIN)/mypy
 
-pytest: install
+# The supervisor page's browser test drives Debian's chromium (never a browser downloaded by playwright).
+CHROMIUM ?= /usr/bin/chromium
+
+$(CHROMIUM):
+	@echo "installing Debian's chromium for the supervisor browser test"
+	@SUDO=$$([ "$$(id -u)" = 0 ] || echo sudo); \
+	$$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null 2>&1 || \
+	{ $$SUDO apt-get update -qq >/dev/null && $$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; }
+
+pytest: install $(CHROMIUM)
 	$(BIN)/python -m pytest
 
 test: lint types pytest
