@@ -145,6 +145,9 @@ class RejectionIn(ApiModel):
     crop_jpeg_b64: str | None = Field(
         None, max_length=400_000, description="the candidate's crop, when the back-end may not know the id"
     )
+    crop_box: list[float] | None = Field(
+        None, min_length=4, max_length=4, description="[x1, y1, x2, y2] of the candidate inside the crop; default: all of it"
+    )
     position: GeoPoint | None = Field(None, min_length=2, max_length=2, description="[lat, lon] of the candidate")
     reason: str = Field("", max_length=500)
 
@@ -165,6 +168,9 @@ class AwaitingCandidate(ApiModel):
     verdict: Literal["yes", "no", "uncertain"] = "yes"
     justification: str = Field("", max_length=2000)
     crop_jpeg_b64: str | None = Field(None, max_length=400_000)
+    crop_box: list[float] | None = Field(
+        None, min_length=4, max_length=4, description="[x1, y1, x2, y2] of the candidate inside the crop; default: all of it"
+    )
     position: GeoPoint | None = Field(None, min_length=2, max_length=2, description="[lat, lon] estimate")
 
 

@@ -45,8 +45,8 @@ def distance_m(a: list[float], b: list[float]) -> float:
     return 2 * 6_371_000.0 * math.asin(min(1.0, math.sqrt(h)))
 
 
-def crop_descriptor(crop_jpeg_b64: str) -> list[float]:
-    """Appearance of a crop sent by a client: the central part, leaving out the context margin."""
+def crop_descriptor(crop_jpeg_b64: str, crop_box: list[float] | None = None) -> list[float]:
+    """Appearance of a crop sent by a client: the candidate's box inside it, or the whole crop."""
     try:
         data = base64.b64decode(crop_jpeg_b64, validate=True)
     except ValueError as exc:
@@ -55,7 +55,10 @@ def crop_descriptor(crop_jpeg_b64: str) -> list[float]:
     if image is None:
         raise ValueError("crop_jpeg_b64 is not a decodable JPEG/PNG image")
     h, w = image.shape[:2]
-    return descriptor(image, Box(0.2 * w, 0.2 * h, 0.6 * w, 0.6 * h))
+    box = Box.from_xyxy(*crop_box) if crop_box else Box(0, 0, w, h)
+    if not box.clamped(w, h).is_valid():
+        raise ValueError(f"crop_box {crop_box} lies outside the {w}x{h} crop")
+    return descriptor(image, box)
 
 
 @dataclass
@@ -107,7 +110,7 @@ class SessionStore:
 
     def add_rejection(self, mission_id: str, rejection: RejectionIn) -> Rejection:
         """Record a rejected candidate; its appearance comes from the crop sent or the candidate id."""
-        appearance = crop_descriptor(rejection.crop_jpeg_b64) if rejection.crop_jpeg_b64 else None
+        appearance = crop_descriptor(rejection.crop_jpeg_b64, rejection.crop_box) if rejection.crop_jpeg_b64 else None
         with self._lock:
             mission = self._mission(mission_id)
             if appearance is None:
@@ -191,6 +194,7 @@ class SessionStore:
                         vehicle_id=vehicle_id,
                         candidate_id=decision.candidate_id,
                         crop_jpeg_b64=awaiting.crop_jpeg_b64 if same and awaiting else None,
+                        crop_box=awaiting.crop_box if same and awaiting else None,
                         position=awaiting.position if same and awaiting else None,
                         reason=decision.note or "rejected by the supervisor",
                     ),

@@ -191,11 +191,17 @@ class BackendClient:
         position: Sequence[float] | None = None,
         reason: str = "",
         mission_id: str | None = None,
+        crop_box: Box | None = None,
     ) -> dict[str, Any]:
-        """Tell the back-end a candidate was rejected so it is not proposed again in this mission."""
+        """Tell the back-end a candidate was rejected so it is not proposed again in this mission.
+
+        `crop_bgr` (with `crop_box`, the candidate inside it) lets any replica match it without its id.
+        """
         body: dict[str, Any] = {"vehicle_id": self.vehicle_id, "candidate_id": candidate_id, "reason": reason}
         if crop_bgr is not None:
             body["crop_jpeg_b64"] = crop_to_base64(crop_bgr)
+        if crop_box is not None:
+            body["crop_box"] = list(crop_box.xyxy())
         if position is not None:
             body["position"] = [float(v) for v in position]
         result: dict[str, Any] = self._call("POST", f"/v1/missions/{mission_id or self.mission_id}/rejections", json=body)

@@ -1,0 +1,112 @@
+"""The companion's BackendClient against a real uvicorn server on loopback."""
+
+from __future__ import annotations
+
+import socket
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from backend.app import create_app
+from backend.serving import BackgroundServer
+from behaviors.detection import Verdict
+from behaviors.geometry import Box, iou
+from companion.backend_client import BackendClient, BackendError, encode_keyframe
+from tests.backend_fixtures import SUPERVISOR, TOKENS, backend_config, frame
+
+PROMPT = "the man in the green-and-white striped shirt"
+
+
+@pytest.fixture(scope="module")
+def server(models_dir: Path) -> Iterator[BackgroundServer]:
+    with BackgroundServer(create_app(backend_config(models_dir))) as running:
+        yield running
+
+
+@pytest.fixture()
+def client(server: BackgroundServer) -> BackendClient:
+    return BackendClient(server.url, TOKENS["drone-1"], timeout_s=10, vehicle_id="drone-1", mission_id="m-client")
+
+
+def test_full_size_frame_boxes_come_back_in_the_callers_pixels(client: BackendClient, sequences_dir: Path) -> None:
+    image = frame(sequences_dir, size=None)  # 1280x720, sent downscaled to 640 wide
+    reply = client.detect_reply(image, PROMPT, frame_id=1, capture_time=12.5)
+    truth = Box(490, 235, 34, 85)
+    assert max(iou(truth, d.box) for d in reply.detections) >= 0.5
+    assert all(d.candidate_id and d.verdict in Verdict for d in reply.detections)
+    assert reply.models["detector"] == "yolox_nano"
+    assert reply.raw["image_size"] == [640, 360]
+
+
+def test_keyframe_request_for_640x480_is_small(client: BackendClient, sequences_dir: Path) -> None:
+    image = frame(sequences_dir, size=(640, 480))
+    reply = client.detect_reply(image, PROMPT)
+    print(f"640x480 keyframe: request {reply.request_bytes} B, JPEG {reply.jpeg_bytes} B (quality 80)")
+    assert reply.request_bytes <= 100_000
+    assert reply.request_bytes - reply.jpeg_bytes < 1_000  # multipart and meta overhead
+
+
+def test_roi_is_scaled_into_the_sent_image(client: BackendClient, sequences_dir: Path) -> None:
+    image = frame(sequences_dir, size=None)
+    around = client.detect(image, PROMPT, roi=Box(400, 160, 240, 240))
+    assert around and all(d.box.x >= 400 - 1 and d.box.x2 <= 640 + 1 for d in around)
+    assert client.detect(image, PROMPT, roi=Box(900, 500, 300, 200)) == []
+
+
+def test_wrong_token_raises_backend_error_with_status(server: BackgroundServer, sequences_dir: Path) -> None:
+    bad = BackendClient(server.url, "wrong", vehicle_id="drone-1", mission_id="m")
+    with pytest.raises(BackendError) as info:
+        bad.detect(frame(sequences_dir), PROMPT)
+    assert info.value.status == 401 and not info.value.retryable and "invalid bearer token" in str(info.value)
+
+
+def test_bad_prompt_raises_422(client: BackendClient, sequences_dir: Path) -> None:
+    with pytest.raises(BackendError, match="422"):
+        client.detect(frame(sequences_dir), "?!")
+
+
+def test_unreachable_and_silent_servers_raise_retryable_errors(sequences_dir: Path) -> None:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    with pytest.raises(BackendError) as info:
+        BackendClient(f"http://127.0.0.1:{port}", "t", timeout_s=2, vehicle_id="v", mission_id="m").detect(frame(sequences_dir), PROMPT)
+    assert info.value.retryable and info.value.status is None
+    with socket.socket() as silent:  # accepts the connection, never answers
+        silent.bind(("127.0.0.1", 0))
+        silent.listen()
+        url = f"http://127.0.0.1:{silent.getsockname()[1]}"
+        with pytest.raises(BackendError, match="no answer within 0.5 s") as info:
+            BackendClient(url, "t", timeout_s=0.5, vehicle_id="v", mission_id="m").detect(frame(sequences_dir), PROMPT)
+        assert info.value.retryable
+
+
+def test_status_rejection_and_decisions_round_trip(server: BackgroundServer, client: BackendClient, sequences_dir: Path) -> None:
+    image = frame(sequences_dir)
+    first = client.detect(image, PROMPT)
+    best = max(first, key=lambda d: d.score)
+    x, y = int(best.box.x), int(best.box.y)
+    crop = image[y : y + int(best.box.h), x : x + int(best.box.w)]
+    client.report_status("AWAIT_SUPERVISOR", awaiting={"candidate_id": best.candidate_id, "box": list(best.box.xyxy())})
+    supervisor = BackendClient(server.url, SUPERVISOR)
+    supervisor._call("POST", "/v1/vehicles/drone-1/decisions", json={"candidate_id": best.candidate_id, "action": "reject"})
+    decisions = client.decisions()
+    assert [(d["candidate_id"], d["action"]) for d in decisions] == [(best.candidate_id, "reject")]
+    assert client.decisions(after=decisions[-1]["decision_id"]) == []
+    # The rejected person is not proposed again in this mission ...
+    again = client.detect(image, PROMPT)
+    same = max(again, key=lambda d: iou(d.box, best.box))
+    assert same.verdict is Verdict.NO and "rejected" in same.justification
+    # ... but is in another mission, and a rejection sent with a crop works without a known id.
+    other = BackendClient(server.url, TOKENS["drone-1"], vehicle_id="drone-1", mission_id="m-other")
+    assert all("rejected" not in d.justification for d in other.detect(image, PROMPT))
+    other.reject(None, crop_bgr=crop, reason="wrong person")
+    assert any("rejected" in d.justification for d in other.detect(image, PROMPT))
+
+
+def test_encode_keyframe_refuses_non_images() -> None:
+    with pytest.raises(ValueError, match="BGR"):
+        encode_keyframe(np.zeros((10, 10), np.uint8), 640, 80)
+
