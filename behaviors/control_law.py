@@ -21,7 +21,7 @@ from behaviors.safety_limits import MotionLimits, apply_limits
 from behaviors.setpoint import Setpoint
 from behaviors.telemetry import Telemetry
 
-# Below this height the foot-point ray is meaningless (on the ground, or height unknown).
+# Below this height the vehicle is on the ground (or the height is unknown): no foot-point ray, no climb.
 _MIN_HEIGHT_FOR_FOOT_M = 0.5
 # A foot within this many pixels of the bottom edge is probably cut off: its ray would under-estimate.
 _FOOT_EDGE_PX = 2.0
@@ -160,13 +160,15 @@ def follow_step(
         forward = (gains.forward_kp * dist_filtered + gains.forward_ki * forward_integral) * max(
             math.cos(angle), 0.0
         )
-        right = gains.lateral_kp * distance.ground_m * math.sin(angle)
+        # Sideways offset of the target in metres, from the dead-banded angle so the set-point stays at zero.
+        right = gains.lateral_kp * distance.ground_m * math.sin(yaw_error)
     right += goal.lateral_speed_m_s
 
     down = 0.0
     height = telemetry.height_agl
-    if height < limits.min_altitude:
-        down = -gains.altitude_kp * (limits.min_altitude - height)  # climb back into the band
+    if _MIN_HEIGHT_FOR_FOOT_M <= height < limits.min_altitude:
+        # Climb back into the band, but only when airborne: from the ground this would be a take-off.
+        down = -gains.altitude_kp * (limits.min_altitude - height)
     elif height > limits.max_altitude and goal.descent_allowed:
         down = gains.altitude_kp * (height - limits.max_altitude)
 

@@ -8,7 +8,7 @@ pixel's ray is intersected with the ground plane `height_agl` below the camera.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from behaviors.camera_model import CameraModel
 from behaviors.geometry import Box
@@ -123,29 +123,28 @@ def locate_pixel(
     if base is None:
         return None
     north, east, slant = base
-    # First-order propagation: move each input by its sigma and add the ground displacements in quadrature.
-    a = sigmas.angle_rad
-    perturbed = (
-        _ground_offset(camera, u, v, t.height_agl + sigmas.height_m, t.roll, t.pitch, t.yaw),
-        _ground_offset(camera, u, v, t.height_agl, t.roll + a, t.pitch, t.yaw),
-        _ground_offset(camera, u, v, t.height_agl, t.roll, t.pitch, t.yaw + a),
-        _ground_offset(camera, u + sigmas.pixel, v, t.height_agl, t.roll, t.pitch, t.yaw),
-        _ground_offset(camera, u, v + sigmas.pixel, t.height_agl, t.roll, t.pitch, t.yaw),
-        # Pitch error of the camera (gimbal or airframe) moves the ray like a vertical pixel error.
-        _ground_offset(
-            CameraModel(
-                camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy,
-                camera.mount_pitch - a, camera.stabilised,
-            ),
-            u, v, t.height_agl, t.roll, t.pitch, t.yaw,
-        ),
+    # First-order propagation: move each input by plus and minus its sigma, take the larger ground
+    # displacement, and add the inputs in quadrature. A perturbed ray that misses the ground (near the
+    # horizon) makes the error unbounded.
+    a, dh, dp = sigmas.angle_rad, sigmas.height_m, sigmas.pixel
+    # (height, roll, yaw, u, v, camera pitch): the mount pitch stands for gimbal or airframe pitch error.
+    deltas = (
+        (dh, 0, 0, 0, 0, 0), (0, a, 0, 0, 0, 0), (0, 0, a, 0, 0, 0),
+        (0, 0, 0, dp, 0, 0), (0, 0, 0, 0, dp, 0), (0, 0, 0, 0, 0, a),
     )
     variance = 0.0
-    for p in perturbed:
-        if p is None:
-            variance = math.inf
-            break
-        variance += (p[0] - north) ** 2 + (p[1] - east) ** 2
+    for d_h, d_roll, d_yaw, d_u, d_v, d_mount in deltas:
+        worst = 0.0
+        for k in (1.0, -1.0):
+            cam = replace(camera, mount_pitch=camera.mount_pitch + k * d_mount) if d_mount else camera
+            moved = _ground_offset(
+                cam, u + k * d_u, v + k * d_v, t.height_agl + k * d_h, t.roll + k * d_roll, t.pitch, t.yaw + k * d_yaw
+            )
+            if moved is None:
+                worst = math.inf
+                break
+            worst = max(worst, (moved[0] - north) ** 2 + (moved[1] - east) ** 2)
+        variance += worst
     lat, lon = offset_to_latlon(t.lat_deg, t.lon_deg, north, east)
     return GeoEstimate(lat, lon, north, east, math.hypot(north, east), slant, math.sqrt(variance))
 
