@@ -120,6 +120,7 @@ class _Link:
     next_due: dict[int, float] = field(default_factory=dict)
     seen: set[tuple[int, int]] = field(default_factory=set)
     down: bool = False
+    deaf: bool = False
     bad_data: int = 0
 
 
@@ -189,10 +190,14 @@ class SimulatedAutopilot:
             raise ValueError(f"link {name!r} ({self._links[name].url}) has no local socket")
         return int(sock.getsockname()[1])
 
-    def set_link_down(self, name: str, down: bool) -> None:
-        """Simulate a cut link: nothing is sent on it and whatever arrives is dropped."""
+    def set_link_down(self, name: str, down: bool, inbound_too: bool = True) -> None:
+        """Simulate a cut link: nothing is sent on it and (with `inbound_too`) whatever arrives is dropped.
+
+        `inbound_too=False` is a one-way failure: the autopilot goes silent but still obeys what it hears.
+        """
         with self._lock:
             self._links[name].down = down
+            self._links[name].deaf = down and inbound_too
 
     def snapshot(self) -> VehicleState:
         with self._lock:
@@ -247,7 +252,7 @@ class SimulatedAutopilot:
             if msg is None:
                 continue
             with self._lock:
-                if link.down:
+                if link.deaf:
                     continue
                 try:
                     self._on_message(link, msg)
@@ -290,6 +295,8 @@ class SimulatedAutopilot:
                 other.conn.write(buf)
 
     def _ack(self, link: _Link, msg: mavutil.mavlink.MAVLink_message, result: int) -> None:
+        if link.down:
+            return
         link.conn.mav.command_ack_send(
             msg.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()
         )

@@ -1,0 +1,334 @@
+"""`cloudtrack-gcs`: the ground side of the CloudTrack mission protocol, over any MAVLink link.
+
+Each command waits for the companion's COMMAND_ACK (re-sending as the MAVLink command protocol allows)
+and exits non-zero with a clear message when it is refused (1) or never acknowledged (3).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from collections.abc import Sequence
+from functools import partial
+from typing import Any
+
+from companion.autopilot_modes import detect_autopilot, mode_name
+from companion.gcs_link import (
+    CMD_ABORT,
+    CMD_CAMERA_TRACK_RECTANGLE,
+    CMD_CONFIRM,
+    CMD_REJECT,
+    CMD_START,
+    CMD_STATUS,
+    COMMAND_NAMES,
+    MAV_RESULT_ACCEPTED,
+    MAV_RESULT_FAILED,
+    PROMPT_PAYLOAD_TYPE,
+    encode_prompt,
+)
+from companion.mavlink_connection import MavlinkEndpoint, mavlink, parse_connection
+from companion.mavlink_signing import parse_signing_key
+
+EXIT_REFUSED, EXIT_TIMEOUT = 1, 3
+RESULT_NAMES = {0: "ACCEPTED", 1: "TEMPORARILY_REJECTED", 2: "DENIED", 3: "UNSUPPORTED", 4: "FAILED", 5: "IN_PROGRESS", 6: "CANCELLED"}
+
+EXAMPLES = """\
+examples:
+  cloudtrack-gcs start --prompt "injured man in a gray shirt lying on the ground" --superset person
+  cloudtrack-gcs start --prompt "woman in a green jacket" --allow-engage     # companion may select GUIDED/OFFBOARD
+  cloudtrack-gcs confirm                    # the candidate awaiting the supervisor
+  cloudtrack-gcs reject --candidate 2
+  cloudtrack-gcs abort
+  cloudtrack-gcs track-box 0.40 0.30 0.55 0.70   # normalised corners, as QGroundControl sends them
+  cloudtrack-gcs watch --duration 60
+  cloudtrack-gcs --connect tcp:192.168.1.10:5760 --signing-key $KEY status
+
+The default link listens on udpin:0.0.0.0:14550, where `cloudtrack-sim autopilot` and most autopilots send
+GCS traffic. With signing on, pass the same 64-hex-character key as the companion.
+"""
+
+
+def _tunnel(mav: Any, target: tuple[int, int], payload: bytes) -> None:
+    padded = list(payload) + [0] * (128 - len(payload))
+    mav.tunnel_send(target[0], target[1], PROMPT_PAYLOAD_TYPE, len(payload), padded)
+
+
+def _command_long(mav: Any, target: tuple[int, int], command: int, confirmation: int, params: list[float]) -> None:
+    mav.command_long_send(target[0], target[1], command, confirmation, *params)
+
+
+class GcsError(Exception):
+    def __init__(self, message: str, code: int):
+        super().__init__(message)
+        self.code = code
+
+
+class GcsSession:
+    """A GCS-side link: heartbeat, commands with acknowledgement, and the companion's messages."""
+
+    def __init__(self, args: argparse.Namespace):
+        self.args = args
+        self.target = (args.system, args.component)
+        self.endpoint = MavlinkEndpoint.open(args.connect, args.gcs_system, args.gcs_component)
+        if args.signing_key:
+            self.endpoint.conn.setup_signing(parse_signing_key(args.signing_key), sign_outgoing=True)
+        self._statustexts: dict[int, list[bytes]] = {}
+
+    def close(self) -> None:
+        self.endpoint.close()
+
+    def heartbeat(self) -> None:
+        self.endpoint.send(lambda m: m.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0))
+
+    def connect(self) -> None:
+        """Announce ourselves until the vehicle is heard (udpin links cannot send before that)."""
+        deadline = time.monotonic() + self.args.timeout
+        while time.monotonic() < deadline:
+            self.heartbeat()
+            msg = self.endpoint.receive(timeout=0.5)
+            if msg is not None and msg.get_type() == "HEARTBEAT" and msg.get_srcSystem() == self.target[0]:
+                self.heartbeat()
+                return
+        raise GcsError(
+            f"no HEARTBEAT from system {self.target[0]} on {self.args.connect} within {self.args.timeout:g} s: "
+            "is the autopilot (or cloudtrack-sim autopilot) sending to this address?",
+            EXIT_TIMEOUT,
+        )
+
+    def send_prompt(self, mission_id: int, superset: str, prompt: str) -> tuple[int, int]:
+        payloads = encode_prompt(mission_id, superset, prompt)
+        for payload in payloads:
+            self.endpoint.send(partial(_tunnel, target=self.target, payload=payload))
+        return len(payloads), sum(len(p) - 4 for p in payloads)
+
+    def command(self, command: int, params: Sequence[float], resend: Any = None) -> int:
+        """Send COMMAND_LONG until its COMMAND_ACK arrives; the MAV_RESULT."""
+        p = list(params) + [0.0] * (7 - len(params))
+        deadline = time.monotonic() + self.args.timeout
+        confirmation = 0
+        while time.monotonic() < deadline:
+            self.endpoint.send(partial(_command_long, target=self.target, command=command, confirmation=confirmation, params=p))
+            resend_at = time.monotonic() + 1.0
+            while time.monotonic() < min(resend_at, deadline):
+                msg = self.endpoint.receive(timeout=0.2)
+                if msg is None:
+                    continue
+                self.show(msg, quiet=True)
+                if (
+                    msg.get_type() == "COMMAND_ACK"
+                    and msg.command == command
+                    and (msg.get_srcSystem(), msg.get_srcComponent()) == self.target
+                ):
+                    return int(msg.result)
+            confirmation = min(confirmation + 1, 255)
+            self.heartbeat()
+            if resend is not None:
+                resend()
+        name = COMMAND_NAMES.get(command, str(command))
+        raise GcsError(
+            f"no acknowledgement for {name} from {self.target[0]}/{self.target[1]} within {self.args.timeout:g} s: "
+            "is the companion running, and does the autopilot route to it (or is the signing key wrong)?",
+            EXIT_TIMEOUT,
+        )
+
+    def show(self, msg: Any, quiet: bool = False) -> str | None:
+        """A readable line for a message from the vehicle, printed unless `quiet`; None for others."""
+        mtype = msg.get_type()
+        line = None
+        src = f"{msg.get_srcSystem()}/{msg.get_srcComponent()}"
+        if mtype == "STATUSTEXT":
+            line = self._statustext(msg)
+            line = f"[{src}] {line}" if line is not None else None
+        elif mtype == "NAMED_VALUE_FLOAT":
+            line = f"[{src}] {msg.name} = {msg.value:.3f}"
+        elif mtype == "CAMERA_TRACKING_IMAGE_STATUS":
+            if msg.tracking_status & mavlink.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE:
+                line = (
+                    f"[{src}] target at ({msg.point_x:.3f}, {msg.point_y:.3f}) box "
+                    f"({msg.rec_top_x:.3f}, {msg.rec_top_y:.3f})-({msg.rec_bottom_x:.3f}, {msg.rec_bottom_y:.3f})"
+                )
+            else:
+                line = f"[{src}] tracking idle"
+        if line is not None and not quiet:
+            print(line, flush=True)
+        return line
+
+    def _statustext(self, msg: Any) -> str | None:
+        text = bytes(msg.text, "utf-8") if isinstance(msg.text, str) else bytes(msg.text)
+        text_id = getattr(msg, "id", 0)
+        if not text_id:
+            return text.rstrip(b"\0").decode("utf-8", "replace")
+        parts = self._statustexts.setdefault(text_id, [])
+        parts.append(text[:50])
+        if len(text.rstrip(b"\0")) < 50:  # the last chunk is the short one
+            del self._statustexts[text_id]
+            return b"".join(parts).rstrip(b"\0").decode("utf-8", "replace")
+        return None
+
+    def wait_status(self, seconds: float) -> list[str]:
+        """Lines from the companion for a short while (the reply to a command)."""
+        lines: list[str] = []
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            msg = self.endpoint.receive(timeout=0.1)
+            if msg is not None and msg.get_srcComponent() == self.target[1]:
+                line = self.show(msg)
+                if line is not None:
+                    lines.append(line)
+                    if msg.get_type() == "STATUSTEXT":
+                        return lines
+        return lines
+
+
+def _report(name: str, result: int) -> int:
+    text = RESULT_NAMES.get(result, str(result))
+    if result == MAV_RESULT_ACCEPTED:
+        print(f"{name}: {text}", flush=True)
+        return 0
+    print(f"error: {name} refused by the companion: {text}", file=sys.stderr, flush=True)
+    return EXIT_REFUSED
+
+
+def _start(session: GcsSession, args: argparse.Namespace) -> int:
+    chunks, length = session.send_prompt(args.mission_id, args.superset, args.prompt)
+    params = [args.mission_id, chunks, 1.0 if args.allow_engage else 0.0, length]
+
+    def resend_prompt() -> None:
+        session.send_prompt(args.mission_id, args.superset, args.prompt)
+
+    result = session.command(CMD_START, params, resend=resend_prompt)
+    if result == MAV_RESULT_FAILED:  # chunks lost on the way: send them again once
+        resend_prompt()
+        result = session.command(CMD_START, params)
+    code = _report("start", result)
+    if code == 0:
+        session.wait_status(2.0)
+    return code
+
+
+def _simple(command: int, params: Sequence[float] = ()) -> Any:
+    def run(session: GcsSession, args: argparse.Namespace) -> int:
+        code = _report(COMMAND_NAMES[command], session.command(command, params or _candidate(args)))
+        if code == 0 and command == CMD_STATUS:
+            session.wait_status(2.0)
+        return code
+
+    return run
+
+
+def _candidate(args: argparse.Namespace) -> list[float]:
+    return [float(getattr(args, "candidate", 0) or 0)]
+
+
+def _track_box(session: GcsSession, args: argparse.Namespace) -> int:
+    x1, y1, x2, y2 = args.corners
+    if not (0 <= x1 < x2 <= 1 and 0 <= y1 < y2 <= 1):
+        print("error: track-box needs normalised corners 0..1 with X1 < X2 and Y1 < Y2", file=sys.stderr)
+        return 2
+    return _report("track-box", session.command(CMD_CAMERA_TRACK_RECTANGLE, [x1, y1, x2, y2]))
+
+
+def _watch(session: GcsSession, args: argparse.Namespace) -> int:
+    deadline = time.monotonic() + args.duration if args.duration > 0 else float("inf")
+    last_heartbeat = 0.0
+    mode = ""
+    try:
+        while time.monotonic() < deadline:
+            if time.monotonic() - last_heartbeat >= 1.0:
+                session.heartbeat()
+                last_heartbeat = time.monotonic()
+            msg = session.endpoint.receive(timeout=0.2)
+            if msg is None:
+                continue
+            if msg.get_type() == "HEARTBEAT" and msg.get_srcSystem() == session.target[0] and msg.get_srcComponent() == 1:
+                kind = detect_autopilot(msg.autopilot)
+                new_mode = mode_name(kind, msg.custom_mode) if kind else str(msg.custom_mode)
+                if new_mode != mode:
+                    mode = new_mode
+                    print(f"[autopilot] mode {mode}", flush=True)
+                continue
+            session.show(msg)
+    except KeyboardInterrupt:
+        pass
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="cloudtrack-gcs",
+        description="Start, supervise and stop a CloudTrack mission over MAVLink (through the autopilot's routing).",
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--connect", default="udpin:0.0.0.0:14550", metavar="URL", help="MAVLink link (default udpin:0.0.0.0:14550)")
+    parser.add_argument("--system", type=int, default=1, help="vehicle system id (default 1)")
+    parser.add_argument("--component", type=int, default=191, help="companion component id (default 191)")
+    parser.add_argument("--gcs-system", type=int, default=255, help="our system id (default 255)")
+    parser.add_argument("--gcs-component", type=int, default=190, help="our component id (default 190, MAV_COMP_ID_MISSIONPLANNER)")
+    parser.add_argument("--timeout", type=float, default=5.0, metavar="S", help="wait this long for an acknowledgement (default 5)")
+    parser.add_argument(
+        "--signing-key", default=os.environ.get("CLOUDTRACK_GCS_SIGNING_KEY", ""), metavar="HEX",
+        help="MAVLink 2 signing key, 64 hex characters (default $CLOUDTRACK_GCS_SIGNING_KEY)",
+    )  # fmt: skip
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    start = sub.add_parser("start", help="start a mission with a text prompt", epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
+    start.add_argument("--prompt", required=True, help='what to find, e.g. "injured man in a gray shirt"')
+    start.add_argument("--superset", default="", help="detector class, e.g. person (default: derived by the back-end)")
+    start.add_argument("--allow-engage", action="store_true", help="let the companion select GUIDED/OFFBOARD itself")
+    start.add_argument("--mission-id", type=int, default=int(time.time()) % 256, help="0-255 (default: from the clock)")
+    start.set_defaults(func=_start)
+    for name, command, text in (
+        ("confirm", CMD_CONFIRM, "confirm the candidate awaiting the supervisor"),
+        ("reject", CMD_REJECT, "reject the candidate awaiting the supervisor"),
+    ):
+        p = sub.add_parser(name, help=text, description=text, epilog=f"example:\n  cloudtrack-gcs {name} --candidate 2", formatter_class=argparse.RawDescriptionHelpFormatter)
+        p.add_argument("--candidate", type=int, default=0, help="candidate number (default 0: the one awaiting the supervisor)")
+        p.set_defaults(func=_simple(command))
+    abort = sub.add_parser("abort", help="end the mission: the companion stops and holds", epilog="example:\n  cloudtrack-gcs abort", formatter_class=argparse.RawDescriptionHelpFormatter)
+    abort.set_defaults(func=_simple(CMD_ABORT, [0.0]))
+    status = sub.add_parser("status", help="ask the companion to repeat its latest status line", epilog="example:\n  cloudtrack-gcs status", formatter_class=argparse.RawDescriptionHelpFormatter)
+    status.set_defaults(func=_simple(CMD_STATUS, [0.0]))
+    box = sub.add_parser(
+        "track-box", help="track what is inside a box (MAV_CMD_CAMERA_TRACK_RECTANGLE, normalised 0..1)",
+        epilog="example:\n  cloudtrack-gcs track-box 0.40 0.30 0.55 0.70", formatter_class=argparse.RawDescriptionHelpFormatter,
+    )  # fmt: skip
+    box.add_argument("corners", nargs=4, type=float, metavar=("X1", "Y1", "X2", "Y2"))
+    box.set_defaults(func=_track_box)
+    watch = sub.add_parser("watch", help="print status, candidates and target position as they arrive", epilog="example:\n  cloudtrack-gcs watch --duration 60", formatter_class=argparse.RawDescriptionHelpFormatter)
+    watch.add_argument("--duration", type=float, default=0.0, metavar="S", help="stop after S seconds (default: until Ctrl-C)")
+    watch.set_defaults(func=_watch)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        parse_connection(args.connect)
+        if args.signing_key:
+            parse_signing_key(args.signing_key)
+        if args.command == "start":
+            encode_prompt(args.mission_id, args.superset, args.prompt)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    try:
+        session = GcsSession(args)
+    except OSError as exc:
+        print(f"error: cannot open {args.connect}: {exc}", file=sys.stderr)
+        return EXIT_TIMEOUT
+    try:
+        session.connect()
+        return int(args.func(session, args))
+    except GcsError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return exc.code
+    finally:
+        session.close()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,127 @@
+"""Offboard velocity streaming against the SITL autopilot over loopback UDP: fields, rate, mode policy."""
+
+from __future__ import annotations
+
+import time
+
+from behaviors.setpoint import Setpoint
+from companion.offboard import MAV_FRAME_BODY_NED, MAV_FRAME_BODY_OFFSET_NED, TYPE_MASK_VELOCITY_YAW_RATE
+from tests.mavlink_harness import (
+    MainLoop,
+    autopilot,
+    gcs,
+    receive_until,
+    set_mode_from_gcs,
+    vehicle_link,
+    wait_for,
+)
+
+YAW_RATE_IGNORE = 2048
+
+
+def test_ardupilot_setpoint_fields_are_body_offset_velocity_with_yaw_rate() -> None:
+    with autopilot("ardupilot") as sim, vehicle_link(sim) as link, MainLoop(link):
+        link.request_offboard()
+        link.set_velocity(Setpoint(1.5, -0.5, 0.0, 0.0))
+        assert wait_for(lambda: len(sim.setpoints) >= 5)
+        sp = sim.setpoints[-1]
+        assert (sp.src_system, sp.src_component) == (1, 191)
+        assert sp.frame == MAV_FRAME_BODY_OFFSET_NED == 9
+        assert sp.type_mask == TYPE_MASK_VELOCITY_YAW_RATE == 0b0000_0101_1100_0111
+        assert not sp.type_mask & YAW_RATE_IGNORE  # yaw_rate is always used, 0 when not turning
+        assert (sp.vx, sp.vy, sp.vz, sp.yaw_rate) == (1.5, -0.5, 0.0, 0.0)
+        assert sp.mode == "GUIDED"
+        # and the vehicle flies it: forward at the start heading (north)
+        assert wait_for(lambda: sim.snapshot().vn > 1.0, 5.0)
+
+
+def test_setpoint_rate_within_20_percent_of_configured() -> None:
+    with autopilot("ardupilot") as sim, vehicle_link(sim, setpoint_rate_hz=15.0) as link, MainLoop(link):
+        link.request_offboard()
+        link.set_velocity(Setpoint(1.0, 0.0, 0.0, 0.1))
+        assert wait_for(lambda: len(sim.setpoints) >= 3)
+        start = time.monotonic()
+        time.sleep(3.0)
+        end = time.monotonic()
+        received = [s for s in sim.setpoints if start <= s.time < end]
+        rate = len(received) / (end - start)
+        assert 12.0 <= rate <= 18.0, f"setpoint rate {rate:.1f} Hz, configured 15 Hz"
+        assert all(abs(s.yaw_rate - 0.1) < 1e-6 for s in received)
+
+
+def test_limits_are_applied_before_sending() -> None:
+    with autopilot("ardupilot") as sim, vehicle_link(sim, safety={"max_speed_m_s": 2.0}) as link, MainLoop(link):
+        link.request_offboard()
+        link.set_velocity(Setpoint(6.0, 8.0, 2.0, 3.0))  # 10 m/s, descending, spinning fast
+        assert wait_for(lambda: len(sim.setpoints) >= 3)
+        sp = sim.setpoints[-1]
+        assert abs((sp.vx**2 + sp.vy**2) ** 0.5 - 2.0) < 1e-4 and abs(sp.vx / sp.vy - 0.75) < 1e-4
+        assert sp.vz == 0.0  # no descent towards an unconfirmed target
+        assert sp.yaw_rate <= 0.786
+
+
+def test_mode_change_by_gcs_stops_setpoints_within_200_ms() -> None:
+    with autopilot("ardupilot") as sim, vehicle_link(sim) as link, MainLoop(link), gcs(sim) as ground:
+        link.request_offboard()
+        link.set_velocity(Setpoint(1.0, 0.0, 0.0, 0.0))
+        assert wait_for(lambda: len(sim.setpoints) >= 10)
+        ack = set_mode_from_gcs(ground, 5)  # LOITER, chosen by someone else
+        assert ack is not None and ack.result == 0
+        changed_at = next(t for t, mode, _ in sim.mode_history if mode == "LOITER")
+        time.sleep(1.0)
+        late = [s for s in sim.setpoints if s.time > changed_at + 0.2]
+        assert late == [], f"{len(late)} setpoints more than 200 ms after the mode change"
+        events = link.safety_events()
+        assert any(e.reason == "mode_change" and "GUIDED -> LOITER" in e.detail for e in events), events
+        # the GCS is told why, in words
+        text = receive_until(ground, lambda m: m.get_type() == "STATUSTEXT" and "OFFBOARD ENDED" in m.text, 3.0)
+        assert text is not None
+        # and the companion does not take the vehicle back on its own
+        set_mode_from_gcs(ground, 4)
+        time.sleep(0.5)
+        assert [s for s in sim.setpoints if s.time > changed_at + 0.2] == []
+
+
+def test_companion_waits_for_the_pilot_when_engagement_not_allowed() -> None:
+    with autopilot("ardupilot") as sim, vehicle_link(sim) as link, MainLoop(link):
+        assert sim.set_mode("LOITER")
+        assert wait_for(lambda: link.telemetry() is not None and link.telemetry().mode == "LOITER")
+        link.enable_offboard()
+        link.set_velocity(Setpoint(1.0, 0.0, 0.0, 0.0))
+        time.sleep(1.0)
+        assert sim.mode == "LOITER" and sim.setpoints == []  # never selects GUIDED itself, never streams outside it
+        assert sim.set_mode("GUIDED", "pilot")
+        assert wait_for(lambda: len(sim.setpoints) >= 3, 3.0)
+        assert all(s.mode == "GUIDED" for s in sim.setpoints)
+
+
+def test_px4_streams_a_second_before_requesting_offboard() -> None:
+    with autopilot("px4") as sim, vehicle_link(sim) as link, MainLoop(link):
+        assert link.telemetry().mode == "POSCTL"
+        link.request_offboard()
+        link.set_velocity(Setpoint(1.0, 0.5, 0.0, -0.2))
+        assert wait_for(lambda: sim.mode == "OFFBOARD", 5.0)
+        entered = next(t for t, mode, _ in sim.mode_history if mode == "OFFBOARD")
+        first = sim.setpoints[0].time
+        assert entered - first >= 0.95, f"OFFBOARD after only {entered - first:.2f} s of setpoints"
+        sp = sim.setpoints[-1]
+        assert sp.frame == MAV_FRAME_BODY_NED == 8 and sp.type_mask == TYPE_MASK_VELOCITY_YAW_RATE
+        assert (sp.vx, sp.vy) == (1.0, 0.5) and abs(sp.yaw_rate + 0.2) < 1e-6  # float32 on the wire
+
+
+def test_hold_sends_explicit_zero_then_configured_brake() -> None:
+    with autopilot("ardupilot") as sim, vehicle_link(sim, ardupilot_hold="brake") as link, MainLoop(link):
+        link.request_offboard()
+        link.set_velocity(Setpoint(2.0, 0.0, 0.0, 0.0))
+        assert wait_for(lambda: sim.snapshot().vn > 1.0, 5.0)
+        link.hold("supervisor review")
+        assert wait_for(lambda: sim.mode == "BRAKE", 3.0)
+        stop_time = next(t for t, mode, _ in sim.mode_history if mode == "BRAKE")
+        zero = [s for s in sim.setpoints if s.vx == 0.0 and s.vy == 0.0 and s.time <= stop_time + 0.05]
+        assert zero, "no explicit zero-velocity setpoint before the hold"
+        assert wait_for(lambda: abs(sim.snapshot().vn) < 0.05, 3.0)
+        events = link.safety_events()
+        assert any(e.reason == "mode_change" and "(requested)" in e.detail for e in events)  # ours, not a takeover
+        # resuming: the main loop commands again and, engagement allowed, GUIDED is requested again
+        link.set_velocity(Setpoint(1.0, 0.0, 0.0, 0.0))
+        assert wait_for(lambda: sim.mode == "GUIDED", 3.0)
