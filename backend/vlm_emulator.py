@@ -39,8 +39,9 @@ def answer_for(image_bgr: np.ndarray | None, text: str, mode: str) -> str:
     if image_bgr is None:
         return "I received no image.\nAnswer: No."
     h, w = image_bgr.shape[:2]
-    # The crop carries the candidate in the middle with a context margin around it.
-    answer: VerifierAnswer = AttributeVerifier().verify(image_bgr, (0.2 * w, 0.2 * h, 0.6 * w, 0.6 * h), description, "person")
+    # The crop carries the candidate in the middle with the pipeline's 50 px context margin around it.
+    mx, my = min(50.0, 0.25 * w), min(50.0, 0.25 * h)
+    answer: VerifierAnswer = AttributeVerifier().verify(image_bgr, (mx, my, w - 2 * mx, h - 2 * my), description, "person")
     # "If in doubt, rather say yes", as the prompt asks.
     word = "No" if answer.verdict is Verdict.NO else "Yes"
     return f"Emulated from pixels: {answer.justification}.\nAnswer: {word}."

@@ -1,7 +1,7 @@
 """The fast local verifier: clothing colours judged from pixels, no model download, a few ms per crop.
 
 It reads colour words in the description and the garment they belong to ("gray shirt" -> upper body,
-"blue jeans" -> lower body, "black wetsuit" / "white bag" -> the whole box), measures the share of each
+"blue jeans" -> lower body, "red cap" -> head, "black wetsuit" / "white bag" -> the whole box), measures the share of each
 colour's pixels in that part of the box (HSV rules), and answers:
   yes        every named colour covers at least `present_fraction` of its region,
   no         some named colour covers less than `absent_fraction` (clearly not there),
@@ -29,8 +29,9 @@ COLOUR_WORDS = {
 UPPER = {"shirt", "tshirt", "t", "top", "jacket", "coat", "sweater", "hoodie", "jumper", "vest", "blouse",
          "jersey", "sweatshirt", "anorak", "fleece", "raincoat", "parka", "tank"}
 LOWER = {"pants", "trousers", "jeans", "shorts", "skirt", "leggings"}
+HEAD = {"cap", "hat", "helmet", "beanie", "hood", "hair"}
 # Region of the box per garment, as fractions (top, bottom, left, right); the head and feet are left out.
-REGIONS = {"upper": (0.18, 0.5, 0.2, 0.8), "lower": (0.55, 0.9, 0.25, 0.75), "whole": (0.1, 0.9, 0.15, 0.85)}
+REGIONS = {"head": (0.0, 0.18, 0.25, 0.75), "upper": (0.18, 0.5, 0.2, 0.8), "lower": (0.55, 0.9, 0.25, 0.75), "whole": (0.1, 0.9, 0.15, 0.85)}
 
 
 # Hue ranges (OpenCV units, 0-179) of the chromatic colours; red wraps around 0.
@@ -67,7 +68,7 @@ def colour_masks(hsv: np.ndarray, hue_slack: float = 0.0) -> dict[str, np.ndarra
 @dataclass(frozen=True)
 class ColourClaim:
     colour: str
-    region: str  # "upper", "lower" or "whole"
+    region: str  # "head", "upper", "lower" or "whole"
 
 
 def colour_claims(prompt: str, superset: str = "person") -> list[ColourClaim]:
@@ -85,6 +86,9 @@ def colour_claims(prompt: str, superset: str = "person") -> list[ColourClaim]:
                     break
                 if following in LOWER:
                     region = "lower"
+                    break
+                if following in HEAD:
+                    region = "head"
                     break
         claim = ColourClaim(COLOUR_WORDS[token], region)
         if claim not in claims:
