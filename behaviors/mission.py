@@ -264,7 +264,11 @@ def _command(state: State, event: GcsCommand, config: MissionConfig) -> Result:
         if not cmd.box.is_valid():
             return state, (GcsMessage("track refused: invalid rectangle", "warning"),)
         target = Target("operator", "selected by the operator", Verdict.YES, cmd.box, -1, state.now_s, operator_selected=True)
-        new = replace(state, target=target, control=ControlState(), lost_stage=0, mode_requested=None, holding=False)
+        # Outside a running mission an old mission's prompt and engage permission no longer apply.
+        mission = state.mission if state.mode in ACTIVE else None
+        new = replace(
+            state, mission=mission, target=target, control=ControlState(), lost_stage=0, mode_requested=None, holding=False
+        )
         new, engage = _engage(new, "operator target")
         new, msg = _enter(new, MissionState.CONFIRMED, "operator selected target")
         return new, (*engage, TrackerInit(cmd.box, -1, "operator"), *msg)

@@ -110,6 +110,11 @@ class BehaviorConfig(ConfigSection):
     lost_action: Literal["hold", "loiter", "rtl", "land"] = "hold"
     on_confirm: Literal["follow", "hold", "orbit"] = "follow"
     orbit_speed_m_s: float = Field(1.0, gt=0, le=10)
+    accept_uncertain: bool = False  # may an "uncertain" verdict start tracking (after every "yes")
+    acquire_timeout_s: float = Field(3.0, gt=0, le=60)  # tracker must lock on this soon after init
+    arrive_tolerance_m: float = Field(2.0, gt=0, le=50)  # this close to the standoff: ask the supervisor
+    approach_timeout_s: float = Field(60.0, gt=0, le=3600)  # ask anyway after following this long
+    rejection_radius_m: float = Field(5.0, gt=0, le=500)  # a rejected person's neighbourhood
 
 
 class ControlConfig(ConfigSection):

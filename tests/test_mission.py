@@ -504,3 +504,31 @@ def test_zero_setpoint_on_entering_lost() -> None:
     assert isinstance(actions[1], GcsMessage) and actions[1].severity == "warning"
     assert isinstance(actions[-1], BackendQuery)
     assert not any(isinstance(a, (TrackerStop, Hold)) for a in actions)
+
+
+def test_operator_rectangle_outside_a_mission_never_engages() -> None:
+    state = reach(S.ABORTED, allow_engage=True)
+    state, actions = step(state, cmd(3.0, TrackRectangle(FAR)), CFG)
+    assert state.mode is S.CONFIRMED and state.mission is None
+    assert kinds(actions) == ["TrackerInit", "GcsMessage"]
+    # Lost without a prompt: nothing to ask the back-end, it stops and holds.
+    state, actions = step(state, tracked(3.1, None, ok=False), CFG)
+    assert state.mode is S.LOST and kinds(actions) == ["SendSetpoint", "GcsMessage"]
+
+
+def test_config_from_the_companion_sections() -> None:
+    from companion.config import CompanionConfig
+
+    companion = CompanionConfig()
+    sections = {name: getattr(companion, name).model_dump() for name in ("behavior", "control", "safety", "camera", "backend")}
+    config = MissionConfig.from_sections(**sections)
+    assert config == MissionConfig()  # the schema's defaults and these defaults agree
+    sections["behavior"] = {**sections["behavior"], "lost_action": "rtl", "accept_uncertain": True, "search_yaw_rate_deg_s": 10.0}
+    sections["safety"] = {**sections["safety"], "max_yaw_rate_deg_s": 30.0}
+    tuned = MissionConfig.from_sections(**sections)
+    assert tuned.lost_action is LostAction.RTL and tuned.accept_uncertain
+    assert math.isclose(tuned.search_yaw_rate, math.radians(10.0)) and math.isclose(tuned.limits.max_yaw_rate, math.radians(30.0))
+    with pytest.raises(ValueError, match="standoff_m: expected a finite number"):
+        MissionConfig.from_sections(**{**sections, "behavior": {"standoff_m": "far"}})
+    with pytest.raises(ValueError, match="'sideways' is not a valid ConfirmAction"):
+        MissionConfig.from_sections(**{**sections, "behavior": {"on_confirm": "sideways"}})
