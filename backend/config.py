@@ -7,11 +7,14 @@ so that the companion's own `CLOUDTRACK_<SECTION>__<KEY>` variables never reach 
 
 from __future__ import annotations
 
+import os
+from collections.abc import Iterable, Mapping
+from pathlib import Path
 from typing import Literal
 
 from pydantic import Field
 
-from cloudtrack.config_files import ConfigSection
+from cloudtrack.config_files import ConfigSection, load_config
 
 ENV_PREFIX = "CLOUDTRACK_BACKEND_"
 
@@ -87,3 +90,20 @@ class BackendConfig(ConfigSection):
     verifier: VerifierConfig = VerifierConfig()
     vlm: VlmConfig = VlmConfig()
     sessions: SessionConfig = SessionConfig()
+
+
+def backend_environment(environ: Mapping[str, str]) -> dict[str, str]:
+    """The variables meant for the back-end: CLOUDTRACK_BACKEND_<SECTION>__<KEY>.
+
+    The companion's CLOUDTRACK_BACKEND__<KEY> (its [backend] section, note the double underscore) shares
+    the prefix and is left out, so one environment can hold both processes' settings.
+    """
+    return {k: v for k, v in environ.items() if k.startswith(ENV_PREFIX) and not k[len(ENV_PREFIX) :].startswith("_")}
+
+
+def load_backend_config(
+    path: Path | None = None, assignments: Iterable[str] = (), environ: Mapping[str, str] | None = None
+) -> BackendConfig:
+    """Defaults, then FILE, then the environment, then --set flags; ConfigError on anything not allowed."""
+    env = backend_environment(os.environ if environ is None else environ)
+    return load_config(BackendConfig, path, env_prefix=ENV_PREFIX, environ=env, assignments=assignments)
