@@ -47,6 +47,8 @@ class TrackerConfig(ConfigSection):
     max_scale_change: float = Field(3.0, gt=1, le=100)  # box area ratio per frame beyond which it "collapsed"
     min_visible_fraction: float = Field(0.5, ge=0, le=1)  # less of the box inside the image: "left_frame"
     catch_up_per_frame: int = Field(4, ge=1, le=100)  # fast-forward updates per live frame after a re-init
+    max_c_box_sizes: float = Field(3.0, gt=0, le=100)  # re-init gate: C_box over (w + h) of the last trusted box
+    max_aspect_change: float = Field(2.0, gt=1, le=100)  # width/height change since (re)init: "collapsed"
     # Loss signals in use: tracker_failed, score, left_frame, collapsed, jump, appearance.
     loss_signals: list[str] = Field(
         default_factory=lambda: ["tracker_failed", "score", "left_frame", "collapsed", "jump", "appearance"]
