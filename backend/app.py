@@ -178,7 +178,9 @@ def _add_detection_routes(app: FastAPI) -> None:
         try:
             async with app.state.scheduler.slot(fields.vehicle_id):
                 t_queue = time.perf_counter() - t_queued
-                result = await run_in_threadpool(pipeline.run, frame, fields.prompt, superset, roi, fields.frame_id, check)
+                result = await run_in_threadpool(
+                    pipeline.run, frame, fields.prompt, superset, roi, fields.frame_id, check, t_received
+                )
         except QueueFullError as exc:
             raise HTTPException(429, f"too many requests waiting for this vehicle: {exc}", headers={"Retry-After": "1"}) from None
         except UnknownSupersetError as exc:

@@ -99,6 +99,60 @@ class Pipeline:
             answer = VerifierAnswer(_policy_verdict(self.uncertain_policy), answer.justification, answer.verifier)
         return answer, time.perf_counter() - start
 
+    def verify(
+        self,
+        image: np.ndarray,
+        detections: list[Detection],
+        prompt: str,
+        superset: str,
+        rejected: RejectionCheck | None = None,
+        deadline: float | None = None,
+    ) -> list[VerifiedCandidate]:
+        """Verify detections concurrently; `deadline` is a perf_counter() time (default: deadline_s from now)."""
+        t_start = time.perf_counter()
+        deadline = deadline if deadline is not None else t_start + self.deadline_s
+        candidates: list[VerifiedCandidate] = []
+        pending: list[tuple[int, Future[tuple[VerifierAnswer, float]]]] = []
+        for det in detections:
+            det = replace(det, candidate_id=det.candidate_id or uuid.uuid4().hex[:12])
+            appearance = descriptor(image, det.box)
+            reason = rejected(appearance) if rejected is not None else None
+            if reason is not None:
+                det = replace(det, verdict=Verdict.NO, justification=reason)
+                candidates.append(VerifiedCandidate(det, "rejection-memory", 0.0, appearance, True))
+            elif self.verifier is None:
+                candidates.append(VerifiedCandidate(det, "none", 0.0, appearance))
+            else:
+                crop, inner = margin_crop(image, det.box, self.margin_px)
+                candidates.append(VerifiedCandidate(det, self.verifier.name, 0.0, appearance))
+                future = self.verify_pool.submit(self._verify_one, crop, inner, prompt, superset, self.timeout_s)
+                pending.append((len(candidates) - 1, future))
+        for i, future in pending:
+            base = candidates[i]
+            wait_s = max(0.0, min(self.timeout_s, deadline - time.perf_counter()))
+            try:
+                answer, t_verify = future.result(timeout=wait_s)
+            except FutureTimeout:
+                future.cancel()  # still queued: never runs; running: its own HTTP timeout ends it
+                answer = VerifierAnswer(
+                    _policy_verdict(self.uncertain_policy),
+                    f"verification timed out (limit {self.timeout_s:.1f} s, request deadline {self.deadline_s:.1f} s)",
+                    base.verifier,
+                )
+                t_verify = time.perf_counter() - t_start
+            candidates[i] = replace(
+                base,
+                detection=replace(base.detection, verdict=answer.verdict, justification=answer.justification),
+                verifier=answer.verifier,
+                t_verify=t_verify,
+            )
+        return candidates
+
+    def detect(self, image: np.ndarray, superset: str, roi: Box | None = None, frame_id: int | None = None) -> list[Detection]:
+        """The best `max_candidates` detections of the superset, highest score first."""
+        found = sorted(self._detect(image, superset, roi, frame_id), key=lambda d: -d.score)
+        return found[: self.max_candidates]
+
     def run(
         self,
         image: np.ndarray,
@@ -111,55 +165,16 @@ class Pipeline:
     ) -> PipelineResult:
         """Detect, crop and verify; `started` (perf_counter) lets the deadline include queueing time."""
         t0 = started if started is not None else time.perf_counter()
-        detections = sorted(self._detect(image, superset, roi, frame_id), key=lambda d: -d.score)
-        detections = detections[: self.max_candidates]
+        detections = self.detect(image, superset, roi, frame_id)
         t_detected = time.perf_counter()
-        candidates: list[VerifiedCandidate | None] = [None] * len(detections)
-        pending: list[tuple[int, Future[tuple[VerifierAnswer, float]]]] = []
-        for i, det in enumerate(detections):
-            det = replace(det, candidate_id=uuid.uuid4().hex[:12])
-            appearance = descriptor(image, det.box)
-            reason = rejected(appearance) if rejected is not None else None
-            if reason is not None:
-                candidates[i] = VerifiedCandidate(
-                    replace(det, verdict=Verdict.NO, justification=reason), "rejection-memory", 0.0, appearance, True
-                )
-            elif self.verifier is None:
-                candidates[i] = VerifiedCandidate(det, "none", 0.0, appearance)
-            else:
-                crop, inner = margin_crop(image, det.box, self.margin_px)
-                candidates[i] = VerifiedCandidate(det, self.verifier.name, 0.0, appearance)
-                future = self.verify_pool.submit(self._verify_one, crop, inner, prompt, superset, self.timeout_s)
-                pending.append((i, future))
-        deadline = t0 + self.deadline_s
-        for i, future in pending:
-            base = candidates[i]
-            assert base is not None
-            wait_s = max(0.0, min(self.timeout_s, deadline - time.perf_counter()))
-            try:
-                answer, t_verify = future.result(timeout=wait_s)
-            except FutureTimeout:
-                future.cancel()  # still queued: never runs; running: its own HTTP timeout ends it
-                answer = VerifierAnswer(
-                    _policy_verdict(self.uncertain_policy),
-                    f"verification timed out (limit {self.timeout_s:.1f} s, request deadline {self.deadline_s:.1f} s)",
-                    base.verifier,
-                )
-                t_verify = time.perf_counter() - t_detected
-            candidates[i] = replace(
-                base,
-                detection=replace(base.detection, verdict=answer.verdict, justification=answer.justification),
-                verifier=answer.verifier,
-                t_verify=t_verify,
-            )
+        candidates = self.verify(image, detections, prompt, superset, rejected, deadline=t0 + self.deadline_s)
         t_end = time.perf_counter()
         return PipelineResult(
             superset=superset,
-            candidates=[c for c in candidates if c is not None],
+            candidates=candidates,
             t_detect=t_detected - t0,
             t_verify=t_end - t_detected,
             t_total=t_end - t0,
             detector=self.detector.name,
             verifier=self.verifier_name,
         )
-
