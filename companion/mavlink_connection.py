@@ -12,7 +12,9 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import select
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -27,6 +29,7 @@ MAVLinkMessage = Any  # pymavlink's generated message classes have no usable sta
 log = logging.getLogger(__name__)
 
 _KINDS = ("serial", "udpin", "udpout", "tcp", "tcpin")
+_EMPTY_PARSER_EXPECTS = 8  # pymavlink's MAVLink.expected_length for an empty buffer (v1 header + CRC)
 
 
 @dataclass(frozen=True)
@@ -68,6 +71,35 @@ def open_connection(url: str, source_system: int, source_component: int) -> Any:
     )
 
 
+def receive_message(conn: Any, timeout: float) -> MAVLinkMessage | None:
+    """The next message (possibly BAD_DATA) from a pymavlink connection, or None after `timeout`.
+
+    On UDP every datagram carries whole messages, so an incomplete frame left at the end of one datagram
+    (garbage that looked like a header) is discarded instead of swallowing the next datagram's real
+    messages, which pymavlink's byte-stream parser would do. Other links use pymavlink's own loop.
+    """
+    if not isinstance(conn, mavutil.mavudp):
+        return conn.recv_match(blocking=True, timeout=timeout)
+    mav = conn.mav
+    deadline = time.monotonic() + timeout
+    while True:
+        msg = mav.parse_char(b"")  # further complete messages from the last datagram
+        if msg is None and mav.buf_len() > 0:
+            mav.buf, mav.buf_index, mav.expected_length = bytearray(), 0, _EMPTY_PARSER_EXPECTS
+        if msg is None:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or not select.select([conn.port], [], [], remaining)[0]:
+                return None
+            data = conn.recv()
+            if not data:
+                continue
+            msg = mav.parse_char(data)
+            if msg is None:
+                continue
+        conn.post_message(msg)
+        return msg
+
+
 class MavlinkEndpoint:
     """One pymavlink connection shared by several threads: sends are serialised (sequence numbers and
     signing timestamps live in the encoder), receiving belongs to one reader thread."""
@@ -98,7 +130,7 @@ class MavlinkEndpoint:
     def receive(self, timeout: float) -> MAVLinkMessage | None:
         """The next valid message, or None after `timeout`. Garbage becomes BAD_DATA, counted and dropped."""
         try:
-            msg = self.conn.recv_match(blocking=True, timeout=timeout)
+            msg = receive_message(self.conn, timeout)
         except Exception as exc:  # a broken peer or a serial unplug must not end the reader thread
             log.warning("MAVLink receive error: %s", exc)
             return None

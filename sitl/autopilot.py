@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
 
+from companion.mavlink_connection import receive_message  # noqa: E402
 from sitl.vehicle_dynamics import (  # noqa: E402
     VehicleLimits,
     VehicleState,
@@ -244,7 +245,7 @@ class SimulatedAutopilot:
     def _receive_loop(self, link: _Link) -> None:
         while not self._stop.is_set():
             try:
-                msg = link.conn.recv_match(blocking=True, timeout=0.05)
+                msg = receive_message(link.conn, 0.05)
             except Exception as exc:  # a hostile peer must never stop the autopilot
                 log.warning("link %s: receive error %s", link.name, exc)
                 time.sleep(0.01)
