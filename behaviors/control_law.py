@@ -43,6 +43,7 @@ class ControlGains:
     max_yaw_accel: float = math.radians(90.0)  # rad/s^2
     altitude_kp: float = 0.5  # m/s per m below the altitude floor
     target_height_m: float = 1.7  # a standing person, for the box-height fallback
+    integral_leak_s: float = 1.0  # time constant of the integrals' decay inside the dead bands
     nominal_dt_s: float = 1.0 / 15.0  # first step, before two times are known
     max_dt_s: float = 0.5  # longer gaps count as this, so one late frame cannot kick the integrators
 
@@ -111,6 +112,24 @@ def _slew(target: float, previous: float, max_step: float) -> float:
     return previous + _clamp(target - previous, max_step)
 
 
+def _integrate(
+    integral: float, error: float, dt: float, proportional: float, ki: float, limit: float, leak_s: float
+) -> float:
+    """PI integral with anti-windup: it does not grow while the output is already saturated in the
+    error's direction (conditional integration), and on its own it never asks for more than the limit."""
+    if ki <= 0:
+        return 0.0
+    if error == 0.0:
+        # Inside the dead band: let the integral leak away, so a target at rest ends in a zero output
+        # instead of a creep driven by what was integrated on the way in.
+        return integral * math.exp(-dt / leak_s)
+    candidate = integral + error * dt
+    output = proportional + ki * candidate
+    if abs(output) > limit and error * output > 0:
+        candidate = integral
+    return _clamp(candidate, limit / ki)
+
+
 def _inputs_valid(camera: CameraModel, telemetry: Telemetry, box: Box, time_s: float) -> bool:
     numbers = (
         time_s, telemetry.height_agl, telemetry.roll, telemetry.pitch, telemetry.yaw,
@@ -142,9 +161,10 @@ def follow_step(
     angle = horizontal_angle(camera, box)
     yaw_error = _dead_band(angle, gains.yaw_dead_band)
     yaw_filtered = state.yaw_error + alpha * (yaw_error - state.yaw_error)
-    yaw_integral = state.yaw_integral + yaw_error * dt
-    if gains.yaw_ki > 0:  # anti-windup: the integral alone never asks for more than the limit
-        yaw_integral = _clamp(yaw_integral, limits.max_yaw_rate / gains.yaw_ki)
+    yaw_integral = _integrate(
+        state.yaw_integral, yaw_error, dt, gains.yaw_kp * yaw_filtered, gains.yaw_ki, limits.max_yaw_rate,
+        gains.integral_leak_s,
+    )
     yaw_rate = gains.yaw_kp * yaw_filtered + gains.yaw_ki * yaw_integral
 
     distance = estimate_distance(camera, telemetry, box, gains.target_height_m)
@@ -153,9 +173,10 @@ def follow_step(
     if distance is not None and math.isfinite(distance.ground_m):
         dist_error = _dead_band(distance.ground_m - goal.standoff_m, gains.distance_dead_band_m)
         dist_filtered = state.distance_error + alpha * (dist_error - state.distance_error)
-        forward_integral = state.forward_integral + dist_error * dt
-        if gains.forward_ki > 0:
-            forward_integral = _clamp(forward_integral, limits.max_speed / gains.forward_ki)
+        forward_integral = _integrate(
+            state.forward_integral, dist_error, dt, gains.forward_kp * dist_filtered, gains.forward_ki, limits.max_speed,
+            gains.integral_leak_s,
+        )
         # Approach along the view direction only while the target is roughly ahead; turn first.
         forward = (gains.forward_kp * dist_filtered + gains.forward_ki * forward_integral) * max(
             math.cos(angle), 0.0

@@ -228,3 +228,62 @@ def test_orbit_adds_sideways_speed_and_lateral_term_moves_towards_the_target() -
 def test_horizontal_angle_uses_the_intrinsics() -> None:
     box = Box.from_center(CAM.cx + CAM.fx, 200, 10, 10)
     assert math.isclose(horizontal_angle(CAM, box), math.pi / 4)
+
+
+def _image_box(cam: CameraModel, x: float, y: float, yaw: float, height: float, person: tuple[float, float]) -> Box | None:
+    """Pinhole image of a 1.7 m, 0.5 m wide person standing at `person` (north, east), stabilised camera."""
+    pts = []
+    for up, side in ((0.0, -0.25), (0.0, 0.25), (1.7, -0.25), (1.7, 0.25)):
+        dn, de = person[0] - x, person[1] - y
+        fwd = dn * math.cos(yaw) + de * math.sin(yaw)
+        right = -dn * math.sin(yaw) + de * math.cos(yaw) + side
+        down = height - up
+        c, s = math.cos(cam.mount_pitch), math.sin(cam.mount_pitch)
+        z = c * fwd - s * down  # camera axis: body forward pitched by the mount
+        yc = s * fwd + c * down
+        if z <= 0.1:
+            return None
+        pts.append((cam.cx + cam.fx * right / z, cam.cy + cam.fy * yc / z))
+    us, vs = [p[0] for p in pts], [p[1] for p in pts]
+    return Box.from_xyxy(min(us), min(vs), max(us), max(vs))
+
+
+def test_closed_loop_settles_centred_at_the_standoff() -> None:
+    """Kinematic vehicle obeying the setpoints exactly: it turns to the person and stops at the standoff."""
+    person = (30.0, 12.0)
+    x = y = yaw = 0.0
+    height, dt, standoff = 20.0, 1.0 / 15.0, 12.0
+    state = ControlState()
+    for i in range(int(40 / dt)):
+        t = i * dt
+        box = _image_box(CAM, x, y, yaw, height, person)
+        assert box is not None and 0 <= box.cx < CAM.width, f"target left the image at t={t:.1f}"
+        sp, state = follow_step(box, CAM, Telemetry(t, height_agl=height, yaw=yaw), FollowGoal(standoff), GAINS, LIMITS, state, t)
+        x += (sp.forward * math.cos(yaw) - sp.right * math.sin(yaw)) * dt
+        y += (sp.forward * math.sin(yaw) + sp.right * math.cos(yaw)) * dt
+        yaw += sp.yaw_rate * dt
+    ground = math.hypot(person[0] - x, person[1] - y)
+    assert abs(ground - standoff) < GAINS.distance_dead_band_m + 0.3
+    final = _image_box(CAM, x, y, yaw, height, person)
+    assert final is not None and abs(horizontal_angle(CAM, final)) < GAINS.yaw_dead_band + math.radians(0.2)
+    # At rest inside both dead bands the integrals have leaked away: the vehicle stops.
+    assert sp.horizontal_speed < 0.01 and abs(sp.yaw_rate) < 0.005
+
+
+def test_closed_loop_keeps_a_walking_person_in_view_near_the_standoff() -> None:
+    x = y = yaw = 0.0
+    height, dt, standoff = 20.0, 1.0 / 15.0, 12.0
+    state, late = ControlState(), []
+    for i in range(int(60 / dt)):
+        t = i * dt
+        person = (25.0 + 0.8 * t, 5.0 + 1.0 * t)  # 1.3 m/s, across the initial view
+        box = _image_box(CAM, x, y, yaw, height, person)
+        assert box is not None and 0 <= box.cx < CAM.width, f"target left the image at t={t:.1f}"
+        sp, state = follow_step(box, CAM, Telemetry(t, height_agl=height, yaw=yaw), FollowGoal(standoff), GAINS, LIMITS, state, t)
+        x += (sp.forward * math.cos(yaw) - sp.right * math.sin(yaw)) * dt
+        y += (sp.forward * math.sin(yaw) + sp.right * math.cos(yaw)) * dt
+        yaw += sp.yaw_rate * dt
+        if t > 40:
+            late.append(math.hypot(person[0] - x, person[1] - y))
+    # The integral term removes most of the lag a P-only law would keep (1.3 m/s / 0.4 = 3.2 m).
+    assert max(abs(d - standoff) for d in late) < 1.5
