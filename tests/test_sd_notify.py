@@ -1,19 +1,37 @@
-"""sd_notify over a real unix datagram socket bound by the test, standing in for systemd's."""
+"""sd_notify over a real unix datagram socket bound by the test, standing in for systemd's.
+
+The last test runs the whole companion (`cloudtrack-companion run`) that way, with the SITL autopilot as
+MAVLink peer, a live camera stream of real frames, and a GCS on the autopilot's other link.
+
+It must send READY once the autopilot and the camera are up, WATCHDOG pings only while the main loop is
+healthy (none while the process is frozen, none while the camera is silent), and on SIGTERM: STOPPING,
+an explicit zero-velocity setpoint the autopilot receives, a status line the GCS receives, no further
+setpoints, and exit within the unit's stop budget.
+"""
 
 from __future__ import annotations
 
 import asyncio
 import os
+import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
+from functools import partial
 from pathlib import Path
 
+import cv2
 import pytest
 
+from companion.gcs_cli import _tunnel
+from companion.gcs_link import CMD_START, encode_prompt
 from companion.service_notify import ServiceNotifier, ping_while_healthy, watchdog_interval_s
+from sitl.frame_transport import encode_frame
+from tests.live_backend import free_port
+from tests.mavlink_harness import autopilot, gcs, receive_until, wait_for
 
 
 @pytest.fixture
@@ -126,3 +144,186 @@ def test_a_child_process_inherits_the_socket_from_the_environment(notify_socket:
     subprocess.run([sys.executable, "-c", code], env=env, check=True, timeout=60)
     assert receive(sock) == ["READY=1"]
     assert receive(sock) == ["WATCHDOG=1"]
+
+
+# --- the whole companion under the stand-in for systemd ------------------------------------------------
+
+WATCHDOG_USEC = 2_000_000  # pings every 0.5 s (a quarter period)
+CAMERA_FPS = 15.0
+
+
+class NotifyListener:
+    """systemd's side of NOTIFY_SOCKET: every datagram with the time it arrived."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.sock.bind(str(path))
+        self.sock.settimeout(0.2)
+        self.messages: list[tuple[float, str]] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                data = self.sock.recv(4096)
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            self.messages.extend((time.monotonic(), line) for line in data.decode().split("\n"))
+
+    def times(self, line: str, since: float = 0.0) -> list[float]:
+        return [t for t, text in list(self.messages) if text == line and t >= since]
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2)
+        self.sock.close()
+
+
+class CameraStream:
+    """The `sim+tcp://` camera: real frames of a shared sequence at a steady rate; `paused` silences it."""
+
+    def __init__(self, frames_dir: Path) -> None:
+        paths = sorted(frames_dir.glob("*.jpg"))[:60]
+        images = [cv2.imread(str(p)) for p in paths]
+        self.frames = [cv2.resize(image, (640, 480)) for image in images if image is not None]
+        assert self.frames, f"no frames in {frames_dir}"
+        self.server = socket.create_server(("127.0.0.1", 0))
+        self.server.settimeout(0.2)
+        self.port = self.server.getsockname()[1]
+        self.paused = threading.Event()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                conn, _ = self.server.accept()
+            except TimeoutError:
+                continue
+            with conn:
+                self._serve(conn)
+
+    def _serve(self, conn: socket.socket) -> None:
+        frame_id = 0
+        while not self._stop.is_set():
+            time.sleep(1.0 / CAMERA_FPS)
+            if self.paused.is_set():
+                continue
+            image = self.frames[frame_id % len(self.frames)]
+            frame_id += 1
+            try:
+                conn.sendall(encode_frame(frame_id, frame_id / CAMERA_FPS, time.time(), image))
+            except OSError:
+                return
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2)
+        self.server.close()
+
+
+@pytest.fixture
+def camera(sequences_dir: Path) -> Iterator[CameraStream]:
+    stream = CameraStream(sequences_dir / "uav123_person12_1" / "frames")
+    yield stream
+    stream.close()
+
+
+def longest_gap(times: list[float], start: float, end: float) -> float:
+    points = [start, *[t for t in times if start <= t <= end], end]
+    return max(b - a for a, b in zip(points, points[1:], strict=False))
+
+
+def test_companion_speaks_sd_notify_and_stops_setpoints_on_sigterm(
+    tmp_path: Path, models_dir: Path, camera: CameraStream
+) -> None:
+    listener = NotifyListener(tmp_path / "notify")
+    with autopilot("ardupilot") as sim, gcs(sim) as ground:
+        env = {
+            **os.environ,
+            "NOTIFY_SOCKET": str(listener.path),
+            "WATCHDOG_USEC": str(WATCHDOG_USEC),
+            "PYTHONUNBUFFERED": "1",
+        }
+        env.pop("WATCHDOG_PID", None)
+        settings = {
+            "mavlink.connection": f"udpout:127.0.0.1:{sim.link_port('companion')}",
+            "camera.source": f"sim+tcp://127.0.0.1:{camera.port}",
+            "camera.fps": CAMERA_FPS,
+            "backend.url": f"http://127.0.0.1:{free_port()}",  # nothing listens: the loop must not care
+            "recording.dir": str(tmp_path / "records"),
+            "tracker.name": "nano",
+            "behavior.search_yaw_rate_deg_s": 10.0,  # searching turns the vehicle: non-zero setpoints
+        }
+        command = [sys.executable, "-m", "companion.cli", "run", "--model-dir", str(models_dir)]
+        for key, value in settings.items():
+            command += ["--set", f"{key}={value}"]
+        log_path = tmp_path / "companion.log"
+        with open(log_path, "w") as log:
+            proc = subprocess.Popen(command, env=env, stdout=log, stderr=subprocess.STDOUT)
+        try:
+            # READY once the autopilot's heartbeat and the first camera frame are in.
+            assert wait_for(lambda: listener.times("READY=1"), 60.0), log_path.read_text()[-3000:]
+            ready = listener.times("READY=1")[0]
+            assert wait_for(lambda: len(listener.times("WATCHDOG=1", ready)) >= 3, 15.0), "no watchdog pings"
+
+            # A frozen process (a hung driver, a stuck GIL) pings nothing; it pings again once it runs.
+            os.kill(proc.pid, signal.SIGSTOP)
+            frozen = time.monotonic()
+            time.sleep(2.0)
+            os.kill(proc.pid, signal.SIGCONT)
+            thawed = time.monotonic()
+            assert not [t for t in listener.times("WATCHDOG=1", frozen + 0.2) if t < thawed]
+            assert wait_for(lambda: listener.times("WATCHDOG=1", thawed), 10.0), "no pings after SIGCONT"
+
+            # The loop keeps turning but is unhealthy without frames: the pings stop until frames return.
+            camera.paused.set()
+            silent = time.monotonic()
+            time.sleep(4.5)
+            camera.paused.clear()
+            resumed = time.monotonic()
+            gap = longest_gap(listener.times("WATCHDOG=1"), silent, resumed)
+            assert gap >= 2.0, f"watchdog kept pinging without frames (longest gap {gap:.2f} s)"
+            assert wait_for(lambda: listener.times("WATCHDOG=1", resumed), 15.0), "no pings after frames returned"
+            assert proc.poll() is None, "the companion must survive a camera outage"
+
+            # The GCS starts a mission; searching, the companion turns the vehicle with yaw-rate setpoints.
+            prompt = encode_prompt(7, "person", "a person in a red shirt")
+            for payload in prompt:
+                ground.send(partial(_tunnel, target=(1, 191), payload=payload))
+            length = sum(len(p) - 4 for p in prompt)
+            ground.send(lambda m: m.command_long_send(1, 191, CMD_START, 0, 7, len(prompt), 0, length, 0, 0, 0))
+            ack = receive_until(ground, lambda m: m.get_type() == "COMMAND_ACK" and m.command == CMD_START, 10.0)
+            assert ack is not None and ack.result == 0, ack
+            turning = wait_for(lambda: [s for s in sim.setpoints if s.src_component == 191 and s.yaw_rate > 0.1], 15.0)
+            assert turning, "no yaw-rate setpoints while searching"
+            proc.send_signal(signal.SIGTERM)
+            sent = time.monotonic()
+            returncode = proc.wait(timeout=15)
+            took = time.monotonic() - sent
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+            listener.close()
+        print(f"companion exited {took:.2f} s after SIGTERM")
+        assert returncode == 0, log_path.read_text()[-3000:]
+        assert took < 5.0, f"took {took:.2f} s to stop (the unit allows TimeoutStopSec=5)"
+        assert listener.times("STOPPING=1", sent), "no STOPPING=1"
+
+        ours = [s for s in sim.setpoints if s.src_component == 191]
+        last = ours[-1]
+        assert (last.vx, last.vy, last.vz, last.yaw_rate) == (0.0, 0.0, 0.0, 0.0), last
+        count = len(ours)
+        time.sleep(0.5)
+        assert len([s for s in sim.setpoints if s.src_component == 191]) == count, "setpoints after exit"
+        stopping = receive_until(
+            ground, lambda m: m.get_type() == "STATUSTEXT" and "stopping" in str(m.text), 3.0
+        )
+        assert stopping is not None, "the GCS was not told"
