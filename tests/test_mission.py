@@ -532,3 +532,31 @@ def test_config_from_the_companion_sections() -> None:
         MissionConfig.from_sections(**{**sections, "behavior": {"standoff_m": "far"}})
     with pytest.raises(ValueError, match="'sideways' is not a valid ConfirmAction"):
         MissionConfig.from_sections(**{**sections, "behavior": {"on_confirm": "sideways"}})
+
+
+def test_rejection_memory_matching_rules() -> None:
+    from behaviors.geolocation import GeoEstimate, offset_to_latlon
+    from behaviors.rejection_memory import RejectedTarget, RejectionMemory, cosine_similarity
+
+    def at(north: float, east: float, sigma: float = 0.0) -> GeoEstimate:
+        lat, lon = offset_to_latlon(47.0, 8.0, north, east)
+        return GeoEstimate(lat, lon, north, east, math.hypot(north, east), 0.0, sigma)
+
+    memory = RejectionMemory(radius_m=5.0).remember(RejectedTarget("c1", at(0, 0, 1.0), (1.0, 0.0)))
+    assert memory.matches("c1") is not None
+    assert memory.matches("c2") is None
+    assert memory.matches(position=at(3.0, 3.0)) is not None  # 4.2 m
+    assert memory.matches(position=at(6.0, 0.0)) is not None  # within radius + 2 sigma (5 + 2)
+    assert memory.matches(position=at(8.0, 0.0)) is None
+    # A wildly uncertain estimate widens the match only up to three radii.
+    assert memory.matches(position=at(14.0, 0.0, 1000.0)) is not None
+    assert memory.matches(position=at(16.0, 0.0, 1000.0)) is None
+    assert memory.matches(signature=(0.99, 0.05)) is not None
+    assert memory.matches(signature=(0.5, 0.5)) is None
+    assert memory.matches(signature=(1.0, 0.0, 0.0)) is None  # different length: not comparable
+    assert cosine_similarity((0.0, 0.0), (1.0, 0.0)) == 0.0 and cosine_similarity((), ()) == 0.0
+    assert cosine_similarity((math.nan, 1.0), (1.0, 1.0)) == 0.0
+    full = RejectionMemory(capacity=3)
+    for i in range(5):
+        full = full.remember(RejectedTarget(f"c{i}"))
+    assert [e.candidate_id for e in full.entries] == ["c2", "c3", "c4"]
