@@ -384,9 +384,10 @@ def _answer(state: State, answer: BackendAnswer, config: MissionConfig) -> Resul
         status = "reverified" if state.mode is MissionState.AWAITING_SUPERVISOR else "confirmed"
         return replace(state, target=target, last_report_s=state.now_s), (_report(target, status),)
     if purpose is QueryPurpose.REDETECT and state.mode is MissionState.LOST and not _given_up(state, config):
+        # The operator's own target was never checked against the prompt: any verdict may re-find it.
         usable = [
             d for d in answer.candidates
-            if d.verdict is not Verdict.NO and not _rejected(state, d, config)
+            if (target.operator_selected or d.verdict is not Verdict.NO) and not _rejected(state, d, config)
         ]
         best = select_by_c_box(target.box, usable)
         gate = config.reinit_gate * (config.camera.width + config.camera.height)

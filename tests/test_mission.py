@@ -560,3 +560,18 @@ def test_rejection_memory_matching_rules() -> None:
     for i in range(5):
         full = full.remember(RejectedTarget(f"c{i}"))
     assert [e.candidate_id for e in full.entries] == ["c2", "c3", "c4"]
+
+
+def test_operator_target_is_re_found_whatever_the_verdict() -> None:
+    state = reach(S.SEARCHING)
+    state, _ = step(state, cmd(1.0, TrackRectangle(FAR)), CFG)
+    assert state.mode is S.CONFIRMED and state.mission is not None  # inside a running mission: prompt kept
+    state, actions = run(state, [tracked(1.1, FAR), tracked(1.2, None, ok=False)])
+    query = last_query(actions)
+    no_match = candidate(FAR, "n", Verdict.NO)
+    _, actions = step(state, BackendAnswer(1.5, query.query_id, 50, (no_match,)), CFG)
+    assert actions == (TrackerInit(FAR, 50, "operator", reinit=True),)
+    # A prompt-verified target is not re-found from a "no".
+    lost = reach(S.LOST)
+    _, actions = step(lost, BackendAnswer(1.5, lost.queries[-1][0], 50, (candidate(FAR, "n", Verdict.NO),)), CFG)
+    assert actions == ()
