@@ -37,7 +37,6 @@ from behaviors.events import (
     Event,
     GcsCommand,
     PilotTakeover,
-    TimerTick,
 )
 from behaviors.geolocation import GeoEstimate, locate_box
 from behaviors.geometry import Box, iou
@@ -158,7 +157,7 @@ def step(state: State, event: Event, config: MissionConfig) -> Result:
         return _answer(state, event, config)
     if isinstance(event, BackendUnreachable):
         return _backend_down(state, event)
-    return _tick(state, event, config)
+    return _tick(state, config)  # TimerTick, the last kind of event
 
 
 # --- transitions -------------------------------------------------------------------------------------
@@ -356,7 +355,6 @@ def _answer(state: State, answer: BackendAnswer, config: MissionConfig) -> Resul
     state = replace(
         state, queries=tuple(q for q in state.queries if q[0] != answer.query_id), backend_down=False
     )
-    actions: list[Action] = []
     if purpose is None:
         return state, ()
     if purpose is QueryPurpose.SEARCH and state.mode is MissionState.SEARCHING:
@@ -370,8 +368,7 @@ def _answer(state: State, answer: BackendAnswer, config: MissionConfig) -> Resul
         )
         new, msg = _enter(replace(state, target=picked, control=ControlState()), MissionState.ACQUIRING, f"candidate {det.candidate_id}")
         # Stop any search scan while the tracker locks on; the link repeats the last setpoint.
-        stop = (SendSetpoint(Setpoint.zero()),) if not state.backend_down else ()
-        return new, (*stop, TrackerInit(det.box, answer.keyframe_id, det.candidate_id), *msg)
+        return new, (SendSetpoint(Setpoint.zero()), TrackerInit(det.box, answer.keyframe_id, det.candidate_id), *msg)
     target = state.target
     if target is None:
         return state, ()
@@ -394,8 +391,7 @@ def _answer(state: State, answer: BackendAnswer, config: MissionConfig) -> Resul
         if best is None or c_box(target.box, best.box) > gate:
             return state, ()
         target = replace(target, box=best.box, keyframe_id=answer.keyframe_id)
-        actions.append(TrackerInit(best.box, answer.keyframe_id, target.candidate_id, reinit=True))
-        return replace(state, target=target), tuple(actions)
+        return replace(state, target=target), (TrackerInit(best.box, answer.keyframe_id, target.candidate_id, reinit=True),)
     return state, ()
 
 
@@ -410,7 +406,7 @@ def _backend_down(state: State, event: BackendUnreachable) -> Result:
     return new, (msg,)
 
 
-def _tick(state: State, tick: TimerTick, config: MissionConfig) -> Result:
+def _tick(state: State, config: MissionConfig) -> Result:
     now = state.now_s
     mode = state.mode
     if mode is MissionState.REJECTED:
