@@ -66,12 +66,10 @@ class SupervisorView:
                 waiting.add(key)
                 first = self._first_seen.setdefault(key, min(now, status_.updated_at))
                 decided = [d for d in self.store.decisions(status_.vehicle_id) if d.candidate_id == awaiting.candidate_id]
-                # The companion's report carries the verifier's verdict when its schema has the field.
-                verdict = awaiting.model_dump().get("verdict") or "yes"
                 candidates.append(
                     {
                         "id": awaiting.candidate_id,
-                        "verdict": str(verdict),
+                        "verdict": awaiting.verdict,
                         "justification": awaiting.justification,
                         "position": (
                             {"lat": awaiting.position[0], "lon": awaiting.position[1]} if awaiting.position else None

@@ -13,7 +13,7 @@ from pathlib import Path
 import uvicorn
 
 from backend.app import create_app
-from backend.config import AuthConfig, BackendConfig, DetectorConfig
+from backend.config import AuthConfig, BackendConfig, DetectorConfig, VerifierConfig
 
 SUPERVISOR_TOKEN = "supervisor-test-token"
 VEHICLE_TOKENS = {"drone-1": "drone-1-test-token", "drone-2": "drone-2-test-token"}
@@ -32,13 +32,15 @@ def free_port() -> int:
 
 
 @contextmanager
-def live_backend(models_dir: Path) -> Iterator[LiveBackend]:
-    """The back-end with YOLOX-nano from the shared models, no verifier, and the test tokens."""
+def live_backend(models_dir: Path, verifier: str = "none") -> Iterator[LiveBackend]:
+    """The back-end with YOLOX-nano from the shared models, the test tokens and `verifier` ("local": the
+    colour verifier that runs here; "none": detector only)."""
     config = BackendConfig(
         auth=AuthConfig(tokens=VEHICLE_TOKENS, supervisor_token=SUPERVISOR_TOKEN),
         detector=DetectorConfig(kind="yolox", model_dir=str(models_dir)),
+        verifier=VerifierConfig(kind=verifier),
     )
-    app = create_app(config, verifier=None)
+    app = create_app(config)
     port = free_port()
     # A short graceful-shutdown timeout: open Server-Sent Event streams must not hold the test up.
     server = uvicorn.Server(

@@ -23,13 +23,12 @@ from collections.abc import Iterator
 from functools import partial
 from pathlib import Path
 
-import cv2
 import pytest
 
 from companion.gcs_cli import _tunnel
 from companion.gcs_link import CMD_START, encode_prompt
 from companion.service_notify import ServiceNotifier, ping_while_healthy, watchdog_interval_s
-from sitl.frame_transport import encode_frame
+from tests.camera_stream import CAMERA_FPS, CameraStream
 from tests.live_backend import free_port
 from tests.mavlink_harness import autopilot, gcs, receive_until, wait_for
 
@@ -149,7 +148,6 @@ def test_a_child_process_inherits_the_socket_from_the_environment(notify_socket:
 # --- the whole companion under the stand-in for systemd ------------------------------------------------
 
 WATCHDOG_USEC = 2_000_000  # pings every 0.5 s (a quarter period)
-CAMERA_FPS = 15.0
 
 
 class NotifyListener:
@@ -182,50 +180,6 @@ class NotifyListener:
         self._stop.set()
         self._thread.join(timeout=2)
         self.sock.close()
-
-
-class CameraStream:
-    """The `sim+tcp://` camera: real frames of a shared sequence at a steady rate; `paused` silences it."""
-
-    def __init__(self, frames_dir: Path) -> None:
-        paths = sorted(frames_dir.glob("*.jpg"))[:60]
-        images = [cv2.imread(str(p)) for p in paths]
-        self.frames = [cv2.resize(image, (640, 480)) for image in images if image is not None]
-        assert self.frames, f"no frames in {frames_dir}"
-        self.server = socket.create_server(("127.0.0.1", 0))
-        self.server.settimeout(0.2)
-        self.port = self.server.getsockname()[1]
-        self.paused = threading.Event()
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            try:
-                conn, _ = self.server.accept()
-            except TimeoutError:
-                continue
-            with conn:
-                self._serve(conn)
-
-    def _serve(self, conn: socket.socket) -> None:
-        frame_id = 0
-        while not self._stop.is_set():
-            time.sleep(1.0 / CAMERA_FPS)
-            if self.paused.is_set():
-                continue
-            image = self.frames[frame_id % len(self.frames)]
-            frame_id += 1
-            try:
-                conn.sendall(encode_frame(frame_id, frame_id / CAMERA_FPS, time.time(), image))
-            except OSError:
-                return
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=2)
-        self.server.close()
 
 
 @pytest.fixture

@@ -161,7 +161,9 @@ function renderCandidates(card, vehicle) {
     const open = candidate.status === "awaiting";
     for (const button of item.querySelectorAll(".decide button")) button.disabled = !open || item.dataset.sent === "1";
     if (!open) $(".decision", item).textContent = candidate.status;
-    if (candidate.crop_url) loadCrop($(".crop", item), candidate.crop_url);
+    const crop = $(".crop", item);
+    if (candidate.crop_url) loadCrop(crop, candidate.crop_url);
+    else crop.alt = "no crop sent by the vehicle";
   }
   for (const item of box.querySelectorAll("article.candidate")) {
     if (!seen.has(item.dataset.candidate)) item.remove();
