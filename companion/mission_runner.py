@@ -133,7 +133,8 @@ class LoopObserver(Protocol):
 
     def on_health(self, time_s: float, healthy: bool, reasons: tuple[str, ...]) -> None: ...
 
-    def on_safety(self, event: SafetyEvent) -> None: ...
+
+# An observer may also define `on_safety(event: SafetyEvent)` to see the link's watchdog and mode events.
 
 
 @dataclass(frozen=True)
@@ -361,7 +362,9 @@ class MissionRunner:
         out: list[Event] = []
         for ev in self.vehicle.safety_events():
             for obs in self.observers:
-                obs.on_safety(ev)
+                on_safety = getattr(obs, "on_safety", None)
+                if on_safety is not None:
+                    on_safety(ev)
             if ev.reason == HEARTBEAT_LOST and ev.action == "stop":
                 out.append(AutopilotLinkLost(ev.time_s))
             elif ev.reason == BACKEND_UNREACHABLE and ev.action == "stop":

@@ -111,13 +111,23 @@ def run(args: argparse.Namespace) -> int:
             events_file = open(args.events_out, "a", buffering=1, encoding="utf-8")  # noqa: SIM115 - closed below
         observers.append(EventLogObserver(events_file.write))
 
+    mission = mission_config(config)
+    rec = config.recording
+    if rec.enabled:
+        from companion.flight_record import FlightRecordObserver, open_record
+
+        record_dir = str(Path(rec.dir).expanduser())
+        observers.append(FlightRecordObserver(
+            mission, lambda mission_id: open_record(True, record_dir, rec.max_bytes, rec.video, config.vehicle.id, mission_id)
+        ))
+
     link = VehicleLink(config.mavlink, config.safety, (cam.width, cam.height))
     client = BackendClient(config.backend.url, config.backend.token, config.backend.timeout_s,
                            config.backend.jpeg_quality, config.backend.max_keyframe_width, vehicle_id=config.vehicle.id)
     session = BackendSession(client)
     worker = BackendWorker(_QueryService(client))
     settings = LoopSettings(frame_stale_s=config.safety.frame_stale_s, loop_stall_s=config.safety.loop_stall_s)
-    runner = MissionRunner(mission_config(config), frames, frontend, link, worker, session, settings, observers,
+    runner = MissionRunner(mission, frames, frontend, link, worker, session, settings, observers,
                            ServiceNotifier.from_environment())
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: runner.request_stop())
@@ -136,5 +146,9 @@ def run(args: argparse.Namespace) -> int:
     finally:
         session.close()
         link.close()
+        for obs in observers:
+            close = getattr(obs, "close", None)
+            if close is not None:
+                close()
         if events_file is not None and events_file is not sys.stdout:
             events_file.close()

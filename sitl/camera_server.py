@@ -35,9 +35,10 @@ class PoseFollower:
     """The vehicle pose from the autopilot's telemetry, read on a background thread."""
 
     def __init__(self, url: str, rate_hz: float = 30.0, source_system: int = 254, source_component: int = 100,
-                 initial: VehiclePose | None = None) -> None:
+                 initial: VehiclePose | None = None, origin: tuple[float, float] = (0.0, 0.0)) -> None:
         self.url = url
         self.rate_hz = rate_hz
+        self.origin = origin  # where this vehicle's home (LOCAL_POSITION_NED origin) lies in the world
         self._pose = initial or VehiclePose(0.0, 0.0, -10.0)
         self._pose_time = 0.0
         self._lock = threading.Lock()
@@ -94,7 +95,7 @@ class PoseFollower:
                     self._pose = VehiclePose(p.north, p.east, p.down, msg.roll, msg.pitch, msg.yaw)
                     self._pose_time = time.monotonic()
                 elif kind == "LOCAL_POSITION_NED":
-                    self._pose = VehiclePose(msg.x, msg.y, msg.z, p.roll, p.pitch, p.yaw)
+                    self._pose = VehiclePose(msg.x + self.origin[0], msg.y + self.origin[1], msg.z, p.roll, p.pitch, p.yaw)
                     self._pose_time = time.monotonic()
 
     def stop(self) -> None:
@@ -119,13 +120,15 @@ class CameraServer:
         port: int = 0,
         clock: Callable[[], float] = time.monotonic,
         truth_frames: int = 900,
+        frame_id_base: int = 0,
     ) -> None:
         self.renderer = Renderer(world, camera)
         self.camera = camera
         self.pose_source = pose_source
         self.fps = fps
         self._clock = clock
-        self._t0 = clock()
+        self.epoch = clock()  # world time zero (people start walking); the scenario moves it to mission start
+        self.frame_id_base = frame_id_base  # several cameras in one world number their frames apart
         self._truth: OrderedDict[int, RenderedFrame] = OrderedDict()
         self._truth_frames = truth_frames
         self._latest: tuple[int, bytes] | None = None
@@ -147,7 +150,7 @@ class CameraServer:
         return f"sim+tcp://{self.address[0]}:{self.address[1]}"
 
     def world_time(self) -> float:
-        return self._clock() - self._t0
+        return self._clock() - self.epoch
 
     def add_hook(self, hook: FrameHook) -> None:
         """Called on the render thread with every frame (video writer, metrics); keep it quick."""
@@ -165,7 +168,7 @@ class CameraServer:
 
     def _render_loop(self) -> None:
         period = 1.0 / self.fps
-        frame_id = 0
+        frame_id = self.frame_id_base
         next_t = self._clock()
         while not self._stop.is_set():
             frame_id += 1

@@ -52,12 +52,17 @@ class TimedEvent:
 SAFETY_KINDS = ("hold", "stop", "watchdog", "mode_change", "link_lost", "backend_lost", "frame_stale", "abort")
 
 
-def following_intervals(states: Sequence[TimedEvent], end_t: float, following: str = "following") -> list[tuple[float, float]]:
-    """Intervals during which the companion's state was `following` (state events carry detail["state"])."""
+FOLLOW_STATES = frozenset({"following", "awaiting_supervisor", "confirmed"})
+
+
+def following_intervals(
+    states: Sequence[TimedEvent], end_t: float, following: frozenset[str] = FOLLOW_STATES
+) -> list[tuple[float, float]]:
+    """Intervals during which the companion followed a target (state events carry detail["state"])."""
     out: list[tuple[float, float]] = []
     start: float | None = None
     for ev in sorted(states, key=lambda e: e.t):
-        is_following = str(ev.detail.get("state", "")).lower() == following
+        is_following = str(ev.detail.get("state", "")).lower() in following
         if is_following and start is None:
             start = ev.t
         elif not is_following and start is not None:

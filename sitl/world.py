@@ -135,7 +135,9 @@ def ground_texture(seed: int, size_px: int) -> np.ndarray:
         base += weight * cv2.resize(small, (size_px, size_px), interpolation=cv2.INTER_CUBIC)
     fine = rng.random((size_px, size_px)).astype(np.float32)
     base = np.clip(0.75 * base + 0.25 * fine, 0, 1)
-    grass = np.array([50, 120, 85], np.float32)  # muted olive, kept away from the shirt greens
+    # Dry grass: saturation below what a colour check calls chromatic, so the ground never reads as a
+    # green (or any other) shirt and only clothing carries colour.
+    grass = np.array([98, 112, 118], np.float32)
     dirt = np.array([70, 105, 135], np.float32)
     dirt_mask = np.zeros((size_px, size_px), np.float32)
     for _ in range(40):
@@ -155,15 +157,19 @@ def ground_texture(seed: int, size_px: int) -> np.ndarray:
 def distractor_world(
     seed: int,
     target_shirt: str = "green",
-    distractor_shirts: tuple[str, ...] = ("red", "blue", "yellow"),
+    distractor_shirts: tuple[str, ...] = ("red", "blue", "purple"),
     target_speed: float = 1.5,
     target_start: tuple[float, float] = (20.0, 0.0),
     heading_deg: float = 0.0,
     walk_m: float = 60.0,
     occluder_at_m: float | None = None,
     vehicles: int = 2,
+    turn_at_m: float = 20.0,
+    turn_deg: float = 40.0,
 ) -> World:
-    """A target walking straight from `target_start` along `heading_deg`, distractors in other colours.
+    """A target walking from `target_start` along `heading_deg`, turning by `turn_deg` after `turn_at_m`.
+
+    Distractors wear other colours.
 
     Distractors stand, sit or lie 4-12 m beside the start, so they are in the first frames with the target.
     With `occluder_at_m` a roof 5 m long spans the target's path that far along it (hidden about 3 s).
@@ -173,8 +179,11 @@ def distractor_world(
     fwd = (math.cos(h), math.sin(h))
     side = (-math.sin(h), math.cos(h))
     n0, e0 = target_start
-    end = (n0 + walk_m * fwd[0], e0 + walk_m * fwd[1])
-    people = [Person("target", target_shirt, "black", "standing", ((n0, e0), end), target_speed)]
+    bend = (n0 + turn_at_m * fwd[0], e0 + turn_at_m * fwd[1])
+    h2 = h + math.radians(turn_deg)
+    rest = max(0.0, walk_m - turn_at_m)
+    end = (bend[0] + rest * math.cos(h2), bend[1] + rest * math.sin(h2))
+    people = [Person("target", target_shirt, "black", "standing", ((n0, e0), bend, end), target_speed)]
     poses: tuple[Pose, ...] = ("standing", "sitting", "lying")
     for i, shirt in enumerate(distractor_shirts):
         lateral = (1 if i % 2 == 0 else -1) * float(rng.uniform(4.0, 9.0))

@@ -165,7 +165,8 @@ def test_metrics_summary() -> None:
         TimedEvent(1.0, "candidate"),
         TimedEvent(2.0, "state", {"state": "following"}),
         TimedEvent(2.5, "confirmed"),
-        TimedEvent(6.0, "state", {"state": "holding"}),
+        TimedEvent(4.0, "state", {"state": "confirmed"}),
+        TimedEvent(6.0, "state", {"state": "lost"}),
         TimedEvent(6.0, "hold", {"reason": "test"}),
     ]
     frames = [

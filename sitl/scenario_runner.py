@@ -1,0 +1,592 @@
+"""Running one closed-loop scenario: every real part on one machine, scored from ground truth.
+
+Per vehicle: the mock autopilot (`sitl.autopilot`, armed and hovering), a camera that follows it over
+MAVLink and streams rendered frames on sim+tcp://, a fault proxy in front of the back-end, a scripted GCS
+on the autopilot's GCS link, and the REAL companion process (`python -m companion.cli run`). Shared: one
+world and the REAL back-end (FastAPI under uvicorn on loopback) with the simulated person detector and
+the configured verifier (local colour verifier by default) judging the rendered pixels.
+
+The companion writes its decisions as JSON lines (`--events-out`); the runner tails them for progress,
+the video overlay and the scripted supervisor, and scores the run with `sitl.metrics` and the scenario's
+checks. Times in the results are seconds since the mission started.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import secrets
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+from behaviors.camera_model import CameraModel
+from behaviors.geometry import Box, iou
+from sitl.camera_render import RenderedFrame, TruthBox, VehiclePose
+from sitl.camera_server import CameraServer, PoseFollower
+from sitl.fault_proxy import FaultProxy
+from sitl.metrics import (
+    FOLLOW_STATES,
+    FrameSample,
+    SetpointSample,
+    TimedEvent,
+    following_intervals,
+    summarise,
+)
+from sitl.scenarios import FOLLOW_GAINS, TAKEOVER_MODE, Scenario, ScriptedGcs, VehicleOutcome, assess
+from sitl.simulated_detector import SimulatedPersonDetector
+from sitl.video_overlay import OverlayState, VideoWriter, draw_overlay
+
+FRAME_ID_BITS = 20  # camera i numbers its frames from i << 20, so one detector serves every camera
+EARTH_RADIUS = 6_378_137.0
+ALTITUDE_M = 10.0
+MOUNT_PITCH_DEG = -40.0  # at 10 m up and 12 m standoff the target sits near the image centre
+STANDOFF_M = 12.0
+VEHICLE_ORIGINS = ((0.0, 0.0), (0.0, -8.0))  # where each vehicle's home lies in the world (north, east)
+
+Progress = Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    autopilot: str | None = None  # None: the scenario's own
+    seed: int = 1
+    json_out: Path | None = None
+    video_out: Path | None = None
+    plot_out: Path | None = None
+    tracker: str | None = None  # None: nano when its weights are installed, else csrt (no download)
+    model_dir: Path | None = None
+    work_dir: Path | None = None
+    verifier: str = "local"
+    startup_timeout_s: float = 90.0
+
+
+@dataclass(frozen=True)
+class _Seen:
+    """What one rendered frame showed, without its pixels (a run keeps thousands)."""
+
+    time_s: float
+    truth: tuple[TruthBox, ...]
+    pose: VehiclePose
+
+
+@dataclass
+class _Vehicle:
+    index: int
+    vehicle_id: str
+    autopilot: Any
+    follower: PoseFollower
+    camera: CameraServer
+    proxy: FaultProxy
+    gcs: ScriptedGcs
+    events_path: Path
+    log_path: Path
+    process: subprocess.Popen[bytes] | None = None
+    offset: int = 0
+    events: list[dict[str, Any]] = field(default_factory=list)
+    frames: list[_Seen] = field(default_factory=list)
+    state: str = ""
+    overlay: OverlayState = field(default_factory=OverlayState)
+    decided: set[str] = field(default_factory=set)
+    pending_decision: tuple[float, str, str] | None = None  # (due time, action, person id)
+    confirmations: list[tuple[float, str]] = field(default_factory=list)
+    rejections: list[tuple[float, str]] = field(default_factory=list)
+    proposals: list[tuple[float, str]] = field(default_factory=list)
+    ready: bool = False
+    start_sent: tuple[float, int] | None = None  # (when, mission id) of the last unacknowledged start
+
+
+def default_tracker(model_dir: Path) -> str:
+    """nano when its weights are installed and verified, else CSRT (needs no weights, no download)."""
+    from cloudtrack.model_store import ModelError, require
+
+    try:
+        require("nano", model_dir)
+        return "nano"
+    except ModelError:
+        return "csrt"
+
+
+def _home(origin: tuple[float, float], lat0: float = 47.397742, lon0: float = 8.545594) -> tuple[float, float]:
+    lat = lat0 + math.degrees(origin[0] / EARTH_RADIUS)
+    lon = lon0 + math.degrees(origin[1] / (EARTH_RADIUS * math.cos(math.radians(lat0))))
+    return lat, lon
+
+
+class ScenarioRun:
+    """Sets up, runs and tears down one scenario; `run()` returns the results dictionary."""
+
+    def __init__(self, scenario: Scenario, options: RunOptions, progress: Progress = print) -> None:
+        from cloudtrack.model_store import resolve_model_dir
+
+        self.scenario = scenario
+        self.options = options
+        self.progress = progress
+        self.personality = options.autopilot or scenario.autopilot
+        self.world = scenario.build_world(options.seed)
+        self.camera = CameraModel.from_hfov(640, 480, 70.0, MOUNT_PITCH_DEG, stabilised=True)
+        self.model_dir = resolve_model_dir(options.model_dir)
+        self.tracker = options.tracker or default_tracker(self.model_dir)
+        self.work = options.work_dir or Path(tempfile.mkdtemp(prefix=f"cloudtrack-sim-{scenario.name}-"))
+        self.work.mkdir(parents=True, exist_ok=True)
+        self.vehicles: list[_Vehicle] = []
+        self.epoch: float | None = None
+        self.fault_times: dict[str, float] = {}
+        self.faults_done: set[int] = set()
+        self.video: VideoWriter | None = None
+        self.tokens = {f"drone-{i + 1}": secrets.token_hex(16) for i in range(scenario.vehicles)}
+        self._backend: Any = None
+        self._t_mission: float | None = None
+
+    # ----------------------------------------------------------------------------------------- helpers
+    def now(self) -> float:
+        """Seconds since the mission started (negative before)."""
+        return time.monotonic() - (self.epoch if self.epoch is not None else time.monotonic())
+
+    def say(self, text: str) -> None:
+        self.progress(f"[{self.now():6.1f}s] {text}")
+
+    def _truth_lookup(self, frame_id: int) -> tuple[TruthBox, ...] | None:
+        index = frame_id >> FRAME_ID_BITS
+        if 0 <= index < len(self.vehicles):
+            return self.vehicles[index].camera.truth(frame_id)
+        return None
+
+    # ------------------------------------------------------------------------------------------- setup
+    def _start_backend(self) -> str:
+        from backend.app import create_app
+        from backend.config import AuthConfig, BackendConfig, VerifierConfig
+        from backend.serving import BackgroundServer
+
+        config = BackendConfig(
+            auth=AuthConfig(tokens=self.tokens, supervisor_token=secrets.token_hex(16)),
+            verifier=VerifierConfig(kind=self.options.verifier),
+        )
+        detector = SimulatedPersonDetector(self._truth_lookup, self.camera.width, seed=self.options.seed)
+        self._backend = BackgroundServer(create_app(config, detector=detector)).start()
+        return str(self._backend.url)
+
+    def _start_vehicle(self, index: int, backend_url: str) -> _Vehicle:
+        from sitl.autopilot import AutopilotOptions, SimulatedAutopilot
+
+        origin = VEHICLE_ORIGINS[index % len(VEHICLE_ORIGINS)]
+        lat, lon = _home(origin)
+        options = AutopilotOptions(personality=self.personality, start_height_m=ALTITUDE_M, home_lat=lat, home_lon=lon)
+        links = {name: "udpin:127.0.0.1:0" for name in ("gcs", "companion", "camera")}
+        autopilot = SimulatedAutopilot(options, links)
+        autopilot.start()
+        follower = PoseFollower(f"udpout:127.0.0.1:{autopilot.link_port('camera')}", origin=origin).start()
+        camera = CameraServer(self.world, self.camera, follower.pose, fps=30.0, frame_id_base=index << FRAME_ID_BITS)
+        host, port = backend_url.removeprefix("http://").split(":")
+        proxy = FaultProxy((host, int(port))).start()
+        gcs = ScriptedGcs(f"udpout:127.0.0.1:{autopilot.link_port('gcs')}").start()
+        vid = f"drone-{index + 1}"
+        v = _Vehicle(index, vid, autopilot, follower, camera, proxy, gcs, self.work / f"{vid}-events.jsonl",
+                     self.work / f"{vid}-companion.log")
+        camera.add_hook(partial(self._on_frame, v))
+        camera.start()
+        return v
+
+    def _start_companion(self, v: _Vehicle) -> None:
+        v.events_path.unlink(missing_ok=True)  # a work dir may be reused: only this run's events count
+        settings = [
+            f"vehicle.id={v.vehicle_id}",
+            f"camera.source={v.camera.url}",
+            f"camera.mount_pitch_deg={MOUNT_PITCH_DEG}",
+            "camera.hfov_deg=70.0",
+            f"mavlink.connection=udpout:127.0.0.1:{v.autopilot.link_port('companion')}",
+            f"backend.url={v.proxy.url}",
+            f"tracker.name={self.tracker}",
+            f"tracker.model_dir={self.model_dir}",
+            f"behavior.standoff_m={STANDOFF_M}",
+            f"recording.dir={self.work / 'records'}",
+            *FOLLOW_GAINS,
+            *self.scenario.companion_settings,
+        ]
+        cmd = [sys.executable, "-m", "companion.cli", "--log-level", "INFO", "run", "--events-out", str(v.events_path)]
+        for s in settings:
+            cmd += ["--set", s]
+        env = dict(os.environ, CLOUDTRACK_BACKEND__TOKEN=self.tokens[v.vehicle_id], PYTHONUNBUFFERED="1")
+        env.pop("NOTIFY_SOCKET", None)
+        with open(v.log_path, "wb") as log_file:
+            v.process = subprocess.Popen(cmd, stdout=log_file, stderr=subprocess.STDOUT, env=env)
+
+    def _on_frame(self, v: _Vehicle, frame: RenderedFrame) -> None:
+        if self.epoch is None:
+            return
+        v.frames.append(_Seen(frame.time_s, frame.truth, frame.pose))
+        if self.video is not None and v.index == 0:
+            self.video.write(draw_overlay(frame.image, v.overlay, frame.time_s, v.vehicle_id))
+
+    # -------------------------------------------------------------------------------------- event feed
+    def _read_events(self, v: _Vehicle) -> list[dict[str, Any]]:
+        if not v.events_path.exists():
+            return []
+        with open(v.events_path, encoding="utf-8") as f:
+            f.seek(v.offset)
+            data = f.read()
+        end = data.rfind("\n")
+        if end < 0:
+            return []
+        v.offset += len(data[: end + 1].encode("utf-8"))
+        new = []
+        for line in data[: end + 1].splitlines():
+            try:
+                entry = json.loads(line)
+            except json.JSONDecodeError:
+                continue
+            new.append(entry)
+        v.events.extend(new)
+        return new
+
+    def _world_t(self, monotonic_t: float) -> float:
+        return monotonic_t - (self.epoch or 0.0)
+
+    def _person_at(self, v: _Vehicle, box_xywh: list[float] | None, t_world: float) -> str:
+        """Which person a companion box shows, judged on the frame rendered nearest that time."""
+        if not box_xywh or not v.frames:
+            return "none"
+        box = Box(*box_xywh)
+        frame = min(v.frames[-300:], key=lambda f: abs(f.time_s - t_world))
+        best, best_iou = "none", 0.1
+        for tb in frame.truth:
+            overlap = iou(box, tb.box)
+            if overlap > best_iou:
+                best, best_iou = tb.person_id, overlap
+        return best
+
+    def _handle_event(self, v: _Vehicle, e: dict[str, Any]) -> None:
+        kind = e.get("kind")
+        t = self._world_t(float(e.get("t", 0.0)))
+        if kind == "health" and e.get("healthy"):
+            v.ready = True
+        elif kind == "command" and e.get("command") == "StartMission":
+            v.start_sent = None
+        elif kind == "state":
+            v.state = str(e.get("state", ""))
+            v.overlay = OverlayState(v.state, str(e.get("prompt", "")), v.overlay.verdict, v.overlay.box)
+            self.say(f"{v.vehicle_id}: {v.state} ({e.get('reason', '')})")
+            if v.state == "confirmed":
+                v.confirmations.append((t, v.proposals[-1][1] if v.proposals else "none"))
+        elif kind == "track":
+            box = Box(*e["box"]) if e.get("box") and e.get("trusted") else None
+            v.overlay = OverlayState(v.overlay.state, v.overlay.prompt, v.overlay.verdict, box)
+        elif kind in ("tracker_init", "reinit"):
+            pid = self._person_at(v, e.get("box"), t)
+            v.proposals.append((t, pid))
+            if kind == "tracker_init":
+                self.say(f"{v.vehicle_id}: tracking candidate {e.get('candidate_id')} -> {pid}")
+        elif kind == "candidate_report":
+            v.overlay = OverlayState(v.overlay.state, v.overlay.prompt, f"{e.get('verdict')}: {e.get('justification', '')[:40]}",
+                                     v.overlay.box)
+            if e.get("status") == "awaiting" and v.pending_decision is None:
+                pid = self._person_at(v, e.get("box"), t)
+                action = "confirm" if pid == self.world.target_id else "reject"
+                v.pending_decision = (self.now() + self.scenario.supervisor_delay_s, action, pid)
+                self.say(f"{v.vehicle_id}: supervisor sees {pid} ({e.get('verdict')}), will {action}")
+        elif kind == "hold":
+            self.say(f"{v.vehicle_id}: HOLD ({e.get('reason')})")
+        elif kind == "safety" and e.get("action") == "stop":
+            self.say(f"{v.vehicle_id}: watchdog {e.get('reason')}: stop")
+
+    def _send_start(self, v: _Vehicle, mission_id: int) -> None:
+        v.start_sent = (self.now(), mission_id)
+        v.gcs.start_mission(self.scenario.prompt, mission_id=mission_id)
+
+    def _resend_start(self, v: _Vehicle) -> None:
+        """A GCS operator repeats a start that the companion did not take (lost on a lossy link)."""
+        if v.start_sent is not None and self.now() - v.start_sent[0] > 2.0:
+            self.say(f"{v.vehicle_id}: no answer to mission start, sending it again")
+            self._send_start(v, v.start_sent[1])
+
+    def _supervise(self, v: _Vehicle) -> None:
+        if v.pending_decision is None or self.now() < v.pending_decision[0]:
+            return
+        _, action, pid = v.pending_decision
+        v.pending_decision = None
+        if v.state not in FOLLOW_STATES and v.state != "lost":
+            return
+        if action == "confirm":
+            v.gcs.confirm()
+        else:
+            v.gcs.reject()
+            v.rejections.append((self.now(), pid))
+        self.say(f"{v.vehicle_id}: supervisor {action}s {pid}")
+
+    def _faults(self) -> None:
+        lead = self.vehicles[0]
+        if not lead.confirmations:
+            return
+        t_confirm = lead.confirmations[0][0]
+        for i, fault in enumerate(self.scenario.faults):
+            if i in self.faults_done or self.now() < t_confirm + fault.after_confirm_s:
+                continue
+            self.faults_done.add(i)
+            v = self.vehicles[fault.vehicle]
+            self.fault_times[fault.kind] = self.now()
+            self.say(f"FAULT {fault.kind} on {v.vehicle_id}")
+            if fault.kind == "takeover":
+                v.autopilot.set_mode(TAKEOVER_MODE[self.personality], source="pilot")
+            elif fault.kind == "backend_down":
+                v.proxy.cut()
+            elif fault.kind == "backend_up":
+                v.proxy.restore()
+            elif fault.kind == "link_down":
+                v.autopilot.set_link_down("companion", True)
+            elif fault.kind == "link_up":
+                v.autopilot.set_link_down("companion", False)
+            elif fault.kind == "restart":
+                v.pending_decision = None
+                self._send_start(v, 2)
+
+    def _finished(self) -> bool:
+        if any(v.process is not None and v.process.poll() is not None for v in self.vehicles):
+            self.say("a companion process exited early")
+            return True
+        if self.now() > self.scenario.max_s:
+            self.say("time limit reached")
+            return True
+        if not all(v.confirmations for v in self.vehicles):
+            return False
+        if len(self.faults_done) < len(self.scenario.faults):
+            return False
+        t_confirm = self.vehicles[0].confirmations[0][0]
+        last_fault = max((f.after_confirm_s for f in self.scenario.faults), default=0.0)
+        return self.now() >= t_confirm + max(self.scenario.follow_s, last_fault + 4.0)
+
+    # ---------------------------------------------------------------------------------------------- run
+    def run(self) -> dict[str, Any]:
+        try:
+            return self._run()
+        finally:
+            self._teardown()
+
+    def _run(self) -> dict[str, Any]:
+        s = self.scenario
+        self.progress(f"scenario {s.name}: {s.summary} ({self.personality}, seed {self.options.seed}, "
+                      f"tracker {self.tracker}, work dir {self.work})")
+        backend_url = self._start_backend()
+        self.vehicles = [self._start_vehicle(i, backend_url) for i in range(s.vehicles)]
+        for v in self.vehicles:
+            self._start_companion(v)
+        deadline = time.monotonic() + self.options.startup_timeout_s
+        while not all(v.ready for v in self.vehicles):
+            for v in self.vehicles:
+                for e in self._read_events(v):
+                    if e.get("kind") == "health" and e.get("healthy"):
+                        v.ready = True
+                if v.process is not None and v.process.poll() is not None:
+                    raise RuntimeError(f"{v.vehicle_id} companion exited during start-up:\n{self._log_tail(v)}")
+            if time.monotonic() > deadline:
+                raise RuntimeError("companions not ready in time:\n" + "\n".join(self._log_tail(v) for v in self.vehicles))
+            time.sleep(0.1)
+        if self.options.video_out is not None:
+            self.video = VideoWriter(self.options.video_out, 30.0, (self.camera.width, self.camera.height))
+        self.epoch = time.monotonic()
+        for v in self.vehicles:
+            v.camera.epoch = self.epoch
+            self._send_start(v, 1)
+        self.say(f"mission started: {s.prompt!r}")
+        while not self._finished():
+            for v in self.vehicles:
+                for e in self._read_events(v):
+                    self._handle_event(v, e)
+                self._supervise(v)
+                self._resend_start(v)
+            self._faults()
+            time.sleep(0.05)
+        end_t = self.now()
+        self._stop_companions()
+        for v in self.vehicles:
+            for e in self._read_events(v):
+                self._handle_event(v, e)
+        return self._results(end_t)
+
+    def _log_tail(self, v: _Vehicle, lines: int = 25) -> str:
+        try:
+            text = v.log_path.read_text(errors="replace").splitlines()
+        except OSError:
+            return f"{v.vehicle_id}: no log"
+        return f"--- {v.vehicle_id} companion log ({v.log_path}) ---\n" + "\n".join(text[-lines:])
+
+    def _stop_companions(self) -> None:
+        for v in self.vehicles:
+            if v.process is not None and v.process.poll() is None:
+                v.process.send_signal(signal.SIGTERM)
+        for v in self.vehicles:
+            if v.process is None:
+                continue
+            started = time.monotonic()
+            try:
+                v.process.wait(timeout=5.0)
+                self.say(f"{v.vehicle_id}: companion exited {v.process.returncode} "
+                         f"{time.monotonic() - started:.2f} s after SIGTERM")
+            except subprocess.TimeoutExpired:
+                v.process.kill()
+                v.process.wait()
+                self.say(f"{v.vehicle_id}: companion did not stop within 5 s of SIGTERM: killed")
+
+    def _teardown(self) -> None:
+        for v in self.vehicles:
+            if v.process is not None and v.process.poll() is None:
+                v.process.kill()
+                v.process.wait()
+        if self.video is not None:
+            self.video.close()
+        for v in self.vehicles:
+            for stop in (v.gcs.stop, v.camera.stop, v.follower.stop, v.proxy.stop, v.autopilot.close):
+                try:
+                    stop()
+                except Exception as exc:  # tear everything down even if one part is already broken
+                    self.progress(f"teardown: {exc}")
+        if self._backend is not None:
+            self._backend.stop()
+
+    # ------------------------------------------------------------------------------------------ scoring
+    def _outcome(self, v: _Vehicle, end_t: float) -> VehicleOutcome:
+        target = self.world.target_id
+        samples: list[FrameSample] = []
+        hidden: list[tuple[float, bool]] = []
+        for f in v.frames:
+            tb = next((x for x in f.truth if x.person_id == target), None)
+            tn, te, _ = self.world.person(target).state_at(f.time_s)
+            samples.append(FrameSample(f.time_s, f.pose.north, f.pose.east, tn, te, tb.box if tb else None,
+                                       tb.visible if tb else 0.0))
+            hidden.append((f.time_s, tb is None or tb.visible < 0.2))
+        epoch = self.epoch or 0.0
+        setpoints = [
+            SetpointSample(sp.time - epoch, sp.vx, sp.vy, sp.vz, sp.yaw_rate)
+            for sp in list(v.autopilot.setpoints) if sp.link == "companion"
+        ]
+        events: list[TimedEvent] = []
+        first_candidate = None
+        for e in v.events:
+            t = self._world_t(float(e.get("t", 0.0)))
+            kind = e.get("kind")
+            if kind == "state":
+                events.append(TimedEvent(t, "state", {"state": e.get("state")}))
+                if e.get("state") == "confirmed":
+                    events.append(TimedEvent(t, "confirmed"))
+            elif kind == "answer" and first_candidate is None and any(c.get("verdict") == "yes" for c in e.get("candidates", [])):
+                first_candidate = t
+                events.append(TimedEvent(t, "candidate"))
+            elif kind == "reinit":
+                events.append(TimedEvent(t, "reinit"))
+            elif kind == "hold":
+                events.append(TimedEvent(t, "hold", {"reason": e.get("reason", "")}))
+            elif kind == "safety":
+                events.append(TimedEvent(t, "watchdog", {"reason": e.get("reason"), "action": e.get("action"),
+                                                         "detail": e.get("detail", "")}))
+        for name, t in self.fault_times.items():
+            events.append(TimedEvent(t, {"takeover": "mode_change", "backend_down": "backend_lost",
+                                         "link_down": "link_lost"}.get(name, "fault"), {"fault": name}))
+        follow = following_intervals([e for e in events if e.kind == "state"], end_t)
+
+        def following_after(t0: float) -> float:
+            n = 0
+            for s in samples:
+                if s.t > t0 and any(a <= s.t <= b for a, b in follow) and s.target_box is not None \
+                        and s.target_visible >= 0.3:
+                    n += 1
+            return n / 30.0
+
+        occlusion = None
+        t_confirm = v.confirmations[0][0] if v.confirmations else math.inf
+        run_start = None
+        for t, is_hidden in hidden:
+            if t < t_confirm:
+                continue
+            if is_hidden and run_start is None:
+                run_start = t
+            elif not is_hidden and run_start is not None:
+                if occlusion is None or t - run_start > occlusion[1] - occlusion[0]:
+                    occlusion = (run_start, t)
+                run_start = None
+        takeover_t = self.fault_times.get("takeover")
+        late = None
+        if takeover_t is not None:
+            mode_times = [t - epoch for t, _, source in v.autopilot.mode_history if source == "pilot"]
+            takeover_t = mode_times[0] if mode_times else takeover_t
+            after = [sp.t for sp in setpoints if sp.t > takeover_t]
+            late = (max(after) - takeover_t) if after else 0.0
+        holds = tuple(e.t for e in events if e.kind == "hold" or (e.kind == "watchdog" and e.detail.get("action") == "stop"))
+        metrics = summarise(samples, setpoints, events, STANDOFF_M, (self.camera.width, self.camera.height), end_t,
+                            outcome="pending")
+        metrics["last_setpoint_after_takeover_s"] = None if late is None else round(late, 3)
+        metrics["occlusion_s"] = None if occlusion is None else [round(occlusion[0], 2), round(occlusion[1], 2)]
+        metrics["frames_rendered"] = len(v.frames)
+        return VehicleOutcome(
+            metrics=metrics,
+            confirmations=tuple(t for t, _ in v.confirmations),
+            confirmed_ids=tuple(pid for _, pid in v.confirmations),
+            proposals=tuple(v.proposals),
+            rejected_ids=tuple(v.rejections),
+            lost_intervals=(),
+            occlusion=occlusion,
+            last_setpoint_after_takeover_s=late,
+            takeover_t=takeover_t,
+            hold_times=holds,
+            following_after=following_after,
+        )
+
+    def _results(self, end_t: float) -> dict[str, Any]:
+        s = self.scenario
+        outcomes = [self._outcome(v, end_t) for v in self.vehicles]
+        settings = {"backend_lost_s": 10.0, "heartbeat_timeout_s": 2.0}
+        for item in s.companion_settings:
+            key, _, value = item.partition("=")
+            settings[key.split(".")[-1]] = float(value)
+        failures = assess(s, outcomes, self.fault_times, settings)
+        outcome = "pass" if not failures else "fail"
+        results: dict[str, Any] = {
+            "scenario": s.name,
+            "summary": s.summary,
+            "autopilot": self.personality,
+            "seed": self.options.seed,
+            "tracker": self.tracker,
+            "prompt": s.prompt,
+            "outcome": outcome,
+            "failures": failures,
+            "duration_s": round(end_t, 2),
+            "faults": {k: round(t, 2) for k, t in self.fault_times.items()},
+            "vehicles": {},
+            "work_dir": str(self.work),
+        }
+        for v, o in zip(self.vehicles, outcomes, strict=True):
+            o.metrics["outcome"] = outcome
+            o.metrics["confirmed"] = list(o.confirmed_ids)
+            o.metrics["rejected"] = [pid for _, pid in o.rejected_ids]
+            o.metrics["proposed"] = [pid for _, pid in o.proposals]
+            results["vehicles"][v.vehicle_id] = o.metrics
+        if self.options.json_out is not None:
+            self.options.json_out.parent.mkdir(parents=True, exist_ok=True)
+            self.options.json_out.write_text(json.dumps(results, indent=2))
+        if self.options.plot_out is not None:
+            from sitl.trajectory_plot import plot_trajectories
+
+            tracks = {v.vehicle_id: [self._sample(f) for f in v.frames] for v in self.vehicles}
+            events = {
+                v.vehicle_id: [TimedEvent(t, "confirmed") for t in o.confirmations]
+                + [TimedEvent(t, "hold") for t in o.hold_times[:3]]
+                for v, o in zip(self.vehicles, outcomes, strict=True)
+            }
+            others = {p.person_id + f" ({p.shirt})": [p.state_at(0.0)[:2]] for p in self.world.people
+                      if p.person_id != self.world.target_id}
+            plot_trajectories(self.options.plot_out, tracks, events, f"{s.name}: {outcome}", others)
+        return results
+
+    def _sample(self, f: _Seen) -> FrameSample:
+        tn, te, _ = self.world.person(self.world.target_id).state_at(f.time_s)
+        return FrameSample(f.time_s, f.pose.north, f.pose.east, tn, te, None)
+
+
+def run_scenario(scenario: Scenario, options: RunOptions, progress: Progress = print) -> dict[str, Any]:
+    return ScenarioRun(scenario, options, progress).run()
