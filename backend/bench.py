@@ -1,0 +1,294 @@
+"""`cloudtrack-backend bench`: what the back-end costs a fleet, against a real server and a VLM endpoint
+of fixed latency L (the OpenAI-compatible emulator in backend/vlm_emulator.py, on loopback).
+
+1. Detection time of a 640x480 frame (YOLOX-nano, onnxruntime).
+2. t_f for a keyframe with k candidates, verified concurrently versus one after another (the reference
+   code's way): two servers, verifier pool k and 1.
+3. N simulated vehicles (threads, each its own token, sending real keyframes back to back with
+   BackendClient): p50/p95 latency and throughput versus N, and bytes per request.
+Servers run as separate `cloudtrack-backend serve` processes so the bench's own threads do not share
+their interpreter.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import requests
+
+from backend.vlm_emulator import MODEL_NAME, VlmEmulator
+from cloudtrack.config_files import ConfigError
+from cloudtrack.model_store import ModelError, require, resolve_model_dir
+from companion.backend_client import BackendClient, BackendError
+
+PROMPT = "a man in a gray shirt"
+SOURCES = [("uav123_person12_1", 1), ("uav123_person12_1", 100), ("otb_Crossing", 1), ("otb_Crossing", 60),
+           ("uav123_person12_1", 180), ("otb_Crossing", 110)]  # fmt: skip
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    parser = subparsers.add_parser(
+        "bench",
+        help="latency and throughput for many vehicles against a server and a VLM of fixed latency",
+        description="Starts a VLM emulator (fixed latency L) and back-end servers on loopback, then measures "
+        "detection time, t_f for k candidates concurrent vs sequential, and p50/p95 latency, throughput and "
+        "bytes per request for N simulated vehicles. With --url it measures an already running server.",
+        epilog="examples:\n"
+        "  cloudtrack-backend bench --latency 1.0 --candidates 5 --vehicles 1 4 16\n"
+        "  cloudtrack-backend bench --latency 0.2 --requests 5 --json out/bench.json\n"
+        '  cloudtrack-backend bench --url https://backend.example.org --tokens \'{"drone-1": "...", "drone-2": "..."}\' '
+        "--vehicles 1 2",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--latency", type=float, default=1.0, help="VLM latency L in seconds (default 1.0)")
+    parser.add_argument("--candidates", type=int, default=5, help="k candidates in the t_f keyframe (default 5)")
+    parser.add_argument("--vehicles", type=int, nargs="+", default=[1, 4, 16], help="fleet sizes N (default 1 4 16)")
+    parser.add_argument("--requests", type=int, default=6, help="keyframes per vehicle (default 6)")
+    parser.add_argument("--verify-concurrency", type=int, default=64, help="server verifier pool for the fleet runs")
+    parser.add_argument("--data", type=Path, help="shared data folder (default: $CLOUDTRACK_SHARED or ../shared)")
+    parser.add_argument("--model-dir", help="weights folder (default: $CLOUDTRACK_MODEL_DIR, then the cache)")
+    parser.add_argument("--url", help="measure this running server instead (fleet part only)")
+    parser.add_argument("--tokens", help='JSON {"vehicle id": "token"} for --url')
+    parser.add_argument("--json", type=Path, metavar="OUT", help="write the figures as JSON")
+    parser.set_defaults(func=_bench)
+
+
+def _free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port: int = probe.getsockname()[1]
+        return port
+
+
+class ServerProcess:
+    """`cloudtrack-backend serve` in a child process on a free loopback port."""
+
+    def __init__(self, settings: list[str], tokens: dict[str, str]) -> None:
+        self.port = _free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        env = {**os.environ, "CLOUDTRACK_BACKEND_AUTH__TOKENS": json.dumps(tokens)}
+        flags = [arg for s in [f"server.port={self.port}", *settings] for arg in ("--set", s)]
+        self._process = subprocess.Popen(
+            [sys.executable, "-m", "backend.cli", "--log-level", "WARNING", "serve", *flags],
+            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+        )
+
+    def wait_ready(self, timeout_s: float = 60.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self._process.poll() is not None:
+                error = self._process.stderr.read().decode() if self._process.stderr else ""
+                raise RuntimeError(f"the back-end exited: {error.strip()[-500:]}")
+            try:
+                if requests.get(self.url + "/health", timeout=1).ok:
+                    return
+            except requests.RequestException:
+                pass
+            time.sleep(0.2)
+        raise RuntimeError("the back-end did not become healthy")
+
+    def stop(self) -> None:
+        self._process.terminate()
+        try:
+            self._process.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            self._process.kill()
+
+
+def _shared(args: argparse.Namespace) -> Path:
+    default = Path(__file__).resolve().parents[1].parent / "shared"
+    return args.data or Path(os.environ.get("CLOUDTRACK_SHARED") or default)
+
+
+def _frame(sequences: Path, name: str, index: int) -> np.ndarray:
+    image = cv2.imread(str(sequences / name / "frames" / f"{index:06d}.jpg"))
+    if image is None:
+        raise FileNotFoundError(f"{sequences / name} frame {index} (set --data or CLOUDTRACK_SHARED)")
+    return image
+
+
+def mosaic(sequences: Path, k: int) -> np.ndarray:
+    """A 640x480 keyframe holding k real people, cut from the sequences at their ground-truth boxes."""
+    canvas = np.full((480, 640, 3), (120, 125, 130), np.uint8)
+    columns = max(k, 1)
+    width = min(120, 600 // columns)
+    for slot in range(k):
+        name, index = SOURCES[slot % len(SOURCES)]
+        line = (sequences / name / "groundtruth.txt").read_text().split()[index - 1]
+        x, y, w, h = (float(v) for v in line.split(","))
+        image = _frame(sequences, name, index)
+        x1, y1 = int(max(0, x - 0.3 * w)), int(max(0, y - 0.3 * h))
+        patch = image[y1 : int(y + 1.3 * h), x1 : int(x + 1.3 * w)]
+        patch = cv2.resize(patch, None, fx=200 / patch.shape[0], fy=200 / patch.shape[0])[:, :width]
+        left = 20 + slot * (width + 4)
+        canvas[140 : 140 + patch.shape[0], left : left + patch.shape[1]] = patch
+    return canvas
+
+
+def detection_time(model_dir: Path, sequences: Path, runs: int = 50) -> dict[str, float]:
+    """Median and p95 of YOLOX on one 640x480 frame, with one onnxruntime thread and with all cores."""
+    from backend.detectors.yolox import YoloxDetector
+
+    frame = cv2.resize(_frame(sequences, "uav123_person12_1", 1), (640, 480))
+    result = {"load_average_1min": os.getloadavg()[0], "cpus": float(os.cpu_count() or 0)}
+    for threads in (1, 0):
+        detector = YoloxDetector(require("yolox", model_dir)["yolox_nano.onnx"], threads=threads)
+        for _ in range(5):
+            detector.detect(frame, ["person"])
+        times = []
+        for _ in range(runs):
+            start = time.perf_counter()
+            detector.detect(frame, ["person"])
+            times.append(time.perf_counter() - start)
+        label = "1thread" if threads == 1 else "allcores"
+        result[f"median_ms_{label}"] = 1000 * float(np.median(times))
+        result[f"min_ms_{label}"] = 1000 * float(np.min(times))
+        result[f"p95_ms_{label}"] = 1000 * float(np.percentile(times, 95))
+    return result
+
+
+def _vlm_settings(base_url: str, model_dir: Path) -> list[str]:
+    # One onnxruntime thread per detection and two detections at once: no oversubscribed cores.
+    return ['verifier.kind="vlm"', f"vlm.base_url={json.dumps(base_url)}", f'vlm.model="{MODEL_NAME}"',
+            f"detector.model_dir={json.dumps(str(model_dir))}", "vlm.max_retries=0", "detector.threads=1",
+            "sessions.detector_concurrency=2"]
+
+
+def t_f_concurrent_vs_sequential(emulator: VlmEmulator, model_dir: Path, sequences: Path, k: int, latency: float) -> dict[str, Any]:
+    image = mosaic(sequences, k)
+    result: dict[str, Any] = {"k": k, "latency_s": latency}
+    for label, pool in (("concurrent", k), ("sequential", 1)):
+        settings = [*_vlm_settings(emulator.base_url, model_dir), f"verifier.concurrency={pool}",
+                    f"detector.max_candidates={k}", f"verifier.timeout_s={k * latency + 10}",
+                    f"verifier.request_deadline_s={k * latency + 30}"]
+        server = ServerProcess(settings, {"bench-0": "bench-token-0"})
+        try:
+            server.wait_ready()
+            client = BackendClient(server.url, "bench-token-0", timeout_s=k * latency + 60, vehicle_id="bench-0", mission_id="t-f")
+            times, counts = [], []
+            for _ in range(3):
+                start = time.perf_counter()
+                reply = client.detect_reply(image, PROMPT)
+                times.append(time.perf_counter() - start)
+                counts.append(len(reply.detections))
+        finally:
+            server.stop()
+        result[label] = {"t_f_s": float(np.median(times)), "candidates": counts}
+    result["ratio"] = result["concurrent"]["t_f_s"] / result["sequential"]["t_f_s"]
+    return result
+
+
+def fleet(url: str, tokens: dict[str, str], n: int, requests_each: int, frames: list[np.ndarray]) -> dict[str, float]:
+    vehicles = list(tokens)[:n]
+    latencies: list[float] = []
+    sizes: list[int] = []
+    errors: list[str] = []
+    lock = threading.Lock()
+
+    def vehicle(vehicle_id: str, offset: int) -> None:
+        client = BackendClient(url, tokens[vehicle_id], timeout_s=120, vehicle_id=vehicle_id, mission_id=f"bench-{vehicle_id}")
+        for i in range(requests_each):
+            frame = frames[(offset + i) % len(frames)]
+            start = time.perf_counter()
+            try:
+                reply = client.detect_reply(frame, PROMPT, frame_id=i, capture_time=time.time())
+            except BackendError as exc:
+                with lock:
+                    errors.append(str(exc))
+                continue
+            with lock:
+                latencies.append(time.perf_counter() - start)
+                sizes.append(reply.request_bytes)
+
+    threads = [threading.Thread(target=vehicle, args=(v, i)) for i, v in enumerate(vehicles)]
+    start = time.perf_counter()
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    wall = time.perf_counter() - start
+    return {
+        "vehicles": len(vehicles),
+        "requests": len(latencies),
+        "errors": len(errors),
+        "p50_s": float(np.percentile(latencies, 50)) if latencies else float("nan"),
+        "p95_s": float(np.percentile(latencies, 95)) if latencies else float("nan"),
+        "throughput_rps": len(latencies) / wall,
+        "bytes_per_request": float(np.mean(sizes)) if sizes else float("nan"),
+    }
+
+
+def _fleet_frames(sequences: Path) -> list[np.ndarray]:
+    frames = []
+    for name in ("uav123_person12_1", "otb_Crossing", "dtb70_Surfing06", "uav123_wakeboard7"):
+        for index in (1, 21, 41, 61):
+            frames.append(cv2.resize(_frame(sequences, name, index), (640, 480), interpolation=cv2.INTER_AREA))
+    return frames
+
+
+def _print_report(report: dict[str, Any]) -> None:
+    if "detection" in report:
+        d = report["detection"]
+        print(f"YOLOX-nano, 640x480 frame ({d['cpus']:.0f} CPUs, load average {d['load_average_1min']:.1f}):")
+        for label, text in (("1thread", "1 thread"), ("allcores", "all cores")):
+            print(f"  {text}: median {d['median_ms_' + label]:.1f} ms, min {d['min_ms_' + label]:.1f} ms, "
+                  f"p95 {d['p95_ms_' + label]:.1f} ms")
+        print()
+    if "t_f" in report:
+        t = report["t_f"]
+        print(f"t_f for a keyframe with k={t['k']} candidates, VLM latency L={t['latency_s']:.2f} s:")
+        print("| verification | t_f [s] | candidates |\n|---|---|---|")
+        for label in ("concurrent", "sequential"):
+            print(f"| {label} | {t[label]['t_f_s']:.2f} | {t[label]['candidates'][0]} |")
+        print(f"concurrent / sequential = {t['ratio']:.2f}\n")
+    print(f"Fleet: each vehicle sends keyframes back to back (640x480, JPEG 80), VLM latency L={report['latency_s']:.2f} s")
+    print("| vehicles | requests | errors | p50 [s] | p95 [s] | throughput [req/s] | bytes/request |")
+    print("|---|---|---|---|---|---|---|")
+    for row in report["fleet"]:
+        print(f"| {row['vehicles']} | {row['requests']} | {row['errors']} | {row['p50_s']:.2f} | {row['p95_s']:.2f} | "
+              f"{row['throughput_rps']:.2f} | {row['bytes_per_request']:.0f} |")
+
+
+def _bench(args: argparse.Namespace) -> int:
+    sequences = _shared(args) / "data" / "sequences"
+    model_dir = resolve_model_dir(args.model_dir)
+    report: dict[str, Any] = {"latency_s": args.latency}
+    try:
+        frames = _fleet_frames(sequences)
+        if args.url:
+            tokens = json.loads(args.tokens or "{}")
+            if not isinstance(tokens, dict) or len(tokens) < max(args.vehicles):
+                raise ValueError(f"--url needs --tokens with at least {max(args.vehicles)} vehicles")
+            report["fleet"] = [fleet(args.url.rstrip("/"), tokens, n, args.requests, frames) for n in args.vehicles]
+        else:
+            require("yolox", model_dir)
+            report["detection"] = detection_time(model_dir, sequences)
+            with VlmEmulator(latency_s=args.latency) as emulator:
+                report["t_f"] = t_f_concurrent_vs_sequential(emulator, model_dir, sequences, args.candidates, args.latency)
+                tokens = {f"bench-{i}": f"bench-token-{i}" for i in range(max(args.vehicles))}
+                settings = [*_vlm_settings(emulator.base_url, model_dir), f"verifier.concurrency={args.verify_concurrency}"]
+                server = ServerProcess(settings, tokens)
+                try:
+                    server.wait_ready()
+                    report["fleet"] = [fleet(server.url, tokens, n, args.requests, frames) for n in args.vehicles]
+                finally:
+                    server.stop()
+    except (ConfigError, ModelError, ValueError, OSError, RuntimeError, BackendError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    _print_report(report)
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(report, indent=2))
+    return 0

@@ -1,0 +1,70 @@
+"""`cloudtrack-backend`: the cloud service and its tools. Each subcommand lives in its own module."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from backend.config import BackendConfig, load_backend_config
+from cloudtrack.logging_setup import add_logging_flags, setup_logging
+
+EXAMPLES = """\
+examples:
+  cloudtrack-backend serve --config /etc/cloudtrack/backend.toml
+  CLOUDTRACK_BACKEND_AUTH__TOKENS='{"drone-1": "s3cret"}' cloudtrack-backend serve --set server.port=9000
+  cloudtrack-backend detect frame.jpg --prompt "an injured man in a gray shirt" --draw out.jpg
+  cloudtrack-backend eval --coco set.json --images frames/ --verifier local --verifier none
+  cloudtrack-backend bench --latency 1.0 --vehicles 1 4 16
+"""
+
+# Subcommand modules; each defines add_parser(subparsers) and sets `func` on its parser.
+COMMAND_MODULES = (
+    "backend.serve_command",
+    "backend.detect_command",
+    "backend.eval_command",
+    "backend.bench",
+)
+
+
+def add_config_flags(parser: argparse.ArgumentParser) -> None:
+    """--config and --set, shared by every subcommand that reads the configuration."""
+    parser.add_argument("--config", type=Path, help="TOML file (defaults: config/backend.toml)")
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help="override one value, e.g. --set verifier.kind=cascade (repeatable)",
+    )
+
+
+def config_from_args(args: argparse.Namespace, *extra: str) -> BackendConfig:
+    return load_backend_config(args.config, [*args.set, *extra])
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="cloudtrack-backend",
+        description="CloudTrack back-end: superset detection, 50 px crops and concurrent verification for many drones.",
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    add_logging_flags(parser)
+    subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for module_name in COMMAND_MODULES:
+        importlib.import_module(module_name).add_parser(subparsers)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    setup_logging(args.log_level, args.log_json)
+    return int(args.func(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
