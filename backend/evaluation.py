@@ -19,7 +19,7 @@ import csv
 import json
 import time
 import xml.etree.ElementTree as ET
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -155,7 +155,7 @@ def load_sard_voc(folder: Path, attribute_file: Path, superset: str = "person") 
     return EvalSet(tasks, images)
 
 
-def average_precision_voc11(detections: list[Scored], truth: dict[int, tuple[Box, ...]], iou_threshold: float = 0.5) -> float:
+def average_precision_voc11(detections: list[Scored], truth: Mapping[int, tuple[Box, ...]], iou_threshold: float = 0.5) -> float:
     """11-point interpolated AP (PASCAL VOC 2007): mean over recall r in 0, 0.1, ..., 1 of max precision at recall >= r.
 
     A detection is a true positive when its IoU with a not yet matched ground-truth box exceeds the

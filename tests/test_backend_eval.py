@@ -53,7 +53,8 @@ def test_coco_library_agrees_on_clear_cases() -> None:
 
 def _coco_set(sequences_dir: Path, path: Path, step: int = 25) -> Path:
     """A tiny COCO set from the real sequences: their ground truth and referring.txt as the task."""
-    images, annotations = [], []
+    images: list[dict[str, object]] = []
+    annotations: list[dict[str, object]] = []
     for seq in sorted(p for p in sequences_dir.iterdir() if p.name != "vot2015_bag"):
         referring = (seq / "referring.txt").read_text().strip()
         lines = (seq / "groundtruth.txt").read_text().split()
