@@ -73,7 +73,11 @@ class GcsSession:
         self.target = (args.system, args.component)
         self.endpoint = MavlinkEndpoint.open(args.connect, args.gcs_system, args.gcs_component)
         if args.signing_key:
-            self.endpoint.conn.setup_signing(parse_signing_key(args.signing_key), sign_outgoing=True)
+            # The autopilot's telemetry may be unsigned; an acknowledgement must carry the companion's signature.
+            self.endpoint.conn.setup_signing(
+                parse_signing_key(args.signing_key), sign_outgoing=True,
+                allow_unsigned_callback=lambda _mav, msg_id: msg_id != mavlink.MAVLINK_MSG_ID_COMMAND_ACK,
+            )  # fmt: skip
         self._statustexts: dict[int, list[bytes]] = {}
 
     def close(self) -> None:

@@ -184,7 +184,9 @@ def value_name(name: str) -> bytes:
 
 # ------------------------------------------------------------------------------ companion handler
 class GcsReplies(Protocol):
-    """What the handler sends back; VehicleLink implements it over its MAVLink endpoint."""
+    """Where the handler delivers commands and sends replies; VehicleLink implements it."""
+
+    def deliver(self, command: MissionCommand) -> None: ...
 
     def ack(self, msg: Any, result: int) -> None: ...
     def status(self, text: str, severity: int = MAV_SEVERITY_INFO) -> None: ...
@@ -193,7 +195,8 @@ class GcsReplies(Protocol):
 
 
 class GcsProtocol:
-    """Turns the GCS's COMMAND_LONG and TUNNEL messages addressed to this component into mission commands."""
+    """Turns the GCS's COMMAND_LONG and TUNNEL messages addressed to this component into mission commands,
+    delivered before the COMMAND_ACK goes out."""
 
     def __init__(self, system_id: int, component_id: int, image_size: Callable[[], tuple[int, int]], replies: GcsReplies):
         self._system = system_id
@@ -205,18 +208,16 @@ class GcsProtocol:
     def _for_us(self, msg: Any) -> bool:
         return bool(msg.target_system == self._system and msg.target_component == self._component)
 
-    def handle(self, msg: Any, now: float) -> MissionCommand | None:
+    def handle(self, msg: Any, now: float) -> None:
         mtype = msg.get_type()
         if mtype == "TUNNEL" and self._for_us(msg):
             chunk = decode_chunk(msg.payload_type, bytes(msg.payload[: msg.payload_length]))
             if chunk is not None:
                 self._prompts.add(chunk, now)
-            return None
-        if mtype == "COMMAND_LONG" and self._for_us(msg):
-            return self._command(msg)
-        return None
+        elif mtype == "COMMAND_LONG" and self._for_us(msg):
+            self._command(msg)
 
-    def _command(self, msg: Any) -> MissionCommand | None:
+    def _command(self, msg: Any) -> None:
         cmd = msg.command
         name = COMMAND_NAMES.get(cmd, str(cmd))
         try:
@@ -225,15 +226,17 @@ class GcsProtocol:
             log.warning("GCS %s refused: %s", name, exc)
             self._replies.ack(msg, MAV_RESULT_FAILED)
             self._replies.status(f"{name.upper()} FAILED: {exc}", MAV_SEVERITY_WARNING)
-            return None
+            return
         except ValueError as exc:  # malformed: resending the same will not help
             log.warning("GCS %s refused: %s", name, exc)
             self._replies.ack(msg, MAV_RESULT_DENIED)
             self._replies.status(f"{name.upper()} REFUSED: {exc}", MAV_SEVERITY_WARNING)
-            return None
+            return
         if command is None and cmd not in (CMD_STATUS, CMD_REQUEST_MESSAGE, CMD_REQUEST_CAMERA_INFORMATION):
             self._replies.ack(msg, MAV_RESULT_UNSUPPORTED)
-            return None
+            return
+        if command is not None:
+            self._replies.deliver(command)  # before the ACK: whoever sees the ACK can rely on delivery
         self._replies.ack(msg, MAV_RESULT_ACCEPTED)
         if cmd == CMD_STATUS:
             self._replies.latest_status()
@@ -243,7 +246,6 @@ class GcsProtocol:
             superset = f" ({command.superset})" if command.superset else ""
             self._replies.status(f"MISSION {command.mission_id} STARTED: {command.prompt}{superset}")
         log.info("GCS command %s accepted: %s", name, command)
-        return command
 
     def _decode(self, msg: Any) -> MissionCommand | None:
         cmd, p = msg.command, (msg.param1, msg.param2, msg.param3, msg.param4)

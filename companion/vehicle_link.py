@@ -284,6 +284,10 @@ class VehicleLink:
         )  # fmt: skip
 
     # ----------------------------------------------------------------- GcsReplies (for GcsProtocol)
+    def deliver(self, command: MissionCommand) -> None:
+        with self._lock:
+            self._commands.append(command)
+
     def ack(self, msg: Any, result: int) -> None:
         self.endpoint.send(lambda m: m.command_ack_send(msg.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()))
 
@@ -406,10 +410,7 @@ class VehicleLink:
                     self._record(event)
                     if event.action == "offboard_ended" and event.detail.endswith("by pilot or GCS"):
                         self.status(f"OFFBOARD ENDED: {event.detail}", MAV_SEVERITY_WARNING)
-                command = self._gcs.handle(msg, now)
-                if command is not None:
-                    with self._lock:
-                        self._commands.append(command)
+                self._gcs.handle(msg, now)
             except Exception:  # a malformed but checksum-valid message must not end the reader
                 log.exception("could not handle %s", msg.get_type())
 

@@ -1,0 +1,119 @@
+"""`cloudtrack-gcs` against the SITL autopilot routing to a real companion link."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from behaviors.mission_commands import AbortMission, ConfirmCandidate, StartMission, TrackRectangle
+from companion import gcs_cli
+from tests.mavlink_harness import MainLoop, autopilot, vehicle_link, wait_for
+
+GCS = [str(Path(sys.executable).with_name("cloudtrack-gcs"))]
+KEY_HEX = "5e" * 32
+
+
+def _gcs_args(sim, *rest: str, timeout: float = 5.0) -> list[str]:  # type: ignore[no-untyped-def]
+    return ["--connect", f"udpout:127.0.0.1:{sim.link_port('gcs')}", "--timeout", str(timeout), *rest]
+
+
+def test_start_ack_status_round_trip_through_the_autopilot() -> None:
+    with autopilot("ardupilot") as sim, vehicle_link(sim) as link, MainLoop(link):
+        result = subprocess.run(
+            GCS + _gcs_args(sim, "start", "--prompt", "injured man in a gray shirt", "--superset", "person",
+                            "--allow-engage", "--mission-id", "7"),
+            capture_output=True, text=True, timeout=60,
+        )  # fmt: skip
+        assert result.returncode == 0, result.stderr
+        assert "start: ACCEPTED" in result.stdout
+        assert "[1/191] MISSION 7 STARTED: injured man in a gray shirt (person)" in result.stdout
+        assert link.commands() == [StartMission("injured man in a gray shirt", "person", allow_engage=True, mission_id="7")]
+
+
+def test_supervisor_commands_and_track_box(capsys: pytest.CaptureFixture[str]) -> None:
+    with autopilot("px4") as sim, vehicle_link(sim) as link, MainLoop(link):
+        assert gcs_cli.main(_gcs_args(sim, "confirm", "--candidate", "4")) == 0
+        assert gcs_cli.main(_gcs_args(sim, "track-box", "0.25", "0.5", "0.5", "1.0")) == 0
+        assert gcs_cli.main(_gcs_args(sim, "abort")) == 0
+        assert "confirm: ACCEPTED" in capsys.readouterr().out
+        assert wait_for(lambda: len(link._commands) >= 3)
+        commands = link.commands()
+        assert commands[0] == ConfirmCandidate("4") and commands[2] == AbortMission("gcs")
+        assert isinstance(commands[1], TrackRectangle) and commands[1].box.xywh() == (160.0, 240.0, 160.0, 240.0)
+
+
+def test_watch_prints_status_values_and_target(capsys: pytest.CaptureFixture[str]) -> None:
+    import threading
+
+    from behaviors.geometry import Box
+
+    with autopilot("ardupilot") as sim, vehicle_link(sim) as link, MainLoop(link):
+        stop = threading.Event()
+
+        def companion_reports() -> None:
+            while not stop.wait(0.2):
+                link.send_status("CANDIDATE 2: yes, gray shirt lying; confirm?")
+                link.send_value("dist_m", 12.5)
+                link.report_tracking(Box(320, 120, 64, 120), (640, 480))
+
+        reporter = threading.Thread(target=companion_reports, daemon=True)
+        reporter.start()
+        try:
+            assert gcs_cli.main(_gcs_args(sim, "watch", "--duration", "2.5")) == 0
+        finally:
+            stop.set()
+            reporter.join()
+        out = capsys.readouterr().out
+        assert "[autopilot] mode GUIDED" in out
+        assert "[1/191] CANDIDATE 2: yes, gray shirt lying; confirm?" in out
+        assert "[1/191] dist_m = 12.500" in out
+        assert "[1/191] target at (0.550, 0.375) box (0.500, 0.250)-(0.600, 0.500)" in out
+
+
+def test_no_companion_times_out_with_a_clear_message(capsys: pytest.CaptureFixture[str]) -> None:
+    with autopilot("ardupilot") as sim:
+        assert gcs_cli.main(_gcs_args(sim, "confirm", timeout=1.5)) == 3
+        err = capsys.readouterr().err
+        assert "no acknowledgement for confirm from 1/191 within 1.5 s" in err
+
+
+def test_no_autopilot_times_out_with_a_clear_message(capsys: pytest.CaptureFixture[str]) -> None:
+    assert gcs_cli.main(["--connect", "udpin:127.0.0.1:0", "--timeout", "1", "abort"]) == 3
+    assert "no HEARTBEAT from system 1" in capsys.readouterr().err
+
+
+def test_wrong_signing_key_gets_no_acknowledgement(capsys: pytest.CaptureFixture[str]) -> None:
+    with autopilot("ardupilot") as sim, vehicle_link(sim, signing_key=KEY_HEX) as link, MainLoop(link):
+        assert gcs_cli.main(_gcs_args(sim, "--signing-key", "77" * 32, "abort", timeout=1.5)) == 3
+        assert "no acknowledgement for abort" in capsys.readouterr().err
+        assert gcs_cli.main(_gcs_args(sim, "--signing-key", KEY_HEX, "abort")) == 0
+        assert link.commands() == [AbortMission("gcs")] and "COMMAND_LONG" in link.signing.refused
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["start", "--prompt", "   "], "the prompt is empty"),
+        (["start", "--prompt", "man", "--superset", "per|son"], "superset"),
+        (["--connect", "udp:nowhere", "abort"], "expected one of"),
+        (["--signing-key", "xyz", "abort"], "64 hexadecimal"),
+        (["track-box", "0.5", "0.5", "0.2", "0.9", "--"], None),
+    ],
+)
+def test_bad_input_is_refused_before_sending(argv: list[str], message: str | None, capsys: pytest.CaptureFixture[str]) -> None:
+    if message is None:  # box corners in the wrong order need a link first; checked without one here
+        assert gcs_cli.main(["--connect", "udpin:127.0.0.1:0", "--timeout", "0.5", *argv[:-1]]) == 3
+        return
+    assert gcs_cli.main(argv) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_help_has_examples() -> None:
+    result = subprocess.run(GCS + ["--help"], capture_output=True, text=True, timeout=30)
+    assert result.returncode == 0
+    assert "cloudtrack-gcs start --prompt" in result.stdout and "track-box" in result.stdout
+    sub = subprocess.run(GCS + ["start", "--help"], capture_output=True, text=True, timeout=30)
+    assert "--allow-engage" in sub.stdout and "examples:" in sub.stdout

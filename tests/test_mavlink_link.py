@@ -1,0 +1,131 @@
+"""The companion's MAVLink link: connection strings, modes, telemetry, garbage, signing."""
+
+from __future__ import annotations
+
+import math
+import random
+import socket
+import time
+
+import pytest
+
+from behaviors.mission_commands import ConfirmCandidate
+from behaviors.setpoint import Setpoint
+from companion.autopilot_modes import (
+    AutopilotKind,
+    detect_autopilot,
+    mode_for_action,
+    mode_name,
+    set_mode_params,
+)
+from companion.config import MavlinkConfig, SafetyConfig
+from companion.mavlink_connection import parse_connection
+from companion.mavlink_signing import parse_signing_key
+from companion.telemetry import stream_intervals_us
+from companion.vehicle_link import VehicleLink
+from tests.mavlink_harness import MainLoop, autopilot, gcs, receive_until, vehicle_link, wait_for
+
+KEY_HEX = "a1" * 32
+CMD_CONFIRM = 31012
+
+
+def test_connection_strings() -> None:
+    assert parse_connection("serial:/dev/ttyAMA0:921600").device == "/dev/ttyAMA0"
+    assert parse_connection("serial:/dev/ttyAMA0:921600").baud == 921600
+    assert parse_connection("udpin:0.0.0.0:14540").device == "udpin:0.0.0.0:14540"
+    assert parse_connection("udpout:127.0.0.1:14550").kind == "udpout"
+    assert parse_connection("tcp:127.0.0.1:5760").kind == "tcp"
+    for bad in ("", "udp:1.2.3.4", "udpin:0.0.0.0:99999", "serial:/dev/ttyUSB0", "tcp::5760", "bogus:x:1"):
+        with pytest.raises(ValueError, match="MAVLink connection"):
+            parse_connection(bad)
+
+
+def test_bad_connection_string_is_refused_at_start() -> None:
+    link = VehicleLink(MavlinkConfig(connection="udp:nowhere"), SafetyConfig())
+    with pytest.raises(ValueError, match="expected one of"):
+        link.start()
+
+
+def test_mode_tables_match_the_autopilots_encodings() -> None:
+    assert detect_autopilot(3) is AutopilotKind.ARDUPILOT and detect_autopilot(12) is AutopilotKind.PX4
+    assert detect_autopilot(8) is None
+    assert mode_name(AutopilotKind.ARDUPILOT, 4) == "GUIDED" and mode_name(AutopilotKind.ARDUPILOT, 17) == "BRAKE"
+    assert mode_name(AutopilotKind.PX4, (6 << 16)) == "OFFBOARD"
+    assert mode_name(AutopilotKind.PX4, (4 << 16) | (3 << 24)) == "HOLD"
+    assert mode_name(AutopilotKind.PX4, (4 << 16) | (5 << 24)) == "RTL"
+    p = set_mode_params(AutopilotKind.PX4, "HOLD")
+    assert (p.base_mode, p.custom_mode, p.custom_sub_mode) == (1, 4, 3)
+    assert set_mode_params(AutopilotKind.ARDUPILOT, "LOITER").custom_mode == 5
+    assert mode_for_action(AutopilotKind.PX4, "loiter") == "HOLD"
+    with pytest.raises(ValueError):
+        mode_for_action(AutopilotKind.ARDUPILOT, "arm")
+
+
+def test_stream_requests_cover_every_decoded_message() -> None:
+    ids = {msg_id for msg_id, _ in stream_intervals_us(10.0)}
+    assert ids == {0, 1, 30, 32, 33}  # HEARTBEAT, SYS_STATUS, ATTITUDE, LOCAL_POSITION_NED, GLOBAL_POSITION_INT
+    assert dict(stream_intervals_us(10.0))[30] == 100_000
+
+
+@pytest.mark.parametrize("personality", ["ardupilot", "px4"])
+def test_telemetry_is_decoded_from_the_autopilot(personality: str) -> None:
+    with autopilot(personality, start_yaw_deg=30.0) as sim, vehicle_link(sim) as link, MainLoop(link):
+        assert link.autopilot_kind is AutopilotKind(personality)
+        assert wait_for(lambda: abs(link.telemetry().yaw - math.radians(30)) < 1e-3, 3.0)
+        t = link.telemetry()
+        assert t.height_agl == pytest.approx(20.0, abs=0.01) and t.armed
+        assert t.lat_deg == pytest.approx(47.397742, abs=1e-6) and t.lon_deg == pytest.approx(8.545594, abs=1e-6)
+        assert t.mode == ("GUIDED" if personality == "ardupilot" else "POSCTL")
+        assert t.offboard_active is (personality == "ardupilot")
+
+
+def test_garbage_on_the_link_crashes_nothing() -> None:
+    rng = random.Random(1234)
+    with autopilot("ardupilot") as sim, vehicle_link(sim) as link, MainLoop(link):
+        link.request_offboard()
+        link.set_velocity(Setpoint(1.0, 0.0, 0.0, 0.0))
+        assert wait_for(lambda: len(sim.setpoints) >= 5)
+        port = link.endpoint.local_port()
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        for i in range(1000):
+            junk = bytes(rng.randrange(256) for _ in range(rng.randrange(1, 280)))
+            prefix = (b"", b"\xfd", b"\xfe", b"\xfd\x10\x00\x00")[i % 4]  # plausible MAVLink 2/1 headers too
+            sock.sendto(prefix + junk, ("127.0.0.1", port))
+            sock.sendto(prefix + junk, ("127.0.0.1", sim.link_port("companion")))
+        sock.close()
+        before = len(sim.setpoints)
+        time.sleep(1.0)
+        assert len(sim.setpoints) - before >= 8  # still streaming
+        stamp = link.telemetry().time_s
+        assert wait_for(lambda: link.telemetry().time_s > stamp, 2.0)  # still decoding telemetry
+        assert link.endpoint.bad_data > 0
+        assert all(t.is_alive() for t in link._threads)
+
+
+def test_signing_refuses_forged_and_unsigned_commands() -> None:
+    key = parse_signing_key(KEY_HEX)
+    with autopilot("ardupilot") as sim, vehicle_link(sim, signing_key=KEY_HEX) as link, MainLoop(link):
+        # forged: signed with the wrong key
+        with gcs(sim, signing_key=bytes(32 * [7])) as forger:
+            forger.send(lambda m: m.command_long_send(1, 191, CMD_CONFIRM, 0, 0, 0, 0, 0, 0, 0, 0))
+            assert receive_until(forger, lambda m: m.get_type() == "COMMAND_ACK" and m.command == CMD_CONFIRM, 1.5) is None
+        # unsigned
+        with gcs(sim, system=254) as plain:
+            plain.send(lambda m: m.command_long_send(1, 191, CMD_CONFIRM, 0, 0, 0, 0, 0, 0, 0, 0))
+            assert receive_until(plain, lambda m: m.get_type() == "COMMAND_ACK" and m.command == CMD_CONFIRM, 1.5) is None
+        assert link.commands() == []
+        assert link.signing.refused.count("COMMAND_LONG") >= 2
+        assert any(e.reason == "signing" and e.action == "refused" for e in link.safety_events())
+        # the right key is accepted, and the reply is signed
+        with gcs(sim, signing_key=key, system=253) as ground:
+            ground.send(lambda m: m.command_long_send(1, 191, CMD_CONFIRM, 0, 2, 0, 0, 0, 0, 0, 0))
+            ack = receive_until(ground, lambda m: m.get_type() == "COMMAND_ACK" and m.command == CMD_CONFIRM, 3.0)
+            assert ack is not None and ack.result == 0 and ack._signed
+        assert link.commands() == [ConfirmCandidate("2")]
+
+
+def test_bad_signing_key_is_a_clear_error() -> None:
+    with pytest.raises(ValueError, match="64 hexadecimal"):
+        parse_signing_key("not-a-key")
+    with pytest.raises(ValueError, match="64 hexadecimal"):
+        VehicleLink(MavlinkConfig(signing_key="abcd"), SafetyConfig())
