@@ -112,7 +112,9 @@ def _without_ages(snapshot: dict[str, Any]) -> str:
     return json.dumps(vehicles, sort_keys=True)
 
 
-def supervisor_router(store: SessionStore, *, poll_interval_s: float = 0.25, keepalive_s: float = 15.0) -> APIRouter:
+def supervisor_router(
+    store: SessionStore, *, poll_interval_s: float = 0.25, keepalive_s: float = 15.0, max_stream_s: float = 30.0
+) -> APIRouter:
     """The page's routes over the back-end's session store; include it in the app with `include_router`.
 
     Authentication is the API's own (`backend.auth.require_supervisor`: the app's `auth.supervisor_token`).
@@ -142,9 +144,11 @@ def supervisor_router(store: SessionStore, *, poll_interval_s: float = 0.25, kee
 
         async def stream() -> AsyncIterator[str]:
             last = None
-            last_sent = time.monotonic()
+            opened = last_sent = time.monotonic()
             yield "retry: 1000\n\n"
-            while not await request.is_disconnected():
+            # A stream ends after max_stream_s and the page reconnects at once: a server shutting down
+            # (uvicorn waits for open responses) or a proxy's idle limit never holds a stream for long.
+            while not await request.is_disconnected() and time.monotonic() - opened < max_stream_s:
                 snapshot = view.snapshot()
                 content = _without_ages(snapshot)
                 if content != last:

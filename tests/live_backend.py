@@ -32,19 +32,12 @@ def free_port() -> int:
 
 
 @contextmanager
-def live_backend(models_dir: Path, verifier: str = "none") -> Iterator[LiveBackend]:
-    """The back-end with YOLOX-nano from the shared models, the test tokens and `verifier` ("local": the
-    colour verifier that runs here; "none": detector only)."""
-    config = BackendConfig(
-        auth=AuthConfig(tokens=VEHICLE_TOKENS, supervisor_token=SUPERVISOR_TOKEN),
-        detector=DetectorConfig(kind="yolox", model_dir=str(models_dir)),
-        verifier=VerifierConfig(kind=verifier),
-    )
-    app = create_app(config)
+def serve(app: object) -> Iterator[str]:
+    """Any ASGI app on a loopback port, served by uvicorn in a thread; yields its base URL."""
     port = free_port()
-    # A short graceful-shutdown timeout: open Server-Sent Event streams must not hold the test up.
+    # A short graceful-shutdown timeout: an open Server-Sent Event stream must not hold the test up.
     server = uvicorn.Server(
-        uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", timeout_graceful_shutdown=1)
+        uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", timeout_graceful_shutdown=1)  # type: ignore[arg-type]
     )
     thread = threading.Thread(target=server.run, name="live-backend", daemon=True)
     thread.start()
@@ -54,7 +47,21 @@ def live_backend(models_dir: Path, verifier: str = "none") -> Iterator[LiveBacke
             raise RuntimeError("the back-end did not start")
         time.sleep(0.02)
     try:
-        yield LiveBackend(f"http://127.0.0.1:{port}", app)
+        yield f"http://127.0.0.1:{port}"
     finally:
         server.should_exit = True
         thread.join(timeout=15)
+
+
+@contextmanager
+def live_backend(models_dir: Path, verifier: str = "none") -> Iterator[LiveBackend]:
+    """The back-end with YOLOX-nano from the shared models, the test tokens and `verifier` ("local": the
+    colour verifier that runs here; "none": detector only)."""
+    config = BackendConfig(
+        auth=AuthConfig(tokens=VEHICLE_TOKENS, supervisor_token=SUPERVISOR_TOKEN),
+        detector=DetectorConfig(kind="yolox", model_dir=str(models_dir)),
+        verifier=VerifierConfig(kind=verifier),
+    )
+    app = create_app(config)
+    with serve(app) as url:
+        yield LiveBackend(url, app)

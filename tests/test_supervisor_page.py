@@ -13,8 +13,12 @@ import cv2
 import httpx
 import numpy as np
 import pytest
+from fastapi import FastAPI
 
-from tests.live_backend import SUPERVISOR_TOKEN, VEHICLE_TOKENS, LiveBackend, live_backend
+from backend.config import AuthConfig, BackendConfig
+from backend.sessions import SessionStore
+from backend.supervisor_routes import supervisor_router
+from tests.live_backend import SUPERVISOR_TOKEN, VEHICLE_TOKENS, LiveBackend, live_backend, serve
 
 SUPERVISOR = {"Authorization": f"Bearer {SUPERVISOR_TOKEN}"}
 DRONE = {"Authorization": f"Bearer {VEHICLE_TOKENS['drone-1']}"}
@@ -168,3 +172,17 @@ def test_a_crop_that_is_not_base64_is_a_clear_error(backend: LiveBackend) -> Non
         assert response.status_code == 422 and "base64" in response.json()["detail"]
         missing = client.get("/supervisor/api/vehicles/drone-1/candidates/c-39/crop.jpg", headers=SUPERVISOR)
         assert missing.status_code == 404
+
+
+def test_an_event_stream_ends_after_its_lifetime_so_shutdowns_are_never_held() -> None:
+    """uvicorn waits for open responses when it stops; the page reconnects when a stream ends."""
+    app = FastAPI()
+    app.state.config = BackendConfig(auth=AuthConfig(supervisor_token=SUPERVISOR_TOKEN))
+    app.include_router(supervisor_router(SessionStore(), poll_interval_s=0.05, max_stream_s=1.0))
+    with serve(app) as url, httpx.Client(base_url=url, timeout=15) as client:
+        started = time.monotonic()
+        with client.stream("GET", "/supervisor/events", headers=SUPERVISOR) as stream:
+            lines = list(stream.iter_lines())  # returns only when the server ends the stream
+        took = time.monotonic() - started
+    assert "event: state" in lines
+    assert 1.0 <= took < 10.0, took

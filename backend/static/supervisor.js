@@ -43,6 +43,8 @@ async function login(event) {
   }
   sessionStorage.setItem(TOKEN_KEY, token);
   $("#login").hidden = true;
+  $("#login-error").textContent = "";
+  $("#token").value = "";
   $("#logout").hidden = false;
   render(await response.json());
   connect();
@@ -74,6 +76,9 @@ async function connect(delayMs = 1000) {
         buffer = buffer.slice(end + 2);
       }
     }
+    // The server ends every stream after a while (see supervisor_routes): open the next one at once.
+    if (!signal.aborted) connect();
+    return;
   } catch (error) {
     if (signal.aborted) return;
   }
@@ -162,8 +167,9 @@ function renderCandidates(card, vehicle) {
     for (const button of item.querySelectorAll(".decide button")) button.disabled = !open || item.dataset.sent === "1";
     if (!open) $(".decision", item).textContent = candidate.status;
     const crop = $(".crop", item);
+    crop.hidden = !candidate.crop_url;
+    $(".no-crop", item).hidden = Boolean(candidate.crop_url);
     if (candidate.crop_url) loadCrop(crop, candidate.crop_url);
-    else crop.alt = "no crop sent by the vehicle";
   }
   for (const item of box.querySelectorAll("article.candidate")) {
     if (!seen.has(item.dataset.candidate)) item.remove();

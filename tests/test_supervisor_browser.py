@@ -1,0 +1,208 @@
+"""The supervisor page end to end in a real headless browser (Debian's chromium driven by Playwright).
+
+A running companion (`cloudtrack-companion run`: SITL autopilot, a live camera stream of a real
+sequence, the real back-end with YOLOX-nano and the local colour verifier) finds the man in the
+green-and-white striped shirt and waits for the supervisor. In the browser the supervisor logs in, sees
+the candidate arrive live, clicks Confirm, and watches the companion's state become CONFIRMED; the
+companion's flight record shows the decision and replays with no decision differences. A second
+vehicle's candidate, posted through the vehicle-status API, shows its crop, and text from a vehicle is
+shown as text, never run as HTML. A screenshot is kept as a test artefact.
+"""
+
+from __future__ import annotations
+
+import base64
+import os
+import signal
+import subprocess
+import sys
+from collections.abc import Iterator
+from functools import partial
+from pathlib import Path
+
+import cv2
+import httpx
+import numpy as np
+import pytest
+from playwright.sync_api import Page, expect, sync_playwright
+
+from companion.flight_record import read_events
+from companion.gcs_cli import _tunnel
+from companion.gcs_link import CMD_START, encode_prompt
+from companion.mavlink_connection import MavlinkEndpoint
+from companion.replay import load_recording, replay
+from tests.camera_stream import CAMERA_FPS, CameraStream
+from tests.live_backend import SUPERVISOR_TOKEN, VEHICLE_TOKENS, live_backend
+from tests.mavlink_harness import autopilot, gcs, receive_until
+
+REPO = Path(__file__).resolve().parents[1]
+CHROMIUM = "/usr/bin/chromium"
+# Without the background-networking flags chromium floods the machine with refused connections.
+CHROMIUM_ARGS = [
+    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+    "--disable-background-networking", "--disable-component-update", "--disable-sync",
+]  # fmt: skip
+PROMPT = "a man in a green-and-white striped shirt"
+# The person's feet in the first frames put them about 23 m away from the vehicle 20 m up, so with this
+# stand-off the companion has arrived at once and asks the supervisor (the recorded frames cannot move).
+STANDOFF_M = 23.0
+HOSTILE = '<img src=x onerror="document.title=\'pwned\'">'
+SCREENSHOT = REPO / "out" / "test-artifacts" / "supervisor-confirmed.png"
+
+
+@pytest.fixture
+def page() -> Iterator[Page]:
+    assert Path(CHROMIUM).is_file(), f"{CHROMIUM} is missing: `make test` installs Debian's chromium"
+    with sync_playwright() as playwright:
+        browser = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        try:
+            yield browser.new_page(viewport={"width": 1280, "height": 900})
+        finally:
+            browser.close()
+
+
+def start_mission(ground: MavlinkEndpoint) -> None:
+    """The GCS's mission start over MAVLink: the prompt in TUNNEL chunks, then MAV_CMD_USER_1, resent
+    until acknowledged (the autopilot routes to the companion only once it has heard it)."""
+    heard = receive_until(ground, lambda m: m.get_type() == "HEARTBEAT" and m.get_srcComponent() == 191, 60.0)
+    assert heard is not None, "the companion's heartbeat never reached the GCS"
+    chunks = encode_prompt(3, "person", PROMPT)
+    length = sum(len(p) - 4 for p in chunks)
+    for _ in range(5):
+        for payload in chunks:
+            ground.send(partial(_tunnel, target=(1, 191), payload=payload))
+        ground.send(lambda m: m.command_long_send(1, 191, CMD_START, 0, 3, len(chunks), 0, length, 0, 0, 0))
+        ack = receive_until(ground, lambda m: m.get_type() == "COMMAND_ACK" and m.command == CMD_START, 2.0)
+        if ack is not None:
+            assert ack.result == 0, ack
+            return
+    raise AssertionError("the companion never acknowledged the mission start")
+
+
+def post_other_vehicle(url: str, sequences_dir: Path) -> bytes:
+    """drone-2 reports a candidate with a real crop through the vehicle-status API; the crop's bytes."""
+    seq = sequences_dir / "uav123_person12_1"
+    frame = cv2.imread(str(seq / "frames" / "000001.jpg"))
+    assert frame is not None
+    x, y, w, h = (int(float(v)) for v in (seq / "groundtruth.txt").read_text().splitlines()[0].split(","))
+    ok, jpeg = cv2.imencode(".jpg", frame[max(0, y - 50) : y + h + 50, max(0, x - 50) : x + w + 50])
+    assert ok
+    body = {
+        "mission_id": "m-2",
+        "state": "AWAITING_SUPERVISOR",
+        "prompt": PROMPT,
+        "awaiting": {
+            "candidate_id": "d2-c1",
+            "box": [x, y, x + w, y + h],
+            "verdict": "uncertain",
+            "justification": f"stripes hard to see {HOSTILE}",
+            "crop_jpeg_b64": base64.b64encode(jpeg.tobytes()).decode(),
+            "position": [47.39801, 8.54612],
+        },
+    }
+    headers = {"Authorization": f"Bearer {VEHICLE_TOKENS['drone-2']}"}
+    response = httpx.post(f"{url}/v1/vehicles/drone-2/status", json=body, headers=headers, timeout=10)
+    assert response.status_code == 200, response.text
+    return jpeg.tobytes()
+
+
+def test_supervisor_confirms_a_running_companions_candidate_in_a_real_browser(
+    page: Page, tmp_path: Path, models_dir: Path, sequences_dir: Path
+) -> None:
+    records = tmp_path / "records"
+    with (
+        live_backend(models_dir, verifier="local") as backend,
+        autopilot("ardupilot") as sim,
+        gcs(sim) as ground,
+        CameraStream(sequences_dir / "uav123_person12_1" / "frames", count=8) as camera,
+    ):
+        settings = {
+            "vehicle.id": "drone-1",
+            "mavlink.connection": f"udpout:127.0.0.1:{sim.link_port('companion')}",
+            "camera.source": f"sim+tcp://127.0.0.1:{camera.port}",
+            "camera.fps": CAMERA_FPS,
+            "backend.url": backend.url,
+            "behavior.standoff_m": STANDOFF_M,
+            "recording.dir": str(records),
+        }
+        command = [sys.executable, "-m", "companion.cli", "run", "--model-dir", str(models_dir)]
+        for key, value in settings.items():
+            command += ["--set", f"{key}={value}"]
+        env = {**os.environ, "CLOUDTRACK_BACKEND__TOKEN": VEHICLE_TOKENS["drone-1"]}
+        log_path = tmp_path / "companion.log"
+        with open(log_path, "w") as log:
+            companion = subprocess.Popen(command, env=env, stdout=log, stderr=subprocess.STDOUT)
+        try:
+            crop = post_other_vehicle(backend.url, sequences_dir)
+
+            # The supervisor opens the page: a token is asked for, a wrong one is refused.
+            page.goto(f"{backend.url}/supervisor")
+            expect(page.locator("#login")).to_be_visible()
+            page.fill("#token", "not-the-token")
+            page.click("#login button[type=submit]")
+            expect(page.locator("#login-error")).to_contain_text("not accepted")
+            page.fill("#token", SUPERVISOR_TOKEN)
+            page.click("#login button[type=submit]")
+            expect(page.locator("#connection")).to_have_text("live", timeout=15_000)
+            expect(page.locator("#login")).to_be_hidden()
+
+            # drone-2's candidate: its crop, and the hostile justification shown as plain text.
+            other = page.locator('section[data-vehicle="drone-2"] article[data-candidate="d2-c1"]')
+            expect(other.locator(".justification")).to_have_text(f"stripes hard to see {HOSTILE}")
+            expect(other.locator(".verdict")).to_have_text("uncertain")
+            expect(other.locator(".position")).to_contain_text("47.398010, 8.546120")
+            page.wait_for_function(
+                "el => el.complete && el.naturalWidth > 0", arg=other.locator(".crop").element_handle(), timeout=10_000
+            )
+            width = other.locator(".crop").evaluate("el => el.naturalWidth")
+            decoded = cv2.imdecode(np.frombuffer(crop, np.uint8), cv2.IMREAD_COLOR)
+            assert width == decoded.shape[1]
+            assert page.title() != "pwned" and page.locator("section img[src='x']").count() == 0
+
+            # The companion flies the mission; its candidate appears live, with no reload.
+            assert companion.poll() is None, log_path.read_text()[-3000:]
+            start_mission(ground)
+            mine = page.locator('section[data-vehicle="drone-1"]')
+            candidate = mine.locator("article.candidate")
+            try:
+                expect(candidate).to_have_count(1, timeout=60_000)
+            except AssertionError:
+                raise AssertionError("no candidate from the companion:\n" + log_path.read_text()[-4000:]) from None
+            expect(mine.locator(".state")).to_have_text("AWAITING_SUPERVISOR")
+            expect(mine.locator(".mission")).to_contain_text(PROMPT)
+            expect(candidate.locator(".verdict")).to_have_text("yes")
+            expect(candidate.locator(".justification")).to_contain_text("green")
+            expect(candidate.locator(".age")).to_contain_text("s ago")
+            expect(candidate.locator(".position")).to_contain_text(",")
+            # The companion's status carries no crop (yet): the page says so instead of a broken image.
+            expect(candidate.locator(".no-crop")).to_be_visible()
+
+            SCREENSHOT.parent.mkdir(parents=True, exist_ok=True)
+            page.screenshot(path=str(SCREENSHOT.with_name("supervisor-candidate.png")), full_page=True)
+            candidate.locator("button.confirm").click()
+            expect(candidate.locator(".decision")).to_contain_text("confirm sent")
+            expect(mine.locator(".state")).to_have_text("CONFIRMED", timeout=20_000)
+
+            page.screenshot(path=str(SCREENSHOT), full_page=True)
+            print(f"screenshots: {SCREENSHOT.with_name('supervisor-candidate.png')} {SCREENSHOT}")
+            page.goto("about:blank")  # close the live stream before the back-end stops
+        finally:
+            if companion.poll() is None:
+                companion.send_signal(signal.SIGTERM)
+                try:
+                    companion.wait(timeout=15)
+                except subprocess.TimeoutExpired:
+                    companion.kill()
+                    companion.wait()
+    assert companion.returncode == 0, log_path.read_text()[-3000:]
+
+    # The companion's own record: the supervisor's decision and the state it led to ...
+    (folder,) = [p for p in records.iterdir() if p.is_dir()]
+    entries = read_events(folder)
+    decisions = [e for e in entries if e["kind"] == "supervisor_decision"]
+    assert [d["decision"] for d in decisions] == ["confirm"]
+    assert any(e["kind"] == "state" and e["new"] == "CONFIRMED" for e in entries)
+    # ... and the mission, replayed through the behaviours, makes every decision the same way.
+    report = replay(load_recording(folder), folder)
+    assert report.steps > 50 and report.identical, [d.describe() for d in report.differences[:3]]
+    assert SCREENSHOT.stat().st_size > 10_000
