@@ -27,6 +27,7 @@ COMMAND_MODULES = (
     "companion.run_command",
     "companion.service_command",
     "companion.replay_command",
+    "companion.eval_command",
 )
 
 

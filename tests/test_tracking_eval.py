@@ -1,0 +1,143 @@
+"""mIoU as the paper defines it, sequence loading, the eval engine and the `eval` command."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from behaviors.geometry import Box
+from behaviors.tracking_metrics import frame_ious, mean_iou, pooled_miou
+from companion.cli import main
+from companion.config import TrackerConfig
+from companion.tracking_eval import (
+    DetectionCache,
+    EvalSettings,
+    evaluate_sequence,
+    load_sequence,
+    parse_size,
+    parse_sweep,
+    signal_table,
+)
+
+A = Box(0, 0, 10, 10)
+HALF = Box(5, 0, 10, 10)  # IoU with A = 50 / 150
+
+
+def test_miou_counts_missing_boxes_as_zero_and_excludes_nan_frames() -> None:
+    predicted = [A, None, HALF, A, None]
+    truth = [A, A, A, None, None]  # frames 4-5: target hidden (nan)
+    assert frame_ious(predicted, truth) == [1.0, 0.0, pytest.approx(1 / 3), None, None]
+    result = mean_iou(predicted, truth)
+    assert result.gt_frames == 3
+    assert result.miou == pytest.approx((1 + 0 + 1 / 3) / 3)
+    assert result.false_tracks == 1  # a box reported while the target was hidden
+    assert result.missed_frames == 1
+    other = mean_iou([A], [A])
+    assert pooled_miou([result, other]) == pytest.approx((1 + 1 / 3 + 1) / 4)
+    assert math.isnan(mean_iou([A], [None]).miou)
+    with pytest.raises(ValueError, match="predictions"):
+        mean_iou([A], [A, A])
+
+
+def test_sweep_and_size_parsing() -> None:
+    assert parse_sweep("0.3:0.95:0.05")[0] == 0.3 and parse_sweep("0.3:0.95:0.05")[-1] == 0.95
+    assert len(parse_sweep("0.3:0.95:0.05")) == 14
+    assert parse_size("640x480") == (640, 480)
+    for bad in ("0.3:0.1:0.05", "0.3:0.9", "a:b:c"):
+        with pytest.raises(ValueError):
+            parse_sweep(bad)
+    with pytest.raises(ValueError, match="WIDTHxHEIGHT"):
+        parse_size("640")
+
+
+def test_sequence_loading_reads_nan_frames(tmp_path: Path) -> None:
+    (tmp_path / "groundtruth.txt").write_text("1,2,3,4\nnan,nan,nan,nan\n5 6 7 8\n")
+    (tmp_path / "referring.txt").write_text("the man in red\n")
+    seq = load_sequence(tmp_path)
+    assert seq.ground_truth == (Box(1, 2, 3, 4), None, Box(5, 6, 7, 8))
+    assert seq.referring == "the man in red" and seq.fps == 30.0
+    with pytest.raises(FileNotFoundError, match="groundtruth.txt"):
+        load_sequence(tmp_path / "nothing")
+
+
+def test_uav123_sequences_run_at_10_fps(sequences_dir: Path) -> None:
+    assert load_sequence(sequences_dir / "uav123_person12_1").fps == 10.0
+
+
+def test_evaluate_sequence_tracks_and_reinitialises(models_dir: Path, sequences_dir: Path) -> None:
+    seq = load_sequence(sequences_dir / "otb_Crossing")
+    result = evaluate_sequence(seq, TrackerConfig(), models_dir, EvalSettings(tracker="nano", max_frames=30))
+    assert result.frames == 30 and result.gt_frames == 30
+    assert result.miou > 0.5 and result.fps > 0 and result.edge_fps > 0
+    assert result.reinits == 0
+
+    # KCF loses this pedestrian; candidates at the ground-truth position bring it back.
+    def oracle(image, frame_id):  # type: ignore[no-untyped-def]
+        from behaviors.detection import Detection
+
+        return [Detection(seq.ground_truth[frame_id - 1], 0.9)]
+
+    cache = DetectionCache(oracle)
+    plain = evaluate_sequence(seq, TrackerConfig(), models_dir, EvalSettings(tracker="kcf", max_frames=60))
+    helped = evaluate_sequence(seq, TrackerConfig(), models_dir, EvalSettings(tracker="kcf", max_frames=60), cache)
+    assert plain.loss_events >= 1 and helped.reinits >= 1 and cache.calls >= 1
+    assert helped.miou > plain.miou
+
+
+def test_occlusion_hides_the_target_and_marks_frames_nan(models_dir: Path, sequences_dir: Path) -> None:
+    seq = load_sequence(sequences_dir / "uav123_wakeboard7")
+    result = evaluate_sequence(seq, TrackerConfig(), models_dir, EvalSettings(tracker="nano", occlude=True))
+    assert result.gt_frames == result.frames - 15  # 1.5 s at 10 fps excluded from the mean
+    report = signal_table([seq], TrackerConfig(), models_dir, "nano", occlude=True)
+    assert report.lost_frames >= 15  # at least the hidden frames are off target
+    assert report.combos["+ geometry + appearance"].fired_lost >= report.combos["paper (score + ok flag)"].fired_lost
+
+
+def test_eval_command_writes_json_and_a_plot(models_dir: Path, sequences_dir: Path, tmp_path: Path,
+                                             capsys: pytest.CaptureFixture[str]) -> None:
+    out, plot = tmp_path / "eval.json", tmp_path / "ious.png"
+    code = main([
+        "eval", str(sequences_dir / "otb_Crossing"), "--tracker", "nano,csrt", "--max-frames", "15",
+        "--model-dir", str(models_dir), "--detector", "none", "--json", str(out), "--plot", str(plot),
+        "--no-progress",
+    ])
+    assert code == 0
+    data = json.loads(out.read_text())
+    assert [run["tracker"] for run in data["runs"]] == ["nano", "csrt"]
+    assert data["runs"][0]["sequences"][0]["frames"] == 15 and data["runs"][0]["overall"]["miou"] > 0.5
+    assert plot.read_bytes()[:4] == b"\x89PNG"
+    assert "overall" in capsys.readouterr().out
+
+
+def test_eval_sweep_plot(models_dir: Path, sequences_dir: Path, tmp_path: Path) -> None:
+    plot = tmp_path / "sweep.png"
+    code = main([
+        "eval", str(sequences_dir / "otb_Crossing"), "--tracker", "nano,kcf", "--max-frames", "10",
+        "--model-dir", str(models_dir), "--detector", "none", "--sweep", "0.5:0.7:0.2", "--plot", str(plot),
+        "--no-progress",
+    ])
+    assert code == 0 and plot.read_bytes()[:4] == b"\x89PNG"
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (["--tracker", "goturn"], "not provided by this OpenCV build"),
+        (["--threshold", "1.5"], "between 0 and 1"),
+        (["--sweep", "0.9:0.1:0.1"], "STOP >= START"),
+        (["--signals", "score,vibes"], "unknown loss signal"),
+        (["--size", "big"], "WIDTHxHEIGHT"),
+    ],
+)
+def test_eval_command_bad_input(extra: list[str], message: str, sequences_dir: Path, models_dir: Path,
+                                capsys: pytest.CaptureFixture[str]) -> None:
+    code = main(["eval", str(sequences_dir / "otb_Crossing"), "--model-dir", str(models_dir), *extra])
+    assert code == 2 and message in capsys.readouterr().err
+
+
+def test_eval_command_missing_sequence(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["eval", str(tmp_path / "none")]) == 2
+    assert "groundtruth.txt" in capsys.readouterr().err

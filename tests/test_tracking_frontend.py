@@ -1,0 +1,123 @@
+"""The front-end the main loop calls: start, feed, loss latching, C_box re-initialisation, stop."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import pytest
+
+from behaviors.detection import Detection
+from behaviors.geometry import Box, iou
+from cloudtrack.model_store import ModelError
+from companion.config import TrackerConfig
+from companion.frame_sources import Frame
+from companion.tracking_eval import load_sequence
+from companion.tracking_frontend import TrackingFrontend
+
+SEQ = "otb_Crossing"
+
+
+@pytest.fixture(scope="module")
+def crossing(sequences_dir: Path):  # type: ignore[no-untyped-def]
+    seq = load_sequence(sequences_dir / SEQ)
+    frames = [
+        Frame(i + 1, i / seq.fps, cv2.imread(str(seq.path / "frames" / f"{i + 1:06d}.jpg"))) for i in range(30)
+    ]
+    return seq, frames
+
+
+def _frontend(models_dir: Path, **kwargs: object) -> TrackingFrontend:
+    return TrackingFrontend.from_config(TrackerConfig(), models_dir, tracker_name="nano", **kwargs)
+
+
+def test_idle_then_tracks_from_start(models_dir: Path, crossing) -> None:  # type: ignore[no-untyped-def]
+    seq, frames = crossing
+    fe = _frontend(models_dir)
+    first = fe.feed(frames[0])
+    assert first.lost_reason == "idle" and first.box is None and not first.trusted
+    assert fe.start(1, seq.ground_truth[0])
+    ious = []
+    for frame in frames[1:20]:
+        result = fe.feed(frame)
+        assert result.frame_id == frame.frame_id and result.trusted, result
+        ious.append(iou(result.box, seq.ground_truth[frame.frame_id - 1]))
+    assert min(ious) > 0.4
+    assert fe.last_trusted_frame_id == 20 and fe.stats.reinits == 1 and fe.stats.loss_events == 0
+
+
+def test_candidates_are_chosen_by_c_box_not_by_score(models_dir: Path, crossing) -> None:  # type: ignore[no-untyped-def]
+    seq, frames = crossing
+    fe = _frontend(models_dir)
+    fe.feed(frames[0])
+    fe.start(1, seq.ground_truth[0])
+    for frame in frames[1:10]:
+        fe.feed(frame)
+    truth = seq.ground_truth[9]
+    near = Detection(Box(truth.x + 2, truth.y + 1, truth.w + 1, truth.h - 2), 0.4, candidate_id="near")
+    distractor = Detection(Box(truth.x + 60, truth.y - 20, truth.w, truth.h), 0.95, candidate_id="other")
+    chosen = fe.apply_candidates(10, [distractor, near])
+    assert chosen is not None and chosen.candidate_id == "near"
+    assert fe.catching_up
+    result = fe.feed(frames[10])
+    assert result.trusted and iou(result.box, seq.ground_truth[10]) > 0.4
+    assert fe.stats.reinits == 2
+
+    reference = _frontend(models_dir, policy="score")  # the reference code: highest detector score
+    reference.feed(frames[0])
+    reference.start(1, seq.ground_truth[0])
+    chosen = reference.apply_candidates(1, [near, distractor])
+    assert chosen is not None and chosen.candidate_id == "other"
+
+
+def test_far_candidates_are_gated_and_no_trusted_box_means_no_choice(models_dir: Path, crossing) -> None:  # type: ignore[no-untyped-def]
+    seq, frames = crossing
+    fe = _frontend(models_dir)
+    fe.feed(frames[0])
+    assert fe.apply_candidates(1, [Detection(seq.ground_truth[0], 0.9)]) is None  # nothing trusted yet
+    fe.start(1, seq.ground_truth[0])
+    fe.feed(frames[1])
+    truth = seq.ground_truth[1]
+    far = Detection(Box(truth.x + 250, truth.y + 100, truth.w, truth.h), 0.99)
+    assert fe.apply_candidates(2, [far]) is None
+    assert fe.stats.rejected_candidates == 1 and not fe.catching_up
+    assert fe.apply_candidates(2, []) is None
+
+
+def test_loss_is_latched_until_reinitialised(models_dir: Path, crossing) -> None:  # type: ignore[no-untyped-def]
+    seq, frames = crossing
+    fe = _frontend(models_dir)
+    fe.feed(frames[0])
+    fe.start(1, seq.ground_truth[0])
+    fe.feed(frames[1])
+    # Restart on a patch of road, then make the jump signal hair-trigger: the first loss must latch.
+    road = Box(20, 200, 17, 30)
+    fe.start(2, road)
+    results = [fe.feed(f) for f in frames[2:8]]
+    assert results[0].trusted  # a fresh start on a box is trusted at first
+    fe.loss.settings = fe.loss.settings.__class__(**{**fe.loss.settings.__dict__, "max_jump_box_sizes": 0.01})
+    later = [fe.feed(f) for f in frames[8:14]]
+    lost = [r for r in later if r.lost_reason]
+    assert lost and all(r.lost_reason == lost[0].lost_reason for r in later[later.index(lost[0]):])
+    assert fe.stats.loss_events == 1
+    assert fe.start(14, seq.ground_truth[13])
+    assert fe.feed(frames[14]).lost_reason == ""
+
+
+def test_stop_and_stale_answers(models_dir: Path, crossing) -> None:  # type: ignore[no-untyped-def]
+    seq, frames = crossing
+    fe = TrackingFrontend.from_config(TrackerConfig(ring_buffer_frames=5), models_dir, tracker_name="nano")
+    for frame in frames[:10]:
+        fe.feed(frame)
+    assert not fe.start(1, seq.ground_truth[0])  # keyframe 1 left the 5-frame ring
+    assert fe.stats.stale_answers == 1
+    assert not fe.start(9, Box(0, 0, 0, 0))  # invalid box refused
+    assert fe.start(9, seq.ground_truth[8])
+    assert fe.feed(frames[10]).trusted
+    fe.stop()
+    assert fe.feed(frames[11]).lost_reason == "idle" and fe.last_trusted_box is None
+
+
+def test_missing_weights_fail_at_construction(tmp_path: Path) -> None:
+    with pytest.raises(ModelError, match="nanotrack_backbone_sim.onnx"):
+        TrackingFrontend.from_config(TrackerConfig(), tmp_path)
