@@ -194,6 +194,7 @@ def longest_gap(times: list[float], start: float, end: float) -> float:
     return max(b - a for a, b in zip(points, points[1:], strict=False))
 
 
+@pytest.mark.slow
 def test_companion_speaks_sd_notify_and_stops_setpoints_on_sigterm(
     tmp_path: Path, models_dir: Path, camera: CameraStream
 ) -> None:

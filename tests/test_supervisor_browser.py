@@ -106,6 +106,7 @@ def post_other_vehicle(url: str, sequences_dir: Path) -> bytes:
     return jpeg.tobytes()
 
 
+@pytest.mark.slow
 def test_supervisor_confirms_a_running_companions_candidate_in_a_real_browser(
     page: Page, tmp_path: Path, models_dir: Path, sequences_dir: Path
 ) -> None:
