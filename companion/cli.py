@@ -28,6 +28,7 @@ COMMAND_MODULES = (
     "companion.service_command",
     "companion.replay_command",
     "companion.eval_command",
+    "companion.bench_command",
 )
 
 

@@ -141,3 +141,28 @@ def test_eval_command_bad_input(extra: list[str], message: str, sequences_dir: P
 def test_eval_command_missing_sequence(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["eval", str(tmp_path / "none")]) == 2
     assert "groundtruth.txt" in capsys.readouterr().err
+
+
+def test_bench_runs_the_whole_loop_and_mavlink_reaches_loopback(
+    models_dir: Path, sequences_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "bench.json"
+    code = main([
+        "bench", "--tracker", "nano", "--sequence", str(sequences_dir / "uav123_person12_1"), "--frames", "20",
+        "--passes", "1", "--model-dir", str(models_dir), "--json", str(out),
+    ])
+    assert code == 0
+    data = json.loads(out.read_text())
+    assert data["size"] == [640, 480] and data["frames"] == 19
+    assert data["setpoints_sent"] == 19 and data["setpoints_received"] == 19  # decoded as SET_POSITION_TARGET_LOCAL_NED
+    assert data["trusted_frames"] == 19
+    assert data["bare_fps"] > 0 and data["loop_fps"] > 0 and data["latency_p95_ms"] >= data["latency_p50_ms"]
+    printed = capsys.readouterr().out
+    assert "ratio loop / bare" in printed and "peak memory" in printed
+
+
+def test_bench_bad_input(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    assert main(["bench", "--size", "huge"]) == 2
+    assert "WIDTHxHEIGHT" in capsys.readouterr().err
+    assert main(["bench", "--sequence", str(tmp_path)]) == 2
+    assert "groundtruth.txt" in capsys.readouterr().err
