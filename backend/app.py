@@ -44,6 +44,7 @@ from backend.schemas import (
     VehicleStatus,
     VehicleStatusIn,
 )
+from backend.service_lifecycle import lifecycle_router
 from backend.sessions import SessionStore, UnknownCandidateError
 from backend.supersets import UnknownSupersetError, known_supersets, superset_from_prompt
 from backend.supervisor_routes import supervisor_router
@@ -106,6 +107,7 @@ def create_app(
     _add_detection_routes(app)
     _add_session_routes(app)
     app.include_router(supervisor_router(app.state.sessions))
+    app.include_router(lifecycle_router())  # sd_notify READY/WATCHDOG/STOPPING under systemd
     return app
 
 

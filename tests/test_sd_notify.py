@@ -282,3 +282,48 @@ def test_companion_speaks_sd_notify_and_stops_setpoints_on_sigterm(
             ground, lambda m: m.get_type() == "STATUSTEXT" and "stopping" in str(m.text), 3.0
         )
         assert stopping is not None, "the GCS was not told"
+
+
+@pytest.mark.slow
+def test_backend_speaks_sd_notify_and_stops_on_sigterm(tmp_path: Path, models_dir: Path) -> None:
+    """`cloudtrack-backend serve` as config/cloudtrack-backend.service runs it (Type=notify)."""
+    listener = NotifyListener(tmp_path / "notify")
+    port = free_port()
+    env = {**os.environ, "NOTIFY_SOCKET": str(listener.path), "WATCHDOG_USEC": str(WATCHDOG_USEC)}
+    env.pop("WATCHDOG_PID", None)
+    command = [
+        sys.executable, "-m", "backend.cli", "serve", "--set", f"server.port={port}",
+        "--set", f"detector.model_dir={models_dir}", "--set", "verifier.kind=none",
+    ]  # fmt: skip
+    log_path = tmp_path / "backend.log"
+    with open(log_path, "w") as log:
+        proc = subprocess.Popen(command, env=env, stdout=log, stderr=subprocess.STDOUT)
+    try:
+        assert wait_for(lambda: listener.times("READY=1"), 60.0), log_path.read_text()[-3000:]
+        ready = listener.times("READY=1")[0]
+        health = wait_for(lambda: _health(port), 10.0)
+        assert health and health["status"] == "ok"
+        assert wait_for(lambda: len(listener.times("WATCHDOG=1", ready)) >= 3, 15.0), "no watchdog pings"
+        proc.send_signal(signal.SIGTERM)
+        sent = time.monotonic()
+        returncode = proc.wait(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        listener.close()
+    assert listener.times("STOPPING=1", sent), "no STOPPING=1"
+    # uvicorn re-raises the SIGTERM it handled once it has shut down; systemd counts SIGTERM as a clean
+    # exit (so Restart=on-failure does not restart a stopped service).
+    assert returncode in (0, -signal.SIGTERM), log_path.read_text()[-3000:]
+    assert "Application shutdown complete" in log_path.read_text()
+
+
+def _health(port: int) -> dict[str, object] | None:
+    import httpx
+
+    try:
+        response = httpx.get(f"http://127.0.0.1:{port}/health", timeout=2)
+    except httpx.HTTPError:
+        return None
+    return response.json() if response.status_code == 200 else None

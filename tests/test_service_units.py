@@ -128,3 +128,27 @@ def test_install_into_unwritable_place_is_a_clear_error(tmp_path: Path) -> None:
     )
     assert result.returncode == 1
     assert "error:" in result.stderr and "Traceback" not in result.stderr
+
+
+def test_backend_install_names_the_backend_program_and_its_config(tmp_path: Path) -> None:
+    unit_dir, config_dir = tmp_path / "units", tmp_path / "etc"
+    result = subprocess.run(
+        [*CLI, "service", "install", "--backend", "--unit-dir", str(unit_dir), "--config-dir", str(config_dir)],
+        capture_output=True,
+        text=True,
+    )
+    assert result.returncode == 0, result.stderr
+    from backend.cli import build_parser as backend_parser
+    from backend.config import BackendConfig
+
+    exec_start = value(parse_unit((unit_dir / "cloudtrack-backend.service").read_text())["Service"], "ExecStart").split()
+    assert Path(exec_start[0]).name == "cloudtrack-backend" and Path(exec_start[0]).is_file()
+    parsed = backend_parser().parse_args(exec_start[1:])
+    assert parsed.command == "serve" and Path(parsed.config) == config_dir / "backend.toml"
+    assert load_config(BackendConfig, config_dir / "backend.toml", env_prefix="CLOUDTRACK_BACKEND_", environ={}) == BackendConfig()
+    verify = subprocess.run(
+        [shutil.which("systemd-analyze") or "systemd-analyze", "verify", "--man=no", str(unit_dir / "cloudtrack-backend.service")],
+        capture_output=True,
+        text=True,
+    )
+    assert verify.returncode == 0 and "Unknown" not in verify.stderr, verify.stderr
