@@ -8,7 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from backend.detectors.yolox import YoloxDetector, nms
+from backend.detectors.nms import nms
+from backend.detectors.yolox import YoloxDetector
 from backend.supersets import UnknownSupersetError, coco_classes_for, superset_from_prompt
 from behaviors.geometry import Box, iou
 

@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 import onnxruntime as ort
 
+from backend.detectors.nms import class_aware_nms
 from backend.supersets import COCO_CLASSES, coco_classes_for
 from behaviors.detection import Detection
 from behaviors.geometry import Box
@@ -32,25 +33,6 @@ def _grids(size: int) -> tuple[np.ndarray, np.ndarray]:
         cells.append(np.stack((xs, ys), axis=-1).reshape(-1, 2))
         strides.append(np.full((n * n, 1), stride))
     return np.concatenate(cells).astype(np.float32), np.concatenate(strides).astype(np.float32)
-
-
-def nms(boxes_xyxy: np.ndarray, scores: np.ndarray, iou_threshold: float) -> list[int]:
-    """Indices kept by greedy non-maximum suppression, highest score first."""
-    order = np.argsort(-scores, kind="stable")
-    x1, y1, x2, y2 = boxes_xyxy.T
-    areas = np.maximum(0, x2 - x1) * np.maximum(0, y2 - y1)
-    keep: list[int] = []
-    while order.size:
-        i = int(order[0])
-        keep.append(i)
-        rest = order[1:]
-        iw = np.maximum(0, np.minimum(x2[i], x2[rest]) - np.maximum(x1[i], x1[rest]))
-        ih = np.maximum(0, np.minimum(y2[i], y2[rest]) - np.maximum(y1[i], y1[rest]))
-        inter = iw * ih
-        union = areas[i] + areas[rest] - inter
-        overlap = np.where(union > 0, inter / np.maximum(union, 1e-9), 0)
-        order = rest[overlap <= iou_threshold]
-    return keep
 
 
 class YoloxDetector:
@@ -104,9 +86,7 @@ class YoloxDetector:
         xyxy = np.concatenate((centres - sizes / 2, centres + sizes / 2), axis=1) / ratio
         h, w = image_bgr.shape[:2]
         xyxy = np.clip(xyxy, 0, [w, h, w, h])
-        # Class-aware NMS: offset each class so boxes of different classes never suppress each other.
-        offsets = labels[:, None].astype(np.float32) * (max(w, h) + 1)
-        keep = nms(xyxy + offsets, scores, self.nms_threshold)
+        keep = class_aware_nms(xyxy, scores, labels, self.nms_threshold)
         detections = []
         for i in keep:
             box = Box.from_xyxy(*(float(v) for v in xyxy[i]))
