@@ -54,6 +54,21 @@ class TruthBox:
     shirt: str
 
 
+THUMB_SCALE = 0.5  # ground-truth thumbnails: half size, gray, enough to place a crop within the frame
+
+
+@dataclass(frozen=True)
+class FrameTruth:
+    """What one frame showed, without its full pixels: kept for hundreds of frames per camera."""
+
+    frame_id: int
+    time_s: float
+    truth: tuple[TruthBox, ...]
+    pose: VehiclePose
+    size: tuple[int, int]  # (width, height) of the rendered frame
+    thumbnail: np.ndarray  # gray, THUMB_SCALE of the frame
+
+
 @dataclass(frozen=True)
 class RenderedFrame:
     frame_id: int
@@ -61,6 +76,12 @@ class RenderedFrame:
     image: np.ndarray
     truth: tuple[TruthBox, ...]
     pose: VehiclePose
+
+    def record(self) -> FrameTruth:
+        h, w = self.image.shape[:2]
+        gray = cv2.cvtColor(self.image, cv2.COLOR_BGR2GRAY)
+        thumb = cv2.resize(gray, (int(w * THUMB_SCALE), int(h * THUMB_SCALE)), interpolation=cv2.INTER_AREA)
+        return FrameTruth(self.frame_id, self.time_s, self.truth, self.pose, (w, h), thumb)
 
 
 def _rot_z(a: float) -> np.ndarray:

@@ -21,7 +21,7 @@ from collections.abc import Callable
 from pymavlink import mavutil
 
 from behaviors.camera_model import CameraModel
-from sitl.camera_render import RenderedFrame, Renderer, TruthBox, VehiclePose
+from sitl.camera_render import FrameTruth, RenderedFrame, Renderer, VehiclePose
 from sitl.frame_transport import encode_frame
 from sitl.world import World
 
@@ -119,7 +119,7 @@ class CameraServer:
         host: str = "127.0.0.1",
         port: int = 0,
         clock: Callable[[], float] = time.monotonic,
-        truth_frames: int = 900,
+        truth_frames: int = 300,
         frame_id_base: int = 0,
     ) -> None:
         self.renderer = Renderer(world, camera)
@@ -129,7 +129,7 @@ class CameraServer:
         self._clock = clock
         self.epoch = clock()  # world time zero (people start walking); the scenario moves it to mission start
         self.frame_id_base = frame_id_base  # several cameras in one world number their frames apart
-        self._truth: OrderedDict[int, RenderedFrame] = OrderedDict()
+        self._truth: OrderedDict[int, FrameTruth] = OrderedDict()
         self._truth_frames = truth_frames
         self._latest: tuple[int, bytes] | None = None
         self._cond = threading.Condition()
@@ -161,10 +161,10 @@ class CameraServer:
             t.start()
         return self
 
-    def truth(self, frame_id: int) -> tuple[TruthBox, ...] | None:
+    def truth(self, frame_id: int) -> FrameTruth | None:
+        """Ground truth of a recent frame (the last `truth_frames`), None when unknown or too old."""
         with self._cond:
-            frame = self._truth.get(frame_id)
-        return frame.truth if frame else None
+            return self._truth.get(frame_id)
 
     def _render_loop(self) -> None:
         period = 1.0 / self.fps
@@ -175,8 +175,9 @@ class CameraServer:
             t = self.world_time()
             frame = self.renderer.render(self.pose_source(), t, frame_id)
             packet = encode_frame(frame_id, t, time.time(), frame.image)
+            record = frame.record()
             with self._cond:
-                self._truth[frame_id] = frame
+                self._truth[frame_id] = record
                 while len(self._truth) > self._truth_frames:
                     self._truth.popitem(last=False)
                 self._latest = (frame_id, packet)

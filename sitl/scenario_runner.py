@@ -30,7 +30,7 @@ from typing import Any
 
 from behaviors.camera_model import CameraModel
 from behaviors.geometry import Box, iou
-from sitl.camera_render import RenderedFrame, TruthBox, VehiclePose
+from sitl.camera_render import FrameTruth, RenderedFrame, TruthBox, VehiclePose
 from sitl.camera_server import CameraServer, PoseFollower
 from sitl.fault_proxy import FaultProxy
 from sitl.metrics import (
@@ -101,6 +101,7 @@ class _Vehicle:
     rejections: list[tuple[float, str]] = field(default_factory=list)
     proposals: list[tuple[float, str]] = field(default_factory=list)
     ready: bool = False
+    stop_s: float | None = None  # companion exit time after SIGTERM
     start_sent: tuple[float, int] | None = None  # (when, mission id) of the last unacknowledged start
 
 
@@ -154,7 +155,7 @@ class ScenarioRun:
     def say(self, text: str) -> None:
         self.progress(f"[{self.now():6.1f}s] {text}")
 
-    def _truth_lookup(self, frame_id: int) -> tuple[TruthBox, ...] | None:
+    def _truth_lookup(self, frame_id: int) -> FrameTruth | None:
         index = frame_id >> FRAME_ID_BITS
         if 0 <= index < len(self.vehicles):
             return self.vehicles[index].camera.truth(frame_id)
@@ -274,7 +275,7 @@ class ScenarioRun:
             v.state = str(e.get("state", ""))
             v.overlay = OverlayState(v.state, str(e.get("prompt", "")), v.overlay.verdict, v.overlay.box)
             self.say(f"{v.vehicle_id}: {v.state} ({e.get('reason', '')})")
-            if v.state == "confirmed":
+            if v.state == "confirmed" and "supervisor" in str(e.get("reason", "")):
                 v.confirmations.append((t, v.proposals[-1][1] if v.proposals else "none"))
         elif kind == "track":
             box = Box(*e["box"]) if e.get("box") and e.get("trusted") else None
@@ -427,8 +428,8 @@ class ScenarioRun:
             started = time.monotonic()
             try:
                 v.process.wait(timeout=5.0)
-                self.say(f"{v.vehicle_id}: companion exited {v.process.returncode} "
-                         f"{time.monotonic() - started:.2f} s after SIGTERM")
+                v.stop_s = time.monotonic() - started
+                self.say(f"{v.vehicle_id}: companion exited {v.process.returncode} {v.stop_s:.2f} s after SIGTERM")
             except subprocess.TimeoutExpired:
                 v.process.kill()
                 v.process.wait()
@@ -565,6 +566,8 @@ class ScenarioRun:
             o.metrics["confirmed"] = list(o.confirmed_ids)
             o.metrics["rejected"] = [pid for _, pid in o.rejected_ids]
             o.metrics["proposed"] = [pid for _, pid in o.proposals]
+            o.metrics["companion_stop_s"] = None if v.stop_s is None else round(v.stop_s, 3)
+            o.metrics["companion_exit_code"] = v.process.returncode if v.process is not None else None
             results["vehicles"][v.vehicle_id] = o.metrics
         if self.options.json_out is not None:
             self.options.json_out.parent.mkdir(parents=True, exist_ok=True)

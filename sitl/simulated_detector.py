@@ -1,10 +1,12 @@
 """SIMULATION ONLY: a superset "person" detector that answers from the rendered world's ground truth.
 
 It stands in for YOLOX in closed-loop scenarios so the back-end's real verification path (crops with a
-50 px margin, then the local attribute verifier or a VLM endpoint) runs on the rendered pixels. It reads
-the frame id from the frame's timecode strip (`sitl.camera_render.read_timecode`), looks up that frame's
-ground truth and returns a box per visible person, with configurable misses, jitter and false
-positives drawn from a generator seeded by (seed, frame id), so a run is repeatable.
+50 px margin, then the local attribute verifier or a VLM endpoint) runs on the rendered pixels. The
+frame is identified by the `frame_id` the companion sent (the SITL stream's own ids), else by the
+timecode strip (`sitl.camera_render.read_timecode`). When the back-end hands over only a region of the
+keyframe (a re-detection ROI), the region is placed in the frame by template matching against the
+frame's ground-truth thumbnail. Misses, jitter and false positives come from a generator seeded by
+(seed, frame id), so a run is repeatable.
 """
 
 from __future__ import annotations
@@ -12,13 +14,15 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from behaviors.detection import Detection
 from behaviors.geometry import Box
-from sitl.camera_render import TruthBox, read_timecode
+from sitl.camera_render import THUMB_SCALE, FrameTruth, read_timecode
 
-TruthLookup = Callable[[int], "tuple[TruthBox, ...] | None"]
+TruthLookup = Callable[[int], "FrameTruth | None"]
+MIN_MATCH = 0.8  # normalised correlation below which a region is not placed (no boxes rather than wrong ones)
 
 
 @dataclass(frozen=True)
@@ -43,35 +47,60 @@ class SimulatedPersonDetector:
         self.seed = seed
 
     def detect(self, image_bgr: np.ndarray, classes: Sequence[str], frame_id: int | None = None) -> list[Detection]:
-        """Boxes of people in `image_bgr` (scaled to its size); `frame_id` is ignored: the timecode is authoritative."""
+        """Boxes of people in `image_bgr` (a keyframe, scaled or not, or a region of one)."""
         from backend.supersets import UnknownSupersetError
 
         wanted = {c.strip().lower() for c in classes}
         if wanted - {"person", "people", "human"}:
             raise UnknownSupersetError(f"the simulated detector only knows 'person', not {sorted(wanted)}")
-        h, w = image_bgr.shape[:2]
-        scale = w / float(self._render_width)
-        stamped = read_timecode(image_bgr, self._render_width)
-        truth = self._truth(stamped)
-        if truth is None:
+        record = self._truth(frame_id) if frame_id is not None else None
+        if record is None:
+            record = self._truth(read_timecode(image_bgr, self._render_width))
+        if record is None:
             return []
-        rng = np.random.default_rng([self.seed, stamped])
+        placed = self._place(image_bgr, record)
+        if placed is None:
+            return []
+        (ox, oy), scale = placed
+        h, w = image_bgr.shape[:2]
+        rng = np.random.default_rng([self.seed, record.frame_id])
         n = self.noise
         out: list[Detection] = []
-        for tb in truth:
+        for tb in record.truth:
             if tb.visible < n.min_visible or tb.box.h < n.min_height_px or rng.random() < n.miss_rate:
                 continue
             jit = rng.normal(0.0, n.jitter_px, 4)
             box = Box.from_xyxy(tb.box.x + jit[0], tb.box.y + jit[1], tb.box.x2 + jit[2], tb.box.y2 + jit[3])
-            box = box.scaled(scale, scale).clamped(w, h)
-            if box.is_valid():
-                # Like a real detector, more confident on bigger, unoccluded people.
-                size = min(1.0, float(np.sqrt(tb.box.area)) / 40.0)
-                score = 0.5 + 0.45 * size * tb.visible + rng.normal(0, 0.01)
-                out.append(Detection(box, float(np.clip(score, 0.3, 0.99))))
+            box = Box(box.x * scale - ox, box.y * scale - oy, box.w * scale, box.h * scale)
+            inside = box.clamped(w, h)
+            if not inside.is_valid() or inside.area < 0.5 * box.area:
+                continue  # mostly outside the region: a detector would not see this person here
+            # Like a real detector, more confident on bigger, unoccluded people.
+            size = min(1.0, float(np.sqrt(tb.box.area)) / 40.0)
+            score = 0.5 + 0.45 * size * tb.visible + rng.normal(0, 0.01)
+            out.append(Detection(inside, float(np.clip(score, 0.3, 0.99))))
         for _ in range(int(rng.poisson(n.false_positives))):
             bw, bh = rng.uniform(10, 30) * scale, rng.uniform(25, 60) * scale
             x, y = rng.uniform(0, max(1.0, w - bw)), rng.uniform(0, max(1.0, h - bh))
             out.append(Detection(Box(float(x), float(y), float(bw), float(bh)), float(rng.uniform(0.3, 0.5))))
         out.sort(key=lambda d: -d.score)
         return out
+
+    def _place(self, image_bgr: np.ndarray, record: FrameTruth) -> tuple[tuple[float, float], float] | None:
+        """((x, y) offset in this image's pixels, scale from rendered to this image's pixels)."""
+        h, w = image_bgr.shape[:2]
+        rw, rh = record.size
+        if (w, h) == (rw, rh):
+            return (0.0, 0.0), 1.0
+        # A region of a full-size keyframe: find it in the thumbnail (the offset is good to about 2 px).
+        gray = cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY)
+        small = cv2.resize(gray, (max(1, int(w * THUMB_SCALE)), max(1, int(h * THUMB_SCALE))), interpolation=cv2.INTER_AREA)
+        thumb = record.thumbnail
+        if small.shape[0] <= thumb.shape[0] and small.shape[1] <= thumb.shape[1] and min(small.shape) >= 4:
+            scores = cv2.matchTemplate(thumb, small, cv2.TM_CCOEFF_NORMED)
+            _, best, _, (x, y) = cv2.minMaxLoc(scores)
+            if best >= MIN_MATCH:
+                return (x / THUMB_SCALE, y / THUMB_SCALE), 1.0
+        if abs(w / rw - h / rh) < 0.02:
+            return (0.0, 0.0), w / rw  # the whole keyframe, downscaled by the companion
+        return None

@@ -13,9 +13,17 @@ import pytest
 
 from behaviors.camera_model import CameraModel
 from behaviors.geometry import Box
+from companion.frame_sources import open_source
 from sitl.camera_render import Projector, Renderer, VehiclePose, read_timecode
 from sitl.camera_server import CameraServer
-from sitl.frame_transport import HEADER, FrameStreamError, FrameStreamReader, encode_frame, parse_url
+from sitl.frame_transport import (
+    HEADER,
+    FrameStreamError,
+    FrameStreamReader,
+    encode_frame,
+    parse_url,
+    register,
+)
 from sitl.metrics import FrameSample, SetpointSample, TimedEvent, last_setpoint_after, percentile, summarise
 from sitl.simulated_detector import DetectorNoise, SimulatedPersonDetector
 from sitl.world import CLOTHING, Person, distractor_world
@@ -111,20 +119,41 @@ def test_simulated_detector_finds_people_scales_boxes_and_refuses_other_classes(
 
     _, renderer = world_and_renderer
     frame = renderer.render(BEHIND, 0.0, 9)
-    exact = SimulatedPersonDetector(lambda fid: frame.truth if fid == 9 else None,
+    record = frame.record()
+    exact = SimulatedPersonDetector(lambda fid: record if fid == 9 else None,
                                     noise=DetectorNoise(miss_rate=0.0, jitter_px=0.0, false_positives=0.0))
-    found = exact.detect(frame.image, ["person"])
+    found = exact.detect(frame.image, ["person"])  # no frame id: read from the timecode
     assert len(found) == len(frame.truth)
+    assert len(exact.detect(frame.image, ["person"], frame_id=9)) == len(frame.truth)
     half = cv2.resize(frame.image, (320, 240))
     target = next(tb for tb in frame.truth if tb.person_id == "target")
-    boxes = [d.box for d in exact.detect(half, ["person"])]
+    boxes = [d.box for d in exact.detect(half, ["person"], frame_id=9)]
     assert any(abs(b.cx - target.box.cx / 2) < 1.5 and abs(b.h - target.box.h / 2) < 1.5 for b in boxes)
     with pytest.raises(UnknownSupersetError):
         exact.detect(frame.image, ["boat"])
     # An unknown frame (no truth) gives no boxes rather than an error.
     assert SimulatedPersonDetector(lambda fid: None).detect(frame.image, ["person"]) == []
-    noisy = SimulatedPersonDetector(lambda fid: frame.truth, noise=DetectorNoise(miss_rate=1.0, false_positives=3.0), seed=1)
+    noisy = SimulatedPersonDetector(lambda fid: record, noise=DetectorNoise(miss_rate=1.0, false_positives=3.0), seed=1)
     assert noisy.detect(frame.image, ["person"]) == noisy.detect(frame.image, ["person"])  # seeded, repeatable
+
+
+def test_simulated_detector_places_a_region_of_the_keyframe(world_and_renderer) -> None:
+    """The back-end sends only the re-detection ROI: boxes come back in the region's own pixels."""
+    _, renderer = world_and_renderer
+    frame = renderer.render(BEHIND, 0.0, 11)
+    record = frame.record()
+    detector = SimulatedPersonDetector(lambda fid: record if fid == 11 else None,
+                                       noise=DetectorNoise(miss_rate=0.0, jitter_px=0.0, false_positives=0.0))
+    target = next(tb for tb in frame.truth if tb.person_id == "target")
+    x1, y1 = int(target.box.cx - 80), int(target.box.cy - 100)
+    region = np.ascontiguousarray(frame.image[y1 : y1 + 200, x1 : x1 + 160])
+    found = detector.detect(region, ["person"], frame_id=11)
+    assert len(found) == 1
+    assert found[0].box.cx == pytest.approx(target.box.cx - x1, abs=3)
+    assert found[0].box.cy == pytest.approx(target.box.cy - y1, abs=3)
+    # A region that is not part of this frame (noise) is not placed: no boxes rather than wrong ones.
+    noise = np.random.default_rng(0).integers(0, 255, (200, 160, 3), dtype=np.uint8)
+    assert detector.detect(noise, ["person"], frame_id=11) == []
 
 
 def test_camera_server_streams_frames_with_truth_and_rejects_garbage() -> None:
@@ -136,8 +165,16 @@ def test_camera_server_streams_frames_with_truth_and_rejects_garbage() -> None:
         assert first.image.shape == (480, 640, 3)
         assert second.frame_id > first.frame_id
         assert read_timecode(second.image) == second.frame_id
-        assert server.truth(second.frame_id) is not None
+        record = server.truth(second.frame_id)
+        assert record is not None and {tb.person_id for tb in record.truth} >= {"target"}
         reader.close()
+        # The companion's source keeps the renderer's frame ids, so keyframes name their ground truth.
+        register()
+        source = open_source(server.url)
+        frame = source.read(timeout_s=5.0)
+        assert frame is not None and read_timecode(frame.image) == frame.frame_id
+        assert source.stats.connected and source.live
+        source.close()
     finally:
         server.stop()
     with pytest.raises(ValueError, match="sim\\+tcp://HOST:PORT"):
