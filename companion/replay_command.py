@@ -47,14 +47,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
 def _mission_config(args: argparse.Namespace) -> MissionConfig | None:
     if args.config is None and not args.set:
         return None
-    config = load_config(CompanionConfig, args.config, assignments=args.set)
-    return MissionConfig.from_sections(
-        behavior=config.behavior.model_dump(),
-        control=config.control.model_dump(),
-        safety=config.safety.model_dump(),
-        camera=config.camera.model_dump(),
-        backend=config.backend.model_dump(),
-    )
+    from companion.run_command import mission_config  # exactly the config `run` would fly with
+
+    return mission_config(load_config(CompanionConfig, args.config, assignments=args.set))
 
 
 def _run(args: argparse.Namespace) -> int:

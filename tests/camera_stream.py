@@ -28,6 +28,7 @@ class CameraStream:
         self.server.settimeout(0.2)
         self.port = self.server.getsockname()[1]
         self.paused = threading.Event()
+        self.frame_id = 0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
@@ -42,15 +43,15 @@ class CameraStream:
                 self._serve(conn)
 
     def _serve(self, conn: socket.socket) -> None:
-        frame_id = 0
         while not self._stop.is_set():
             time.sleep(1.0 / CAMERA_FPS)
             if self.paused.is_set():
                 continue
-            image = self.frames[frame_id % len(self.frames)]
-            frame_id += 1
+            # Frame ids keep counting across reconnections, as a camera server's clock does.
+            self.frame_id += 1
+            image = self.frames[self.frame_id % len(self.frames)]
             try:
-                conn.sendall(encode_frame(frame_id, frame_id / CAMERA_FPS, time.time(), image))
+                conn.sendall(encode_frame(self.frame_id, self.frame_id / CAMERA_FPS, time.time(), image))
             except OSError:
                 return
 
