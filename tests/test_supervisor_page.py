@@ -186,3 +186,19 @@ def test_an_event_stream_ends_after_its_lifetime_so_shutdowns_are_never_held() -
         took = time.monotonic() - started
     assert "event: state" in lines
     assert 1.0 <= took < 10.0, took
+
+
+def test_reject_reaches_the_vehicle_and_the_missions_rejection_memory(backend: LiveBackend, crop_b64: str) -> None:
+    with httpx.Client(base_url=backend.url, timeout=10) as client:
+        report(client, "AWAITING_SUPERVISOR", candidate(crop_b64, "c-50"))
+        url = "/supervisor/api/vehicles/drone-1/candidates/c-50/decision"
+        posted = client.post(url, json={"decision": "reject", "note": "wrong shirt"}, headers=SUPERVISOR)
+        assert posted.status_code == 201, posted.text
+        polled = client.get("/v1/vehicles/drone-1/decisions", headers=DRONE).json()
+        assert (polled[-1]["candidate_id"], polled[-1]["action"], polled[-1]["note"]) == ("c-50", "reject", "wrong shirt")
+        # The back-end remembers it (with the crop the vehicle sent) so look-alikes are answered "no".
+        rejections = client.get("/v1/missions/m-1/rejections", headers=DRONE).json()
+        assert any(r["candidate_id"] == "c-50" and r["reason"] == "wrong shirt" for r in rejections)
+        state = client.get("/supervisor/api/state", headers=SUPERVISOR).json()
+        cand = next(v for v in state["vehicles"] if v["id"] == "drone-1")["candidates"][0]
+        assert cand["id"] == "c-50" and cand["status"] == "rejected"
