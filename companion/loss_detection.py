@@ -8,8 +8,8 @@ the score is one signal among:
 - "left_frame": less than `min_visible_fraction` of the box is inside the image;
 - "collapsed": box narrower/shorter than `min_box_px`, its area changed by more than
   `max_scale_change` times in one frame, or its width/height ratio changed by more than
-  `max_aspect_change` times since the track was (re)initialised (a tracker sliding off a standing
-  person onto a roof or a patch of ground flattens its box);
+  `max_aspect_change` times since the tracker's first box after (re)initialisation (a tracker sliding
+  off a standing person onto a roof or a patch of ground flattens its box);
 - "jump": the centre moved more than `max_jump_box_sizes` box sizes (sqrt of area) or
   `max_jump_fraction` of the image diagonal in one frame;
 - "appearance": the colour histogram inside the box drifted from the target as first seen
@@ -111,7 +111,7 @@ class LossDetector:
         self.last_signals: dict[str, bool] = dict.fromkeys(SIGNALS, False)
         self._template: np.ndarray | None = None
         self._prev: Box | None = None
-        self._reference: Box | None = None  # the box the track was (re)initialised on
+        self._reference: Box | None = None  # the tracker's first box since the last reset
         self._hist: np.ndarray | None = None
 
     def reset(self, frame: np.ndarray, box: Box, keep_template: bool = False, current: Box | None = None) -> None:
@@ -120,7 +120,9 @@ class LossDetector:
         if not keep_template or self._template is None:
             self._template = appearance_histogram(frame, box)
         self._prev = current or box
-        self._reference = box
+        # The shape reference is the tracker's own first box, not the given one: VitTrack reframes a
+        # 17x50 pedestrian as 23x31 on its first update and keeps that shape while on target.
+        self._reference = None
 
     def check(self, frame: np.ndarray, step: TrackerStep) -> str:
         """The first enabled signal that fired ("" while the target is trusted); every signal is kept in
@@ -155,6 +157,8 @@ class LossDetector:
             fired["jump"] = moved > s.max_jump_box_sizes * math.sqrt(prev.area) or moved > (
                 s.max_jump_fraction * math.hypot(w, h)
             )
+        if self._reference is None and box.is_valid():
+            self._reference = box
         ref = self._reference
         if ref is not None and ref.is_valid() and box.w > 0 and box.h > 0:
             change = (box.w / box.h) / (ref.w / ref.h)

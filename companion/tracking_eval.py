@@ -4,7 +4,8 @@ One run feeds a sequence's frames through `TrackingFrontend` exactly as the live
 starts on the first ground-truth box (or the back-end's best verified candidate), and whenever the
 front-end reports the target lost it asks a detector for candidates on the current frame and applies
 the answer `delay_frames` later (latency-compensated, C_box or highest-score policy). Reported:
-- mIoU as the paper defines it (`behaviors.tracking_metrics`): only trusted boxes count as reported;
+- mIoU as the paper defines it (`behaviors.tracking_metrics`): only trusted boxes count as reported
+  (the drone follows nothing else); `miou_any_box` also counts the boxes flagged lost;
 - FPS: frames / time of the whole onboard loop (decode, resize, tracker, loss detection, catch-up);
   the detector is excluded because it runs on the back-end, not on the drone;
 - edge FPS: live-frame tracker updates / time inside `update()` alone;
@@ -115,7 +116,8 @@ class SequenceResult:
     sequence: str
     tracker: str
     frames: int
-    miou: float
+    miou: float  # trusted boxes only: a box flagged lost counts as no box
+    miou_any_box: float  # every box the tracker gave, lost or not
     fps: float
     edge_fps: float
     reinits: int
@@ -237,6 +239,7 @@ def evaluate_sequence(
 ) -> SequenceResult:
     frontend = make_frontend(config, model_dir, settings)
     predicted: list[Box | None] = []
+    predicted_any: list[Box | None] = []  # the tracker's box even when flagged lost (the paper's view)
     gt_used: list[Box | None] = []
     reasons: Counter[str] = Counter()
     pending: tuple[int, int, list[Detection]] | None = None  # (apply at frame, keyframe, detections)
@@ -287,10 +290,12 @@ def evaluate_sequence(
                 frontend.apply_candidates(frame.frame_id, found)
                 pending = None
         predicted.append(box)
+        predicted_any.append(box if box is not None else result.box)
         if progress is not None:
             progress(1)
     loop_seconds = time.perf_counter() - started - detector_seconds
     metric: MiouResult = mean_iou(predicted, gt_used)
+    metric_any = mean_iou(predicted_any, gt_used)
     ious = [
         (iou(p, g) if p is not None else 0.0) if g is not None else None
         for p, g in zip(predicted, gt_used, strict=True)
@@ -302,6 +307,7 @@ def evaluate_sequence(
         tracker=settings.tracker,
         frames=n,
         miou=metric.miou,
+        miou_any_box=metric_any.miou,
         fps=n / loop_seconds if loop_seconds > 0 else float("nan"),
         edge_fps=stats.tracker_updates / stats.tracker_seconds if stats.tracker_seconds > 0 else float("nan"),
         reinits=max(0, stats.reinits - 1),  # the first start is not a re-initialisation
@@ -323,10 +329,12 @@ def overall(results: Sequence[SequenceResult]) -> dict[str, Any]:
     miou = pooled_miou([MiouResult(r.miou, r.iou_sum, r.gt_frames, r.false_tracks, r.missed_frames) for r in results])
     edge = [r for r in results if r.edge_fps > 0 and math.isfinite(r.edge_fps)]
     edge_time = sum(r.frames / r.edge_fps for r in edge)
+    frames_gt = sum(r.gt_frames for r in results)
     return {
         "sequences": len(results),
         "frames": frames,
         "miou": miou,
+        "miou_any_box": sum(r.miou_any_box * r.gt_frames for r in results) / frames_gt if frames_gt else float("nan"),
         "fps": frames / loop_time if loop_time > 0 else float("nan"),
         "edge_fps": sum(r.frames for r in edge) / edge_time if edge_time > 0 else float("nan"),
         "reinits": sum(r.reinits for r in results),

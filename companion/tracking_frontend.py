@@ -236,11 +236,16 @@ class TrackingFrontend:
         self._tracker = catch_up.tracker
         self._lost_reason = ""
         self.stats.reinits += 1
+        keyframe = self.ring.get(catch_up.keyframe_id)
+        if keyframe is not None and (self.last_trusted_frame_id or 0) < catch_up.keyframe_id:
+            # The box we were told to start on is trusted as of its keyframe, whatever the tracker makes of it.
+            self.last_trusted_box = catch_up.keyframe_box
+            self.last_trusted_frame_id = catch_up.keyframe_id
+            self.last_trusted_time = keyframe.capture_time
         if step.box is None:
             self._lost_reason = "tracker_failed"
             self.stats.loss_events += 1
             return TrackResult(frame.frame_id, frame.capture_time, None, step.score, False, self._lost_reason)
-        keyframe = self.ring.get(catch_up.keyframe_id)
         if keyframe is not None:
             self.loss.reset(keyframe.image, catch_up.keyframe_box, self._catch_up_keeps_template, current=step.box)
         else:

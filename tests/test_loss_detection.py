@@ -55,7 +55,7 @@ def test_the_target_itself_fires_nothing(person) -> None:  # type: ignore[no-unt
 )
 def test_each_signal_fires_on_its_own_case(person, step_box, score, ok, expected) -> None:  # type: ignore[no-untyped-def]
     seq, frames = person
-    gt0, gt1 = seq.ground_truth[0], seq.ground_truth[1]
+    gt0, gt1 = seq.ground_truth[0], seq.ground_truth[2]
     boxes = {
         None: None,
         "gt": gt1,
@@ -67,7 +67,8 @@ def test_each_signal_fires_on_its_own_case(person, step_box, score, ok, expected
         "roof": Box(gt1.x - 1.1 * gt1.w, gt1.y, gt1.w, gt1.h),
     }
     detector = _detector(frames[0], gt0, score_threshold=0.7)
-    reason = detector.check(frames[1], TrackerStep(boxes[step_box], score, ok))
+    assert detector.check(frames[1], TrackerStep(seq.ground_truth[1], 0.9, True)) == ""  # the tracker's first box
+    reason = detector.check(frames[2], TrackerStep(boxes[step_box], score, ok))
     assert reason == expected, detector.last_signals
 
 
