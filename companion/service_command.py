@@ -1,6 +1,6 @@
 """`cloudtrack-companion service install`: write the systemd unit and an example configuration.
 
-The units in `config/` name /opt/cloudtrack/venv; the installer rewrites ExecStart to the program that
+The units (`config/`, shipped in the package as `companion/systemd/`) name /opt/cloudtrack/venv; the installer rewrites ExecStart to the program that
 is actually installed (the one running this command) so the unit works for any install location. An
 existing configuration file is never overwritten without `--force`: it is the operator's.
 """
@@ -13,7 +13,9 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-CONFIG_DIR = Path(__file__).resolve().parents[1] / "config"
+# The units and default configurations, shipped inside the package (links to config/ in the source tree,
+# copied into wheels) so `service install` works from any install, not only from a checkout.
+TEMPLATE_DIR = Path(__file__).resolve().parent / "systemd"
 
 EXAMPLES = """\
 examples:
@@ -74,8 +76,8 @@ def _example_config(defaults: str, backend: bool) -> str:
 
 def service_files(unit_dir: Path, config_dir: Path, backend: bool) -> ServiceFiles:
     name = "backend" if backend else "companion"
-    template = (CONFIG_DIR / f"cloudtrack-{name}.service").read_text()
-    defaults = (CONFIG_DIR / f"{name}.toml").read_text()
+    template = (TEMPLATE_DIR / f"cloudtrack-{name}.service").read_text()
+    defaults = (TEMPLATE_DIR / f"{name}.toml").read_text()
     config_path = config_dir / f"{name}.toml"
     return ServiceFiles(
         unit_path=unit_dir / f"cloudtrack-{name}.service",
