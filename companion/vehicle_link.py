@@ -46,6 +46,7 @@ from companion.gcs_link import (
 )
 from companion.mavlink_connection import MavlinkEndpoint, mavlink
 from companion.mavlink_signing import SigningGuard, parse_signing_key
+from companion.mavsdk_offboard import MavsdkOffboard
 from companion.offboard import PX4_MIN_PRESTREAM_S, encode_velocity
 from companion.safety_watchdog import (
     BACKEND_UNREACHABLE,
@@ -97,9 +98,11 @@ class VehicleLink:
         self._image_size = image_size
         self._on_safety_event = on_safety_event
         self._lock = threading.RLock()
+        self._offboard_lock = threading.RLock()  # orders setpoints against stops (see _stream_once)
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._endpoint: MavlinkEndpoint | None = None
+        self._mavsdk: MavsdkOffboard | None = None  # PX4 offboard through MAVSDK (mavlink.use_mavsdk)
         self.signing = SigningGuard(on_refused=lambda text: self._record(SafetyEvent(self._clock(), "signing", "refused", text)))
         self._watchdog = SafetyWatchdog(safety, self._on_trip, self._on_clear, clock)
         self._gcs = GcsProtocol(mavlink_config.target_system, mavlink_config.source_component, lambda: self._image_size, self)
@@ -126,6 +129,9 @@ class VehicleLink:
         self._endpoint = MavlinkEndpoint.open(self._cfg.connection, self._cfg.target_system, self._cfg.source_component)
         if self._signing_key is not None:
             self.signing.enable(self._endpoint.conn, self._signing_key)
+        if self._cfg.use_mavsdk:
+            self._mavsdk = MavsdkOffboard(self._cfg.mavsdk_address)
+            self._mavsdk.start()
         self._watchdog.seen(LOOP_STALLED)
         self._send_heartbeat(self._clock())  # opens udpout/tcp links so the autopilot learns where we are
         for target, name in ((self._reader, "mavlink-reader"), (self._streamer, "mavlink-streamer")):
@@ -142,6 +148,8 @@ class VehicleLink:
         self._watchdog.close()
         for thread in self._threads:
             thread.join(timeout=2.0)
+        if self._mavsdk is not None:
+            self._mavsdk.close()
         if self._endpoint is not None:
             self._endpoint.close()
 
@@ -337,6 +345,10 @@ class VehicleLink:
         )
 
     def _send_setpoint(self, kind: AutopilotKind, setpoint: Setpoint) -> None:
+        if self._mavsdk is not None and kind is AutopilotKind.PX4:
+            self._mavsdk.set_velocity(setpoint)  # MAVSDK re-sends it at 20 Hz by itself
+            self.setpoints_sent += 1
+            return
         fields = encode_velocity(kind, setpoint)
         target, boot_ms = self._cfg.target_system, self._boot_ms()
         sent = self.endpoint.send(
@@ -360,8 +372,11 @@ class VehicleLink:
         params = set_mode_params(kind, name)
         with self._lock:
             self._mode_request = (name, self._clock())
-        target = self._cfg.target_system
         log.info("requesting mode %s", name)
+        if self._mavsdk is not None and kind is AutopilotKind.PX4 and name == "OFFBOARD":
+            self._mavsdk.start_offboard()
+            return
+        target = self._cfg.target_system
         self.endpoint.send(
             lambda m: m.command_long_send(
                 target, 1, mavlink.MAV_CMD_DO_SET_MODE, 0,
@@ -371,6 +386,10 @@ class VehicleLink:
 
     def _stop_and_hold(self, reason: str) -> None:
         """The explicit stop: zero velocity now, then ArduPilot's configured hold or PX4 HOLD."""
+        with self._offboard_lock:
+            self._stop_and_hold_locked(reason)
+
+    def _stop_and_hold_locked(self, reason: str) -> None:
         kind = self.autopilot_kind
         if kind is None:
             return
@@ -378,6 +397,12 @@ class VehicleLink:
             flying_ours = self._mode == offboard_mode(kind) and self._enabled
         if not flying_ours:
             return  # the pilot or another mode has the vehicle; we were not commanding it
+        if self._mavsdk is not None and kind is AutopilotKind.PX4:
+            with self._lock:
+                self._mode_request = ("HOLD", self._clock())
+            self._mavsdk.stop(reason)  # zero, then offboard stop (HOLD): MAVSDK would keep re-sending otherwise
+            log.warning("stop and hold: %s", reason)
+            return
         self._send_zero()
         if kind is AutopilotKind.PX4:
             self._request_mode("HOLD")
@@ -419,8 +444,11 @@ class VehicleLink:
         previous, self._mode = self._mode, hb.mode
         telemetry = self._decoder.snapshot()
         silent = telemetry is None or now - telemetry.time_s > STREAM_REQUEST_RETRY_S
-        if silent and now - self._streams_requested_at > STREAM_REQUEST_RETRY_S:
-            self._streams_requested_at = now  # ArduPilot sends nothing until asked, and forgets on reboot
+        never_asked = self._streams_requested_at == -math.inf
+        if never_asked or (silent and now - self._streams_requested_at > STREAM_REQUEST_RETRY_S):
+            # Always once (PX4's default HEARTBEAT rate, 1 Hz, would see a takeover too late), and again
+            # while silent: ArduPilot sends nothing until asked, and forgets on reboot.
+            self._streams_requested_at = now
             self._request_streams()
         ours = offboard_mode(hb.kind)
         if previous == hb.mode or previous != ours:
@@ -459,6 +487,12 @@ class VehicleLink:
             self._stop.wait(max(0.0, next_tick - self._clock()))
 
     def _stream_once(self, now: float) -> None:
+        # Deciding and sending happen under the offboard lock, so a stop from the watchdog thread can
+        # never be followed by a setpoint decided before it.
+        with self._offboard_lock:
+            self._stream_once_locked(now)
+
+    def _stream_once_locked(self, now: float) -> None:
         hb = self._decoder.heartbeat
         if hb is None:
             return
@@ -475,7 +509,9 @@ class VehicleLink:
                 self._stream_since = None
             elif self._stream_since is None:
                 self._stream_since = now
-            if streaming and stopped:
+            if streaming and stopped and self._mavsdk is not None and kind is AutopilotKind.PX4:
+                pass  # MAVSDK would re-send any setpoint forever: after its stop() it gets none while stopped
+            elif streaming and stopped:
                 setpoint = Setpoint.zero()
             elif streaming:
                 telemetry = self._decoder.snapshot()

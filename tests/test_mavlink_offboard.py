@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import time
 
+import pytest
+
 from behaviors.setpoint import Setpoint
 from companion.offboard import MAV_FRAME_BODY_NED, MAV_FRAME_BODY_OFFSET_NED, TYPE_MASK_VELOCITY_YAW_RATE
 from tests.mavlink_harness import (
@@ -60,24 +62,31 @@ def test_limits_are_applied_before_sending() -> None:
         assert sp.yaw_rate <= 0.786
 
 
-def test_mode_change_by_gcs_stops_setpoints_within_200_ms() -> None:
-    with autopilot("ardupilot") as sim, vehicle_link(sim) as link, MainLoop(link), gcs(sim) as ground:
+@pytest.mark.parametrize(
+    ("personality", "ours", "theirs", "mode_numbers", "back"),
+    [("ardupilot", "GUIDED", "LOITER", (5, 0), (4, 0)), ("px4", "OFFBOARD", "POSCTL", (3, 0), (6, 0))],
+)
+def test_mode_change_by_gcs_stops_setpoints_within_200_ms(
+    personality: str, ours: str, theirs: str, mode_numbers: tuple[int, int], back: tuple[int, int]
+) -> None:
+    with autopilot(personality) as sim, vehicle_link(sim) as link, MainLoop(link), gcs(sim) as ground:
         link.request_offboard()
         link.set_velocity(Setpoint(1.0, 0.0, 0.0, 0.0))
-        assert wait_for(lambda: len(sim.setpoints) >= 10)
-        ack = set_mode_from_gcs(ground, 5)  # LOITER, chosen by someone else
+        assert wait_for(lambda: sim.mode == ours and len(sim.setpoints) >= 10, 5.0)
+        time.sleep(0.3)
+        ack = set_mode_from_gcs(ground, *mode_numbers)  # chosen by someone else
         assert ack is not None and ack.result == 0
-        changed_at = next(t for t, mode, _ in sim.mode_history if mode == "LOITER")
+        changed_at = next(t for t, mode, _ in sim.mode_history if mode == theirs)
         time.sleep(1.0)
         late = [s for s in sim.setpoints if s.time > changed_at + 0.2]
         assert late == [], f"{len(late)} setpoints more than 200 ms after the mode change"
         events = link.safety_events()
-        assert any(e.reason == "mode_change" and "GUIDED -> LOITER" in e.detail for e in events), events
+        assert any(e.reason == "mode_change" and f"{ours} -> {theirs}" in e.detail for e in events), events
         # the GCS is told why, in words
         text = receive_until(ground, lambda m: m.get_type() == "STATUSTEXT" and "OFFBOARD ENDED" in m.text, 3.0)
         assert text is not None
         # and the companion does not take the vehicle back on its own
-        set_mode_from_gcs(ground, 4)
+        set_mode_from_gcs(ground, *back)
         time.sleep(0.5)
         assert [s for s in sim.setpoints if s.time > changed_at + 0.2] == []
 
