@@ -151,7 +151,7 @@ class FlightRecorder:
         with self._lock:
             if not self._active:
                 return
-            stamp = self._clock() if time_s is None else time_s
+            stamp = self._clock() if time_s is None or not 0 <= time_s < 1e11 else time_s
             record = struct.pack(">Q", int(stamp * 1e6)) + bytes(raw)
             try:
                 if self._tlog is None or self._tlog_bytes >= self.segment_bytes:

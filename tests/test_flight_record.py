@@ -224,3 +224,15 @@ def test_attach_tlog_records_messages_sent_and_received_over_a_real_link(tmp_pat
     while (msg := log.recv_match()) is not None:
         types.append((msg.get_type(), msg.get_srcComponent()))
     assert ("HEARTBEAT", 1) in types and ("STATUSTEXT", 191) in types
+
+
+def test_a_nonsense_message_time_falls_back_to_the_clock(tmp_path: Path) -> None:
+    rec = FlightRecorder(tmp_path, "drone-1", "m", 10_000_000, clock=fixed_clock())
+    rec.mavlink(heartbeat_bytes(0), time_s=-5.0)
+    rec.mavlink(heartbeat_bytes(1), time_s=float("nan"))
+    rec.close()
+    log = mavutil.mavlink_connection(str(rec.folder / "mavlink-000.tlog"))
+    stamps = []
+    while (msg := log.recv_match(type="HEARTBEAT")) is not None:
+        stamps.append(msg._timestamp)
+    assert len(stamps) == 2 and all(START < t < START + 10 for t in stamps)
