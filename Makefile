@@ -10,6 +10,8 @@ export CLOUDTRACK_SHARED ?= $(SHARED)
 $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
+	# CPU-only torch first (for the open-vocabulary detector tests): the PyPI build pulls several GB of CUDA.
+	$(BIN)/pip install -q torch==2.13.0 --extra-index-url https://download.pytorch.org/whl/cpu
 	$(BIN)/pip install -q -e '.[test]'
 	touch $@
 
