@@ -43,6 +43,7 @@ examples:
   cloudtrack-gcs abort
   cloudtrack-gcs track-box 0.40 0.30 0.55 0.70   # normalised corners, as QGroundControl sends them
   cloudtrack-gcs watch --duration 60
+  cloudtrack-gcs start --prompt "man in a red cap" --print-mavproxy   # the same start as MAVProxy commands
   cloudtrack-gcs --connect tcp:192.168.1.10:5760 --signing-key $KEY status
 
 The default link listens on udpin:0.0.0.0:14550, where `cloudtrack-sim autopilot` and most autopilots send
@@ -195,6 +196,20 @@ def _report(name: str, result: int) -> int:
     return EXIT_REFUSED
 
 
+def mavproxy_start_lines(args: argparse.Namespace) -> list[str]:
+    """The same start as MAVProxy `message` commands (each argument is a Python expression without spaces)."""
+    system, component = args.system, args.component
+    payloads = encode_prompt(args.mission_id, args.superset, args.prompt)
+    lines = [
+        f"message TUNNEL {system} {component} {PROMPT_PAYLOAD_TYPE} {len(p)} list(bytes.fromhex('{p.hex()}'))+[0]*{128 - len(p)}"
+        for p in payloads
+    ]
+    length = sum(len(p) - 4 for p in payloads)
+    engage = 1 if args.allow_engage else 0
+    lines.append(f"message COMMAND_LONG {system} {component} {CMD_START} 0 {args.mission_id} {len(payloads)} {engage} {length} 0 0 0")
+    return lines
+
+
 def _start(session: GcsSession, args: argparse.Namespace) -> int:
     chunks, length = session.send_prompt(args.mission_id, args.superset, args.prompt)
     params = [args.mission_id, chunks, 1.0 if args.allow_engage else 0.0, length]
@@ -283,6 +298,9 @@ def build_parser() -> argparse.ArgumentParser:
     start.add_argument("--superset", default="", help="detector class, e.g. person (default: derived by the back-end)")
     start.add_argument("--allow-engage", action="store_true", help="let the companion select GUIDED/OFFBOARD itself")
     start.add_argument("--mission-id", type=int, default=int(time.time()) % 256, help="0-255 (default: from the clock)")
+    start.add_argument(
+        "--print-mavproxy", action="store_true", help="print the MAVProxy `message` lines that send this start; send nothing"
+    )
     start.set_defaults(func=_start)
     for name, command, text in (
         ("confirm", CMD_CONFIRM, "confirm the candidate awaiting the supervisor"),
@@ -319,6 +337,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    if args.command == "start" and args.print_mavproxy:
+        print("\n".join(mavproxy_start_lines(args)))
+        return 0
     try:
         session = GcsSession(args)
     except OSError as exc:

@@ -117,3 +117,20 @@ def test_help_has_examples() -> None:
     assert "cloudtrack-gcs start --prompt" in result.stdout and "track-box" in result.stdout
     sub = subprocess.run(GCS + ["start", "--help"], capture_output=True, text=True, timeout=30)
     assert "--allow-engage" in sub.stdout and "examples:" in sub.stdout
+
+
+def test_printed_mavproxy_lines_start_a_mission(capsys: pytest.CaptureFixture[str]) -> None:
+    """The lines are replayed the way MAVProxy's `message` module does: split on spaces, eval, *_send."""
+    from tests.mavlink_harness import gcs, receive_until
+
+    argv = ["start", "--prompt", "woman in a green jacket", "--superset", "person", "--mission-id", "7", "--print-mavproxy"]
+    assert gcs_cli.main(argv) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert lines[0].startswith("message TUNNEL 1 191 49421 ") and lines[-1].startswith("message COMMAND_LONG 1 191 31010 0 7 ")
+    with autopilot("ardupilot") as sim, vehicle_link(sim) as link, MainLoop(link), gcs(sim) as ground:
+        for line in lines:
+            name, *args = line.split()[1:]
+            ground.send(lambda m, n=name, a=args: getattr(m, n.lower() + "_send")(*[eval(x) for x in a]))
+        ack = receive_until(ground, lambda m: m.get_type() == "COMMAND_ACK" and m.command == 31010)
+        assert ack is not None and ack.result == 0
+        assert link.commands() == [StartMission("woman in a green jacket", "person", mission_id="7")]
