@@ -25,6 +25,7 @@ from pathlib import Path
 
 import pytest
 
+from companion.flight_record import read_events
 from companion.gcs_cli import _tunnel
 from companion.gcs_link import CMD_START, encode_prompt
 from companion.service_notify import ServiceNotifier, ping_while_healthy, watchdog_interval_s
@@ -282,6 +283,11 @@ def test_companion_speaks_sd_notify_and_stops_setpoints_on_sigterm(
             ground, lambda m: m.get_type() == "STATUSTEXT" and "stopping" in str(m.text), 3.0
         )
         assert stopping is not None, "the GCS was not told"
+        # The mission's flight record was flushed and closed on the way out.
+        (folder,) = [p for p in (tmp_path / "records").iterdir() if p.is_dir()]
+        entries = read_events(folder)
+        assert entries[-1]["kind"] == "recording_closed"
+        assert any(e["kind"] == "state" and e["new"] == "SEARCHING" for e in entries)
 
 
 @pytest.mark.slow
