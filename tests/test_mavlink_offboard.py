@@ -47,6 +47,8 @@ def test_setpoint_rate_within_20_percent_of_configured() -> None:
         end = time.monotonic()
         received = [s for s in sim.setpoints if start <= s.time < end]
         rate = len(received) / (end - start)
+        gaps = sorted(b.time - a.time for a, b in zip(received, received[1:], strict=False))
+        print(f"\nsetpoint rate {rate:.2f} Hz (configured 15), gap median {gaps[len(gaps) // 2] * 1000:.1f} ms, max {gaps[-1] * 1000:.1f} ms")
         assert 12.0 <= rate <= 18.0, f"setpoint rate {rate:.1f} Hz, configured 15 Hz"
         assert all(abs(s.yaw_rate - 0.1) < 1e-6 for s in received)
 
@@ -80,6 +82,8 @@ def test_mode_change_by_gcs_stops_setpoints_within_200_ms(
         time.sleep(1.0)
         late = [s for s in sim.setpoints if s.time > changed_at + 0.2]
         assert late == [], f"{len(late)} setpoints more than 200 ms after the mode change"
+        last = max((s.time for s in sim.setpoints if s.time > changed_at), default=changed_at)
+        print(f"\n{personality}: last setpoint {(last - changed_at) * 1000:.0f} ms after the mode change to {theirs}")
         events = link.safety_events()
         assert any(e.reason == "mode_change" and f"{ours} -> {theirs}" in e.detail for e in events), events
         # the GCS is told why, in words

@@ -115,6 +115,9 @@ def test_stalled_main_loop_stops_the_vehicle_and_its_heartbeat() -> None:
         assert event.time_s - stalled_at < 0.3 + 0.5
         # explicit stop: zero-velocity setpoints reach the autopilot, not silence
         assert wait_for(lambda: sim.setpoints[-1].vx == 0.0 and sim.setpoints[-1].time > event.time_s, 2.0)
+        zero_at = next(s.time for s in sim.setpoints if s.time >= event.time_s and s.vx == 0.0)
+        print(f"\nstalled loop (limit 0.3 s): tripped {event.time_s - stalled_at:.3f} s after the loop stopped, "
+              f"zero setpoint at the autopilot {zero_at - stalled_at:.3f} s")
         assert wait_for(lambda: abs(sim.snapshot().vn) < 0.05, 3.0)
         assert _companion_heartbeats(ground, 2.0) == 0  # the HEARTBEAT stops with the loop
         loop.paused.clear()
