@@ -95,6 +95,7 @@ def test_install_writes_unit_systemd_accepts_and_config_that_validates(tmp_path:
     config_path = config_dir / "companion.toml"
     config = load_config(CompanionConfig, config_path, environ={})
     assert config.mavlink.connection == "serial:/dev/ttyAMA0:921600"
+    assert config.recording.dir == "/var/lib/cloudtrack/records"  # inside the unit's StateDirectory
 
     # The ExecStart line parses with the real command-line parser.
     exec_start = value(parse_unit(unit_path.read_text())["Service"], "ExecStart").split()
