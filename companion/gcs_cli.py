@@ -242,7 +242,7 @@ def _candidate(args: argparse.Namespace) -> list[float]:
 
 
 def _track_box(session: GcsSession, args: argparse.Namespace) -> int:
-    x1, y1, x2, y2 = args.corners
+    x1, y1, x2, y2 = args.x1, args.y1, args.x2, args.y2
     if not (0 <= x1 < x2 <= 1 and 0 <= y1 < y2 <= 1):
         print("error: track-box needs normalised corners 0..1 with X1 < X2 and Y1 < Y2", file=sys.stderr)
         return 2
@@ -317,7 +317,9 @@ def build_parser() -> argparse.ArgumentParser:
         "track-box", help="track what is inside a box (MAV_CMD_CAMERA_TRACK_RECTANGLE, normalised 0..1)",
         epilog="example:\n  cloudtrack-gcs track-box 0.40 0.30 0.55 0.70", formatter_class=argparse.RawDescriptionHelpFormatter,
     )  # fmt: skip
-    box.add_argument("corners", nargs=4, type=float, metavar=("X1", "Y1", "X2", "Y2"))
+    # Four positionals rather than nargs=4 with a tuple metavar, which Python 3.11's help formatter rejects.
+    for corner in ("x1", "y1", "x2", "y2"):
+        box.add_argument(corner, type=float, help=f"{corner.upper()}, normalised 0..1")
     box.set_defaults(func=_track_box)
     watch = sub.add_parser("watch", help="print status, candidates and target position as they arrive", epilog="example:\n  cloudtrack-gcs watch --duration 60", formatter_class=argparse.RawDescriptionHelpFormatter)
     watch.add_argument("--duration", type=float, default=0.0, metavar="S", help="stop after S seconds (default: until Ctrl-C)")

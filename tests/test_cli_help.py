@@ -1,0 +1,46 @@
+"""Every console script and every subcommand answers --help with real examples."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+SCRIPTS = {
+    "cloudtrack-companion": "companion.cli",
+    "cloudtrack-backend": "backend.cli",
+    "cloudtrack-sim": "sitl.cli",
+    "cloudtrack-gcs": "companion.gcs_cli",
+}
+
+
+@pytest.mark.parametrize("script", sorted(SCRIPTS))
+def test_console_script_help_shows_examples(script: str) -> None:
+    exe = Path(sys.executable).with_name(script)
+    assert exe.is_file(), f"{script} is not installed next to {sys.executable}"
+    result = subprocess.run([str(exe), "--help"], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert "example" in result.stdout.lower()
+    assert f"{script} " in result.stdout.split("xample", 1)[1], "examples must show real invocations"
+
+
+def _subparsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            return dict(action.choices)
+    return {}
+
+
+@pytest.mark.parametrize("script", sorted(SCRIPTS))
+def test_every_subcommand_help_renders_with_an_example(script: str) -> None:
+    parser = importlib.import_module(SCRIPTS[script]).build_parser()
+    commands = _subparsers(parser)
+    assert commands
+    for name, sub in commands.items():
+        text = sub.format_help()
+        assert "usage:" in text, name
+        assert f"{script} {name}" in text.split("xample", 1)[-1], f"{script} {name} --help shows no example of itself"
