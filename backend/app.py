@@ -180,14 +180,21 @@ def _add_detection_routes(app: FastAPI) -> None:
         try:
             async with app.state.scheduler.slot(fields.vehicle_id):
                 t_queue = time.perf_counter() - t_queued
-                result = await run_in_threadpool(
-                    pipeline.run, frame, fields.prompt, superset, roi, fields.frame_id, check, t_received
-                )
+                t_detect = time.perf_counter()
+                detections = await run_in_threadpool(pipeline.detect, frame, superset, roi, fields.frame_id)
+                t_detect = time.perf_counter() - t_detect
         except QueueFullError as exc:
             raise HTTPException(429, f"too many requests waiting for this vehicle: {exc}", headers={"Retry-After": "1"}) from None
         except UnknownSupersetError as exc:
             raise HTTPException(422, str(exc)) from None
-        sessions.remember_candidates(fields.mission_id, [(c.detection.candidate_id, c.appearance) for c in result.candidates])
+        # Verification runs outside the detector slot: a slow VLM must not hold the detector, and the
+        # verifier pool already bounds how many verifications run at once.
+        t_verify = time.perf_counter()
+        candidates = await run_in_threadpool(
+            pipeline.verify, frame, detections, fields.prompt, superset, check, t_received + pipeline.deadline_s
+        )
+        t_verify = time.perf_counter() - t_verify
+        sessions.remember_candidates(fields.mission_id, [(c.detection.candidate_id, c.appearance) for c in candidates])
         return DetectResponse(
             vehicle_id=fields.vehicle_id,
             mission_id=fields.mission_id,
@@ -207,16 +214,16 @@ def _add_detection_routes(app: FastAPI) -> None:
                     t_verify=round(c.t_verify, 4),
                     previously_rejected=c.previously_rejected,
                 )
-                for c in result.candidates
+                for c in candidates
             ],
             timings=Timings(
                 t_queue=t_queue,
                 t_decode=t_decode,
-                t_detect=result.t_detect,
-                t_verify=result.t_verify,
+                t_detect=t_detect,
+                t_verify=t_verify,
                 t_total=time.perf_counter() - t_received,
             ),
-            models=ModelNames(detector=result.detector, verifier=result.verifier),
+            models=_models(app),
         )
 
 
