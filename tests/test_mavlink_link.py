@@ -129,3 +129,61 @@ def test_bad_signing_key_is_a_clear_error() -> None:
         parse_signing_key("not-a-key")
     with pytest.raises(ValueError, match="64 hexadecimal"):
         VehicleLink(MavlinkConfig(signing_key="abcd"), SafetyConfig())
+
+
+def test_serial_link_over_a_pseudo_terminal() -> None:
+    """serial:DEVICE:BAUD through pyserial: the companion detects the autopilot and asks for its streams."""
+    import contextlib
+    import os
+    import tty
+
+    from companion.mavlink_connection import mavlink
+
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    os.set_blocking(master, False)
+
+    class PtyWriter:
+        def write(self, data: bytes) -> None:
+            os.write(master, data)
+
+    autopilot_side = mavlink.MAVLink(PtyWriter(), srcSystem=1, srcComponent=1)
+    autopilot_side.robust_parsing = True
+    link = VehicleLink(MavlinkConfig(connection=f"serial:{os.ttyname(slave)}:57600"), SafetyConfig())
+    received: list = []
+    try:
+        link.start()
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline and not any(m.get_type() == "COMMAND_LONG" for m in received):
+            autopilot_side.heartbeat_send(2, 12, 129, 3 << 16, 4)  # PX4, POSCTL
+            link.kick()
+            time.sleep(0.1)
+            with contextlib.suppress(BlockingIOError):  # nothing written yet
+                received += autopilot_side.parse_buffer(os.read(master, 4096)) or []
+        assert link.autopilot_kind is AutopilotKind.PX4
+        kinds = {m.get_type() for m in received}
+        assert {"HEARTBEAT", "COMMAND_LONG"} <= kinds  # ours (type 18) and SET_MESSAGE_INTERVAL requests
+        assert any(m.get_type() == "HEARTBEAT" and m.type == 18 and m.get_srcComponent() == 191 for m in received)
+    finally:
+        link.close()
+        os.close(master)
+        os.close(slave)
+
+
+def test_tcp_link_to_the_autopilot() -> None:
+    from sitl.autopilot import AutopilotOptions, SimulatedAutopilot
+
+    sim = SimulatedAutopilot(AutopilotOptions(personality="px4"), {"companion": "tcpin:127.0.0.1:0"})
+    sim.start()
+    link = VehicleLink(MavlinkConfig(connection=f"tcp:127.0.0.1:{sim.link_port('companion')}"), SafetyConfig())
+    try:
+        link.start()
+        with MainLoop(link):
+            assert wait_for(lambda: link.telemetry() is not None, 5.0)
+            assert link.autopilot_kind is AutopilotKind.PX4
+            link.request_offboard()
+            link.set_velocity(Setpoint(1.0, 0.0, 0.0, 0.0))
+            assert wait_for(lambda: sim.mode == "OFFBOARD" and sim.snapshot().vn > 0.5, 6.0)
+    finally:
+        link.close()
+        sim.close()
