@@ -78,6 +78,8 @@ class MavlinkConfig(ConfigSection):
     signing_key: str = ""  # 64 hex chars (32 bytes); prefer CLOUDTRACK_MAVLINK__SIGNING_KEY
     use_mavsdk: bool = False
     mavsdk_address: str = "udp://:14541"
+    # A second identity as a MAVLink camera (100-105 is where QGroundControl looks for tracking); 0: none.
+    camera_component: int = Field(100, ge=0, le=255)
 
 
 class SafetyConfig(ConfigSection):
