@@ -9,6 +9,7 @@ frame (the catch-up spreads over several loop iterations while the live frames k
 
 from __future__ import annotations
 
+import logging
 import math
 from collections import deque
 from dataclasses import dataclass
@@ -16,6 +17,8 @@ from dataclasses import dataclass
 from behaviors.geometry import Box
 from companion.frame_sources import Frame
 from companion.trackers import Tracker, TrackerStep
+
+log = logging.getLogger(__name__)
 
 
 class KeyframeGoneError(Exception):
@@ -32,8 +35,17 @@ class FrameRing:
         self._frames: deque[Frame] = deque(maxlen=capacity)
 
     def push(self, frame: Frame) -> None:
+        """Add the newest frame. An id that does not increase means the source restarted its numbering
+        (a camera stream reconnected): the old frames are dropped so no answer is matched to a frame it
+        was not computed on."""
         if self._frames and frame.frame_id <= self._frames[-1].frame_id:
-            raise ValueError(f"frame {frame.frame_id} is not newer than {self._frames[-1].frame_id}")
+            log.warning(
+                "frame id went from %d to %d: the source restarted; dropping %d buffered frames",
+                self._frames[-1].frame_id,
+                frame.frame_id,
+                len(self._frames),
+            )
+            self._frames.clear()
         self._frames.append(frame)
 
     def get(self, frame_id: int) -> Frame | None:

@@ -29,10 +29,19 @@ def test_ring_keeps_the_newest_frames_in_order() -> None:
     assert ring.get(2) is None and ring.get(4) is not None
     assert [f.frame_id for f in ring.since(3)] == [4, 5]
     assert ring.newest is not None and ring.newest.frame_id == 5
-    with pytest.raises(ValueError, match="not newer"):
-        ring.push(_blank(5))
     with pytest.raises(ValueError):
         FrameRing(0)
+
+
+def test_ring_restarted_numbering_drops_old_frames_instead_of_crashing(caplog: pytest.LogCaptureFixture) -> None:
+    ring = FrameRing(5)
+    for i in range(1, 5):
+        ring.push(_blank(i))
+    ring.push(_blank(2))  # the camera stream reconnected and counts from its start again
+    assert "source restarted" in caplog.text
+    assert len(ring) == 1 and ring.get(4) is None and ring.newest is not None and ring.newest.frame_id == 2
+    ring.push(_blank(3))
+    assert [f.frame_id for f in ring.since(2)] == [3]
 
 
 def test_catch_up_work_is_bounded_per_frame_and_in_total(models_dir: Path, sequences_dir: Path) -> None:
