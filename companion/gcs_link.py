@@ -57,6 +57,10 @@ CMD_CAMERA_TRACK_POINT = 2004
 CMD_CAMERA_TRACK_RECTANGLE = 2005
 CMD_CAMERA_STOP_TRACKING = 2010
 MSG_ID_CAMERA_INFORMATION = 259
+CAMERA_COMMANDS = {
+    CMD_REQUEST_MESSAGE, CMD_REQUEST_CAMERA_INFORMATION, CMD_CAMERA_TRACK_POINT, CMD_CAMERA_TRACK_RECTANGLE,
+    CMD_CAMERA_STOP_TRACKING,
+}  # fmt: skip
 COMMAND_NAMES = {
     CMD_START: "start", CMD_ABORT: "abort", CMD_CONFIRM: "confirm", CMD_REJECT: "reject", CMD_STATUS: "status",
     CMD_CAMERA_TRACK_RECTANGLE: "track-rectangle", CMD_CAMERA_TRACK_POINT: "track-point",
@@ -188,34 +192,50 @@ class GcsReplies(Protocol):
 
     def deliver(self, command: MissionCommand) -> None: ...
 
-    def ack(self, msg: Any, result: int) -> None: ...
+    def ack(self, msg: Any, result: int) -> None: ...  # sent as the component the command was addressed to
     def status(self, text: str, severity: int = MAV_SEVERITY_INFO) -> None: ...
-    def camera_information(self, image_size: tuple[int, int]) -> None: ...
+    def camera_information(self, image_size: tuple[int, int], component: int) -> None: ...
     def latest_status(self) -> None: ...
 
 
 class GcsProtocol:
     """Turns the GCS's COMMAND_LONG and TUNNEL messages addressed to this component into mission commands,
-    delivered before the COMMAND_ACK goes out."""
+    delivered before the COMMAND_ACK goes out.
 
-    def __init__(self, system_id: int, component_id: int, image_size: Callable[[], tuple[int, int]], replies: GcsReplies):
+    The camera-tracking commands are also taken when addressed to `camera_component` (QGroundControl sends
+    them only to camera components, 100-105); mission commands only to `component_id`.
+    """
+
+    def __init__(
+        self,
+        system_id: int,
+        component_id: int,
+        camera_component: int,
+        image_size: Callable[[], tuple[int, int]],
+        replies: GcsReplies,
+    ):
         self._system = system_id
         self._component = component_id
+        self._camera = camera_component
         self._image_size = image_size
         self._replies = replies
         self._prompts = PromptAssembler()
 
-    def _for_us(self, msg: Any) -> bool:
-        return bool(msg.target_system == self._system and msg.target_component == self._component)
-
     def handle(self, msg: Any, now: float) -> None:
         mtype = msg.get_type()
-        if mtype == "TUNNEL" and self._for_us(msg):
+        if mtype not in ("TUNNEL", "COMMAND_LONG") or msg.target_system != self._system:
+            return
+        if mtype == "TUNNEL" and msg.target_component == self._component:
             chunk = decode_chunk(msg.payload_type, bytes(msg.payload[: msg.payload_length]))
             if chunk is not None:
                 self._prompts.add(chunk, now)
-        elif mtype == "COMMAND_LONG" and self._for_us(msg):
+        elif mtype == "COMMAND_LONG" and msg.target_component == self._component:
             self._command(msg)
+        elif mtype == "COMMAND_LONG" and self._camera and msg.target_component == self._camera:
+            if msg.command in CAMERA_COMMANDS:
+                self._command(msg)
+            else:
+                self._replies.ack(msg, MAV_RESULT_UNSUPPORTED)
 
     def _command(self, msg: Any) -> None:
         cmd = msg.command
@@ -241,7 +261,7 @@ class GcsProtocol:
         if cmd == CMD_STATUS:
             self._replies.latest_status()
         elif cmd in (CMD_REQUEST_MESSAGE, CMD_REQUEST_CAMERA_INFORMATION):
-            self._replies.camera_information(self._image_size())
+            self._replies.camera_information(self._image_size(), msg.target_component)
         elif isinstance(command, StartMission):
             superset = f" ({command.superset})" if command.superset else ""
             self._replies.status(f"MISSION {command.mission_id} STARTED: {command.prompt}{superset}")

@@ -107,6 +107,7 @@ class MavlinkEndpoint:
     def __init__(self, conn: Any):
         self.conn = conn
         self._send_lock = threading.Lock()
+        self._identities: dict[int, Any] = {}
         self.bad_data = 0
 
     @classmethod
@@ -117,11 +118,22 @@ class MavlinkEndpoint:
     def mav(self) -> Any:
         return self.conn.mav
 
-    def send(self, build: Callable[[Any], Any]) -> bool:
-        """Run `build(mav)` (e.g. `lambda m: m.heartbeat_send(...)`) under the send lock; False on OSError."""
+    def add_identity(self, component: int) -> None:
+        """Also send as `component` of the same system on this link (sequence numbers of its own, the
+        connection's signing key)."""
+        encoder = mavlink.MAVLink(self.conn, self.conn.mav.srcSystem, component)
+        encoder.signing = self.conn.mav.signing  # one signing state: setup_signing later applies to both
+        self._identities[component] = encoder
+
+    def send(self, build: Callable[[Any], Any], component: int | None = None) -> bool:
+        """Run `build(mav)` (e.g. `lambda m: m.heartbeat_send(...)`) under the send lock; False on OSError.
+
+        `component` picks an identity added with `add_identity`; default the connection's own.
+        """
+        encoder = self._identities.get(component, self.conn.mav) if component is not None else self.conn.mav
         with self._send_lock:
             try:
-                build(self.conn.mav)
+                build(encoder)
                 return True
             except OSError as exc:
                 log.warning("MAVLink send failed: %s", exc)

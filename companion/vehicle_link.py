@@ -105,7 +105,11 @@ class VehicleLink:
         self._mavsdk: MavsdkOffboard | None = None  # PX4 offboard through MAVSDK (mavlink.use_mavsdk)
         self.signing = SigningGuard(on_refused=lambda text: self._record(SafetyEvent(self._clock(), "signing", "refused", text)))
         self._watchdog = SafetyWatchdog(safety, self._on_trip, self._on_clear, clock)
-        self._gcs = GcsProtocol(mavlink_config.target_system, mavlink_config.source_component, lambda: self._image_size, self)
+        self._camera_component = mavlink_config.camera_component
+        self._gcs = GcsProtocol(
+            mavlink_config.target_system, mavlink_config.source_component, self._camera_component,
+            lambda: self._image_size, self,
+        )  # fmt: skip
 
         self._setpoint = Setpoint.zero()
         self._descent_allowed = False
@@ -129,6 +133,8 @@ class VehicleLink:
         self._endpoint = MavlinkEndpoint.open(self._cfg.connection, self._cfg.target_system, self._cfg.source_component)
         if self._signing_key is not None:
             self.signing.enable(self._endpoint.conn, self._signing_key)
+        if self._camera_component:
+            self._endpoint.add_identity(self._camera_component)
         if self._cfg.use_mavsdk:
             self._mavsdk = MavsdkOffboard(self._cfg.mavsdk_address)
             self._mavsdk.start()
@@ -280,15 +286,20 @@ class VehicleLink:
                 return
             self._last_tracking_sent = now
         w, h = image_size
+        camera = self._camera_component or None
         if box is None:
-            self.endpoint.send(lambda m: m.camera_tracking_image_status_send(0, 0, 0, math.nan, math.nan, math.nan, math.nan, math.nan, math.nan, math.nan))
+            nan = math.nan
+            self.endpoint.send(
+                lambda m: m.camera_tracking_image_status_send(0, 0, 0, nan, nan, nan, nan, nan, nan, nan), camera
+            )
             return
         status = mavlink.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE
         self.endpoint.send(
             lambda m: m.camera_tracking_image_status_send(
                 status, mavlink.CAMERA_TRACKING_MODE_RECTANGLE, mavlink.CAMERA_TRACKING_TARGET_DATA_IN_STATUS,
                 box.cx / w, box.cy / h, math.nan, box.x / w, box.y / h, box.x2 / w, box.y2 / h,
-            )
+            ),
+            camera,
         )  # fmt: skip
 
     # ----------------------------------------------------------------- GcsReplies (for GcsProtocol)
@@ -297,7 +308,10 @@ class VehicleLink:
             self._commands.append(command)
 
     def ack(self, msg: Any, result: int) -> None:
-        self.endpoint.send(lambda m: m.command_ack_send(msg.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()))
+        self.endpoint.send(
+            lambda m: m.command_ack_send(msg.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()),
+            msg.target_component,
+        )
 
     def status(self, text: str, severity: int = MAV_SEVERITY_INFO) -> None:
         chunks = statustext_chunks(text)
@@ -310,7 +324,7 @@ class VehicleLink:
             text = self._latest_status
         self.status(text)
 
-    def camera_information(self, image_size: tuple[int, int]) -> None:
+    def camera_information(self, image_size: tuple[int, int], component: int) -> None:
         flags = CAMERA_CAP_FLAGS_HAS_TRACKING_RECTANGLE | CAMERA_CAP_FLAGS_HAS_TRACKING_POINT
         vendor = list(b"CloudTrack".ljust(32, b"\0"))
         model = list(b"companion tracker".ljust(32, b"\0"))
@@ -318,7 +332,8 @@ class VehicleLink:
         self.endpoint.send(
             lambda m: m.camera_information_send(
                 boot_ms, vendor, model, 0, math.nan, math.nan, math.nan, image_size[0], image_size[1], 0, flags, 0, b""
-            )
+            ),
+            component,
         )
 
     # --------------------------------------------------------------------------------- internals
@@ -343,6 +358,11 @@ class VehicleLink:
                 mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE
             )
         )
+        if self._camera_component:  # the camera identity lives and dies with the loop too
+            self._endpoint.send(
+                lambda m: m.heartbeat_send(mavlink.MAV_TYPE_CAMERA, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE),
+                self._camera_component,
+            )
 
     def _send_setpoint(self, kind: AutopilotKind, setpoint: Setpoint) -> None:
         if self._mavsdk is not None and kind is AutopilotKind.PX4:

@@ -108,29 +108,39 @@ def test_mission_commands_over_mavlink_through_the_autopilot() -> None:
         assert link.commands() == []
 
 
-def test_camera_tracking_protocol() -> None:
+@pytest.mark.parametrize("component", [100, 191])  # the camera identity QGroundControl uses, and the companion's
+def test_camera_tracking_protocol(component: int) -> None:
+    def command(cmd: int, *params: float):  # type: ignore[no-untyped-def]
+        p = list(params) + [0.0] * (7 - len(params))
+        ground.send(lambda m: m.command_long_send(1, component, cmd, 0, *p))
+        ack = receive_until(ground, _is_ack(cmd))
+        assert ack is not None and ack.get_srcComponent() == component  # answered by the addressed component
+        return ack.result
+
     with autopilot("ardupilot") as sim, vehicle_link(sim) as link, MainLoop(link), gcs(sim) as ground:
-        ground.send(lambda m: m.command_long_send(1, 191, 512, 0, 259, 0, 0, 0, 0, 0, 0))  # REQUEST_MESSAGE
+        camera_hb = receive_until(ground, lambda m: m.get_type() == "HEARTBEAT" and m.get_srcComponent() == 100, 3.0)
+        assert camera_hb is not None and camera_hb.type == 30  # MAV_TYPE_CAMERA: QGC finds it among 100-105
+        assert command(512, 259) == 0  # REQUEST_MESSAGE(CAMERA_INFORMATION)
         info = receive_until(ground, lambda m: m.get_type() == "CAMERA_INFORMATION")
-        assert info is not None and info.flags & 1024 and info.flags & 512  # tracking rectangle + point
+        assert info is not None and info.get_srcComponent() == component
+        assert info.flags & 1024 and info.flags & 512  # tracking rectangle + point
         assert (info.resolution_h, info.resolution_v) == (640, 480)
-        ground.send(lambda m: m.command_long_send(1, 191, 2005, 0, 0.25, 0.5, 0.5, 1.0, 0, 0, 0))
-        assert receive_until(ground, _is_ack(2005)).result == 0
-        ground.send(lambda m: m.command_long_send(1, 191, 2004, 0, 0.5, 0.5, 0.1, 0, 0, 0, 0))
-        assert receive_until(ground, _is_ack(2004)).result == 0
-        ground.send(lambda m: m.command_long_send(1, 191, 2005, 0, 0.8, 0.5, 0.2, 1.0, 0, 0, 0))  # corners swapped
-        assert receive_until(ground, _is_ack(2005)).result == 2
-        ground.send(lambda m: m.command_long_send(1, 191, 2010, 0, 0, 0, 0, 0, 0, 0, 0))
-        assert receive_until(ground, _is_ack(2010)).result == 0
+        assert command(2005, 0.25, 0.5, 0.5, 1.0) == 0
+        assert command(2004, 0.5, 0.5, 0.1) == 0
+        assert command(2005, 0.8, 0.5, 0.2, 1.0) == 2  # corners swapped: DENIED
+        assert command(2010) == 0
+        if component == 100:
+            assert command(31012) == 3  # mission commands only to the companion component: UNSUPPORTED
         commands = link.commands()
         assert commands[0] == TrackRectangle(Box(160.0, 240.0, 160.0, 240.0))
         assert isinstance(commands[1], TrackRectangle) and commands[1].box.cx == pytest.approx(320.0)
         assert commands[1].box.w == pytest.approx(128.0) and commands[1].box.h == pytest.approx(128.0)
-        assert commands[2] == StopTracking()
-        # while tracking the companion streams CAMERA_TRACKING_IMAGE_STATUS, normalised
+        assert commands[2:] == [StopTracking()]
+        # while tracking the camera component streams CAMERA_TRACKING_IMAGE_STATUS, normalised
         link.report_tracking(Box(320, 120, 64, 120), (640, 480))
         status = receive_until(ground, lambda m: m.get_type() == "CAMERA_TRACKING_IMAGE_STATUS")
-        assert status is not None and status.tracking_status == 1 and status.tracking_mode == 2
+        assert status is not None and status.get_srcComponent() == 100
+        assert status.tracking_status == 1 and status.tracking_mode == 2
         assert (status.rec_top_x, status.rec_top_y, status.rec_bottom_x, status.rec_bottom_y) == pytest.approx((0.5, 0.25, 0.6, 0.5))
         assert status.point_x == pytest.approx(0.55)
         link.report_tracking(None, (640, 480))
