@@ -74,15 +74,20 @@ class YoloxDetector:
         wanted = sorted({COCO_CLASSES.index(c) for name in classes for c in coco_classes_for(name)})
         blob, ratio = self._letterbox(image_bgr)
         raw = self._session.run(None, {self._input_name: blob})[0][0]
-        centres = (raw[:, :2] + self._grid) * self._stride
-        sizes = np.exp(np.clip(raw[:, 2:4], -10, 10)) * self._stride
+        # score = objectness x class probability <= objectness: drop weak rows before any other work.
+        rows = np.flatnonzero(raw[:, 4] >= self.score_threshold)
+        if rows.size == 0:
+            return []
+        raw = raw[rows]
         class_scores = raw[:, 4:5] * raw[:, 5:][:, wanted]
         best = class_scores.argmax(axis=1)
         scores = class_scores[np.arange(len(best)), best]
         mask = scores >= self.score_threshold
         if not mask.any():
             return []
-        centres, sizes, scores, labels = centres[mask], sizes[mask], scores[mask], np.asarray(wanted)[best[mask]]
+        raw, rows, scores, labels = raw[mask], rows[mask], scores[mask], np.asarray(wanted)[best[mask]]
+        centres = (raw[:, :2] + self._grid[rows]) * self._stride[rows]
+        sizes = np.exp(np.clip(raw[:, 2:4], -10, 10)) * self._stride[rows]
         xyxy = np.concatenate((centres - sizes / 2, centres + sizes / 2), axis=1) / ratio
         h, w = image_bgr.shape[:2]
         xyxy = np.clip(xyxy, 0, [w, h, w, h])
