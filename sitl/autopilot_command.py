@@ -8,6 +8,7 @@ import signal
 import threading
 
 from sitl.autopilot import PERSONALITIES, AutopilotOptions, SimulatedAutopilot
+from sitl.vehicle_dynamics import Wind
 
 EXAMPLES = """\
 examples:
@@ -15,6 +16,7 @@ examples:
       ArduCopter personality; GCS link udpout:127.0.0.1:14550 (MAVProxy/QGC listen there),
       companion link udpout:127.0.0.1:14540 (cloudtrack-companion's default udpin:0.0.0.0:14540)
   cloudtrack-sim autopilot --autopilot px4 --gcs udpin:0.0.0.0:14560 --companion tcpin:0.0.0.0:5760
+  cloudtrack-sim autopilot --guid-timeout 1 --wind 0 4     # short GUID_TIMEOUT, 4 m/s wind towards east
   mavproxy.py --master udpin:0.0.0.0:14550      # then: mode GUIDED, mode BRAKE, ...
 """
 
@@ -39,14 +41,19 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
     )
     parser.add_argument("--guid-timeout", type=float, default=3.0, metavar="S", help="ArduCopter GUID_TIMEOUT (default 3)")
     parser.add_argument("--offboard-loss", type=float, default=1.0, metavar="S", help="PX4 COM_OF_LOSS_T (default 1)")
+    parser.add_argument(
+        "--wind", type=float, nargs=2, default=(0.0, 0.0), metavar=("N", "E"),
+        help="steady wind towards north and east in m/s, 80%% rejected by the position controller (default 0 0)",
+    )  # fmt: skip
     parser.add_argument("--duration", type=float, default=0.0, metavar="S", help="stop after S seconds (0: run until Ctrl-C)")
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     options = AutopilotOptions(
-        personality=args.autopilot, guid_timeout_s=args.guid_timeout, offboard_loss_s=args.offboard_loss
-    )
+        personality=args.autopilot, guid_timeout_s=args.guid_timeout, offboard_loss_s=args.offboard_loss,
+        wind=Wind(north=args.wind[0], east=args.wind[1]),
+    )  # fmt: skip
     try:
         sim = SimulatedAutopilot(options, {"gcs": args.gcs, "companion": args.companion})
     except (OSError, ValueError) as exc:

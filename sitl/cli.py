@@ -1,4 +1,5 @@
-"""`cloudtrack-sim`: closed-loop scenarios (`run`, `list`), the mock autopilot alone (`autopilot`)."""
+"""`cloudtrack-sim`: closed-loop scenarios (`run`, `list`), the mock autopilot (`autopilot`), the camera alone
+(`camera`, also for an external autopilot) and the renderer's speed (`bench`)."""
 
 from __future__ import annotations
 
@@ -19,6 +20,8 @@ examples:
   cloudtrack-sim run reject --seed 3 --json out/reject.json
   cloudtrack-sim run follow --autopilot px4 --tracker vit --model-dir ../shared/models
   cloudtrack-sim autopilot --autopilot px4 --gcs udpout:127.0.0.1:14550
+  cloudtrack-sim camera --autopilot-url udpin:0.0.0.0:14551 --backend-port 8080
+  cloudtrack-sim bench
 """
 
 
@@ -98,9 +101,10 @@ def build_parser() -> argparse.ArgumentParser:
                                     "  cloudtrack-sim list --json", formatter_class=argparse.RawDescriptionHelpFormatter)
     listing.add_argument("--json", action="store_true", help="as a JSON object name -> summary")
     listing.set_defaults(func=_list)
-    from sitl import autopilot_command
+    from sitl import autopilot_command, camera_command
 
     autopilot_command.add_parser(subparsers)
+    camera_command.add_parsers(subparsers)
     return parser
 
 

@@ -22,6 +22,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import partial
@@ -50,6 +51,7 @@ EARTH_RADIUS = 6_378_137.0
 ALTITUDE_M = 10.0
 MOUNT_PITCH_DEG = -40.0  # at 10 m up and 12 m standoff the target sits near the image centre
 STANDOFF_M = 12.0
+VIDEO_DELAY_FRAMES = 20
 VEHICLE_ORIGINS = ((0.0, 0.0), (0.0, -8.0))  # where each vehicle's home lies in the world (north, east)
 
 Progress = Callable[[str], None]
@@ -73,6 +75,7 @@ class RunOptions:
 class _Seen:
     """What one rendered frame showed, without its pixels (a run keeps thousands)."""
 
+    frame_id: int
     time_s: float
     truth: tuple[TruthBox, ...]
     pose: VehiclePose
@@ -102,6 +105,9 @@ class _Vehicle:
     proposals: list[tuple[float, str]] = field(default_factory=list)
     ready: bool = False
     stop_s: float | None = None  # companion exit time after SIGTERM
+    judged: str = "none"  # the person the supervisor last confirmed
+    track_boxes: dict[int, Box | None] = field(default_factory=dict)  # the companion's box per frame id
+    video_queue: deque[tuple[int, float, Any]] = field(default_factory=deque)
     start_sent: tuple[float, int] | None = None  # (when, mission id) of the last unacknowledged start
 
 
@@ -223,9 +229,19 @@ class ScenarioRun:
     def _on_frame(self, v: _Vehicle, frame: RenderedFrame) -> None:
         if self.epoch is None:
             return
-        v.frames.append(_Seen(frame.time_s, frame.truth, frame.pose))
+        v.frames.append(_Seen(frame.frame_id, frame.time_s, frame.truth, frame.pose))
         if self.video is not None and v.index == 0:
-            self.video.write(draw_overlay(frame.image, v.overlay, frame.time_s, v.vehicle_id))
+            # Written VIDEO_DELAY frames late, so each frame gets the box the companion tracked on it.
+            v.video_queue.append((frame.frame_id, frame.time_s, frame.image))
+            while len(v.video_queue) > VIDEO_DELAY_FRAMES:
+                self._write_video_frame(v)
+
+    def _write_video_frame(self, v: _Vehicle) -> None:
+        assert self.video is not None
+        frame_id, t, image = v.video_queue.popleft()
+        box = next((v.track_boxes[i] for i in range(frame_id, frame_id - 10, -1) if i in v.track_boxes), None)
+        overlay = OverlayState(v.overlay.state, v.overlay.prompt, v.overlay.verdict, box)
+        self.video.write(draw_overlay(image, overlay, t, v.vehicle_id))
 
     # -------------------------------------------------------------------------------------- event feed
     def _read_events(self, v: _Vehicle) -> list[dict[str, Any]]:
@@ -251,12 +267,14 @@ class ScenarioRun:
     def _world_t(self, monotonic_t: float) -> float:
         return monotonic_t - (self.epoch or 0.0)
 
-    def _person_at(self, v: _Vehicle, box_xywh: list[float] | None, t_world: float) -> str:
-        """Which person a companion box shows, judged on the frame rendered nearest that time."""
+    def _person_at(self, v: _Vehicle, box_xywh: list[float] | None, t_world: float, frame_id: int = -1) -> str:
+        """Which person a companion box shows, judged on that frame (else the one rendered nearest in time)."""
         if not box_xywh or not v.frames:
             return "none"
         box = Box(*box_xywh)
-        frame = min(v.frames[-300:], key=lambda f: abs(f.time_s - t_world))
+        recent = v.frames[-300:]
+        frame = next((f for f in recent if f.frame_id == frame_id), None) or min(
+            recent, key=lambda f: abs(f.time_s - t_world))
         best, best_iou = "none", 0.1
         for tb in frame.truth:
             overlap = iou(box, tb.box)
@@ -276,12 +294,14 @@ class ScenarioRun:
             v.overlay = OverlayState(v.state, str(e.get("prompt", "")), v.overlay.verdict, v.overlay.box)
             self.say(f"{v.vehicle_id}: {v.state} ({e.get('reason', '')})")
             if v.state == "confirmed" and "supervisor" in str(e.get("reason", "")):
-                v.confirmations.append((t, v.proposals[-1][1] if v.proposals else "none"))
+                v.confirmations.append((t, v.judged))
         elif kind == "track":
             box = Box(*e["box"]) if e.get("box") and e.get("trusted") else None
-            v.overlay = OverlayState(v.overlay.state, v.overlay.prompt, v.overlay.verdict, box)
+            v.track_boxes[int(e.get("frame_id", 0))] = box
+            if len(v.track_boxes) > 300:
+                v.track_boxes.pop(next(iter(v.track_boxes)))
         elif kind in ("tracker_init", "reinit"):
-            pid = self._person_at(v, e.get("box"), t)
+            pid = self._person_at(v, e.get("box"), t, int(e.get("keyframe_id", -1)))
             v.proposals.append((t, pid))
             if kind == "tracker_init":
                 self.say(f"{v.vehicle_id}: tracking candidate {e.get('candidate_id')} -> {pid}")
@@ -316,6 +336,7 @@ class ScenarioRun:
         if v.state not in FOLLOW_STATES and v.state != "lost":
             return
         if action == "confirm":
+            v.judged = pid
             v.gcs.confirm()
         else:
             v.gcs.reject()
@@ -440,10 +461,15 @@ class ScenarioRun:
             if v.process is not None and v.process.poll() is None:
                 v.process.kill()
                 v.process.wait()
+        for v in self.vehicles:
+            v.camera.stop()  # no frame hook runs while the video is flushed
         if self.video is not None:
+            for v in self.vehicles[:1]:
+                while v.video_queue:
+                    self._write_video_frame(v)
             self.video.close()
         for v in self.vehicles:
-            for stop in (v.gcs.stop, v.camera.stop, v.follower.stop, v.proxy.stop, v.autopilot.close):
+            for stop in (v.gcs.stop, v.follower.stop, v.proxy.stop, v.autopilot.close):
                 try:
                     stop()
                 except Exception as exc:  # tear everything down even if one part is already broken
