@@ -160,6 +160,19 @@ def test_routing_between_gcs_and_companion_links() -> None:
         assert receive_until(comp, lambda m: m.get_type() == "COMMAND_LONG", 1.0) is None
 
 
+def test_rtl_flies_home_then_lands_and_disarms() -> None:
+    with autopilot("ardupilot", start_height_m=1.5, land_speed_m_s=1.5, rtl_speed_m_s=3.0) as sim, companion(sim) as link:
+        velocity(link, 3.0)
+        assert wait_for(lambda: sim.snapshot().north > 2.5, 3.0)
+        assert command(link, 20).result == 0  # MAV_CMD_NAV_RETURN_TO_LAUNCH
+        assert wait_for(lambda: sim.mode == "LAND", 6.0)
+        assert math.hypot(sim.snapshot().north, sim.snapshot().east) < 1.0
+        assert wait_for(lambda: not sim.armed, 4.0)
+        assert sim.snapshot().height == 0.0 and "Landed: disarmed" in sim.statustexts
+        hb = receive_until(link, lambda m: m.get_type() == "HEARTBEAT" and not m.base_mode & 128, 3.0)
+        assert hb is not None and hb.custom_mode == 9  # disarmed in LAND
+
+
 def test_autopilot_survives_garbage_on_its_links() -> None:
     import random
     import socket
@@ -196,7 +209,8 @@ def test_autopilot_subcommand_parses_and_runs(capsys: pytest.CaptureFixture[str]
     parser = argparse.ArgumentParser(prog="cloudtrack-sim")
     autopilot_command.add_parser(parser.add_subparsers(dest="command"))
     args = parser.parse_args(
-        ["autopilot", "--autopilot", "px4", "--gcs", "udpin:127.0.0.1:0", "--companion", "udpin:127.0.0.1:0", "--duration", "0.3"]
+        ["autopilot", "--autopilot", "px4", "--gcs", "udpin:127.0.0.1:0", "--companion", "udpin:127.0.0.1:0",
+         "--wind", "0", "3", "--duration", "0.3"]
     )
     assert args.func(args) == 0
     assert "px4 autopilot simulator" in capsys.readouterr().out
