@@ -12,7 +12,15 @@ from pathlib import Path
 from tqdm import tqdm
 
 from backend.detectors.factory import build_detector
-from backend.evaluation import DatasetError, EvalSet, evaluate, load_coco, load_sard_voc, markdown_table
+from backend.evaluation import (
+    DatasetError,
+    EvalSet,
+    evaluate,
+    load_coco,
+    load_sard_voc,
+    load_sequences,
+    markdown_table,
+)
 from backend.pipeline import Pipeline
 from backend.verifiers.factory import build_verifier
 from cloudtrack.config_files import ConfigError
@@ -30,6 +38,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
         "Prints a markdown table in the paper's layout.",
         epilog="examples:\n"
         "  cloudtrack-backend eval --coco set.json --images frames/ --verifier local --verifier none\n"
+        "  cloudtrack-backend eval --sequences ../shared/data/sequences --step 5 --verifier local --verifier none\n"
         "  cloudtrack-backend eval --voc SARD/ --attributes sard_attributes.csv --verifier vlm "
         "--set vlm.model=gpt-4o-mini --markdown out/eval.md\n"
         "  cloudtrack-backend eval --coco set.json --images frames/ --verifier cascade --json out/eval.json",
@@ -38,6 +47,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--coco", type=Path, metavar="FILE", help="COCO annotations with referring/attributes texts")
     source.add_argument("--voc", type=Path, metavar="DIR", help="SARD-style VOC folder (JPEGImages/, Annotations/)")
+    source.add_argument("--sequences", type=Path, metavar="DIR",
+                        help="tracking sequences (frames/, groundtruth.txt, referring.txt): one task per sequence")
+    parser.add_argument("--step", type=int, default=5, help="with --sequences: every STEP-th frame (default 5)")
     parser.add_argument("--images", type=Path, metavar="DIR", help="image folder for --coco")
     parser.add_argument("--attributes", type=Path, metavar="CSV", help="image,xmin,ymin,xmax,ymax,attribute rows for --voc")
     parser.add_argument("--verifier", action="append", choices=["none", "local", "vlm", "cascade"],
@@ -51,6 +63,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
 
 
 def _load(args: argparse.Namespace) -> EvalSet:
+    if args.sequences:
+        if args.step < 1:
+            raise DatasetError("--step must be at least 1")
+        return load_sequences(args.sequences, args.step)
     if args.coco:
         if not args.images:
             raise DatasetError("--coco needs --images DIR")

@@ -8,7 +8,7 @@ its confidence is the detector score. AP50 from faster-coco-eval (COCO's 101-poi
 reported beside our 11-point AP as a cross-check. t_f is the time per frame (detection + verifying all
 its candidates concurrently), t_obj the time per verified object.
 
-Inputs: a COCO file whose annotations carry `"referring": "text"` and/or `"attributes": ["text", ...]`
+Inputs: tracking sequences with a referring.txt each (one task per sequence), a COCO file whose annotations carry `"referring": "text"` and/or `"attributes": ["text", ...]`
 (each distinct text is a task, its category the superset), or a SARD-style VOC folder
 (`JPEGImages/`, `Annotations/*.xml`) with an attribute CSV `image,xmin,ymin,xmax,ymax,attribute`.
 """
@@ -121,6 +121,28 @@ def load_coco(coco_file: Path, images_dir: Path) -> EvalSet:
             raise DatasetError(f"{coco_file}: image {path} does not exist")
         eval_images.append(EvalImage(int(image["id"]), path, {k: tuple(v) for k, v in truth.items()}))
     return EvalSet(tasks, eval_images)
+
+
+def load_sequences(sequences_dir: Path, step: int = 5) -> EvalSet:
+    """Tracking sequences (frames/, groundtruth.txt, referring.txt) as a set: one task per sequence."""
+    folders = sorted(p for p in sequences_dir.iterdir() if (p / "groundtruth.txt").is_file() and (p / "referring.txt").is_file())
+    if not folders:
+        raise DatasetError(f"{sequences_dir}: no sequence folders with groundtruth.txt and referring.txt")
+    tasks: list[EvalTask] = []
+    images: list[EvalImage] = []
+    for folder in folders:
+        prompt = (folder / "referring.txt").read_text().strip()
+        superset = superset_from_prompt(prompt)
+        if superset is None:
+            raise DatasetError(f"{folder}/referring.txt names no known class: {prompt!r}")
+        task = EvalTask(f"T{len(tasks) + 1}", prompt, superset)
+        tasks.append(task)
+        lines = (folder / "groundtruth.txt").read_text().split()
+        for index in range(0, len(lines), step):
+            values = [float(v) for v in lines[index].split(",")]
+            truth: dict[str, tuple[Box, ...]] = {} if any(np.isnan(values)) else {task.name: (Box(*values),)}
+            images.append(EvalImage(len(images) + 1, folder / "frames" / f"{index + 1:06d}.jpg", truth))
+    return EvalSet(tasks, images)
 
 
 def load_sard_voc(folder: Path, attribute_file: Path, superset: str = "person") -> EvalSet:

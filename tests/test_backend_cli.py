@@ -77,6 +77,12 @@ def test_eval_prints_the_table_and_writes_json(
     assert (tmp_path / "e.md").read_text().startswith("| Verifier |")
 
 
+def test_eval_on_tracking_sequences(models_dir: Path, sequences_dir: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["eval", "--sequences", str(sequences_dir), "--step", "50", "--verifier", "none", "--model-dir", str(models_dir)]) == 0
+    out = capsys.readouterr().out
+    assert "T5 (bag): the white plastic bag on the ground" in out and "| none |" in out
+
+
 def test_eval_input_errors_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["eval", "--coco", str(tmp_path / "missing.json"), "--images", str(tmp_path)]) == 2
     assert "missing.json" in capsys.readouterr().err
