@@ -124,6 +124,7 @@ class VehicleLink:
         self._last_tracking_sent = -math.inf
         self._tracking_box: Box | None = None
         self._latest_status = "CloudTrack ready: no mission"
+        self._text_id = 0
         self._commands: deque[MissionCommand] = deque(maxlen=100)
         self._events: deque[SafetyEvent] = deque(maxlen=1000)
         self.setpoints_sent = 0
@@ -147,9 +148,9 @@ class VehicleLink:
         self._watchdog.start()
 
     def close(self) -> None:
-        """Explicit stop if we are flying the vehicle, then shut the threads and the link."""
+        """Explicit stop and hold if we are flying the vehicle, then shut the threads and the link."""
         if self._endpoint is not None and self._enabled:
-            self._send_zero()
+            self._stop_and_hold("companion link closing")
         self._stop.set()
         self._watchdog.close()
         for thread in self._threads:
@@ -203,11 +204,16 @@ class VehicleLink:
             self._held_reason = ""
 
     def hold(self, reason: str) -> None:
-        """Explicit zero-velocity stop now, then the configured hold, until the next `set_velocity`."""
+        """Explicit zero-velocity stop now, then the configured hold, until the next `set_velocity`.
+
+        Calling it again while holding changes nothing (the stop and the mode request go out once).
+        """
         with self._lock:
+            already = bool(self._held_reason)
             self._setpoint = Setpoint.zero()
             self._held_reason = reason or "hold"
-        self._stop_and_hold(reason)
+        if not already:
+            self._stop_and_hold(reason)
 
     def enable_offboard(self) -> None:
         """The mission may fly the vehicle once the pilot or GCS selects GUIDED/OFFBOARD."""
@@ -228,7 +234,7 @@ class VehicleLink:
             self._engage = False
 
     def request_mode(self, action: str) -> None:
-        """Ask for loiter / rtl / land / brake / hold (the lost action). Requested, never forced; streaming ends."""
+        """Ask for loiter / rtl / land / brake (the lost action). Requested, never forced; streaming ends."""
         kind = self.autopilot_kind
         if kind is None:
             log.warning("mode %s not requested: autopilot not detected yet", action)
@@ -315,7 +321,11 @@ class VehicleLink:
 
     def status(self, text: str, severity: int = MAV_SEVERITY_INFO) -> None:
         chunks = statustext_chunks(text)
-        text_id = (int(self._clock() * 1000) % 65535) + 1 if len(chunks) > 1 else 0
+        text_id = 0
+        if len(chunks) > 1:  # linked chunks share a non-zero id
+            with self._lock:
+                self._text_id = self._text_id % 65535 + 1
+                text_id = self._text_id
         for piece, seq in chunks:
             self.endpoint.send(partial(_statustext, severity=severity, text=piece, text_id=text_id, seq=seq))
 

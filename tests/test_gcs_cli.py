@@ -70,7 +70,7 @@ def test_watch_prints_status_values_and_target(capsys: pytest.CaptureFixture[str
         assert "[autopilot] mode GUIDED" in out
         assert "[1/191] CANDIDATE 2: yes, gray shirt lying; confirm?" in out
         assert "[1/191] dist_m = 12.500" in out
-        assert "[1/191] target at (0.550, 0.375) box (0.500, 0.250)-(0.600, 0.500)" in out
+        assert "[1/100] target at (0.550, 0.375) box (0.500, 0.250)-(0.600, 0.500)" in out
 
 
 def test_no_companion_times_out_with_a_clear_message(capsys: pytest.CaptureFixture[str]) -> None:
