@@ -11,7 +11,9 @@ import numpy as np
 import pytest
 import requests
 
+from backend.bench import mosaic
 from backend.crops import crop_box, margin_crop
+from backend.detectors.yolox import YoloxDetector
 from backend.pipeline import Pipeline
 from backend.verifiers.answer_parser import parse_answer
 from backend.verifiers.attributes import AttributeVerifier, colour_claims
@@ -20,7 +22,7 @@ from backend.verifiers.interface import VerifierError, VerifierTimeout
 from backend.verifiers.openai_chat import OpenAIChatVerifier
 from backend.verifiers.prompts import family_for, render
 from backend.vlm_emulator import MODEL_NAME, VlmEmulator
-from behaviors.detection import Detection, Verdict
+from behaviors.detection import Verdict
 from behaviors.geometry import Box
 
 YES, NO, UNC = Verdict.YES, Verdict.NO, Verdict.UNCERTAIN
@@ -126,36 +128,31 @@ def test_slow_verifier_times_out() -> None:
         assert time.monotonic() - start < 1.5
 
 
-class _Boxes:
-    """A fixed-output detector for pipeline timing tests (the verifier is what is under test here)."""
-
-    name = "fixed-boxes"
-
-    def __init__(self, boxes: list[Box]) -> None:
-        self.boxes = boxes
-
-    def detect(self, image_bgr: np.ndarray, classes: object, frame_id: int | None = None) -> list[Detection]:
-        return [Detection(b, 0.9 - 0.01 * i) for i, b in enumerate(self.boxes)]
+@pytest.fixture(scope="module")
+def yolox(models_dir: Path) -> YoloxDetector:
+    return YoloxDetector(models_dir / "yolox_nano" / "yolox_nano.onnx", threads=1)
 
 
-FIVE = [Box(20 + 110 * i, 100, 60, 150) for i in range(5)]
+@pytest.fixture(scope="module")
+def crowd(sequences_dir: Path) -> np.ndarray:
+    """A 640x480 keyframe with five real people cut from the sequences (YOLOX finds at least five)."""
+    return mosaic(sequences_dir, 5)
 
 
-def test_pipeline_verifies_candidates_concurrently(sequences_dir: Path) -> None:
-    image = np.full((480, 640, 3), 90, np.uint8)
+def test_pipeline_verifies_candidates_concurrently(yolox: YoloxDetector, crowd: np.ndarray) -> None:
     with VlmEmulator(latency_s=0.4, mode="yes") as vlm:
         verifier = OpenAIChatVerifier(vlm.base_url, MODEL_NAME)
         with ThreadPoolExecutor(8) as pool:
-            result = Pipeline(_Boxes(FIVE), verifier, pool).run(image, "a man in a gray shirt", "person")
+            result = Pipeline(yolox, verifier, pool, max_candidates=5).run(crowd, "a man in a gray shirt", "person")
         assert vlm.max_in_flight == 5
     assert [c.detection.verdict for c in result.candidates] == [YES] * 5
     assert result.t_verify < 5 * 0.4  # five 0.4 s answers overlapped (generous bound for a loaded machine)
 
 
-def test_pipeline_turns_timeouts_and_garbage_into_the_uncertain_policy() -> None:
-    image = np.full((480, 640, 3), 90, np.uint8)
+def test_pipeline_turns_timeouts_and_garbage_into_the_uncertain_policy(yolox: YoloxDetector, crowd: np.ndarray) -> None:
+    image = crowd
     with VlmEmulator(latency_s=1.5, mode="yes") as slow, ThreadPoolExecutor(8) as pool:
-        pipeline = Pipeline(_Boxes(FIVE[:2]), OpenAIChatVerifier(slow.base_url, MODEL_NAME), pool, timeout_s=0.3, deadline_s=5)
+        pipeline = Pipeline(yolox, OpenAIChatVerifier(slow.base_url, MODEL_NAME), pool, max_candidates=2, timeout_s=0.3, deadline_s=5)
         start = time.monotonic()
         result = pipeline.run(image, "a man", "person")
         assert time.monotonic() - start < 1.4
@@ -163,18 +160,17 @@ def test_pipeline_turns_timeouts_and_garbage_into_the_uncertain_policy() -> None
     assert all("timed out" in c.detection.justification or "no answer" in c.detection.justification for c in result.candidates)
     with VlmEmulator(mode="garbage") as vlm, ThreadPoolExecutor(4) as pool:
         for policy, expected in (("uncertain", UNC), ("yes", YES), ("no", NO)):
-            pipeline = Pipeline(_Boxes(FIVE[:1]), OpenAIChatVerifier(vlm.base_url, MODEL_NAME), pool, uncertain_policy=policy)
+            pipeline = Pipeline(yolox, OpenAIChatVerifier(vlm.base_url, MODEL_NAME), pool, max_candidates=1, uncertain_policy=policy)
             (candidate,) = pipeline.run(image, "a man", "person").candidates
             assert candidate.detection.verdict is expected
             assert "quick brown fox" in candidate.detection.justification
 
 
-def test_request_deadline_bounds_queued_verifications() -> None:
-    image = np.full((480, 640, 3), 90, np.uint8)
+def test_request_deadline_bounds_queued_verifications(yolox: YoloxDetector, crowd: np.ndarray) -> None:
     with VlmEmulator(latency_s=0.5, mode="yes") as vlm, ThreadPoolExecutor(1) as pool:
-        pipeline = Pipeline(_Boxes(FIVE), OpenAIChatVerifier(vlm.base_url, MODEL_NAME), pool, timeout_s=5, deadline_s=1.2)
+        pipeline = Pipeline(yolox, OpenAIChatVerifier(vlm.base_url, MODEL_NAME), pool, max_candidates=5, timeout_s=5, deadline_s=1.2)
         start = time.monotonic()
-        verdicts = [c.detection.verdict for c in pipeline.run(image, "a man", "person").candidates]
+        verdicts = [c.detection.verdict for c in pipeline.run(crowd, "a man", "person").candidates]
         assert time.monotonic() - start < 2.5
     assert verdicts[0] is YES and verdicts[-1] is UNC  # one pool slot: later ones miss the deadline
 
