@@ -183,3 +183,29 @@ def test_supervisor_endpoints_need_the_supervisor_token(client: TestClient) -> N
     assert client.get("/v1/vehicles", headers={"Authorization": f"Bearer {SUPERVISOR}"}).status_code == 200
     decision = {"candidate_id": "c1", "action": "confirm"}
     assert client.post("/v1/vehicles/drone-1/decisions", headers=auth(), json=decision).status_code == 403
+
+
+json_values = st.recursive(
+    st.none() | st.booleans() | st.integers() | st.floats(allow_nan=False) | st.text(max_size=30),
+    lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=12), inner, max_size=4),
+    max_leaves=12,
+)
+status_bodies = st.fixed_dictionaries(
+    {"state": st.one_of(st.just("AWAIT_SUPERVISOR"), json_values)},
+    optional={"mission_id": json_values, "position": json_values, "altitude_m": json_values,
+              "awaiting": st.one_of(json_values, st.fixed_dictionaries({"candidate_id": st.text(max_size=70), "box": json_values},
+                                                                       optional={"crop_jpeg_b64": st.text(max_size=20)}))},
+)
+
+
+@settings(max_examples=80, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(
+    route=st.sampled_from(["/v1/vehicles/drone-1/status", "/v1/missions/m-1/rejections", "/v1/vehicles/drone-1/decisions"]),
+    body=st.one_of(json_values, status_bodies),
+    as_supervisor=st.booleans(),
+)
+def test_fuzzed_session_requests_never_cause_a_server_error(client: TestClient, route: str, body: object, as_supervisor: bool) -> None:
+    headers = {"Authorization": f"Bearer {SUPERVISOR}"} if as_supervisor else auth()
+    response = client.post(route, headers=headers, json=body)
+    assert response.status_code < 500, response.text
+    assert response.status_code in (200, 201, 403, 404, 422)
