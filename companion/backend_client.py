@@ -84,6 +84,8 @@ class BackendClient:
         if session is None:
             session = self._local.session = requests.Session()
             session.headers["Authorization"] = f"Bearer {self.token}"
+            if self.vehicle_id:  # lets a load balancer keep a vehicle on one replica (docs/backend.md)
+                session.headers["X-CloudTrack-Vehicle"] = self.vehicle_id
         return session
 
     def _call(self, method: str, path: str, **kwargs: Any) -> Any:
