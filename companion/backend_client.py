@@ -44,18 +44,31 @@ class DetectReply:
     raw: dict[str, Any] = field(repr=False, default_factory=dict)
 
 
-def encode_keyframe(image: np.ndarray, max_width: int, jpeg_quality: int) -> tuple[bytes, float]:
-    """JPEG bytes of the keyframe downscaled to at most `max_width`, and the scale applied (<= 1)."""
+def encode_keyframe(image: np.ndarray, max_width: int, jpeg_quality: int, max_bytes: int = 90_000) -> tuple[bytes, float]:
+    """JPEG bytes of the keyframe downscaled to at most `max_width`, and the scale applied (<= 1).
+
+    A busy scene (foliage, water glare, sensor noise) can double a JPEG's size; past `max_bytes` the
+    quality drops in steps to 40, then the frame shrinks, so one keyframe never clogs a 4G uplink.
+    """
     if image.ndim != 3 or image.shape[2] != 3 or image.size == 0:
         raise ValueError(f"expected a BGR image H x W x 3, got shape {image.shape}")
     height, width = image.shape[:2]
     scale = min(1.0, max_width / width)
-    if scale < 1.0:
-        image = cv2.resize(image, (max_width, max(1, round(height * scale))), interpolation=cv2.INTER_AREA)
-    ok, buffer = cv2.imencode(".jpg", image, [int(cv2.IMWRITE_JPEG_QUALITY), int(jpeg_quality)])
-    if not ok:
-        raise ValueError("JPEG encoding of the keyframe failed")
-    return buffer.tobytes(), scale
+    quality = int(jpeg_quality)
+    while True:
+        sized = image
+        if scale < 1.0:
+            size = (max(1, round(width * scale)), max(1, round(height * scale)))
+            sized = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+        ok, buffer = cv2.imencode(".jpg", sized, [int(cv2.IMWRITE_JPEG_QUALITY), quality])
+        if not ok:
+            raise ValueError("JPEG encoding of the keyframe failed")
+        if buffer.size <= max_bytes or sized.shape[1] <= 64:
+            return buffer.tobytes(), sized.shape[1] / width
+        if quality > 40:
+            quality = max(40, quality - 15)
+        else:
+            scale = sized.shape[1] / width * 0.8
 
 
 class BackendClient:
@@ -68,6 +81,7 @@ class BackendClient:
         max_width: int = 640,
         vehicle_id: str | None = None,
         mission_id: str | None = None,
+        max_keyframe_bytes: int = 90_000,
     ) -> None:
         self.url = url.rstrip("/")
         self.token = token
@@ -76,6 +90,7 @@ class BackendClient:
         self.max_width = max_width
         self.vehicle_id = vehicle_id
         self.mission_id = mission_id
+        self.max_keyframe_bytes = max_keyframe_bytes
         self._local = threading.local()
         self.last_reply: DetectReply | None = None
 
@@ -124,7 +139,7 @@ class BackendClient:
         mission = mission_id or self.mission_id
         if not vehicle or not mission:
             raise ValueError("vehicle_id and mission_id are needed (per call or in the BackendClient)")
-        jpeg, scale = encode_keyframe(image, self.max_width, self.jpeg_quality)
+        jpeg, scale = encode_keyframe(image, self.max_width, self.jpeg_quality, self.max_keyframe_bytes)
         meta: dict[str, Any] = {"vehicle_id": vehicle, "mission_id": mission, "prompt": prompt}
         if superset:
             meta["superset"] = superset

@@ -106,6 +106,15 @@ def test_status_rejection_and_decisions_round_trip(server: BackgroundServer, cli
     assert any("rejected" in d.justification for d in other.detect(image, PROMPT))
 
 
+def test_worst_case_keyframe_stays_under_the_byte_budget(client: BackendClient) -> None:
+    noise = np.random.default_rng(1).integers(0, 256, (480, 640, 3), dtype=np.uint8)  # JPEG's worst case
+    jpeg, scale = encode_keyframe(noise, 640, 80, max_bytes=90_000)
+    assert len(jpeg) <= 90_000 and 0 < scale < 1
+    reply = client.detect_reply(noise, PROMPT)
+    assert reply.request_bytes <= 100_000 and reply.raw["image_size"][0] == round(640 * scale)
+    assert all(d.box.x2 <= 640.5 for d in reply.detections)  # boxes back in the caller's pixels
+
+
 def test_encode_keyframe_refuses_non_images() -> None:
     with pytest.raises(ValueError, match="BGR"):
         encode_keyframe(np.zeros((10, 10), np.uint8), 640, 80)
