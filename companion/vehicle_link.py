@@ -488,13 +488,14 @@ class VehicleLink:
         )
         if requested:
             return SafetyEvent(now, "mode_change", "offboard_ended", f"{previous} -> {hb.mode} (requested)")
+        if not self._enabled:  # we were not flying it (e.g. the autopilot going on from our RTL to LAND)
+            return SafetyEvent(now, "mode_change", "mode_change", f"{previous} -> {hb.mode}")
         # Someone else took the vehicle: stop streaming at once and say why.
-        flying = self._enabled
         self._enabled = self._engage = False
         self._stream_since = None
         detail = f"{previous} -> {hb.mode} by pilot or GCS"
         log.warning("offboard control ended: %s", detail)
-        return SafetyEvent(now, "mode_change", "offboard_ended" if flying else "mode_change", detail)
+        return SafetyEvent(now, "mode_change", "offboard_ended", detail)
 
     def _request_streams(self) -> None:
         target = self._cfg.target_system

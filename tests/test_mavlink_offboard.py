@@ -138,3 +138,34 @@ def test_hold_sends_explicit_zero_then_configured_brake() -> None:
         # resuming: the main loop commands again and, engagement allowed, GUIDED is requested again
         link.set_velocity(Setpoint(1.0, 0.0, 0.0, 0.0))
         assert wait_for(lambda: sim.mode == "GUIDED", 3.0)
+
+
+def test_lost_action_mode_is_requested_and_streaming_ends() -> None:
+    with autopilot("px4") as sim, vehicle_link(sim) as link, MainLoop(link):
+        link.request_offboard()
+        link.set_velocity(Setpoint(1.0, 0.0, 0.0, 0.0))
+        assert wait_for(lambda: sim.mode == "OFFBOARD" and sim.snapshot().north > 3.0, 8.0)
+        link.request_mode("rtl")
+        assert wait_for(lambda: sim.mode == "RTL", 3.0)
+        changed_at = next(t for t, mode, _ in sim.mode_history if mode == "RTL")
+        time.sleep(0.5)
+        assert [s for s in sim.setpoints if s.time > changed_at + 0.2] == []
+        events = link.safety_events()
+        assert any("OFFBOARD -> RTL (requested)" in e.detail for e in events)  # ours, not a takeover
+        assert not any("by pilot or GCS" in e.detail for e in events)
+
+
+def test_release_stops_streaming_after_an_explicit_zero() -> None:
+    with autopilot("ardupilot") as sim, vehicle_link(sim) as link, MainLoop(link):
+        link.request_offboard()
+        link.set_velocity(Setpoint(2.0, 0.0, 0.0, 0.0))
+        assert wait_for(lambda: sim.snapshot().vn > 1.5, 5.0)
+        before = time.monotonic()
+        link.release_offboard("mission aborted")
+        released = time.monotonic()
+        time.sleep(0.5)
+        after = [s for s in sim.setpoints if s.time >= before]
+        assert after and after[-1].vx == 0.0  # the explicit stop is the last thing the autopilot heard
+        assert not [s for s in sim.setpoints if s.time > released + 0.2]
+        assert wait_for(lambda: abs(sim.snapshot().vn) < 0.05, 3.0)  # stopped now, not after GUID_TIMEOUT
+        assert sim.mode == "GUIDED"
