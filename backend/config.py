@@ -42,7 +42,9 @@ class DetectorConfig(ConfigSection):
     model_dir: str = ""  # empty: $CLOUDTRACK_MODEL_DIR, then the user cache
     score_threshold: float = Field(0.3, ge=0, le=1)
     nms_threshold: float = Field(0.45, gt=0, le=1)
-    threads: int = Field(0, ge=0, le=64)  # onnxruntime intra-op threads; 0: all cores
+    # onnxruntime intra-op threads per detection (0: all cores). One thread and `sessions.detector_concurrency`
+    # detections in parallel uses the cores best under load; more threads lower one frame's latency on an idle CPU.
+    threads: int = Field(1, ge=0, le=64)
     # Hugging Face model id or local folder for grounding_dino / owlv2.
     hf_model: str = ""
     device: str = "cpu"  # torch device for grounding_dino / owlv2, e.g. "cuda"
