@@ -92,8 +92,14 @@ class BackendSession:
             fields = {k: v for k, v in status.items() if k != "state" and v is not None}
             self._client.report_status(str(status.get("state", "IDLE")), **fields)
         for candidate_id, position, mission in pending:
-            self._client.reject(candidate_id or None, position=position, reason="supervisor rejected",
-                                mission_id=mission)
+            try:
+                self._client.reject(candidate_id or None, position=position, reason="supervisor rejected",
+                                    mission_id=mission)
+            except Exception as exc:
+                if getattr(exc, "retryable", True):
+                    raise  # unreachable or busy: the same rejection goes again next round
+                # Refused for good (unknown candidate, bad request): sending it again cannot help.
+                log.warning("back-end refused the rejection of %s: %s", candidate_id, exc)
             with self._lock:
                 self._rejections.popleft()
         decisions = self._client.decisions(after=self._after)

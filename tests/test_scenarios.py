@@ -149,3 +149,48 @@ def test_companion_run_refuses_bad_start_up_with_a_clear_error(settings: list[st
     assert done.returncode == 2, done.stderr
     assert message in done.stderr
     assert "Traceback" not in done.stderr
+
+
+def test_backend_session_reports_status_and_delivers_supervisor_decisions(tmp_path: Path) -> None:
+    """The supervisor page's path: status to the back-end, decisions back to the companion as commands."""
+    import time
+
+    import requests
+
+    from backend.app import create_app
+    from backend.config import AuthConfig, BackendConfig
+    from backend.serving import BackgroundServer
+    from behaviors.mission_commands import ConfirmCandidate, RejectCandidate
+    from companion.backend_client import BackendClient
+    from companion.backend_session import BackendSession
+    from sitl.simulated_detector import SimulatedPersonDetector
+
+    config = BackendConfig(auth=AuthConfig(tokens={"drone-1": "tok-1"}, supervisor_token="sup"))
+    with BackgroundServer(create_app(config, detector=SimulatedPersonDetector(lambda fid: None))) as server:
+        session = BackendSession(BackendClient(server.url, "tok-1", vehicle_id="drone-1"), period_s=0.05).start()
+        try:
+            session.update({"state": "AWAITING_SUPERVISOR", "mission_id": "m1", "prompt": "a person in a green shirt"})
+            deadline = time.monotonic() + 10
+            while session.last_success() is None and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert session.last_success() is not None
+            sup = {"Authorization": "Bearer sup"}
+            status = requests.get(f"{server.url}/v1/vehicles/drone-1/status", headers={"Authorization": "Bearer tok-1"},
+                                  timeout=5).json()
+            assert status["state"] == "AWAITING_SUPERVISOR" and status["mission_id"] == "m1"
+            for action in ("confirm", "reject"):
+                r = requests.post(f"{server.url}/v1/vehicles/drone-1/decisions", headers=sup, timeout=5,
+                                  json={"candidate_id": "c7", "action": action})
+                assert r.status_code == 201, r.text
+            commands: list[Any] = []
+            while len(commands) < 2 and time.monotonic() < deadline:
+                commands += session.commands()
+                time.sleep(0.05)
+            assert commands == [ConfirmCandidate("c7"), RejectCandidate("c7")]
+            # A rejection the back-end refuses for good (unknown candidate) does not block the session.
+            session.reject("never-seen", None)
+            before = session.last_success()
+            time.sleep(0.5)
+            assert session.last_success() is not None and before is not None and session.last_success() > before
+        finally:
+            session.close()
