@@ -224,3 +224,18 @@ def test_cascade_skips_the_vlm_on_a_clear_local_no(sequences_dir: Path) -> None:
         yes = cascade.verify(crop, inner.xywh(), "an injured surfer in a black wetsuit", "person", 5)
         assert yes.verdict is YES and yes.verifier.startswith("vlm:") and vlm.requests == 1
         assert "fast check" in yes.justification
+
+
+def test_posture_from_the_box_shape_on_real_and_rotated_crops(sequences_dir: Path) -> None:
+    verifier = AttributeVerifier()
+    crop, inner = _crop(sequences_dir, "otb_Crossing")  # a walking pedestrian, box 17 x 50
+    assert verifier.verify(crop, inner.xywh(), "a person lying on the ground", "person").verdict is NO
+    assert verifier.verify(crop, inner.xywh(), "a person walking across the street", "person").verdict is YES
+    lying = cv2.rotate(crop, cv2.ROTATE_90_CLOCKWISE)  # the same pixels as a person on the ground
+    h = crop.shape[0]
+    rotated = (h - inner.y - inner.h, inner.x, inner.h, inner.w)
+    answer = verifier.verify(lying, rotated, "an injured man lying on the ground in dark clothes", "person")
+    assert answer.verdict is YES and "height/width 0.3" in answer.justification and "dark" in answer.justification
+    square = (10.0, 10.0, 30.0, 32.0)  # a person seen from straight above: cannot tell
+    assert verifier.verify(crop, square, "a collapsed hiker", "person").verdict is UNC
+    assert verifier.verify(crop, inner.xywh(), "a bag lying on the ground", "bag").verdict is UNC

@@ -6,7 +6,10 @@ colour's pixels in that part of the box (HSV rules), and answers:
   yes        every named colour covers at least `present_fraction` of its region,
   no         some named colour covers less than `absent_fraction` (clearly not there),
   uncertain  otherwise, or when the description names nothing it can judge from pixels.
-It cannot read posture, injuries, age, gender or patterns; it says so instead of guessing.
+For a person it also judges posture words from the box's shape: "lying" / "collapsed" needs a box
+wider than tall (height/width <= 0.8), "standing" / "walking" one clearly taller (>= 1.6); anything in
+between - a standing person seen from straight above is a blob - is uncertain.
+It cannot read injuries, age, gender or patterns; it says so instead of guessing.
 """
 
 from __future__ import annotations
@@ -63,6 +66,33 @@ def colour_masks(hsv: np.ndarray, hue_slack: float = 0.0) -> dict[str, np.ndarra
     masks["brown"] = (s >= 50) & (v >= 40) & (v < 150) & _hue_in(h, 5 - hue_slack, 22 + hue_slack)
     masks["pink"] &= v >= 150
     return masks
+
+
+LYING = {"lying", "lies", "laying", "prone", "collapsed", "fallen", "unconscious", "sprawled"}
+UPRIGHT = {"standing", "stands", "walking", "walks", "running", "runs", "upright"}
+LYING_MAX_RATIO = 0.8  # box height / width
+UPRIGHT_MIN_RATIO = 1.6
+
+
+def posture_claim(prompt: str, superset: str = "person") -> str | None:
+    """"lying" or "upright" when the description of a person says so, else None."""
+    if superset != "person":
+        return None
+    words = set(re.findall(r"[a-z]+", prompt.lower()))
+    if words & LYING:
+        return "lying"
+    if words & UPRIGHT:
+        return "upright"
+    return None
+
+
+def posture_verdict(claim: str, target_box: tuple[float, float, float, float]) -> tuple[Verdict, str]:
+    ratio = target_box[3] / max(target_box[2], 1e-6)
+    if claim == "lying":
+        verdict = Verdict.YES if ratio <= LYING_MAX_RATIO else Verdict.NO if ratio >= UPRIGHT_MIN_RATIO else Verdict.UNCERTAIN
+    else:
+        verdict = Verdict.YES if ratio >= UPRIGHT_MIN_RATIO else Verdict.NO if ratio <= LYING_MAX_RATIO else Verdict.UNCERTAIN
+    return verdict, f"box height/width {ratio:.1f} for {claim}"
 
 
 @dataclass(frozen=True)
@@ -122,9 +152,14 @@ class AttributeVerifier:
     def verify(self, crop_bgr: np.ndarray, target_box: tuple[float, float, float, float], prompt: str,
                superset: str, timeout_s: float = 1.0) -> VerifierAnswer:
         claims = colour_claims(prompt, superset)
-        if not claims:
-            return VerifierAnswer(Verdict.UNCERTAIN, "no colour named that can be judged from pixels", self.name)
+        posture = posture_claim(prompt, superset)
+        if not claims and posture is None:
+            return VerifierAnswer(Verdict.UNCERTAIN, "no colour or posture named that can be judged from pixels", self.name)
         notes, verdicts = [], []
+        if posture is not None:
+            verdict, note = posture_verdict(posture, target_box)
+            verdicts.append(verdict)
+            notes.append(note)
         for claim in claims:
             share = region_fractions(crop_bgr, target_box, claim.region, self.hue_slack).get(claim.colour, 0.0)
             notes.append(f"{claim.colour} {share:.0%} of {claim.region} body" if superset == "person"
