@@ -5,6 +5,8 @@ from __future__ import annotations
 import socket
 import time
 
+import pytest
+
 from behaviors.setpoint import Setpoint
 from companion.config import MavlinkConfig, SafetyConfig
 from companion.mavsdk_offboard import mavsdk_address
@@ -25,6 +27,7 @@ def test_address_form() -> None:
     assert mavsdk_address("serial:///dev/ttyAMA0:921600") == "serial:///dev/ttyAMA0:921600"
 
 
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")  # inside mavsdk's own server start-up
 def test_mavsdk_offboard_is_stopped_when_the_main_loop_stalls() -> None:
     port = _free_udp_port()
     sim = SimulatedAutopilot(
