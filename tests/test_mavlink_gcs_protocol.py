@@ -162,3 +162,23 @@ def test_status_values_and_status_request() -> None:
         ground.send(lambda m: m.command_long_send(1, 191, 31014, 0, 0, 0, 0, 0, 0, 0, 0))  # USER_5: repeat status
         assert receive_until(ground, _is_ack(31014)).result == 0
         assert receive_until(ground, lambda m: m.get_type() == "STATUSTEXT" and m.text.startswith("CANDIDATE 2")) is not None
+
+
+def test_well_formed_but_nonsensical_commands_are_denied_not_crashing() -> None:
+    nan = math.nan
+    with autopilot("ardupilot") as sim, vehicle_link(sim) as link, MainLoop(link), gcs(sim) as ground:
+        ground.send(lambda m: m.tunnel_send(1, 191, PROMPT_PAYLOAD_TYPE, 255, [1, 4, 0, 1] + [0xFF] * 124))
+        for command, params in (
+            (31010, (nan, 1, 0, 10)),  # start: mission id NaN
+            (31010, (4, 1, 0, 1e9)),  # start: absurd length
+            (31010, (4, 1, 0, 124)),  # start: the chunk above (payload_length 255 > 128) is not UTF-8
+            (31012, (-3.5,)),  # confirm: not a candidate number
+            (2005, (nan, 0.1, 0.5, 0.5)),  # rectangle with NaN corner
+            (512, (33,)),  # REQUEST_MESSAGE for something the companion does not provide
+        ):
+            p = list(params) + [0.0] * (7 - len(params))
+            ground.send(lambda m, c=command, p=p: m.command_long_send(1, 191, c, 0, *p))
+            ack = receive_until(ground, _is_ack(command))
+            assert ack is not None and ack.result == 2, (command, params)
+        assert link.commands() == []
+        assert all(t.is_alive() for t in link._threads)
