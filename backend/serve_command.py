@@ -38,7 +38,7 @@ def _serve(args: argparse.Namespace) -> int:
     try:
         config = config_from_args(args)
         app = create_app(config)
-    except (ConfigError, ModelError, ValueError) as exc:
+    except (ConfigError, ModelError, ValueError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     if not config.auth.tokens:

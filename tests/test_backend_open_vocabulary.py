@@ -30,6 +30,7 @@ from transformers import (
 )
 
 from backend.app import create_app
+from backend.cli import main
 from backend.config import DetectorConfig
 from backend.detectors.factory import build_detector
 from backend.detectors.open_vocabulary import OpenVocabularyDetector
@@ -117,6 +118,12 @@ def test_factory_loads_a_saved_model_folder(tmp_path: Path, sequences_dir: Path)
     detector = build_detector(DetectorConfig(kind="grounding_dino", hf_model=str(tmp_path / "gd-tiny"), score_threshold=0.05))
     assert detector.name == f"grounding_dino:{tmp_path / 'gd-tiny'}"
     assert all(d.label == "person" for d in detector.detect(frame(sequences_dir, size=(160, 90)), ["person"]))
+
+
+def test_serve_names_a_model_folder_that_is_not_there(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    missing = tmp_path / "no-such-model"
+    assert main(["serve", "--set", 'detector.kind="owlv2"', "--set", f'detector.hf_model="{missing}"']) == 2
+    assert "no-such-model" in capsys.readouterr().err
 
 
 def test_app_takes_any_superset_text_with_an_open_vocabulary_detector(

@@ -17,11 +17,16 @@ def build_detector(config: DetectorConfig) -> SupersetDetector:
     if config.kind in ("grounding_dino", "owlv2"):
         from backend.detectors.open_vocabulary import OpenVocabularyDetector
 
+        try:
+            import torch  # noqa: F401
+            import transformers  # noqa: F401
+        except ImportError as exc:
+            raise ValueError(f"detector kind {config.kind!r} needs the gpu extra: pip install 'cloudtrack[gpu]' ({exc})") from exc
+
         open_vocabulary: SupersetDetector = OpenVocabularyDetector.from_pretrained(
             config.kind, config.hf_model, config.device, config.score_threshold
         )
         return open_vocabulary
-    # The SITL world's detector (ground truth boxes with misses and jitter), owned by the simulator.
     # The SITL detector answers from the simulated world's ground truth, so only the simulator, which
     # owns that world, can build it: `cloudtrack-sim` passes it to create_app(detector=...).
     raise ValueError(
