@@ -43,7 +43,7 @@ from sitl.metrics import (
     summarise,
 )
 from sitl.scenarios import FOLLOW_GAINS, TAKEOVER_MODE, Scenario, ScriptedGcs, VehicleOutcome, assess
-from sitl.simulated_detector import SimulatedPersonDetector
+from sitl.simulated_detector import DetectorNoise, SimulatedPersonDetector
 from sitl.video_overlay import OverlayState, VideoWriter, draw_overlay
 
 FRAME_ID_BITS = 20  # camera i numbers its frames from i << 20, so one detector serves every camera
@@ -177,7 +177,9 @@ class ScenarioRun:
             auth=AuthConfig(tokens=self.tokens, supervisor_token=secrets.token_hex(16)),
             verifier=VerifierConfig(kind=self.options.verifier),
         )
-        detector = SimulatedPersonDetector(self._truth_lookup, self.camera.width, seed=self.options.seed)
+        # The reject scenario needs the look-alike in the first keyframe: no random misses there.
+        noise = DetectorNoise(miss_rate=self.scenario.miss_rate)
+        detector = SimulatedPersonDetector(self._truth_lookup, self.camera.width, noise, seed=self.options.seed)
         self._backend = BackgroundServer(create_app(config, detector=detector)).start()
         return str(self._backend.url)
 

@@ -48,6 +48,7 @@ class Scenario:
     follow_s: float = 18.0  # run this long after the first confirmation (after the last fault's recovery)
     max_s: float = 75.0  # give up after this long since mission start
     supervisor_delay_s: float = 1.0
+    miss_rate: float = 0.05  # the simulated detector's chance of missing a visible person in a keyframe
     companion_settings: tuple[str, ...] = ()
     checks: tuple[str, ...] = field(default_factory=tuple)
 
@@ -73,7 +74,7 @@ SCENARIOS: dict[str, Scenario] = {
         Scenario("follow", "follow a person in a green shirt walking at 1.5 m/s among distractors",
                  checks=("confirmed_target", "in_view", "standoff")),
         Scenario("reject", "a look-alike in green is proposed first; the supervisor rejects it, the right one is confirmed",
-                 decoy=True, follow_s=6.0, checks=("confirmed_target", "rejected_never_again")),
+                 decoy=True, follow_s=6.0, miss_rate=0.0, checks=("confirmed_target", "rejected_never_again")),
         Scenario("occlusion", "the target walks under a roof for about 3 s and is re-acquired after it",
                  occluder_at_m=12.0, follow_s=20.0, checks=("confirmed_target", "reacquired")),
         Scenario("takeover", "the pilot switches mode mid-follow: setpoints stop within 200 ms",
