@@ -365,15 +365,9 @@ class MissionRunner:
                 on_safety = getattr(obs, "on_safety", None)
                 if on_safety is not None:
                     on_safety(ev)
-            if ev.reason == HEARTBEAT_LOST and ev.action == "stop":
-                out.append(AutopilotLinkLost(ev.time_s))
-            elif ev.reason == BACKEND_UNREACHABLE and ev.action == "stop":
-                out.append(BackendUnreachable(ev.time_s, "no answer"))
-            elif ev.reason == BACKEND_UNREACHABLE and ev.action == "cleared":
-                # The behaviour resumes once the back-end answers: this is that answer (no query of its own).
-                out.append(BackendAnswer(ev.time_s, PROBE_QUERY_ID, -1, ()))
-            elif ev.action == "offboard_ended" and ev.detail.endswith("by pilot or GCS"):
-                out.append(PilotTakeover(ev.time_s, ev.detail.split("->")[-1].split(" by ")[0].strip()))
+            event = behaviour_event(ev)
+            if event is not None:
+                out.append(event)
         return out
 
     def _feed_watchdogs(self, now: float) -> None:
@@ -427,6 +421,20 @@ class MissionRunner:
         self.backend.close(timeout_s=0.2)
         self.frames.close()
         log.info("main loop stopped (%d iterations, %d frames)", self.stats.iterations, self.stats.frames)
+
+
+def behaviour_event(ev: SafetyEvent) -> Event | None:
+    """The behaviour event a link safety event stands for, if any (the link has already stopped the vehicle)."""
+    if ev.reason == HEARTBEAT_LOST and ev.action == "stop":
+        return AutopilotLinkLost(ev.time_s)
+    if ev.reason == BACKEND_UNREACHABLE and ev.action == "stop":
+        return BackendUnreachable(ev.time_s, "no answer")
+    if ev.reason == BACKEND_UNREACHABLE and ev.action == "cleared":
+        # The behaviour resumes once the back-end answers: this is that answer (no query of its own).
+        return BackendAnswer(ev.time_s, PROBE_QUERY_ID, -1, ())
+    if ev.by_other_party:
+        return PilotTakeover(ev.time_s, ev.mode)
+    return None
 
 
 def _box(box: Any) -> list[float] | None:
@@ -511,7 +519,7 @@ class EventLogObserver:
 
     def on_safety(self, event: SafetyEvent) -> None:
         self._emit({"kind": "safety", "t": event.time_s, "reason": event.reason, "action": event.action,
-                    "detail": event.detail})
+                    "detail": event.detail, "by_other_party": event.by_other_party})
 
     def on_health(self, time_s: float, healthy: bool, reasons: tuple[str, ...]) -> None:
         if healthy is not self._healthy:

@@ -34,12 +34,19 @@ LOOP_STALLED = "main_loop_stalled"
 
 @dataclass(frozen=True)
 class SafetyEvent:
-    """What a watchdog (or the mode policy) did: `action` is "stop", "cleared" or "offboard_ended"."""
+    """What a watchdog (or the mode policy) did: `action` is "stop", "cleared" or "offboard_ended".
+
+    `by_other_party` marks a mode change made by the pilot or the GCS while we were flying (a takeover:
+    the main loop gives up control on this flag, never on the wording of `detail`, which is for humans);
+    `mode` is then the mode they selected.
+    """
 
     time_s: float
     reason: str
     action: str
     detail: str = ""
+    by_other_party: bool = False
+    mode: str = ""
 
 
 def thresholds(config: SafetyConfig) -> dict[str, float]:

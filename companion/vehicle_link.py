@@ -463,7 +463,7 @@ class VehicleLink:
                         event = self._on_heartbeat(hb, now)
                 if event is not None:
                     self._record(event)
-                    if event.action == "offboard_ended" and event.detail.endswith("by pilot or GCS"):
+                    if event.by_other_party:
                         self.status(f"OFFBOARD ENDED: {event.detail}", MAV_SEVERITY_WARNING)
                 self._gcs.handle(msg, now)
             except Exception:  # a malformed but checksum-valid message must not end the reader
@@ -495,7 +495,7 @@ class VehicleLink:
         self._stream_since = None
         detail = f"{previous} -> {hb.mode} by pilot or GCS"
         log.warning("offboard control ended: %s", detail)
-        return SafetyEvent(now, "mode_change", "offboard_ended", detail)
+        return SafetyEvent(now, "mode_change", "offboard_ended", detail, by_other_party=True, mode=hb.mode)
 
     def _request_streams(self) -> None:
         target = self._cfg.target_system

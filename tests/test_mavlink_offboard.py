@@ -6,7 +6,9 @@ import time
 
 import pytest
 
+from behaviors.events import PilotTakeover
 from behaviors.setpoint import Setpoint
+from companion.mission_runner import behaviour_event
 from companion.offboard import MAV_FRAME_BODY_NED, MAV_FRAME_BODY_OFFSET_NED, TYPE_MASK_VELOCITY_YAW_RATE
 from tests.mavlink_harness import (
     MainLoop,
@@ -86,6 +88,10 @@ def test_mode_change_by_gcs_stops_setpoints_within_200_ms(
         print(f"\n{personality}: last setpoint {(last - changed_at) * 1000:.0f} ms after the mode change to {theirs}")
         events = link.safety_events()
         assert any(e.reason == "mode_change" and f"{ours} -> {theirs}" in e.detail for e in events), events
+        # a takeover is a flag, not a wording: the main loop turns exactly that into PilotTakeover(theirs)
+        takeovers = [e for e in events if e.by_other_party]
+        assert [e.mode for e in takeovers] == [theirs]
+        assert [behaviour_event(e) for e in takeovers] == [PilotTakeover(takeovers[0].time_s, theirs)]
         # the GCS is told why, in words
         text = receive_until(ground, lambda m: m.get_type() == "STATUSTEXT" and "OFFBOARD ENDED" in m.text, 3.0)
         assert text is not None
@@ -135,6 +141,7 @@ def test_hold_sends_explicit_zero_then_configured_brake() -> None:
         assert wait_for(lambda: abs(sim.snapshot().vn) < 0.05, 3.0)
         events = link.safety_events()
         assert any(e.reason == "mode_change" and "(requested)" in e.detail for e in events)  # ours, not a takeover
+        assert not any(e.by_other_party for e in events)
         # resuming: the main loop commands again and, engagement allowed, GUIDED is requested again
         link.set_velocity(Setpoint(1.0, 0.0, 0.0, 0.0))
         assert wait_for(lambda: sim.mode == "GUIDED", 3.0)
@@ -152,7 +159,8 @@ def test_lost_action_mode_is_requested_and_streaming_ends() -> None:
         assert [s for s in sim.setpoints if s.time > changed_at + 0.2] == []
         events = link.safety_events()
         assert any("OFFBOARD -> RTL (requested)" in e.detail for e in events)  # ours, not a takeover
-        assert not any("by pilot or GCS" in e.detail for e in events)
+        assert not any(e.by_other_party for e in events)
+        assert not any(isinstance(behaviour_event(e), PilotTakeover) for e in events)
 
 
 def test_release_stops_streaming_after_an_explicit_zero() -> None:
