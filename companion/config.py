@@ -5,11 +5,14 @@
 
 from __future__ import annotations
 
+import os
+from collections.abc import Iterable, Mapping
+from pathlib import Path
 from typing import Literal
 
 from pydantic import Field, model_validator
 
-from cloudtrack.config_files import ConfigSection
+from cloudtrack.config_files import ConfigSection, load_config
 
 TrackerName = Literal["nano", "vit", "dasiamrpn", "csrt", "kcf", "mil", "goturn"]
 
@@ -151,3 +154,26 @@ class CompanionConfig(ConfigSection):
     behavior: BehaviorConfig = BehaviorConfig()
     control: ControlConfig = ControlConfig()
     recording: RecordingConfig = RecordingConfig()
+
+
+ENV_PREFIX = "CLOUDTRACK_"
+# The back-end's variables (CLOUDTRACK_BACKEND_<SECTION>__<KEY>) share our prefix; one shell or host may
+# hold both processes' settings, so they are not ours to validate. Our own [backend] section is
+# CLOUDTRACK_BACKEND__<KEY> (two underscores) and stays.
+_BACKEND_SERVICE_PREFIX = "CLOUDTRACK_BACKEND_"
+
+
+def companion_environment(environ: Mapping[str, str]) -> dict[str, str]:
+    return {
+        k: v
+        for k, v in environ.items()
+        if not (k.startswith(_BACKEND_SERVICE_PREFIX) and not k.startswith("CLOUDTRACK_BACKEND__"))
+    }
+
+
+def load_companion_config(
+    path: Path | None = None, assignments: Iterable[str] = (), environ: Mapping[str, str] | None = None
+) -> CompanionConfig:
+    """Defaults, then FILE, then CLOUDTRACK_<SECTION>__<KEY> variables, then --set; ConfigError if not allowed."""
+    env = companion_environment(os.environ if environ is None else environ)
+    return load_config(CompanionConfig, path, env_prefix=ENV_PREFIX, environ=env, assignments=assignments)

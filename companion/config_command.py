@@ -6,8 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from cloudtrack.config_files import ConfigError, dump_toml, load_config
-from companion.config import CompanionConfig
+from cloudtrack.config_files import ConfigError, dump_toml
+from companion.config import CompanionConfig, load_companion_config
 
 
 def add_config_flags(parser: argparse.ArgumentParser) -> None:
@@ -23,7 +23,7 @@ def add_config_flags(parser: argparse.ArgumentParser) -> None:
 
 
 def load_from_args(args: argparse.Namespace) -> CompanionConfig:
-    return load_config(CompanionConfig, args.config, assignments=args.set)
+    return load_companion_config(args.config, args.set)
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -47,7 +47,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
 
 def _check(args: argparse.Namespace) -> int:
     try:
-        load_config(CompanionConfig, args.file, assignments=args.set)
+        load_companion_config(args.file, args.set)
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -10,8 +10,8 @@ from pathlib import Path
 from tqdm import tqdm
 
 from behaviors.mission_config import MissionConfig
-from cloudtrack.config_files import ConfigError, load_config
-from companion.config import CompanionConfig
+from cloudtrack.config_files import ConfigError
+from companion.config import load_companion_config
 from companion.replay import RecordError, load_recording, replay
 
 EXAMPLES = """\
@@ -49,7 +49,7 @@ def _mission_config(args: argparse.Namespace) -> MissionConfig | None:
         return None
     from companion.run_command import mission_config  # exactly the config `run` would fly with
 
-    return mission_config(load_config(CompanionConfig, args.config, assignments=args.set))
+    return mission_config(load_companion_config(args.config, args.set))
 
 
 def _run(args: argparse.Namespace) -> int:

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from cloudtrack.config_files import ConfigError, load_config
-from companion.config import CompanionConfig
+from companion.config import CompanionConfig, load_companion_config
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -88,3 +88,16 @@ def test_config_show_prints_effective_values() -> None:
     )
     assert result.returncode == 0, result.stderr
     assert "max_speed_m_s = 2.25" in result.stdout
+
+
+def test_backend_service_variables_do_not_break_the_companion() -> None:
+    env = {
+        "CLOUDTRACK_BACKEND_AUTH__TOKENS": '{"drone-1": "s3cret"}',  # the back-end's, same host
+        "CLOUDTRACK_BACKEND__TOKEN": "s3cret",  # the companion's own [backend] token
+        "CLOUDTRACK_MAVLINK__CONNECTION": "serial:/dev/ttyAMA0:921600",
+    }
+    config = load_companion_config(None, environ=env)
+    assert config.backend.token == "s3cret"
+    assert config.mavlink.connection == "serial:/dev/ttyAMA0:921600"
+    with pytest.raises(ConfigError, match="mavlnk"):
+        load_companion_config(None, environ={"CLOUDTRACK_MAVLNK__CONNECTION": "x"})
