@@ -13,9 +13,11 @@ from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
 from typing import Annotated, Any
 
-from fastapi import Depends, FastAPI, File, Form, HTTPException, Path, Query, UploadFile
+from fastapi import Depends, FastAPI, File, Form, HTTPException, Path, Query, Request, UploadFile
 from fastapi.concurrency import run_in_threadpool
 from fastapi.encoders import jsonable_encoder
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
 from pydantic import ValidationError
 
 import cloudtrack
@@ -104,6 +106,12 @@ def create_app(
     app.state.started = time.time()
     app.add_middleware(BodySizeLimit, max_bytes=config.server.max_request_bytes)
 
+    @app.exception_handler(RequestValidationError)
+    async def _invalid(_: Request, exc: RequestValidationError) -> JSONResponse:
+        # FastAPI's default echoes the input back, and JSON cannot encode a NaN or Infinity it was sent.
+        errors = [{"type": e["type"], "loc": list(e["loc"]), "msg": e["msg"]} for e in exc.errors()]
+        return JSONResponse(status_code=422, content={"detail": jsonable_encoder(errors)})
+
     _add_detection_routes(app)
     _add_session_routes(app)
     app.include_router(supervisor_router(app.state.sessions))
@@ -190,9 +198,7 @@ def _add_detection_routes(app: FastAPI) -> None:
         # Verification runs outside the detector slot: a slow VLM must not hold the detector, and the
         # verifier pool already bounds how many verifications run at once.
         t_verify = time.perf_counter()
-        candidates = await run_in_threadpool(
-            pipeline.verify, frame, detections, fields.prompt, superset, check, t_received + pipeline.deadline_s
-        )
+        candidates = await pipeline.verify_async(frame, detections, fields.prompt, superset, check, t_received + pipeline.deadline_s)
         t_verify = time.perf_counter() - t_verify
         sessions.remember_candidates(fields.mission_id, [(c.detection.candidate_id, c.appearance) for c in candidates])
         return DetectResponse(

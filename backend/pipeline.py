@@ -8,6 +8,7 @@ becomes the configured `uncertain_policy` verdict with the reason in its justifi
 
 from __future__ import annotations
 
+import asyncio
 import time
 import uuid
 from collections.abc import Callable
@@ -99,18 +100,10 @@ class Pipeline:
             answer = VerifierAnswer(_policy_verdict(self.uncertain_policy), answer.justification, answer.verifier)
         return answer, time.perf_counter() - start
 
-    def verify(
-        self,
-        image: np.ndarray,
-        detections: list[Detection],
-        prompt: str,
-        superset: str,
-        rejected: RejectionCheck | None = None,
-        deadline: float | None = None,
-    ) -> list[VerifiedCandidate]:
-        """Verify detections concurrently; `deadline` is a perf_counter() time (default: deadline_s from now)."""
-        t_start = time.perf_counter()
-        deadline = deadline if deadline is not None else t_start + self.deadline_s
+    def submit(
+        self, image: np.ndarray, detections: list[Detection], prompt: str, superset: str, rejected: RejectionCheck | None = None
+    ) -> tuple[list[VerifiedCandidate], list[tuple[int, Future[tuple[VerifierAnswer, float]]]]]:
+        """Candidates with the rejection memory applied, and their verifications started on the pool."""
         candidates: list[VerifiedCandidate] = []
         pending: list[tuple[int, Future[tuple[VerifierAnswer, float]]]] = []
         for det in detections:
@@ -127,25 +120,63 @@ class Pipeline:
                 candidates.append(VerifiedCandidate(det, self.verifier.name, 0.0, appearance))
                 future = self.verify_pool.submit(self._verify_one, crop, inner, prompt, superset, self.timeout_s)
                 pending.append((len(candidates) - 1, future))
+        return candidates, pending
+
+    def _timed_out(self, base: VerifiedCandidate) -> VerifierAnswer:
+        return VerifierAnswer(
+            _policy_verdict(self.uncertain_policy),
+            f"verification timed out (limit {self.timeout_s:.1f} s, request deadline {self.deadline_s:.1f} s)",
+            base.verifier,
+        )
+
+    @staticmethod
+    def _settle(base: VerifiedCandidate, answer: VerifierAnswer, t_verify: float) -> VerifiedCandidate:
+        detection = replace(base.detection, verdict=answer.verdict, justification=answer.justification)
+        return replace(base, detection=detection, verifier=answer.verifier, t_verify=t_verify)
+
+    def verify(
+        self,
+        image: np.ndarray,
+        detections: list[Detection],
+        prompt: str,
+        superset: str,
+        rejected: RejectionCheck | None = None,
+        deadline: float | None = None,
+    ) -> list[VerifiedCandidate]:
+        """Verify detections concurrently; `deadline` is a perf_counter() time (default: deadline_s from now)."""
+        t_start = time.perf_counter()
+        deadline = deadline if deadline is not None else t_start + self.deadline_s
+        candidates, pending = self.submit(image, detections, prompt, superset, rejected)
         for i, future in pending:
-            base = candidates[i]
             wait_s = max(0.0, min(self.timeout_s, deadline - time.perf_counter()))
             try:
                 answer, t_verify = future.result(timeout=wait_s)
             except FutureTimeout:
                 future.cancel()  # still queued: never runs; running: its own HTTP timeout ends it
-                answer = VerifierAnswer(
-                    _policy_verdict(self.uncertain_policy),
-                    f"verification timed out (limit {self.timeout_s:.1f} s, request deadline {self.deadline_s:.1f} s)",
-                    base.verifier,
-                )
-                t_verify = time.perf_counter() - t_start
-            candidates[i] = replace(
-                base,
-                detection=replace(base.detection, verdict=answer.verdict, justification=answer.justification),
-                verifier=answer.verifier,
-                t_verify=t_verify,
-            )
+                answer, t_verify = self._timed_out(candidates[i]), time.perf_counter() - t_start
+            candidates[i] = self._settle(candidates[i], answer, t_verify)
+        return candidates
+
+    async def verify_async(
+        self,
+        image: np.ndarray,
+        detections: list[Detection],
+        prompt: str,
+        superset: str,
+        rejected: RejectionCheck | None = None,
+        deadline: float | None = None,
+    ) -> list[VerifiedCandidate]:
+        """`verify` for the server: waits without holding a thread, so waiting requests cost no threads."""
+        t_start = time.perf_counter()
+        deadline = deadline if deadline is not None else t_start + self.deadline_s
+        candidates, pending = self.submit(image, detections, prompt, superset, rejected)
+        for i, future in pending:
+            wait_s = max(0.0, min(self.timeout_s, deadline - time.perf_counter()))
+            try:
+                answer, t_verify = await asyncio.wait_for(asyncio.wrap_future(future), timeout=wait_s)
+            except asyncio.TimeoutError:  # wait_for cancelled the future: queued ones never run
+                answer, t_verify = self._timed_out(candidates[i]), time.perf_counter() - t_start
+            candidates[i] = self._settle(candidates[i], answer, t_verify)
         return candidates
 
     def detect(self, image: np.ndarray, superset: str, roi: Box | None = None, frame_id: int | None = None) -> list[Detection]:

@@ -15,7 +15,7 @@ ID_FIELD = Field(pattern=IDENTIFIER, description="letters, digits, '_', '.', '-'
 
 
 class ApiModel(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 def _finite(values: list[float]) -> list[float]:
