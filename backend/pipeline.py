@@ -21,7 +21,7 @@ import numpy as np
 from backend.appearance import descriptor
 from backend.crops import margin_crop
 from backend.detectors.interface import SupersetDetector
-from backend.verifiers.interface import Verifier, VerifierAnswer, VerifierError
+from backend.verifiers.interface import Verifier, VerifierAnswer, VerifierError, VerifierTimeout
 from behaviors.detection import Detection, Verdict
 from behaviors.geometry import Box
 
@@ -94,6 +94,8 @@ class Pipeline:
         start = time.perf_counter()
         try:
             answer = self.verifier.verify(crop, inner.xywh(), prompt, superset, timeout_s)
+        except VerifierTimeout as exc:
+            answer = VerifierAnswer(_policy_verdict(self.uncertain_policy), f"verification timed out: {exc}", self.verifier.name)
         except VerifierError as exc:
             answer = VerifierAnswer(_policy_verdict(self.uncertain_policy), f"verifier failed: {exc}", self.verifier.name)
         if answer.verdict is Verdict.UNCERTAIN and self.uncertain_policy != "uncertain":

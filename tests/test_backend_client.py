@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import socket
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -11,6 +12,7 @@ import pytest
 
 from backend.app import create_app
 from backend.serving import BackgroundServer
+from backend.vlm_emulator import VlmEmulator
 from behaviors.detection import Verdict
 from behaviors.geometry import Box, iou
 from companion.backend_client import BackendClient, BackendError, encode_keyframe
@@ -119,3 +121,19 @@ def test_encode_keyframe_refuses_non_images() -> None:
     with pytest.raises(ValueError, match="BGR"):
         encode_keyframe(np.zeros((10, 10), np.uint8), 640, 80)
 
+
+
+def test_slow_and_garbage_vlm_answers_through_the_server(models_dir: Path, sequences_dir: Path) -> None:
+    image = frame(sequences_dir)
+    with VlmEmulator(latency_s=2.0) as slow, VlmEmulator(mode="garbage") as garbage:
+        for vlm, settings, expected, reason in (
+            (slow, ["verifier.timeout_s=0.4"], Verdict.UNCERTAIN, "timed out"),
+            (garbage, ['verifier.uncertain_policy="yes"'], Verdict.YES, "quick brown fox"),
+        ):
+            config = backend_config(models_dir, 'verifier.kind="vlm"', f'vlm.base_url="{vlm.base_url}"', *settings)
+            with BackgroundServer(create_app(config)) as server:
+                client = BackendClient(server.url, TOKENS["drone-1"], timeout_s=10, vehicle_id="drone-1", mission_id="m-vlm")
+                start = time.monotonic()
+                reply = client.detect_reply(image, PROMPT)
+                assert reply.detections and all(d.verdict is expected and reason in d.justification for d in reply.detections)
+                assert time.monotonic() - start < 1.9  # the slow VLM's 2 s answer was not awaited

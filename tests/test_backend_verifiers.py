@@ -157,7 +157,7 @@ def test_pipeline_turns_timeouts_and_garbage_into_the_uncertain_policy(yolox: Yo
         result = pipeline.run(image, "a man", "person")
         assert time.monotonic() - start < 1.4
     assert [c.detection.verdict for c in result.candidates] == [UNC, UNC]
-    assert all("timed out" in c.detection.justification or "no answer" in c.detection.justification for c in result.candidates)
+    assert all("timed out" in c.detection.justification for c in result.candidates)
     with VlmEmulator(mode="garbage") as vlm, ThreadPoolExecutor(4) as pool:
         for policy, expected in (("uncertain", UNC), ("yes", YES), ("no", NO)):
             pipeline = Pipeline(yolox, OpenAIChatVerifier(vlm.base_url, MODEL_NAME), pool, max_candidates=1, uncertain_policy=policy)
