@@ -33,8 +33,8 @@ class ControlGains:
 
     yaw_kp: float = 1.2  # rad/s per rad
     yaw_ki: float = 0.05  # rad/s per rad*s
-    forward_kp: float = 0.4  # m/s per m
-    forward_ki: float = 0.02  # m/s per m*s
+    forward_kp: float = 0.8  # m/s per m
+    forward_ki: float = 0.1  # m/s per m*s
     lateral_kp: float = 0.0  # m/s per m of sideways offset
     yaw_dead_band: float = math.radians(1.5)
     distance_dead_band_m: float = 0.5

@@ -127,8 +127,8 @@ class BehaviorConfig(ConfigSection):
 class ControlConfig(ConfigSection):
     yaw_kp: float = Field(1.2, ge=0)
     yaw_ki: float = Field(0.05, ge=0)
-    forward_kp: float = Field(0.4, ge=0)
-    forward_ki: float = Field(0.02, ge=0)
+    forward_kp: float = Field(0.8, ge=0)
+    forward_ki: float = Field(0.1, ge=0)
     lateral_kp: float = Field(0.0, ge=0)
     yaw_dead_band_deg: float = Field(1.5, ge=0, le=30)
     distance_dead_band_m: float = Field(0.5, ge=0, le=20)

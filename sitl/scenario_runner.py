@@ -42,7 +42,7 @@ from sitl.metrics import (
     following_intervals,
     summarise,
 )
-from sitl.scenarios import FOLLOW_GAINS, TAKEOVER_MODE, Scenario, ScriptedGcs, VehicleOutcome, assess
+from sitl.scenarios import TAKEOVER_MODE, Scenario, ScriptedGcs, VehicleOutcome, assess
 from sitl.simulated_detector import DetectorNoise, SimulatedPersonDetector
 from sitl.video_overlay import OverlayState, VideoWriter, draw_overlay
 
@@ -217,7 +217,6 @@ class ScenarioRun:
             f"tracker.model_dir={self.model_dir}",
             f"behavior.standoff_m={STANDOFF_M}",
             f"recording.dir={self.work / 'records'}",
-            *FOLLOW_GAINS,
             *self.scenario.companion_settings,
         ]
         cmd = [sys.executable, "-m", "companion.cli", "--log-level", "INFO", "run", "--events-out", str(v.events_path)]

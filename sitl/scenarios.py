@@ -92,10 +92,6 @@ SCENARIOS: dict[str, Scenario] = {
     )
 }
 
-# Follow tuning for a target walking at 1.5 m/s: the default PI gains (kp 0.4, ki 0.02) settle about 4 m
-# behind the standoff, so scenarios that judge the standoff use a stiffer law (see docs/sitl.md).
-FOLLOW_GAINS = ("control.forward_kp=0.8", "control.forward_ki=0.1")
-
 
 @dataclass(frozen=True)
 class VehicleOutcome:
