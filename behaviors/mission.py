@@ -120,6 +120,7 @@ class State:
     resume: MissionState = MissionState.FOLLOWING  # where LOST returns once the target is found again
     next_query_id: int = 1
     queries: tuple[tuple[int, QueryPurpose], ...] = ()  # in flight, oldest first
+    whole_frame_queries: tuple[int, ...] = ()  # re-detect queries in flight that searched the whole frame
     last_query_s: float | None = None
     last_report_s: float | None = None
     lost_stage: int = 0  # 0: stopped and re-detecting, 1: holding, 2: lost action requested
@@ -201,7 +202,7 @@ def _start_lost(state: State, reason: str, config: MissionConfig) -> Result:
         reason,
         "warning",
     )
-    new, query = _query(new, QueryPurpose.REDETECT, _roi(state.target.box, config))
+    new, query = _redetect(new, state.target.box, config)
     return new, (SendSetpoint(Setpoint.zero()), *msg, *query)
 
 
@@ -352,8 +353,12 @@ def _track(state: State, result: TrackResult, config: MissionConfig) -> Result:
 
 def _answer(state: State, answer: BackendAnswer, config: MissionConfig) -> Result:
     purpose = dict(state.queries).get(answer.query_id)
+    whole_frame = answer.query_id in state.whole_frame_queries
     state = replace(
-        state, queries=tuple(q for q in state.queries if q[0] != answer.query_id), backend_down=False
+        state,
+        queries=tuple(q for q in state.queries if q[0] != answer.query_id),
+        whole_frame_queries=tuple(q for q in state.whole_frame_queries if q != answer.query_id),
+        backend_down=False,
     )
     if purpose is None:
         return state, ()
@@ -381,10 +386,12 @@ def _answer(state: State, answer: BackendAnswer, config: MissionConfig) -> Resul
         status = "reverified" if state.mode is MissionState.AWAITING_SUPERVISOR else "confirmed"
         return replace(state, target=target, last_report_s=state.now_s), (_report(target, status),)
     if purpose is QueryPurpose.REDETECT and state.mode is MissionState.LOST and not _given_up(state, config):
-        # The operator's own target was never checked against the prompt: any verdict may re-find it.
+        # Searching the whole frame, only a "yes" may re-find the target (anything less could be a
+        # distractor anywhere in view). Near the last box the operator's own target, never checked
+        # against the prompt, may be re-found on any verdict; others on anything but "no".
         usable = [
             d for d in answer.candidates
-            if (target.operator_selected or d.verdict is not Verdict.NO) and not _rejected(state, d, config)
+            if _redetect_verdict_ok(d.verdict, whole_frame, target.operator_selected) and not _rejected(state, d, config)
         ]
         best = select_by_c_box(target.box, usable)
         gate = config.reinit_gate * (config.camera.width + config.camera.height)
@@ -458,7 +465,7 @@ def _lost_tick(state: State, target: Target, config: MissionConfig) -> Result:
             )
             return state, tuple(actions)
     if _query_due(state, config.query_interval_s):
-        state, query = _query(state, QueryPurpose.REDETECT, _roi(target.box, config))
+        state, query = _redetect(state, target.box, config)
         actions.extend(query)
     return state, tuple(actions)
 
@@ -510,6 +517,42 @@ def _resume_from_hold(state: State) -> Result:
     if not state.holding:
         return state, ()
     return _engage(replace(state, holding=False), "resume after hold")
+
+
+def _redetect(state: State, box: Box, config: MissionConfig) -> Result:
+    """A re-detect query around the last box, the region growing with the time lost (None: whole frame)."""
+    roi = redetect_roi(box, state.now_s - state.since_s, config)
+    qid = state.next_query_id
+    new, query = _query(state, QueryPurpose.REDETECT, roi)
+    if roi is None and query:
+        new = replace(new, whole_frame_queries=(*new.whole_frame_queries, qid)[-_MAX_QUERIES_IN_FLIGHT:])
+    return new, query
+
+
+def redetect_roi(box: Box, lost_for_s: float, config: MissionConfig) -> Box | None:
+    """The re-detection region after `lost_for_s` seconds lost; None once it is the whole frame.
+
+    It starts as the last box grown `redetect_roi_scale` times and grows geometrically (the same factor
+    per second), reaching at `redetect_full_frame_s` a scale that covers the image from wherever the box
+    was: a walking person hidden for a few seconds reappears several box widths away, and a fixed region
+    misses them, while the first queries still look only where they most likely are.
+    """
+    cam = config.camera
+    if not (box.is_valid() and lost_for_s < config.redetect_full_frame_s):
+        return None
+    full = 2.0 * max(cam.width / box.w, cam.height / box.h)
+    base = min(config.redetect_roi_scale, full)
+    scale = base * (full / base) ** (max(lost_for_s, 0.0) / config.redetect_full_frame_s)
+    roi = Box.from_center(box.cx, box.cy, box.w * scale, box.h * scale).clamped(cam.width, cam.height)
+    if not roi.is_valid() or (roi.w >= cam.width and roi.h >= cam.height):
+        return None
+    return roi
+
+
+def _redetect_verdict_ok(verdict: Verdict, whole_frame: bool, operator_selected: bool) -> bool:
+    if whole_frame:
+        return verdict is Verdict.YES
+    return operator_selected or verdict is not Verdict.NO
 
 
 def _roi(box: Box, config: MissionConfig) -> Box | None:

@@ -54,7 +54,8 @@ class MissionConfig:
     acquire_timeout_s: float = 3.0  # tracker must report a trusted box this soon after init
     arrive_tolerance_m: float = 2.0  # within this of the standoff the supervisor is asked
     approach_timeout_s: float = 60.0  # ask the supervisor anyway after following this long
-    redetect_roi_scale: float = 3.0  # re-detection ROI: the last box grown to this many times its size
+    redetect_roi_scale: float = 3.0  # re-detection ROI on losing the target: the last box grown this many times
+    redetect_full_frame_s: float = 4.0  # ... growing with time lost to the whole frame after this long
     reinit_gate: float = 0.5  # largest C_box for re-initialisation, as a fraction of (width + height)
     rejection_radius_m: float = 5.0
     signature_threshold: float = 0.95
@@ -117,6 +118,8 @@ class MissionConfig:
             arrive_tolerance_m=_float(behavior, "arrive_tolerance_m", d.arrive_tolerance_m),
             approach_timeout_s=_float(behavior, "approach_timeout_s", d.approach_timeout_s),
             rejection_radius_m=_float(behavior, "rejection_radius_m", d.rejection_radius_m),
+            redetect_roi_scale=_float(behavior, "redetect_roi_scale", d.redetect_roi_scale),
+            redetect_full_frame_s=_float(behavior, "redetect_full_frame_s", d.redetect_full_frame_s),
         )
 
 

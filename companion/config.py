@@ -122,6 +122,8 @@ class BehaviorConfig(ConfigSection):
     arrive_tolerance_m: float = Field(2.0, gt=0, le=50)  # this close to the standoff: ask the supervisor
     approach_timeout_s: float = Field(60.0, gt=0, le=3600)  # ask anyway after following this long
     rejection_radius_m: float = Field(5.0, gt=0, le=500)  # a rejected person's neighbourhood
+    redetect_roi_scale: float = Field(3.0, ge=1, le=100)  # lost: re-detect in the last box grown this much...
+    redetect_full_frame_s: float = Field(4.0, gt=0, le=600)  # ...growing to the whole frame after this long
 
 
 class ControlConfig(ConfigSection):

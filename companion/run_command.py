@@ -11,7 +11,6 @@ import argparse
 import logging
 import signal
 import sys
-from dataclasses import replace
 from pathlib import Path
 from typing import IO, Any
 
@@ -63,22 +62,14 @@ class _QueryService:
         return self._client.detect(image, **fields)
 
 
-# The re-detection ROI: the last box grown 10x (the behaviour's default is 3x). A person walking at
-# 1.5 m/s who is hidden for 3 s reappears 4-5 m further on, about 5 box widths away at a 12-20 m range;
-# 3x never re-found them in the SITL occlusion scenario, while the whole frame lets the re-detection
-# (which accepts "uncertain" verdicts) jump to a distractor. See docs/sitl.md.
-REDETECT_ROI_SCALE = 10.0
-
-
 def mission_config(config: CompanionConfig) -> MissionConfig:
-    mission = MissionConfig.from_sections(
+    return MissionConfig.from_sections(
         behavior=config.behavior.model_dump(),
         control=config.control.model_dump(),
         safety=config.safety.model_dump(),
         camera=config.camera.model_dump(),
         backend=config.backend.model_dump(),
     )
-    return replace(mission, redetect_roi_scale=REDETECT_ROI_SCALE)
 
 
 def run(args: argparse.Namespace) -> int:

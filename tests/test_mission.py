@@ -35,7 +35,7 @@ from behaviors.events import (
     TimerTick,
 )
 from behaviors.geometry import Box
-from behaviors.mission import MissionState, State, initial_state, step
+from behaviors.mission import MissionState, State, initial_state, redetect_roi, step
 from behaviors.mission_commands import (
     AbortMission,
     ConfirmCandidate,
@@ -575,3 +575,73 @@ def test_operator_target_is_re_found_whatever_the_verdict() -> None:
     lost = reach(S.LOST)
     _, actions = step(lost, BackendAnswer(1.5, lost.queries[-1][0], 50, (candidate(FAR, "n", Verdict.NO),)), CFG)
     assert actions == ()
+
+
+# Re-detection region by time lost (FAR is 16 x 40 px; default base scale 3, whole frame after 4 s).
+@pytest.mark.parametrize(
+    ("lost_for_s", "expected"),
+    [
+        (0.0, (48.0, 120.0)),  # the configured base scale
+        (0.5, None),  # between: strictly bigger than the base, checked below
+        (2.0, None),
+        (4.0, "whole"),  # the whole frame from redetect_full_frame_s on
+        (30.0, "whole"),
+    ],
+)
+def test_redetect_region_grows_with_time_lost(lost_for_s: float, expected: object) -> None:
+    roi = redetect_roi(FAR, lost_for_s, CFG)
+    if expected == "whole":
+        assert roi is None
+    elif expected is not None:
+        assert roi is not None and (roi.w, roi.h) == expected and (roi.cx, roi.cy) == (FAR.cx, FAR.cy)
+    else:
+        assert roi is not None and roi.w > 3 * FAR.w and roi.x <= FAR.x and roi.x2 >= FAR.x2
+        assert roi.w < CAM.width or roi.h < CAM.height
+
+
+def test_redetect_region_is_monotonic_and_configurable() -> None:
+    widths = [r.w * r.h if (r := redetect_roi(FAR, t / 10, CFG)) is not None else CAM.width * CAM.height for t in range(50)]
+    assert widths == sorted(widths) and widths[0] < widths[-1]
+    wide = replace(CFG, redetect_roi_scale=5.0, redetect_full_frame_s=10.0)
+    assert redetect_roi(FAR, 0.0, wide) == Box.from_center(FAR.cx, FAR.cy, 80.0, 200.0)
+    assert redetect_roi(FAR, 5.0, wide) is not None and redetect_roi(FAR, 10.0, wide) is None
+
+
+def _lost_for(seconds: float) -> tuple[State, int, float]:
+    """LOST (entered at 1.2 s), ticked until a re-detect query that was sent `seconds` after the loss."""
+    state, t = reach(S.LOST), 1.2
+    while t < 1.2 + seconds:
+        t = round(t + 0.1, 3)
+        state, _ = step(state, TimerTick(t), CFG)
+    return state, state.queries[-1][0], t
+
+
+# (lost for, candidate verdict, re-found?): near the last box "uncertain" may re-find the target; over the
+# whole frame only "yes" may, so a distractor there cannot take over the track.
+@pytest.mark.parametrize(
+    ("lost_for_s", "verdict", "refound"),
+    [
+        (0.0, Verdict.UNCERTAIN, True),
+        (0.0, Verdict.YES, True),
+        (0.0, Verdict.NO, False),
+        (5.0, Verdict.UNCERTAIN, False),
+        (5.0, Verdict.YES, True),
+        (5.0, Verdict.NO, False),
+    ],
+)
+def test_whole_frame_redetection_needs_a_yes(lost_for_s: float, verdict: Verdict, refound: bool) -> None:
+    state, qid, t = _lost_for(lost_for_s)
+    whole = lost_for_s >= CFG.redetect_full_frame_s
+    assert (qid in state.whole_frame_queries) is whole
+    elsewhere = Box(FAR.x + 120, FAR.y + 40, FAR.w, FAR.h)  # walked on while hidden
+    state, actions = step(state, BackendAnswer(t + 0.3, qid, 99, (candidate(elsewhere, "d", verdict),)), CFG)
+    assert (actions == (TrackerInit(elsewhere, 99, "c1", reinit=True),)) is refound
+    assert qid not in state.whole_frame_queries  # answered: forgotten
+
+
+def test_redetect_settings_come_from_the_behavior_section() -> None:
+    config = MissionConfig.from_sections(behavior={"redetect_roi_scale": 6.0, "redetect_full_frame_s": 8.0},
+                                         control={}, safety={}, camera={}, backend={})
+    assert (config.redetect_roi_scale, config.redetect_full_frame_s) == (6.0, 8.0)
+    with pytest.raises(ValueError, match="redetect_roi_scale"):
+        MissionConfig.from_sections(behavior={"redetect_roi_scale": "big"}, control={}, safety={}, camera={}, backend={})
