@@ -7,9 +7,16 @@ export CLOUDTRACK_SHARED ?= $(SHARED)
 
 .PHONY: test lint types pytest demo install clean
 
-$(BIN)/.installed: pyproject.toml
+$(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
+
+# The demo needs the back-end and plotting extras only; the tests add the test tools and CPU torch.
+$(BIN)/.installed-demo: pyproject.toml | $(BIN)/python
+	$(BIN)/pip install -q -e '.[backend,eval]'
+	touch $@
+
+$(BIN)/.installed: pyproject.toml | $(BIN)/python
 	# CPU-only torch first (for the open-vocabulary detector tests): the PyPI build pulls several GB of CUDA.
 	$(BIN)/pip install -q torch==2.13.0 --extra-index-url https://download.pytorch.org/whl/cpu
 	$(BIN)/pip install -q -e '.[test]'
@@ -37,7 +44,7 @@ pytest: install $(CHROMIUM)
 
 test: lint types pytest
 
-demo: install
+demo: $(BIN)/.installed-demo
 	$(BIN)/cloudtrack-sim run follow --video out/demo.mp4 --plot out/demo.png --json out/demo.json
 
 clean:
