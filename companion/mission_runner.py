@@ -175,6 +175,7 @@ class MissionRunner:
         observers: Sequence[LoopObserver] = (),
         notifier: Notifier | None = None,
         clock: Callable[[], float] = time.monotonic,
+        video_sinks: Sequence[Callable[[Any, Box | None, str], None]] = (),
     ) -> None:
         self.mission = mission
         self.frames = frames
@@ -186,6 +187,7 @@ class MissionRunner:
         self.observers = list(observers)
         self.notifier = notifier
         self.clock = clock
+        self.video_sinks = list(video_sinks)  # `(image, tracked box, state)` for every frame (record video)
         self.state = initial_state(mission)
         self.stats = LoopStats()
         self._stop = threading.Event()
@@ -231,7 +233,8 @@ class MissionRunner:
             self._latest = frame
             self.stats.frames += 1
             self.vehicle.report_frame(frame.capture_time)
-            events.append(self.frontend.feed(frame))
+            result = self.frontend.feed(frame)
+            events.append(result)
         answer = self.backend.poll()
         if answer is not None:
             self._pending_since = None
@@ -242,6 +245,8 @@ class MissionRunner:
             events.append(TimerTick(now))
         for event in events:
             self._handle(event)
+        if frame is not None:
+            self._video(frame, result)
         self._feed_watchdogs(now)
         self._report_health(started)
 
@@ -346,6 +351,14 @@ class MissionRunner:
                 awaiting["position"] = [report.position.lat_deg, report.position.lon_deg]
             status["awaiting"] = awaiting
         return status
+
+    def _video(self, frame: Frame, result: TrackResult) -> None:
+        box = result.box if result.trusted else None
+        for sink in self.video_sinks:
+            try:
+                sink(frame.image, box, self.state.mode.value)
+            except Exception:  # a full disk or a codec error must not stop the flight
+                log.exception("video frame not recorded")
 
     def _report_track(self, result: TrackResult) -> None:
         cam = self.mission.camera

@@ -11,6 +11,7 @@ import argparse
 import logging
 import signal
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
 
@@ -52,13 +53,27 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
 
 
 class _QueryService:
-    """Lets the back-end worker carry the behaviour's query id: kept in the answer, not sent on the wire."""
+    """Lets the back-end worker carry the behaviour's query id: kept in the answer, not sent on the wire.
 
-    def __init__(self, client: Any) -> None:
+    `on_keyframe(jpeg, frame_id)` (the flight record) gets each keyframe as the client sends it: the
+    client's own `encode_keyframe` with its own settings gives the same bytes, in the worker's thread.
+    """
+
+    def __init__(self, client: Any, on_keyframe: Callable[[bytes, int], object] | None = None) -> None:
         self._client = client
+        self._on_keyframe = on_keyframe
 
     def detect(self, image: Any, **fields: Any) -> Any:
         fields.pop("query_id", None)
+        if self._on_keyframe is not None and fields.get("frame_id") is not None:
+            from companion.backend_client import encode_keyframe
+
+            try:
+                jpeg, _ = encode_keyframe(image, self._client.max_width, self._client.jpeg_quality,
+                                          self._client.max_keyframe_bytes)
+                self._on_keyframe(jpeg, int(fields["frame_id"]))
+            except (ValueError, OSError) as exc:  # recording must never cost a query
+                log.warning("keyframe not recorded: %s", exc)
         return self._client.detect(image, **fields)
 
 
@@ -113,22 +128,25 @@ def run(args: argparse.Namespace) -> int:
 
     mission = mission_config(config)
     rec = config.recording
+    record = None
     if rec.enabled:
         from companion.flight_record import FlightRecordObserver, open_record
 
         record_dir = str(Path(rec.dir).expanduser())
-        observers.append(FlightRecordObserver(
+        record = FlightRecordObserver(
             mission, lambda mission_id: open_record(True, record_dir, rec.max_bytes, rec.video, config.vehicle.id, mission_id)
-        ))
+        )
+        observers.append(record)
 
     link = VehicleLink(config.mavlink, config.safety, (cam.width, cam.height))
     client = BackendClient(config.backend.url, config.backend.token, config.backend.timeout_s,
                            config.backend.jpeg_quality, config.backend.max_keyframe_width, vehicle_id=config.vehicle.id)
     session = BackendSession(client)
-    worker = BackendWorker(_QueryService(client))
+    worker = BackendWorker(_QueryService(client, record.keyframe if record is not None else None))
     settings = LoopSettings(frame_stale_s=config.safety.frame_stale_s, loop_stall_s=config.safety.loop_stall_s)
     runner = MissionRunner(mission, frames, frontend, link, worker, session, settings, observers,
-                           ServiceNotifier.from_environment())
+                           ServiceNotifier.from_environment(),
+                           video_sinks=[record.video_frame] if record is not None and rec.video else [])
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: runner.request_stop())
     try:
@@ -138,6 +156,10 @@ def run(args: argparse.Namespace) -> int:
         frames.close()
         worker.close()
         return 2
+    if record is not None:
+        from companion.flight_record import attach_tlog
+
+        attach_tlog(link.endpoint.conn, record)  # every MAVLink message in and out goes into the record
     session.start()
     log.info("companion %s: camera %s, tracker %s, back-end %s, MAVLink %s", config.vehicle.id, cam.source,
              config.tracker.name, config.backend.url, config.mavlink.connection)

@@ -72,7 +72,7 @@ SCENARIOS: dict[str, Scenario] = {
     s.name: s
     for s in (
         Scenario("follow", "follow a person in a green shirt walking at 1.5 m/s among distractors",
-                 checks=("confirmed_target", "in_view", "standoff")),
+                 companion_settings=("recording.video=true",), checks=("confirmed_target", "in_view", "standoff")),
         Scenario("reject", "a look-alike in green is proposed first; the supervisor rejects it, the right one is confirmed",
                  decoy=True, follow_s=6.0, miss_rate=0.0, checks=("confirmed_target", "rejected_never_again")),
         Scenario("occlusion", "the target walks under a roof for about 3 s and is re-acquired after it",

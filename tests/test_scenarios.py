@@ -54,6 +54,31 @@ def test_follow(models_dir: Path, tmp_path: Path) -> None:
     _follow_checks(results["vehicles"]["drone-1"])
     assert (out / "m.json").stat().st_size > 0 and (out / "p.png").stat().st_size > 0
     assert (out / "v.mp4").stat().st_size > 10_000
+    _flight_record_checks(tmp_path / "records")
+
+
+def _flight_record_checks(records: Path) -> None:
+    """`cloudtrack-companion run` fed its flight record: MAVLink tlog, keyframes sent, overlay video."""
+    import cv2
+    from pymavlink import mavutil
+
+    folders = sorted(records.glob("*_drone-1_*"))
+    assert folders, f"no flight record in {records}"
+    types: set[str] = set()
+    for tlog in sorted(p for f in folders for p in f.glob("mavlink-*.tlog")):
+        log = mavutil.mavlink_connection(str(tlog))
+        while (msg := log.recv_match()) is not None:
+            types.add(msg.get_type())
+    # received from the autopilot and sent by the companion
+    assert {"HEARTBEAT", "ATTITUDE", "SET_POSITION_TARGET_LOCAL_NED"} <= types, types
+    keyframes = [p for f in folders for p in (f / "keyframes").glob("*.jpg")]
+    assert keyframes and all(cv2.imread(str(p)) is not None for p in keyframes[:5])
+    videos = [p for f in folders for p in f.glob("video-*.mp4")]
+    assert videos
+    capture = cv2.VideoCapture(str(videos[0]))
+    ok, first = capture.read()
+    capture.release()
+    assert ok and first.shape[:2] == (480, 640)
 
 
 @pytest.mark.slow
