@@ -1,7 +1,9 @@
 """The companion's session with the back-end beside the keyframes: status, supervisor decisions, rejections.
 
 A background thread, once a `period_s`: posts the vehicle's status (state, prompt, position and the
-candidate awaiting the supervisor) so the supervisor page shows it, fetches the supervisor's new
+candidate awaiting the supervisor, with its small JPEG crop from `companion.candidate_crop`, encoded once
+per candidate by the main loop; it goes with every post because the back-end's store replaces a vehicle's
+status wholesale) so the supervisor page shows it, fetches the supervisor's new
 decisions and turns them into Confirm/Reject commands, and sends queued rejections so the back-end
 never proposes a rejected candidate again in this mission. Nothing here blocks the main loop; every
 failure is logged and retried on the next round. `last_success()` feeds the lost-back-end watchdog.

@@ -54,6 +54,7 @@ from behaviors.setpoint import Setpoint
 from behaviors.telemetry import Telemetry
 from behaviors.track_result import TrackResult
 from companion.backend_worker import BackendWorker
+from companion.candidate_crop import candidate_crop
 from companion.frame_sources import Frame, FrameSource
 from companion.safety_watchdog import BACKEND_UNREACHABLE, HEARTBEAT_LOST, SafetyEvent
 from companion.service_notify import Notifier
@@ -195,6 +196,7 @@ class MissionRunner:
         self._last_tick = -float("inf")
         self._ready = False
         self._pending_since: float | None = None  # oldest back-end request not answered yet
+        self._crop: tuple[str, dict[str, Any]] | None = None  # (candidate id, its crop fields), encoded once
 
     # ------------------------------------------------------------------------------------------ control
     def request_stop(self) -> None:
@@ -349,6 +351,7 @@ class MissionRunner:
             }
             if report.position is not None:
                 awaiting["position"] = [report.position.lat_deg, report.position.lon_deg]
+            awaiting.update(self._candidate_crop(awaiting["candidate_id"], report.box))
             status["awaiting"] = awaiting
         return status
 
@@ -359,6 +362,15 @@ class MissionRunner:
                 sink(frame.image, box, self.state.mode.value)
             except Exception:  # a full disk or a codec error must not stop the flight
                 log.exception("video frame not recorded")
+
+    def _candidate_crop(self, candidate_id: str, box: Box) -> dict[str, Any]:
+        """The supervisor's crop of this candidate from the newest frame, encoded once per candidate."""
+        if self._crop is None or self._crop[0] != candidate_id:
+            crop = candidate_crop(self._latest.image, box) if self._latest is not None else None
+            if crop is None:
+                return {}
+            self._crop = (candidate_id, crop)
+        return self._crop[1]
 
     def _report_track(self, result: TrackResult) -> None:
         cam = self.mission.camera

@@ -1,0 +1,113 @@
+"""The candidate crop the companion sends with its status, so the supervisor page shows the person."""
+
+from __future__ import annotations
+
+import base64
+import time
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+import requests
+
+from behaviors.actions import ReportCandidate
+from behaviors.detection import Verdict
+from behaviors.geometry import Box
+from behaviors.mission import MissionState
+from behaviors.mission_commands import StartMission
+from behaviors.mission_config import MissionConfig
+from companion.candidate_crop import MAX_B64_CHARS, candidate_crop
+from companion.frame_sources import Frame
+from companion.mission_runner import MissionRunner
+
+
+def _first_frame(sequence: Path) -> tuple[np.ndarray, Box]:
+    image = cv2.imread(str(sorted((sequence / "frames").glob("*.jpg"))[0]))
+    x, y, w, h = (float(v) for v in (sequence / "groundtruth.txt").read_text().splitlines()[0].split(","))
+    return image, Box(x, y, w, h)
+
+
+def _decode(text: str) -> np.ndarray:
+    image = cv2.imdecode(np.frombuffer(base64.b64decode(text, validate=True), np.uint8), cv2.IMREAD_COLOR)
+    assert image is not None
+    return image
+
+
+def test_crop_of_a_real_person_is_small_and_frames_the_box(sequence_dirs: list[Path]) -> None:
+    for sequence in sequence_dirs:
+        image, box = _first_frame(sequence)
+        crop = candidate_crop(image, box)
+        assert crop is not None, sequence.name
+        assert len(crop["crop_jpeg_b64"]) <= MAX_B64_CHARS
+        decoded = _decode(crop["crop_jpeg_b64"])
+        assert max(decoded.shape[:2]) <= 192
+        x1, y1, x2, y2 = crop["crop_box"]
+        assert 0 <= x1 < x2 <= decoded.shape[1] + 0.5 and 0 <= y1 < y2 <= decoded.shape[0] + 0.5
+
+
+def test_noise_is_squeezed_under_the_budget_and_bad_boxes_give_none() -> None:
+    noise = np.random.default_rng(1).integers(0, 256, (480, 640, 3), dtype=np.uint8)
+    crop = candidate_crop(noise, Box(100, 100, 300, 300), max_b64_chars=12_000)
+    assert crop is not None and len(crop["crop_jpeg_b64"]) <= 12_000
+    assert candidate_crop(noise, Box(700, 500, 20, 40)) is None  # outside the image
+    assert candidate_crop(noise, Box(10, 10, float("nan"), 40)) is None
+    assert candidate_crop(noise[:, :, 0], Box(10, 10, 20, 40)) is None  # not BGR
+
+
+def _runner_awaiting(image: np.ndarray, box: Box) -> tuple[MissionRunner, dict[str, Any]]:
+    """The loop's status for a candidate report (only the behaviour state and the newest frame are read)."""
+    from dataclasses import replace
+
+    from behaviors.mission import initial_state
+
+    config = MissionConfig()
+    none: Any = None
+    runner = MissionRunner(config, none, none, none, none)
+    runner.state = replace(initial_state(config), mode=MissionState.AWAITING_SUPERVISOR,
+                           mission=StartMission("a person in a green shirt", mission_id="m1"))
+    runner._latest = Frame(7, time.monotonic(), image)
+    report = ReportCandidate("c7", "green shirt", Verdict.YES, None, box, "awaiting")
+    return runner, runner._status(report)
+
+
+def test_status_carries_the_crop_once_encoded_per_candidate(sequence_dirs: list[Path]) -> None:
+    image, box = _first_frame(sequence_dirs[0])
+    runner, status = _runner_awaiting(image, box)
+    awaiting = status["awaiting"]
+    assert awaiting["candidate_id"] == "c7" and _decode(awaiting["crop_jpeg_b64"]).size > 0
+    # the next report of the same candidate reuses the encoded crop, even from a newer (black) frame
+    runner._latest = Frame(8, time.monotonic(), np.zeros_like(image))
+    again = runner._status(ReportCandidate("c7", "green shirt", Verdict.YES, None, box, "reverified"))
+    assert again["awaiting"]["crop_jpeg_b64"] is awaiting["crop_jpeg_b64"]
+    other = runner._status(ReportCandidate("c8", "green shirt", Verdict.YES, None, box, "awaiting"))
+    assert other["awaiting"]["crop_jpeg_b64"] != awaiting["crop_jpeg_b64"]
+
+
+@pytest.mark.timeout(60)
+def test_crop_reaches_the_back_end_store(sequence_dirs: list[Path]) -> None:
+    from backend.app import create_app
+    from backend.config import AuthConfig, BackendConfig
+    from backend.serving import BackgroundServer
+    from companion.backend_client import BackendClient
+    from companion.backend_session import BackendSession
+    from sitl.simulated_detector import SimulatedPersonDetector
+
+    image, box = _first_frame(sequence_dirs[0])
+    _, status = _runner_awaiting(image, box)
+    config = BackendConfig(auth=AuthConfig(tokens={"drone-1": "tok-1"}, supervisor_token="sup"))
+    with BackgroundServer(create_app(config, detector=SimulatedPersonDetector(lambda fid: None))) as server:
+        session = BackendSession(BackendClient(server.url, "tok-1", vehicle_id="drone-1"), period_s=0.05).start()
+        try:
+            session.update(status)
+            deadline = time.monotonic() + 10
+            while session.last_success() is None and time.monotonic() < deadline:
+                time.sleep(0.05)
+            stored = requests.get(f"{server.url}/v1/vehicles", headers={"Authorization": "Bearer sup"}, timeout=5).json()
+        finally:
+            session.close()
+    awaiting = stored[0]["awaiting"]
+    assert awaiting["candidate_id"] == "c7"
+    assert awaiting["crop_jpeg_b64"] == status["awaiting"]["crop_jpeg_b64"]
+    assert _decode(awaiting["crop_jpeg_b64"]).shape[2] == 3 and len(awaiting["crop_box"]) == 4
