@@ -87,8 +87,9 @@ def appearance_histogram(frame: np.ndarray, box: Box) -> np.ndarray | None:
         patch = cv2.cvtColor(patch, cv2.COLOR_GRAY2BGR)
     hsv = cv2.cvtColor(patch, cv2.COLOR_BGR2HSV)
     hist = cv2.calcHist([hsv], [0, 1], None, list(_HIST_BINS), [0, 180, 0, 256])
-    cv2.normalize(hist, hist, 1.0, 0.0, cv2.NORM_L1)
-    return hist
+    total = float(hist.sum())
+    # numpy, not cv2.normalize: the latter cost ~0.3 ms per call here (thread-pool dispatch for 128 bins).
+    return hist / total if total > 0 else hist
 
 
 def appearance_distance(a: np.ndarray, b: np.ndarray) -> float:
