@@ -48,7 +48,7 @@ from behaviors.events import (
 )
 from behaviors.geometry import Box
 from behaviors.mission import ACTIVE, MissionState, State, initial_state, step
-from behaviors.mission_commands import MissionCommand, StartMission
+from behaviors.mission_commands import MissionCommand, StartMission, TrackRectangle
 from behaviors.mission_config import MissionConfig
 from behaviors.setpoint import Setpoint
 from behaviors.telemetry import Telemetry
@@ -257,9 +257,12 @@ class MissionRunner:
         for obs in self.observers:
             obs.on_event(event)
         before = self.state
-        if isinstance(event, GcsCommand) and isinstance(event.command, StartMission):
-            self.vehicle.enable_offboard()  # fly once GUIDED/OFFBOARD is selected; never arm, never force
         self.state, actions = step(self.state, event, self.mission)
+        if _operator_started(event, self.state):
+            # A mission or an operator's track box the behaviour accepted may fly the vehicle once the
+            # pilot or GCS selects GUIDED/OFFBOARD; asking for that mode itself is the behaviour's
+            # RequestMode, emitted only when the running mission allowed engagement. Never arms.
+            self.vehicle.enable_offboard()
         if self.state.mode is not before.mode:
             log.info("state %s -> %s (%s)", before.mode.value, self.state.mode.value, self.state.reason)
         for obs in self.observers:
@@ -446,6 +449,15 @@ class MissionRunner:
         self.backend.close(timeout_s=0.2)
         self.frames.close()
         log.info("main loop stopped (%d iterations, %d frames)", self.stats.iterations, self.stats.frames)
+
+
+def _operator_started(event: Event, state: State) -> bool:
+    """A GCS start or track box that the behaviour accepted (it is now flying a mission)."""
+    return (
+        isinstance(event, GcsCommand)
+        and isinstance(event.command, (StartMission, TrackRectangle))
+        and state.mode in ACTIVE
+    )
 
 
 def behaviour_event(ev: SafetyEvent) -> Event | None:
