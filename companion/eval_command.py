@@ -46,7 +46,7 @@ examples:
   cloudtrack-companion eval ../shared/data/sequences/* --tracker nano,vit --sweep 0.3:0.95:0.05 --plot out/sweep.png
   cloudtrack-companion eval ../shared/data/sequences/* --policy both --occlude --delay-s 1
   cloudtrack-companion eval ../shared/data/sequences/* --signal-table --occlude --tracker nano,vit,csrt
-  cloudtrack-companion eval ../shared/data/sequences/uav123_person12_1 --backend http://127.0.0.1:8080
+  CLOUDTRACK_BACKEND__TOKEN=... cloudtrack-companion eval ../shared/data/sequences/uav123_person12_1 --backend http://127.0.0.1:8080
 
 Re-initialisation candidates come from the back-end with --backend URL (first acquisition too, from
 referring.txt), else from the YOLOX-nano detector in-process (--detector none: no re-initialisation).
@@ -104,13 +104,20 @@ def _yolox(path: Path) -> Any:
 
 def _detector(args: argparse.Namespace, model_dir: Path, seq: SequenceData) -> DetectFn | None:
     if args.backend:
-        from companion.backend_client import BackendClient
+        from companion.backend_client import BackendClient, BackendError
 
-        client = BackendClient(args.backend, args.backend_token, 30.0, 90, 4096, vehicle_id="eval")
+        backend = args.backend_config
+        client = BackendClient(args.backend, backend.token, backend.timeout_s, backend.jpeg_quality,
+                               backend.max_keyframe_width, vehicle_id=args.vehicle_id,
+                               mission_id=f"eval-{seq.name}")
         prompt = seq.referring or "a person"
 
         def ask_backend(image: np.ndarray, frame_id: int) -> list[Detection]:
-            return client.detect(image, prompt, frame_id=frame_id)
+            try:
+                return client.detect(image, prompt, frame_id=frame_id)
+            except BackendError as exc:  # a failed request is an empty answer, as in flight
+                log.warning("%s frame %d: back-end request failed: %s", seq.name, frame_id, exc)
+                return []
 
         return ask_backend
     if args.detector == "none":
@@ -167,7 +174,8 @@ def run(args: argparse.Namespace) -> int:
         if args.max_frames is not None and args.max_frames < 2:
             raise ValueError("--max-frames must be at least 2")
         seqs = [load_sequence(p) for p in args.sequences]
-        args.backend_token = config.backend.token
+        args.backend_config = config.backend
+        args.vehicle_id = config.vehicle.id
     except (ConfigError, ModelError, TrackerUnavailableError, ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -166,3 +166,36 @@ def test_bench_bad_input(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> 
     assert "WIDTHxHEIGHT" in capsys.readouterr().err
     assert main(["bench", "--sequence", str(tmp_path)]) == 2
     assert "groundtruth.txt" in capsys.readouterr().err
+
+
+def test_eval_against_a_live_backend(models_dir: Path, sequences_dir: Path, tmp_path: Path) -> None:
+    """--backend: first acquisition and re-initialisation from the real back-end over HTTP on loopback."""
+    from tests.live_backend import VEHICLE_TOKENS, live_backend
+
+    out = tmp_path / "eval.json"
+    with live_backend(models_dir) as backend:
+        code = main([
+            "eval", str(sequences_dir / "uav123_person12_1"), "--tracker", "nano", "--max-frames", "12",
+            "--model-dir", str(models_dir), "--backend", backend.url, "--json", str(out), "--no-progress",
+            "--set", f"backend.token={VEHICLE_TOKENS['drone-1']}", "--set", "vehicle.id=drone-1",
+        ])
+    assert code == 0
+    result = json.loads(out.read_text())["runs"][0]["sequences"][0]
+    assert result["detector_calls"] >= 1  # the first box came from the back-end, not the ground truth
+    assert result["frames"] == 12 and result["miou"] > 0.3
+
+
+def test_eval_with_an_unreachable_backend_tracks_nothing_and_does_not_crash(
+    models_dir: Path, sequences_dir: Path, tmp_path: Path
+) -> None:
+    from tests.live_backend import free_port
+
+    out = tmp_path / "eval.json"
+    code = main([
+        "eval", str(sequences_dir / "otb_Crossing"), "--tracker", "kcf", "--max-frames", "5",
+        "--model-dir", str(models_dir), "--backend", f"http://127.0.0.1:{free_port()}", "--json", str(out),
+        "--no-progress", "--set", "backend.timeout_s=1",
+    ])
+    assert code == 0
+    result = json.loads(out.read_text())["runs"][0]["sequences"][0]
+    assert result["miou"] == 0.0 and result["detector_calls"] == 1
