@@ -14,7 +14,7 @@ from companion.frame_sources import Frame
 from companion.loss_detection import SIGNALS, LossDetector, LossSettings, parse_signals
 from companion.trackers import TrackerStep, create_tracker
 from companion.tracking_eval import _occluded, load_sequence, occlusion_span
-from companion.tracking_frontend import TrackingFrontend, loss_settings
+from companion.tracking_frontend import TrackingFrontend
 
 PERSON = "uav123_person12_1"  # 1280x720, one person on a roof
 
@@ -119,7 +119,7 @@ def test_nano_jumps_to_a_distractor_with_a_high_score_and_the_other_signals_catc
     frontend = TrackingFrontend.from_config(TrackerConfig(), models_dir, tracker_name="nano")
     score_only = TrackingFrontend(
         lambda: create_tracker("nano", models_dir),
-        loss_settings(TrackerConfig(), "nano").__class__(score_threshold=0.7, enabled=frozenset({"score"})),
+        LossSettings(score_threshold=0.7, enabled=frozenset({"score"})),
     )
     flagged: dict[str, tuple[int, float | None, str]] = {}
     for i in range(hidden.start + 20):
