@@ -66,6 +66,7 @@ class BackendConfig(ConfigSection):
     max_keyframe_width: int = Field(640, ge=64, le=4096)
     timeout_s: float = Field(5.0, gt=0, le=120)
     superset: str = ""  # empty: derived from the prompt by the back-end
+    status_interval_s: float = Field(1.0, gt=0, le=60)  # status post + supervisor decisions poll
 
 
 class MavlinkConfig(ConfigSection):

@@ -141,7 +141,7 @@ def run(args: argparse.Namespace) -> int:
     link = VehicleLink(config.mavlink, config.safety, (cam.width, cam.height))
     client = BackendClient(config.backend.url, config.backend.token, config.backend.timeout_s,
                            config.backend.jpeg_quality, config.backend.max_keyframe_width, vehicle_id=config.vehicle.id)
-    session = BackendSession(client)
+    session = BackendSession(client, period_s=config.backend.status_interval_s)
     worker = BackendWorker(_QueryService(client, record.keyframe if record is not None else None))
     settings = LoopSettings(frame_stale_s=config.safety.frame_stale_s, loop_stall_s=config.safety.loop_stall_s)
     runner = MissionRunner(mission, frames, frontend, link, worker, session, settings, observers,

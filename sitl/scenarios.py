@@ -68,6 +68,15 @@ class Scenario:
 
 TAKEOVER_MODE = {"ardupilot": "LOITER", "px4": "POSCTL"}
 
+# The issue's bound: hold within 1 s of a back-end outage or a link drop. The product's defaults
+# (backend_lost_s 10 s, heartbeat_timeout_s 2 s, status every 1 s) suit real uplinks that stall for
+# seconds; these scenarios tighten them so the bound holds (docs/sitl.md). The status round (POST status
+# + GET decisions) must succeed every 0.2 s; 0.7 s without one is an outage. The autopilot sends HEARTBEAT
+# at 10 Hz on request, so 0.6 s of silence is a dropped link.
+HOLD_WITHIN_S = 1.0
+OUTAGE_SETTINGS = ("safety.backend_lost_s=0.7", "backend.status_interval_s=0.2")
+LINK_DROP_SETTINGS = ("safety.heartbeat_timeout_s=0.6",)
+
 SCENARIOS: dict[str, Scenario] = {
     s.name: s
     for s in (
@@ -81,10 +90,10 @@ SCENARIOS: dict[str, Scenario] = {
                  faults=(Fault("takeover", 5.0),), follow_s=8.0, checks=("confirmed_target", "takeover")),
         Scenario("backend-outage", "the back-end is unreachable for 6 s mid-follow: hold, then resume",
                  faults=(Fault("backend_down", 4.0), Fault("backend_up", 10.0)), follow_s=16.0,
-                 companion_settings=("safety.backend_lost_s=2.0",), checks=("confirmed_target", "outage_hold")),
+                 companion_settings=OUTAGE_SETTINGS, checks=("confirmed_target", "outage_hold")),
         Scenario("link-drop", "the companion's MAVLink link drops for 4 s: hold, then the GCS restarts the mission",
                  faults=(Fault("link_down", 4.0), Fault("link_up", 8.0), Fault("restart", 10.0)), follow_s=22.0,
-                 companion_settings=("safety.heartbeat_timeout_s=1.0",), checks=("confirmed_target", "link_hold")),
+                 companion_settings=LINK_DROP_SETTINGS, checks=("confirmed_target", "link_hold")),
         Scenario("follow-px4", "the follow scenario on the PX4 personality (OFFBOARD)", autopilot="px4",
                  checks=("confirmed_target", "in_view", "standoff")),
         Scenario("two-vehicles", "two drones share one back-end; both confirm the person in green", vehicles=2,
@@ -110,8 +119,7 @@ class VehicleOutcome:
     following_after: Callable[[float], float]  # seconds spent tracking the target after time t
 
 
-def assess(scenario: Scenario, outcomes: Sequence[VehicleOutcome], fault_times: dict[str, float],
-           settings: dict[str, float]) -> list[str]:
+def assess(scenario: Scenario, outcomes: Sequence[VehicleOutcome], fault_times: dict[str, float]) -> list[str]:
     """The failed checks with the reason, empty when the scenario passed."""
     failures: list[str] = []
     for i, o in enumerate(outcomes):
@@ -149,18 +157,14 @@ def assess(scenario: Scenario, outcomes: Sequence[VehicleOutcome], fault_times: 
                 failures.append(f"{name}: no takeover happened")
             elif late is not None and late > 0.2:
                 failures.append(f"{name}: setpoint {late * 1000:.0f} ms after the mode change, limit 200 ms")
-        for check, down, up, limit_key in (
-            ("outage_hold", "backend_down", "backend_up", "backend_lost_s"),
-            ("link_hold", "link_down", "link_up", "heartbeat_timeout_s"),
-        ):
+        for check, down, up in (("outage_hold", "backend_down", "backend_up"), ("link_hold", "link_down", "link_up")):
             if check not in scenario.checks or down not in fault_times:
                 continue
             t_down = fault_times[down]
             holds = [t for t in o.hold_times if t >= t_down]
-            allowed = settings[limit_key] + 1.0
-            if not holds or holds[0] - t_down > allowed:
+            if not holds or holds[0] - t_down > HOLD_WITHIN_S:
                 first = f"{holds[0] - t_down:.2f} s" if holds else "never"
-                failures.append(f"{name}: hold {first} after the {down.replace('_', ' ')}, needs <= {allowed:.1f} s")
+                failures.append(f"{name}: hold {first} after the {down.replace('_', ' ')}, needs <= {HOLD_WITHIN_S:.1f} s")
             recover_from = fault_times.get("restart", fault_times.get(up, math.inf))
             if o.following_after(recover_from) < 4.0:
                 failures.append(f"{name}: did not resume following after {up.replace('_', ' ')}")

@@ -113,7 +113,9 @@ def test_backend_outage(models_dir: Path, tmp_path: Path) -> None:
     m = results["vehicles"]["drone-1"]
     down = results["faults"]["backend_down"]
     holds = [e["t"] for e in m["safety_events"] if e["kind"] == "hold" and e["t"] >= down]
-    assert holds and holds[0] - down <= 2.0 + 1.0  # backend_lost_s, then within 1 s
+    assert holds, m["safety_events"]
+    print(f"hold {holds[0] - down:.2f} s after the back-end cut")
+    assert holds[0] - down <= 1.0  # the bound, from the moment of the cut
 
 
 @pytest.mark.slow
@@ -122,7 +124,9 @@ def test_link_drop(models_dir: Path, tmp_path: Path) -> None:
     m = results["vehicles"]["drone-1"]
     down = results["faults"]["link_down"]
     holds = [e["t"] for e in m["safety_events"] if e["kind"] == "hold" and e["t"] >= down]
-    assert holds and holds[0] - down <= 1.0 + 1.0  # heartbeat_timeout_s, then within 1 s
+    assert holds, m["safety_events"]
+    print(f"hold {holds[0] - down:.2f} s after the link drop")
+    assert holds[0] - down <= 1.0  # the bound, from the moment of the drop
     assert m["confirmed"] == ["target", "target"]  # confirmed again after the GCS restarted the mission
 
 
