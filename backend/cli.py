@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import argparse
-import importlib
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 
 from backend.config import BackendConfig, load_backend_config
-from cloudtrack.logging_setup import add_logging_flags, setup_logging
+from cloudtrack.command_line import add_command_modules, new_parser, run
 
 EXAMPLES = """\
 examples:
@@ -46,24 +45,17 @@ def config_from_args(args: argparse.Namespace, *extra: str) -> BackendConfig:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="cloudtrack-backend",
-        description="CloudTrack back-end: superset detection, 50 px crops and concurrent verification for many drones.",
-        epilog=EXAMPLES,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+    parser, subparsers = new_parser(
+        "cloudtrack-backend",
+        "CloudTrack back-end: superset detection, 50 px crops and concurrent verification for many drones.",
+        EXAMPLES,
     )
-    add_logging_flags(parser)
-    subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for module_name in COMMAND_MODULES:
-        importlib.import_module(module_name).add_parser(subparsers)
+    add_command_modules(subparsers, COMMAND_MODULES)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    setup_logging(args.log_level, args.log_json)
-    return int(args.func(args) or 0)
+    return run(build_parser, argv)
 
 
 if __name__ == "__main__":

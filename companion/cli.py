@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import importlib
 import sys
 from collections.abc import Sequence
 
-from cloudtrack.logging_setup import add_logging_flags, setup_logging
+from cloudtrack.command_line import add_command_modules, new_parser, run
 
 EXAMPLES = """\
 examples:
@@ -33,24 +32,17 @@ COMMAND_MODULES = (
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="cloudtrack-companion",
-        description="CloudTrack onboard process: track a described person and fly to keep them in view.",
-        epilog=EXAMPLES,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+    parser, subparsers = new_parser(
+        "cloudtrack-companion",
+        "CloudTrack onboard process: track a described person and fly to keep them in view.",
+        EXAMPLES,
     )
-    add_logging_flags(parser)
-    subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for module_name in COMMAND_MODULES:
-        importlib.import_module(module_name).add_parser(subparsers)
+    add_command_modules(subparsers, COMMAND_MODULES)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    setup_logging(args.log_level, args.log_json)
-    return int(args.func(args) or 0)
+    return run(build_parser, argv)
 
 
 if __name__ == "__main__":

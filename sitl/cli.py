@@ -9,7 +9,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from cloudtrack.logging_setup import add_logging_flags, setup_logging
+from cloudtrack.command_line import add_command_modules, new_parser, run
 from sitl.autopilot import PERSONALITIES
 from sitl.scenarios import SCENARIOS
 
@@ -88,31 +88,25 @@ def _list(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="cloudtrack-sim",
-        description="CloudTrack software-in-the-loop: mock autopilot, synthetic camera world, closed-loop scenarios.",
-        epilog=EXAMPLES,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+    parser, subparsers = new_parser(
+        "cloudtrack-sim",
+        "CloudTrack software-in-the-loop: mock autopilot, synthetic camera world, closed-loop scenarios.",
+        EXAMPLES,
     )
-    add_logging_flags(parser)
-    subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     _add_run(subparsers)
     listing = subparsers.add_parser("list", help="list the scenarios", epilog="examples:\n  cloudtrack-sim list\n"
                                     "  cloudtrack-sim list --json", formatter_class=argparse.RawDescriptionHelpFormatter)
     listing.add_argument("--json", action="store_true", help="as a JSON object name -> summary")
     listing.set_defaults(func=_list)
-    from sitl import autopilot_command, camera_command
+    add_command_modules(subparsers, ("sitl.autopilot_command",))
+    from sitl import camera_command
 
-    autopilot_command.add_parser(subparsers)
-    camera_command.add_parsers(subparsers)
+    camera_command.add_parsers(subparsers)  # `camera` and `bench`
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    setup_logging(args.log_level, args.log_json)
-    return int(args.func(args) or 0)
+    return run(build_parser, argv)
 
 
 if __name__ == "__main__":
