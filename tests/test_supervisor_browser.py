@@ -175,8 +175,12 @@ def test_supervisor_confirms_a_running_companions_candidate_in_a_real_browser(
             expect(candidate.locator(".justification")).to_contain_text("green")
             expect(candidate.locator(".age")).to_contain_text("s ago")
             expect(candidate.locator(".position")).to_contain_text(",")
-            # The companion's status carries no crop (yet): the page says so instead of a broken image.
-            expect(candidate.locator(".no-crop")).to_be_visible()
+            # The companion's status carries its candidate's crop: the page shows it (a real, decoded image).
+            expect(candidate.locator(".no-crop")).to_be_hidden()
+            page.wait_for_function(
+                "el => el.complete && el.naturalWidth > 0", arg=candidate.locator(".crop").element_handle(), timeout=10_000
+            )
+            assert 0 < candidate.locator(".crop").evaluate("el => el.naturalWidth") <= 192
 
             SCREENSHOT.parent.mkdir(parents=True, exist_ok=True)
             page.screenshot(path=str(SCREENSHOT.with_name("supervisor-candidate.png")), full_page=True)
