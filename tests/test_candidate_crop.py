@@ -25,6 +25,7 @@ from companion.mission_runner import MissionRunner
 
 def _first_frame(sequence: Path) -> tuple[np.ndarray, Box]:
     image = cv2.imread(str(sorted((sequence / "frames").glob("*.jpg"))[0]))
+    assert image is not None
     x, y, w, h = (float(v) for v in (sequence / "groundtruth.txt").read_text().splitlines()[0].split(","))
     return image, Box(x, y, w, h)
 

@@ -220,6 +220,7 @@ def test_backend_session_reports_status_and_delivers_supervisor_decisions(tmp_pa
             session.reject("never-seen", None)
             before = session.last_success()
             time.sleep(0.5)
-            assert session.last_success() is not None and before is not None and session.last_success() > before
+            after = session.last_success()
+            assert after is not None and before is not None and after > before
         finally:
             session.close()
