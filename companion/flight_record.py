@@ -342,12 +342,14 @@ class NoRecord:
 
 
 def open_record(
-    enabled: bool, directory: str, max_bytes: int, video: bool, vehicle_id: str, mission_id: str
+    enabled: bool, directory: str, max_bytes: int, video: bool, vehicle_id: str, mission_id: str,
+    video_fps: float = 10.0,
 ) -> FlightRecorder | NoRecord:
-    """The record for a mission from the `[recording]` configuration values."""
+    """The record for a mission from the `[recording]` configuration values (`video_fps`: the camera's
+    rate, since every frame is written: the video then plays in real time)."""
     if not enabled:
         return NoRecord()
-    return FlightRecorder(Path(directory), vehicle_id, mission_id, max_bytes, video=video)
+    return FlightRecorder(Path(directory), vehicle_id, mission_id, max_bytes, video=video, video_fps=video_fps)
 
 
 def read_events(folder: Path) -> list[dict[str, Any]]:

@@ -134,7 +134,8 @@ def run(args: argparse.Namespace) -> int:
 
         record_dir = str(Path(rec.dir).expanduser())
         record = FlightRecordObserver(
-            mission, lambda mission_id: open_record(True, record_dir, rec.max_bytes, rec.video, config.vehicle.id, mission_id)
+            mission, lambda mission_id: open_record(True, record_dir, rec.max_bytes, rec.video, config.vehicle.id, mission_id,
+                                                    video_fps=cam.fps)
         )
         observers.append(record)
 

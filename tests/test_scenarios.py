@@ -77,8 +77,10 @@ def _flight_record_checks(records: Path) -> None:
     assert videos
     capture = cv2.VideoCapture(str(videos[0]))
     ok, first = capture.read()
+    fps = capture.get(cv2.CAP_PROP_FPS)
     capture.release()
     assert ok and first.shape[:2] == (480, 640)
+    assert abs(fps - 30.0) < 0.5  # [camera] fps: every frame is written, so the video plays in real time
 
 
 @pytest.mark.slow
