@@ -155,6 +155,24 @@ class OpenCVTracker:
         return score if math.isfinite(score) and score >= 0 else None
 
 
+def _quietly(make: Callable[..., Any], params: Any) -> Callable[[], Any]:
+    """Build a DNN tracker with OpenCV's log muted to errors: OpenCV 5's new DNN engine warns on every net
+    it loads that preferable targets are unsupported, which is not actionable and floods the journal."""
+
+    def build() -> Any:
+        opencv_log = getattr(getattr(cv2, "utils", None), "logging", None)
+        if opencv_log is None:
+            return make(params)
+        previous = opencv_log.getLogLevel()
+        opencv_log.setLogLevel(opencv_log.LOG_LEVEL_ERROR)
+        try:
+            return make(params)
+        finally:
+            opencv_log.setLogLevel(previous)
+
+    return build
+
+
 def _builder(name: str, model_dir: Path) -> Callable[[], Any]:
     class_name = _CLASS_NAMES[name]
     make = _factory(class_name)
@@ -168,7 +186,7 @@ def _builder(name: str, model_dir: Path) -> Callable[[], Any]:
         params = _params(class_name)
         _set_first(params, ("backbone",), str(files["nanotrack_backbone_sim.onnx"]))
         _set_first(params, ("neckhead", "neck_head"), str(files["nanotrack_head_sim.onnx"]))
-        return lambda: make(params)
+        return _quietly(make, params)
     if name == "vit":
         files = require("vit", model_dir)
         params = _params(class_name)
@@ -177,20 +195,20 @@ def _builder(name: str, model_dir: Path) -> Callable[[], Any]:
             # 4.11+ makes update() fail below this score; our loss detection owns that decision on
             # every version, so keep OpenCV from second-guessing it.
             params.tracking_score_threshold = 0.0
-        return lambda: make(params)
+        return _quietly(make, params)
     if name == "dasiamrpn":
         files = require("dasiamrpn", model_dir)
         params = _params(class_name)
         _set_first(params, ("model",), str(files["dasiamrpn_model.onnx"]))
         _set_first(params, ("kernel_cls1",), str(files["dasiamrpn_kernel_cls1.onnx"]))
         _set_first(params, ("kernel_r1",), str(files["dasiamrpn_kernel_r1.onnx"]))
-        return lambda: make(params)
+        return _quietly(make, params)
     if name == "goturn":
         files = require("goturn", model_dir)
         params = _params(class_name)
         _set_first(params, ("modelTxt",), str(files["goturn.prototxt"]))
         _set_first(params, ("modelBin",), str(files["goturn.caffemodel"]))
-        return lambda: make(params)
+        return _quietly(make, params)
     return make
 
 
