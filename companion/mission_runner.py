@@ -399,13 +399,15 @@ class MissionRunner:
         return out
 
     def _feed_watchdogs(self, now: float) -> None:
-        """The back-end counts as alive while nothing is overdue: an answer, a status report, or no request out."""
+        """The back-end counts as alive from its last answer or status report. A request still out is given
+        the benefit of the doubt (overdue only backend_lost_s after it went out), but only while nothing
+        has failed since the last answer: fresh requests failing one after another prove nothing alive."""
         health = self.backend.health()
         if not health.busy:
             self._pending_since = None  # answered or failed: nothing is overdue any more
         times = [t for t in (health.last_success_time, self.session.last_success() if self.session else None) if t]
-        if self._pending_since is not None:
-            times.append(self._pending_since)  # overdue only backend_lost_s after the request went out
+        if self._pending_since is not None and health.consecutive_failures == 0:
+            times.append(self._pending_since)
         elif self.session is None and health.consecutive_failures == 0:
             times.append(now)
         if times:
