@@ -166,8 +166,20 @@ class SessionStore:
     # Vehicle status and supervisor decisions
 
     def set_status(self, vehicle_id: str, status: VehicleStatusIn) -> VehicleStatus:
-        record = VehicleStatus(vehicle_id=vehicle_id, updated_at=self._clock(), **status.model_dump())
         with self._lock:
+            previous = self._status.get(vehicle_id)
+            kept = previous.awaiting if previous is not None else None
+            awaiting = status.awaiting
+            if (
+                awaiting is not None
+                and awaiting.crop_jpeg_b64 is None
+                and kept is not None
+                and kept.candidate_id == awaiting.candidate_id
+            ):
+                # Vehicles send a candidate's crop once; later reports about the same candidate keep it.
+                crop = {"crop_jpeg_b64": kept.crop_jpeg_b64, "crop_box": kept.crop_box}
+                status = status.model_copy(update={"awaiting": awaiting.model_copy(update=crop)})
+            record = VehicleStatus(vehicle_id=vehicle_id, updated_at=self._clock(), **status.model_dump())
             self._status[vehicle_id] = record
         return record
 

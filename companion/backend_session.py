@@ -1,9 +1,9 @@
 """The companion's session with the back-end beside the keyframes: status, supervisor decisions, rejections.
 
 A background thread, once a `period_s`: posts the vehicle's status (state, prompt, position and the
-candidate awaiting the supervisor, with its small JPEG crop from `companion.candidate_crop`, encoded once
-per candidate by the main loop; it goes with every post because the back-end's store replaces a vehicle's
-status wholesale) so the supervisor page shows it, fetches the supervisor's new
+candidate awaiting the supervisor, with its small JPEG crop from `companion.candidate_crop`; the crop
+goes up once per candidate, the back-end keeps it, and it is sent again every CROP_REFRESH_S so a
+restarted back-end recovers it) so the supervisor page shows it, fetches the supervisor's new
 decisions and turns them into Confirm/Reject commands, and sends queued rejections so the back-end
 never proposes a rejected candidate again in this mission. Nothing here blocks the main loop; every
 failure is logged and retried on the next round. `last_success()` feeds the lost-back-end watchdog.
@@ -21,6 +21,9 @@ from typing import Any, Protocol
 from behaviors.mission_commands import ConfirmCandidate, MissionCommand, RejectCandidate
 
 log = logging.getLogger(__name__)
+
+CROP_REFRESH_S = 30.0
+_CROP_FIELDS = ("crop_jpeg_b64", "crop_box")
 
 
 class SessionClient(Protocol):
@@ -46,6 +49,7 @@ class BackendSession:
         self._last_success: float | None = None
         self._after = 0
         self._primed = False  # decisions made before we started are history, not commands
+        self._crop_sent: tuple[str, float] | None = None  # (candidate id, when) of the last crop delivered
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="backend-session", daemon=True)
 
@@ -92,7 +96,17 @@ class BackendSession:
             pending = list(self._rejections)
         if status is not None:
             fields = {k: v for k, v in status.items() if k != "state" and v is not None}
+            awaiting = fields.get("awaiting")
+            crop_id = None
+            if isinstance(awaiting, dict) and awaiting.get("crop_jpeg_b64"):
+                crop_id = awaiting.get("candidate_id")
+                sent = self._crop_sent
+                if sent is not None and sent[0] == crop_id and self._clock() - sent[1] < CROP_REFRESH_S:
+                    fields["awaiting"] = {k: v for k, v in awaiting.items() if k not in _CROP_FIELDS}
+                    crop_id = None  # the back-end already holds this candidate's crop
             self._client.report_status(str(status.get("state", "IDLE")), **fields)
+            if crop_id is not None:
+                self._crop_sent = (crop_id, self._clock())
         for candidate_id, position, mission in pending:
             try:
                 self._client.reject(candidate_id or None, position=position, reason="supervisor rejected",

@@ -170,3 +170,17 @@ def test_bad_backend_config_is_named(tmp_path: Path) -> None:
     with pytest.raises(ConfigError) as info:
         load_config(BackendConfig, path, environ={})
     assert "detector.kind" in str(info.value) and "verifier.timeout" in str(info.value) and "timeout_s" in str(info.value)
+
+
+def test_status_keeps_a_candidates_crop_but_never_gives_it_to_another() -> None:
+    store = SessionStore()
+    crop = base64.b64encode(b"jpeg bytes").decode()
+    first = AwaitingCandidate(candidate_id="c1", box=[0, 0, 60, 120], crop_jpeg_b64=crop, crop_box=[5, 5, 65, 125])
+    store.set_status("drone-1", VehicleStatusIn(mission_id="m1", state="AWAITING_SUPERVISOR", awaiting=first))
+    later = AwaitingCandidate(candidate_id="c1", box=[2, 0, 62, 120])
+    kept = store.set_status("drone-1", VehicleStatusIn(mission_id="m1", state="AWAITING_SUPERVISOR", awaiting=later))
+    assert kept.awaiting is not None and kept.awaiting.crop_jpeg_b64 == crop and kept.awaiting.crop_box == [5, 5, 65, 125]
+    assert kept.awaiting.box == [2, 0, 62, 120]  # everything else is the new report's
+    other = AwaitingCandidate(candidate_id="c2", box=[0, 0, 60, 120])
+    fresh = store.set_status("drone-1", VehicleStatusIn(mission_id="m1", state="AWAITING_SUPERVISOR", awaiting=other))
+    assert fresh.awaiting is not None and fresh.awaiting.crop_jpeg_b64 is None

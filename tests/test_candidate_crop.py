@@ -98,16 +98,26 @@ def test_crop_reaches_the_back_end_store(sequence_dirs: list[Path]) -> None:
     image, box = _first_frame(sequence_dirs[0])
     _, status = _runner_awaiting(image, box)
     config = BackendConfig(auth=AuthConfig(tokens={"drone-1": "tok-1"}, supervisor_token="sup"))
+    posted: list[dict[str, Any]] = []
+
+    class RecordingClient(BackendClient):
+        def report_status(self, state: str, vehicle_id: str | None = None, **fields: Any) -> dict[str, Any]:
+            posted.append(fields)
+            return super().report_status(state, vehicle_id, **fields)
+
     with BackgroundServer(create_app(config, detector=SimulatedPersonDetector(lambda fid: None))) as server:
-        session = BackendSession(BackendClient(server.url, "tok-1", vehicle_id="drone-1"), period_s=0.05).start()
+        session = BackendSession(RecordingClient(server.url, "tok-1", vehicle_id="drone-1"), period_s=0.05).start()
         try:
             session.update(status)
             deadline = time.monotonic() + 10
-            while session.last_success() is None and time.monotonic() < deadline:
+            while len(posted) < 3 and time.monotonic() < deadline:
                 time.sleep(0.05)
             stored = requests.get(f"{server.url}/v1/vehicles", headers={"Authorization": "Bearer sup"}, timeout=5).json()
         finally:
             session.close()
+    # The crop went up once; later reports about the same candidate leave it out and the store keeps it.
+    assert "crop_jpeg_b64" in posted[0]["awaiting"]
+    assert all("crop_jpeg_b64" not in p["awaiting"] and p["awaiting"]["candidate_id"] == "c7" for p in posted[1:3])
     awaiting = stored[0]["awaiting"]
     assert awaiting["candidate_id"] == "c7"
     assert awaiting["crop_jpeg_b64"] == status["awaiting"]["crop_jpeg_b64"]
