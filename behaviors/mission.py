@@ -120,7 +120,6 @@ class State:
     resume: MissionState = MissionState.FOLLOWING  # where LOST returns once the target is found again
     next_query_id: int = 1
     queries: tuple[tuple[int, QueryPurpose], ...] = ()  # in flight, oldest first
-    whole_frame_queries: tuple[int, ...] = ()  # re-detect queries in flight that searched the whole frame
     last_query_s: float | None = None
     last_report_s: float | None = None
     lost_stage: int = 0  # 0: stopped and re-detecting, 1: holding, 2: lost action requested
@@ -353,13 +352,7 @@ def _track(state: State, result: TrackResult, config: MissionConfig) -> Result:
 
 def _answer(state: State, answer: BackendAnswer, config: MissionConfig) -> Result:
     purpose = dict(state.queries).get(answer.query_id)
-    whole_frame = answer.query_id in state.whole_frame_queries
-    state = replace(
-        state,
-        queries=tuple(q for q in state.queries if q[0] != answer.query_id),
-        whole_frame_queries=tuple(q for q in state.whole_frame_queries if q != answer.query_id),
-        backend_down=False,
-    )
+    state = replace(state, queries=tuple(q for q in state.queries if q[0] != answer.query_id), backend_down=False)
     if purpose is None:
         return state, ()
     if purpose is QueryPurpose.SEARCH and state.mode is MissionState.SEARCHING:
@@ -386,12 +379,14 @@ def _answer(state: State, answer: BackendAnswer, config: MissionConfig) -> Resul
         status = "reverified" if state.mode is MissionState.AWAITING_SUPERVISOR else "confirmed"
         return replace(state, target=target, last_report_s=state.now_s), (_report(target, status),)
     if purpose is QueryPurpose.REDETECT and state.mode is MissionState.LOST and not _given_up(state, config):
-        # Searching the whole frame, only a "yes" may re-find the target (anything less could be a
-        # distractor anywhere in view). Near the last box the operator's own target, never checked
-        # against the prompt, may be re-found on any verdict; others on anything but "no".
+        # Away from the last box only a "yes" may re-find the target, however wide the query's region:
+        # anything less could be a distractor anywhere in view. Near it, the operator's own target
+        # (never checked against the prompt) may be re-found on any verdict, others on anything but "no".
+        near = _roi(target.box, config)
         usable = [
             d for d in answer.candidates
-            if _redetect_verdict_ok(d.verdict, whole_frame, target.operator_selected) and not _rejected(state, d, config)
+            if _redetect_verdict_ok(d.verdict, _centre_inside(d.box, near), target.operator_selected)
+            and not _rejected(state, d, config)
         ]
         best = select_by_c_box(target.box, usable)
         gate = config.reinit_gate * (config.camera.width + config.camera.height)
@@ -521,12 +516,7 @@ def _resume_from_hold(state: State) -> Result:
 
 def _redetect(state: State, box: Box, config: MissionConfig) -> Result:
     """A re-detect query around the last box, the region growing with the time lost (None: whole frame)."""
-    roi = redetect_roi(box, state.now_s - state.since_s, config)
-    qid = state.next_query_id
-    new, query = _query(state, QueryPurpose.REDETECT, roi)
-    if roi is None and query:
-        new = replace(new, whole_frame_queries=(*new.whole_frame_queries, qid)[-_MAX_QUERIES_IN_FLIGHT:])
-    return new, query
+    return _query(state, QueryPurpose.REDETECT, redetect_roi(box, state.now_s - state.since_s, config))
 
 
 def redetect_roi(box: Box, lost_for_s: float, config: MissionConfig) -> Box | None:
@@ -549,10 +539,14 @@ def redetect_roi(box: Box, lost_for_s: float, config: MissionConfig) -> Box | No
     return roi
 
 
-def _redetect_verdict_ok(verdict: Verdict, whole_frame: bool, operator_selected: bool) -> bool:
-    if whole_frame:
+def _redetect_verdict_ok(verdict: Verdict, near_last_box: bool, operator_selected: bool) -> bool:
+    if not near_last_box:
         return verdict is Verdict.YES
     return operator_selected or verdict is not Verdict.NO
+
+
+def _centre_inside(box: Box, region: Box | None) -> bool:
+    return region is not None and region.x <= box.cx <= region.x2 and region.y <= box.cy <= region.y2
 
 
 def _roi(box: Box, config: MissionConfig) -> Box | None:

@@ -85,7 +85,7 @@ SCENARIOS: dict[str, Scenario] = {
         Scenario("reject", "a look-alike in green is proposed first; the supervisor rejects it, the right one is confirmed",
                  decoy=True, follow_s=6.0, miss_rate=0.0, checks=("confirmed_target", "rejected_never_again")),
         Scenario("occlusion", "the target walks under a roof for about 3 s and is re-acquired after it",
-                 occluder_at_m=12.0, follow_s=20.0, checks=("confirmed_target", "reacquired")),
+                 occluder_at_m=12.0, follow_s=24.0, checks=("confirmed_target", "reacquired")),
         Scenario("takeover", "the pilot switches mode mid-follow: setpoints stop within 200 ms",
                  faults=(Fault("takeover", 5.0),), follow_s=8.0, checks=("confirmed_target", "takeover")),
         Scenario("backend-outage", "the back-end is unreachable for 6 s mid-follow: hold, then resume",

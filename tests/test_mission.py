@@ -616,27 +616,31 @@ def _lost_for(seconds: float) -> tuple[State, int, float]:
     return state, state.queries[-1][0], t
 
 
-# (lost for, candidate verdict, re-found?): near the last box "uncertain" may re-find the target; over the
-# whole frame only "yes" may, so a distractor there cannot take over the track.
+# (lost for, where the candidate is, its verdict, re-found?): near the last box "uncertain" may re-find the
+# target; away from it only "yes" may, however wide the query's region has grown (3.9 s: almost the whole
+# frame, 5 s: the whole frame), so a distractor elsewhere in view cannot take over the track.
 @pytest.mark.parametrize(
-    ("lost_for_s", "verdict", "refound"),
+    ("lost_for_s", "near", "verdict", "refound"),
     [
-        (0.0, Verdict.UNCERTAIN, True),
-        (0.0, Verdict.YES, True),
-        (0.0, Verdict.NO, False),
-        (5.0, Verdict.UNCERTAIN, False),
-        (5.0, Verdict.YES, True),
-        (5.0, Verdict.NO, False),
+        (0.0, True, Verdict.UNCERTAIN, True),
+        (0.0, True, Verdict.NO, False),
+        (0.0, False, Verdict.UNCERTAIN, False),
+        (0.0, False, Verdict.YES, True),
+        (3.9, False, Verdict.UNCERTAIN, False),
+        (3.9, False, Verdict.YES, True),
+        (5.0, True, Verdict.UNCERTAIN, True),
+        (5.0, False, Verdict.UNCERTAIN, False),
+        (5.0, False, Verdict.YES, True),
+        (5.0, False, Verdict.NO, False),
     ],
 )
-def test_whole_frame_redetection_needs_a_yes(lost_for_s: float, verdict: Verdict, refound: bool) -> None:
+def test_away_from_the_last_box_only_a_yes_refinds_the_target(
+    lost_for_s: float, near: bool, verdict: Verdict, refound: bool
+) -> None:
     state, qid, t = _lost_for(lost_for_s)
-    whole = lost_for_s >= CFG.redetect_full_frame_s
-    assert (qid in state.whole_frame_queries) is whole
-    elsewhere = Box(FAR.x + 120, FAR.y + 40, FAR.w, FAR.h)  # walked on while hidden
-    state, actions = step(state, BackendAnswer(t + 0.3, qid, 99, (candidate(elsewhere, "d", verdict),)), CFG)
-    assert (actions == (TrackerInit(elsewhere, 99, "c1", reinit=True),)) is refound
-    assert qid not in state.whole_frame_queries  # answered: forgotten
+    where = Box(FAR.x + 3, FAR.y + 2, FAR.w, FAR.h) if near else Box(FAR.x + 120, FAR.y + 40, FAR.w, FAR.h)
+    state, actions = step(state, BackendAnswer(t + 0.3, qid, 99, (candidate(where, "d", verdict),)), CFG)
+    assert (actions == (TrackerInit(where, 99, "c1", reinit=True),)) is refound
 
 
 def test_redetect_settings_come_from_the_behavior_section() -> None:
