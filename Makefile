@@ -18,7 +18,9 @@ $(BIN)/.installed-demo: pyproject.toml | $(BIN)/python
 
 $(BIN)/.installed: pyproject.toml | $(BIN)/python
 	# CPU-only torch first (for the open-vocabulary detector tests): the PyPI build pulls several GB of CUDA.
-	$(BIN)/pip install -q torch==2.13.0 --extra-index-url https://download.pytorch.org/whl/cpu
+	# The +cpu build comes from pip's configured sources where they have it, else from PyTorch's CPU index.
+	$(BIN)/pip install -q "torch==2.13.0+cpu" || \
+	  $(BIN)/pip install -q "torch==2.13.0+cpu" --extra-index-url https://download.pytorch.org/whl/cpu
 	$(BIN)/pip install -q -e '.[test]'
 	touch $@
 
