@@ -10,9 +10,10 @@ from __future__ import annotations
 
 import base64
 import json
+import logging
 import secrets
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -22,6 +23,8 @@ import requests
 
 from behaviors.detection import Detection, Verdict
 from behaviors.geometry import Box
+
+log = logging.getLogger(__name__)
 
 
 class BackendError(Exception):
@@ -82,7 +85,9 @@ class BackendClient:
         vehicle_id: str | None = None,
         mission_id: str | None = None,
         max_keyframe_bytes: int = 90_000,
+        on_keyframe: Callable[[bytes, int], object] | None = None,
     ) -> None:
+        """`on_keyframe(jpeg, frame_id)` (the flight record) gets each keyframe's bytes exactly as sent."""
         self.url = url.rstrip("/")
         self.token = token
         self.timeout_s = timeout_s
@@ -91,6 +96,7 @@ class BackendClient:
         self.vehicle_id = vehicle_id
         self.mission_id = mission_id
         self.max_keyframe_bytes = max_keyframe_bytes
+        self._on_keyframe = on_keyframe
         self._local = threading.local()
         self.last_reply: DetectReply | None = None
 
@@ -140,6 +146,11 @@ class BackendClient:
         if not vehicle or not mission:
             raise ValueError("vehicle_id and mission_id are needed (per call or in the BackendClient)")
         jpeg, scale = encode_keyframe(image, self.max_width, self.jpeg_quality, self.max_keyframe_bytes)
+        if self._on_keyframe is not None and frame_id is not None:
+            try:
+                self._on_keyframe(jpeg, int(frame_id))
+            except OSError as exc:  # recording must never cost a query
+                log.warning("keyframe not recorded: %s", exc)
         meta: dict[str, Any] = {"vehicle_id": vehicle, "mission_id": mission, "prompt": prompt}
         if superset:
             meta["superset"] = superset

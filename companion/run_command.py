@@ -11,7 +11,6 @@ import argparse
 import logging
 import signal
 import sys
-from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
 
@@ -53,27 +52,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
 
 
 class _QueryService:
-    """Lets the back-end worker carry the behaviour's query id: kept in the answer, not sent on the wire.
+    """Lets the back-end worker carry the behaviour's query id: kept in the answer, not sent on the wire."""
 
-    `on_keyframe(jpeg, frame_id)` (the flight record) gets each keyframe as the client sends it: the
-    client's own `encode_keyframe` with its own settings gives the same bytes, in the worker's thread.
-    """
-
-    def __init__(self, client: Any, on_keyframe: Callable[[bytes, int], object] | None = None) -> None:
+    def __init__(self, client: Any) -> None:
         self._client = client
-        self._on_keyframe = on_keyframe
 
     def detect(self, image: Any, **fields: Any) -> Any:
         fields.pop("query_id", None)
-        if self._on_keyframe is not None and fields.get("frame_id") is not None:
-            from companion.backend_client import encode_keyframe
-
-            try:
-                jpeg, _ = encode_keyframe(image, self._client.max_width, self._client.jpeg_quality,
-                                          self._client.max_keyframe_bytes)
-                self._on_keyframe(jpeg, int(fields["frame_id"]))
-            except (ValueError, OSError) as exc:  # recording must never cost a query
-                log.warning("keyframe not recorded: %s", exc)
         return self._client.detect(image, **fields)
 
 
@@ -141,9 +126,10 @@ def run(args: argparse.Namespace) -> int:
 
     link = VehicleLink(config.mavlink, config.safety, (cam.width, cam.height))
     client = BackendClient(config.backend.url, config.backend.token, config.backend.timeout_s,
-                           config.backend.jpeg_quality, config.backend.max_keyframe_width, vehicle_id=config.vehicle.id)
+                           config.backend.jpeg_quality, config.backend.max_keyframe_width, vehicle_id=config.vehicle.id,
+                           on_keyframe=record.keyframe if record is not None else None)
     session = BackendSession(client, period_s=config.backend.status_interval_s)
-    worker = BackendWorker(_QueryService(client, record.keyframe if record is not None else None))
+    worker = BackendWorker(_QueryService(client))
     settings = LoopSettings(frame_stale_s=config.safety.frame_stale_s, loop_stall_s=config.safety.loop_stall_s)
     runner = MissionRunner(mission, frames, frontend, link, worker, session, settings, observers,
                            ServiceNotifier.from_environment(),

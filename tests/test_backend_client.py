@@ -137,3 +137,22 @@ def test_slow_and_garbage_vlm_answers_through_the_server(models_dir: Path, seque
                 reply = client.detect_reply(image, PROMPT)
                 assert reply.detections and all(d.verdict is expected and reason in d.justification for d in reply.detections)
                 assert time.monotonic() - start < 1.9  # the slow VLM's 2 s answer was not awaited
+
+
+def test_keyframe_sink_gets_exactly_the_bytes_sent_and_cannot_break_a_query() -> None:
+    image = np.zeros((480, 640, 3), np.uint8)
+    image[100:300, 200:260] = (30, 160, 40)
+    recorded: list[tuple[bytes, int]] = []
+    sent = encode_keyframe(image, 640, 80)[0]
+    client = BackendClient("http://127.0.0.1:9", "t", timeout_s=0.5, vehicle_id="v", mission_id="m",
+                           on_keyframe=lambda jpeg, fid: recorded.append((jpeg, fid)))
+    with pytest.raises(BackendError):  # nothing listens on port 9: the query fails, the keyframe is recorded
+        client.detect(image, "a person", frame_id=42)
+    assert recorded == [(sent, 42)]
+
+    def full_disk(jpeg: bytes, fid: int) -> None:
+        raise OSError(28, "No space left on device")
+
+    broken = BackendClient("http://127.0.0.1:9", "t", timeout_s=0.5, vehicle_id="v", mission_id="m", on_keyframe=full_disk)
+    with pytest.raises(BackendError):  # the failure is the unreachable back-end, not the recorder
+        broken.detect(image, "a person", frame_id=43)
