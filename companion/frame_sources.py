@@ -68,7 +68,11 @@ class SourceError(Exception):
 
 
 class Capture(Protocol):
-    """The part of cv2.VideoCapture a live source uses."""
+    """The part of cv2.VideoCapture a live source uses.
+
+    A capture that numbers its own frames (the simulator's stream, whose ids name ground truth) also has
+    an int `last_frame_id`, set by read(); other captures' frames are numbered by the live source.
+    """
 
     def isOpened(self) -> bool: ...  # noqa: N802 - OpenCV's name
 
@@ -225,7 +229,8 @@ class LiveSource:
             with self._cond:
                 if generation != self._generation:
                     return
-                self._next_id += 1
+                stream_id = getattr(cap, "last_frame_id", None)
+                self._next_id = stream_id if isinstance(stream_id, int) else self._next_id + 1
                 if self._latest is not None:
                     self.stats.drops += 1
                 self._latest = Frame(self._next_id, time.monotonic(), image)

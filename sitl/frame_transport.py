@@ -11,8 +11,6 @@ from __future__ import annotations
 import logging
 import socket
 import struct
-import threading
-import time
 from dataclasses import dataclass
 from typing import Any
 from urllib.parse import urlparse
@@ -86,89 +84,52 @@ class FrameStreamReader:
         self._sock.close()
 
 
-class SimStreamSource:
-    """The companion's frame source for sim+tcp://: the newest frame, read by a background thread.
+class SimStreamCapture:
+    """sim+tcp:// as a capture for `companion.frame_sources.LiveSource`, which reads it in a background
+    thread, keeps the newest frame, and reports and retries a lost or refused connection.
 
     Frames keep the stream's own ids (the renderer's), so a keyframe sent to the back-end names the
-    frame whose ground truth the simulated detector looks up. A lost or refused connection is logged,
-    counted in `stats` and retried every `reconnect_interval_s`, never raised into the main loop.
+    frame whose ground truth the simulated detector looks up.
     """
 
-    live = True
+    def __init__(self, url: str) -> None:
+        self.last_frame_id: int | None = None
+        try:
+            self._reader: FrameStreamReader | None = FrameStreamReader(url)
+        except OSError as exc:
+            log.debug("camera %s: cannot connect: %s", url, exc)
+            self._reader = None
 
-    def __init__(self, url: str, reconnect_interval_s: float = 1.0) -> None:
-        from companion.frame_sources import SourceStats
+    def isOpened(self) -> bool:  # noqa: N802 - OpenCV's name
+        return self._reader is not None
 
-        parse_url(url)  # fail at start-up on a malformed URL, not in the reader thread
-        self.url = url
-        self.stats = SourceStats()
-        self._reconnect_interval_s = reconnect_interval_s
-        self._cond = threading.Condition()
-        self._latest: Any = None
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name=f"frames:{url}", daemon=True)
-        self._thread.start()
+    def read(self) -> tuple[bool, np.ndarray | None]:
+        if self._reader is None:
+            return False, None
+        try:
+            frame = self._reader.read()
+        except (OSError, FrameStreamError) as exc:
+            log.debug("camera stream: %s", exc)
+            return False, None
+        self.last_frame_id = frame.frame_id
+        return True, frame.image
 
-    def _run(self) -> None:
-        from companion.frame_sources import Frame
-
-        while not self._stop.is_set():
-            try:
-                reader = FrameStreamReader(self.url)
-            except OSError as exc:
-                self._failure(f"cannot connect: {exc}")
-                self._stop.wait(self._reconnect_interval_s)
-                continue
-            with self._cond:
-                if self.stats.failures:
-                    self.stats.reconnects += 1
-                self.stats.connected = True
-            try:
-                while not self._stop.is_set():
-                    sf = reader.read()
-                    with self._cond:
-                        if self._latest is not None:
-                            self.stats.drops += 1
-                        self._latest = Frame(sf.frame_id, time.monotonic(), sf.image)
-                        self._cond.notify_all()
-            except (OSError, FrameStreamError) as exc:
-                self._failure(str(exc))
-            finally:
-                reader.close()
-            self._stop.wait(self._reconnect_interval_s)
-
-    def _failure(self, message: str) -> None:
-        with self._cond:
-            self.stats.failures += 1
-            self.stats.connected = False
-            self.stats.last_error = message
-        log.warning("camera %s: %s; retrying every %.1f s", self.url, message, self._reconnect_interval_s)
-
-    def read(self, timeout_s: float = 1.0) -> Any:
-        """The newest frame not yet returned (a `companion.frame_sources.Frame`), or None after `timeout_s`."""
-        deadline = time.monotonic() + timeout_s
-        with self._cond:
-            while self._latest is None and not self._stop.is_set():
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    break
-                self._cond.wait(remaining)
-            frame, self._latest = self._latest, None
-            if frame is not None:
-                self.stats.frames += 1
-        return frame
-
-    def close(self) -> None:
-        self._stop.set()
-        with self._cond:
-            self._cond.notify_all()
+    def release(self) -> None:
+        if self._reader is not None:
+            self._reader.close()
 
 
 def register() -> None:
     """Teach `companion.frame_sources.open_source` the sim+tcp:// scheme."""
-    from companion.frame_sources import register_scheme
+    from companion.frame_sources import FrameSource, LiveSource, register_scheme
 
-    def factory(spec: str, options: dict[str, Any]) -> SimStreamSource:
-        return SimStreamSource(spec, float(options.get("reconnect_interval_s") or 1.0))
+    def factory(spec: str, options: dict[str, Any]) -> FrameSource:
+        parse_url(spec)  # fail at start-up on a malformed URL, not in the reader thread
+        return LiveSource(
+            lambda: SimStreamCapture(spec),
+            spec,
+            reconnect_interval_s=float(options.get("reconnect_interval_s") or 1.0),
+            stall_timeout_s=float(options.get("stall_timeout_s") or 2.0),
+        )
 
     register_scheme(SCHEME, factory)

@@ -226,3 +226,28 @@ def test_new_schemes_can_be_registered(folder: Path) -> None:
     source = open_source(f"replay://{folder}")
     frame = source.read()
     assert frame is not None and frame.frame_id == 1
+
+
+def test_sim_stream_keeps_the_renderers_frame_ids_and_survives_a_silent_camera(sequence_dirs: list[Path]) -> None:
+    """sim+tcp:// goes through the same LiveSource as real cameras, but its frames keep the stream's ids
+    (the simulated detector looks ground truth up by them)."""
+    from sitl.frame_transport import register
+    from tests.camera_stream import CameraStream
+
+    register()
+    camera = CameraStream(sequence_dirs[0] / "frames", count=5)
+    camera.frame_id = 1000  # the renderer has been running a while
+    source = open_source(f"sim+tcp://127.0.0.1:{camera.port}", stall_timeout_s=0.5)
+    try:
+        first = source.read(timeout_s=5.0)
+        assert first is not None and first.frame_id > 1000
+        camera.paused.set()  # the camera goes silent: reported as a stall, not raised
+        time.sleep(1.2)
+        assert source.read(timeout_s=0.3) is None
+        camera.paused.clear()
+        later = source.read(timeout_s=5.0)
+        assert later is not None and later.frame_id > first.frame_id and later.image.shape == (480, 640, 3)
+        assert source.stats.failures >= 1
+    finally:
+        source.close()
+        camera.close()
