@@ -2,18 +2,27 @@
 
 Routes: `POST /v1/detect`, `GET /health`, `GET /v1/models`, and the session endpoints the companion and
 the supervisor use (rejections, vehicle status, decisions). Shared objects live on `app.state`:
-`config`, `pipeline`, `sessions` (backend.sessions.SessionStore), `scheduler`.
+`config`, `pipeline`, `sessions` (backend.sessions.SessionStore over a backend.state_store.StateStore),
+`scheduler`, `feed` (backend.change_feed.ChangeFeed).
+
+Hostile input: every image's size is read from its header before decoding, and decoding runs inside the
+vehicle's fair-queue slot (a flood of bombs waits behind its own sender); bodies are bounded in bytes and
+in time; per-vehicle quotas (request rate, live missions, rejections per mission) answer 429 with
+Retry-After.
 """
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import AsyncIterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
+from pathlib import Path
 from typing import Annotated, Any
 
-from fastapi import Depends, FastAPI, File, Form, HTTPException, Path, Query, Request, UploadFile
+from fastapi import Depends, FastAPI, File, Form, HTTPException, Query, Request, UploadFile
+from fastapi import Path as PathParam
 from fastapi.concurrency import run_in_threadpool
 from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
@@ -21,15 +30,26 @@ from fastapi.responses import JSONResponse
 from pydantic import ValidationError
 
 import cloudtrack
+from backend.api_docs import add_offline_docs
 from backend.auth import Principal, authenticated, require_supervisor, require_vehicle_access
-from backend.config import BackendConfig
+from backend.change_feed import ChangeFeed
+from backend.config import BackendConfig, SessionConfig
 from backend.detectors.factory import build_detector
 from backend.detectors.interface import SupersetDetector
 from backend.fair_queue import FairScheduler, QueueFullError
-from backend.images import ImageError, decode_image
+from backend.images import ImageError, check_size, decode_image
 from backend.pipeline import Pipeline
-from backend.request_limits import BodySizeLimit
-from backend.schemas import (
+from backend.request_limits import BodyLimits
+from backend.security_headers import SecurityHeaders
+from backend.service_lifecycle import lifecycle_router
+from backend.sessions import SessionStore, UnknownCandidateError
+from backend.state_store import QuotaExceededError, SqliteStore, StateStore
+from backend.supersets import UnknownSupersetError, known_supersets, superset_from_prompt
+from backend.supervisor_routes import supervisor_router
+from backend.verifiers.factory import build_verifier
+from backend.verifiers.interface import Verifier
+from behaviors.geometry import Box
+from cloudtrack.api_models import (
     IDENTIFIER,
     Candidate,
     Decision,
@@ -46,20 +66,31 @@ from backend.schemas import (
     VehicleStatus,
     VehicleStatusIn,
 )
-from backend.service_lifecycle import lifecycle_router
-from backend.sessions import SessionStore, UnknownCandidateError
-from backend.supersets import UnknownSupersetError, known_supersets, superset_from_prompt
-from backend.supervisor_routes import supervisor_router
-from backend.verifiers.factory import build_verifier
-from backend.verifiers.interface import Verifier
-from behaviors.geometry import Box
 
 ERRORS: dict[int | str, dict[str, Any]] = {
-    status: {"model": ErrorResponse} for status in (400, 401, 403, 404, 413, 415, 422, 429)
+    status: {"model": ErrorResponse} for status in (400, 401, 403, 404, 408, 413, 415, 422, 429)
 }
-VehicleId = Annotated[str, Path(pattern=IDENTIFIER)]
-MissionId = Annotated[str, Path(pattern=IDENTIFIER)]
+VehicleId = Annotated[str, PathParam(pattern=IDENTIFIER)]
+MissionId = Annotated[str, PathParam(pattern=IDENTIFIER)]
 _UNSET = object()
+
+
+def default_sqlite_path() -> Path:
+    """$STATE_DIRECTORY under systemd (StateDirectory=), else $XDG_DATA_HOME (~/.local/share) /cloudtrack."""
+    state_dir = os.environ.get("STATE_DIRECTORY", "").split(":")[0]
+    if state_dir:
+        return Path(state_dir) / "backend-sessions.sqlite3"
+    data_home = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
+    return Path(data_home) / "cloudtrack" / "backend-sessions.sqlite3"
+
+
+def build_state_store(s: SessionConfig) -> StateStore:
+    """The configured store: SQLite (`sessions.sqlite_path`, ":memory:" for none) or Redis (`sessions.redis_url`)."""
+    if s.store == "redis":
+        from backend.redis_store import RedisStore
+
+        return RedisStore(s.redis_url)
+    return SqliteStore(s.sqlite_path or default_sqlite_path())
 
 
 def create_app(
@@ -85,13 +116,23 @@ def create_app(
         uncertain_policy=config.verifier.uncertain_policy,
     )
     s = config.sessions
+    store = sessions or SessionStore(
+        build_state_store(s), s.rejection_similarity, s.rejection_radius_m, s.mission_ttl_s,
+        s.max_rejections_per_mission, s.max_missions_per_vehicle, config.server.max_crop_pixels,
+    )
+    feed = ChangeFeed(store.state)
+
     @asynccontextmanager
     async def lifespan(_: FastAPI) -> AsyncIterator[None]:
+        feed.start()
         yield
+        feed.stop()
         pool.shutdown(wait=False, cancel_futures=True)
 
     app = FastAPI(
         lifespan=lifespan,
+        docs_url=None,  # served from the package by add_offline_docs: no CDN
+        redoc_url=None,
         title="CloudTrack back-end",
         version=cloudtrack.__version__,
         description="Semantic detection for many drones: superset detector, 50 px margin crops, concurrent "
@@ -99,12 +140,21 @@ def create_app(
     )
     app.state.config = config
     app.state.pipeline = pipeline
-    app.state.sessions = sessions or SessionStore(
-        s.rejection_similarity, s.rejection_radius_m, s.mission_ttl_s, s.max_rejections_per_mission
-    )
+    app.state.sessions = store
+    app.state.feed = feed
     app.state.scheduler = FairScheduler(s.detector_concurrency, s.max_queued_per_vehicle)
     app.state.started = time.time()
-    app.add_middleware(BodySizeLimit, max_bytes=config.server.max_request_bytes)
+    app.add_middleware(BodyLimits, max_bytes=config.server.max_request_bytes, timeout_s=config.server.body_timeout_s)
+    app.add_middleware(SecurityHeaders)
+
+    @app.exception_handler(QuotaExceededError)
+    async def _quota(_: Request, exc: QuotaExceededError) -> JSONResponse:
+        return JSONResponse(status_code=429, content={"detail": str(exc)},
+                            headers={"Retry-After": str(int(exc.retry_after_s))})
+
+    @app.exception_handler(ImageError)
+    async def _image(_: Request, exc: ImageError) -> JSONResponse:
+        return JSONResponse(status_code=exc.status, content={"detail": str(exc)})
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(_: Request, exc: RequestValidationError) -> JSONResponse:
@@ -114,9 +164,24 @@ def create_app(
 
     _add_detection_routes(app)
     _add_session_routes(app)
-    app.include_router(supervisor_router(app.state.sessions))
+    app.include_router(supervisor_router(store, feed))
     app.include_router(lifecycle_router())  # sd_notify READY/WATCHDOG/STOPPING under systemd
+    add_offline_docs(app)
     return app
+
+
+def admit(app: FastAPI, principal: Principal) -> None:
+    """A vehicle's request-rate quota (the supervisor has none): QuotaExceededError -> 429 + Retry-After."""
+    if principal.vehicle_id is None:
+        return
+    s: SessionConfig = app.state.config.sessions
+    sessions: SessionStore = app.state.sessions
+    wait = sessions.state.rate_hit(principal.vehicle_id, time.time(), s.rate_limit_requests, s.rate_limit_window_s)
+    if wait is not None:
+        raise QuotaExceededError(
+            f"vehicle {principal.vehicle_id!r} sent more than {s.rate_limit_requests} requests in "
+            f"{s.rate_limit_window_s:g} s", wait
+        )
 
 
 def _models(app: FastAPI) -> ModelNames:
@@ -169,25 +234,28 @@ def _add_detection_routes(app: FastAPI) -> None:
             ]
             raise HTTPException(422, jsonable_encoder(errors)) from None
         require_vehicle_access(principal, fields.vehicle_id)
+        admit(app, principal)
         superset = (fields.superset or superset_from_prompt(fields.prompt) or "").strip().lower()
         if not superset:
             raise HTTPException(422, "the prompt names no known class; set 'superset' (e.g. \"person\")")
         data = await image.read()
         config: BackendConfig = app.state.config
-        t_decode = time.perf_counter()
-        try:
-            frame = await run_in_threadpool(decode_image, data, config.server.max_image_pixels)
-        except ImageError as exc:
-            raise HTTPException(exc.status, str(exc)) from None
-        t_decode = time.perf_counter() - t_decode
+        check_size(data, config.server.max_image_pixels)  # a bomb is refused by its header, undecoded
         sessions: SessionStore = app.state.sessions
-        check = sessions.rejection_check(fields.mission_id, fields.vehicle_position)
+        await run_in_threadpool(sessions.open_mission, fields.vehicle_id, fields.mission_id)
+        check = await run_in_threadpool(
+            sessions.rejection_check, fields.vehicle_id, fields.mission_id, fields.vehicle_position
+        )
         roi = Box.from_xyxy(*fields.roi) if fields.roi else None
         pipeline: Pipeline = app.state.pipeline
         t_queued = time.perf_counter()
         try:
+            # Decoding happens inside the vehicle's slot: one vehicle's uploads decode one after another.
             async with app.state.scheduler.slot(fields.vehicle_id):
                 t_queue = time.perf_counter() - t_queued
+                t_decode = time.perf_counter()
+                frame = await run_in_threadpool(decode_image, data, config.server.max_image_pixels)
+                t_decode = time.perf_counter() - t_decode
                 t_detect = time.perf_counter()
                 detections = await run_in_threadpool(pipeline.detect, frame, superset, roi, fields.frame_id)
                 t_detect = time.perf_counter() - t_detect
@@ -200,7 +268,10 @@ def _add_detection_routes(app: FastAPI) -> None:
         t_verify = time.perf_counter()
         candidates = await pipeline.verify_async(frame, detections, fields.prompt, superset, check, t_received + pipeline.deadline_s)
         t_verify = time.perf_counter() - t_verify
-        sessions.remember_candidates(fields.mission_id, [(c.detection.candidate_id, c.appearance) for c in candidates])
+        await run_in_threadpool(
+            sessions.remember_candidates, fields.vehicle_id, fields.mission_id,
+            [(c.detection.candidate_id, c.appearance) for c in candidates],
+        )
         return DetectResponse(
             vehicle_id=fields.vehicle_id,
             mission_id=fields.mission_id,
@@ -239,28 +310,50 @@ def _add_session_routes(app: FastAPI) -> None:
         return sessions
 
     @app.post("/v1/missions/{mission_id}/rejections", response_model=Rejection, status_code=201, responses=ERRORS, tags=["sessions"])
-    def add_rejection(
+    async def add_rejection(
         mission_id: MissionId, body: RejectionIn, principal: Annotated[Principal, Depends(authenticated)]
     ) -> Rejection:
-        """Remember a rejected candidate: later look-alikes in this mission are answered "no"."""
+        """Remember a rejected candidate: later look-alikes in this vehicle's mission are answered "no".
+
+        The mission is the sending vehicle's (`vehicle_id`): missions are keyed by (vehicle, mission).
+        """
         require_vehicle_access(principal, body.vehicle_id)
+        admit(app, principal)
         try:
-            return store().add_rejection(mission_id, body)
+            # A crop is decoded in the vehicle's slot, like a keyframe (its size checked from its header first).
+            async with app.state.scheduler.slot(body.vehicle_id):
+                return await run_in_threadpool(store().add_rejection, mission_id, body)
+        except QueueFullError as exc:
+            raise HTTPException(429, f"too many requests waiting for this vehicle: {exc}", headers={"Retry-After": "1"}) from None
         except UnknownCandidateError as exc:
             raise HTTPException(404, str(exc)) from None
-        except ValueError as exc:
-            raise HTTPException(422, str(exc)) from None
 
     @app.get("/v1/missions/{mission_id}/rejections", response_model=list[Rejection], responses=ERRORS, tags=["sessions"])
-    def list_rejections(mission_id: MissionId, principal: Annotated[Principal, Depends(authenticated)]) -> list[Rejection]:
-        return [r for r in store().rejections(mission_id) if principal.may_act_for(r.vehicle_id)]
+    def list_rejections(
+        mission_id: MissionId,
+        principal: Annotated[Principal, Depends(authenticated)],
+        vehicle_id: Annotated[
+            str | None, Query(pattern=IDENTIFIER, description="whose mission; default: the token's vehicle")
+        ] = None,
+    ) -> list[Rejection]:
+        """The rejections of one vehicle's mission (the supervisor names the vehicle)."""
+        vehicle = vehicle_id or principal.vehicle_id
+        if vehicle is None:
+            raise HTTPException(422, "the supervisor must name the vehicle: ?vehicle_id=<id>")
+        require_vehicle_access(principal, vehicle)
+        admit(app, principal)
+        return store().rejections(vehicle, mission_id)
 
     @app.post("/v1/vehicles/{vehicle_id}/status", response_model=VehicleStatus, responses=ERRORS, tags=["sessions"])
     def report_status(
         vehicle_id: VehicleId, body: VehicleStatusIn, principal: Annotated[Principal, Depends(authenticated)]
     ) -> VehicleStatus:
-        """The companion's state and the candidate awaiting the supervisor (crop, justification, position)."""
+        """The companion's state and the candidate awaiting the supervisor (crop, justification, position).
+
+        The crop must be a JPEG (checked from its header, at most `server.max_crop_pixels`), else 413/422.
+        """
         require_vehicle_access(principal, vehicle_id)
+        admit(app, principal)
         return store().set_status(vehicle_id, body)
 
     @app.get("/v1/vehicles/{vehicle_id}/status", response_model=VehicleStatus, responses=ERRORS, tags=["sessions"])
@@ -279,7 +372,11 @@ def _add_session_routes(app: FastAPI) -> None:
     def decide(
         vehicle_id: VehicleId, body: DecisionIn, principal: Annotated[Principal, Depends(require_supervisor)]
     ) -> Decision:
-        """The supervisor confirms or rejects a candidate; a reject also enters the rejection memory."""
+        """The supervisor confirms or rejects a candidate; a reject also enters the rejection memory.
+
+        Both are stored (on disk, or in Redis) before the 201; a crop that cannot be read only keeps the
+        reject out of the memory, never loses the decision.
+        """
         return store().add_decision(vehicle_id, body)
 
     @app.get("/v1/vehicles/{vehicle_id}/decisions", response_model=list[Decision], responses=ERRORS, tags=["sessions"])
@@ -290,5 +387,6 @@ def _add_session_routes(app: FastAPI) -> None:
     ) -> list[Decision]:
         """Decisions for this vehicle newer than `after` (the companion polls this)."""
         require_vehicle_access(principal, vehicle_id)
+        admit(app, principal)
         return store().decisions(vehicle_id, after)
 

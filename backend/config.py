@@ -12,7 +12,7 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, field_validator, model_validator
 
 from cloudtrack.config_files import ConfigSection, load_config
 
@@ -28,13 +28,57 @@ class ServerConfig(ConfigSection):
     port: int = Field(8080, ge=1, le=65535)
     max_request_bytes: int = Field(2_000_000, ge=10_000, le=100_000_000)
     max_image_pixels: int = Field(16_000_000, ge=10_000, le=100_000_000)  # decompression-bomb guard
+    # A crop (rejection, supervisor's candidate) is a small image: 4 Mpx is generous.
+    max_crop_pixels: int = Field(4_000_000, ge=10_000, le=100_000_000)
+    # A request body must arrive within this time (a body that never completes is cut off with 408).
+    body_timeout_s: float = Field(15.0, gt=0, le=600)
+
+
+MIN_TOKEN_CHARS = 16
 
 
 class AuthConfig(ConfigSection):
     # vehicle id -> bearer token. Prefer CLOUDTRACK_BACKEND_AUTH__TOKENS='{"drone-1": "..."}'.
+    # Every token: at least 16 characters, one per vehicle, none equal to the supervisor's.
     tokens: dict[str, str] = Field(default_factory=dict)
-    # Token of the supervisor web page and API (empty: supervisor endpoints refuse every request).
+    # Token of the supervisor web page and API. Empty (the default): the supervisor endpoints are off and
+    # the page says how to turn them on, instead of asking for a token that does not exist.
     supervisor_token: str = ""
+
+    # Errors below name vehicles, never tokens: a config error must not print a secret.
+    @field_validator("tokens", mode="before")
+    @classmethod
+    def _tokens_as_text(cls, value: object) -> object:
+        # An all-digit token in JSON is still a token.
+        if isinstance(value, dict):
+            return {k: str(v) if isinstance(v, int) and not isinstance(v, bool) else v for k, v in value.items()}
+        return value
+
+    @field_validator("supervisor_token", mode="before")
+    @classmethod
+    def _supervisor_as_text(cls, value: object) -> object:
+        return str(value) if isinstance(value, int) and not isinstance(value, bool) else value
+
+    @model_validator(mode="after")
+    def _strong_and_distinct(self) -> AuthConfig:
+        problems = []
+        short = sorted(v for v, t in self.tokens.items() if len(t) < MIN_TOKEN_CHARS)
+        if short:
+            problems.append(f"tokens of {', '.join(short)} are shorter than {MIN_TOKEN_CHARS} characters")
+        if self.supervisor_token and len(self.supervisor_token) < MIN_TOKEN_CHARS:
+            problems.append(f"supervisor_token is shorter than {MIN_TOKEN_CHARS} characters")
+        by_token: dict[str, list[str]] = {}
+        for vehicle, token in self.tokens.items():
+            by_token.setdefault(token, []).append(vehicle)
+        for vehicles in by_token.values():
+            if len(vehicles) > 1:
+                problems.append(f"vehicles {', '.join(sorted(vehicles))} share one token")
+        same = sorted(v for v, t in self.tokens.items() if self.supervisor_token and t == self.supervisor_token)
+        if same:
+            problems.append(f"the token of {', '.join(same)} equals supervisor_token")
+        if problems:
+            raise ValueError("; ".join(problems) + " (generate tokens with: openssl rand -hex 24)")
+        return self
 
 
 class DetectorConfig(ConfigSection):
@@ -75,13 +119,25 @@ class VlmConfig(ConfigSection):
     jpeg_quality: int = Field(90, ge=10, le=100)
 
 
+StoreKind = Literal["sqlite", "redis"]
+
+
 class SessionConfig(ConfigSection):
     detector_concurrency: int = Field(2, ge=1, le=64)  # requests in the detector at once
     max_queued_per_vehicle: int = Field(2, ge=1, le=100)  # beyond this a vehicle gets 429
     rejection_similarity: float = Field(0.85, gt=0, le=1)  # appearance correlation that counts as "same"
     rejection_radius_m: float = Field(150.0, gt=0, le=10_000)  # vehicle to rejected place, when both known
     mission_ttl_s: float = Field(6 * 3600.0, gt=0)  # forget a mission this long after its last request
+    # Quotas per vehicle, answered with 429 and Retry-After.
     max_rejections_per_mission: int = Field(200, ge=1, le=10_000)
+    max_missions_per_vehicle: int = Field(32, ge=1, le=10_000)  # live (not yet expired) missions
+    rate_limit_requests: int = Field(120, ge=1, le=100_000)  # requests per vehicle per window
+    rate_limit_window_s: float = Field(10.0, gt=0, le=3600)
+    # Where the state lives: "sqlite" (one file, one server) or "redis" (shared by several replicas).
+    store: StoreKind = "sqlite"
+    # SQLite file; empty: $STATE_DIRECTORY/sessions.sqlite3 under systemd, else the user data folder.
+    sqlite_path: str = ""
+    redis_url: str = "redis://127.0.0.1:6379/0"
 
 
 class BackendConfig(ConfigSection):

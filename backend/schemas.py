@@ -1,201 +1,31 @@
-"""The back-end's HTTP API as pydantic models: these classes are the API reference (see /docs).
+"""The API models, re-exported: they live in `cloudtrack.api_models`, shared with the companion."""
 
-Boxes on the wire are `[x1, y1, x2, y2]` in the pixels of the image that was sent. Times are seconds.
-"""
+from cloudtrack.api_models import (
+    CANDIDATE_ID,
+    ID_FIELD,
+    IDENTIFIER,
+    NOTE_MAX,
+    ApiModel,
+    AwaitingCandidate,
+    Candidate,
+    Decision,
+    DecisionIn,
+    DetectMeta,
+    DetectResponse,
+    ErrorResponse,
+    GeoPoint,
+    HealthResponse,
+    ModelNames,
+    ModelsResponse,
+    Rejection,
+    RejectionIn,
+    Timings,
+    VehicleStatus,
+    VehicleStatusIn,
+)
 
-from __future__ import annotations
-
-import math
-from typing import Literal
-
-from pydantic import BaseModel, ConfigDict, Field, field_validator
-
-IDENTIFIER = r"^[A-Za-z0-9_.-]{1,64}$"
-ID_FIELD = Field(pattern=IDENTIFIER, description="letters, digits, '_', '.', '-'; 1-64 characters")
-
-
-class ApiModel(BaseModel):
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-
-
-def _finite(values: list[float]) -> list[float]:
-    if not all(math.isfinite(v) for v in values):
-        raise ValueError("coordinates must be finite numbers")
-    return values
-
-
-class DetectMeta(ApiModel):
-    """The JSON `meta` part of `POST /v1/detect`."""
-
-    vehicle_id: str = ID_FIELD
-    mission_id: str = ID_FIELD
-    prompt: str = Field(min_length=1, max_length=500, description='full description, e.g. "an injured man in a gray shirt"')
-    superset: str | None = Field(
-        None, min_length=1, max_length=64, description='detector class, e.g. "person"; default: derived from the prompt'
-    )
-    roi: list[float] | None = Field(
-        None, min_length=4, max_length=4, description="[x1, y1, x2, y2] region to search, in the sent image's pixels"
-    )
-    frame_id: int | None = Field(None, ge=0, le=2**53)
-    capture_time: float | None = Field(None, description="Unix time the frame was captured (s)")
-    vehicle_position: list[float] | None = Field(
-        None, min_length=2, max_length=2, description="[lat, lon] degrees, lets rejections be matched by place"
-    )
-
-    @field_validator("prompt")
-    @classmethod
-    def _prompt_has_words(cls, value: str) -> str:
-        text = " ".join(value.split())
-        if not any(ch.isalpha() for ch in text):
-            raise ValueError("the prompt must describe the target in words")
-        return text
-
-    @field_validator("roi")
-    @classmethod
-    def _roi_ordered(cls, value: list[float] | None) -> list[float] | None:
-        if value is not None:
-            _finite(value)
-            if not (value[2] > value[0] and value[3] > value[1]):
-                raise ValueError("roi must be [x1, y1, x2, y2] with x2 > x1 and y2 > y1")
-        return value
-
-    @field_validator("capture_time")
-    @classmethod
-    def _finite_time(cls, value: float | None) -> float | None:
-        if value is not None and not math.isfinite(value):
-            raise ValueError("capture_time must be a finite number")
-        return value
-
-    @field_validator("vehicle_position")
-    @classmethod
-    def _lat_lon(cls, value: list[float] | None) -> list[float] | None:
-        if value is not None and not (-90 <= value[0] <= 90 and -180 <= value[1] <= 180):
-            raise ValueError("vehicle_position must be [lat, lon] in degrees")
-        return value
-
-
-class Candidate(ApiModel):
-    candidate_id: str
-    box: list[float] = Field(description="[x1, y1, x2, y2] in the sent image's pixels")
-    score: float = Field(description="detector confidence 0-1")
-    label: str = Field(description="detector class")
-    verdict: Literal["yes", "no", "uncertain"]
-    justification: str
-    verifier: str = Field(description='who decided: a verifier name, "none" or "rejection-memory"')
-    t_verify: float
-    previously_rejected: bool = Field(False, description="matches a candidate the supervisor rejected in this mission")
-
-
-class Timings(ApiModel):
-    t_queue: float = Field(description="waiting for a detector slot")
-    t_decode: float
-    t_detect: float
-    t_verify: float = Field(description="all candidates, verified concurrently")
-    t_total: float = Field(description="from request received to answer")
-
-
-class ModelNames(ApiModel):
-    detector: str
-    verifier: str
-
-
-class DetectResponse(ApiModel):
-    vehicle_id: str
-    mission_id: str
-    frame_id: int | None
-    capture_time: float | None
-    image_size: list[int] = Field(description="[width, height] of the sent image")
-    superset: str
-    candidates: list[Candidate]
-    timings: Timings
-    models: ModelNames
-
-
-class ErrorResponse(ApiModel):
-    detail: str | list[dict[str, object]]
-
-
-class HealthResponse(ApiModel):
-    status: Literal["ok"]
-    version: str
-    uptime_s: float
-    models: ModelNames
-    in_flight: int
-    queued: int
-
-
-class ModelsResponse(ApiModel):
-    detector: str
-    detector_kind: str
-    supersets: list[str] = Field(description="superset names the detector maps; open-vocabulary detectors take any")
-    verifier: str
-    verifier_kind: str
-
-
-# Sessions: what the companion reports and what the supervisor decides.
-
-GeoPoint = list[float]
-
-
-class RejectionIn(ApiModel):
-    """A candidate the supervisor rejected: never proposed again in this mission."""
-
-    vehicle_id: str = ID_FIELD
-    candidate_id: str | None = Field(None, max_length=64, description="as returned by /v1/detect")
-    crop_jpeg_b64: str | None = Field(
-        None, max_length=400_000, description="the candidate's crop, when the back-end may not know the id"
-    )
-    crop_box: list[float] | None = Field(
-        None, min_length=4, max_length=4, description="[x1, y1, x2, y2] of the candidate inside the crop; default: all of it"
-    )
-    position: GeoPoint | None = Field(None, min_length=2, max_length=2, description="[lat, lon] of the candidate")
-    reason: str = Field("", max_length=500)
-
-
-class Rejection(ApiModel):
-    rejection_id: int
-    mission_id: str
-    vehicle_id: str
-    candidate_id: str | None
-    position: GeoPoint | None
-    reason: str
-    created_at: float
-
-
-class AwaitingCandidate(ApiModel):
-    candidate_id: str = Field(max_length=64)
-    box: list[float] = Field(min_length=4, max_length=4, description="[x1, y1, x2, y2] in the keyframe")
-    verdict: Literal["yes", "no", "uncertain"] = "yes"
-    justification: str = Field("", max_length=2000)
-    crop_jpeg_b64: str | None = Field(None, max_length=400_000)
-    crop_box: list[float] | None = Field(
-        None, min_length=4, max_length=4, description="[x1, y1, x2, y2] of the candidate inside the crop; default: all of it"
-    )
-    position: GeoPoint | None = Field(None, min_length=2, max_length=2, description="[lat, lon] estimate")
-
-
-class VehicleStatusIn(ApiModel):
-    mission_id: str | None = Field(None, pattern=IDENTIFIER)
-    state: str = Field(max_length=64, description="the companion's mission state, e.g. SEARCH, TRACK, AWAIT_SUPERVISOR")
-    prompt: str | None = Field(None, max_length=500)
-    position: GeoPoint | None = Field(None, min_length=2, max_length=2, description="[lat, lon] of the vehicle")
-    altitude_m: float | None = None
-    awaiting: AwaitingCandidate | None = None
-
-
-class VehicleStatus(VehicleStatusIn):
-    vehicle_id: str
-    updated_at: float
-
-
-class DecisionIn(ApiModel):
-    candidate_id: str = Field(max_length=64)
-    action: Literal["confirm", "reject"]
-    note: str = Field("", max_length=500)
-
-
-class Decision(DecisionIn):
-    decision_id: int = Field(description="increasing per back-end; poll with ?after=<last id>")
-    vehicle_id: str
-    mission_id: str | None
-    created_at: float
+__all__ = [
+    "CANDIDATE_ID", "ID_FIELD", "IDENTIFIER", "NOTE_MAX", "ApiModel", "AwaitingCandidate", "Candidate", "Decision",
+    "DecisionIn", "DetectMeta", "DetectResponse", "ErrorResponse", "GeoPoint", "HealthResponse", "ModelNames",
+    "ModelsResponse", "Rejection", "RejectionIn", "Timings", "VehicleStatus", "VehicleStatusIn",
+]

@@ -1,37 +1,35 @@
-"""What the back-end remembers between requests: per-mission rejections, vehicle status, decisions.
+"""What the back-end remembers between requests: per-(vehicle, mission) rejections, vehicle status, decisions.
 
-One in-process store, guarded by a lock (handlers, the pipeline's threads and the supervisor routes all
-use it). The state is small on purpose - a 128-float appearance descriptor per remembered candidate,
-the latest status per vehicle, a bounded decision log - so several replicas can run behind a load
-balancer with missions pinned to a replica (see docs/backend.md).
+The logic lives here; the state lives in a `backend.state_store.StateStore` (SQLite by default, Redis for
+several replicas), so a restart or a failover to another replica forgets nothing. Missions are keyed by
+(vehicle, mission): one vehicle's rejections never touch another's candidates, even on the same mission id.
 
 Rejection memory: when the supervisor rejects a candidate, its appearance (hue-saturation histogram)
 and, when known, its position are kept for the mission. A later candidate in the same mission whose
 appearance correlates at least `similarity` with a rejected one is answered "no" without asking the
 verifier - unless both the rejection and the request carry positions and the vehicle is farther than
 `radius_m` from the rejected place (a look-alike elsewhere is a new candidate).
+
+Every crop is checked from its JPEG/PNG header before it is decoded (backend.images), and a crop a vehicle
+reports for the supervisor must be a real JPEG: the page serves it as image/jpeg.
 """
 
 from __future__ import annotations
 
-import base64
-import contextlib
+import logging
 import math
-import threading
 import time
-from collections import OrderedDict, deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
-
-import cv2
-import numpy as np
 
 from backend.appearance import descriptor, similarity
-from backend.schemas import Decision, DecisionIn, Rejection, RejectionIn, VehicleStatus, VehicleStatusIn
+from backend.images import ImageError, b64_image_bytes, decode_image, is_jpeg
+from backend.state_store import QuotaExceededError, SqliteStore, StateStore, vector_bytes, vector_from
 from behaviors.geometry import Box
+from cloudtrack.api_models import Decision, DecisionIn, Rejection, RejectionIn, VehicleStatus, VehicleStatusIn
 
-CANDIDATES_PER_MISSION = 500
-DECISIONS_KEPT = 1000
+log = logging.getLogger(__name__)
+
+__all__ = ["QuotaExceededError", "SessionStore", "UnknownCandidateError", "crop_descriptor", "distance_m"]
 
 
 class UnknownCandidateError(LookupError):
@@ -45,104 +43,91 @@ def distance_m(a: list[float], b: list[float]) -> float:
     return 2 * 6_371_000.0 * math.asin(min(1.0, math.sqrt(h)))
 
 
-def crop_descriptor(crop_jpeg_b64: str, crop_box: list[float] | None = None) -> list[float]:
-    """Appearance of a crop sent by a client: the candidate's box inside it, or the whole crop."""
-    try:
-        data = base64.b64decode(crop_jpeg_b64, validate=True)
-    except ValueError as exc:
-        raise ValueError("crop_jpeg_b64 is not valid base64") from exc
-    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR) if data else None
-    if image is None:
-        raise ValueError("crop_jpeg_b64 is not a decodable JPEG/PNG image")
+def crop_descriptor(crop_jpeg_b64: str, crop_box: list[float] | None, max_pixels: int) -> list[float]:
+    """Appearance of a crop sent by a client: the candidate's box inside it, or the whole crop.
+
+    ImageError (with its HTTP status) when the crop is not base64, not JPEG/PNG, too large by its header
+    (checked before decoding) or undecodable; ValueError when crop_box lies outside it.
+    """
+    image = decode_image(b64_image_bytes(crop_jpeg_b64), max_pixels)
     h, w = image.shape[:2]
     box = Box.from_xyxy(*crop_box) if crop_box else Box(0, 0, w, h)
     if not box.clamped(w, h).is_valid():
-        raise ValueError(f"crop_box {crop_box} lies outside the {w}x{h} crop")
+        raise ImageError(f"crop_box {crop_box} lies outside the {w}x{h} crop", 422)
     return descriptor(image, box)
-
-
-@dataclass
-class _Mission:
-    last_seen: float
-    candidates: OrderedDict[str, list[float]] = field(default_factory=OrderedDict)
-    rejections: list[tuple[Rejection, list[float]]] = field(default_factory=list)
 
 
 class SessionStore:
     def __init__(
         self,
+        state: StateStore | None = None,
         similarity_threshold: float = 0.85,
         radius_m: float = 150.0,
         mission_ttl_s: float = 6 * 3600.0,
         max_rejections: int = 200,
+        max_missions: int = 32,
+        max_crop_pixels: int = 4_000_000,
         clock: Callable[[], float] = time.time,
     ) -> None:
+        self.state = state or SqliteStore()
         self.similarity_threshold = similarity_threshold
         self.radius_m = radius_m
         self.mission_ttl_s = mission_ttl_s
         self.max_rejections = max_rejections
+        self.max_missions = max_missions
+        self.max_crop_pixels = max_crop_pixels
         self._clock = clock
-        self._lock = threading.Lock()
-        self._missions: dict[str, _Mission] = {}
-        self._status: dict[str, VehicleStatus] = {}
-        self._decisions: deque[Decision] = deque(maxlen=DECISIONS_KEPT)
-        self._next_rejection = 1
-        self._next_decision = 1
 
-    def _mission(self, mission_id: str) -> _Mission:
+    def open_mission(self, vehicle_id: str, mission_id: str) -> None:
+        """Mark the mission alive (QuotaExceededError for one too many) and forget the expired ones."""
         now = self._clock()
-        for stale in [m for m, s in self._missions.items() if now - s.last_seen > self.mission_ttl_s]:
-            del self._missions[stale]
-        mission = self._missions.setdefault(mission_id, _Mission(now))
-        mission.last_seen = now
-        return mission
+        self.state.expire(now - self.mission_ttl_s)  # an indexed range: only what expired is touched
+        self.state.touch_mission(vehicle_id, mission_id, now, self.mission_ttl_s, self.max_missions)
 
     # Candidates and rejections
 
-    def remember_candidates(self, mission_id: str, candidates: list[tuple[str, list[float]]]) -> None:
+    def remember_candidates(self, vehicle_id: str, mission_id: str, candidates: list[tuple[str, list[float]]]) -> None:
         """Keep the appearance of proposed candidates so a rejection by id can be matched later."""
-        with self._lock:
-            cache = self._mission(mission_id).candidates
-            for candidate_id, appearance in candidates:
-                cache[candidate_id] = appearance
-            while len(cache) > CANDIDATES_PER_MISSION:
-                cache.popitem(last=False)
+        self.state.put_candidates(vehicle_id, mission_id, [(cid, vector_bytes(a)) for cid, a in candidates])
 
     def add_rejection(self, mission_id: str, rejection: RejectionIn) -> Rejection:
         """Record a rejected candidate; its appearance comes from the crop sent or the candidate id."""
-        appearance = crop_descriptor(rejection.crop_jpeg_b64, rejection.crop_box) if rejection.crop_jpeg_b64 else None
-        with self._lock:
-            mission = self._mission(mission_id)
-            if appearance is None:
-                if rejection.candidate_id is None or rejection.candidate_id not in mission.candidates:
-                    raise UnknownCandidateError(
-                        f"candidate {rejection.candidate_id!r} is unknown in mission {mission_id!r}; send crop_jpeg_b64"
-                    )
-                appearance = mission.candidates[rejection.candidate_id]
-            record = Rejection(
-                rejection_id=self._next_rejection,
-                mission_id=mission_id,
-                vehicle_id=rejection.vehicle_id,
-                candidate_id=rejection.candidate_id,
-                position=rejection.position,
-                reason=rejection.reason,
-                created_at=self._clock(),
-            )
-            self._next_rejection += 1
-            mission.rejections.append((record, appearance))
-            del mission.rejections[: -self.max_rejections]
-            return record
+        vehicle_id = rejection.vehicle_id
+        appearance = (
+            crop_descriptor(rejection.crop_jpeg_b64, rejection.crop_box, self.max_crop_pixels)
+            if rejection.crop_jpeg_b64
+            else None
+        )
+        self.open_mission(vehicle_id, mission_id)
+        if appearance is None:
+            known = self.state.candidate(vehicle_id, mission_id, rejection.candidate_id) if rejection.candidate_id else None
+            if known is None:
+                raise UnknownCandidateError(
+                    f"candidate {rejection.candidate_id!r} is unknown in mission {mission_id!r} of {vehicle_id!r}; "
+                    "send crop_jpeg_b64"
+                )
+            blob = known
+        else:
+            blob = vector_bytes(appearance)
+        record = Rejection(
+            rejection_id=0,
+            mission_id=mission_id,
+            vehicle_id=vehicle_id,
+            candidate_id=rejection.candidate_id,
+            position=rejection.position,
+            reason=rejection.reason,
+            created_at=self._clock(),
+        )
+        return self.state.add_rejection(vehicle_id, mission_id, record, blob, self.max_rejections)
 
-    def rejections(self, mission_id: str) -> list[Rejection]:
-        with self._lock:
-            mission = self._missions.get(mission_id)
-            return [r for r, _ in mission.rejections] if mission else []
+    def rejections(self, vehicle_id: str, mission_id: str) -> list[Rejection]:
+        return [r for r, _ in self.state.rejections(vehicle_id, mission_id)]
 
-    def rejection_check(self, mission_id: str, vehicle_position: list[float] | None) -> Callable[[list[float]], str | None]:
-        """A function telling whether a candidate's appearance matches a rejection of this mission."""
-        with self._lock:
-            mission = self._missions.get(mission_id)
-            entries = list(mission.rejections) if mission else []
+    def rejection_check(
+        self, vehicle_id: str, mission_id: str, vehicle_position: list[float] | None
+    ) -> Callable[[list[float]], str | None]:
+        """A function telling whether a candidate's appearance matches a rejection of this vehicle's mission."""
+        entries = [(r, vector_from(a)) for r, a in self.state.rejections(vehicle_id, mission_id)]
 
         def check(appearance: list[float]) -> str | None:
             for record, rejected in entries:
@@ -166,40 +151,47 @@ class SessionStore:
     # Vehicle status and supervisor decisions
 
     def set_status(self, vehicle_id: str, status: VehicleStatusIn) -> VehicleStatus:
-        with self._lock:
-            previous = self._status.get(vehicle_id)
-            kept = previous.awaiting if previous is not None else None
-            awaiting = status.awaiting
-            if (
-                awaiting is not None
-                and awaiting.crop_jpeg_b64 is None
-                and kept is not None
-                and kept.candidate_id == awaiting.candidate_id
-            ):
-                # Vehicles send a candidate's crop once; later reports about the same candidate keep it.
-                crop = {"crop_jpeg_b64": kept.crop_jpeg_b64, "crop_box": kept.crop_box}
-                status = status.model_copy(update={"awaiting": awaiting.model_copy(update=crop)})
-            record = VehicleStatus(vehicle_id=vehicle_id, updated_at=self._clock(), **status.model_dump())
-            self._status[vehicle_id] = record
+        """Store the vehicle's report; a crop that is not a JPEG within the crop size limit: ImageError."""
+        awaiting = status.awaiting
+        if awaiting is not None and awaiting.crop_jpeg_b64 is not None:
+            data = b64_image_bytes(awaiting.crop_jpeg_b64)
+            if not is_jpeg(data, self.max_crop_pixels):
+                raise ImageError(f"the crop must be a JPEG of at most {self.max_crop_pixels} pixels", 422)
+        if status.mission_id is not None:
+            self.open_mission(vehicle_id, status.mission_id)
+        previous = self.state.status(vehicle_id)
+        kept = previous.awaiting if previous is not None else None
+        if (
+            awaiting is not None
+            and awaiting.crop_jpeg_b64 is None
+            and kept is not None
+            and kept.candidate_id == awaiting.candidate_id
+        ):
+            # Vehicles send a candidate's crop once; later reports about the same candidate keep it.
+            crop = {"crop_jpeg_b64": kept.crop_jpeg_b64, "crop_box": kept.crop_box}
+            status = status.model_copy(update={"awaiting": awaiting.model_copy(update=crop)})
+        record = VehicleStatus(vehicle_id=vehicle_id, updated_at=self._clock(), **status.model_dump())
+        self.state.set_status(record)
         return record
 
     def status(self, vehicle_id: str) -> VehicleStatus | None:
-        with self._lock:
-            return self._status.get(vehicle_id)
+        return self.state.status(vehicle_id)
 
     def statuses(self) -> list[VehicleStatus]:
-        with self._lock:
-            return sorted(self._status.values(), key=lambda s: s.vehicle_id)
+        return self.state.statuses()
 
     def add_decision(self, vehicle_id: str, decision: DecisionIn) -> Decision:
-        """Record the supervisor's confirm/reject; a reject also enters the mission's rejection memory."""
+        """Record the supervisor's confirm/reject; a reject also enters the mission's rejection memory.
+
+        The decision is stored whatever happens to the rejection memory (an undecodable crop, a full
+        mission): the companion must get the supervisor's word. Both are stored before this returns.
+        """
         current = self.status(vehicle_id)
         mission_id = current.mission_id if current else None
         awaiting = current.awaiting if current else None
         if decision.action == "reject" and mission_id is not None:
             same = awaiting is not None and awaiting.candidate_id == decision.candidate_id
-            # Unknown candidate without a crop: the companion still gets the decision, nothing to match.
-            with contextlib.suppress(UnknownCandidateError):
+            try:
                 self.add_rejection(
                     mission_id,
                     RejectionIn(
@@ -211,18 +203,10 @@ class SessionStore:
                         reason=decision.note or "rejected by the supervisor",
                     ),
                 )
-        with self._lock:
-            record = Decision(
-                decision_id=self._next_decision,
-                vehicle_id=vehicle_id,
-                mission_id=mission_id,
-                created_at=self._clock(),
-                **decision.model_dump(),
-            )
-            self._next_decision += 1
-            self._decisions.append(record)
-        return record
+            except (UnknownCandidateError, ImageError, ValueError, QuotaExceededError) as exc:
+                # Unknown candidate without a crop, a crop that cannot be read: nothing to match later.
+                log.warning("reject of %s by the supervisor not remembered for matching: %s", decision.candidate_id, exc)
+        return self.state.add_decision(vehicle_id, mission_id, decision, self._clock())
 
     def decisions(self, vehicle_id: str, after: int = 0) -> list[Decision]:
-        with self._lock:
-            return [d for d in self._decisions if d.vehicle_id == vehicle_id and d.decision_id > after]
+        return self.state.decisions(vehicle_id, after)

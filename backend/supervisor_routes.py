@@ -4,33 +4,39 @@ Routes (all under /supervisor):
   GET  /supervisor                      the page (static HTML; it holds no data, so it needs no token)
   GET  /supervisor/static/{name}        its script and style sheet
   GET  /supervisor/api/state            the snapshot below, as JSON
+  GET  /supervisor/api/enabled          {"enabled": bool}: whether a supervisor token is configured (no token)
   GET  /supervisor/events               the same snapshot pushed as Server-Sent Events on every change
   GET  /supervisor/api/vehicles/{v}/candidates/{c}/crop.jpg    the crop the verifier saw
   POST /supervisor/api/vehicles/{v}/candidates/{c}/decision    {"decision": "confirm" | "reject"}
 
 Everything but the page itself takes the supervisor's bearer token (`auth.supervisor_token`) through
-the API's own dependency, `backend.auth.require_supervisor` (401 without it, 403 for a vehicle's token). A decision is stored in the session store as the vehicle's next decision; the companion
-picks it up when it polls its session, so the page works with no MAVLink ground station.
+the API's own dependency, `backend.auth.require_supervisor` (401 without it, 403 for a vehicle's token).
+With no supervisor token configured (the default) the page says how to turn it on instead of asking for a
+token that does not exist. A decision is stored in the session store (on disk or in Redis before the 201)
+as the vehicle's next decision; the companion picks it up when it polls its session, so the page works with
+no MAVLink ground station. The page shows the whole fleet from the shared store, whichever replica answers,
+and its event stream is woken by the store's changes (backend.change_feed), not by polling per client.
 """
 
 from __future__ import annotations
 
-import asyncio
-import base64
-import binascii
 import json
 import time
 from collections.abc import AsyncIterator, Callable
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Depends, HTTPException, Request, status
+from fastapi import Path as PathParam
+from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, Response, StreamingResponse
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, Field
 
 from backend.auth import require_supervisor
-from backend.schemas import DecisionIn
+from backend.change_feed import ChangeFeed
+from backend.images import ImageError, b64_image_bytes, is_jpeg
 from backend.sessions import SessionStore
+from cloudtrack.api_models import IDENTIFIER, NOTE_MAX, DecisionIn
 
 STATIC_DIR = Path(__file__).resolve().parent / "static"
 STATIC_FILES = {
@@ -38,12 +44,14 @@ STATIC_FILES = {
     "supervisor.css": "text/css; charset=utf-8",
 }
 _NO_STORE = {"Cache-Control": "no-store"}
+VehicleId = Annotated[str, PathParam(pattern=IDENTIFIER)]
+CandidateId = Annotated[str, PathParam(pattern=IDENTIFIER)]
 
 
 class DecisionBody(BaseModel):
     model_config = ConfigDict(extra="forbid")
     decision: Literal["confirm", "reject"]
-    note: str = ""
+    note: str = Field("", max_length=NOTE_MAX)  # the API's own limit: 422 beyond it, never a 500
 
 
 class SupervisorView:
@@ -113,7 +121,7 @@ def _without_ages(snapshot: dict[str, Any]) -> str:
 
 
 def supervisor_router(
-    store: SessionStore, *, poll_interval_s: float = 0.25, keepalive_s: float = 15.0, max_stream_s: float = 30.0
+    store: SessionStore, feed: ChangeFeed, *, keepalive_s: float = 15.0, max_stream_s: float = 30.0
 ) -> APIRouter:
     """The page's routes over the back-end's session store; include it in the app with `include_router`.
 
@@ -133,6 +141,11 @@ def supervisor_router(
             raise HTTPException(status.HTTP_404_NOT_FOUND, f"no static file {name!r}")
         return FileResponse(STATIC_DIR / name, media_type=STATIC_FILES[name], headers=_NO_STORE)
 
+    @router.get("/api/enabled")
+    def enabled(request: Request) -> dict[str, bool]:
+        """Whether the supervisor endpoints are on (a supervisor token is configured); needs no token."""
+        return {"enabled": bool(request.app.state.config.auth.supervisor_token)}
+
     @router.get("/api/state", dependencies=authed)
     def state() -> dict[str, Any]:
         """Every vehicle's state and the candidate it awaits a decision on."""
@@ -140,38 +153,42 @@ def supervisor_router(
 
     @router.get("/events", dependencies=authed)
     async def events(request: Request) -> StreamingResponse:
-        """Server-Sent Events: `event: state` with the snapshot whenever it changes, comments as keep-alive."""
+        """Server-Sent Events: `event: state` with the snapshot whenever the store changes, comments as keep-alive."""
 
         async def stream() -> AsyncIterator[str]:
-            last = None
-            opened = last_sent = time.monotonic()
+            opened = time.monotonic()
             yield "retry: 1000\n\n"
+            version = feed.version
+            last = None
             # A stream ends after max_stream_s and the page reconnects at once: a server shutting down
             # (uvicorn waits for open responses) or a proxy's idle limit never holds a stream for long.
             while not await request.is_disconnected() and time.monotonic() - opened < max_stream_s:
-                snapshot = view.snapshot()
+                snapshot = await run_in_threadpool(view.snapshot)
                 content = _without_ages(snapshot)
                 if content != last:
-                    last, last_sent = content, time.monotonic()
+                    last = content
                     yield f"event: state\ndata: {json.dumps(snapshot)}\n\n"
-                elif time.monotonic() - last_sent >= keepalive_s:
-                    last_sent = time.monotonic()
+                else:
                     yield ": keep-alive\n\n"  # proxies close silent connections
-                await asyncio.sleep(poll_interval_s)
+                remaining = max_stream_s - (time.monotonic() - opened)
+                version = await feed.wait(version, max(0.0, min(keepalive_s, remaining)))
 
         headers = {**_NO_STORE, "X-Accel-Buffering": "no"}  # nginx: pass events through unbuffered
         return StreamingResponse(stream(), media_type="text/event-stream", headers=headers)
 
     @router.get("/api/vehicles/{vehicle_id}/candidates/{candidate_id}/crop.jpg", dependencies=authed)
-    def crop(vehicle_id: str, candidate_id: str) -> Response:
+    def crop(vehicle_id: VehicleId, candidate_id: CandidateId, request: Request) -> Response:
         current = store.status(vehicle_id)
         awaiting = current.awaiting if current else None
         if awaiting is None or awaiting.candidate_id != candidate_id or not awaiting.crop_jpeg_b64:
             raise HTTPException(status.HTTP_404_NOT_FOUND, f"no crop for candidate {candidate_id!r} of {vehicle_id!r}")
         try:
-            data = base64.b64decode(awaiting.crop_jpeg_b64, validate=True)
-        except (binascii.Error, ValueError) as exc:
-            raise HTTPException(422, "the vehicle sent a crop that is not base64") from exc
+            data = b64_image_bytes(awaiting.crop_jpeg_b64)
+        except ImageError as exc:
+            raise HTTPException(exc.status, str(exc)) from None
+        # Only bytes that are a JPEG by their header go out as image/jpeg (the store checks on the way in too).
+        if not is_jpeg(data, store.max_crop_pixels):
+            raise HTTPException(422, "the vehicle's crop is not a JPEG image")
         return Response(data, media_type="image/jpeg", headers=_NO_STORE)
 
     @router.post(
@@ -179,8 +196,8 @@ def supervisor_router(
         dependencies=authed,
         status_code=status.HTTP_201_CREATED,
     )
-    def decide(vehicle_id: str, candidate_id: str, body: DecisionBody) -> dict[str, Any]:
-        """Confirm or reject the candidate the vehicle awaits a decision on; the vehicle polls for it."""
+    def decide(vehicle_id: VehicleId, candidate_id: CandidateId, body: DecisionBody) -> dict[str, Any]:
+        """Confirm or reject the candidate the vehicle awaits a decision on; stored before the 201."""
         current = store.status(vehicle_id)
         if current is None:
             raise HTTPException(status.HTTP_404_NOT_FOUND, f"vehicle {vehicle_id!r} has not reported")

@@ -24,6 +24,15 @@ else:  # pragma: no cover - exercised on 3.10 only
 
 T = TypeVar("T", bound=BaseModel)
 
+# Keys whose values are secrets: never printed by `config show`, never echoed in an error.
+SECRET_SUFFIXES = ("token", "tokens", "_key", "secret", "password")
+HIDDEN = "<hidden>"
+
+
+def is_secret_key(dotted: str) -> bool:
+    """Whether any part of a dotted key names a secret (e.g. auth.tokens.drone-1, mavlink.signing_key)."""
+    return any(part.lower().endswith(SECRET_SUFFIXES) for part in dotted.split("."))
+
 
 class ConfigSection(BaseModel):
     """Base of every configuration section: unknown keys are errors, values are re-validated on change."""
@@ -68,6 +77,15 @@ def _parse_scalar(text: str) -> Any:
         return text
 
 
+def _parse_value(dotted: str, text: str) -> Any:
+    """A flag or environment value for this key; a secret stays the exact text unless it is a string or table
+    literal (an all-digit token is a token, not the number it looks like)."""
+    value = _parse_scalar(text)
+    if is_secret_key(dotted) and not isinstance(value, (str, dict)):
+        return text
+    return value
+
+
 def read_toml(path: Path) -> dict[str, Any]:
     try:
         with open(path, "rb") as f:
@@ -85,7 +103,7 @@ def env_overrides(prefix: str, environ: Mapping[str, str]) -> dict[str, Any]:
         if not name.startswith(prefix) or "__" not in name:
             continue
         dotted = name[len(prefix) :].lower().replace("__", ".")
-        _set_nested(result, dotted, _parse_scalar(raw))
+        _set_nested(result, dotted, _parse_value(dotted, raw))
     return result
 
 
@@ -96,7 +114,7 @@ def flag_overrides(assignments: Iterable[str]) -> dict[str, Any]:
         if "=" not in item:
             raise ConfigError(f"--set {item!r}: expected section.key=value")
         key, raw = item.split("=", 1)
-        _set_nested(result, key.strip(), _parse_scalar(raw.strip()))
+        _set_nested(result, key.strip(), _parse_value(key.strip(), raw.strip()))
     return result
 
 
@@ -111,6 +129,8 @@ def _describe(error: Mapping[str, Any], source_of: Mapping[str, str], allowed: l
     if error["type"] == "extra_forbidden":
         hint = f" (allowed here: {', '.join(sorted(allowed))})" if allowed else ""
         return f"{source}: unknown key {key!r}{hint}"
+    if is_secret_key(key):
+        return f"{source}: key {key!r}: {error['msg']} (value hidden: it is a secret)"
     return f"{source}: key {key!r}: {error['msg']} (got {error.get('input')!r})"
 
 
@@ -168,7 +188,7 @@ def load_config(
 
 
 def dump_toml(config: BaseModel) -> str:
-    """The effective configuration as TOML (sections of scalars, lists and small tables)."""
+    """The effective configuration as TOML (sections of scalars, lists and small tables); secrets hidden."""
 
     def literal(value: Any) -> str:
         if isinstance(value, bool):
@@ -185,12 +205,19 @@ def dump_toml(config: BaseModel) -> str:
             return '""'
         return json.dumps(str(value))
 
+    def _hidden(key: str, value: Any) -> Any:
+        if not is_secret_key(key) or not value:
+            return value
+        if isinstance(value, Mapping):  # e.g. vehicle id -> token: the ids are not secret
+            return {k: HIDDEN for k in value}
+        return HIDDEN
+
     data = config.model_dump(mode="json")
     out: list[str] = []
     for section, values in data.items():
         if isinstance(values, Mapping):
             out.append(f"[{section}]")
-            out.extend(f"{k} = {literal(v)}" for k, v in values.items())
+            out.extend(f"{k} = {literal(_hidden(k, v))}" for k, v in values.items())
             out.append("")
         else:
             out.insert(0, f"{section} = {literal(values)}")

@@ -19,7 +19,7 @@ CAMERA_EXAMPLES = """\
 examples:
   cloudtrack-sim camera --autopilot-url udpin:0.0.0.0:14551 --port 5600
       (ArduPilot SITL: sim_vehicle.py ... --out udp:127.0.0.1:14551)
-  cloudtrack-sim camera --autopilot-url tcp:127.0.0.1:5762 --port 5600 --backend-port 8080 --token secret
+  cloudtrack-sim camera --autopilot-url tcp:127.0.0.1:5762 --port 5600 --backend-port 8080 --token "$(openssl rand -hex 24)"
   cloudtrack-companion run --set camera.source=sim+tcp://127.0.0.1:5600 --set backend.url=http://127.0.0.1:8080
 """
 BENCH_EXAMPLES = """\
@@ -45,7 +45,8 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:  # type: ignore
     cam.add_argument("--seed", type=int, default=1)
     cam.add_argument("--mount-pitch", type=float, default=-40.0, metavar="DEG", help="camera pitch (default -40)")
     cam.add_argument("--backend-port", type=int, help="also run the back-end (simulated detector) on this port")
-    cam.add_argument("--token", default="sim", help="bearer token the back-end accepts for every vehicle id")
+    cam.add_argument("--token", default="sim-camera-vehicle-token",
+                     help="bearer token the back-end accepts for the vehicle (16+ characters)")
     cam.add_argument("--vehicle-id", default="drone-1", help="vehicle id the token is issued to (default drone-1)")
     cam.set_defaults(func=run_camera)
     bench = subparsers.add_parser(
@@ -80,12 +81,13 @@ def run_camera(args: argparse.Namespace) -> int:
     backend = None
     if args.backend_port is not None:
         from backend.app import create_app
-        from backend.config import AuthConfig, BackendConfig, ServerConfig
+        from backend.config import AuthConfig, BackendConfig, ServerConfig, SessionConfig
         from backend.serving import BackgroundServer
         from sitl.simulated_detector import SimulatedPersonDetector
 
         config = BackendConfig(server=ServerConfig(port=args.backend_port),
-                               auth=AuthConfig(tokens={args.vehicle_id: args.token}))
+                               auth=AuthConfig(tokens={args.vehicle_id: args.token}),
+                               sessions=SessionConfig(sqlite_path=":memory:"))
         backend = BackgroundServer(create_app(config, detector=SimulatedPersonDetector(server.truth)),
                                    port=args.backend_port).start()
         print(f"back-end (simulated person detector, local verifier): {backend.url}")

@@ -170,12 +170,13 @@ class ScenarioRun:
     # ------------------------------------------------------------------------------------------- setup
     def _start_backend(self) -> str:
         from backend.app import create_app
-        from backend.config import AuthConfig, BackendConfig, VerifierConfig
+        from backend.config import AuthConfig, BackendConfig, SessionConfig, VerifierConfig
         from backend.serving import BackgroundServer
 
         config = BackendConfig(
             auth=AuthConfig(tokens=self.tokens, supervisor_token=secrets.token_hex(16)),
             verifier=VerifierConfig(kind=self.options.verifier),
+            sessions=SessionConfig(sqlite_path=":memory:"),  # each run starts with nothing remembered
         )
         # The reject scenario needs the look-alike in the first keyframe: no random misses there.
         noise = DetectorNoise(miss_rate=self.scenario.miss_rate)

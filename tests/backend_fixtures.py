@@ -12,7 +12,7 @@ import numpy as np
 from backend.config import BackendConfig
 from cloudtrack.config_files import load_config
 
-TOKENS = {"drone-1": "token-one", "drone-2": "token-two"}
+TOKENS = {"drone-1": "drone-1-token-one", "drone-2": "drone-2-token-two"}
 SUPERVISOR = "token-supervisor"
 
 
@@ -26,6 +26,7 @@ def backend_config(models_dir: Path, *settings: str) -> BackendConfig:
             f'auth.supervisor_token="{SUPERVISOR}"',
             f'detector.model_dir="{models_dir}"',
             "detector.threads=1",
+            'sessions.sqlite_path=":memory:"',
             *settings,
         ],
     )

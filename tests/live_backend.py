@@ -13,7 +13,7 @@ from pathlib import Path
 import uvicorn
 
 from backend.app import create_app
-from backend.config import AuthConfig, BackendConfig, DetectorConfig, VerifierConfig
+from backend.config import AuthConfig, BackendConfig, DetectorConfig, SessionConfig, VerifierConfig
 
 SUPERVISOR_TOKEN = "supervisor-test-token"
 VEHICLE_TOKENS = {"drone-1": "drone-1-test-token", "drone-2": "drone-2-test-token"}
@@ -61,6 +61,7 @@ def live_backend(models_dir: Path, verifier: str = "none") -> Iterator[LiveBacke
         auth=AuthConfig(tokens=VEHICLE_TOKENS, supervisor_token=SUPERVISOR_TOKEN),
         detector=DetectorConfig(kind="yolox", model_dir=str(models_dir)),
         verifier=VerifierConfig(kind=verifier),
+        sessions=SessionConfig(sqlite_path=":memory:"),
     )
     app = create_app(config)
     with serve(app) as url:

@@ -97,7 +97,8 @@ def test_crop_reaches_the_back_end_store(sequence_dirs: list[Path]) -> None:
 
     image, box = _first_frame(sequence_dirs[0])
     _, status = _runner_awaiting(image, box)
-    config = BackendConfig(auth=AuthConfig(tokens={"drone-1": "tok-1"}, supervisor_token="sup"))
+    config = BackendConfig(auth=AuthConfig(tokens={"drone-1": "drone-1-token-0001"}, supervisor_token="supervisor-token-0001"),
+                           sessions=SessionConfig(sqlite_path=":memory:"))
     posted: list[dict[str, Any]] = []
 
     class RecordingClient(BackendClient):
@@ -106,13 +107,13 @@ def test_crop_reaches_the_back_end_store(sequence_dirs: list[Path]) -> None:
             return super().report_status(state, vehicle_id, **fields)
 
     with BackgroundServer(create_app(config, detector=SimulatedPersonDetector(lambda fid: None))) as server:
-        session = BackendSession(RecordingClient(server.url, "tok-1", vehicle_id="drone-1"), period_s=0.05).start()
+        session = BackendSession(RecordingClient(server.url, "drone-1-token-0001", vehicle_id="drone-1"), period_s=0.05).start()
         try:
             session.update(status)
             deadline = time.monotonic() + 10
             while len(posted) < 3 and time.monotonic() < deadline:
                 time.sleep(0.05)
-            stored = requests.get(f"{server.url}/v1/vehicles", headers={"Authorization": "Bearer sup"}, timeout=5).json()
+            stored = requests.get(f"{server.url}/v1/vehicles", headers={"Authorization": "Bearer supervisor-token-0001"}, timeout=5).json()
         finally:
             session.close()
     # The crop went up once; later reports about the same candidate leave it out and the store keeps it.

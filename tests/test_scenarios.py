@@ -189,24 +189,25 @@ def test_backend_session_reports_status_and_delivers_supervisor_decisions(tmp_pa
     import requests
 
     from backend.app import create_app
-    from backend.config import AuthConfig, BackendConfig
+    from backend.config import AuthConfig, BackendConfig, SessionConfig
     from backend.serving import BackgroundServer
     from behaviors.mission_commands import ConfirmCandidate, RejectCandidate
     from companion.backend_client import BackendClient
     from companion.backend_session import BackendSession
     from sitl.simulated_detector import SimulatedPersonDetector
 
-    config = BackendConfig(auth=AuthConfig(tokens={"drone-1": "tok-1"}, supervisor_token="sup"))
+    config = BackendConfig(auth=AuthConfig(tokens={"drone-1": "drone-1-token-0001"}, supervisor_token="supervisor-token-0001"),
+                           sessions=SessionConfig(sqlite_path=":memory:"))
     with BackgroundServer(create_app(config, detector=SimulatedPersonDetector(lambda fid: None))) as server:
-        session = BackendSession(BackendClient(server.url, "tok-1", vehicle_id="drone-1"), period_s=0.05).start()
+        session = BackendSession(BackendClient(server.url, "drone-1-token-0001", vehicle_id="drone-1"), period_s=0.05).start()
         try:
             session.update({"state": "AWAITING_SUPERVISOR", "mission_id": "m1", "prompt": "a person in a green shirt"})
             deadline = time.monotonic() + 10
             while session.last_success() is None and time.monotonic() < deadline:
                 time.sleep(0.05)
             assert session.last_success() is not None
-            sup = {"Authorization": "Bearer sup"}
-            status = requests.get(f"{server.url}/v1/vehicles/drone-1/status", headers={"Authorization": "Bearer tok-1"},
+            sup = {"Authorization": "Bearer supervisor-token-0001"}
+            status = requests.get(f"{server.url}/v1/vehicles/drone-1/status", headers={"Authorization": "Bearer drone-1-token-0001"},
                                   timeout=5).json()
             assert status["state"] == "AWAITING_SUPERVISOR" and status["mission_id"] == "m1"
             for action in ("confirm", "reject"):

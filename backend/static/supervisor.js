@@ -229,9 +229,23 @@ async function decide(vehicleId, candidateId, decision, item) {
 $("#login").addEventListener("submit", login);
 $("#logout").addEventListener("click", () => showLogin());
 setInterval(tick, 1000);
-if (token) {
-  $("#logout").hidden = false;
-  connect();
-} else {
-  showLogin();
+
+async function start() {
+  // With no supervisor token configured the back-end refuses every token: say so, ask for none.
+  const answer = await fetch("/supervisor/api/enabled").then((r) => r.json()).catch(() => ({ enabled: true }));
+  if (!answer.enabled) {
+    $("#disabled").hidden = false;
+    $("#login").hidden = true;
+    $("#no-vehicles").hidden = true;
+    setConnection("off");
+    return;
+  }
+  if (token) {
+    $("#logout").hidden = false;
+    connect();
+  } else {
+    showLogin();
+  }
 }
+
+start();

@@ -1,0 +1,194 @@
+"""The session state in Redis, shared by every replica behind the load balancer (docs/backend.md).
+
+Keys (prefix `ct:`): `mission:<v>:<m>` nothing but its place in the sorted sets `missions` (all, by last
+seen: expiry reads only the expired range) and `vmissions:<v>` (one vehicle's, for its quota);
+`cand:<v>:<m>` hash id -> float32 bytes with `candseq:<v>:<m>` ordering them; `rej:<v>:<m>` and
+`rejapp:<v>:<m>` lists of rejection records and their appearance bytes; `status` hash vehicle -> record;
+`dec:<v>` list of decisions; `ids:rejection`, `ids:decision`, `version` counters; `rate:<v>:<window>`.
+Changes the supervisor page shows are published on `changes` (one subscriber per process).
+Durability is the server's: run it with `appendonly yes` and `appendfsync always` (make backend-redis).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from typing import Any
+
+import redis
+
+from backend.state_store import (
+    CANDIDATES_PER_MISSION,
+    DECISIONS_KEPT_PER_VEHICLE,
+    QuotaExceededError,
+    StateStore,
+)
+from cloudtrack.api_models import Decision, DecisionIn, Rejection, VehicleStatus
+
+PREFIX = "ct:"
+CHANNEL = PREFIX + "changes"
+
+
+class RedisStore(StateStore):
+    def __init__(self, url: str, client: redis.Redis | None = None) -> None:
+        # Any: redis-py's command types are unions of sync and async results.
+        self._redis: Any = client or redis.Redis.from_url(url, socket_timeout=5, socket_connect_timeout=5,
+                                                     health_check_interval=30)
+        self._redis.ping()  # fail at start-up, not on the first request
+        self._pubsub: Any = None
+        self._pubsub_lock = threading.Lock()
+
+    @staticmethod
+    def _k(*parts: str) -> str:
+        return PREFIX + ":".join(parts)
+
+    def touch_mission(self, vehicle: str, mission: str, now: float, ttl_s: float, max_missions: int) -> None:
+        per_vehicle = self._k("vmissions", vehicle)
+        member = f"{vehicle}\x00{mission}"
+        # WATCH makes the count-then-add one atomic step against other replicas.
+        with self._redis.pipeline() as pipe:
+            while True:
+                try:
+                    pipe.watch(per_vehicle)
+                    if pipe.zscore(per_vehicle, mission) is None:
+                        live = int(pipe.zcount(per_vehicle, now - ttl_s, "+inf"))
+                        if live >= max_missions:
+                            oldest = pipe.zrangebyscore(per_vehicle, now - ttl_s, "+inf", start=0, num=1, withscores=True)
+                            first = float(oldest[0][1]) if oldest else now
+                            raise QuotaExceededError(
+                                f"vehicle {vehicle!r} already has {live} live missions (the limit)", first + ttl_s - now
+                            )
+                    pipe.multi()
+                    pipe.zadd(per_vehicle, {mission: now})
+                    pipe.zadd(self._k("missions"), {member: now})
+                    pipe.execute()
+                    return
+                except redis.WatchError:
+                    continue
+
+    def expire(self, cutoff: float) -> int:
+        stale = self._redis.zrangebyscore(self._k("missions"), "-inf", f"({cutoff}")
+        for raw in stale:
+            vehicle, _, mission = raw.decode().partition("\x00")
+            with self._redis.pipeline() as pipe:
+                pipe.zrem(self._k("missions"), raw)
+                pipe.zrem(self._k("vmissions", vehicle), mission)
+                for name in ("cand", "candseq", "rej", "rejapp"):
+                    pipe.delete(self._k(name, vehicle, mission))
+                pipe.execute()
+        return len(stale)
+
+    def put_candidates(self, vehicle: str, mission: str, items: list[tuple[str, bytes]]) -> None:
+        if not items:
+            return
+        cand, seq = self._k("cand", vehicle, mission), self._k("candseq", vehicle, mission)
+        now = time.time()
+        with self._redis.pipeline() as pipe:
+            pipe.hset(cand, mapping=dict(items))
+            pipe.zadd(seq, {cid: now + i * 1e-6 for i, (cid, _) in enumerate(items)})
+            pipe.zrange(seq, 0, -(CANDIDATES_PER_MISSION + 1))
+            *_, dropped = pipe.execute()
+        if dropped:
+            with self._redis.pipeline() as pipe:
+                pipe.hdel(cand, *dropped)
+                pipe.zrem(seq, *dropped)
+                pipe.execute()
+
+    def candidate(self, vehicle: str, mission: str, candidate_id: str) -> bytes | None:
+        value = self._redis.hget(self._k("cand", vehicle, mission), candidate_id)
+        return bytes(value) if value is not None else None
+
+    def add_rejection(self, vehicle: str, mission: str, record: Rejection, appearance: bytes, limit: int) -> Rejection:
+        records, vectors = self._k("rej", vehicle, mission), self._k("rejapp", vehicle, mission)
+        with self._redis.pipeline() as pipe:
+            while True:
+                try:
+                    pipe.watch(records)
+                    count = int(pipe.llen(records))
+                    if count >= limit:
+                        raise QuotaExceededError(f"mission {mission!r} of {vehicle!r} holds {count} rejections (the limit)", 60)
+                    stored = record.model_copy(update={"rejection_id": int(self._redis.incr(self._k("ids", "rejection")))})
+                    pipe.multi()
+                    pipe.rpush(records, stored.model_dump_json())
+                    pipe.rpush(vectors, appearance)
+                    pipe.execute()
+                    return stored
+                except redis.WatchError:
+                    continue
+
+    def rejections(self, vehicle: str, mission: str) -> list[tuple[Rejection, bytes]]:
+        with self._redis.pipeline(transaction=True) as pipe:
+            pipe.lrange(self._k("rej", vehicle, mission), 0, -1)
+            pipe.lrange(self._k("rejapp", vehicle, mission), 0, -1)
+            records, vectors = pipe.execute()
+        return [(Rejection.model_validate_json(r), bytes(v)) for r, v in zip(records, vectors, strict=False)]
+
+    def _changed(self, pipe: Any) -> None:
+        pipe.incr(self._k("version"))
+        pipe.publish(CHANNEL, b"1")
+
+    def set_status(self, status: VehicleStatus) -> None:
+        with self._redis.pipeline() as pipe:
+            pipe.hset(self._k("status"), status.vehicle_id, status.model_dump_json())
+            self._changed(pipe)
+            pipe.execute()
+
+    def status(self, vehicle: str) -> VehicleStatus | None:
+        value = self._redis.hget(self._k("status"), vehicle)
+        return VehicleStatus.model_validate_json(value) if value is not None else None
+
+    def statuses(self) -> list[VehicleStatus]:
+        values = self._redis.hgetall(self._k("status"))
+        return sorted((VehicleStatus.model_validate_json(v) for v in values.values()), key=lambda s: s.vehicle_id)
+
+    def add_decision(self, vehicle: str, mission: str | None, decision: DecisionIn, created_at: float) -> Decision:
+        record = Decision(decision_id=int(self._redis.incr(self._k("ids", "decision"))), vehicle_id=vehicle,
+                          mission_id=mission, created_at=created_at, **decision.model_dump())
+        with self._redis.pipeline() as pipe:
+            pipe.rpush(self._k("dec", vehicle), record.model_dump_json())
+            pipe.ltrim(self._k("dec", vehicle), -DECISIONS_KEPT_PER_VEHICLE, -1)
+            self._changed(pipe)
+            pipe.execute()
+        return record
+
+    def decisions(self, vehicle: str, after: int = 0) -> list[Decision]:
+        records = [Decision.model_validate_json(r) for r in self._redis.lrange(self._k("dec", vehicle), 0, -1)]
+        return [d for d in records if d.decision_id > after]
+
+    def rate_hit(self, vehicle: str, now: float, limit: int, window_s: float) -> float | None:
+        window = math.floor(now / window_s)
+        key = self._k("rate", vehicle, str(window))
+        with self._redis.pipeline() as pipe:
+            pipe.incr(key)
+            pipe.expire(key, max(1, math.ceil(window_s)) + 1)
+            count, _ = pipe.execute()
+        return None if int(count) <= limit else (window + 1) * window_s - now
+
+    def version(self) -> int:
+        return int(self._redis.get(self._k("version")) or 0)
+
+    def wait_change(self, last: int, timeout_s: float) -> int:
+        """Blocks on the `changes` channel (one subscription per store), not on polling."""
+        with self._pubsub_lock:
+            if self._pubsub is None:
+                self._pubsub = self._redis.pubsub(ignore_subscribe_messages=True)
+                self._pubsub.subscribe(CHANNEL)
+            current = self.version()
+            if current != last:
+                return current
+            deadline = time.monotonic() + timeout_s
+            while time.monotonic() < deadline:
+                message = self._pubsub.get_message(timeout=max(0.01, deadline - time.monotonic()))
+                if message is not None:
+                    # Drain what else arrived: one wake-up for a burst of changes.
+                    while self._pubsub.get_message(timeout=0) is not None:
+                        pass
+                    break
+            return self.version()
+
+    def close(self) -> None:
+        with self._pubsub_lock:
+            if self._pubsub is not None:
+                self._pubsub.close()
+        self._redis.close()

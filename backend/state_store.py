@@ -1,0 +1,307 @@
+"""Where the back-end's session state lives: one interface, two stores.
+
+`SqliteStore` (the default): one file in WAL mode for a single server; every write is committed with
+`synchronous=FULL` before the call returns, so what the API acknowledged survives a SIGKILL or a power cut.
+`RedisStore` (backend/redis_store.py): the state shared by several replicas behind a load balancer.
+
+Missions are keyed by (vehicle, mission): MAVLink mission ids are 0-255, so two vehicles meet on the same
+id by accident. Appearance vectors are stored as float32 bytes. Expiry touches only what expired (an
+index on last_seen), never every mission. `version()` grows with every change the supervisor page shows
+(statuses, decisions); `wait_change` is what one watcher per process blocks on (SQLite: polls the
+counter; Redis: pub/sub).
+"""
+
+from __future__ import annotations
+
+import math
+import sqlite3
+import threading
+import time
+from abc import ABC, abstractmethod
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cloudtrack.api_models import Decision, DecisionIn, Rejection, VehicleStatus
+
+CANDIDATES_PER_MISSION = 500
+DECISIONS_KEPT_PER_VEHICLE = 1000
+
+
+class QuotaExceededError(Exception):
+    """A vehicle's quota is used up; `retry_after_s` says when to try again (HTTP 429 + Retry-After)."""
+
+    def __init__(self, message: str, retry_after_s: float) -> None:
+        super().__init__(message)
+        self.retry_after_s = max(1.0, math.ceil(retry_after_s))
+
+
+def vector_bytes(values: Iterable[float]) -> bytes:
+    return np.asarray(list(values), np.float32).tobytes()
+
+
+def vector_from(data: bytes) -> list[float]:
+    return [float(v) for v in np.frombuffer(data, np.float32)]
+
+
+class StateStore(ABC):
+    """The operations the session logic needs; each one is atomic on its own."""
+
+    @abstractmethod
+    def touch_mission(self, vehicle: str, mission: str, now: float, ttl_s: float, max_missions: int) -> None:
+        """Mark (vehicle, mission) alive; a new mission beyond `max_missions` live ones: QuotaExceededError."""
+
+    @abstractmethod
+    def expire(self, cutoff: float) -> int:
+        """Forget missions last seen before `cutoff` (their candidates and rejections); how many."""
+
+    @abstractmethod
+    def put_candidates(self, vehicle: str, mission: str, items: list[tuple[str, bytes]]) -> None: ...
+
+    @abstractmethod
+    def candidate(self, vehicle: str, mission: str, candidate_id: str) -> bytes | None: ...
+
+    @abstractmethod
+    def add_rejection(self, vehicle: str, mission: str, record: Rejection, appearance: bytes, limit: int) -> Rejection:
+        """Store it under a new rejection_id; the mission's `limit`-th + 1 rejection: QuotaExceededError."""
+
+    @abstractmethod
+    def rejections(self, vehicle: str, mission: str) -> list[tuple[Rejection, bytes]]: ...
+
+    @abstractmethod
+    def set_status(self, status: VehicleStatus) -> None: ...
+
+    @abstractmethod
+    def status(self, vehicle: str) -> VehicleStatus | None: ...
+
+    @abstractmethod
+    def statuses(self) -> list[VehicleStatus]: ...
+
+    @abstractmethod
+    def add_decision(self, vehicle: str, mission: str | None, decision: DecisionIn, created_at: float) -> Decision:
+        """Store it durably under a new decision_id before returning."""
+
+    @abstractmethod
+    def decisions(self, vehicle: str, after: int = 0) -> list[Decision]: ...
+
+    @abstractmethod
+    def rate_hit(self, vehicle: str, now: float, limit: int, window_s: float) -> float | None:
+        """Count one request; None when within `limit` per fixed window, else seconds until the next window."""
+
+    @abstractmethod
+    def version(self) -> int:
+        """A counter that grows with every status or decision change."""
+
+    def wait_change(self, last: int, timeout_s: float) -> int:
+        """Block until version() differs from `last` or `timeout_s` passes; the current version."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            current = self.version()
+            if current != last or time.monotonic() >= deadline:
+                return current
+            time.sleep(min(0.2, max(0.0, deadline - time.monotonic())))
+
+    def close(self) -> None:  # noqa: B027 - optional for stores without resources
+        pass
+
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS missions (
+    vehicle TEXT NOT NULL, mission TEXT NOT NULL, last_seen REAL NOT NULL, PRIMARY KEY (vehicle, mission));
+CREATE INDEX IF NOT EXISTS missions_by_age ON missions (last_seen);
+CREATE TABLE IF NOT EXISTS candidates (
+    seq INTEGER PRIMARY KEY AUTOINCREMENT, vehicle TEXT NOT NULL, mission TEXT NOT NULL,
+    candidate_id TEXT NOT NULL, appearance BLOB NOT NULL, UNIQUE (vehicle, mission, candidate_id));
+CREATE TABLE IF NOT EXISTS rejections (
+    rejection_id INTEGER PRIMARY KEY AUTOINCREMENT, vehicle TEXT NOT NULL, mission TEXT NOT NULL,
+    record TEXT NOT NULL, appearance BLOB NOT NULL);
+CREATE INDEX IF NOT EXISTS rejections_by_mission ON rejections (vehicle, mission);
+CREATE TABLE IF NOT EXISTS statuses (vehicle TEXT PRIMARY KEY, record TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS decisions (
+    decision_id INTEGER PRIMARY KEY AUTOINCREMENT, vehicle TEXT NOT NULL, record TEXT NOT NULL);
+CREATE INDEX IF NOT EXISTS decisions_by_vehicle ON decisions (vehicle, decision_id);
+CREATE TABLE IF NOT EXISTS counters (name TEXT PRIMARY KEY, value INTEGER NOT NULL);
+INSERT OR IGNORE INTO counters VALUES ('version', 0);
+"""
+
+
+class SqliteStore(StateStore):
+    """The state in one SQLite file (WAL, synchronous=FULL); ":memory:" for a throw-away store."""
+
+    def __init__(self, path: str | Path = ":memory:") -> None:
+        self.path = str(path)
+        if self.path != ":memory:":
+            Path(self.path).parent.mkdir(parents=True, exist_ok=True)
+        # One connection, used under a lock: handlers run on a thread pool.
+        self._db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None, timeout=10)
+        self._lock = threading.Lock()
+        with self._lock:
+            if self.path != ":memory:":
+                self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.execute("PRAGMA synchronous=FULL")  # a commit is on disk before the API answers
+            self._db.executescript(_SCHEMA)
+        self._windows: dict[str, tuple[float, int]] = {}  # rate windows: one server, so in memory
+
+    def _write(self, sql_and_params: list[tuple[str, tuple[object, ...]]]) -> list[sqlite3.Cursor]:
+        with self._lock:
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                cursors = [self._db.execute(sql, params) for sql, params in sql_and_params]
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+            self._db.execute("COMMIT")
+            return cursors
+
+    def _read(self, sql: str, params: tuple[object, ...] = ()) -> list[tuple[Any, ...]]:
+        with self._lock:
+            return list(self._db.execute(sql, params).fetchall())
+
+    def touch_mission(self, vehicle: str, mission: str, now: float, ttl_s: float, max_missions: int) -> None:
+        with self._lock:
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                known = self._db.execute(
+                    "SELECT 1 FROM missions WHERE vehicle = ? AND mission = ?", (vehicle, mission)
+                ).fetchone()
+                if known is None:
+                    live, oldest = self._db.execute(
+                        "SELECT count(*), min(last_seen) FROM missions WHERE vehicle = ? AND last_seen >= ?",
+                        (vehicle, now - ttl_s),
+                    ).fetchone()
+                    if live >= max_missions:
+                        raise QuotaExceededError(
+                            f"vehicle {vehicle!r} already has {live} live missions (the limit)", oldest + ttl_s - now
+                        )
+                self._db.execute(
+                    "INSERT INTO missions VALUES (?, ?, ?) ON CONFLICT (vehicle, mission) DO UPDATE SET last_seen = ?",
+                    (vehicle, mission, now, now),
+                )
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+            self._db.execute("COMMIT")
+
+    def expire(self, cutoff: float) -> int:
+        with self._lock:
+            stale = self._db.execute("SELECT vehicle, mission FROM missions WHERE last_seen < ?", (cutoff,)).fetchall()
+            if not stale:
+                return 0
+            self._db.execute("BEGIN IMMEDIATE")
+            for vehicle, mission in stale:
+                for table in ("missions", "candidates", "rejections"):
+                    self._db.execute(f"DELETE FROM {table} WHERE vehicle = ? AND mission = ?", (vehicle, mission))
+            self._db.execute("COMMIT")
+            return len(stale)
+
+    def put_candidates(self, vehicle: str, mission: str, items: list[tuple[str, bytes]]) -> None:
+        if not items:
+            return
+        statements: list[tuple[str, tuple[object, ...]]] = [
+            ("INSERT OR REPLACE INTO candidates (vehicle, mission, candidate_id, appearance) VALUES (?, ?, ?, ?)",
+             (vehicle, mission, cid, blob))
+            for cid, blob in items
+        ]
+        statements.append((
+            "DELETE FROM candidates WHERE vehicle = ? AND mission = ? AND seq NOT IN "
+            "(SELECT seq FROM candidates WHERE vehicle = ? AND mission = ? ORDER BY seq DESC LIMIT ?)",
+            (vehicle, mission, vehicle, mission, CANDIDATES_PER_MISSION),
+        ))
+        self._write(statements)
+
+    def candidate(self, vehicle: str, mission: str, candidate_id: str) -> bytes | None:
+        rows = self._read(
+            "SELECT appearance FROM candidates WHERE vehicle = ? AND mission = ? AND candidate_id = ?",
+            (vehicle, mission, candidate_id),
+        )
+        return bytes(rows[0][0]) if rows else None
+
+    def add_rejection(self, vehicle: str, mission: str, record: Rejection, appearance: bytes, limit: int) -> Rejection:
+        with self._lock:
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                (count,) = self._db.execute(
+                    "SELECT count(*) FROM rejections WHERE vehicle = ? AND mission = ?", (vehicle, mission)
+                ).fetchone()
+                if count >= limit:
+                    raise QuotaExceededError(f"mission {mission!r} of {vehicle!r} holds {count} rejections (the limit)", 60)
+                cursor = self._db.execute(
+                    "INSERT INTO rejections (vehicle, mission, record, appearance) VALUES (?, ?, '', ?)",
+                    (vehicle, mission, appearance),
+                )
+                stored = record.model_copy(update={"rejection_id": cursor.lastrowid})
+                self._db.execute(
+                    "UPDATE rejections SET record = ? WHERE rejection_id = ?", (stored.model_dump_json(), cursor.lastrowid)
+                )
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+            self._db.execute("COMMIT")
+            return stored
+
+    def rejections(self, vehicle: str, mission: str) -> list[tuple[Rejection, bytes]]:
+        rows = self._read(
+            "SELECT record, appearance FROM rejections WHERE vehicle = ? AND mission = ? ORDER BY rejection_id",
+            (vehicle, mission),
+        )
+        return [(Rejection.model_validate_json(str(r)), bytes(a)) for r, a in rows]
+
+    def set_status(self, status: VehicleStatus) -> None:
+        self._write([
+            ("INSERT OR REPLACE INTO statuses VALUES (?, ?)", (status.vehicle_id, status.model_dump_json())),
+            ("UPDATE counters SET value = value + 1 WHERE name = 'version'", ()),
+        ])
+
+    def status(self, vehicle: str) -> VehicleStatus | None:
+        rows = self._read("SELECT record FROM statuses WHERE vehicle = ?", (vehicle,))
+        return VehicleStatus.model_validate_json(str(rows[0][0])) if rows else None
+
+    def statuses(self) -> list[VehicleStatus]:
+        return [VehicleStatus.model_validate_json(str(r)) for (r,) in self._read("SELECT record FROM statuses ORDER BY vehicle")]
+
+    def add_decision(self, vehicle: str, mission: str | None, decision: DecisionIn, created_at: float) -> Decision:
+        with self._lock:
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                cursor = self._db.execute("INSERT INTO decisions (vehicle, record) VALUES (?, '')", (vehicle,))
+                record = Decision(decision_id=int(cursor.lastrowid or 0), vehicle_id=vehicle, mission_id=mission,
+                                  created_at=created_at, **decision.model_dump())
+                self._db.execute("UPDATE decisions SET record = ? WHERE decision_id = ?",
+                                 (record.model_dump_json(), record.decision_id))
+                self._db.execute(
+                    "DELETE FROM decisions WHERE vehicle = ? AND decision_id NOT IN "
+                    "(SELECT decision_id FROM decisions WHERE vehicle = ? ORDER BY decision_id DESC LIMIT ?)",
+                    (vehicle, vehicle, DECISIONS_KEPT_PER_VEHICLE),
+                )
+                self._db.execute("UPDATE counters SET value = value + 1 WHERE name = 'version'")
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+            self._db.execute("COMMIT")
+            return record
+
+    def decisions(self, vehicle: str, after: int = 0) -> list[Decision]:
+        rows = self._read(
+            "SELECT record FROM decisions WHERE vehicle = ? AND decision_id > ? ORDER BY decision_id", (vehicle, after)
+        )
+        return [Decision.model_validate_json(str(r)) for (r,) in rows]
+
+    def rate_hit(self, vehicle: str, now: float, limit: int, window_s: float) -> float | None:
+        with self._lock:
+            start = math.floor(now / window_s) * window_s
+            opened, count = self._windows.get(vehicle, (start, 0))
+            if opened != start:
+                opened, count = start, 0
+            count += 1
+            self._windows[vehicle] = (opened, count)
+        return None if count <= limit else opened + window_s - now
+
+    def version(self) -> int:
+        rows = self._read("SELECT value FROM counters WHERE name = 'version'")
+        return int(rows[0][0])
+
+    def close(self) -> None:
+        with self._lock:
+            self._db.close()
