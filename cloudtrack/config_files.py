@@ -34,6 +34,13 @@ def is_secret_key(dotted: str) -> bool:
     return any(part.lower().endswith(SECRET_SUFFIXES) for part in dotted.split("."))
 
 
+def _holds_secret(value: Any) -> bool:
+    """Whether a whole section given as a value (a model-level error's input) has a secret inside."""
+    if isinstance(value, Mapping):
+        return any(is_secret_key(str(k)) or _holds_secret(v) for k, v in value.items())
+    return isinstance(value, (list, tuple)) and any(_holds_secret(v) for v in value)
+
+
 class ConfigSection(BaseModel):
     """Base of every configuration section: unknown keys are errors, values are re-validated on change."""
 
@@ -129,8 +136,8 @@ def _describe(error: Mapping[str, Any], source_of: Mapping[str, str], allowed: l
     if error["type"] == "extra_forbidden":
         hint = f" (allowed here: {', '.join(sorted(allowed))})" if allowed else ""
         return f"{source}: unknown key {key!r}{hint}"
-    if is_secret_key(key):
-        return f"{source}: key {key!r}: {error['msg']} (value hidden: it is a secret)"
+    if is_secret_key(key) or _holds_secret(error.get("input")):
+        return f"{source}: key {key!r}: {error['msg']} (value hidden: it holds a secret)"
     return f"{source}: key {key!r}: {error['msg']} (got {error.get('input')!r})"
 
 

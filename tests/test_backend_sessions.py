@@ -14,7 +14,7 @@ from backend.appearance import descriptor
 from backend.config import ENV_PREFIX, BackendConfig, load_backend_config
 from backend.fair_queue import FairScheduler, QueueFullError
 from backend.schemas import AwaitingCandidate, DecisionIn, RejectionIn, VehicleStatusIn
-from backend.sessions import SessionStore, UnknownCandidateError, distance_m
+from backend.sessions import QuotaExceededError, SessionStore, UnknownCandidateError, distance_m
 from behaviors.geometry import Box
 from cloudtrack.config_files import ConfigError, load_config
 
@@ -36,14 +36,14 @@ WHOLE = Box(0, 0, 60, 120)
 
 def test_rejected_candidate_by_id_is_recognised_and_others_are_not() -> None:
     store = SessionStore()
-    store.remember_candidates("m1", [("c-red", descriptor(RED, WHOLE)), ("c-blue", descriptor(BLUE, WHOLE))])
+    store.remember_candidates("d1", "m1", [("c-red", descriptor(RED, WHOLE)), ("c-blue", descriptor(BLUE, WHOLE))])
     store.add_rejection("m1", RejectionIn(vehicle_id="d1", candidate_id="c-red", reason="wrong person"))
-    check = store.rejection_check("m1", None)
+    check = store.rejection_check("d1", "m1", None)
     reason = check(descriptor(_person((40, 40, 200), seed=5), WHOLE))  # same look, new pixels
     assert reason is not None and "c-red" in reason
     assert check(descriptor(BLUE, WHOLE)) is None
-    assert store.rejection_check("m2", None)(descriptor(RED, WHOLE)) is None  # other missions unaffected
-    assert [r.candidate_id for r in store.rejections("m1")] == ["c-red"]
+    assert store.rejection_check("d1", "m2", None)(descriptor(RED, WHOLE)) is None  # other missions unaffected
+    assert [r.candidate_id for r in store.rejections("d1", "m1")] == ["c-red"]
 
 
 def test_rejection_needs_a_known_id_or_a_crop() -> None:
@@ -52,45 +52,48 @@ def test_rejection_needs_a_known_id_or_a_crop() -> None:
         store.add_rejection("m1", RejectionIn(vehicle_id="d1", candidate_id="nope"))
     crop = base64.b64encode(cv2.imencode(".jpg", RED)[1].tobytes()).decode()
     store.add_rejection("m1", RejectionIn(vehicle_id="d1", crop_jpeg_b64=crop))
-    assert store.rejection_check("m1", None)(descriptor(RED, WHOLE)) is not None
+    assert store.rejection_check("d1", "m1", None)(descriptor(RED, WHOLE)) is not None
     with pytest.raises(ValueError, match="base64"):
         store.add_rejection("m1", RejectionIn(vehicle_id="d1", crop_jpeg_b64="%%%"))
-    with pytest.raises(ValueError, match="decodable"):
+    with pytest.raises(ValueError, match="JPEG or PNG"):
         store.add_rejection("m1", RejectionIn(vehicle_id="d1", crop_jpeg_b64=base64.b64encode(b"text").decode()))
 
 
 def test_position_limits_a_rejection_to_its_place() -> None:
     store = SessionStore(radius_m=100)
-    store.remember_candidates("m1", [("c", descriptor(RED, WHOLE))])
+    store.remember_candidates("d1", "m1", [("c", descriptor(RED, WHOLE))])
     store.add_rejection("m1", RejectionIn(vehicle_id="d1", candidate_id="c", position=[47.0, 8.0]))
     look = descriptor(RED, WHOLE)
-    assert store.rejection_check("m1", [47.0005, 8.0])(look) is not None  # about 56 m away
-    assert store.rejection_check("m1", [47.01, 8.0])(look) is None  # about 1.1 km away: a look-alike
-    assert store.rejection_check("m1", None)(look) is not None
+    assert store.rejection_check("d1", "m1", [47.0005, 8.0])(look) is not None  # about 56 m away
+    assert store.rejection_check("d1", "m1", [47.01, 8.0])(look) is None  # about 1.1 km away: a look-alike
+    assert store.rejection_check("d1", "m1", None)(look) is not None
     assert 1100 < distance_m([47.0, 8.0], [47.01, 8.0]) < 1125
 
 
-def test_missions_expire_and_rejections_are_bounded() -> None:
+def test_missions_expire_and_rejections_are_bounded_by_a_quota() -> None:
     now = [1000.0]
     store = SessionStore(mission_ttl_s=60, max_rejections=3, clock=lambda: now[0])
-    store.remember_candidates("old", [(f"c{i}", descriptor(RED, WHOLE)) for i in range(5)])
-    for i in range(5):
+    store.open_mission("d1", "old")
+    store.remember_candidates("d1", "old", [(f"c{i}", descriptor(RED, WHOLE)) for i in range(5)])
+    for i in range(3):
         store.add_rejection("old", RejectionIn(vehicle_id="d1", candidate_id=f"c{i}"))
-    assert [r.candidate_id for r in store.rejections("old")] == ["c2", "c3", "c4"]
+    with pytest.raises(QuotaExceededError):  # refused, not silently forgetting the oldest rejection
+        store.add_rejection("old", RejectionIn(vehicle_id="d1", candidate_id="c3"))
+    assert [r.candidate_id for r in store.rejections("d1", "old")] == ["c0", "c1", "c2"]
     now[0] += 120
-    store.remember_candidates("new", [])
-    assert store.rejections("old") == []
+    store.open_mission("d1", "new")
+    assert store.rejections("d1", "old") == []
 
 
 def test_supervisor_reject_decision_enters_the_rejection_memory() -> None:
     store = SessionStore()
-    store.remember_candidates("m1", [("c1", descriptor(RED, WHOLE))])
+    store.remember_candidates("d1", "m1", [("c1", descriptor(RED, WHOLE))])
     awaiting = AwaitingCandidate(candidate_id="c1", box=[0, 0, 60, 120], justification="red shirt")
     store.set_status("d1", VehicleStatusIn(mission_id="m1", state="AWAIT_SUPERVISOR", awaiting=awaiting))
     confirm = store.add_decision("d1", DecisionIn(candidate_id="c1", action="confirm"))
-    assert store.rejections("m1") == []
+    assert store.rejections("d1", "m1") == []
     reject = store.add_decision("d1", DecisionIn(candidate_id="c1", action="reject", note="not him"))
-    assert [r.reason for r in store.rejections("m1")] == ["not him"]
+    assert [r.reason for r in store.rejections("d1", "m1")] == ["not him"]
     assert [d.decision_id for d in store.decisions("d1")] == [confirm.decision_id, reject.decision_id]
     assert store.decisions("d1", after=confirm.decision_id) == [reject]
     assert store.decisions("d2") == []
@@ -158,10 +161,10 @@ def test_default_file_matches_schema_defaults() -> None:
 
 
 def test_environment_prefix_is_the_backends_own() -> None:
-    environ = {f"{ENV_PREFIX}SERVER__PORT": "9000", f"{ENV_PREFIX}AUTH__TOKENS": '{"d1": "s"}',
+    environ = {f"{ENV_PREFIX}SERVER__PORT": "9000", f"{ENV_PREFIX}AUTH__TOKENS": '{"d1": "s3cret-vehicle-token"}',
                "CLOUDTRACK_BACKEND__TOKEN": "companion-setting", "CLOUDTRACK_SAFETY__MAX_SPEED_M_S": "2"}
     config = load_backend_config(None, environ=environ)
-    assert config.server.port == 9000 and config.auth.tokens == {"d1": "s"}
+    assert config.server.port == 9000 and config.auth.tokens == {"d1": "s3cret-vehicle-token"}
 
 
 def test_bad_backend_config_is_named(tmp_path: Path) -> None:
@@ -174,7 +177,7 @@ def test_bad_backend_config_is_named(tmp_path: Path) -> None:
 
 def test_status_keeps_a_candidates_crop_but_never_gives_it_to_another() -> None:
     store = SessionStore()
-    crop = base64.b64encode(b"jpeg bytes").decode()
+    crop = base64.b64encode(cv2.imencode(".jpg", RED)[1].tobytes()).decode()
     first = AwaitingCandidate(candidate_id="c1", box=[0, 0, 60, 120], crop_jpeg_b64=crop, crop_box=[5, 5, 65, 125])
     store.set_status("drone-1", VehicleStatusIn(mission_id="m1", state="AWAITING_SUPERVISOR", awaiting=first))
     later = AwaitingCandidate(candidate_id="c1", box=[2, 0, 62, 120])

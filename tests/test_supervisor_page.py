@@ -16,6 +16,7 @@ import pytest
 from fastapi import FastAPI
 
 from backend.config import AuthConfig, BackendConfig
+from backend.change_feed import ChangeFeed
 from backend.sessions import SessionStore
 from backend.supervisor_routes import supervisor_router
 from tests.live_backend import SUPERVISOR_TOKEN, VEHICLE_TOKENS, LiveBackend, live_backend, serve
@@ -165,11 +166,14 @@ def test_live_updates_arrive_as_server_sent_events(backend: LiveBackend, crop_b6
             assert one["state"] == "AWAITING_SUPERVISOR" and one["candidates"][0]["id"] == "c-30"
 
 
-def test_a_crop_that_is_not_base64_is_a_clear_error(backend: LiveBackend) -> None:
+def test_a_crop_that_is_not_a_jpeg_is_refused_when_reported(backend: LiveBackend) -> None:
+    """Only real JPEG bytes are ever served as image/jpeg: anything else is refused on the way in."""
     with httpx.Client(base_url=backend.url, timeout=10) as client:
-        report(client, "AWAITING_SUPERVISOR", {**candidate("", "c-40"), "crop_jpeg_b64": "***not base64***"})
-        response = client.get("/supervisor/api/vehicles/drone-1/candidates/c-40/crop.jpg", headers=SUPERVISOR)
-        assert response.status_code == 422 and "base64" in response.json()["detail"]
+        for bad in ("***not base64***", base64.b64encode(b"<script>alert(1)</script>").decode(),
+                    base64.b64encode(b"\xff\xd8\xff\xe0" + bytes(64)).decode()):
+            body = {"mission_id": "m-1", "state": "AWAITING_SUPERVISOR", "awaiting": {**candidate("", "c-40"), "crop_jpeg_b64": bad}}
+            response = client.post("/v1/vehicles/drone-1/status", json=body, headers=DRONE)
+            assert response.status_code == 422, (bad, response.text)
         missing = client.get("/supervisor/api/vehicles/drone-1/candidates/c-39/crop.jpg", headers=SUPERVISOR)
         assert missing.status_code == 404
 
@@ -178,12 +182,17 @@ def test_an_event_stream_ends_after_its_lifetime_so_shutdowns_are_never_held() -
     """uvicorn waits for open responses when it stops; the page reconnects when a stream ends."""
     app = FastAPI()
     app.state.config = BackendConfig(auth=AuthConfig(supervisor_token=SUPERVISOR_TOKEN))
-    app.include_router(supervisor_router(SessionStore(), poll_interval_s=0.05, max_stream_s=1.0))
-    with serve(app) as url, httpx.Client(base_url=url, timeout=15) as client:
-        started = time.monotonic()
-        with client.stream("GET", "/supervisor/events", headers=SUPERVISOR) as stream:
-            lines = list(stream.iter_lines())  # returns only when the server ends the stream
-        took = time.monotonic() - started
+    store = SessionStore()
+    feed = ChangeFeed(store.state).start()
+    app.include_router(supervisor_router(store, feed, max_stream_s=1.0))
+    try:
+        with serve(app) as url, httpx.Client(base_url=url, timeout=15) as client:
+            started = time.monotonic()
+            with client.stream("GET", "/supervisor/events", headers=SUPERVISOR) as stream:
+                lines = list(stream.iter_lines())  # returns only when the server ends the stream
+            took = time.monotonic() - started
+    finally:
+        feed.stop()
     assert "event: state" in lines
     assert 1.0 <= took < 10.0, took
 
@@ -198,6 +207,8 @@ def test_reject_reaches_the_vehicle_and_the_missions_rejection_memory(backend: L
         assert (polled[-1]["candidate_id"], polled[-1]["action"], polled[-1]["note"]) == ("c-50", "reject", "wrong shirt")
         # The back-end remembers it (with the crop the vehicle sent) so look-alikes are answered "no".
         rejections = client.get("/v1/missions/m-1/rejections", headers=DRONE).json()
+        assert client.get("/v1/missions/m-1/rejections", headers=SUPERVISOR).status_code == 422  # name the vehicle
+        assert client.get("/v1/missions/m-1/rejections", params={"vehicle_id": "drone-1"}, headers=SUPERVISOR).json() == rejections
         assert any(r["candidate_id"] == "c-50" and r["reason"] == "wrong shirt" for r in rejections)
         state = client.get("/supervisor/api/state", headers=SUPERVISOR).json()
         cand = next(v for v in state["vehicles"] if v["id"] == "drone-1")["candidates"][0]
