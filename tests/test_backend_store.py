@@ -1,0 +1,133 @@
+"""The session stores behind one interface: SQLite (a real file, WAL) and Redis (Debian's real redis-server
+started here), the same tests for both, plus what only sharing gives: two replicas on one Redis see one
+fleet and one rejection memory, and a change made through one wakes the other's watcher (pub/sub).
+Select with -k store.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from backend.fleet_services import RedisServer
+from backend.redis_store import RedisStore
+from backend.sessions import SessionStore
+from backend.state_store import QuotaExceededError, SqliteStore, StateStore, vector_bytes, vector_from
+from cloudtrack.api_models import DecisionIn, Rejection, RejectionIn, VehicleStatus
+
+
+@pytest.fixture(scope="module")
+def redis_server() -> Iterator[RedisServer]:
+    with RedisServer() as server:
+        yield server
+
+
+@pytest.fixture(params=["sqlite", "redis"])
+def state(request: pytest.FixtureRequest, tmp_path: Path, redis_server: RedisServer) -> Iterator[StateStore]:
+    if request.param == "sqlite":
+        store: StateStore = SqliteStore(tmp_path / "sessions.sqlite3")
+    else:
+        store = RedisStore(redis_server.url)
+        store._redis.flushdb()  # type: ignore[attr-defined]
+    yield store
+    store.close()
+
+
+def _rejection(vehicle: str, mission: str, candidate: str) -> Rejection:
+    return Rejection(rejection_id=0, mission_id=mission, vehicle_id=vehicle, candidate_id=candidate, position=None,
+                     reason="", created_at=1.0)
+
+
+def test_store_missions_are_per_vehicle_capped_and_expire(state: StateStore) -> None:
+    for i in range(3):
+        state.touch_mission("d1", f"m{i}", 100.0 + i, 60, 3)
+    state.touch_mission("d1", "m0", 110.0, 60, 3)  # a known mission is always allowed
+    state.touch_mission("d2", "m0", 110.0, 60, 3)  # another vehicle's quota is its own
+    with pytest.raises(QuotaExceededError) as info:
+        state.touch_mission("d1", "m3", 120.0, 60, 3)
+    assert info.value.retry_after_s == 41  # m1, the oldest live one, expires at 161
+    assert state.expire(105.0) == 2  # m1 and m2 of d1; m0 of both was seen at 110
+    state.touch_mission("d1", "m3", 151.0, 60, 3)
+
+
+def test_store_candidates_rejections_and_vectors_as_bytes(state: StateStore) -> None:
+    state.touch_mission("d1", "m1", 100.0, 60, 10)
+    vector = np.linspace(0, 1, 128).tolist()
+    state.put_candidates("d1", "m1", [("c1", vector_bytes(vector))])
+    blob = state.candidate("d1", "m1", "c1")
+    assert isinstance(blob, bytes) and len(blob) == 128 * 4
+    assert np.allclose(vector_from(blob), vector)
+    assert state.candidate("d2", "m1", "c1") is None
+    first = state.add_rejection("d1", "m1", _rejection("d1", "m1", "c1"), blob, limit=2)
+    second = state.add_rejection("d1", "m1", _rejection("d1", "m1", "c2"), blob, limit=2)
+    assert second.rejection_id > first.rejection_id > 0
+    with pytest.raises(QuotaExceededError):
+        state.add_rejection("d1", "m1", _rejection("d1", "m1", "c3"), blob, limit=2)
+    assert [(r.candidate_id, a) for r, a in state.rejections("d1", "m1")] == [("c1", blob), ("c2", blob)]
+    assert state.rejections("d2", "m1") == []
+    state.expire(float("inf"))
+    assert state.rejections("d1", "m1") == [] and state.candidate("d1", "m1", "c1") is None
+
+
+def test_store_statuses_decisions_version_and_rate(state: StateStore) -> None:
+    v0 = state.version()
+    state.set_status(VehicleStatus(vehicle_id="d2", updated_at=1.0, state="SEARCH"))
+    state.set_status(VehicleStatus(vehicle_id="d1", updated_at=2.0, state="TRACK"))
+    assert [s.vehicle_id for s in state.statuses()] == ["d1", "d2"] and state.status("d1").state == "TRACK"  # type: ignore[union-attr]
+    a = state.add_decision("d1", "m1", DecisionIn(candidate_id="c1", action="reject"), 3.0)
+    b = state.add_decision("d1", "m1", DecisionIn(candidate_id="c2", action="confirm"), 4.0)
+    assert state.decisions("d1") == [a, b] and state.decisions("d1", after=a.decision_id) == [b]
+    assert state.decisions("d2") == []
+    assert state.version() >= v0 + 4
+    assert [state.rate_hit("d1", 1000.5, 2, 10.0) for _ in range(3)][:2] == [None, None]
+    assert state.rate_hit("d1", 1001.0, 2, 10.0) == pytest.approx(9.0)
+    assert state.rate_hit("d1", 1010.0, 2, 10.0) is None  # a new window
+
+
+def test_store_sqlite_keeps_everything_across_a_reopen(tmp_path: Path) -> None:
+    path = tmp_path / "s.sqlite3"
+    first = SessionStore(SqliteStore(path))
+    first.state.set_status(VehicleStatus(vehicle_id="d1", updated_at=1.0, state="AWAIT", mission_id="m1"))
+    first.open_mission("d1", "m1")
+    first.remember_candidates("d1", "m1", [("c1", [0.5] * 128)])
+    decision = first.add_decision("d1", DecisionIn(candidate_id="c1", action="reject"))
+    # No close(): what a SIGKILL leaves behind.
+    again = SessionStore(SqliteStore(path))
+    assert again.decisions("d1") == [decision]
+    assert [r.candidate_id for r in again.rejections("d1", "m1")] == ["c1"]
+    assert again.rejection_check("d1", "m1", None)([0.5] * 127 + [0.6]) is not None
+
+
+def test_store_two_replicas_on_one_redis_share_fleet_and_memory(redis_server: RedisServer) -> None:
+    a, b = SessionStore(RedisStore(redis_server.url)), SessionStore(RedisStore(redis_server.url))
+    a.state._redis.flushdb()  # type: ignore[attr-defined]
+    a.open_mission("d1", "m1")
+    a.remember_candidates("d1", "m1", [("c1", [1.0] + [0.0] * 127)])
+    b.add_rejection("m1", RejectionIn(vehicle_id="d1", candidate_id="c1"))  # known through a's candidates
+    assert a.rejection_check("d1", "m1", None)([1.0] + [0.0] * 127) is not None
+    b.state.set_status(VehicleStatus(vehicle_id="d9", updated_at=1.0, state="SEARCH"))
+    assert [s.vehicle_id for s in a.statuses()] == ["d9"]
+
+
+def test_store_redis_change_wakes_another_replicas_watcher(redis_server: RedisServer) -> None:
+    watcher, writer = RedisStore(redis_server.url), RedisStore(redis_server.url)
+    last = watcher.version()
+    woke: list[float] = []
+
+    def watch() -> None:
+        started = time.monotonic()
+        watcher.wait_change(last, 10.0)
+        woke.append(time.monotonic() - started)
+
+    thread = threading.Thread(target=watch)
+    thread.start()
+    time.sleep(0.3)  # the watcher is subscribed and blocked
+    writer.set_status(VehicleStatus(vehicle_id="d1", updated_at=1.0, state="TRACK"))
+    thread.join(timeout=10)
+    assert woke and woke[0] < 5.0  # woken by the publication, not by its 10 s timeout
+    assert watcher.version() > last
