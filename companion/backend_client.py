@@ -3,7 +3,8 @@
 Keyframes are downscaled to `max_width` and JPEG-encoded before sending (a 640x480 keyframe is about
 30-60 KB at quality 80, against 1.2 MB of pickled raw pixels in the reference code); boxes in the answer
 are scaled back to the caller's pixels. Every HTTP, timeout or format problem raises `BackendError`.
-No server-side imports here: this runs on the drone.
+Every reply is validated with the back-end's own response models (`cloudtrack.api_models`, pydantic only:
+no server-side imports here, this runs on the drone); multipart bodies are built by urllib3's encoder.
 """
 
 from __future__ import annotations
@@ -11,18 +12,23 @@ from __future__ import annotations
 import base64
 import json
 import logging
-import secrets
 import threading
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, TypeVar
 
 import cv2
 import numpy as np
 import requests
+from pydantic import TypeAdapter, ValidationError
+from urllib3 import encode_multipart_formdata
+from urllib3.fields import RequestField
 
 from behaviors.detection import Detection, Verdict
 from behaviors.geometry import Box
+from cloudtrack.api_models import Decision, DetectResponse, HealthResponse, Rejection, VehicleStatus
+
+T = TypeVar("T")
 
 log = logging.getLogger(__name__)
 
@@ -44,7 +50,7 @@ class DetectReply:
     models: dict[str, str]
     request_bytes: int  # the whole multipart body
     jpeg_bytes: int
-    raw: dict[str, Any] = field(repr=False, default_factory=dict)
+    raw: DetectResponse | None = None  # the validated answer
 
 
 def encode_keyframe(image: np.ndarray, max_width: int, jpeg_quality: int, max_bytes: int = 90_000) -> tuple[bytes, float]:
@@ -109,7 +115,8 @@ class BackendClient:
                 session.headers["X-CloudTrack-Vehicle"] = self.vehicle_id
         return session
 
-    def _call(self, method: str, path: str, **kwargs: Any) -> Any:
+    def _call(self, method: str, path: str, reply: TypeAdapter[T], **kwargs: Any) -> T:
+        """One request; the JSON answer validated as `reply` (BackendError when it does not fit)."""
         try:
             response = self._session().request(method, self.url + path, timeout=self.timeout_s, **kwargs)
         except requests.Timeout as exc:
@@ -124,9 +131,10 @@ class BackendClient:
             retryable = response.status_code == 429 or response.status_code >= 500
             raise BackendError(f"back-end {path}: HTTP {response.status_code}: {detail}", response.status_code, retryable)
         try:
-            return response.json()
-        except ValueError as exc:
-            raise BackendError(f"back-end {path}: answer is not JSON: {response.text[:200]!r}", response.status_code) from exc
+            return reply.validate_json(response.content)
+        except ValidationError as exc:
+            problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors()[:3])
+            raise BackendError(f"back-end {path}: malformed answer: {problems}", response.status_code) from exc
 
     def detect_reply(
         self,
@@ -163,24 +171,24 @@ class BackendClient:
         if vehicle_position is not None:
             meta["vehicle_position"] = [float(v) for v in vehicle_position]
         body, content_type = _multipart(jpeg, json.dumps(meta))
-        # The mission header lets a load balancer keep a mission on one replica (docs/backend.md).
         headers = {"Content-Type": content_type, "X-CloudTrack-Vehicle": vehicle, "X-CloudTrack-Mission": mission}
-        answer = self._call("POST", "/v1/detect", data=body, headers=headers)
+        answer = self._call("POST", "/v1/detect", _DETECT, data=body, headers=headers)
         try:
             detections = [
                 Detection(
-                    box=Box.from_xyxy(*(float(v) / scale for v in c["box"])),
-                    score=float(c["score"]),
-                    label=str(c["label"]),
-                    verdict=Verdict(c["verdict"]),
-                    justification=str(c["justification"]),
-                    candidate_id=str(c["candidate_id"]),
+                    box=Box.from_xyxy(*(v / scale for v in c.box)),
+                    score=c.score,
+                    label=c.label,
+                    verdict=Verdict(c.verdict),
+                    justification=c.justification,
+                    candidate_id=c.candidate_id,
                 )
-                for c in answer["candidates"]
+                for c in answer.candidates
             ]
-            reply = DetectReply(detections, dict(answer["timings"]), dict(answer["models"]), len(body), len(jpeg), answer)
-        except (KeyError, TypeError, ValueError) as exc:
+        except (TypeError, ValueError) as exc:  # e.g. a box that is not 4 numbers
             raise BackendError(f"back-end /v1/detect: malformed answer: {exc}") from exc
+        reply = DetectReply(detections, answer.timings.model_dump(), answer.models.model_dump(), len(body), len(jpeg),
+                            answer)
         self.last_reply = reply
         return reply
 
@@ -201,16 +209,14 @@ class BackendClient:
             image, prompt, superset, vehicle_id, mission_id, frame_id, capture_time, roi, vehicle_position
         ).detections
 
-    def health(self) -> dict[str, Any]:
-        result: dict[str, Any] = self._call("GET", "/health")
-        return result
+    def health(self) -> HealthResponse:
+        return self._call("GET", "/health", _HEALTH)
 
-    def report_status(self, state: str, vehicle_id: str | None = None, **fields: Any) -> dict[str, Any]:
-        """POST the companion's state (and `awaiting` candidate, see backend.schemas.VehicleStatusIn)."""
+    def report_status(self, state: str, vehicle_id: str | None = None, **fields: Any) -> VehicleStatus:
+        """POST the companion's state (and `awaiting` candidate, see cloudtrack.api_models.VehicleStatusIn)."""
         vehicle = vehicle_id or self.vehicle_id
         body = {"state": state, "mission_id": fields.pop("mission_id", self.mission_id), **fields}
-        result: dict[str, Any] = self._call("POST", f"/v1/vehicles/{vehicle}/status", json=body)
-        return result
+        return self._call("POST", f"/v1/vehicles/{vehicle}/status", _STATUS, json=body)
 
     def reject(
         self,
@@ -220,7 +226,7 @@ class BackendClient:
         reason: str = "",
         mission_id: str | None = None,
         crop_box: Box | None = None,
-    ) -> dict[str, Any]:
+    ) -> Rejection:
         """Tell the back-end a candidate was rejected so it is not proposed again in this mission.
 
         `crop_bgr` (with `crop_box`, the candidate inside it) lets any replica match it without its id.
@@ -232,15 +238,12 @@ class BackendClient:
             body["crop_box"] = list(crop_box.xyxy())
         if position is not None:
             body["position"] = [float(v) for v in position]
-        result: dict[str, Any] = self._call("POST", f"/v1/missions/{mission_id or self.mission_id}/rejections", json=body)
-        return result
+        return self._call("POST", f"/v1/missions/{mission_id or self.mission_id}/rejections", _REJECTION, json=body)
 
-    def decisions(self, after: int = 0, vehicle_id: str | None = None) -> list[dict[str, Any]]:
+    def decisions(self, after: int = 0, vehicle_id: str | None = None) -> list[Decision]:
         """Supervisor decisions for this vehicle newer than decision id `after`."""
-        result: list[dict[str, Any]] = self._call(
-            "GET", f"/v1/vehicles/{vehicle_id or self.vehicle_id}/decisions", params={"after": after}
-        )
-        return result
+        return self._call("GET", f"/v1/vehicles/{vehicle_id or self.vehicle_id}/decisions", _DECISIONS,
+                          params={"after": after})
 
 
 def crop_to_base64(crop_bgr: np.ndarray, quality: int = 85) -> str:
@@ -252,16 +255,16 @@ def crop_to_base64(crop_bgr: np.ndarray, quality: int = 85) -> str:
 
 
 def _multipart(jpeg: bytes, meta_json: str) -> tuple[bytes, str]:
-    """The multipart/form-data body (built here so its exact size is known and reported)."""
-    boundary = "cloudtrack-" + secrets.token_hex(12)
-    parts = [
-        f'--{boundary}\r\nContent-Disposition: form-data; name="meta"\r\nContent-Type: application/json\r\n\r\n'.encode()
-        + meta_json.encode()
-        + b"\r\n",
-        f'--{boundary}\r\nContent-Disposition: form-data; name="image"; filename="keyframe.jpg"\r\n'
-        f"Content-Type: image/jpeg\r\n\r\n".encode()
-        + jpeg
-        + b"\r\n",
-        f"--{boundary}--\r\n".encode(),
-    ]
-    return b"".join(parts), f"multipart/form-data; boundary={boundary}"
+    """The multipart/form-data body, built by urllib3 (here, so its exact size is known and reported)."""
+    meta = RequestField("meta", meta_json)
+    meta.make_multipart(content_type="application/json")
+    image = RequestField("image", jpeg, filename="keyframe.jpg")
+    image.make_multipart(content_type="image/jpeg")
+    return encode_multipart_formdata([meta, image])
+
+
+_DETECT = TypeAdapter(DetectResponse)
+_HEALTH = TypeAdapter(HealthResponse)
+_STATUS = TypeAdapter(VehicleStatus)
+_REJECTION = TypeAdapter(Rejection)
+_DECISIONS = TypeAdapter(list[Decision])

@@ -19,6 +19,7 @@ from collections.abc import Callable
 from typing import Any, Protocol
 
 from behaviors.mission_commands import ConfirmCandidate, MissionCommand, RejectCandidate
+from cloudtrack.api_models import Decision
 
 log = logging.getLogger(__name__)
 
@@ -29,12 +30,12 @@ _CROP_FIELDS = ("crop_jpeg_b64", "crop_box")
 class SessionClient(Protocol):
     """The parts of `companion.backend_client.BackendClient` the session uses."""
 
-    def report_status(self, state: str, vehicle_id: str | None = None, **fields: Any) -> dict[str, Any]: ...
+    def report_status(self, state: str, vehicle_id: str | None = None, **fields: Any) -> object: ...
 
     def reject(self, candidate_id: str | None, crop_bgr: Any = None, position: Any = None, reason: str = "",
-               mission_id: str | None = None) -> dict[str, Any]: ...
+               mission_id: str | None = None) -> object: ...
 
-    def decisions(self, after: int = 0, vehicle_id: str | None = None) -> list[dict[str, Any]]: ...
+    def decisions(self, after: int = 0, vehicle_id: str | None = None) -> list[Decision]: ...
 
 
 class BackendSession:
@@ -121,10 +122,10 @@ class BackendSession:
         decisions = self._client.decisions(after=self._after)
         with self._lock:
             for d in decisions:
-                self._after = max(self._after, int(d.get("decision_id", 0)))
+                self._after = max(self._after, d.decision_id)
                 if not self._primed:
                     continue
-                cid = str(d.get("candidate_id", ""))
-                self._commands.append(ConfirmCandidate(cid) if d.get("action") == "confirm" else RejectCandidate(cid))
+                cid = d.candidate_id
+                self._commands.append(ConfirmCandidate(cid) if d.action == "confirm" else RejectCandidate(cid))
             self._primed = True
             self._last_success = self._clock()

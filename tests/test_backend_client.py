@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import requests
 
 from backend.app import create_app
 from backend.serving import BackgroundServer
@@ -39,7 +40,7 @@ def test_full_size_frame_boxes_come_back_in_the_callers_pixels(client: BackendCl
     assert max(iou(truth, d.box) for d in reply.detections) >= 0.5
     assert all(d.candidate_id and d.verdict in Verdict for d in reply.detections)
     assert reply.models["detector"] == "yolox_nano"
-    assert reply.raw["image_size"] == [640, 360]
+    assert reply.raw is not None and reply.raw.image_size == [640, 360]
 
 
 def test_keyframe_request_for_640x480_is_small(client: BackendClient, sequences_dir: Path) -> None:
@@ -92,11 +93,11 @@ def test_status_rejection_and_decisions_round_trip(server: BackgroundServer, cli
     x, y = int(best.box.x), int(best.box.y)
     crop = image[y : y + int(best.box.h), x : x + int(best.box.w)]
     client.report_status("AWAIT_SUPERVISOR", awaiting={"candidate_id": best.candidate_id, "box": list(best.box.xyxy())})
-    supervisor = BackendClient(server.url, SUPERVISOR)
-    supervisor._call("POST", "/v1/vehicles/drone-1/decisions", json={"candidate_id": best.candidate_id, "action": "reject"})
+    requests.post(f"{server.url}/v1/vehicles/drone-1/decisions", json={"candidate_id": best.candidate_id, "action": "reject"},
+                  headers={"Authorization": f"Bearer {SUPERVISOR}"}, timeout=10).raise_for_status()
     decisions = client.decisions()
-    assert [(d["candidate_id"], d["action"]) for d in decisions] == [(best.candidate_id, "reject")]
-    assert client.decisions(after=decisions[-1]["decision_id"]) == []
+    assert [(d.candidate_id, d.action) for d in decisions] == [(best.candidate_id, "reject")]
+    assert client.decisions(after=decisions[-1].decision_id) == []
     # The rejected person is not proposed again in this mission ...
     again = client.detect(image, PROMPT)
     same = max(again, key=lambda d: iou(d.box, best.box))
@@ -113,7 +114,7 @@ def test_worst_case_keyframe_stays_under_the_byte_budget(client: BackendClient) 
     jpeg, scale = encode_keyframe(noise, 640, 80, max_bytes=90_000)
     assert len(jpeg) <= 90_000 and 0 < scale < 1
     reply = client.detect_reply(noise, PROMPT)
-    assert reply.request_bytes <= 100_000 and reply.raw["image_size"][0] == round(640 * scale)
+    assert reply.request_bytes <= 100_000 and reply.raw is not None and reply.raw.image_size[0] == round(640 * scale)
     assert all(d.box.x2 <= 640.5 for d in reply.detections)  # boxes back in the caller's pixels
 
 
@@ -156,3 +157,45 @@ def test_keyframe_sink_gets_exactly_the_bytes_sent_and_cannot_break_a_query() ->
     broken = BackendClient("http://127.0.0.1:9", "t", timeout_s=0.5, vehicle_id="v", mission_id="m", on_keyframe=full_disk)
     with pytest.raises(BackendError):  # the failure is the unreachable back-end, not the recorder
         broken.detect(image, "a person", frame_id=43)
+
+
+def test_replies_are_validated_with_the_shared_models(sequences_dir: Path) -> None:
+    """A reply that does not fit cloudtrack.api_models is refused, e.g. a candidate id that is a path."""
+    import json as json_module
+    import threading
+    from http.server import BaseHTTPRequestHandler, HTTPServer
+
+    def reply(candidate_id: str) -> bytes:
+        candidate = {"candidate_id": candidate_id, "box": [1, 2, 30, 40], "score": 0.9, "label": "person",
+                     "verdict": "yes", "justification": "", "verifier": "none", "t_verify": 0.0}
+        timings = dict.fromkeys(("t_queue", "t_decode", "t_detect", "t_verify", "t_total"), 0.0)
+        return json_module.dumps({
+            "vehicle_id": "v", "mission_id": "m", "frame_id": None, "capture_time": None, "image_size": [640, 360],
+            "superset": "person", "candidates": [candidate], "timings": timings,
+            "models": {"detector": "d", "verifier": "none"}}).encode()
+
+    answers = [reply("c-1"), reply("../../v1/vehicles?")]
+
+    class Handler(BaseHTTPRequestHandler):
+        def do_POST(self) -> None:  # noqa: N802 - http.server's name
+            self.rfile.read(int(self.headers["Content-Length"]))
+            body = answers.pop(0)
+            self.send_response(200)
+            self.send_header("Content-Type", "application/json")
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, *args: object) -> None:
+            pass
+
+    server = HTTPServer(("127.0.0.1", 0), Handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        client = BackendClient(f"http://127.0.0.1:{server.server_port}", "t" * 16, vehicle_id="v", mission_id="m")
+        good = client.detect_reply(frame(sequences_dir), PROMPT)
+        assert [d.candidate_id for d in good.detections] == ["c-1"] and good.raw is not None
+        with pytest.raises(BackendError, match="malformed answer: candidates.0.candidate_id"):
+            client.detect(frame(sequences_dir), PROMPT)
+    finally:
+        server.shutdown()

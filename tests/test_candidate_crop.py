@@ -89,7 +89,7 @@ def test_status_carries_the_crop_once_encoded_per_candidate(sequence_dirs: list[
 @pytest.mark.timeout(60)
 def test_crop_reaches_the_back_end_store(sequence_dirs: list[Path]) -> None:
     from backend.app import create_app
-    from backend.config import AuthConfig, BackendConfig
+    from backend.config import AuthConfig, BackendConfig, SessionConfig
     from backend.serving import BackgroundServer
     from companion.backend_client import BackendClient
     from companion.backend_session import BackendSession

@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from fastapi import FastAPI
 
-from backend.config import AuthConfig, BackendConfig
 from backend.change_feed import ChangeFeed
+from backend.config import AuthConfig, BackendConfig
 from backend.sessions import SessionStore
 from backend.supervisor_routes import supervisor_router
 from tests.live_backend import SUPERVISOR_TOKEN, VEHICLE_TOKENS, LiveBackend, live_backend, serve
