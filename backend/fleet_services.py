@@ -1,5 +1,5 @@
-"""Real infrastructure processes on loopback for the fleet bench and the tests: Debian's `redis-server` and
-`nginx` as a load balancer, each on a free port in a throw-away folder, stopped with the context manager.
+"""Real processes on loopback for the fleet bench and the tests: `cloudtrack-backend serve` replicas,
+Debian's `redis-server` and `nginx` as a load balancer, each on a free port, stopped with the context manager.
 
 Redis runs with `appendonly yes` / `appendfsync always`: a write it acknowledged is on disk. nginx passes
 a request to the next replica when one is down (`proxy_next_upstream`), so killing a replica mid-run
@@ -8,13 +8,19 @@ costs the clients nothing but a retry they never see; Server-Sent Events pass un
 
 from __future__ import annotations
 
+import json
+import os
 import shutil
+import signal
 import socket
 import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
 from types import TracebackType
+
+import requests
 
 REDIS_SERVER = "/usr/bin/redis-server"
 NGINX = "/usr/sbin/nginx"
@@ -143,3 +149,72 @@ class NginxBalancer(_Service):
 
     def __enter__(self) -> NginxBalancer:
         return self.start()
+
+
+class BackendProcess:
+    """`cloudtrack-backend serve` in a child process on a free loopback port; `kill()` is a SIGKILL."""
+
+    def __init__(self, settings: list[str], tokens: dict[str, str], supervisor_token: str = "",
+                 port: int | None = None) -> None:
+        self.port = port or free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        env = {**os.environ, "CLOUDTRACK_BACKEND_AUTH__TOKENS": json.dumps(tokens)}
+        if supervisor_token:
+            env["CLOUDTRACK_BACKEND_AUTH__SUPERVISOR_TOKEN"] = supervisor_token
+        flags = [arg for s in [f"server.port={self.port}", *settings] for arg in ("--set", s)]
+        # A file, not a pipe nobody reads: a chatty server must never block on a full pipe.
+        self._log = tempfile.TemporaryFile()
+        self._process = subprocess.Popen(
+            [sys.executable, "-m", "backend.cli", "--log-level", "WARNING", "serve", *flags],
+            env=env, stdout=subprocess.DEVNULL, stderr=self._log,
+        )
+
+    def log_tail(self) -> str:
+        self._log.seek(0)
+        return self._log.read().decode(errors="replace").strip()[-800:]
+
+    @property
+    def pid(self) -> int:
+        return self._process.pid
+
+    def wait_ready(self, timeout_s: float = 60.0) -> BackendProcess:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self._process.poll() is not None:
+                raise RuntimeError(f"the back-end exited: {self.log_tail()}")
+            try:
+                if requests.get(self.url + "/health", timeout=1).ok:
+                    return self
+            except requests.RequestException:
+                pass
+            time.sleep(0.2)
+        raise RuntimeError("the back-end did not become healthy")
+
+    def rss_bytes(self) -> int:
+        """Resident memory of the server process, from /proc."""
+        for line in Path(f"/proc/{self.pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) * 1024
+        raise RuntimeError("no VmRSS for the back-end process")
+
+    def kill(self) -> None:
+        """SIGKILL: no shutdown code runs, as in a crash or an OOM kill."""
+        if self._process.poll() is None:
+            self._process.send_signal(signal.SIGKILL)
+        self._process.wait(timeout=10)
+
+    def stop(self) -> None:
+        if self._process.poll() is None:
+            self._process.terminate()
+            try:
+                self._process.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self._process.kill()
+                self._process.wait(timeout=10)
+        self._log.close()
+
+    def __enter__(self) -> BackendProcess:
+        return self.wait_ready()
+
+    def __exit__(self, kind: type[BaseException] | None, value: BaseException | None, tb: TracebackType | None) -> None:
+        self.stop()
