@@ -6,8 +6,11 @@ of fixed latency L (the OpenAI-compatible emulator in backend/vlm_emulator.py, o
    code's way): two servers, verifier pool k and 1.
 3. N simulated vehicles (threads, each its own token, sending real keyframes back to back with
    BackendClient): p50/p95 latency and throughput versus N, and bytes per request.
+4. Replicas (backend/fleet_bench.py): 16 vehicles through nginx over 1 and over 2 replicas sharing one
+   redis-server, then a failover run that SIGKILLs one replica half-way and counts acknowledged
+   rejections and decisions lost (must be 0). Needs Debian's redis-server and nginx (make install-services).
 Servers run as separate `cloudtrack-backend serve` processes so the bench's own threads do not share
-their interpreter.
+their interpreter. Each part prints a line when it starts, so a run of a few minutes shows where it is.
 """
 
 from __future__ import annotations
@@ -15,8 +18,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import socket
-import subprocess
 import sys
 import threading
 import time
@@ -25,8 +26,9 @@ from typing import Any
 
 import cv2
 import numpy as np
-import requests
 
+from backend.fleet_bench import fleet_tokens, replicated_bench
+from backend.fleet_services import BackendProcess
 from backend.vlm_emulator import MODEL_NAME, VlmEmulator
 from cloudtrack.config_files import ConfigError
 from cloudtrack.model_store import ModelError, require, resolve_model_dir
@@ -60,50 +62,17 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
     parser.add_argument("--model-dir", help="weights folder (default: $CLOUDTRACK_MODEL_DIR, then the cache)")
     parser.add_argument("--url", help="measure this running server instead (fleet part only)")
     parser.add_argument("--tokens", help='JSON {"vehicle id": "token"} for --url')
+    parser.add_argument("--replica-vehicles", type=int, default=16,
+                        help="vehicles for the 1-vs-2-replica and failover runs (default 16)")
+    parser.add_argument("--no-replicas", action="store_true",
+                        help="skip the replica runs (they need redis-server and nginx: make install-services)")
     parser.add_argument("--json", type=Path, metavar="OUT", help="write the figures as JSON")
     parser.set_defaults(func=_bench)
 
 
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        port: int = probe.getsockname()[1]
-        return port
-
-
-class ServerProcess:
-    """`cloudtrack-backend serve` in a child process on a free loopback port."""
-
-    def __init__(self, settings: list[str], tokens: dict[str, str]) -> None:
-        self.port = _free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
-        env = {**os.environ, "CLOUDTRACK_BACKEND_AUTH__TOKENS": json.dumps(tokens)}
-        flags = [arg for s in [f"server.port={self.port}", *settings] for arg in ("--set", s)]
-        self._process = subprocess.Popen(
-            [sys.executable, "-m", "backend.cli", "--log-level", "WARNING", "serve", *flags],
-            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-        )
-
-    def wait_ready(self, timeout_s: float = 60.0) -> None:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            if self._process.poll() is not None:
-                error = self._process.stderr.read().decode() if self._process.stderr else ""
-                raise RuntimeError(f"the back-end exited: {error.strip()[-500:]}")
-            try:
-                if requests.get(self.url + "/health", timeout=1).ok:
-                    return
-            except requests.RequestException:
-                pass
-            time.sleep(0.2)
-        raise RuntimeError("the back-end did not become healthy")
-
-    def stop(self) -> None:
-        self._process.terminate()
-        try:
-            self._process.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            self._process.kill()
+def say(text: str) -> None:
+    """Progress on stderr, at once: the figures go to stdout at the end."""
+    print(text, file=sys.stderr, flush=True)
 
 
 def _shared(args: argparse.Namespace) -> Path:
@@ -162,7 +131,7 @@ def _vlm_settings(base_url: str, model_dir: Path) -> list[str]:
     # One onnxruntime thread per detection and two detections at once: no oversubscribed cores.
     return ['verifier.kind="vlm"', f"vlm.base_url={json.dumps(base_url)}", f'vlm.model="{MODEL_NAME}"',
             f"detector.model_dir={json.dumps(str(model_dir))}", "vlm.max_retries=0", "detector.threads=1",
-            "sessions.detector_concurrency=2"]
+            "sessions.detector_concurrency=2", 'sessions.sqlite_path=":memory:"', "sessions.rate_limit_requests=100000"]
 
 
 def t_f_concurrent_vs_sequential(emulator: VlmEmulator, model_dir: Path, sequences: Path, k: int, latency: float) -> dict[str, Any]:
@@ -172,10 +141,11 @@ def t_f_concurrent_vs_sequential(emulator: VlmEmulator, model_dir: Path, sequenc
         settings = [*_vlm_settings(emulator.base_url, model_dir), f"verifier.concurrency={pool}",
                     f"detector.max_candidates={k}", f"verifier.timeout_s={k * latency + 10}",
                     f"verifier.request_deadline_s={k * latency + 30}"]
-        server = ServerProcess(settings, {"bench-0": "bench-token-0"})
+        say(f"  t_f with a verifier pool of {pool} ...")
+        server = BackendProcess(settings, {"bench-0": "bench-vehicle-token-0000"})
         try:
             server.wait_ready()
-            client = BackendClient(server.url, "bench-token-0", timeout_s=k * latency + 60, vehicle_id="bench-0", mission_id="t-f")
+            client = BackendClient(server.url, "bench-vehicle-token-0000", timeout_s=k * latency + 60, vehicle_id="bench-0", mission_id="t-f")
             times, counts = [], []
             for _ in range(3):
                 start = time.perf_counter()
@@ -210,6 +180,8 @@ def fleet(url: str, tokens: dict[str, str], n: int, requests_each: int, frames: 
             with lock:
                 latencies.append(time.perf_counter() - start)
                 sizes.append(reply.request_bytes)
+                if len(latencies) % max(1, len(vehicles) * requests_each // 4) == 0:
+                    say(f"    {len(latencies)}/{len(vehicles) * requests_each} keyframes answered")
 
     threads = [threading.Thread(target=vehicle, args=(v, i)) for i, v in enumerate(vehicles)]
     start = time.perf_counter()
@@ -258,6 +230,20 @@ def _print_report(report: dict[str, Any]) -> None:
     for row in report["fleet"]:
         print(f"| {row['vehicles']} | {row['requests']} | {row['errors']} | {row['p50_s']:.2f} | {row['p95_s']:.2f} | "
               f"{row['throughput_rps']:.2f} | {row['bytes_per_request']:.0f} |")
+    if "replicas" in report:
+        r = report["replicas"]
+        print(f"\nReplicas sharing one redis-server behind nginx, {r['vehicles']} vehicles "
+              f"(2 replicas on the same {os.cpu_count()} CPUs as 1):")
+        print("| replicas | requests | errors | p50 [s] | p95 [s] | throughput [req/s] |\n|---|---|---|---|---|---|")
+        for count in (1, 2):
+            row = r[f"replicas_{count}"]
+            print(f"| {count} | {row['requests']} | {row['errors']} | {row['p50_s']:.2f} | {row['p95_s']:.2f} | "
+                  f"{row['throughput_rps']:.2f} |")
+        print(f"p95 2 replicas / 1 replica = {r['replicas_2']['p95_s'] / r['replicas_1']['p95_s']:.2f}")
+        f = r["failover"]
+        print(f"Failover (one replica SIGKILLed half-way): {f['keyframes']} keyframes, {f['errors']} errors, "
+              f"p95 {f['p95_s']:.2f} s; rejections acknowledged {f['acknowledged_rejections']}, lost "
+              f"{f['lost_rejections']}; decisions acknowledged {f['acknowledged_decisions']}, lost {f['lost_decisions']}")
 
 
 def _bench(args: argparse.Namespace) -> int:
@@ -273,17 +259,26 @@ def _bench(args: argparse.Namespace) -> int:
             report["fleet"] = [fleet(args.url.rstrip("/"), tokens, n, args.requests, frames) for n in args.vehicles]
         else:
             require("yolox", model_dir)
+            say("[1/4] YOLOX detection time on one frame ...")
             report["detection"] = detection_time(model_dir, sequences)
             with VlmEmulator(latency_s=args.latency) as emulator:
+                say(f"[2/4] t_f for k={args.candidates} candidates, concurrent vs sequential ...")
                 report["t_f"] = t_f_concurrent_vs_sequential(emulator, model_dir, sequences, args.candidates, args.latency)
-                tokens = {f"bench-{i}": f"bench-token-{i}" for i in range(max(args.vehicles))}
+                tokens = fleet_tokens(max(args.vehicles))
                 settings = [*_vlm_settings(emulator.base_url, model_dir), f"verifier.concurrency={args.verify_concurrency}"]
-                server = ServerProcess(settings, tokens)
+                server = BackendProcess(settings, tokens)
                 try:
                     server.wait_ready()
-                    report["fleet"] = [fleet(server.url, tokens, n, args.requests, frames) for n in args.vehicles]
+                    report["fleet"] = []
+                    for n in args.vehicles:
+                        say(f"[3/4] fleet of {n} vehicles, {args.requests} keyframes each ...")
+                        report["fleet"].append(fleet(server.url, tokens, n, args.requests, frames))
                 finally:
                     server.stop()
+                if not args.no_replicas:
+                    say(f"[4/4] {args.replica_vehicles} vehicles over 1 and 2 replicas (redis-server, nginx) ...")
+                    report["replicas"] = replicated_bench(settings, args.replica_vehicles, args.requests, frames, PROMPT,
+                                                          fleet, say)
     except (ConfigError, ModelError, ValueError, OSError, RuntimeError, BackendError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -17,6 +17,7 @@ examples:
   cloudtrack-backend detect frame.jpg --prompt "an injured man in a gray shirt" --draw out.jpg
   cloudtrack-backend eval --coco set.json --images frames/ --verifier local --verifier none
   cloudtrack-backend bench --latency 1.0 --vehicles 1 4 16
+  sudo cloudtrack-backend service install
 """
 
 # Subcommand modules; each defines add_parser(subparsers) and sets `func` on its parser.
@@ -25,6 +26,7 @@ COMMAND_MODULES = (
     "backend.detect_command",
     "backend.eval_command",
     "backend.bench",
+    "backend.service_command",
 )
 
 

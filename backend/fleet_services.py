@@ -99,6 +99,7 @@ http {{
     uwsgi_temp_path {folder}/uwsgi;
     scgi_temp_path {folder}/scgi;
     client_max_body_size 4m;
+    client_body_buffer_size 4m;  # bodies stay in memory: no temp files for a worker user to write
     upstream backend {{
 {servers}
         keepalive 32;
@@ -135,6 +136,7 @@ class NginxBalancer(_Service):
         servers = "\n".join(
             f"        server {u.removeprefix('http://')} max_fails=1 fail_timeout=10s;" for u in upstreams
         )
+        self.folder.chmod(0o755)  # started as root, nginx's workers run as another user
         self.config = self.folder / "nginx.conf"
         self.config.write_text(NGINX_CONF.format(folder=self.folder, servers=servers, port=self.port))
         self._binary = binary
@@ -163,7 +165,7 @@ class BackendProcess:
             env["CLOUDTRACK_BACKEND_AUTH__SUPERVISOR_TOKEN"] = supervisor_token
         flags = [arg for s in [f"server.port={self.port}", *settings] for arg in ("--set", s)]
         # A file, not a pipe nobody reads: a chatty server must never block on a full pipe.
-        self._log = tempfile.TemporaryFile()
+        self._log = tempfile.TemporaryFile()  # noqa: SIM115 - closed in stop()
         self._process = subprocess.Popen(
             [sys.executable, "-m", "backend.cli", "--log-level", "WARNING", "serve", *flags],
             env=env, stdout=subprocess.DEVNULL, stderr=self._log,
