@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 SHARED ?= $(abspath ../shared)
 export CLOUDTRACK_SHARED ?= $(SHARED)
 
-.PHONY: test lint types pytest demo install clean
+.PHONY: test lint types pytest demo install clean install-services backend-redis
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -41,7 +41,24 @@ $(CHROMIUM):
 	$$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null 2>&1 || \
 	{ $$SUDO apt-get update -qq >/dev/null && $$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; }
 
-pytest: install $(CHROMIUM)
+# The back-end's replicated-state tests and `cloudtrack-backend bench` start Debian's redis-server and nginx.
+REDIS_SERVER ?= /usr/bin/redis-server
+NGINX ?= /usr/sbin/nginx
+
+$(REDIS_SERVER) $(NGINX):
+	@echo "installing Debian's redis-server and nginx for the back-end's replica tests and bench"
+	@SUDO=$$([ "$$(id -u)" = 0 ] || echo sudo); \
+	$$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq redis-server nginx >/dev/null 2>&1 || \
+	{ $$SUDO apt-get update -qq >/dev/null && $$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq redis-server nginx >/dev/null; }
+
+install-services: $(REDIS_SERVER) $(NGINX)
+
+# A redis-server for back-end replicas (sessions.store = "redis"): loopback only, every write fsync'd.
+backend-redis: $(REDIS_SERVER)
+	mkdir -p out/redis
+	$(REDIS_SERVER) --bind 127.0.0.1 --port 6379 --dir out/redis --save "" --appendonly yes --appendfsync always
+
+pytest: install $(CHROMIUM) $(REDIS_SERVER) $(NGINX)
 	$(BIN)/python -m pytest
 
 test: lint types pytest
