@@ -12,6 +12,7 @@ from __future__ import annotations
 import base64
 import json
 import re
+import sys
 import threading
 import time
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -63,6 +64,13 @@ def _image_from(messages: list[Any]) -> tuple[np.ndarray | None, str]:
                     data = base64.b64decode(url.split(",", 1)[1])
                     image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
     return image, text
+
+
+class _QuietServer(ThreadingHTTPServer):
+    def handle_error(self, request: Any, client_address: Any) -> None:
+        # A client that went away (a back-end replica killed mid-request) is not an emulator error.
+        if not isinstance(sys.exc_info()[1], ConnectionError):
+            super().handle_error(request, client_address)
 
 
 class VlmEmulator:
@@ -133,7 +141,7 @@ class VlmEmulator:
                     with emulator._lock:
                         emulator._in_flight -= 1
 
-        self._server = ThreadingHTTPServer((host, port), Handler)
+        self._server = _QuietServer((host, port), Handler)
         self._server.daemon_threads = True
         self._thread = threading.Thread(target=self._server.serve_forever, name="vlm-emulator", daemon=True)
         bound_host, bound_port = self._server.server_address[:2]
