@@ -34,7 +34,7 @@ def _jpeg_size(data: bytes) -> tuple[int, int]:
     i = 2
     while i + 4 <= len(data):
         if data[i] != 0xFF:
-            raise ImageError("the JPEG header is corrupt (no marker where one must be)")
+            raise ImageError("the image could not be decoded: its JPEG header is corrupt (no marker where one must be)")
         marker = data[i + 1]
         if marker == 0xFF:  # fill byte
             i += 1
@@ -46,7 +46,7 @@ def _jpeg_size(data: bytes) -> tuple[int, int]:
             break
         length = int.from_bytes(data[i + 2 : i + 4], "big")
         if length < 2:
-            raise ImageError("the JPEG header is corrupt (bad segment length)")
+            raise ImageError("the image could not be decoded: its JPEG header is corrupt (bad segment length)")
         if marker in _SOF_MARKERS:
             if i + 9 > len(data):
                 break
@@ -54,7 +54,7 @@ def _jpeg_size(data: bytes) -> tuple[int, int]:
             width = int.from_bytes(data[i + 7 : i + 9], "big")
             return width, height
         i += 2 + length
-    raise ImageError("the JPEG has no readable frame header (truncated or corrupt)")
+    raise ImageError("the image could not be decoded: no readable JPEG frame header (truncated or corrupt)")
 
 
 def image_size(data: bytes) -> tuple[int, int]:
@@ -63,7 +63,7 @@ def image_size(data: bytes) -> tuple[int, int]:
         raise ImageError("the image is empty")
     if data.startswith(PNG_MAGIC):
         if len(data) < 24 or data[12:16] != b"IHDR":
-            raise ImageError("the PNG header is truncated or corrupt")
+            raise ImageError("the image could not be decoded: its PNG header is truncated or corrupt")
         return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
     if data.startswith(JPEG_MAGIC):
         return _jpeg_size(data)

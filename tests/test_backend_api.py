@@ -123,8 +123,8 @@ def test_meta_that_is_not_json_or_missing_parts_is_422(client: TestClient, keyfr
     [
         (b"", 400, "empty"),
         (b"GIF89a....", 415, "JPEG or PNG"),
-        (b"\xff\xd8\xff\xe0" + bytes(500), 400, "corrupt"),
-        (b"\x89PNG\r\n\x1a\n" + bytes(30), 400, "corrupt"),
+        (b"\xff\xd8\xff\xe0" + bytes(500), 400, "could not be decoded"),
+        (b"\x89PNG\r\n\x1a\n" + bytes(30), 400, "could not be decoded"),
     ],
 )
 def test_corrupt_image_is_4xx_with_reason(client: TestClient, data: bytes, status: int, reason: str) -> None:
