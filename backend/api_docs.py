@@ -64,4 +64,6 @@ def add_offline_docs(app: FastAPI) -> None:
             return Response(_START, media_type="text/javascript; charset=utf-8")
         if name not in ASSETS:
             return Response(status_code=404)
-        return FileResponse(folder / name, media_type=ASSETS[name], headers={"Cache-Control": "max-age=86400"})
+        return FileResponse(
+            folder / name, media_type=ASSETS[name], headers={"Cache-Control": "max-age=86400"}
+        )

@@ -33,8 +33,14 @@ def _percentiles(latencies: list[float]) -> dict[str, float]:
     return {"p50_s": float(np.percentile(latencies, 50)), "p95_s": float(np.percentile(latencies, 95))}
 
 
-def failover_run(url: str, tokens: dict[str, str], requests_each: int, frames: list[np.ndarray],
-                 kill: Callable[[], None], prompt: str) -> dict[str, Any]:
+def failover_run(
+    url: str,
+    tokens: dict[str, str],
+    requests_each: int,
+    frames: list[np.ndarray],
+    kill: Callable[[], None],
+    prompt: str,
+) -> dict[str, Any]:
     """Keyframes + rejections + decisions from every vehicle; `kill()` half-way; then count what was kept."""
     acked_rejections: list[tuple[str, str, int]] = []  # vehicle, mission, rejection_id
     acked_decisions: list[tuple[str, int]] = []  # vehicle, decision_id
@@ -49,7 +55,9 @@ def failover_run(url: str, tokens: dict[str, str], requests_each: int, frames: l
 
     def vehicle(vehicle_id: str, offset: int) -> None:
         mission = f"failover-{vehicle_id}"
-        client = BackendClient(url, tokens[vehicle_id], timeout_s=120, vehicle_id=vehicle_id, mission_id=mission)
+        client = BackendClient(
+            url, tokens[vehicle_id], timeout_s=120, vehicle_id=vehicle_id, mission_id=mission
+        )
         for i in range(requests_each):
             frame = frames[(offset + i) % len(frames)]
             try:
@@ -60,8 +68,11 @@ def failover_run(url: str, tokens: dict[str, str], requests_each: int, frames: l
                 with lock:
                     latencies.append(elapsed)
                     acked_rejections.append((vehicle_id, mission, rejection.rejection_id))
-                answer = supervisor.post(f"{url}/v1/vehicles/{vehicle_id}/decisions",
-                                         json={"candidate_id": f"c-{i}", "action": "reject"}, timeout=60)
+                answer = supervisor.post(
+                    f"{url}/v1/vehicles/{vehicle_id}/decisions",
+                    json={"candidate_id": f"c-{i}", "action": "reject"},
+                    timeout=60,
+                )
                 if answer.status_code == 201:
                     with lock:
                         acked_decisions.append((vehicle_id, int(answer.json()["decision_id"])))
@@ -87,9 +98,13 @@ def failover_run(url: str, tokens: dict[str, str], requests_each: int, frames: l
     # What was acknowledged must be there, read through whichever replica is left.
     lost_rejections = 0
     for vehicle_id, mission in {(v, m) for v, m, _ in acked_rejections}:
-        kept = supervisor.get(f"{url}/v1/missions/{mission}/rejections", params={"vehicle_id": vehicle_id}, timeout=30)
+        kept = supervisor.get(
+            f"{url}/v1/missions/{mission}/rejections", params={"vehicle_id": vehicle_id}, timeout=30
+        )
         ids = {r["rejection_id"] for r in kept.json()}
-        lost_rejections += sum(1 for v, m, rid in acked_rejections if (v, m) == (vehicle_id, mission) and rid not in ids)
+        lost_rejections += sum(
+            1 for v, m, rid in acked_rejections if (v, m) == (vehicle_id, mission) and rid not in ids
+        )
     lost_decisions = 0
     for vehicle_id in {v for v, _ in acked_decisions}:
         drone = {"Authorization": f"Bearer {tokens[vehicle_id]}"}
@@ -111,15 +126,25 @@ def failover_run(url: str, tokens: dict[str, str], requests_each: int, frames: l
     }
 
 
-def replicated_bench(settings: list[str], n: int, requests_each: int, frames: list[np.ndarray], prompt: str,
-                     fleet: Callable[[str, dict[str, str], int, int, list[np.ndarray]], dict[str, float]],
-                     say: Callable[[str], None]) -> dict[str, Any]:
+def replicated_bench(
+    settings: list[str],
+    n: int,
+    requests_each: int,
+    frames: list[np.ndarray],
+    prompt: str,
+    fleet: Callable[[str, dict[str, str], int, int, list[np.ndarray]], dict[str, float]],
+    say: Callable[[str], None],
+) -> dict[str, Any]:
     """Latency over 1 and 2 replicas (same Redis, behind nginx), then the failover run."""
     tokens = fleet_tokens(n)
     result: dict[str, Any] = {"vehicles": n}
     with RedisServer() as redis_server:
-        shared = [*settings, 'sessions.store="redis"', f'sessions.redis_url="{redis_server.url}"',
-                  "sessions.rate_limit_requests=100000"]
+        shared = [
+            *settings,
+            'sessions.store="redis"',
+            f'sessions.redis_url="{redis_server.url}"',
+            "sessions.rate_limit_requests=100000",
+        ]
         replicas = [BackendProcess(shared, tokens, SUPERVISOR_TOKEN) for _ in range(2)]
         try:
             for replica in replicas:
@@ -130,7 +155,9 @@ def replicated_bench(settings: list[str], n: int, requests_each: int, frames: li
                     result[f"replicas_{count}"] = fleet(balancer.url, tokens, n, requests_each, frames)
             with NginxBalancer([r.url for r in replicas]) as balancer:
                 say(f"  failover: {n} vehicles over 2 replicas, one SIGKILLed half-way ...")
-                result["failover"] = failover_run(balancer.url, tokens, requests_each, frames, replicas[1].kill, prompt)
+                result["failover"] = failover_run(
+                    balancer.url, tokens, requests_each, frames, replicas[1].kill, prompt
+                )
         finally:
             for replica in replicas:
                 replica.stop()

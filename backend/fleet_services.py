@@ -61,7 +61,9 @@ class _Service:
                 self._process.wait(timeout=10)
         shutil.rmtree(self.folder, ignore_errors=True)
 
-    def __exit__(self, kind: type[BaseException] | None, value: BaseException | None, tb: TracebackType | None) -> None:
+    def __exit__(
+        self, kind: type[BaseException] | None, value: BaseException | None, tb: TracebackType | None
+    ) -> None:
         self.stop()
 
 
@@ -73,9 +75,29 @@ class RedisServer(_Service):
         if not Path(binary).exists():
             raise RuntimeError(f"{binary} is missing: install Debian's redis-server (make install-services)")
         self.url = f"redis://127.0.0.1:{self.port}/0"
-        self._command = [binary, "--bind", "127.0.0.1", "--port", str(self.port), "--dir", str(self.folder),
-                         "--save", "", "--appendonly", "yes", "--appendfsync", "always", "--protected-mode", "yes",
-                         "--daemonize", "no", "--loglevel", "warning", "--maxmemory", "256mb"]
+        self._command = [
+            binary,
+            "--bind",
+            "127.0.0.1",
+            "--port",
+            str(self.port),
+            "--dir",
+            str(self.folder),
+            "--save",
+            "",
+            "--appendonly",
+            "yes",
+            "--appendfsync",
+            "always",
+            "--protected-mode",
+            "yes",
+            "--daemonize",
+            "no",
+            "--loglevel",
+            "warning",
+            "--maxmemory",
+            "256mb",
+        ]
 
     def start(self) -> RedisServer:
         self._process = subprocess.Popen(self._command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -143,8 +165,17 @@ class NginxBalancer(_Service):
 
     def start(self) -> NginxBalancer:
         self._process = subprocess.Popen(
-            [self._binary, "-c", str(self.config), "-p", str(self.folder), "-e", str(self.folder / "error.log")],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+            [
+                self._binary,
+                "-c",
+                str(self.config),
+                "-p",
+                str(self.folder),
+                "-e",
+                str(self.folder / "error.log"),
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
         )
         _wait_for_port(self.port, self._process, "nginx")
         return self
@@ -156,8 +187,9 @@ class NginxBalancer(_Service):
 class BackendProcess:
     """`cloudtrack-backend serve` in a child process on a free loopback port; `kill()` is a SIGKILL."""
 
-    def __init__(self, settings: list[str], tokens: dict[str, str], supervisor_token: str = "",
-                 port: int | None = None) -> None:
+    def __init__(
+        self, settings: list[str], tokens: dict[str, str], supervisor_token: str = "", port: int | None = None
+    ) -> None:
         self.port = port or free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         env = {**os.environ, "CLOUDTRACK_BACKEND_AUTH__TOKENS": json.dumps(tokens)}
@@ -168,7 +200,9 @@ class BackendProcess:
         self._log = tempfile.TemporaryFile()  # noqa: SIM115 - closed in stop()
         self._process = subprocess.Popen(
             [sys.executable, "-m", "backend.cli", "--log-level", "WARNING", "serve", *flags],
-            env=env, stdout=subprocess.DEVNULL, stderr=self._log,
+            env=env,
+            stdout=subprocess.DEVNULL,
+            stderr=self._log,
         )
 
     def log_tail(self) -> str:
@@ -218,5 +252,7 @@ class BackendProcess:
     def __enter__(self) -> BackendProcess:
         return self.wait_ready()
 
-    def __exit__(self, kind: type[BaseException] | None, value: BaseException | None, tb: TracebackType | None) -> None:
+    def __exit__(
+        self, kind: type[BaseException] | None, value: BaseException | None, tb: TracebackType | None
+    ) -> None:
         self.stop()

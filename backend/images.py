@@ -34,7 +34,9 @@ def _jpeg_size(data: bytes) -> tuple[int, int]:
     i = 2
     while i + 4 <= len(data):
         if data[i] != 0xFF:
-            raise ImageError("the image could not be decoded: its JPEG header is corrupt (no marker where one must be)")
+            raise ImageError(
+                "the image could not be decoded: its JPEG header is corrupt (no marker where one must be)"
+            )
         marker = data[i + 1]
         if marker == 0xFF:  # fill byte
             i += 1
@@ -46,7 +48,9 @@ def _jpeg_size(data: bytes) -> tuple[int, int]:
             break
         length = int.from_bytes(data[i + 2 : i + 4], "big")
         if length < 2:
-            raise ImageError("the image could not be decoded: its JPEG header is corrupt (bad segment length)")
+            raise ImageError(
+                "the image could not be decoded: its JPEG header is corrupt (bad segment length)"
+            )
         if marker in _SOF_MARKERS:
             if i + 9 > len(data):
                 break
@@ -87,7 +91,9 @@ def decode_image(data: bytes, max_pixels: int) -> np.ndarray:
     if image is None or image.size == 0:
         raise ImageError("the image could not be decoded (corrupt or truncated JPEG/PNG)")
     if image.shape[:2] != (height, width):  # a header that lied about the size
-        raise ImageError(f"the image decodes to {image.shape[1]}x{image.shape[0]}, not its header's {width}x{height}")
+        raise ImageError(
+            f"the image decodes to {image.shape[1]}x{image.shape[0]}, not its header's {width}x{height}"
+        )
     return image
 
 

@@ -33,8 +33,9 @@ CHANNEL = PREFIX + "changes"
 class RedisStore(StateStore):
     def __init__(self, url: str, client: redis.Redis | None = None) -> None:
         # Any: redis-py's command types are unions of sync and async results.
-        self._redis: Any = client or redis.Redis.from_url(url, socket_timeout=5, socket_connect_timeout=5,
-                                                     health_check_interval=30)
+        self._redis: Any = client or redis.Redis.from_url(
+            url, socket_timeout=5, socket_connect_timeout=5, health_check_interval=30
+        )
         self._redis.ping()  # fail at start-up, not on the first request
         self._pubsub: Any = None
         self._pubsub_lock = threading.Lock()
@@ -54,10 +55,13 @@ class RedisStore(StateStore):
                     if pipe.zscore(per_vehicle, mission) is None:
                         live = int(pipe.zcount(per_vehicle, now - ttl_s, "+inf"))
                         if live >= max_missions:
-                            oldest = pipe.zrangebyscore(per_vehicle, now - ttl_s, "+inf", start=0, num=1, withscores=True)
+                            oldest = pipe.zrangebyscore(
+                                per_vehicle, now - ttl_s, "+inf", start=0, num=1, withscores=True
+                            )
                             first = float(oldest[0][1]) if oldest else now
                             raise QuotaExceededError(
-                                f"vehicle {vehicle!r} already has {live} live missions (the limit)", first + ttl_s - now
+                                f"vehicle {vehicle!r} already has {live} live missions (the limit)",
+                                first + ttl_s - now,
                             )
                     pipe.multi()
                     pipe.zadd(per_vehicle, {mission: now})
@@ -99,7 +103,9 @@ class RedisStore(StateStore):
         value = self._redis.hget(self._k("cand", vehicle, mission), candidate_id)
         return bytes(value) if value is not None else None
 
-    def add_rejection(self, vehicle: str, mission: str, record: Rejection, appearance: bytes, limit: int) -> Rejection:
+    def add_rejection(
+        self, vehicle: str, mission: str, record: Rejection, appearance: bytes, limit: int
+    ) -> Rejection:
         records, vectors = self._k("rej", vehicle, mission), self._k("rejapp", vehicle, mission)
         with self._redis.pipeline() as pipe:
             while True:
@@ -107,8 +113,12 @@ class RedisStore(StateStore):
                     pipe.watch(records)
                     count = int(pipe.llen(records))
                     if count >= limit:
-                        raise QuotaExceededError(f"mission {mission!r} of {vehicle!r} holds {count} rejections (the limit)", 60)
-                    stored = record.model_copy(update={"rejection_id": int(self._redis.incr(self._k("ids", "rejection")))})
+                        raise QuotaExceededError(
+                            f"mission {mission!r} of {vehicle!r} holds {count} rejections (the limit)", 60
+                        )
+                    stored = record.model_copy(
+                        update={"rejection_id": int(self._redis.incr(self._k("ids", "rejection")))}
+                    )
                     pipe.multi()
                     pipe.rpush(records, stored.model_dump_json())
                     pipe.rpush(vectors, appearance)
@@ -140,11 +150,20 @@ class RedisStore(StateStore):
 
     def statuses(self) -> list[VehicleStatus]:
         values = self._redis.hgetall(self._k("status"))
-        return sorted((VehicleStatus.model_validate_json(v) for v in values.values()), key=lambda s: s.vehicle_id)
+        return sorted(
+            (VehicleStatus.model_validate_json(v) for v in values.values()), key=lambda s: s.vehicle_id
+        )
 
-    def add_decision(self, vehicle: str, mission: str | None, decision: DecisionIn, created_at: float) -> Decision:
-        record = Decision(decision_id=int(self._redis.incr(self._k("ids", "decision"))), vehicle_id=vehicle,
-                          mission_id=mission, created_at=created_at, **decision.model_dump())
+    def add_decision(
+        self, vehicle: str, mission: str | None, decision: DecisionIn, created_at: float
+    ) -> Decision:
+        record = Decision(
+            decision_id=int(self._redis.incr(self._k("ids", "decision"))),
+            vehicle_id=vehicle,
+            mission_id=mission,
+            created_at=created_at,
+            **decision.model_dump(),
+        )
         with self._redis.pipeline() as pipe:
             pipe.rpush(self._k("dec", vehicle), record.model_dump_json())
             pipe.ltrim(self._k("dec", vehicle), -DECISIONS_KEPT_PER_VEHICLE, -1)
@@ -153,7 +172,9 @@ class RedisStore(StateStore):
         return record
 
     def decisions(self, vehicle: str, after: int = 0) -> list[Decision]:
-        records = [Decision.model_validate_json(r) for r in self._redis.lrange(self._k("dec", vehicle), 0, -1)]
+        records = [
+            Decision.model_validate_json(r) for r in self._redis.lrange(self._k("dec", vehicle), 0, -1)
+        ]
         return [d for d in records if d.decision_id > after]
 
     def rate_hit(self, vehicle: str, now: float, limit: int, window_s: float) -> float | None:

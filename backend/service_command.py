@@ -40,10 +40,18 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     install.add_argument("--print", dest="print_only", action="store_true", help="print, write nothing")
-    install.add_argument("--unit-dir", type=Path, default=Path("/etc/systemd/system"),
-                         help="where the unit goes (default /etc/systemd/system)")
-    install.add_argument("--config-dir", type=Path, default=Path("/etc/cloudtrack"),
-                         help="where backend.toml goes (default /etc/cloudtrack)")
+    install.add_argument(
+        "--unit-dir",
+        type=Path,
+        default=Path("/etc/systemd/system"),
+        help="where the unit goes (default /etc/systemd/system)",
+    )
+    install.add_argument(
+        "--config-dir",
+        type=Path,
+        default=Path("/etc/cloudtrack"),
+        help="where backend.toml goes (default /etc/cloudtrack)",
+    )
     install.add_argument("--force", action="store_true", help="overwrite an existing configuration file")
     install.set_defaults(func=_install, backend=True)
 

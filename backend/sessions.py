@@ -86,7 +86,9 @@ class SessionStore:
 
     # Candidates and rejections
 
-    def remember_candidates(self, vehicle_id: str, mission_id: str, candidates: list[tuple[str, list[float]]]) -> None:
+    def remember_candidates(
+        self, vehicle_id: str, mission_id: str, candidates: list[tuple[str, list[float]]]
+    ) -> None:
         """Keep the appearance of proposed candidates so a rejection by id can be matched later."""
         self.state.put_candidates(vehicle_id, mission_id, [(cid, vector_bytes(a)) for cid, a in candidates])
 
@@ -100,7 +102,11 @@ class SessionStore:
         )
         self.open_mission(vehicle_id, mission_id)
         if appearance is None:
-            known = self.state.candidate(vehicle_id, mission_id, rejection.candidate_id) if rejection.candidate_id else None
+            known = (
+                self.state.candidate(vehicle_id, mission_id, rejection.candidate_id)
+                if rejection.candidate_id
+                else None
+            )
             if known is None:
                 raise UnknownCandidateError(
                     f"candidate {rejection.candidate_id!r} is unknown in mission {mission_id!r} of {vehicle_id!r}; "
@@ -205,7 +211,11 @@ class SessionStore:
                 )
             except (UnknownCandidateError, ImageError, ValueError, QuotaExceededError) as exc:
                 # Unknown candidate without a crop, a crop that cannot be read: nothing to match later.
-                log.warning("reject of %s by the supervisor not remembered for matching: %s", decision.candidate_id, exc)
+                log.warning(
+                    "reject of %s by the supervisor not remembered for matching: %s",
+                    decision.candidate_id,
+                    exc,
+                )
         return self.state.add_decision(vehicle_id, mission_id, decision, self._clock())
 
     def decisions(self, vehicle_id: str, after: int = 0) -> list[Decision]:

@@ -64,7 +64,9 @@ class StateStore(ABC):
     def candidate(self, vehicle: str, mission: str, candidate_id: str) -> bytes | None: ...
 
     @abstractmethod
-    def add_rejection(self, vehicle: str, mission: str, record: Rejection, appearance: bytes, limit: int) -> Rejection:
+    def add_rejection(
+        self, vehicle: str, mission: str, record: Rejection, appearance: bytes, limit: int
+    ) -> Rejection:
         """Store it under a new rejection_id; the mission's `limit`-th + 1 rejection: QuotaExceededError."""
 
     @abstractmethod
@@ -80,7 +82,9 @@ class StateStore(ABC):
     def statuses(self) -> list[VehicleStatus]: ...
 
     @abstractmethod
-    def add_decision(self, vehicle: str, mission: str | None, decision: DecisionIn, created_at: float) -> Decision:
+    def add_decision(
+        self, vehicle: str, mission: str | None, decision: DecisionIn, created_at: float
+    ) -> Decision:
         """Store it durably under a new decision_id before returning."""
 
     @abstractmethod
@@ -173,7 +177,8 @@ class SqliteStore(StateStore):
                     ).fetchone()
                     if live >= max_missions:
                         raise QuotaExceededError(
-                            f"vehicle {vehicle!r} already has {live} live missions (the limit)", oldest + ttl_s - now
+                            f"vehicle {vehicle!r} already has {live} live missions (the limit)",
+                            oldest + ttl_s - now,
                         )
                 self._db.execute(
                     "INSERT INTO missions VALUES (?, ?, ?) ON CONFLICT (vehicle, mission) DO UPDATE SET last_seen = ?",
@@ -186,13 +191,17 @@ class SqliteStore(StateStore):
 
     def expire(self, cutoff: float) -> int:
         with self._lock:
-            stale = self._db.execute("SELECT vehicle, mission FROM missions WHERE last_seen < ?", (cutoff,)).fetchall()
+            stale = self._db.execute(
+                "SELECT vehicle, mission FROM missions WHERE last_seen < ?", (cutoff,)
+            ).fetchall()
             if not stale:
                 return 0
             self._db.execute("BEGIN IMMEDIATE")
             for vehicle, mission in stale:
                 for table in ("missions", "candidates", "rejections"):
-                    self._db.execute(f"DELETE FROM {table} WHERE vehicle = ? AND mission = ?", (vehicle, mission))
+                    self._db.execute(
+                        f"DELETE FROM {table} WHERE vehicle = ? AND mission = ?", (vehicle, mission)
+                    )
             self._db.execute("COMMIT")
             return len(stale)
 
@@ -200,15 +209,19 @@ class SqliteStore(StateStore):
         if not items:
             return
         statements: list[tuple[str, tuple[object, ...]]] = [
-            ("INSERT OR REPLACE INTO candidates (vehicle, mission, candidate_id, appearance) VALUES (?, ?, ?, ?)",
-             (vehicle, mission, cid, blob))
+            (
+                "INSERT OR REPLACE INTO candidates (vehicle, mission, candidate_id, appearance) VALUES (?, ?, ?, ?)",
+                (vehicle, mission, cid, blob),
+            )
             for cid, blob in items
         ]
-        statements.append((
-            "DELETE FROM candidates WHERE vehicle = ? AND mission = ? AND seq NOT IN "
-            "(SELECT seq FROM candidates WHERE vehicle = ? AND mission = ? ORDER BY seq DESC LIMIT ?)",
-            (vehicle, mission, vehicle, mission, CANDIDATES_PER_MISSION),
-        ))
+        statements.append(
+            (
+                "DELETE FROM candidates WHERE vehicle = ? AND mission = ? AND seq NOT IN "
+                "(SELECT seq FROM candidates WHERE vehicle = ? AND mission = ? ORDER BY seq DESC LIMIT ?)",
+                (vehicle, mission, vehicle, mission, CANDIDATES_PER_MISSION),
+            )
+        )
         self._write(statements)
 
     def candidate(self, vehicle: str, mission: str, candidate_id: str) -> bytes | None:
@@ -218,7 +231,9 @@ class SqliteStore(StateStore):
         )
         return bytes(rows[0][0]) if rows else None
 
-    def add_rejection(self, vehicle: str, mission: str, record: Rejection, appearance: bytes, limit: int) -> Rejection:
+    def add_rejection(
+        self, vehicle: str, mission: str, record: Rejection, appearance: bytes, limit: int
+    ) -> Rejection:
         with self._lock:
             self._db.execute("BEGIN IMMEDIATE")
             try:
@@ -226,14 +241,17 @@ class SqliteStore(StateStore):
                     "SELECT count(*) FROM rejections WHERE vehicle = ? AND mission = ?", (vehicle, mission)
                 ).fetchone()
                 if count >= limit:
-                    raise QuotaExceededError(f"mission {mission!r} of {vehicle!r} holds {count} rejections (the limit)", 60)
+                    raise QuotaExceededError(
+                        f"mission {mission!r} of {vehicle!r} holds {count} rejections (the limit)", 60
+                    )
                 cursor = self._db.execute(
                     "INSERT INTO rejections (vehicle, mission, record, appearance) VALUES (?, ?, '', ?)",
                     (vehicle, mission, appearance),
                 )
                 stored = record.model_copy(update={"rejection_id": cursor.lastrowid})
                 self._db.execute(
-                    "UPDATE rejections SET record = ? WHERE rejection_id = ?", (stored.model_dump_json(), cursor.lastrowid)
+                    "UPDATE rejections SET record = ? WHERE rejection_id = ?",
+                    (stored.model_dump_json(), cursor.lastrowid),
                 )
             except BaseException:
                 self._db.execute("ROLLBACK")
@@ -249,27 +267,46 @@ class SqliteStore(StateStore):
         return [(Rejection.model_validate_json(str(r)), bytes(a)) for r, a in rows]
 
     def set_status(self, status: VehicleStatus) -> None:
-        self._write([
-            ("INSERT OR REPLACE INTO statuses VALUES (?, ?)", (status.vehicle_id, status.model_dump_json())),
-            ("UPDATE counters SET value = value + 1 WHERE name = 'version'", ()),
-        ])
+        self._write(
+            [
+                (
+                    "INSERT OR REPLACE INTO statuses VALUES (?, ?)",
+                    (status.vehicle_id, status.model_dump_json()),
+                ),
+                ("UPDATE counters SET value = value + 1 WHERE name = 'version'", ()),
+            ]
+        )
 
     def status(self, vehicle: str) -> VehicleStatus | None:
         rows = self._read("SELECT record FROM statuses WHERE vehicle = ?", (vehicle,))
         return VehicleStatus.model_validate_json(str(rows[0][0])) if rows else None
 
     def statuses(self) -> list[VehicleStatus]:
-        return [VehicleStatus.model_validate_json(str(r)) for (r,) in self._read("SELECT record FROM statuses ORDER BY vehicle")]
+        return [
+            VehicleStatus.model_validate_json(str(r))
+            for (r,) in self._read("SELECT record FROM statuses ORDER BY vehicle")
+        ]
 
-    def add_decision(self, vehicle: str, mission: str | None, decision: DecisionIn, created_at: float) -> Decision:
+    def add_decision(
+        self, vehicle: str, mission: str | None, decision: DecisionIn, created_at: float
+    ) -> Decision:
         with self._lock:
             self._db.execute("BEGIN IMMEDIATE")
             try:
-                cursor = self._db.execute("INSERT INTO decisions (vehicle, record) VALUES (?, '')", (vehicle,))
-                record = Decision(decision_id=int(cursor.lastrowid or 0), vehicle_id=vehicle, mission_id=mission,
-                                  created_at=created_at, **decision.model_dump())
-                self._db.execute("UPDATE decisions SET record = ? WHERE decision_id = ?",
-                                 (record.model_dump_json(), record.decision_id))
+                cursor = self._db.execute(
+                    "INSERT INTO decisions (vehicle, record) VALUES (?, '')", (vehicle,)
+                )
+                record = Decision(
+                    decision_id=int(cursor.lastrowid or 0),
+                    vehicle_id=vehicle,
+                    mission_id=mission,
+                    created_at=created_at,
+                    **decision.model_dump(),
+                )
+                self._db.execute(
+                    "UPDATE decisions SET record = ? WHERE decision_id = ?",
+                    (record.model_dump_json(), record.decision_id),
+                )
                 self._db.execute(
                     "DELETE FROM decisions WHERE vehicle = ? AND decision_id NOT IN "
                     "(SELECT decision_id FROM decisions WHERE vehicle = ? ORDER BY decision_id DESC LIMIT ?)",
@@ -284,7 +321,8 @@ class SqliteStore(StateStore):
 
     def decisions(self, vehicle: str, after: int = 0) -> list[Decision]:
         rows = self._read(
-            "SELECT record FROM decisions WHERE vehicle = ? AND decision_id > ? ORDER BY decision_id", (vehicle, after)
+            "SELECT record FROM decisions WHERE vehicle = ? AND decision_id > ? ORDER BY decision_id",
+            (vehicle, after),
         )
         return [Decision.model_validate_json(str(r)) for (r,) in rows]
 

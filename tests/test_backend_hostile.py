@@ -64,8 +64,11 @@ def person_crop_b64(sequences_dir: Path) -> str:
 
 
 def _detect(client: TestClient, keyframe: bytes, vehicle: str, mission: str) -> list[dict[str, Any]]:
-    response = client.post("/v1/detect", headers=auth(vehicle),
-                           **detect_parts(keyframe, vehicle_id=vehicle, mission_id=mission, prompt=PROMPT))
+    response = client.post(
+        "/v1/detect",
+        headers=auth(vehicle),
+        **detect_parts(keyframe, vehicle_id=vehicle, mission_id=mission, prompt=PROMPT),
+    )
     assert response.status_code == 200, response.text
     candidates: list[dict[str, Any]] = response.json()["candidates"]
     return candidates
@@ -113,19 +116,26 @@ def test_hostile_keyframes_are_decoded_inside_the_vehicles_queue(
 
 def test_hostile_bomb_crops_are_refused_on_every_route(client: TestClient) -> None:
     bomb = base64.b64encode(header_bomb(8700, 8700)).decode()
-    rejection = client.post("/v1/missions/m-b/rejections", json={"vehicle_id": "drone-1", "crop_jpeg_b64": bomb},
-                            headers=auth())
+    rejection = client.post(
+        "/v1/missions/m-b/rejections", json={"vehicle_id": "drone-1", "crop_jpeg_b64": bomb}, headers=auth()
+    )
     assert rejection.status_code == 413 and "8700x8700" in rejection.json()["detail"]
     awaiting = {"candidate_id": "c-bomb", "box": [0, 0, 10, 10], "crop_jpeg_b64": bomb}
-    status = client.post("/v1/vehicles/drone-1/status", json={"mission_id": "m-b", "state": "AWAIT", "awaiting": awaiting},
-                         headers=auth())
+    status = client.post(
+        "/v1/vehicles/drone-1/status",
+        json={"mission_id": "m-b", "state": "AWAIT", "awaiting": awaiting},
+        headers=auth(),
+    )
     assert status.status_code == 422, status.text  # never stored, so the supervisor's Reject never decodes it
 
 
 def test_hostile_mission_flood_hits_the_quota_with_retry_after(client: TestClient) -> None:
     answers = [
-        client.post("/v1/vehicles/drone-2/status", json={"mission_id": f"flood-{i}", "state": "SEARCH"},
-                    headers=auth("drone-2"))
+        client.post(
+            "/v1/vehicles/drone-2/status",
+            json={"mission_id": f"flood-{i}", "state": "SEARCH"},
+            headers=auth("drone-2"),
+        )
         for i in range(8)
     ]
     codes = [a.status_code for a in answers]
@@ -135,13 +145,17 @@ def test_hostile_mission_flood_hits_the_quota_with_retry_after(client: TestClien
 
 
 def test_hostile_request_rate_quota_answers_429_with_retry_after(models_dir: Path) -> None:
-    app = create_app(backend_config(models_dir, "sessions.rate_limit_requests=5", "sessions.rate_limit_window_s=60"))
+    app = create_app(
+        backend_config(models_dir, "sessions.rate_limit_requests=5", "sessions.rate_limit_window_s=60")
+    )
     with TestClient(app) as client:
         codes = [client.get("/v1/vehicles/drone-1/decisions", headers=auth()).status_code for _ in range(8)]
         assert codes[:5] == [200] * 5 and codes[5:] == [429] * 3
         refused = client.get("/v1/vehicles/drone-1/decisions", headers=auth())
         assert 0 < int(refused.headers["Retry-After"]) <= 60
-        assert client.get("/v1/vehicles/drone-2/decisions", headers=auth("drone-2")).status_code == 200  # per vehicle
+        assert (
+            client.get("/v1/vehicles/drone-2/decisions", headers=auth("drone-2")).status_code == 200
+        )  # per vehicle
         assert client.get("/v1/vehicles", headers=SUP).status_code == 200  # the supervisor has no rate quota
 
 
@@ -152,8 +166,12 @@ def test_hostile_expiry_reads_only_the_expired_missions() -> None:
     for i in range(300):
         store.open_mission(f"v{i % 3}", f"m{i}")
     db = store.state._db  # type: ignore[attr-defined]
-    plan = " ".join(str(row) for row in db.execute(
-        "EXPLAIN QUERY PLAN SELECT vehicle, mission FROM missions WHERE last_seen < ?", (0.0,)))
+    plan = " ".join(
+        str(row)
+        for row in db.execute(
+            "EXPLAIN QUERY PLAN SELECT vehicle, mission FROM missions WHERE last_seen < ?", (0.0,)
+        )
+    )
     assert "missions_by_age" in plan, plan
     now[0] += 30
     store.open_mission("v0", "fresh")
@@ -168,7 +186,9 @@ def test_hostile_reject_with_an_undecodable_stored_crop_still_records_the_decisi
     garbage = base64.b64encode(b"\xff\xd8\xff" + b"\x00" * 40).decode()
     awaiting = AwaitingCandidate(candidate_id="c1", box=[0, 0, 10, 10], crop_jpeg_b64=garbage)
     # Written straight to the state: e.g. kept from a version that did not check crops.
-    store.state.set_status(VehicleStatus(vehicle_id="d1", updated_at=1.0, mission_id="m1", state="AWAIT", awaiting=awaiting))
+    store.state.set_status(
+        VehicleStatus(vehicle_id="d1", updated_at=1.0, mission_id="m1", state="AWAIT", awaiting=awaiting)
+    )
     decision = store.add_decision("d1", DecisionIn(candidate_id="c1", action="reject"))
     assert store.decisions("d1") == [decision] and decision.action == "reject"
 
@@ -176,42 +196,61 @@ def test_hostile_reject_with_an_undecodable_stored_crop_still_records_the_decisi
 def test_hostile_supervisor_note_over_the_limit_is_422_and_at_the_limit_201(client: TestClient) -> None:
     crop = base64.b64encode(jpeg(np.full((40, 20, 3), 90, np.uint8))).decode()
     awaiting = {"candidate_id": "c-note", "box": [0, 0, 10, 10], "crop_jpeg_b64": crop}
-    assert client.post("/v1/vehicles/drone-1/status", json={"mission_id": "m-note", "state": "AWAIT", "awaiting": awaiting},
-                       headers=auth()).status_code == 200
+    assert (
+        client.post(
+            "/v1/vehicles/drone-1/status",
+            json={"mission_id": "m-note", "state": "AWAIT", "awaiting": awaiting},
+            headers=auth(),
+        ).status_code
+        == 200
+    )
     url = "/supervisor/api/vehicles/drone-1/candidates/c-note/decision"
     assert client.post(url, json={"decision": "reject", "note": "x" * 501}, headers=SUP).status_code == 422
     assert client.post(url, json={"decision": "reject", "note": "x" * 500}, headers=SUP).status_code == 201
-    api = client.post("/v1/vehicles/drone-1/decisions", json={"candidate_id": "c-note", "action": "confirm", "note": "y" * 501},
-                      headers=SUP)
+    api = client.post(
+        "/v1/vehicles/drone-1/decisions",
+        json={"candidate_id": "c-note", "action": "confirm", "note": "y" * 501},
+        headers=SUP,
+    )
     assert api.status_code == 422
 
 
 def test_hostile_candidate_ids_cannot_become_paths(client: TestClient) -> None:
     evil = "../../../../../v1/vehicles?"
     awaiting = {"candidate_id": evil, "box": [0, 0, 10, 10]}
-    status = client.post("/v1/vehicles/drone-1/status", json={"mission_id": "m-p", "state": "AWAIT", "awaiting": awaiting},
-                         headers=auth())
+    status = client.post(
+        "/v1/vehicles/drone-1/status",
+        json={"mission_id": "m-p", "state": "AWAIT", "awaiting": awaiting},
+        headers=auth(),
+    )
     assert status.status_code == 422
-    decision = client.post("/v1/vehicles/drone-1/decisions", json={"candidate_id": evil, "action": "reject"}, headers=SUP)
+    decision = client.post(
+        "/v1/vehicles/drone-1/decisions", json={"candidate_id": evil, "action": "reject"}, headers=SUP
+    )
     assert decision.status_code == 422
-    rejection = client.post("/v1/missions/m-p/rejections", json={"vehicle_id": "drone-1", "candidate_id": evil},
-                            headers=auth())
+    rejection = client.post(
+        "/v1/missions/m-p/rejections", json={"vehicle_id": "drone-1", "candidate_id": evil}, headers=auth()
+    )
     assert rejection.status_code == 422
 
 
 def test_hostile_responses_carry_browser_hardening_headers(client: TestClient) -> None:
     for path in ("/supervisor", "/health", "/docs", "/v1/vehicles"):
         headers = client.get(path, headers=SUP).headers
-        assert "frame-ancestors 'none'" in headers["content-security-policy"] and "script-src 'self'" in headers[
-            "content-security-policy"], path
+        assert (
+            "frame-ancestors 'none'" in headers["content-security-policy"]
+            and "script-src 'self'" in headers["content-security-policy"]
+        ), path
         assert headers["x-frame-options"] == "DENY" and headers["x-content-type-options"] == "nosniff", path
 
 
 def test_hostile_openapi_declares_bearer_and_docs_need_no_cdn(client: TestClient) -> None:
     schema = client.get("/openapi.json").json()
     assert schema["components"]["securitySchemes"]["bearer"] == {
-        "type": "http", "scheme": "bearer",
-        "description": "A vehicle's token (auth.tokens) or the supervisor's (auth.supervisor_token)."}
+        "type": "http",
+        "scheme": "bearer",
+        "description": "A vehicle's token (auth.tokens) or the supervisor's (auth.supervisor_token).",
+    }
     assert {"bearer": []} in schema["paths"]["/v1/detect"]["post"]["security"]
     page = client.get("/docs").text
     assert "cdn" not in page.lower() and "http" not in page.replace("http-equiv", "")
@@ -222,11 +261,19 @@ def test_hostile_openapi_declares_bearer_and_docs_need_no_cdn(client: TestClient
 
 
 def test_hostile_default_config_turns_the_supervisor_page_off_instead_of_asking(models_dir: Path) -> None:
-    app = create_app(load_backend_config(None, [f'detector.model_dir="{models_dir}"', 'sessions.sqlite_path=":memory:"'],
-                                         environ={}))
+    app = create_app(
+        load_backend_config(
+            None, [f'detector.model_dir="{models_dir}"', 'sessions.sqlite_path=":memory:"'], environ={}
+        )
+    )
     with TestClient(app) as client:
         assert client.get("/supervisor/api/enabled").json() == {"enabled": False}
-        assert client.get("/supervisor/api/state", headers={"Authorization": "Bearer anything-at-all-here"}).status_code == 401
+        assert (
+            client.get(
+                "/supervisor/api/state", headers={"Authorization": "Bearer anything-at-all-here"}
+            ).status_code
+            == 401
+        )
 
 
 def test_hostile_body_that_never_completes_is_cut_off(models_dir: Path) -> None:
@@ -234,9 +281,12 @@ def test_hostile_body_that_never_completes_is_cut_off(models_dir: Path) -> None:
     with BackgroundServer(app) as server:
         host, port = server.url.removeprefix("http://").split(":")
         with socket.create_connection((host, int(port)), timeout=10) as conn:
-            conn.sendall(b"POST /v1/missions/m/rejections HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer "
-                         + TOKENS["drone-1"].encode() + b"\r\nContent-Type: application/json\r\n"
-                         b"Content-Length: 1000\r\n\r\n{\"vehicle_id\": ")
+            conn.sendall(
+                b"POST /v1/missions/m/rejections HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer "
+                + TOKENS["drone-1"].encode()
+                + b"\r\nContent-Type: application/json\r\n"
+                b'Content-Length: 1000\r\n\r\n{"vehicle_id": '
+            )
             started = time.monotonic()
             answer = b""
             while chunk := conn.recv(4096):  # until the server closes the connection
@@ -266,10 +316,13 @@ def test_hostile_config_errors_never_echo_tokens() -> None:
 
 
 def test_hostile_all_digit_tokens_are_tokens() -> None:
-    config = load_backend_config(None, environ={
-        "CLOUDTRACK_BACKEND_AUTH__TOKENS": '{"drone-1": 12345678901234567890}',
-        "CLOUDTRACK_BACKEND_AUTH__SUPERVISOR_TOKEN": "98765432109876543210",
-    })
+    config = load_backend_config(
+        None,
+        environ={
+            "CLOUDTRACK_BACKEND_AUTH__TOKENS": '{"drone-1": 12345678901234567890}',
+            "CLOUDTRACK_BACKEND_AUTH__SUPERVISOR_TOKEN": "98765432109876543210",
+        },
+    )
     assert config.auth.tokens == {"drone-1": "12345678901234567890"}
     assert config.auth.supervisor_token == "98765432109876543210"
 
@@ -283,9 +336,15 @@ def test_hostile_all_digit_tokens_are_tokens() -> None:
         ({}, "short", "supervisor_token is shorter"),
     ],
 )
-def test_hostile_weak_auth_configurations_are_refused(tokens: dict[str, str], supervisor: str, problem: str) -> None:
-    message = _load({"CLOUDTRACK_BACKEND_AUTH__TOKENS": json.dumps(tokens),
-                     "CLOUDTRACK_BACKEND_AUTH__SUPERVISOR_TOKEN": supervisor})
+def test_hostile_weak_auth_configurations_are_refused(
+    tokens: dict[str, str], supervisor: str, problem: str
+) -> None:
+    message = _load(
+        {
+            "CLOUDTRACK_BACKEND_AUTH__TOKENS": json.dumps(tokens),
+            "CLOUDTRACK_BACKEND_AUTH__SUPERVISOR_TOKEN": supervisor,
+        }
+    )
     assert problem in message
     for token in [*tokens.values(), supervisor]:
         assert len(token) < 3 or f"'{token}'" not in message and f'"{token}"' not in message
@@ -293,9 +352,18 @@ def test_hostile_weak_auth_configurations_are_refused(tokens: dict[str, str], su
 
 def test_hostile_config_show_hides_tokens_and_keys() -> None:
     token, key = "companion-token-abcdef-0001", "ab" * 32
-    env = {"CLOUDTRACK_BACKEND__TOKEN": token, "CLOUDTRACK_MAVLINK__SIGNING_KEY": key, "PATH": "/usr/bin:/bin"}
-    shown = subprocess.run([sys.executable, "-m", "companion.cli", "config", "show"], capture_output=True, text=True,
-                           env={**env, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}, timeout=60)
+    env = {
+        "CLOUDTRACK_BACKEND__TOKEN": token,
+        "CLOUDTRACK_MAVLINK__SIGNING_KEY": key,
+        "PATH": "/usr/bin:/bin",
+    }
+    shown = subprocess.run(
+        [sys.executable, "-m", "companion.cli", "config", "show"],
+        capture_output=True,
+        text=True,
+        env={**env, "PYTHONPATH": str(Path(__file__).resolve().parents[1])},
+        timeout=60,
+    )
     assert shown.returncode == 0, shown.stderr
     assert token not in shown.stdout and key not in shown.stdout
     assert 'token = "<hidden>"' in shown.stdout and 'signing_key = "<hidden>"' in shown.stdout

@@ -39,8 +39,15 @@ def state(request: pytest.FixtureRequest, tmp_path: Path, redis_server: RedisSer
 
 
 def _rejection(vehicle: str, mission: str, candidate: str) -> Rejection:
-    return Rejection(rejection_id=0, mission_id=mission, vehicle_id=vehicle, candidate_id=candidate, position=None,
-                     reason="", created_at=1.0)
+    return Rejection(
+        rejection_id=0,
+        mission_id=mission,
+        vehicle_id=vehicle,
+        candidate_id=candidate,
+        position=None,
+        reason="",
+        created_at=1.0,
+    )
 
 
 def test_store_missions_are_per_vehicle_capped_and_expire(state: StateStore) -> None:

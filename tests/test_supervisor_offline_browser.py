@@ -44,11 +44,15 @@ def offline_page() -> Iterator[tuple[Page, list[str]]]:
 
 
 @pytest.mark.slow
-def test_offline_docs_show_swagger_ui_with_authorize(offline_page: tuple[Page, list[str]], models_dir: Path) -> None:
+def test_offline_docs_show_swagger_ui_with_authorize(
+    offline_page: tuple[Page, list[str]], models_dir: Path
+) -> None:
     page, outside = offline_page
     with live_backend(models_dir) as backend:
         page.goto(f"{backend.url}/docs")
-        expect(page.locator(".swagger-ui .info .title")).to_contain_text("CloudTrack back-end", timeout=20_000)
+        expect(page.locator(".swagger-ui .info .title")).to_contain_text(
+            "CloudTrack back-end", timeout=20_000
+        )
         expect(page.locator(".opblock-summary-path", has_text="/v1/detect")).to_be_visible()
         authorize = page.locator("button.authorize")
         expect(authorize).to_be_visible()
@@ -60,10 +64,13 @@ def test_offline_docs_show_swagger_ui_with_authorize(offline_page: tuple[Page, l
 
 
 @pytest.mark.slow
-def test_offline_default_supervisor_page_says_it_is_off(offline_page: tuple[Page, list[str]], models_dir: Path) -> None:
+def test_offline_default_supervisor_page_says_it_is_off(
+    offline_page: tuple[Page, list[str]], models_dir: Path
+) -> None:
     page, outside = offline_page
-    config = load_backend_config(None, [f'detector.model_dir="{models_dir}"', 'sessions.sqlite_path=":memory:"'],
-                                 environ={})
+    config = load_backend_config(
+        None, [f'detector.model_dir="{models_dir}"', 'sessions.sqlite_path=":memory:"'], environ={}
+    )
     with serve(create_app(config)) as url:
         page.goto(f"{url}/supervisor")
         expect(page.locator("#disabled")).to_be_visible(timeout=20_000)

@@ -34,8 +34,12 @@ def replicas(models_dir: Path) -> Iterator[tuple[str, str]]:
 
 
 def _report(url: str, vehicle: str, state: str) -> None:
-    response = httpx.post(f"{url}/v1/vehicles/{vehicle}/status", json={"mission_id": "m-1", "state": state},
-                          headers={"Authorization": f"Bearer {VEHICLE_TOKENS[vehicle]}"}, timeout=10)
+    response = httpx.post(
+        f"{url}/v1/vehicles/{vehicle}/status",
+        json={"mission_id": "m-1", "state": state},
+        headers={"Authorization": f"Bearer {VEHICLE_TOKENS[vehicle]}"},
+        timeout=10,
+    )
     assert response.status_code == 200, response.text
 
 
@@ -51,8 +55,10 @@ def test_replicas_each_show_the_whole_fleet(replicas: tuple[str, str]) -> None:
 def test_replicas_push_a_report_made_on_the_other_replica(replicas: tuple[str, str]) -> None:
     first, second = replicas
     _report(first, "drone-1", "SEARCH")
-    with httpx.Client(base_url=second, timeout=15) as client, \
-            client.stream("GET", "/supervisor/events", headers=SUPERVISOR) as stream:
+    with (
+        httpx.Client(base_url=second, timeout=15) as client,
+        client.stream("GET", "/supervisor/events", headers=SUPERVISOR) as stream,
+    ):
         lines = stream.iter_lines()
         read_events(lines, 1)
         started = time.monotonic()
