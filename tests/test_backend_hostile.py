@@ -367,3 +367,17 @@ def test_hostile_config_show_hides_tokens_and_keys() -> None:
     assert shown.returncode == 0, shown.stderr
     assert token not in shown.stdout and key not in shown.stdout
     assert 'token = "<hidden>"' in shown.stdout and 'signing_key = "<hidden>"' in shown.stdout
+
+
+def test_hostile_rejection_flood_hits_the_missions_quota_with_retry_after(models_dir: Path) -> None:
+    app = create_app(backend_config(models_dir, "sessions.max_rejections_per_mission=2"))
+    crop = base64.b64encode(jpeg(np.full((40, 20, 3), 90, np.uint8))).decode()
+    body = {"vehicle_id": "drone-1", "crop_jpeg_b64": crop}
+    with TestClient(app) as client:
+        answers = [client.post("/v1/missions/m-r/rejections", json=body, headers=auth()) for _ in range(3)]
+        assert [a.status_code for a in answers] == [201, 201, 429]
+        assert (
+            int(answers[2].headers["Retry-After"]) > 0
+            and "rejections (the limit)" in answers[2].json()["detail"]
+        )
+        assert len(client.get("/v1/missions/m-r/rejections", headers=auth()).json()) == 2  # none forgotten
