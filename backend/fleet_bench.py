@@ -18,7 +18,7 @@ import numpy as np
 import requests
 
 from backend.fleet_services import BackendProcess, NginxBalancer, RedisServer
-from companion.backend_client import BackendClient, BackendError
+from cloudtrack.api_client import BackendClient, BackendError
 
 SUPERVISOR_TOKEN = "bench-supervisor-token-0001"
 

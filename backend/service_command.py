@@ -11,6 +11,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from cloudtrack import service_install
+
 EXAMPLES = """\
 examples:
   sudo cloudtrack-backend service install                   # /etc/systemd/system + /etc/cloudtrack
@@ -53,10 +55,4 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
         help="where backend.toml goes (default /etc/cloudtrack)",
     )
     install.add_argument("--force", action="store_true", help="overwrite an existing configuration file")
-    install.set_defaults(func=_install, backend=True)
-
-
-def _install(args: argparse.Namespace) -> int:
-    from companion import service_command  # one installer for both units
-
-    return service_command._install(args)
+    install.set_defaults(func=service_install.install, backend=True)  # one installer for both units

@@ -14,7 +14,7 @@ from typing import Any
 
 from fastapi import APIRouter
 
-from companion.service_notify import ServiceNotifier, ping_while_healthy
+from cloudtrack.service_notify import ServiceNotifier, ping_while_healthy
 
 
 def lifecycle_router(notifier: ServiceNotifier | None = None) -> APIRouter:

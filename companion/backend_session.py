@@ -28,7 +28,7 @@ _CROP_FIELDS = ("crop_jpeg_b64", "crop_box")
 
 
 class SessionClient(Protocol):
-    """The parts of `companion.backend_client.BackendClient` the session uses."""
+    """The parts of `cloudtrack.api_client.BackendClient` the session uses."""
 
     def report_status(self, state: str, vehicle_id: str | None = None, **fields: Any) -> object: ...
 

@@ -24,7 +24,7 @@ log = logging.getLogger(__name__)
 
 
 class DetectionService(Protocol):
-    """The back-end as the companion sees it (`companion.backend_client.BackendClient` implements it).
+    """The back-end as the companion sees it (`cloudtrack.api_client.BackendClient` implements it).
 
     `detect` sends one keyframe with the request fields (prompt, superset, frame_id, ...) and returns the
     candidates with boxes in the pixels of `image` as passed; it raises on any failure (timeout, HTTP

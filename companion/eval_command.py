@@ -104,7 +104,7 @@ def _yolox(path: Path) -> Any:
 
 def _detector(args: argparse.Namespace, model_dir: Path, seq: SequenceData) -> DetectFn | None:
     if args.backend:
-        from companion.backend_client import BackendClient, BackendError
+        from cloudtrack.api_client import BackendClient, BackendError
 
         backend = args.backend_config
         client = BackendClient(args.backend, backend.token, backend.timeout_s, backend.jpeg_quality,

@@ -57,7 +57,7 @@ from companion.backend_worker import BackendWorker
 from companion.candidate_crop import candidate_crop
 from companion.frame_sources import Frame, FrameSource
 from companion.safety_watchdog import BACKEND_UNREACHABLE, HEARTBEAT_LOST, SafetyEvent
-from companion.service_notify import Notifier
+from cloudtrack.service_notify import Notifier
 
 log = logging.getLogger(__name__)
 

@@ -78,12 +78,12 @@ def run(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    from companion.backend_client import BackendClient
+    from cloudtrack.api_client import BackendClient
     from companion.backend_session import BackendSession
     from companion.backend_worker import BackendWorker
     from companion.frame_sources import SourceError, open_source
     from companion.mission_runner import EventLogObserver, LoopObserver, LoopSettings, MissionRunner
-    from companion.service_notify import ServiceNotifier
+    from cloudtrack.service_notify import ServiceNotifier
     from companion.tracking_frontend import TrackingFrontend
     from companion.vehicle_link import VehicleLink
 

@@ -16,7 +16,7 @@ from backend.serving import BackgroundServer
 from backend.vlm_emulator import VlmEmulator
 from behaviors.detection import Verdict
 from behaviors.geometry import Box, iou
-from companion.backend_client import BackendClient, BackendError, encode_keyframe
+from cloudtrack.api_client import BackendClient, BackendError, encode_keyframe
 from tests.backend_fixtures import SUPERVISOR, TOKENS, backend_config, frame
 
 PROMPT = "the man in the green-and-white striped shirt"

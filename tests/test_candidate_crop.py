@@ -91,7 +91,7 @@ def test_crop_reaches_the_back_end_store(sequence_dirs: list[Path]) -> None:
     from backend.app import create_app
     from backend.config import AuthConfig, BackendConfig, SessionConfig
     from backend.serving import BackgroundServer
-    from companion.backend_client import BackendClient
+    from cloudtrack.api_client import BackendClient
     from companion.backend_session import BackendSession
     from sitl.simulated_detector import SimulatedPersonDetector
 

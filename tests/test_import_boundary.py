@@ -27,3 +27,59 @@ def test_behaviors_imports_only_stdlib_and_itself() -> None:
         for name in _imports(path):
             assert name == "behaviors" or name == "__future__" or name in sys.stdlib_module_names, (path, name)
             assert name not in FORBIDDEN_STDLIB, f"{path} imports {name}: no clocks, sockets or threads in behaviors"
+
+
+# --- The direction of imports between the packages (issue 16) -------------------------------------------
+# behaviors is the pure core and imports nothing of ours (above); cloudtrack is the infrastructure every
+# process shares and may use the core's value types; the process packages build on both and never on each
+# other; sitl drives everything and nothing depends on it. Tests may import anything.
+ROOT = BEHAVIORS.parent
+PACKAGES = ("behaviors", "cloudtrack", "companion", "backend", "sitl")
+MAY_IMPORT: dict[str, set[str]] = {
+    "behaviors": set(),
+    "cloudtrack": {"behaviors"},
+    "companion": {"cloudtrack", "behaviors"},
+    "backend": {"cloudtrack", "behaviors"},
+    "sitl": {"cloudtrack", "behaviors", "companion", "backend"},
+}
+# Known violations, to be removed, never added to: (importing module, imported package).
+# - companion/eval_command.py runs the back-end's detector in process for `eval --detector local`.
+# - companion/run_command.py imports sitl to register the `sim+tcp` frame-source scheme.
+KNOWN_VIOLATIONS_TO_REMOVE: set[tuple[str, str]] = {
+    ("companion/eval_command.py", "backend"),
+    ("companion/run_command.py", "sitl"),
+}
+
+
+def _cross_package_imports() -> set[tuple[str, str]]:
+    """(module path, our package it imports) for every import of another of our packages, lazy ones too."""
+    found: set[tuple[str, str]] = set()
+    for package in PACKAGES:
+        for path in sorted((ROOT / package).rglob("*.py")):
+            for name in _imports(path) & set(PACKAGES):
+                if name != package:
+                    found.add((path.relative_to(ROOT).as_posix(), name))
+    return found
+
+
+def test_import_direction_between_packages() -> None:
+    found = _cross_package_imports()
+    wrong = sorted(
+        (module, name)
+        for module, name in found
+        if name not in MAY_IMPORT[module.split("/")[0]] and (module, name) not in KNOWN_VIOLATIONS_TO_REMOVE
+    )
+    assert wrong == [], "imports against the direction cloudtrack/behaviors <- companion, backend <- sitl"
+
+
+def test_import_direction_allow_list_only_shrinks() -> None:
+    """An entry that no longer happens must leave the allow-list, so it cannot cover a new violation later."""
+    found = _cross_package_imports()
+    stale = sorted(KNOWN_VIOLATIONS_TO_REMOVE - found)
+    assert stale == [], f"fixed, remove from KNOWN_VIOLATIONS_TO_REMOVE: {stale}"
+
+
+def test_nothing_imports_sitl_and_the_process_packages_stay_apart() -> None:
+    found = _cross_package_imports() - KNOWN_VIOLATIONS_TO_REMOVE
+    assert sorted(m for m, name in found if name == "sitl") == []
+    assert sorted((m, name) for m, name in found if {m.split("/")[0], name} == {"companion", "backend"}) == []

@@ -192,7 +192,7 @@ def test_backend_session_reports_status_and_delivers_supervisor_decisions(tmp_pa
     from backend.config import AuthConfig, BackendConfig, SessionConfig
     from backend.serving import BackgroundServer
     from behaviors.mission_commands import ConfirmCandidate, RejectCandidate
-    from companion.backend_client import BackendClient
+    from cloudtrack.api_client import BackendClient
     from companion.backend_session import BackendSession
     from sitl.simulated_detector import SimulatedPersonDetector
 

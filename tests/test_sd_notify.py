@@ -28,7 +28,7 @@ import pytest
 from companion.flight_record import read_events
 from companion.gcs_cli import _tunnel
 from companion.gcs_link import CMD_START, encode_prompt
-from companion.service_notify import ServiceNotifier, ping_while_healthy, watchdog_interval_s
+from cloudtrack.service_notify import ServiceNotifier, ping_while_healthy, watchdog_interval_s
 from tests.camera_stream import CAMERA_FPS, CameraStream
 from tests.live_backend import free_port
 from tests.mavlink_harness import autopilot, gcs, receive_until, wait_for
@@ -139,7 +139,7 @@ def test_event_loop_pinger_stops_when_unhealthy(notify_socket: tuple[socket.sock
 def test_a_child_process_inherits_the_socket_from_the_environment(notify_socket: tuple[socket.socket, str]) -> None:
     """The way systemd hands the socket over: an environment variable read by a separate process."""
     sock, path = notify_socket
-    code = "from companion.service_notify import ServiceNotifier as N; n = N.from_environment(); n.ready(); n.watchdog()"
+    code = "from cloudtrack.service_notify import ServiceNotifier as N; n = N.from_environment(); n.ready(); n.watchdog()"
     env = {**os.environ, "NOTIFY_SOCKET": path, "WATCHDOG_USEC": "1000000"}
     subprocess.run([sys.executable, "-c", code], env=env, check=True, timeout=60)
     assert receive(sock) == ["READY=1"]

@@ -156,7 +156,7 @@ def test_backend_install_names_the_backend_program_and_its_config(tmp_path: Path
 
 
 def test_the_package_ships_the_units_and_configs_of_the_source_tree() -> None:
-    """`companion/systemd/` links to config/ (wheels copy the content), so an installed package has them."""
-    shipped = REPO / "companion" / "systemd"
+    """`cloudtrack/systemd/` links to config/ (wheels copy the content), so an installed package has them."""
+    shipped = REPO / "cloudtrack" / "systemd"
     for name in ("cloudtrack-companion.service", "cloudtrack-backend.service", "companion.toml", "backend.toml"):
         assert (shipped / name).read_text() == (REPO / "config" / name).read_text(), name

@@ -1,4 +1,7 @@
-"""The companion's side of the back-end API: send a keyframe, get verified candidates back.
+"""The client side of the back-end API: send a keyframe, get verified candidates back.
+
+Used by the companion on the drone and by the back-end's own benchmarks, so it lives here and neither
+process package imports the other.
 
 Keyframes are downscaled to `max_width` and JPEG-encoded before sending (a 640x480 keyframe is about
 30-60 KB at quality 80, against 1.2 MB of pickled raw pixels in the reference code); boxes in the answer
