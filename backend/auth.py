@@ -1,29 +1,20 @@
 """Bearer tokens: one per vehicle and one for the supervisor, all from configuration.
 
 Missing or unknown token -> 401; a valid token used for another vehicle's data -> 403. Tokens are
-compared in constant time. FastAPI dependencies for routes: `authenticated`, `require_supervisor`.
-They read the token through FastAPI's `HTTPBearer`, so the OpenAPI schema declares the bearer scheme and
-/docs has an Authorize button; the 401 answers stay the service's own (auto_error=False).
+compared in constant time. The routes get the caller through `backend.dependencies` (`Caller`,
+`SupervisorCaller`), which reads the Authorization header and asks `principal_for` here.
 """
 
 from __future__ import annotations
 
 import hmac
 from dataclasses import dataclass
-from typing import Annotated
 
-from fastapi import Depends, HTTPException, Request
-from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from fastapi import HTTPException
 
 from backend.config import AuthConfig
 
 CHALLENGE = {"WWW-Authenticate": "Bearer"}
-bearer = HTTPBearer(
-    auto_error=False,
-    scheme_name="bearer",
-    description="A vehicle's token (auth.tokens) or the supervisor's (auth.supervisor_token).",
-)
-Credentials = Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)]
 
 
 @dataclass(frozen=True)
@@ -55,18 +46,6 @@ def principal_for(auth: AuthConfig, authorization: str | None) -> Principal:
     if match is None:
         raise HTTPException(401, "invalid bearer token", headers=CHALLENGE)
     return match
-
-
-def authenticated(request: Request, _credentials: Credentials) -> Principal:
-    # The header is parsed here, not from `_credentials`, so that a malformed one gets this module's answer.
-    return principal_for(request.app.state.config.auth, request.headers.get("authorization"))
-
-
-def require_supervisor(request: Request, credentials: Credentials) -> Principal:
-    principal = authenticated(request, credentials)
-    if not principal.is_supervisor:
-        raise HTTPException(403, "this endpoint needs the supervisor token")
-    return principal
 
 
 def require_vehicle_access(principal: Principal, vehicle_id: str) -> None:

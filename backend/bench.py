@@ -30,9 +30,9 @@ import numpy as np
 from backend.fleet_bench import fleet_tokens, replicated_bench
 from backend.fleet_services import BackendProcess
 from backend.vlm_emulator import MODEL_NAME, VlmEmulator
+from cloudtrack.api_client import BackendClient, BackendError
 from cloudtrack.config_files import ConfigError
 from cloudtrack.model_store import ModelError, require, resolve_model_dir
-from cloudtrack.api_client import BackendClient, BackendError
 
 PROMPT = "a man in a gray shirt"
 SOURCES = [("uav123_person12_1", 1), ("uav123_person12_1", 100), ("otb_Crossing", 1), ("otb_Crossing", 60),

@@ -53,11 +53,11 @@ from behaviors.mission_config import MissionConfig
 from behaviors.setpoint import Setpoint
 from behaviors.telemetry import Telemetry
 from behaviors.track_result import TrackResult
+from cloudtrack.service_notify import Notifier
 from companion.backend_worker import BackendWorker
 from companion.candidate_crop import candidate_crop
 from companion.frame_sources import Frame, FrameSource
 from companion.safety_watchdog import BACKEND_UNREACHABLE, HEARTBEAT_LOST, SafetyEvent
-from cloudtrack.service_notify import Notifier
 
 log = logging.getLogger(__name__)
 

@@ -79,11 +79,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     from cloudtrack.api_client import BackendClient
+    from cloudtrack.service_notify import ServiceNotifier
     from companion.backend_session import BackendSession
     from companion.backend_worker import BackendWorker
     from companion.frame_sources import SourceError, open_source
     from companion.mission_runner import EventLogObserver, LoopObserver, LoopSettings, MissionRunner
-    from cloudtrack.service_notify import ServiceNotifier
     from companion.tracking_frontend import TrackingFrontend
     from companion.vehicle_link import VehicleLink
 

@@ -61,10 +61,10 @@ def test_durability_rejected_person_stays_rejected_after_sigkill(
             ).status_code
             == 200
         )
-        url = f"{server.url}/supervisor/api/vehicles/drone-1/candidates/{best['candidate_id']}/decision"
+        url = f"{server.url}/v1/vehicles/drone-1/decisions?require_awaiting=true"
         reject = requests.post(
             url,
-            json={"decision": "reject", "note": "not him"},
+            json={"candidate_id": best["candidate_id"], "action": "reject", "note": "not him"},
             headers={"Authorization": f"Bearer {SUPERVISOR}"},
             timeout=10,
         )

@@ -23,6 +23,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 import backend.images
+import backend.routers.detection
 from backend.app import create_app
 from backend.config import load_backend_config
 from backend.serving import BackgroundServer
@@ -103,13 +104,13 @@ def test_hostile_keyframes_are_decoded_inside_the_vehicles_queue(
     client: TestClient, sequences_dir: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     running: list[int] = []
-    real = backend.app.decode_image  # type: ignore[attr-defined]
+    real = backend.routers.detection.decode_image
 
     def watched(data: bytes, max_pixels: int) -> np.ndarray:
         running.append(client.app.state.scheduler.running)  # type: ignore[attr-defined]
         return real(data, max_pixels)
 
-    monkeypatch.setattr("backend.app.decode_image", watched)
+    monkeypatch.setattr("backend.routers.detection.decode_image", watched)
     _detect(client, jpeg(frame(sequences_dir)), "drone-1", "queue")
     assert running == [1]  # the slot was held while decoding
 
@@ -204,9 +205,10 @@ def test_hostile_supervisor_note_over_the_limit_is_422_and_at_the_limit_201(clie
         ).status_code
         == 200
     )
-    url = "/supervisor/api/vehicles/drone-1/candidates/c-note/decision"
-    assert client.post(url, json={"decision": "reject", "note": "x" * 501}, headers=SUP).status_code == 422
-    assert client.post(url, json={"decision": "reject", "note": "x" * 500}, headers=SUP).status_code == 201
+    url = "/v1/vehicles/drone-1/decisions?require_awaiting=true"  # as the supervisor page sends it
+    page = {"candidate_id": "c-note", "action": "reject"}
+    assert client.post(url, json={**page, "note": "x" * 501}, headers=SUP).status_code == 422
+    assert client.post(url, json={**page, "note": "x" * 500}, headers=SUP).status_code == 201
     api = client.post(
         "/v1/vehicles/drone-1/decisions",
         json={"candidate_id": "c-note", "action": "confirm", "note": "y" * 501},

@@ -17,8 +17,10 @@ from fastapi import FastAPI
 
 from backend.change_feed import ChangeFeed
 from backend.config import AuthConfig, BackendConfig
+from backend.dependencies import EventStreamLimits, get_event_stream_limits
+from backend.routers import supervisor
 from backend.sessions import SessionStore
-from backend.supervisor_routes import supervisor_router
+from backend.supervisor_view import SupervisorView
 from tests.live_backend import SUPERVISOR_TOKEN, VEHICLE_TOKENS, LiveBackend, live_backend, serve
 
 SUPERVISOR = {"Authorization": f"Bearer {SUPERVISOR_TOKEN}"}
@@ -77,14 +79,14 @@ def test_page_and_assets_are_served_without_data(backend: LiveBackend) -> None:
 def test_everything_with_data_needs_the_supervisor_token(backend: LiveBackend, crop_b64: str) -> None:
     with httpx.Client(base_url=backend.url, timeout=10) as client:
         report(client, "AWAITING_SUPERVISOR", candidate(crop_b64))
-        decision_url = "/supervisor/api/vehicles/drone-1/candidates/c-17/decision"
+        decision_url = "/v1/vehicles/drone-1/decisions?require_awaiting=true"
         for method, url in (
             ("GET", "/supervisor/api/state"),
             ("GET", "/supervisor/events"),
             ("GET", "/supervisor/api/vehicles/drone-1/candidates/c-17/crop.jpg"),
             ("POST", decision_url),
         ):
-            body = {"decision": "confirm"} if method == "POST" else None
+            body = {"candidate_id": "c-17", "action": "confirm"} if method == "POST" else None
             assert client.request(method, url, json=body).status_code == 401, url
             wrong = {"Authorization": "Bearer not-a-token"}
             assert client.request(method, url, json=body, headers=wrong).status_code == 401, url
@@ -114,15 +116,21 @@ def test_snapshot_crop_and_decision_reach_the_vehicle(backend: LiveBackend, crop
         assert crop.content == base64.b64decode(crop_b64)
         assert cv2.imdecode(np.frombuffer(crop.content, np.uint8), cv2.IMREAD_COLOR) is not None
 
-        url = "/supervisor/api/vehicles/drone-1/candidates/c-21/decision"
-        assert client.post(url, json={"decision": "maybe"}, headers=SUPERVISOR).status_code == 422
-        assert client.post(url, json={"decision": "confirm", "x": 1}, headers=SUPERVISOR).status_code == 422
-        stale = client.post("/supervisor/api/vehicles/drone-1/candidates/c-20/decision", json={"decision": "confirm"}, headers=SUPERVISOR)
+        url = "/v1/vehicles/drone-1/decisions?require_awaiting=true"
+        c21 = {"candidate_id": "c-21"}
+        assert client.post(url, json={**c21, "action": "maybe"}, headers=SUPERVISOR).status_code == 422
+        assert client.post(url, json={**c21, "action": "confirm", "x": 1}, headers=SUPERVISOR).status_code == 422
+        stale = client.post(url, json={"candidate_id": "c-20", "action": "confirm"}, headers=SUPERVISOR)
         assert stale.status_code == 409 and "no longer waiting" in stale.json()["detail"]
-        unknown = client.post("/supervisor/api/vehicles/drone-9/candidates/c-21/decision", json={"decision": "reject"}, headers=SUPERVISOR)
+        unknown = client.post(
+            "/v1/vehicles/drone-9/decisions?require_awaiting=true", json={**c21, "action": "reject"}, headers=SUPERVISOR
+        )
         assert unknown.status_code == 404
+        # The page's own decision path is gone: the API's endpoint above is the only one.
+        gone = "/supervisor/api/vehicles/drone-1/candidates/c-21/decision"
+        assert client.post(gone, json={"decision": "confirm"}, headers=SUPERVISOR).status_code in (404, 405)
 
-        posted = client.post(url, json={"decision": "confirm"}, headers=SUPERVISOR)
+        posted = client.post(url, json={**c21, "action": "confirm"}, headers=SUPERVISOR)
         assert posted.status_code == 201, posted.text
         # The companion polls its session exactly as it does for a decision made anywhere else.
         polled = client.get("/v1/vehicles/drone-1/decisions", params={"after": 0}, headers=DRONE).json()
@@ -184,7 +192,9 @@ def test_an_event_stream_ends_after_its_lifetime_so_shutdowns_are_never_held() -
     app.state.config = BackendConfig(auth=AuthConfig(supervisor_token=SUPERVISOR_TOKEN))
     store = SessionStore()
     feed = ChangeFeed(store.state).start()
-    app.include_router(supervisor_router(store, feed, max_stream_s=1.0))
+    app.state.sessions, app.state.feed, app.state.supervisor_view = store, feed, SupervisorView(store)
+    app.include_router(supervisor.router)
+    app.dependency_overrides[get_event_stream_limits] = lambda: EventStreamLimits(max_stream_s=1.0)
     try:
         with serve(app) as url, httpx.Client(base_url=url, timeout=15) as client:
             started = time.monotonic()
@@ -200,8 +210,10 @@ def test_an_event_stream_ends_after_its_lifetime_so_shutdowns_are_never_held() -
 def test_reject_reaches_the_vehicle_and_the_missions_rejection_memory(backend: LiveBackend, crop_b64: str) -> None:
     with httpx.Client(base_url=backend.url, timeout=10) as client:
         report(client, "AWAITING_SUPERVISOR", candidate(crop_b64, "c-50"))
-        url = "/supervisor/api/vehicles/drone-1/candidates/c-50/decision"
-        posted = client.post(url, json={"decision": "reject", "note": "wrong shirt"}, headers=SUPERVISOR)
+        url = "/v1/vehicles/drone-1/decisions?require_awaiting=true"
+        posted = client.post(
+            url, json={"candidate_id": "c-50", "action": "reject", "note": "wrong shirt"}, headers=SUPERVISOR
+        )
         assert posted.status_code == 201, posted.text
         polled = client.get("/v1/vehicles/drone-1/decisions", headers=DRONE).json()
         assert (polled[-1]["candidate_id"], polled[-1]["action"], polled[-1]["note"]) == ("c-50", "reject", "wrong shirt")

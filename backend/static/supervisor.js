@@ -210,11 +210,12 @@ async function decide(vehicleId, candidateId, decision, item) {
   item.dataset.sent = "1";
   const note = $(".decision", item);
   note.textContent = `${decision} sent…`;
-  const url = `/supervisor/api/vehicles/${encodeURIComponent(vehicleId)}/candidates/${encodeURIComponent(candidateId)}/decision`;
+  // The API's one decision endpoint; require_awaiting: 409 instead of deciding on a candidate gone stale.
+  const url = `/v1/vehicles/${encodeURIComponent(vehicleId)}/decisions?require_awaiting=true`;
   const response = await fetch(url, {
     method: "POST",
     headers: authHeaders({ "Content-Type": "application/json" }),
-    body: JSON.stringify({ decision }),
+    body: JSON.stringify({ candidate_id: candidateId, action: decision, note: "supervisor page" }),
   });
   if (response.ok) {
     note.textContent = `${decision} sent, waiting for the vehicle`;

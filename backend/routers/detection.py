@@ -1,0 +1,115 @@
+"""POST /v1/detect: a vehicle's keyframe in, the superset's candidates out, each verified against the prompt.
+
+Hostile input: the image's size is read from its header before decoding, and decoding runs inside the
+vehicle's fair-queue slot (a flood of bombs waits behind its own sender).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Annotated
+
+from fastapi import APIRouter, File, Form, HTTPException, UploadFile
+from fastapi.concurrency import run_in_threadpool
+from fastapi.encoders import jsonable_encoder
+from pydantic import ValidationError
+
+from backend.auth import require_vehicle_access
+from backend.dependencies import Caller, CurrentPipeline, LoadedModels, Scheduler, Sessions, Settings, admit
+from backend.fair_queue import QueueFullError
+from backend.images import check_size, decode_image
+from backend.schemas import ERROR_RESPONSES, Candidate, DetectMeta, DetectResponse, Timings
+from backend.supersets import UnknownSupersetError, superset_from_prompt
+from behaviors.geometry import Box
+
+router = APIRouter(tags=["detection"])
+
+
+@router.post("/v1/detect", response_model=DetectResponse, responses=ERROR_RESPONSES)
+async def detect(
+    principal: Caller,
+    image: Annotated[UploadFile, File(description="the keyframe, JPEG or PNG")],
+    meta: Annotated[str, Form(description="JSON object, see DetectMeta", max_length=20_000)],
+    settings: Settings,
+    sessions: Sessions,
+    pipeline: CurrentPipeline,
+    scheduler: Scheduler,
+    models: LoadedModels,
+) -> DetectResponse:
+    """Detect the superset in a keyframe and verify each candidate against the full description."""
+    t_received = time.perf_counter()
+    try:
+        fields = DetectMeta.model_validate_json(meta)
+    except ValidationError as exc:
+        # Echoing the input back could carry NaN/inf, which JSON cannot encode: loc + msg say enough.
+        errors = [
+            {"type": e["type"], "loc": ["meta", *e["loc"]], "msg": e["msg"]}
+            for e in exc.errors(include_url=False, include_context=False, include_input=False)
+        ]
+        raise HTTPException(422, jsonable_encoder(errors)) from None
+    require_vehicle_access(principal, fields.vehicle_id)
+    admit(settings, sessions, principal)
+    superset = (fields.superset or superset_from_prompt(fields.prompt) or "").strip().lower()
+    if not superset:
+        raise HTTPException(422, "the prompt names no known class; set 'superset' (e.g. \"person\")")
+    data = await image.read()
+    check_size(data, settings.server.max_image_pixels)  # a bomb is refused by its header, undecoded
+    await run_in_threadpool(sessions.open_mission, fields.vehicle_id, fields.mission_id)
+    check = await run_in_threadpool(
+        sessions.rejection_check, fields.vehicle_id, fields.mission_id, fields.vehicle_position
+    )
+    roi = Box.from_xyxy(*fields.roi) if fields.roi else None
+    t_queued = time.perf_counter()
+    try:
+        # Decoding happens inside the vehicle's slot: one vehicle's uploads decode one after another.
+        async with scheduler.slot(fields.vehicle_id):
+            t_queue = time.perf_counter() - t_queued
+            t_decode = time.perf_counter()
+            frame = await run_in_threadpool(decode_image, data, settings.server.max_image_pixels)
+            t_decode = time.perf_counter() - t_decode
+            t_detect = time.perf_counter()
+            detections = await run_in_threadpool(pipeline.detect, frame, superset, roi, fields.frame_id)
+            t_detect = time.perf_counter() - t_detect
+    except QueueFullError as exc:
+        raise HTTPException(429, f"too many requests waiting for this vehicle: {exc}", headers={"Retry-After": "1"}) from None
+    except UnknownSupersetError as exc:
+        raise HTTPException(422, str(exc)) from None
+    # Verification runs outside the detector slot: a slow VLM must not hold the detector, and the
+    # verifier pool already bounds how many verifications run at once.
+    t_verify = time.perf_counter()
+    candidates = await pipeline.verify_async(frame, detections, fields.prompt, superset, check, t_received + pipeline.deadline_s)
+    t_verify = time.perf_counter() - t_verify
+    await run_in_threadpool(
+        sessions.remember_candidates, fields.vehicle_id, fields.mission_id,
+        [(c.detection.candidate_id, c.appearance) for c in candidates],
+    )
+    return DetectResponse(
+        vehicle_id=fields.vehicle_id,
+        mission_id=fields.mission_id,
+        frame_id=fields.frame_id,
+        capture_time=fields.capture_time,
+        image_size=[int(frame.shape[1]), int(frame.shape[0])],
+        superset=superset,
+        candidates=[
+            Candidate(
+                candidate_id=c.detection.candidate_id,
+                box=[round(v, 2) for v in c.detection.box.xyxy()],
+                score=round(c.detection.score, 4),
+                label=c.detection.label,
+                verdict=c.detection.verdict.value,
+                justification=c.detection.justification,
+                verifier=c.verifier,
+                t_verify=round(c.t_verify, 4),
+                previously_rejected=c.previously_rejected,
+            )
+            for c in candidates
+        ],
+        timings=Timings(
+            t_queue=t_queue,
+            t_decode=t_decode,
+            t_detect=t_detect,
+            t_verify=t_verify,
+            t_total=time.perf_counter() - t_received,
+        ),
+        models=models,
+    )

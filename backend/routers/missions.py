@@ -1,0 +1,59 @@
+"""A mission's rejection memory: the candidates the supervisor or the vehicle rejected, never proposed again.
+
+Missions are keyed by (vehicle, mission): the mission is the sending vehicle's.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, HTTPException, Query
+from fastapi.concurrency import run_in_threadpool
+
+from backend.auth import require_vehicle_access
+from backend.dependencies import Caller, MissionId, Scheduler, Sessions, Settings, admit
+from backend.fair_queue import QueueFullError
+from backend.schemas import ERROR_RESPONSES, IDENTIFIER, Rejection, RejectionIn
+from backend.sessions import UnknownCandidateError
+
+router = APIRouter(prefix="/v1/missions/{mission_id}", tags=["sessions"])
+
+
+@router.post("/rejections", response_model=Rejection, status_code=201, responses=ERROR_RESPONSES)
+async def add_rejection(
+    mission_id: MissionId, body: RejectionIn, principal: Caller, settings: Settings, sessions: Sessions,
+    scheduler: Scheduler,
+) -> Rejection:
+    """Remember a rejected candidate: later look-alikes in this vehicle's mission are answered "no".
+
+    The mission is the sending vehicle's (`vehicle_id`): missions are keyed by (vehicle, mission).
+    """
+    require_vehicle_access(principal, body.vehicle_id)
+    admit(settings, sessions, principal)
+    try:
+        # A crop is decoded in the vehicle's slot, like a keyframe (its size checked from its header first).
+        async with scheduler.slot(body.vehicle_id):
+            return await run_in_threadpool(sessions.add_rejection, mission_id, body)
+    except QueueFullError as exc:
+        raise HTTPException(429, f"too many requests waiting for this vehicle: {exc}", headers={"Retry-After": "1"}) from None
+    except UnknownCandidateError as exc:
+        raise HTTPException(404, str(exc)) from None
+
+
+@router.get("/rejections", response_model=list[Rejection], responses=ERROR_RESPONSES)
+def list_rejections(
+    mission_id: MissionId,
+    principal: Caller,
+    settings: Settings,
+    sessions: Sessions,
+    vehicle_id: Annotated[
+        str | None, Query(pattern=IDENTIFIER, description="whose mission; default: the token's vehicle")
+    ] = None,
+) -> list[Rejection]:
+    """The rejections of one vehicle's mission (the supervisor names the vehicle)."""
+    vehicle = vehicle_id or principal.vehicle_id
+    if vehicle is None:
+        raise HTTPException(422, "the supervisor must name the vehicle: ?vehicle_id=<id>")
+    require_vehicle_access(principal, vehicle)
+    admit(settings, sessions, principal)
+    return sessions.rejections(vehicle, mission_id)

@@ -1,0 +1,121 @@
+"""The supervisor's web page: vehicles, the candidate each one awaits a decision on, Confirm / Reject.
+
+Routes (all under /supervisor):
+  GET  /supervisor                      the page (static HTML; it holds no data, so it needs no token)
+  GET  /supervisor/static/{name}        its script and style sheet
+  GET  /supervisor/api/state            the snapshot (`backend.schemas.SupervisorSnapshot`), as JSON
+  GET  /supervisor/api/enabled          {"enabled": bool}: whether a supervisor token is configured (no token)
+  GET  /supervisor/events               the same snapshot pushed as Server-Sent Events on every change
+  GET  /supervisor/api/vehicles/{v}/candidates/{c}/crop.jpg    the crop the verifier saw
+
+The page's Confirm / Reject go to the API's one decision endpoint, `POST /v1/vehicles/{v}/decisions`
+with `?require_awaiting=true` (`backend.routers.vehicles`): stored in the session store (on disk or in
+Redis before the 201) as the vehicle's next decision, which the companion picks up when it polls its
+session, so the page works with no MAVLink ground station.
+
+Everything but the page itself takes the supervisor's bearer token (`auth.supervisor_token`, through
+`backend.dependencies.SupervisorCaller`: 401 without it, 403 for a vehicle's token). With no supervisor
+token configured (the default) the page says how to turn it on instead of asking for a token that does not
+exist. The page shows the whole fleet from the shared store, whichever replica answers, and its event
+stream is woken by the store's changes (backend.change_feed), not by polling per client.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+from fastapi import APIRouter, Depends, HTTPException, Request, status
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import FileResponse, Response, StreamingResponse
+
+from backend.dependencies import (
+    CandidateId,
+    Feed,
+    Sessions,
+    Settings,
+    StreamLimits,
+    VehicleId,
+    View,
+    require_supervisor,
+)
+from backend.images import ImageError, b64_image_bytes, is_jpeg
+from backend.schemas import SupervisorEnabled, SupervisorSnapshot
+from backend.supervisor_view import without_ages
+
+STATIC_DIR = Path(__file__).resolve().parents[1] / "static"
+STATIC_FILES = {
+    "supervisor.js": "text/javascript; charset=utf-8",
+    "supervisor.css": "text/css; charset=utf-8",
+}
+_NO_STORE = {"Cache-Control": "no-store"}
+_AUTHED = [Depends(require_supervisor)]
+
+router = APIRouter(prefix="/supervisor", tags=["supervisor"])
+
+
+@router.get("", include_in_schema=False)
+def page() -> FileResponse:
+    return FileResponse(STATIC_DIR / "supervisor.html", media_type="text/html; charset=utf-8", headers=_NO_STORE)
+
+
+@router.get("/static/{name}", include_in_schema=False)
+def static(name: str) -> FileResponse:
+    if name not in STATIC_FILES:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"no static file {name!r}")
+    return FileResponse(STATIC_DIR / name, media_type=STATIC_FILES[name], headers=_NO_STORE)
+
+
+@router.get("/api/enabled")
+def enabled(settings: Settings) -> SupervisorEnabled:
+    """Whether the supervisor endpoints are on (a supervisor token is configured); needs no token."""
+    return SupervisorEnabled(enabled=bool(settings.auth.supervisor_token))
+
+
+@router.get("/api/state", dependencies=_AUTHED)
+def state(view: View) -> SupervisorSnapshot:
+    """Every vehicle's state and the candidate it awaits a decision on."""
+    return view.snapshot()
+
+
+@router.get("/events", dependencies=_AUTHED)
+async def events(request: Request, view: View, feed: Feed, limits: StreamLimits) -> StreamingResponse:
+    """Server-Sent Events: `event: state` with the snapshot whenever the store changes, comments as keep-alive."""
+
+    async def stream() -> AsyncIterator[str]:
+        opened = time.monotonic()
+        yield "retry: 1000\n\n"
+        version = feed.version
+        last = None
+        # A stream ends after max_stream_s and the page reconnects at once: a server shutting down
+        # (uvicorn waits for open responses) or a proxy's idle limit never holds a stream for long.
+        while not await request.is_disconnected() and time.monotonic() - opened < limits.max_stream_s:
+            snapshot = await run_in_threadpool(view.snapshot)
+            content = without_ages(snapshot)
+            if content != last:
+                last = content
+                yield f"event: state\ndata: {snapshot.model_dump_json()}\n\n"
+            else:
+                yield ": keep-alive\n\n"  # proxies close silent connections
+            remaining = limits.max_stream_s - (time.monotonic() - opened)
+            version = await feed.wait(version, max(0.0, min(limits.keepalive_s, remaining)))
+
+    headers = {**_NO_STORE, "X-Accel-Buffering": "no"}  # nginx: pass events through unbuffered
+    return StreamingResponse(stream(), media_type="text/event-stream", headers=headers)
+
+
+@router.get("/api/vehicles/{vehicle_id}/candidates/{candidate_id}/crop.jpg", dependencies=_AUTHED)
+def crop(vehicle_id: VehicleId, candidate_id: CandidateId, sessions: Sessions) -> Response:
+    current = sessions.status(vehicle_id)
+    awaiting = current.awaiting if current else None
+    if awaiting is None or awaiting.candidate_id != candidate_id or not awaiting.crop_jpeg_b64:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"no crop for candidate {candidate_id!r} of {vehicle_id!r}")
+    try:
+        data = b64_image_bytes(awaiting.crop_jpeg_b64)
+    except ImageError as exc:
+        raise HTTPException(exc.status, str(exc)) from None
+    # Only bytes that are a JPEG by their header go out as image/jpeg (the store checks on the way in too).
+    if not is_jpeg(data, sessions.max_crop_pixels):
+        raise HTTPException(422, "the vehicle's crop is not a JPEG image")
+    return Response(data, media_type="image/jpeg", headers=_NO_STORE)
