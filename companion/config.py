@@ -1,10 +1,12 @@
 """The companion's configuration schema: every section, key, default and allowed range.
 
-`config/companion.toml` mirrors these defaults; `tests/test_config.py` keeps the two in step.
+`config/companion.toml` mirrors these defaults; `tests/test_config_defaults.py` keeps the two in step key
+by key. The control gains' defaults are the control law's own (`behaviors.control_law.ControlGains`).
 """
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Iterable, Mapping
 from pathlib import Path
@@ -12,6 +14,7 @@ from typing import Literal
 
 from pydantic import Field, model_validator
 
+from behaviors.control_law import ControlGains
 from cloudtrack.config_files import ConfigSection, load_config
 
 TrackerName = Literal["nano", "vit", "dasiamrpn", "csrt", "kcf", "mil", "goturn"]
@@ -127,17 +130,20 @@ class BehaviorConfig(ConfigSection):
     redetect_full_frame_s: float = Field(4.0, gt=0, le=600)  # ...growing to the whole frame after this long
 
 
+_GAINS = ControlGains()  # the control law's own defaults: the one place they are written
+
+
 class ControlConfig(ConfigSection):
-    yaw_kp: float = Field(1.2, ge=0)
-    yaw_ki: float = Field(0.05, ge=0)
-    forward_kp: float = Field(0.8, ge=0)
-    forward_ki: float = Field(0.1, ge=0)
-    lateral_kp: float = Field(0.0, ge=0)
-    yaw_dead_band_deg: float = Field(1.5, ge=0, le=30)
-    distance_dead_band_m: float = Field(0.5, ge=0, le=20)
-    filter_time_constant_s: float = Field(0.15, ge=0, le=5)
-    max_accel_m_s2: float = Field(2.0, gt=0, le=20)
-    max_yaw_accel_deg_s2: float = Field(90.0, gt=0, le=1000)
+    yaw_kp: float = Field(_GAINS.yaw_kp, ge=0)
+    yaw_ki: float = Field(_GAINS.yaw_ki, ge=0)
+    forward_kp: float = Field(_GAINS.forward_kp, ge=0)
+    forward_ki: float = Field(_GAINS.forward_ki, ge=0)
+    lateral_kp: float = Field(_GAINS.lateral_kp, ge=0)
+    yaw_dead_band_deg: float = Field(round(math.degrees(_GAINS.yaw_dead_band), 9), ge=0, le=30)
+    distance_dead_band_m: float = Field(_GAINS.distance_dead_band_m, ge=0, le=20)
+    filter_time_constant_s: float = Field(_GAINS.filter_time_constant_s, ge=0, le=5)
+    max_accel_m_s2: float = Field(_GAINS.max_accel_m_s2, gt=0, le=20)
+    max_yaw_accel_deg_s2: float = Field(round(math.degrees(_GAINS.max_yaw_accel), 9), gt=0, le=1000)
 
 
 class RecordingConfig(ConfigSection):
