@@ -43,7 +43,8 @@ MAY_IMPORT: dict[str, set[str]] = {
     "sitl": {"cloudtrack", "behaviors", "companion", "backend"},
 }
 # Known violations, to be removed, never added to: (importing module, imported package).
-# - companion/eval_command.py runs the back-end's detector in process for `eval --detector local`.
+# - companion/eval_command.py runs the back-end's YOLOX detector and superset table in process (`eval`
+#   without --backend).
 # - companion/run_command.py imports sitl to register the `sim+tcp` frame-source scheme.
 KNOWN_VIOLATIONS_TO_REMOVE: set[tuple[str, str]] = {
     ("companion/eval_command.py", "backend"),
