@@ -72,7 +72,7 @@ class GcsSession:
     def __init__(self, args: argparse.Namespace):
         self.args = args
         self.target = (args.system, args.component)
-        self.endpoint = MavlinkEndpoint.open(args.connect, args.gcs_system, args.gcs_component)
+        self.endpoint = MavlinkEndpoint.open(args.connect, args.gcs_system, args.gcs_component, args.system)
         if args.signing_key:
             # The autopilot's telemetry may be unsigned; an acknowledgement must carry the companion's signature.
             self.endpoint.conn.setup_signing(

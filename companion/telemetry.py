@@ -54,6 +54,7 @@ class TelemetryDecoder:
         self._lock = threading.Lock()
         self._fields: dict[str, Any] = {}
         self._time: float | None = None
+        self._height: tuple[float, float] | None = None  # (height above ground, when), GLOBAL_POSITION_INT
         self.heartbeat: AutopilotHeartbeat | None = None
         self.battery_remaining: int | None = None
         self.local_position: tuple[float, float, float] | None = None
@@ -69,6 +70,8 @@ class TelemetryDecoder:
             if mtype == "ATTITUDE":
                 self._update(now, roll=msg.roll, pitch=msg.pitch, yaw=msg.yaw)
             elif mtype == "GLOBAL_POSITION_INT":
+                if math.isfinite(msg.relative_alt):
+                    self._height = (msg.relative_alt / 1000.0, now)
                 self._update(
                     now, lat_deg=msg.lat / 1e7, lon_deg=msg.lon / 1e7, height_agl=msg.relative_alt / 1000.0,
                     vn=msg.vx / 100.0, ve=msg.vy / 100.0, vd=msg.vz / 100.0,
@@ -93,6 +96,11 @@ class TelemetryDecoder:
         if all(math.isfinite(v) for v in values.values()):
             self._fields.update(values)
             self._time = now
+
+    def height(self) -> tuple[float | None, float | None]:
+        """(height above ground, when it arrived) from the last GLOBAL_POSITION_INT; (None, None) before."""
+        with self._lock:
+            return self._height if self._height is not None else (None, None)
 
     def snapshot(self) -> Telemetry | None:
         """The latest vehicle state, or None before any attitude or position arrived."""

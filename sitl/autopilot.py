@@ -22,17 +22,15 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-os.environ.setdefault("MAVLINK20", "1")
-from pymavlink import mavutil  # noqa: E402
+from pymavlink import mavutil
 
-from companion.mavlink_connection import receive_message  # noqa: E402
-from sitl.vehicle_dynamics import (  # noqa: E402
+from companion.mavlink_connection import mavlink, receive_message, use_mavlink2
+from sitl.vehicle_dynamics import (
     VehicleLimits,
     VehicleState,
     VelocityCommand,
@@ -42,8 +40,6 @@ from sitl.vehicle_dynamics import (  # noqa: E402
     wrap_pi,
 )
 
-mavutil.set_dialect("ardupilotmega")
-mavlink = mavutil.mavlink
 log = logging.getLogger(__name__)
 
 ARDUCOPTER_MODES = {
@@ -93,6 +89,7 @@ class AutopilotOptions:
     land_speed_m_s: float = 1.0
     limits: VehicleLimits = VehicleLimits()
     wind: Wind = Wind()
+    signing_key: bytes | None = None  # sign everything sent (unsigned input is still accepted, like a GCS port)
 
 
 @dataclass(frozen=True)
@@ -153,7 +150,9 @@ class SimulatedAutopilot:
         defaults = PX4_DEFAULT_INTERVALS if not self.is_ardupilot else ARDUPILOT_DEFAULT_INTERVALS
         self._links: dict[str, _Link] = {}
         for name, url in links.items():
-            conn = mavutil.mavlink_connection(url, source_system=options.system_id, source_component=1, dialect="ardupilotmega")
+            conn = use_mavlink2(mavutil.mavlink_connection(url, source_system=options.system_id, source_component=1))
+            if options.signing_key is not None:
+                conn.setup_signing(options.signing_key, sign_outgoing=True, allow_unsigned_callback=lambda *_: True)
             self._links[name] = _Link(name, url, conn, dict(defaults))
 
     # ----------------------------------------------------------------------------------------------- API

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import math
+import os
 import random
 import socket
+import subprocess
+import sys
 import time
 
 import pytest
@@ -19,7 +22,7 @@ from companion.autopilot_modes import (
     set_mode_params,
 )
 from companion.config import MavlinkConfig, SafetyConfig
-from companion.mavlink_connection import parse_connection
+from companion.mavlink_connection import mavsdk_url, parse_connection
 from companion.mavlink_signing import parse_signing_key
 from companion.telemetry import stream_intervals_us
 from companion.vehicle_link import VehicleLink
@@ -35,15 +38,40 @@ def test_connection_strings() -> None:
     assert parse_connection("udpin:0.0.0.0:14540").device == "udpin:0.0.0.0:14540"
     assert parse_connection("udpout:127.0.0.1:14550").kind == "udpout"
     assert parse_connection("tcp:127.0.0.1:5760").kind == "tcp"
-    for bad in ("", "udp:1.2.3.4", "udpin:0.0.0.0:99999", "serial:/dev/ttyUSB0", "tcp::5760", "bogus:x:1"):
+    # pymavlink's / MAVProxy's serial form: the device, then ",BAUD"
+    assert parse_connection("/dev/ttyAMA0,921600") == parse_connection("serial:/dev/ttyAMA0:921600")
+    assert parse_connection("/dev/ttyUSB0").baud == 115200
+    # the one format converted for mavsdk_server
+    assert mavsdk_url("udpin:127.0.0.1:14541") == "udpin://127.0.0.1:14541"
+    assert mavsdk_url("/dev/ttyAMA0,921600") == "serial:///dev/ttyAMA0:921600"
+    assert mavsdk_url("tcp:10.0.0.2:5760") == "tcpout://10.0.0.2:5760"
+    for bad in ("", "udp:1.2.3.4", "udpin:0.0.0.0:99999", "serial:/dev/ttyUSB0", "tcp::5760", "bogus:x:1",
+                "/dev/ttyUSB0,fast"):
         with pytest.raises(ValueError, match="MAVLink connection"):
             parse_connection(bad)
 
 
-def test_bad_connection_string_is_refused_at_start() -> None:
-    link = VehicleLink(MavlinkConfig(connection="udp:nowhere"), SafetyConfig())
+def test_bad_connection_string_is_refused_with_the_configuration() -> None:
     with pytest.raises(ValueError, match="expected one of"):
-        link.start()
+        MavlinkConfig(connection="udp:nowhere")
+    with pytest.raises(ValueError, match="expected one of"):
+        MavlinkConfig(mavsdk_address="udp://:14541")
+
+
+def test_default_connection_listens_on_loopback_only() -> None:
+    assert MavlinkConfig().connection.startswith("udpin:127.0.0.1:")
+    assert MavlinkConfig().mavsdk_address.startswith("udpin:127.0.0.1:")
+
+
+def test_importing_the_link_sets_no_environment_variable_or_dialect() -> None:
+    code = (
+        "import os; from pymavlink import mavutil; before = dict(os.environ); d = mavutil.mavlink; "
+        "import companion.vehicle_link, companion.gcs_cli, sitl.autopilot; "
+        "assert dict(os.environ) == before, set(os.environ) ^ set(before); "
+        "assert mavutil.mavlink is d, mavutil.mavlink"
+    )
+    env = {k: v for k, v in os.environ.items() if k not in ("MAVLINK20", "MAVLINK_DIALECT")}
+    subprocess.run([sys.executable, "-c", code], check=True, env=env)
 
 
 def test_mode_tables_match_the_autopilots_encodings() -> None:
@@ -98,13 +126,18 @@ def test_garbage_on_the_link_crashes_nothing() -> None:
         assert len(sim.setpoints) - before >= 8  # still streaming
         stamp = link.telemetry().time_s
         assert wait_for(lambda: link.telemetry().time_s > stamp, 2.0)  # still decoding telemetry
-        assert link.endpoint.bad_data > 0
+        assert link.endpoint.conn.refused_datagrams >= 1000  # not the autopilot: dropped before parsing
+        assert sim._links["companion"].bad_data > 0  # the autopilot parsed the junk and went on too
         assert all(t.is_alive() for t in link._threads)
 
 
 def test_signing_refuses_forged_and_unsigned_commands() -> None:
     key = parse_signing_key(KEY_HEX)
-    with autopilot("ardupilot") as sim, vehicle_link(sim, signing_key=KEY_HEX) as link, MainLoop(link):
+    with (
+        autopilot("ardupilot", signing_key=key) as sim,
+        vehicle_link(sim, signing_key=KEY_HEX, gcs_system_ids=[253, 254, 255]) as link,
+        MainLoop(link),
+    ):
         # forged: signed with the wrong key
         with gcs(sim, signing_key=bytes(32 * [7])) as forger:
             forger.send(lambda m: m.command_long_send(1, 191, CMD_CONFIRM, 0, 0, 0, 0, 0, 0, 0, 0))
