@@ -5,7 +5,8 @@ It behaves the way the companion has to cope with on a real vehicle:
   (ArduCopter mode numbers; PX4 main/sub mode packed in bytes 2 and 3 of custom_mode);
 - COMMAND_LONG MAV_CMD_DO_SET_MODE (and the legacy SET_MODE message) answered with COMMAND_ACK;
 - SET_POSITION_TARGET_LOCAL_NED honouring coordinate_frame and type_mask. ArduCopter flies it only in
-  GUIDED and keeps flying the last velocity until GUID_TIMEOUT (3 s) runs out, then brakes. PX4 refuses
+  GUIDED and keeps flying the last velocity until GUID_TIMEOUT (3 s) runs out, then brakes (a position
+  target, e.g. a GCS's "fly to", is flown until reached: GUID_TIMEOUT does not apply to it). PX4 refuses
   OFFBOARD until a setpoint stream is coming in and falls back to HOLD when it stops (COM_OF_LOSS_T);
 - ArduCopter's silence: only HEARTBEAT until a link asks for streams with MAV_CMD_SET_MESSAGE_INTERVAL;
   PX4 streams a default set. Intervals are per link, as on the real autopilots;
@@ -107,6 +108,7 @@ class ReceivedSetpoint:
     vz: float
     yaw_rate: float
     mode: str
+    time_boot_ms: int = 0  # the sender's stamp: the companion puts the time the setpoint was computed here
 
 
 @dataclass
@@ -345,7 +347,7 @@ class SimulatedAutopilot:
         self.setpoints.append(
             ReceivedSetpoint(
                 now, link.name, msg.get_srcSystem(), msg.get_srcComponent(), msg.coordinate_frame,
-                msg.type_mask, msg.vx, msg.vy, msg.vz, msg.yaw_rate, self.mode,
+                msg.type_mask, msg.vx, msg.vy, msg.vz, msg.yaw_rate, self.mode, msg.time_boot_ms,
             )
         )  # fmt: skip
         if len(self.setpoints) > 20000:
@@ -401,7 +403,9 @@ class SimulatedAutopilot:
         s = self.state
         if self.mode in ("GUIDED", "OFFBOARD"):
             timeout = self.options.guid_timeout_s if self.is_ardupilot else self.options.offboard_loss_s
-            if now - self._last_setpoint_time > timeout:
+            # ArduCopter's GUID_TIMEOUT stops velocity commands only; a position target is flown until reached.
+            position_held = self.is_ardupilot and self._position_target is not None
+            if now - self._last_setpoint_time > timeout and not position_held:
                 if not self.is_ardupilot:
                     self._try_set_mode("HOLD", "failsafe")
                     self._status("Offboard setpoints lost: switching to HOLD")
