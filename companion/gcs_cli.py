@@ -263,7 +263,7 @@ def _watch(session: GcsSession, args: argparse.Namespace) -> int:
                 continue
             if msg.get_type() == "HEARTBEAT" and msg.get_srcSystem() == session.target[0] and msg.get_srcComponent() == 1:
                 kind = detect_autopilot(msg.autopilot)
-                new_mode = mode_name(kind, msg.custom_mode) if kind else str(msg.custom_mode)
+                new_mode = mode_name(kind, msg.custom_mode, msg.type) if kind else str(msg.custom_mode)
                 if new_mode != mode:
                     mode = new_mode
                     print(f"[autopilot] mode {mode}", flush=True)

@@ -43,6 +43,7 @@ class AutopilotHeartbeat:
     mode: str
     armed: bool
     time_s: float
+    vehicle_type: int = 2  # HEARTBEAT.type (MAV_TYPE_QUADROTOR): picks ArduPilot's mode table
 
 
 class TelemetryDecoder:
@@ -89,7 +90,8 @@ class TelemetryDecoder:
         kind = self._forced_kind or detect_autopilot(msg.autopilot)
         if kind is None:
             return None
-        self.heartbeat = AutopilotHeartbeat(kind, mode_name(kind, msg.custom_mode), is_armed(msg.base_mode), now)
+        mode = mode_name(kind, msg.custom_mode, msg.type)
+        self.heartbeat = AutopilotHeartbeat(kind, mode, is_armed(msg.base_mode), now, msg.type)
         return self.heartbeat
 
     def _update(self, now: float, **values: float) -> None:

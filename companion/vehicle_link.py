@@ -43,7 +43,7 @@ from behaviors.mission_commands import MissionCommand
 from behaviors.safety_limits import MotionLimits, apply_limits
 from behaviors.setpoint import Setpoint
 from behaviors.telemetry import Telemetry
-from companion.autopilot_modes import AutopilotKind, mode_for_action, offboard_mode, set_mode_params
+from companion.autopilot_modes import QUADROTOR, AutopilotKind, mode_for_action, offboard_mode, set_mode_params
 from companion.config import MavlinkConfig, SafetyConfig
 from companion.gcs_link import (
     CAMERA_CAP_FLAGS_HAS_TRACKING_POINT,
@@ -454,7 +454,13 @@ class VehicleLink:
         kind = self.autopilot_kind
         if kind is None:
             return
-        params = set_mode_params(kind, name)
+        hb = self._decoder.heartbeat
+        try:
+            params = set_mode_params(kind, name, hb.vehicle_type if hb is not None else QUADROTOR)
+        except ValueError as exc:  # e.g. BRAKE on a Plane: say so instead of failing in a watchdog thread
+            log.error("mode %s not requested: %s", name, exc)
+            self.status(f"MODE {name} UNAVAILABLE", MAV_SEVERITY_WARNING)
+            return
         with self._lock:
             self._mode_request = (name, self._clock())
         log.info("requesting mode %s", name)

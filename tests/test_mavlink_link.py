@@ -87,6 +87,14 @@ def test_mode_tables_match_the_autopilots_encodings() -> None:
     assert mode_for_action(AutopilotKind.PX4, "loiter") == "HOLD"
     with pytest.raises(ValueError):
         mode_for_action(AutopilotKind.ARDUPILOT, "arm")
+    # pymavlink's tables: every Copter mode (FOLLOW, ZIGZAG...), and Plane/Rover numbers by vehicle type
+    assert mode_name(AutopilotKind.ARDUPILOT, 23) == "FOLLOW" and mode_name(AutopilotKind.ARDUPILOT, 24) == "ZIGZAG"
+    assert mode_name(AutopilotKind.ARDUPILOT, 15, vehicle_type=1) == "GUIDED"  # MAV_TYPE_FIXED_WING
+    assert mode_name(AutopilotKind.ARDUPILOT, 4, vehicle_type=10) == "HOLD"  # MAV_TYPE_GROUND_ROVER
+    assert set_mode_params(AutopilotKind.ARDUPILOT, "GUIDED", vehicle_type=10).custom_mode == 15
+    with pytest.raises(ValueError, match="no mode 'BRAKE'"):
+        set_mode_params(AutopilotKind.ARDUPILOT, "BRAKE", vehicle_type=1)
+    assert mode_name(AutopilotKind.ARDUPILOT, 250) == "MODE(250)"
 
 
 def test_stream_requests_cover_every_decoded_message() -> None:
