@@ -87,9 +87,9 @@ class CloudTrackModule(mp_module.MPModule):  # type: ignore[misc]
         self.master.mav.command_long_send(self.target[0], self.target[1], command, 0, *p)
 
     def mavlink_packet(self, m: Any) -> None:
-        if m.get_type() == "COMMAND_ACK" and m.command in COMMAND_NAMES:
-            if (m.get_srcSystem(), m.get_srcComponent()) == self.target:
-                print(f"CloudTrack {COMMAND_NAMES[m.command]}: {RESULT_NAMES.get(m.result, m.result)}")
+        ours = (m.get_srcSystem(), m.get_srcComponent()) == self.target
+        if ours and m.get_type() == "COMMAND_ACK" and m.command in COMMAND_NAMES:
+            print(f"CloudTrack {COMMAND_NAMES[m.command]}: {RESULT_NAMES.get(m.result, m.result)}")
 
 
 def init(mpstate: Any) -> CloudTrackModule:

@@ -43,7 +43,13 @@ from behaviors.mission_commands import MissionCommand
 from behaviors.safety_limits import MotionLimits, apply_limits
 from behaviors.setpoint import Setpoint
 from behaviors.telemetry import Telemetry
-from companion.autopilot_modes import QUADROTOR, AutopilotKind, mode_for_action, offboard_mode, set_mode_params
+from companion.autopilot_modes import (
+    QUADROTOR,
+    AutopilotKind,
+    mode_for_action,
+    offboard_mode,
+    set_mode_params,
+)
 from companion.config import MavlinkConfig, SafetyConfig
 from companion.gcs_link import (
     CAMERA_CAP_FLAGS_HAS_TRACKING_POINT,
