@@ -84,8 +84,8 @@ class MavlinkConfig(ConfigSection):
     # Letting go (abort) always leaves GUIDED: BRAKE or LOITER as set here, LOITER for guided_zero. PX4: HOLD.
     ardupilot_hold: Literal["guided_zero", "brake", "loiter"] = "guided_zero"
     signing_key: str = ""  # 64 hex chars (32 bytes); prefer CLOUDTRACK_MAVLINK__SIGNING_KEY
-    use_mavsdk: bool = False  # PX4 offboard through MAVSDK (pip install 'cloudtrack[mavsdk]')
-    mavsdk_address: str = "udpin:127.0.0.1:14541"  # pymavlink format, converted for mavsdk_server
+    # PX4 offboard through MAVSDK (pip install 'cloudtrack[mavsdk]'); its MAVLink goes over `connection`.
+    use_mavsdk: bool = False
     # A second identity as a MAVLink camera (100-105 is where QGroundControl looks for tracking); 0: none.
     camera_component: int = Field(100, ge=0, le=255)
 
@@ -93,8 +93,7 @@ class MavlinkConfig(ConfigSection):
     def _connections(self) -> MavlinkConfig:
         from companion.mavlink_connection import parse_connection
 
-        for key in ("connection", "mavsdk_address"):
-            parse_connection(getattr(self, key))  # ValueError names the string and the allowed forms
+        parse_connection(self.connection)  # ValueError names the string and the allowed forms
         if any(not 1 <= sysid <= 255 for sysid in self.gcs_system_ids):
             raise ValueError("gcs_system_ids must be MAVLink system ids 1-255")
         return self

@@ -80,15 +80,6 @@ def parse_connection(url: str) -> ConnectionSpec:
     return ConnectionSpec(kind, url)
 
 
-def mavsdk_url(url: str) -> str:
-    """The MAVSDK (mavsdk_server) form of a pymavlink connection string: udpin://, udpout://, tcpout://..."""
-    spec = parse_connection(url)
-    if spec.kind == "serial":
-        return f"serial://{spec.device}:{spec.baud}"
-    kind, _, address = url.partition(":")
-    return {"udpin": "udpin://", "udpout": "udpout://", "tcp": "tcpout://", "tcpin": "tcpin://"}[kind] + address
-
-
 def use_mavlink2(conn: Any) -> Any:
     """Give a pymavlink connection a MAVLink 2 ardupilotmega encoder/parser of its own (no global dialect)."""
     conn.mav = _dialect.MAVLink(conn, srcSystem=conn.source_system, srcComponent=conn.source_component)

@@ -63,6 +63,7 @@ from companion.gcs_link import (
 from companion.mavlink_connection import MavlinkEndpoint, mavlink
 from companion.mavlink_signing import SigningGuard, parse_signing_key
 from companion.mavsdk_offboard import MavsdkOffboard
+from companion.mavsdk_relay import MavsdkRelay
 from companion.offboard import PX4_MIN_PRESTREAM_S, encode_velocity
 from companion.safety_watchdog import (
     BACKEND_UNREACHABLE,
@@ -120,6 +121,7 @@ class VehicleLink:
         self._threads: list[threading.Thread] = []
         self._endpoint: MavlinkEndpoint | None = None
         self._mavsdk: MavsdkOffboard | None = None  # PX4 offboard through MAVSDK (mavlink.use_mavsdk)
+        self._relay: MavsdkRelay | None = None  # mavsdk_server's MAVLink over our link
         self.signing = SigningGuard(on_refused=lambda text: self._record(SafetyEvent(self._clock(), "signing", "refused", text)))
         self._watchdog = SafetyWatchdog(safety, self._on_trip, self._on_clear, clock)
         self._camera_component = mavlink_config.camera_component
@@ -162,14 +164,17 @@ class VehicleLink:
         if self._camera_component:
             self._endpoint.add_identity(self._camera_component)
         if self._cfg.use_mavsdk:
-            self._mavsdk = MavsdkOffboard(self._cfg.mavsdk_address)
-            self._mavsdk.start()
+            self._relay = MavsdkRelay(self._endpoint)
+            self._relay.start()
+            self._mavsdk = MavsdkOffboard(self._relay.url, self._cfg.target_system, self._cfg.source_component)
         self._watchdog.seen(LOOP_STALLED)
         self._send_heartbeat(self._clock())  # opens udpout/tcp links so the autopilot learns where we are
         for target, name in ((self._reader, "mavlink-reader"), (self._streamer, "mavlink-streamer")):
             thread = threading.Thread(target=target, name=name, daemon=True)
             self._threads.append(thread)
             thread.start()
+        if self._mavsdk is not None:
+            self._mavsdk.start()  # needs the reader: it discovers the autopilot through the relay
         self._watchdog.start()
 
     def close(self) -> None:
@@ -182,6 +187,8 @@ class VehicleLink:
             thread.join(timeout=2.0)
         if self._mavsdk is not None:
             self._mavsdk.close()
+        if self._relay is not None:
+            self._relay.close()
         if self._endpoint is not None:
             self._endpoint.close()
 
@@ -528,6 +535,8 @@ class VehicleLink:
             if msg is None:
                 continue
             now = self._clock()
+            if self._relay is not None and msg.get_srcSystem() == self._cfg.target_system:
+                self._relay.to_mavsdk(msg)
             try:
                 event = None
                 with self._lock:

@@ -22,7 +22,7 @@ from companion.autopilot_modes import (
     set_mode_params,
 )
 from companion.config import MavlinkConfig, SafetyConfig
-from companion.mavlink_connection import mavsdk_url, parse_connection
+from companion.mavlink_connection import parse_connection
 from companion.mavlink_signing import parse_signing_key
 from companion.telemetry import stream_intervals_us
 from companion.vehicle_link import VehicleLink
@@ -41,10 +41,6 @@ def test_connection_strings() -> None:
     # pymavlink's / MAVProxy's serial form: the device, then ",BAUD"
     assert parse_connection("/dev/ttyAMA0,921600") == parse_connection("serial:/dev/ttyAMA0:921600")
     assert parse_connection("/dev/ttyUSB0").baud == 115200
-    # the one format converted for mavsdk_server
-    assert mavsdk_url("udpin:127.0.0.1:14541") == "udpin://127.0.0.1:14541"
-    assert mavsdk_url("/dev/ttyAMA0,921600") == "serial:///dev/ttyAMA0:921600"
-    assert mavsdk_url("tcp:10.0.0.2:5760") == "tcpout://10.0.0.2:5760"
     for bad in ("", "udp:1.2.3.4", "udpin:0.0.0.0:99999", "serial:/dev/ttyUSB0", "tcp::5760", "bogus:x:1",
                 "/dev/ttyUSB0,fast"):
         with pytest.raises(ValueError, match="MAVLink connection"):
@@ -54,13 +50,10 @@ def test_connection_strings() -> None:
 def test_bad_connection_string_is_refused_with_the_configuration() -> None:
     with pytest.raises(ValueError, match="expected one of"):
         MavlinkConfig(connection="udp:nowhere")
-    with pytest.raises(ValueError, match="expected one of"):
-        MavlinkConfig(mavsdk_address="udp://:14541")
 
 
 def test_default_connection_listens_on_loopback_only() -> None:
     assert MavlinkConfig().connection.startswith("udpin:127.0.0.1:")
-    assert MavlinkConfig().mavsdk_address.startswith("udpin:127.0.0.1:")
 
 
 def test_importing_the_link_sets_no_environment_variable_or_dialect() -> None:
