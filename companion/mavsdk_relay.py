@@ -11,9 +11,11 @@ the companion is the companion's own MAV_TYPE_ONBOARD_CONTROLLER one (same syste
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import socket
 import threading
+from collections.abc import Callable
 from typing import Any
 
 from companion.mavlink_connection import MavlinkEndpoint, mavlink
@@ -57,10 +59,8 @@ class MavsdkRelay:
         """A message from the autopilot (called by the link's reader)."""
         server = self._server
         if server is not None:
-            try:
+            with contextlib.suppress(OSError):  # mavsdk_server gone: nothing to tell it
                 self._sock.sendto(msg.get_msgbuf(), server)
-            except OSError:
-                pass
 
     def _run(self) -> None:
         while not self._stop.is_set():
@@ -80,5 +80,10 @@ class MavsdkRelay:
                 if msg.get_type() == "HEARTBEAT":
                     self.heartbeats_dropped += 1  # its GCS (and generic) identities stay on this computer
                     continue
-                if self._endpoint.send(lambda mav, m=msg: mav.send(m)):
+                if self._endpoint.send(_resend(msg)):
                     self.forwarded += 1
+
+
+def _resend(msg: Any) -> Callable[[Any], None]:
+    """Re-encode `msg` with the companion's encoder (its ids, sequence and signature)."""
+    return lambda mav: mav.send(msg)
