@@ -60,6 +60,7 @@ def test_after_abort_a_gcs_guided_position_target_moves_the_vehicle() -> None:
         ground.send(lambda m: m.command_long_send(1, 191, CMD_ABORT, 0, 0, 0, 0, 0, 0, 0, 0))
         ack = receive_until(ground, lambda m: m.get_type() == "COMMAND_ACK" and m.command == CMD_ABORT, 3.0)
         assert ack is not None and ack.result == 0
+        aborted_at = time.monotonic()
         commands = wait_for(link.commands, 2.0)
         for command in commands:
             runner._handle(GcsCommand(time.monotonic(), command))
@@ -72,7 +73,10 @@ def test_after_abort_a_gcs_guided_position_target_moves_the_vehicle() -> None:
         assert wait_for(lambda: sim.mode == "GUIDED", 3.0)
         start = sim.snapshot()
         _fly_to_from_gcs(ground, start.north + 10.0, start.east, start.down)
-        moved = wait_for(lambda: math.hypot(sim.snapshot().north - start.north, sim.snapshot().east - start.east) > 5.0, 8.0)
+        def moved_m() -> float:
+            return math.hypot(sim.snapshot().north - start.north, sim.snapshot().east - start.east)
+
+        moved = wait_for(lambda: moved_m() > 5.0, 8.0)
         assert moved, "the GCS's GUIDED target did not move the vehicle after the abort"
 
         # it got there because the companion let go: the hold mode was requested, then nothing was sent
@@ -80,6 +84,9 @@ def test_after_abort_a_gcs_guided_position_target_moves_the_vehicle() -> None:
         loiter_at = _mode_time(sim, "LOITER")
         late = [s for s in sim.setpoints if s.src_component == 191 and s.time > loiter_at + 0.2]
         assert not late, f"{len(late)} setpoints from the companion after it let go"
+        last = max(s.time for s in sim.setpoints if s.src_component == 191)
+        print(f"\nafter abort: LOITER {loiter_at - aborted_at:.3f} s after the ACK, last companion setpoint "
+              f"{last - aborted_at:.3f} s; GCS target moved the vehicle {moved_m():.1f} m")
 
 
 def _mode_time(sim: Any, mode: str) -> float:
