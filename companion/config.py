@@ -71,7 +71,7 @@ class BackendConfig(ConfigSection):
 
 class MavlinkConfig(ConfigSection):
     # pymavlink's format for every endpoint: udpin:127.0.0.1:14540 (default: the autopilot or mavlink-router
-    # on this computer), udpout:HOST:PORT, tcp:HOST:PORT, /dev/ttyAMA0:921600. Never 0.0.0.0 unless set here.
+    # on this computer), udpout:HOST:PORT, tcp:HOST:PORT, /dev/ttyAMA0,921600. Never 0.0.0.0 unless set here.
     connection: str = "udpin:127.0.0.1:14540"
     target_system: int = Field(1, ge=1, le=255)  # the autopilot's system id: telemetry is read only from it
     source_component: int = Field(191, ge=1, le=255)  # MAV_COMP_ID_ONBOARD_COMPUTER
