@@ -22,6 +22,7 @@ from behaviors.mission_config import MissionConfig
 from behaviors.setpoint import Setpoint
 from companion.gcs_link import CMD_ABORT
 from companion.mission_runner import MissionRunner
+from companion.vehicle_link import RELEASE_TIMEOUT_S
 from tests.mavlink_harness import MainLoop, autopilot, gcs, receive_until, vehicle_link, wait_for
 
 MAV_CMD_DO_SET_MODE = 176
@@ -91,3 +92,35 @@ def test_after_abort_a_gcs_guided_position_target_moves_the_vehicle() -> None:
 
 def _mode_time(sim: Any, mode: str) -> float:
     return next((t for t, m, _ in sim.mode_history if m == mode), 0.0)
+
+
+def test_after_abort_on_link_loss_the_companion_falls_silent_within_the_bound() -> None:
+    """The hold mode cannot be set while the link is down: zeros stop after RELEASE_TIMEOUT_S anyway."""
+    safety = {"heartbeat_timeout_s": 0.5}
+    with autopilot("ardupilot") as sim, vehicle_link(sim, safety=safety) as link, MainLoop(link), gcs(sim) as ground:
+        runner = _following_runner(link)
+        link.request_offboard()
+        link.set_velocity(Setpoint(1.5, 0.0, 0.0, 0.0))
+        assert wait_for(lambda: sim.snapshot().vn > 1.0, 5.0)
+        sim.set_link_down("companion", True)  # both ways: the hold-mode request cannot arrive
+        cut = time.monotonic()
+
+        def aborted() -> bool:
+            for event in runner._safety_events():
+                runner._handle(event)
+            return runner.state.mode is MissionState.ABORTED
+
+        assert wait_for(aborted, 3.0), "the link loss never aborted the mission"
+        time.sleep(RELEASE_TIMEOUT_S + 0.5)
+        sim.set_link_down("companion", False)
+        back = time.monotonic()
+        notice = receive_until(ground, lambda m: m.get_type() == "STATUSTEXT" and "ABORTED" in str(m.text), 4.0)
+        assert notice is not None  # the abort notice lost on the dead link is repeated once it is back
+        time.sleep(1.0)
+        assert sim.mode == "GUIDED"  # the request never arrived...
+        assert not [s for s in sim.setpoints if s.src_component == 191 and s.time > back]  # ...but silence
+        start = sim.snapshot()
+        _fly_to_from_gcs(ground, start.north + 10.0, start.east, start.down)
+        assert wait_for(lambda: sim.snapshot().north - start.north > 5.0, 8.0), "the GCS could not fly it"
+        print(f"\nlink cut: hold mode unanswered, companion silent after {RELEASE_TIMEOUT_S:.0f} s; the GCS flew the "
+              f"vehicle once the link was back ({back - cut:.1f} s after the cut)")
