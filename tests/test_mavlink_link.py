@@ -58,12 +58,18 @@ def test_default_connection_listens_on_loopback_only() -> None:
 
 def test_importing_the_link_sets_no_environment_variable_or_dialect() -> None:
     code = (
-        "import os; from pymavlink import mavutil; before = dict(os.environ); d = mavutil.mavlink; "
-        "import companion.vehicle_link, companion.gcs_cli, sitl.autopilot; "
-        "assert dict(os.environ) == before, set(os.environ) ^ set(before); "
-        "assert mavutil.mavlink is d, mavutil.mavlink"
+        "import os, pkgutil, importlib; from pymavlink import mavutil; d = mavutil.mavlink\n"
+        "before = dict(os.environ); import companion.vehicle_link, companion.gcs_cli, sitl.autopilot\n"
+        "assert dict(os.environ) == before, set(os.environ) ^ set(before)\n"
+        # every module of ours: no MAVLink variable and the same global dialect (cv2's own loader sets
+        # LD_LIBRARY_PATH when it is imported; that one is OpenCV's, not ours)
+        "for pkg in ('companion', 'sitl', 'cloudtrack'):\n"
+        "    for m in pkgutil.iter_modules(importlib.import_module(pkg).__path__):\n"
+        "        importlib.import_module(pkg + '.' + m.name)\n"
+        "assert not [k for k in os.environ if k.startswith('MAVLINK') and k not in before], os.environ\n"
+        "assert mavutil.mavlink is d, mavutil.mavlink\n"
     )
-    env = {k: v for k, v in os.environ.items() if k not in ("MAVLINK20", "MAVLINK_DIALECT")}
+    env = {k: v for k, v in os.environ.items() if k != "MAVLINK20"}
     subprocess.run([sys.executable, "-c", code], check=True, env=env)
 
 
