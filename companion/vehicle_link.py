@@ -252,12 +252,14 @@ class VehicleLink:
         """The mission may fly the vehicle once the pilot or GCS selects GUIDED/OFFBOARD."""
         with self._lock:
             self._enabled = True
+            self._release = None  # a new mission ends the letting-go of the last one
 
     def request_offboard(self) -> None:
         """The operator allowed engagement: ask for GUIDED, or OFFBOARD after >= 1 s of setpoints (PX4)."""
         with self._lock:
             self._enabled = True
             self._engage = True
+            self._release = None
 
     def release_offboard(self, reason: str) -> None:
         """Let go: explicit zero, the hold mode requested if we were flying it, then silence (bounded).
