@@ -48,7 +48,8 @@ class Hold:
 @dataclass(frozen=True)
 class ReleaseControl:
     """Let go (every abort, an operator stop, on_confirm = hold): an explicit zero, the autopilot's hold mode
-    requested unless the pilot already chose a mode, then no more setpoints; the pilot or GCS owns the vehicle."""
+    requested unless the pilot already chose a mode, then no more setpoints; the pilot or GCS owns the
+    vehicle."""
 
     reason: str
 

@@ -173,7 +173,8 @@ def _abort(state: State, reason: str) -> Result:
         return state, ()
     stop: list[Action] = []
     if state.mode in ACTIVE:
-        # Every abort lets go: stop, the autopilot's hold mode (none after a pilot's own mode change), silence.
+        # Every abort lets go: stop, the autopilot's hold mode (none after a pilot's own mode change),
+        # then silence.
         stop.append(ReleaseControl(reason))
     if state.mode in TRACKING:
         stop.append(TrackerStop(reason))

@@ -58,7 +58,8 @@ class MissionConfig:
     redetect_full_frame_s: float = 4.0  # ... growing with time lost to the whole frame after this long
     reinit_gate: float = 0.5  # largest C_box for re-initialisation, as a fraction of (width + height)
     rejection_radius_m: float = 5.0
-    operator_box_confirms: bool = False  # a GCS track rectangle skips the supervisor ([safety] gcs_track_confirms)
+    # A GCS track rectangle skips the supervisor's confirmation ([safety] gcs_track_confirms).
+    operator_box_confirms: bool = False
     signature_threshold: float = 0.95
 
     @classmethod

@@ -28,8 +28,21 @@ class AutopilotKind(str, Enum):
 
 
 # The mission's generic actions in each autopilot's words.
-_ARDUPILOT_ACTIONS = {"offboard": "GUIDED", "loiter": "LOITER", "brake": "BRAKE", "rtl": "RTL", "land": "LAND"}
-_PX4_ACTIONS = {"offboard": "OFFBOARD", "loiter": "HOLD", "brake": "HOLD", "hold": "HOLD", "rtl": "RTL", "land": "LAND"}
+_ARDUPILOT_ACTIONS = {
+    "offboard": "GUIDED",
+    "loiter": "LOITER",
+    "brake": "BRAKE",
+    "rtl": "RTL",
+    "land": "LAND",
+}
+_PX4_ACTIONS = {
+    "offboard": "OFFBOARD",
+    "loiter": "HOLD",
+    "brake": "HOLD",
+    "hold": "HOLD",
+    "rtl": "RTL",
+    "land": "LAND",
+}
 
 
 @dataclass(frozen=True)

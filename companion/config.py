@@ -113,7 +113,7 @@ class SafetyConfig(ConfigSection):
     loop_stall_s: float = Field(0.5, gt=0, le=10)
     target_lost_s: float = Field(1.0, gt=0, le=60)  # while following: no trusted target this long -> hold
     telemetry_stale_s: float = Field(1.0, gt=0, le=10)  # older altitude/position counts as missing: hold
-    setpoint_max_age_s: float = Field(0.5, gt=0, le=5)  # a setpoint older than this is never sent (zero instead)
+    setpoint_max_age_s: float = Field(0.5, gt=0, le=5)  # older setpoints are never sent (zero instead)
     gcs_track_confirms: bool = False  # may a GCS track rectangle skip the supervisor's confirmation?
 
     @model_validator(mode="after")

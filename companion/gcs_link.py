@@ -249,7 +249,8 @@ class GcsProtocol:
             self._replies.ack(msg, MAV_RESULT_UNSUPPORTED)
 
     def _refuse(self, msg: Any, mtype: str) -> None:
-        """A sender not on the allow-list: DENIED for a command, nothing for a TUNNEL; logged at most every 10 s."""
+        """A sender not on the allow-list: DENIED for a command, nothing for a TUNNEL; logged every 10 s
+        at most."""
         self.refused += 1
         if mtype != "TUNNEL":
             self._replies.ack(msg, MAV_RESULT_DENIED)

@@ -61,7 +61,9 @@ def parse_connection(url: str) -> ConnectionSpec:
     if url.startswith("/dev/") or url.startswith("COM"):  # pymavlink's serial device, MAVProxy's ",BAUD"
         device, sep, baud = url.partition(",")
         if sep and (not baud.isdigit() or int(baud) <= 0):
-            raise ValueError(f"MAVLink connection {url!r}: expected DEVICE or DEVICE,BAUD, e.g. /dev/ttyAMA0,921600")
+            raise ValueError(
+                f"MAVLink connection {url!r}: expected DEVICE or DEVICE,BAUD, e.g. /dev/ttyAMA0,921600"
+            )
         return ConnectionSpec("serial", device, int(baud) if sep else 115200)
     kind, sep, rest = url.partition(":")
     if not sep or kind not in _KINDS:
@@ -72,7 +74,9 @@ def parse_connection(url: str) -> ConnectionSpec:
     if kind == "serial":
         device, sep, baud = rest.rpartition(":")
         if not sep or not device or not baud.isdigit() or int(baud) <= 0:
-            raise ValueError(f"MAVLink connection {url!r}: expected serial:DEVICE:BAUD, e.g. serial:/dev/ttyAMA0:921600")
+            raise ValueError(
+                f"MAVLink connection {url!r}: expected serial:DEVICE:BAUD, e.g. serial:/dev/ttyAMA0:921600"
+            )
         return ConnectionSpec(kind, device, int(baud))
     host, sep, port = rest.rpartition(":")
     if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
@@ -99,7 +103,9 @@ class PeerUdp(mavutil.mavudp):  # type: ignore[misc]
 
     def __init__(self, device: str, source_system: int, source_component: int, autopilot_system: int | None,
                  peer: tuple[str, int] | None = None):  # fmt: skip
-        super().__init__(device, input=peer is None, source_system=source_system, source_component=source_component)
+        super().__init__(
+            device, input=peer is None, source_system=source_system, source_component=source_component
+        )
         if peer is not None:
             host = socket.gethostbyname(peer[0])
             peer = (host, peer[1])
@@ -143,7 +149,11 @@ class PeerUdp(mavutil.mavudp):  # type: ignore[misc]
             self.refused.popitem(last=False)
         if now - entry[1] >= REFUSED_LOG_PERIOD_S:
             entry[1] = now
-            log.warning("MAVLink: refused %d datagram(s) from %s:%d (not the autopilot's address)", int(entry[0]), *addr)
+            log.warning(
+                "MAVLink: refused %d datagram(s) from %s:%d (not the autopilot's address)",
+                int(entry[0]),
+                *addr,
+            )
 
     def _note(self, msg: Any) -> None:
         """Learn the peer from the autopilot's HEARTBEAT (called for each message parsed from a datagram)."""
@@ -220,7 +230,9 @@ class DatagramReader:
         return msg
 
 
-def open_connection(url: str, source_system: int, source_component: int, autopilot_system: int | None = None) -> Any:
+def open_connection(
+    url: str, source_system: int, source_component: int, autopilot_system: int | None = None
+) -> Any:
     """A pymavlink connection speaking MAVLink 2 as (source_system, source_component).
 
     UDP links are `PeerUdp`; `autopilot_system` is the system id whose autopilot HEARTBEAT a udpin link
@@ -238,7 +250,9 @@ def open_connection(url: str, source_system: int, source_component: int, autopil
         bind = f"{host}:{port}" if spec.kind == "udpin" else "0.0.0.0:0"
         conn = PeerUdp(bind, source_system, source_component, autopilot_system, peer)
     else:
-        conn = mavutil.mavlink_connection(spec.device, source_system=source_system, source_component=source_component)
+        conn = mavutil.mavlink_connection(
+            spec.device, source_system=source_system, source_component=source_component
+        )
     use_mavlink2(conn)
     if isinstance(conn, PeerUdp):
         conn._reader = DatagramReader(conn, conn._note)  # parse with the MAVLink 2 signing state
@@ -272,7 +286,9 @@ class MavlinkEndpoint:
         self._last_send_log = -math.inf
 
     @classmethod
-    def open(cls, url: str, source_system: int, source_component: int, autopilot_system: int | None = None) -> MavlinkEndpoint:
+    def open(
+        cls, url: str, source_system: int, source_component: int, autopilot_system: int | None = None
+    ) -> MavlinkEndpoint:
         return cls(open_connection(url, source_system, source_component, autopilot_system))
 
     @property

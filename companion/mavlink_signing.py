@@ -30,7 +30,9 @@ def parse_signing_key(text: str) -> bytes:
     except ValueError:
         key = b""
     if len(key) != 32:
-        raise ValueError("MAVLink signing key must be 64 hexadecimal characters (32 bytes), e.g. from `openssl rand -hex 32`")
+        raise ValueError(
+            "MAVLink signing key must be 64 hexadecimal characters (32 bytes), e.g. from `openssl rand -hex 32`"
+        )
     return key
 
 

@@ -28,8 +28,18 @@ from companion.gcs_link import (
     encode_prompt,
 )
 
-RESULT_NAMES = {0: "ACCEPTED", 1: "TEMPORARILY_REJECTED", 2: "DENIED", 3: "UNSUPPORTED", 4: "FAILED", 5: "IN_PROGRESS"}
-USAGE = 'usage: cloudtrack start "<prompt>" [superset=WORD] [engage] | confirm [N] | reject [N] | abort | status | target SYS COMP'
+RESULT_NAMES = {
+    0: "ACCEPTED",
+    1: "TEMPORARILY_REJECTED",
+    2: "DENIED",
+    3: "UNSUPPORTED",
+    4: "FAILED",
+    5: "IN_PROGRESS",
+}
+USAGE = (
+    'usage: cloudtrack start "<prompt>" [superset=WORD] [engage] | confirm [N] | reject [N] | abort | status'
+    " | target SYS COMP"
+)
 
 
 class CloudTrackModule(mp_module.MPModule):  # type: ignore[misc]
@@ -78,7 +88,9 @@ class CloudTrackModule(mp_module.MPModule):  # type: ignore[misc]
         payloads = encode_prompt(self.mission_id, superset, prompt)  # ValueError says what is wrong
         for payload in payloads:
             padded = list(payload) + [0] * (128 - len(payload))
-            self.master.mav.tunnel_send(self.target[0], self.target[1], PROMPT_PAYLOAD_TYPE, len(payload), padded)
+            self.master.mav.tunnel_send(
+                self.target[0], self.target[1], PROMPT_PAYLOAD_TYPE, len(payload), padded
+            )
         text_bytes = sum(len(p) - 4 for p in payloads)
         self._command(CMD_START, [self.mission_id, len(payloads), 1.0 if engage else 0.0, text_bytes])
 

@@ -11,7 +11,8 @@ Two ways to stop. `hold()` keeps the vehicle while the mission still owns it (lo
 unreachable): an explicit zero, then zeros in GUIDED or the configured BRAKE/LOITER. `release_offboard()` lets
 go (every abort, a pilot's takeover): an explicit zero, the hold mode requested (PX4 HOLD, ArduPilot BRAKE or
 LOITER) unless the pilot already chose a mode, then silence; zeros go on only while GUIDED/OFFBOARD remains,
-at most RELEASE_TIMEOUT_S, after which the GCS is told the hold mode was not set and the companion falls silent.
+at most RELEASE_TIMEOUT_S, after which the GCS is told the hold mode was not set and the companion falls
+silent.
 
 Every setpoint carries the time it was computed (in time_boot_ms) and is never encoded once older than
 `[safety] setpoint_max_age_s`: after a freeze the first message out is a fresh zero, not the old command.
@@ -166,7 +167,8 @@ class VehicleLink:
         if self._cfg.use_mavsdk:
             self._relay = MavsdkRelay(self._endpoint)
             self._relay.start()
-            self._mavsdk = MavsdkOffboard(self._relay.url, self._cfg.target_system, self._cfg.source_component)
+            ids = (self._cfg.target_system, self._cfg.source_component)
+            self._mavsdk = MavsdkOffboard(self._relay.url, *ids)
         self._watchdog.seen(LOOP_STALLED)
         self._send_heartbeat(self._clock())  # opens udpout/tcp links so the autopilot learns where we are
         for target, name in ((self._reader, "mavlink-reader"), (self._streamer, "mavlink-streamer")):
@@ -435,7 +437,9 @@ class VehicleLink:
                 self._camera_component,
             )
 
-    def _send_setpoint(self, kind: AutopilotKind, setpoint: Setpoint, computed_at: float | None = None) -> None:
+    def _send_setpoint(
+        self, kind: AutopilotKind, setpoint: Setpoint, computed_at: float | None = None
+    ) -> None:
         """Send `setpoint`, computed at `computed_at` (default now), unless it is older than the bound by the
         time it is encoded (checked under the send lock, the last moment before it leaves)."""
         computed = self._clock() if computed_at is None else computed_at
@@ -632,7 +636,7 @@ class VehicleLink:
                     self._stream_since = now
                 height = self._fresh_height(now)
                 if streaming and stopped and self._mavsdk is not None and kind is AutopilotKind.PX4:
-                    pass  # MAVSDK would re-send any setpoint forever: after its stop() it gets none while stopped
+                    pass  # MAVSDK re-sends any setpoint forever: after its stop() it gets none while stopped
                 elif streaming and (stopped or self._telemetry_missing):
                     setpoint = Setpoint.zero()
                 elif streaming and now - self._setpoint_time > self._setpoint_max_age:
@@ -643,8 +647,10 @@ class VehicleLink:
                 prestreamed = kind is AutopilotKind.ARDUPILOT or (
                     self._stream_since is not None and now - self._stream_since >= PX4_MIN_PRESTREAM_S
                 )
-                recently = self._mode_request is not None and now - self._mode_request[1] < MODE_REQUEST_RETRY_S
-                if self._enabled and self._engage and not in_offboard and not stopped and prestreamed and not recently:
+                request = self._mode_request
+                recently = request is not None and now - request[1] < MODE_REQUEST_RETRY_S
+                may_engage = self._enabled and self._engage and not in_offboard and not stopped
+                if may_engage and prestreamed and not recently:
                     request_mode = ours
         if setpoint is not None:
             self._send_setpoint(kind, setpoint, computed_at)

@@ -90,7 +90,7 @@ class AutopilotOptions:
     land_speed_m_s: float = 1.0
     limits: VehicleLimits = VehicleLimits()
     wind: Wind = Wind()
-    signing_key: bytes | None = None  # sign everything sent (unsigned input is still accepted, like a GCS port)
+    signing_key: bytes | None = None  # sign everything sent (unsigned input is still accepted)
 
 
 @dataclass(frozen=True)
@@ -152,9 +152,13 @@ class SimulatedAutopilot:
         defaults = PX4_DEFAULT_INTERVALS if not self.is_ardupilot else ARDUPILOT_DEFAULT_INTERVALS
         self._links: dict[str, _Link] = {}
         for name, url in links.items():
-            conn = use_mavlink2(mavutil.mavlink_connection(url, source_system=options.system_id, source_component=1))
+            conn = use_mavlink2(
+                mavutil.mavlink_connection(url, source_system=options.system_id, source_component=1)
+            )
             if options.signing_key is not None:
-                conn.setup_signing(options.signing_key, sign_outgoing=True, allow_unsigned_callback=lambda *_: True)
+                conn.setup_signing(
+                    options.signing_key, sign_outgoing=True, allow_unsigned_callback=lambda *_: True
+                )
             self._links[name] = _Link(name, url, conn, dict(defaults))
 
     # ----------------------------------------------------------------------------------------------- API
@@ -403,7 +407,8 @@ class SimulatedAutopilot:
         s = self.state
         if self.mode in ("GUIDED", "OFFBOARD"):
             timeout = self.options.guid_timeout_s if self.is_ardupilot else self.options.offboard_loss_s
-            # ArduCopter's GUID_TIMEOUT stops velocity commands only; a position target is flown until reached.
+            # ArduCopter's GUID_TIMEOUT stops velocity commands only; a position target is flown until
+            # reached.
             position_held = self.is_ardupilot and self._position_target is not None
             if now - self._last_setpoint_time > timeout and not position_held:
                 if not self.is_ardupilot:

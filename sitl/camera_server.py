@@ -44,7 +44,9 @@ class PoseFollower:
         self._pose_time = 0.0
         self._lock = threading.Lock()
         self._stop = threading.Event()
-        self._conn = use_mavlink2(mavutil.mavlink_connection(url, source_system=source_system, source_component=source_component))
+        self._conn = use_mavlink2(
+            mavutil.mavlink_connection(url, source_system=source_system, source_component=source_component)
+        )
         self._thread = threading.Thread(target=self._run, name="pose-follower", daemon=True)
 
     def start(self) -> PoseFollower:

@@ -508,7 +508,7 @@ class ScenarioRun:
                 events.append(TimedEvent(t, "candidate"))
             elif kind == "reinit":
                 events.append(TimedEvent(t, "reinit"))
-            elif kind in ("hold", "release"):  # a release (abort: stop, hold mode, silence) stops the vehicle too
+            elif kind in ("hold", "release"):  # a release (stop, hold mode, silence) stops the vehicle too
                 events.append(TimedEvent(t, "hold", {"reason": e.get("reason", ""), "action": kind}))
             elif kind == "safety":
                 events.append(TimedEvent(t, "watchdog", {"reason": e.get("reason"), "action": e.get("action"),

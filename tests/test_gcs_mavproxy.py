@@ -41,12 +41,17 @@ def test_mavproxy_module_sends_every_mission_command() -> None:
             assert proc.stdin is not None
             proc.stdin.write(line + "\n")
             proc.stdin.flush()
-            assert wait_for(lambda: any(expect in o for o in out), 10.0), f"{line!r}: no {expect!r} in {''.join(out)[-2000:]}"
+            assert wait_for(lambda: any(expect in o for o in out), 10.0), (
+                f"{line!r}: no {expect!r} in {''.join(out)[-2000:]}"
+            )
 
         try:
             assert wait_for(lambda: any("Detected vehicle 1:191" in o for o in out), 20.0), "".join(out)
             say("module load cloudtrack", "Loaded module cloudtrack")
-            say('cloudtrack start "an injured man in a gray shirt" superset=person', "CloudTrack start: ACCEPTED")
+            say(
+                'cloudtrack start "an injured man in a gray shirt" superset=person',
+                "CloudTrack start: ACCEPTED",
+            )
             say("cloudtrack confirm", "CloudTrack confirm: ACCEPTED")
             say("cloudtrack reject 2", "CloudTrack reject: ACCEPTED")
             say("cloudtrack abort", "CloudTrack abort: ACCEPTED")
@@ -56,7 +61,12 @@ def test_mavproxy_module_sends_every_mission_command() -> None:
             proc.kill()
             proc.wait(timeout=5)
         assert commands == [
-            StartMission("an injured man in a gray shirt", "person", allow_engage=False, mission_id=commands[0].mission_id),  # type: ignore[attr-defined]
+            StartMission(
+                "an injured man in a gray shirt",
+                "person",
+                allow_engage=False,
+                mission_id=commands[0].mission_id,
+            ),  # type: ignore[attr-defined]
             ConfirmCandidate(""),
             RejectCandidate("2"),
             AbortMission("gcs"),

@@ -24,6 +24,8 @@ def test_qgc_actions_file_sends_confirm_reject_abort_and_status() -> None:
             params = [float(a.get(f"param{i}", 0.0)) for i in range(1, 8)]
             # what QGroundControl sends for a MAVLink action: COMMAND_LONG to the active vehicle and compId
             qgc.send(lambda m, a=a, p=params: m.command_long_send(1, a["compId"], a["mavCmd"], 0, *p))
-            ack = receive_until(qgc, lambda m, a=a: m.get_type() == "COMMAND_ACK" and m.command == a["mavCmd"], 3.0)
+            ack = receive_until(
+                qgc, lambda m, a=a: m.get_type() == "COMMAND_ACK" and m.command == a["mavCmd"], 3.0
+            )
             assert ack is not None and ack.result == 0, label
         assert link.commands() == [ConfirmCandidate(""), RejectCandidate(""), AbortMission("gcs")]

@@ -74,6 +74,7 @@ def test_after_abort_a_gcs_guided_position_target_moves_the_vehicle() -> None:
         assert wait_for(lambda: sim.mode == "GUIDED", 3.0)
         start = sim.snapshot()
         _fly_to_from_gcs(ground, start.north + 10.0, start.east, start.down)
+
         def moved_m() -> float:
             return math.hypot(sim.snapshot().north - start.north, sim.snapshot().east - start.east)
 
@@ -86,8 +87,10 @@ def test_after_abort_a_gcs_guided_position_target_moves_the_vehicle() -> None:
         late = [s for s in sim.setpoints if s.src_component == 191 and s.time > loiter_at + 0.2]
         assert not late, f"{len(late)} setpoints from the companion after it let go"
         last = max(s.time for s in sim.setpoints if s.src_component == 191)
-        print(f"\nafter abort: LOITER {loiter_at - aborted_at:.3f} s after the ACK, last companion setpoint "
-              f"{last - aborted_at:.3f} s; GCS target moved the vehicle {moved_m():.1f} m")
+        print(
+            f"\nafter abort: LOITER {loiter_at - aborted_at:.3f} s after the ACK, last companion setpoint "
+            f"{last - aborted_at:.3f} s; GCS target moved the vehicle {moved_m():.1f} m"
+        )
 
 
 def _mode_time(sim: Any, mode: str) -> float:
@@ -97,7 +100,12 @@ def _mode_time(sim: Any, mode: str) -> float:
 def test_after_abort_on_link_loss_the_companion_falls_silent_within_the_bound() -> None:
     """The hold mode cannot be set while the link is down: zeros stop after RELEASE_TIMEOUT_S anyway."""
     safety = {"heartbeat_timeout_s": 0.5}
-    with autopilot("ardupilot") as sim, vehicle_link(sim, safety=safety) as link, MainLoop(link), gcs(sim) as ground:
+    with (
+        autopilot("ardupilot") as sim,
+        vehicle_link(sim, safety=safety) as link,
+        MainLoop(link),
+        gcs(sim) as ground,
+    ):
         runner = _following_runner(link)
         link.request_offboard()
         link.set_velocity(Setpoint(1.5, 0.0, 0.0, 0.0))
@@ -114,7 +122,9 @@ def test_after_abort_on_link_loss_the_companion_falls_silent_within_the_bound() 
         time.sleep(RELEASE_TIMEOUT_S + 0.5)
         sim.set_link_down("companion", False)
         back = time.monotonic()
-        notice = receive_until(ground, lambda m: m.get_type() == "STATUSTEXT" and "ABORTED" in str(m.text), 4.0)
+        notice = receive_until(
+            ground, lambda m: m.get_type() == "STATUSTEXT" and "ABORTED" in str(m.text), 4.0
+        )
         assert notice is not None  # the abort notice lost on the dead link is repeated once it is back
         time.sleep(1.0)
         assert sim.mode == "GUIDED"  # the request never arrived...
@@ -122,5 +132,7 @@ def test_after_abort_on_link_loss_the_companion_falls_silent_within_the_bound() 
         start = sim.snapshot()
         _fly_to_from_gcs(ground, start.north + 10.0, start.east, start.down)
         assert wait_for(lambda: sim.snapshot().north - start.north > 5.0, 8.0), "the GCS could not fly it"
-        print(f"\nlink cut: hold mode unanswered, companion silent after {RELEASE_TIMEOUT_S:.0f} s; the GCS flew the "
-              f"vehicle once the link was back ({back - cut:.1f} s after the cut)")
+        print(
+            f"\nlink cut: hold mode unanswered, companion silent after {RELEASE_TIMEOUT_S:.0f} s; the GCS flew the "
+            f"vehicle once the link was back ({back - cut:.1f} s after the cut)"
+        )

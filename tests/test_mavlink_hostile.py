@@ -79,7 +79,9 @@ def test_flood_from_200_loopback_senders_while_following() -> None:
             started = time.monotonic()
             for round_ in range(5):  # bounded: 1000 datagrams in well under 2 s
                 for i, s in enumerate(socks):
-                    s.sendto(heartbeat if (i + round_) % 2 else bytes([0xFD, i % 256]) * 40, ("127.0.0.1", port))
+                    s.sendto(
+                        heartbeat if (i + round_) % 2 else bytes([0xFD, i % 256]) * 40, ("127.0.0.1", port)
+                    )
             flood_s = time.monotonic() - started
             before = len(_ours(sim))
             time.sleep(2.0)
@@ -98,11 +100,15 @@ def test_flood_from_200_loopback_senders_while_following() -> None:
         assert link.endpoint.conn.refused_datagrams >= 100
         assert len(link.endpoint.conn.refused) == 64  # more strangers than that: the table stays bounded
         assert not [e for e in link.safety_events() if e.by_other_party]  # the forged LOITER changed nothing
-        print(f"\nflood: {senders} senders, {senders * 5} datagrams in {flood_s * 1000:.0f} ms, "
-              f"{link.endpoint.conn.refused_datagrams} refused, 0 replies to them")
+        print(
+            f"\nflood: {senders} senders, {senders * 5} datagrams in {flood_s * 1000:.0f} ms, "
+            f"{link.endpoint.conn.refused_datagrams} refused, 0 replies to them"
+        )
 
 
-def _deny_checks(ground: MavlinkEndpoint, link: VehicleLink, component: int, command: int, params: list[float]) -> None:
+def _deny_checks(
+    ground: MavlinkEndpoint, link: VehicleLink, component: int, command: int, params: list[float]
+) -> None:
     p = params + [0.0] * (7 - len(params))
     ground.send(lambda m: m.command_long_send(1, component, command, 0, *p))
     ack = receive_until(ground, lambda m: m.get_type() == "COMMAND_ACK" and m.command == command, 3.0)
@@ -110,18 +116,27 @@ def _deny_checks(ground: MavlinkEndpoint, link: VehicleLink, component: int, com
 
 
 def test_allow_list_denies_start_confirm_abort_and_track_rectangle_from_other_systems() -> None:
-    with autopilot("ardupilot") as sim, vehicle_link(sim) as link, MainLoop(link), gcs(sim, system=77) as stranger:
+    with (
+        autopilot("ardupilot") as sim,
+        vehicle_link(sim) as link,
+        MainLoop(link),
+        gcs(sim, system=77) as stranger,
+    ):
         mode_before = sim.mode
         for payload in encode_prompt(9, "person", "a man in a red cap"):
             padded = list(payload) + [0] * (128 - len(payload))
-            stranger.send(lambda m, pl=payload, pd=padded: m.tunnel_send(1, 191, PROMPT_PAYLOAD_TYPE, len(pl), pd))
+            stranger.send(
+                lambda m, pl=payload, pd=padded: m.tunnel_send(1, 191, PROMPT_PAYLOAD_TYPE, len(pl), pd)
+            )
         _deny_checks(stranger, link, 191, CMD_START, [9, 1, 1, len("person|a man in a red cap")])
         _deny_checks(stranger, link, 191, CMD_CONFIRM, [0])
         _deny_checks(stranger, link, 191, CMD_ABORT, [])
         _deny_checks(stranger, link, 100, CMD_CAMERA_TRACK_RECTANGLE, [0.4, 0.3, 0.6, 0.7])
         # COMMAND_INT is answered too
         stranger.send(lambda m: m.command_int_send(1, 191, 0, CMD_CONFIRM, 0, 0, 0, 0, 0, 0, 0, 0, 0))
-        ack = receive_until(stranger, lambda m: m.get_type() == "COMMAND_ACK" and m.command == CMD_CONFIRM, 3.0)
+        ack = receive_until(
+            stranger, lambda m: m.get_type() == "COMMAND_ACK" and m.command == CMD_CONFIRM, 3.0
+        )
         assert ack is not None and ack.result == MAV_RESULT_DENIED
         assert link.commands() == [] and sim.mode == mode_before
         assert link._gcs.refused >= 5
@@ -153,7 +168,9 @@ def test_forged_unsigned_autopilot_heartbeat_and_position_are_dropped_with_signi
         assert "HEARTBEAT" in link.signing.refused and "GLOBAL_POSITION_INT" in link.signing.refused
         assert not [e for e in link.safety_events() if e.by_other_party]  # no "pilot takeover"
         height, _ = link._decoder.height()
-        assert height is not None and height_before is not None and abs(height - height_before) < 5.0  # not 400 m
+        assert (
+            height is not None and height_before is not None and abs(height - height_before) < 5.0
+        )  # not 400 m
         before = len(_ours(sim))
         time.sleep(0.5)
         assert len(_ours(sim)) - before >= 4 and sim.snapshot().vn > 1.0  # still flying the mission
@@ -183,16 +200,24 @@ def test_stale_setpoint_never_reaches_the_autopilot_after_the_streamer_freezes()
         time.sleep(0.5)
         ages = [((int(s.time * 1000) - s.time_boot_ms) % 2**32) / 1000.0 for s in _ours(sim)]
         assert ages and max(ages) <= bound + 0.05, f"a setpoint {max(ages):.3f} s old reached the autopilot"
-        print(f"\nstreamer frozen 1.0 s (bound {bound} s): oldest setpoint at the autopilot {max(ages) * 1000:.0f} ms, "
-              f"{link.stale_setpoints_dropped} stale dropped at encoding")
+        print(
+            f"\nstreamer frozen 1.0 s (bound {bound} s): oldest setpoint at the autopilot {max(ages) * 1000:.0f} ms, "
+            f"{link.stale_setpoints_dropped} stale dropped at encoding"
+        )
         after = [s for s in _ours(sim) if resumed <= s.time < resumed + 0.4]
-        assert after and all(s.vx == 0.0 for s in after)  # the first setpoints after the freeze are fresh zeros
+        assert after and all(
+            s.vx == 0.0 for s in after
+        )  # the first setpoints after the freeze are fresh zeros
         assert link.stale_setpoints_dropped >= 1
         assert wait_for(lambda: sim.snapshot().vn > 1.0, 5.0)  # and following resumes once the loop does
 
 
 def test_stale_altitude_holds() -> None:
-    with autopilot("ardupilot") as sim, vehicle_link(sim, safety={"telemetry_stale_s": 0.4}) as link, MainLoop(link):
+    with (
+        autopilot("ardupilot") as sim,
+        vehicle_link(sim, safety={"telemetry_stale_s": 0.4}) as link,
+        MainLoop(link),
+    ):
         _fly(sim, link)
         with sim._lock:  # the autopilot stops sending GLOBAL_POSITION_INT (attitude and heartbeat go on)
             sim._links["companion"].intervals.pop(mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT)
@@ -224,9 +249,14 @@ def test_abort_notice_sent_while_the_link_is_down_is_repeated_when_it_returns() 
         gcs(sim) as ground,
     ):
         sim.set_link_down("companion", True)
-        assert wait_for(lambda: any(e.reason == "autopilot_heartbeat_lost" for e in link.safety_events()), 3.0)
+        assert wait_for(
+            lambda: any(e.reason == "autopilot_heartbeat_lost" for e in link.safety_events()), 3.0
+        )
         link.send_status("ABORTED: autopilot link lost", 2)  # what the main loop says; lost on the dead link
-        assert receive_until(ground, lambda m: m.get_type() == "STATUSTEXT" and b"ABORTED" in _text(m), 1.0) is None
+        assert (
+            receive_until(ground, lambda m: m.get_type() == "STATUSTEXT" and b"ABORTED" in _text(m), 1.0)
+            is None
+        )
         sim.set_link_down("companion", False)
         notice = receive_until(ground, lambda m: m.get_type() == "STATUSTEXT" and b"ABORTED" in _text(m), 4.0)
         assert notice is not None and notice.severity == 2
