@@ -171,7 +171,8 @@ def test_bad_signing_key_is_a_clear_error() -> None:
         VehicleLink(MavlinkConfig(signing_key="abcd"), SafetyConfig())
 
 
-def test_serial_link_over_a_pseudo_terminal() -> None:
+@pytest.mark.parametrize("form", ["{tty},57600", "serial:{tty}:57600"])
+def test_serial_link_over_a_pseudo_terminal(form: str) -> None:
     """serial:DEVICE:BAUD through pyserial: the companion detects the autopilot and asks for its streams."""
     import contextlib
     import os
@@ -189,7 +190,7 @@ def test_serial_link_over_a_pseudo_terminal() -> None:
 
     autopilot_side = mavlink.MAVLink(PtyWriter(), srcSystem=1, srcComponent=1)
     autopilot_side.robust_parsing = True
-    link = VehicleLink(MavlinkConfig(connection=f"serial:{os.ttyname(slave)}:57600"), SafetyConfig())
+    link = VehicleLink(MavlinkConfig(connection=form.format(tty=os.ttyname(slave))), SafetyConfig())
     received: list = []
     try:
         link.start()
