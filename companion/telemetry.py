@@ -15,14 +15,15 @@ from typing import Any
 
 from behaviors.telemetry import Telemetry
 from companion.autopilot_modes import AutopilotKind, detect_autopilot, is_armed, mode_name, offboard_mode
+from companion.mavlink_connection import mavlink
 
-MSG_ID_HEARTBEAT = 0
-MSG_ID_SYS_STATUS = 1
-MSG_ID_ATTITUDE = 30
-MSG_ID_LOCAL_POSITION_NED = 32
-MSG_ID_GLOBAL_POSITION_INT = 33
-MAV_TYPE_GCS = 6
-MAV_TYPE_ONBOARD_CONTROLLER = 18
+MSG_ID_HEARTBEAT = int(mavlink.MAVLINK_MSG_ID_HEARTBEAT)
+MSG_ID_SYS_STATUS = int(mavlink.MAVLINK_MSG_ID_SYS_STATUS)
+MSG_ID_ATTITUDE = int(mavlink.MAVLINK_MSG_ID_ATTITUDE)
+MSG_ID_LOCAL_POSITION_NED = int(mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED)
+MSG_ID_GLOBAL_POSITION_INT = int(mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT)
+MAV_TYPE_GCS = int(mavlink.MAV_TYPE_GCS)
+MAV_TYPE_ONBOARD_CONTROLLER = int(mavlink.MAV_TYPE_ONBOARD_CONTROLLER)
 
 
 def stream_intervals_us(rate_hz: float) -> list[tuple[int, float]]:
