@@ -22,6 +22,9 @@ $(BIN)/.installed: pyproject.toml | $(BIN)/python
 	$(BIN)/pip install -q "torch==2.13.0+cpu" || \
 	  $(BIN)/pip install -q "torch==2.13.0+cpu" --extra-index-url https://download.pytorch.org/whl/cpu
 	$(BIN)/pip install -q -e '.[test]'
+	# MAVProxy for the `module load cloudtrack` test, without its declared dependencies: its opencv-python
+	# would shadow the contrib OpenCV the trackers need, and vtk & co. serve only its GUI modules.
+	$(BIN)/pip install -q --no-deps "MAVProxy==1.8.75"
 	touch $@
 
 install: $(BIN)/.installed

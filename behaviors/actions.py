@@ -39,14 +39,17 @@ class SendSetpoint:
 
 @dataclass(frozen=True)
 class Hold:
-    """Stop: an explicit zero setpoint, then hold position the autopilot's way (`[mavlink] ardupilot_hold`)."""
+    """Stop while the mission still owns the vehicle (lost target, back-end unreachable): an explicit zero
+    setpoint, then hold position the autopilot's way (`[mavlink] ardupilot_hold`); setpoints may resume."""
 
     reason: str
 
 
 @dataclass(frozen=True)
 class ReleaseControl:
-    """Stop sending setpoints at once and change no mode: the pilot or GCS has taken over."""
+    """Let go (every abort, an operator stop, on_confirm = hold): an explicit zero, the autopilot's hold mode
+    requested unless the pilot already chose a mode, then no more setpoints; the pilot or GCS owns the
+    vehicle."""
 
     reason: str
 

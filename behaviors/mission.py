@@ -144,9 +144,9 @@ def step(state: State, event: Event, config: MissionConfig) -> Result:
         return state, (GcsMessage("ignored event with a non-finite time", "warning"),)
     state = replace(state, now_s=max(state.now_s, event.time_s))
     if isinstance(event, AutopilotLinkLost):
-        return _abort(state, "autopilot link lost", release=False)
+        return _abort(state, "autopilot link lost")
     if isinstance(event, PilotTakeover):
-        return _abort(state, f"pilot takeover {event.mode}".strip(), release=True)
+        return _abort(state, f"pilot takeover {event.mode}".strip())
     if isinstance(event, GcsCommand):
         return _command(state, event, config)
     if isinstance(event, Telemetry):
@@ -168,13 +168,14 @@ def _enter(state: State, mode: MissionState, reason: str, severity: str = "info"
     return new, (GcsMessage(f"{mode.value}: {reason}"[:50], severity),)
 
 
-def _abort(state: State, reason: str, release: bool) -> Result:
+def _abort(state: State, reason: str) -> Result:
     if state.mode is MissionState.ABORTED:
         return state, ()
     stop: list[Action] = []
     if state.mode in ACTIVE:
-        # A pilot's mode change must not be fought with a hold; anything else ends in an explicit hold.
-        stop.append(ReleaseControl(reason) if release else Hold(reason))
+        # Every abort lets go: stop, the autopilot's hold mode (none after a pilot's own mode change),
+        # then silence.
+        stop.append(ReleaseControl(reason))
     if state.mode in TRACKING:
         stop.append(TrackerStop(reason))
     new, msg = _enter(replace(state, control=ControlState(), queries=()), MissionState.ABORTED, reason, "critical")
@@ -215,7 +216,7 @@ def _confirm(state: State, config: MissionConfig) -> Result:
     new, msg = _enter(replace(state, last_report_s=state.now_s), MissionState.CONFIRMED, "supervisor confirmed")
     hold: tuple[Action, ...] = ()
     if config.on_confirm is ConfirmAction.HOLD:
-        hold = (Hold("confirmed: hold"),)
+        hold = (ReleaseControl("confirmed: hold"),)  # the autopilot holds there; the GCS owns the vehicle
     return new, (*hold, report, *msg)
 
 
@@ -248,7 +249,7 @@ def _reject(state: State, candidate_id: str) -> Result:
 def _command(state: State, event: GcsCommand, config: MissionConfig) -> Result:
     cmd = event.command
     if isinstance(cmd, AbortMission):
-        return _abort(state, f"GCS abort {cmd.reason}".strip(), release=False)
+        return _abort(state, f"GCS abort {cmd.reason}".strip())
     if isinstance(cmd, StartMission):
         if not cmd.prompt.strip():
             return state, (GcsMessage("start refused: empty prompt", "warning"),)
@@ -269,14 +270,17 @@ def _command(state: State, event: GcsCommand, config: MissionConfig) -> Result:
             state, mission=mission, target=target, control=ControlState(), lost_stage=0, mode_requested=None, holding=False
         )
         new, engage = _engage(new, "operator target")
-        new, msg = _enter(new, MissionState.CONFIRMED, "operator selected target")
+        if config.operator_box_confirms:
+            new, msg = _enter(new, MissionState.CONFIRMED, "operator selected target")
+        else:  # followed like any candidate; only the supervisor's confirm allows descent
+            new, msg = _enter(new, MissionState.FOLLOWING, "operator selected target")
         return new, (*engage, TrackerInit(cmd.box, -1, "operator"), *msg)
     if isinstance(cmd, StopTracking):
         if state.mode not in ACTIVE:
             return state, ()
         stop = (TrackerStop("operator stop"),) if state.mode in TRACKING else ()
         new, msg = _enter(replace(state, target=None, control=ControlState(), queries=()), MissionState.IDLE, "operator stop")
-        return new, (Hold("operator stop"), *stop, *msg)
+        return new, (ReleaseControl("operator stop"), *stop, *msg)
     if isinstance(cmd, ConfirmCandidate):
         current = state.target
         if current is None or state.mode not in TRACKING or (cmd.candidate_id and cmd.candidate_id != current.candidate_id):
@@ -311,7 +315,7 @@ def _telemetry(state: State, telemetry: Telemetry) -> Result:
         and not telemetry.offboard_active
         and not our_request
     ):
-        return _abort(new, f"pilot takeover {telemetry.mode}".strip(), release=True)
+        return _abort(new, f"pilot takeover {telemetry.mode}".strip())
     return new, ()
 
 
@@ -337,7 +341,7 @@ def _track(state: State, result: TrackResult, config: MissionConfig) -> Result:
         state, msg = _enter(replace(state, lost_stage=0), state.resume, "target re-acquired")
         actions.extend(msg)
         if state.mode is MissionState.CONFIRMED and config.on_confirm is ConfirmAction.HOLD:
-            return state, (*actions, Hold("confirmed: hold"))
+            return state, tuple(actions)  # let go on confirmation; the re-acquired target is only reported
 
     if state.mode is MissionState.CONFIRMED and config.on_confirm is ConfirmAction.HOLD:
         return state, tuple(actions)

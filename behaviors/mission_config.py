@@ -58,6 +58,8 @@ class MissionConfig:
     redetect_full_frame_s: float = 4.0  # ... growing with time lost to the whole frame after this long
     reinit_gate: float = 0.5  # largest C_box for re-initialisation, as a fraction of (width + height)
     rejection_radius_m: float = 5.0
+    # A GCS track rectangle skips the supervisor's confirmation ([safety] gcs_track_confirms).
+    operator_box_confirms: bool = False
     signature_threshold: float = 0.95
 
     @classmethod
@@ -120,6 +122,7 @@ class MissionConfig:
             rejection_radius_m=_float(behavior, "rejection_radius_m", d.rejection_radius_m),
             redetect_roi_scale=_float(behavior, "redetect_roi_scale", d.redetect_roi_scale),
             redetect_full_frame_s=_float(behavior, "redetect_full_frame_s", d.redetect_full_frame_s),
+            operator_box_confirms=_bool(safety, "gcs_track_confirms", d.operator_box_confirms),
         )
 
 

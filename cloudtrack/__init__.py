@@ -3,3 +3,10 @@ back-end API's models and its HTTP client, sd_notify and the systemd installer. 
 value types (`behaviors`) and never imports a process package (`companion`, `backend`, `sitl`)."""
 
 __version__ = "0.1.0"
+
+
+def init(mpstate: object) -> object:
+    """MAVProxy's entry point for `module load cloudtrack` (companion/mavproxy_cloudtrack.py)."""
+    from companion.mavproxy_cloudtrack import init as load
+
+    return load(mpstate)

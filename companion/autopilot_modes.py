@@ -1,8 +1,11 @@
-"""ArduCopter and PX4 flight modes: numbers, names, detection from the autopilot's HEARTBEAT.
+"""ArduPilot and PX4 flight modes: names and numbers from pymavlink's own tables, detection from HEARTBEAT.
 
-ArduCopter puts its mode number in HEARTBEAT.custom_mode and takes it in MAV_CMD_DO_SET_MODE param2.
-PX4 packs main mode and sub mode into bytes 2 and 3 of custom_mode (custom_mode = main << 16 | sub << 24)
-and takes them in param2 and param3.
+ArduPilot puts its mode number in HEARTBEAT.custom_mode and takes it in MAV_CMD_DO_SET_MODE param2; the
+numbers depend on the vehicle (Copter, Plane, Rover, Sub...), so the table is pymavlink's
+`mode_mapping_bynumber(HEARTBEAT.type)`. PX4 packs main mode and sub mode into bytes 2 and 3 of
+custom_mode (custom_mode = main << 16 | sub << 24) and takes them in param2 and param3: pymavlink's
+`interpret_px4_mode` and `px4_map`, with PX4's own names where pymavlink differs (its AUTO_LOITER is PX4's
+"Hold" mode, HOLD here). No mode number is written out in this module.
 """
 
 from __future__ import annotations
@@ -10,10 +13,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import Enum
 
-MAV_AUTOPILOT_ARDUPILOTMEGA = 3
-MAV_AUTOPILOT_PX4 = 12
-MAV_MODE_FLAG_CUSTOM_MODE_ENABLED = 1
-MAV_MODE_FLAG_SAFETY_ARMED = 128
+from pymavlink import mavutil
+
+from companion.mavlink_connection import mavlink
+
+QUADROTOR = int(mavlink.MAV_TYPE_QUADROTOR)
+_PX4_RENAMED = {"LOITER": "HOLD", "FOLLOWME": "FOLLOW_TARGET"}  # pymavlink's name -> PX4's
+_PX4_PYMAVLINK_NAME = {ours: theirs for theirs, ours in _PX4_RENAMED.items()}
 
 
 class AutopilotKind(str, Enum):
@@ -21,22 +27,22 @@ class AutopilotKind(str, Enum):
     PX4 = "px4"
 
 
-ARDUCOPTER_MODES: dict[str, int] = {
-    "STABILIZE": 0, "ACRO": 1, "ALT_HOLD": 2, "AUTO": 3, "GUIDED": 4, "LOITER": 5, "RTL": 6, "CIRCLE": 7,
-    "LAND": 9, "DRIFT": 11, "SPORT": 13, "FLIP": 14, "AUTOTUNE": 15, "POSHOLD": 16, "BRAKE": 17,
-    "THROW": 18, "AVOID_ADSB": 19, "GUIDED_NOGPS": 20, "SMART_RTL": 21,
-}  # fmt: skip
-
-# name -> (main_mode, sub_mode) from PX4's px4_custom_mode.h
-PX4_MODES: dict[str, tuple[int, int]] = {
-    "MANUAL": (1, 0), "ALTCTL": (2, 0), "POSCTL": (3, 0), "READY": (4, 1), "TAKEOFF": (4, 2),
-    "HOLD": (4, 3), "MISSION": (4, 4), "RTL": (4, 5), "LAND": (4, 6), "FOLLOW_TARGET": (4, 8),
-    "PRECLAND": (4, 9), "ACRO": (5, 0), "OFFBOARD": (6, 0), "STABILIZED": (7, 0),
-}  # fmt: skip
-
 # The mission's generic actions in each autopilot's words.
-_ARDUPILOT_ACTIONS = {"offboard": "GUIDED", "loiter": "LOITER", "brake": "BRAKE", "rtl": "RTL", "land": "LAND"}
-_PX4_ACTIONS = {"offboard": "OFFBOARD", "loiter": "HOLD", "brake": "HOLD", "hold": "HOLD", "rtl": "RTL", "land": "LAND"}
+_ARDUPILOT_ACTIONS = {
+    "offboard": "GUIDED",
+    "loiter": "LOITER",
+    "brake": "BRAKE",
+    "rtl": "RTL",
+    "land": "LAND",
+}
+_PX4_ACTIONS = {
+    "offboard": "OFFBOARD",
+    "loiter": "HOLD",
+    "brake": "HOLD",
+    "hold": "HOLD",
+    "rtl": "RTL",
+    "land": "LAND",
+}
 
 
 @dataclass(frozen=True)
@@ -50,22 +56,29 @@ class SetModeParams:
 
 def detect_autopilot(heartbeat_autopilot: int) -> AutopilotKind | None:
     """The autopilot family from HEARTBEAT.autopilot, None for anything else (GCS, companion, unknown)."""
-    if heartbeat_autopilot == MAV_AUTOPILOT_ARDUPILOTMEGA:
+    if heartbeat_autopilot == mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA:
         return AutopilotKind.ARDUPILOT
-    if heartbeat_autopilot == MAV_AUTOPILOT_PX4:
+    if heartbeat_autopilot == mavlink.MAV_AUTOPILOT_PX4:
         return AutopilotKind.PX4
     return None
 
 
-def mode_name(kind: AutopilotKind, custom_mode: int) -> str:
-    """The mode's name, or MODE(n) for a number this table does not know."""
+def ardupilot_modes(vehicle_type: int = QUADROTOR) -> dict[str, int]:
+    """Name -> number for this ArduPilot vehicle type (HEARTBEAT.type); Copter's for an unknown type."""
+    table = mavutil.mode_mapping_byname(vehicle_type) or mavutil.mode_mapping_byname(QUADROTOR)
+    return {str(name): int(number) for name, number in table.items()}
+
+
+def mode_name(kind: AutopilotKind, custom_mode: int, vehicle_type: int = QUADROTOR) -> str:
+    """The mode's name, or MODE(n) for a number the table does not know."""
     if kind is AutopilotKind.ARDUPILOT:
-        return next((n for n, v in ARDUCOPTER_MODES.items() if v == custom_mode), f"MODE({custom_mode})")
-    main, sub = (custom_mode >> 16) & 0xFF, (custom_mode >> 24) & 0xFF
-    for name, (m, s) in PX4_MODES.items():
-        if m == main and (s == sub or m != 4):
-            return name
-    return f"MODE({main}.{sub})"
+        by_number = mavutil.mode_mapping_bynumber(vehicle_type) or mavutil.mode_mapping_bynumber(QUADROTOR)
+        name = by_number.get(custom_mode)
+        return str(name) if name is not None else f"MODE({custom_mode})"
+    name = str(mavutil.interpret_px4_mode(0, custom_mode))
+    if name == "UNKNOWN":
+        return f"MODE({(custom_mode >> 16) & 0xFF}.{(custom_mode >> 24) & 0xFF})"
+    return _PX4_RENAMED.get(name, name)
 
 
 def mode_for_action(kind: AutopilotKind, action: str) -> str:
@@ -80,16 +93,20 @@ def offboard_mode(kind: AutopilotKind) -> str:
     return mode_for_action(kind, "offboard")
 
 
-def set_mode_params(kind: AutopilotKind, name: str) -> SetModeParams:
+def set_mode_params(kind: AutopilotKind, name: str, vehicle_type: int = QUADROTOR) -> SetModeParams:
+    """ValueError for a mode this vehicle does not have (e.g. BRAKE on a Plane)."""
+    custom = int(mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED)
     if kind is AutopilotKind.ARDUPILOT:
-        if name not in ARDUCOPTER_MODES:
-            raise ValueError(f"unknown ArduCopter mode {name!r}")
-        return SetModeParams(MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, ARDUCOPTER_MODES[name], 0)
-    if name not in PX4_MODES:
+        modes = ardupilot_modes(vehicle_type)
+        if name not in modes:
+            raise ValueError(f"this ArduPilot vehicle (type {vehicle_type}) has no mode {name!r}")
+        return SetModeParams(custom, modes[name], 0)
+    entry = mavutil.px4_map.get(_PX4_PYMAVLINK_NAME.get(name, name))
+    if entry is None:
         raise ValueError(f"unknown PX4 mode {name!r}")
-    main, sub = PX4_MODES[name]
-    return SetModeParams(MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, main, sub)
+    _, main, sub = entry
+    return SetModeParams(custom, main, sub)
 
 
 def is_armed(base_mode: int) -> bool:
-    return bool(base_mode & MAV_MODE_FLAG_SAFETY_ARMED)
+    return bool(base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)

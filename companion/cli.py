@@ -12,7 +12,7 @@ EXAMPLES = """\
 examples:
   cloudtrack-companion run --config /etc/cloudtrack/companion.toml
   cloudtrack-companion config check /etc/cloudtrack/companion.toml
-  cloudtrack-companion config show --set mavlink.connection=serial:/dev/ttyAMA0:921600
+  cloudtrack-companion config show --set mavlink.connection=/dev/ttyAMA0,921600
   cloudtrack-companion models list --model-dir ../shared/models
   cloudtrack-companion models download nano
   cloudtrack-companion eval ../shared/data/sequences/* --tracker nano --json out/eval.json

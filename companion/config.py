@@ -73,20 +73,33 @@ class BackendConfig(ConfigSection):
 
 
 class MavlinkConfig(ConfigSection):
-    # serial:/dev/ttyAMA0:921600, udpin:0.0.0.0:14540, udpout:127.0.0.1:14550, tcp:127.0.0.1:5760
-    connection: str = "udpin:0.0.0.0:14540"
-    target_system: int = Field(1, ge=1, le=255)
+    # pymavlink's format for every endpoint: udpin:127.0.0.1:14540 (default: the autopilot or mavlink-router
+    # on this computer), udpout:HOST:PORT, tcp:HOST:PORT, /dev/ttyAMA0,921600. Never 0.0.0.0 unless set here.
+    connection: str = "udpin:127.0.0.1:14540"
+    target_system: int = Field(1, ge=1, le=255)  # the autopilot's system id: telemetry is read only from it
     source_component: int = Field(191, ge=1, le=255)  # MAV_COMP_ID_ONBOARD_COMPUTER
+    # System ids whose mission and camera commands are obeyed; anyone else is answered MAV_RESULT_DENIED.
+    gcs_system_ids: list[int] = Field(default_factory=lambda: [255], min_length=1, max_length=32)
     autopilot: Literal["auto", "ardupilot", "px4"] = "auto"
     setpoint_rate_hz: float = Field(15.0, ge=10, le=20)
     telemetry_rate_hz: float = Field(10.0, gt=0, le=50)
-    # ArduPilot hold: zero velocity in GUIDED, or switch to BRAKE or LOITER. PX4 always uses HOLD.
+    # ArduPilot hold while the mission still owns the vehicle: zero velocity in GUIDED, or BRAKE or LOITER.
+    # Letting go (abort) always leaves GUIDED: BRAKE or LOITER as set here, LOITER for guided_zero. PX4: HOLD.
     ardupilot_hold: Literal["guided_zero", "brake", "loiter"] = "guided_zero"
     signing_key: str = ""  # 64 hex chars (32 bytes); prefer CLOUDTRACK_MAVLINK__SIGNING_KEY
+    # PX4 offboard through MAVSDK (pip install 'cloudtrack[mavsdk]'); its MAVLink goes over `connection`.
     use_mavsdk: bool = False
-    mavsdk_address: str = "udp://:14541"
     # A second identity as a MAVLink camera (100-105 is where QGroundControl looks for tracking); 0: none.
     camera_component: int = Field(100, ge=0, le=255)
+
+    @model_validator(mode="after")
+    def _connections(self) -> MavlinkConfig:
+        from companion.mavlink_connection import parse_connection
+
+        parse_connection(self.connection)  # ValueError names the string and the allowed forms
+        if any(not 1 <= sysid <= 255 for sysid in self.gcs_system_ids):
+            raise ValueError("gcs_system_ids must be MAVLink system ids 1-255")
+        return self
 
 
 class SafetyConfig(ConfigSection):
@@ -102,6 +115,9 @@ class SafetyConfig(ConfigSection):
     heartbeat_timeout_s: float = Field(2.0, gt=0, le=30)
     loop_stall_s: float = Field(0.5, gt=0, le=10)
     target_lost_s: float = Field(1.0, gt=0, le=60)  # while following: no trusted target this long -> hold
+    telemetry_stale_s: float = Field(1.0, gt=0, le=10)  # older altitude/position counts as missing: hold
+    setpoint_max_age_s: float = Field(0.5, gt=0, le=5)  # older setpoints are never sent (zero instead)
+    gcs_track_confirms: bool = False  # may a GCS track rectangle skip the supervisor's confirmation?
 
     @model_validator(mode="after")
     def _altitude_band(self) -> SafetyConfig:

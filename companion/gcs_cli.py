@@ -72,7 +72,7 @@ class GcsSession:
     def __init__(self, args: argparse.Namespace):
         self.args = args
         self.target = (args.system, args.component)
-        self.endpoint = MavlinkEndpoint.open(args.connect, args.gcs_system, args.gcs_component)
+        self.endpoint = MavlinkEndpoint.open(args.connect, args.gcs_system, args.gcs_component, args.system)
         if args.signing_key:
             # The autopilot's telemetry may be unsigned; an acknowledgement must carry the companion's signature.
             self.endpoint.conn.setup_signing(
@@ -263,7 +263,7 @@ def _watch(session: GcsSession, args: argparse.Namespace) -> int:
                 continue
             if msg.get_type() == "HEARTBEAT" and msg.get_srcSystem() == session.target[0] and msg.get_srcComponent() == 1:
                 kind = detect_autopilot(msg.autopilot)
-                new_mode = mode_name(kind, msg.custom_mode) if kind else str(msg.custom_mode)
+                new_mode = mode_name(kind, msg.custom_mode, msg.type) if kind else str(msg.custom_mode)
                 if new_mode != mode:
                     mode = new_mode
                     print(f"[autopilot] mode {mode}", flush=True)

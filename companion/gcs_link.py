@@ -9,7 +9,8 @@ it holds 128 bytes per message, so a prompt needs one to four; it is signed like
 sends it with its stock `message` command. Payload: version (1), mission id, chunk index, chunk count,
 then UTF-8 bytes of "SUPERSET|PROMPT" (SUPERSET may be empty).
 
-COMMAND_LONG to (vehicle, companion component):
+COMMAND_LONG (or COMMAND_INT, same params 1-4) to (vehicle, companion component), obeyed only from the
+system ids in `[mavlink] gcs_system_ids`; anyone else is answered MAV_RESULT_DENIED and logged:
   MAV_CMD_USER_1 start:   p1 mission id (0-255), p2 chunk count, p3 allow engage (0/1), p4 text bytes
   MAV_CMD_USER_2 abort
   MAV_CMD_USER_3 confirm: p1 candidate number (0: the one awaiting the supervisor)
@@ -23,7 +24,9 @@ MAV_CMD_CAMERA_STOP_TRACKING. docs/gcs-protocol.md has every field and sequence.
 from __future__ import annotations
 
 import logging
+import math
 import re
+import time
 import unicodedata
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -39,6 +42,7 @@ from behaviors.mission_commands import (
     StopTracking,
     TrackRectangle,
 )
+from companion.mavlink_connection import mavlink
 
 log = logging.getLogger(__name__)
 
@@ -50,13 +54,17 @@ MAX_CHUNKS = 8
 MAX_PROMPT_CHARS = 400
 PROMPT_TTL_S = 60.0
 
-CMD_START, CMD_ABORT, CMD_CONFIRM, CMD_REJECT, CMD_STATUS = 31010, 31011, 31012, 31013, 31014
-CMD_REQUEST_MESSAGE = 512
-CMD_REQUEST_CAMERA_INFORMATION = 521
-CMD_CAMERA_TRACK_POINT = 2004
-CMD_CAMERA_TRACK_RECTANGLE = 2005
-CMD_CAMERA_STOP_TRACKING = 2010
-MSG_ID_CAMERA_INFORMATION = 259
+# Numbers from pymavlink's generated dialect, never written out here.
+CMD_START, CMD_ABORT, CMD_CONFIRM, CMD_REJECT, CMD_STATUS = (
+    int(mavlink.MAV_CMD_USER_1), int(mavlink.MAV_CMD_USER_2), int(mavlink.MAV_CMD_USER_3),
+    int(mavlink.MAV_CMD_USER_4), int(mavlink.MAV_CMD_USER_5),
+)  # fmt: skip
+CMD_REQUEST_MESSAGE = int(mavlink.MAV_CMD_REQUEST_MESSAGE)
+CMD_REQUEST_CAMERA_INFORMATION = int(mavlink.MAV_CMD_REQUEST_CAMERA_INFORMATION)
+CMD_CAMERA_TRACK_POINT = int(mavlink.MAV_CMD_CAMERA_TRACK_POINT)
+CMD_CAMERA_TRACK_RECTANGLE = int(mavlink.MAV_CMD_CAMERA_TRACK_RECTANGLE)
+CMD_CAMERA_STOP_TRACKING = int(mavlink.MAV_CMD_CAMERA_STOP_TRACKING)
+MSG_ID_CAMERA_INFORMATION = int(mavlink.MAVLINK_MSG_ID_CAMERA_INFORMATION)
 CAMERA_COMMANDS = {
     CMD_REQUEST_MESSAGE, CMD_REQUEST_CAMERA_INFORMATION, CMD_CAMERA_TRACK_POINT, CMD_CAMERA_TRACK_RECTANGLE,
     CMD_CAMERA_STOP_TRACKING,
@@ -67,13 +75,18 @@ COMMAND_NAMES = {
     CMD_CAMERA_STOP_TRACKING: "stop-tracking",
 }  # fmt: skip
 
-MAV_RESULT_ACCEPTED, MAV_RESULT_TEMPORARILY_REJECTED, MAV_RESULT_DENIED = 0, 1, 2
-MAV_RESULT_UNSUPPORTED, MAV_RESULT_FAILED = 3, 4
-MAV_SEVERITY_WARNING, MAV_SEVERITY_NOTICE, MAV_SEVERITY_INFO = 4, 5, 6
+MAV_RESULT_ACCEPTED = int(mavlink.MAV_RESULT_ACCEPTED)
+MAV_RESULT_TEMPORARILY_REJECTED = int(mavlink.MAV_RESULT_TEMPORARILY_REJECTED)
+MAV_RESULT_DENIED = int(mavlink.MAV_RESULT_DENIED)
+MAV_RESULT_UNSUPPORTED = int(mavlink.MAV_RESULT_UNSUPPORTED)
+MAV_RESULT_FAILED = int(mavlink.MAV_RESULT_FAILED)
+MAV_SEVERITY_WARNING = int(mavlink.MAV_SEVERITY_WARNING)
+MAV_SEVERITY_NOTICE = int(mavlink.MAV_SEVERITY_NOTICE)
+MAV_SEVERITY_INFO = int(mavlink.MAV_SEVERITY_INFO)
 STATUSTEXT_BYTES = 50
 NAMED_VALUE_BYTES = 10
-CAMERA_CAP_FLAGS_HAS_TRACKING_POINT = 512
-CAMERA_CAP_FLAGS_HAS_TRACKING_RECTANGLE = 1024
+CAMERA_CAP_FLAGS_HAS_TRACKING_POINT = int(mavlink.CAMERA_CAP_FLAGS_HAS_TRACKING_POINT)
+CAMERA_CAP_FLAGS_HAS_TRACKING_RECTANGLE = int(mavlink.CAMERA_CAP_FLAGS_HAS_TRACKING_RECTANGLE)
 
 _SUPERSET = re.compile(r"^[A-Za-z][A-Za-z _-]{0,31}$")
 
@@ -213,7 +226,11 @@ class GcsProtocol:
         camera_component: int,
         image_size: Callable[[], tuple[int, int]],
         replies: GcsReplies,
+        allowed_systems: frozenset[int] = frozenset({255}),
     ):
+        self._allowed = allowed_systems
+        self._last_refusal_log = -math.inf
+        self.refused = 0
         self._system = system_id
         self._component = component_id
         self._camera = camera_component
@@ -223,19 +240,38 @@ class GcsProtocol:
 
     def handle(self, msg: Any, now: float) -> None:
         mtype = msg.get_type()
-        if mtype not in ("TUNNEL", "COMMAND_LONG") or msg.target_system != self._system:
+        if mtype not in ("TUNNEL", "COMMAND_LONG", "COMMAND_INT") or msg.target_system != self._system:
             return
-        if mtype == "TUNNEL" and msg.target_component == self._component:
-            chunk = decode_chunk(msg.payload_type, bytes(msg.payload[: msg.payload_length]))
+        ours = msg.target_component == self._component
+        camera = bool(self._camera) and msg.target_component == self._camera and mtype != "TUNNEL"
+        if not (ours or camera):
+            return
+        if msg.get_srcSystem() not in self._allowed:
+            self._refuse(msg, mtype)
+            return
+        if mtype == "TUNNEL":
+            chunk = decode_chunk(msg.payload_type, bytes(msg.payload[: max(0, min(msg.payload_length, 128))]))
             if chunk is not None:
                 self._prompts.add(chunk, now)
-        elif mtype == "COMMAND_LONG" and msg.target_component == self._component:
+        elif ours or msg.command in CAMERA_COMMANDS:
             self._command(msg)
-        elif mtype == "COMMAND_LONG" and self._camera and msg.target_component == self._camera:
-            if msg.command in CAMERA_COMMANDS:
-                self._command(msg)
-            else:
-                self._replies.ack(msg, MAV_RESULT_UNSUPPORTED)
+        else:
+            self._replies.ack(msg, MAV_RESULT_UNSUPPORTED)
+
+    def _refuse(self, msg: Any, mtype: str) -> None:
+        """A sender not on the allow-list: DENIED for a command, nothing for a TUNNEL; logged every 10 s
+        at most."""
+        self.refused += 1
+        if mtype != "TUNNEL":
+            self._replies.ack(msg, MAV_RESULT_DENIED)
+        now = time.monotonic()
+        if now - self._last_refusal_log >= 10.0:
+            self._last_refusal_log = now
+            log.warning(
+                "refused %s from system %d component %d: not in [mavlink] gcs_system_ids (%d refused so far)",
+                mtype if mtype == "TUNNEL" else COMMAND_NAMES.get(msg.command, str(msg.command)),
+                msg.get_srcSystem(), msg.get_srcComponent(), self.refused,
+            )  # fmt: skip
 
     def _command(self, msg: Any) -> None:
         cmd = msg.command
@@ -290,7 +326,7 @@ class GcsProtocol:
         if cmd == CMD_CAMERA_STOP_TRACKING:
             return StopTracking()
         if cmd in (CMD_REQUEST_MESSAGE, CMD_REQUEST_CAMERA_INFORMATION):
-            if cmd == CMD_REQUEST_MESSAGE and int(p[0]) != MSG_ID_CAMERA_INFORMATION:
+            if cmd == CMD_REQUEST_MESSAGE and _whole(p[0], 0, 1 << 24) != MSG_ID_CAMERA_INFORMATION:
                 raise ValueError(f"message {int(p[0])} is not provided by the companion")
             return None
         return None
@@ -300,10 +336,13 @@ class GcsProtocol:
         if not all(-0.5 <= v <= 1.5 for v in values) or x2 <= x1 or y2 <= y1:
             raise ValueError("the rectangle needs normalised corners 0..1 with top-left before bottom-right")
         width, height = self._image_size()
-        return Box.from_xyxy(x1 * width, y1 * height, x2 * width, y2 * height).clamped(width, height)
+        box = Box.from_xyxy(x1 * width, y1 * height, x2 * width, y2 * height).clamped(width, height)
+        if box.w < 1 or box.h < 1:
+            raise ValueError("the rectangle lies outside the image")
+        return box
 
 
 def _whole(value: float, low: int, high: int) -> int:
-    if not (value == value) or not low <= value <= high or value != int(value):
+    if not math.isfinite(value) or not low <= value <= high or value != int(value):
         raise ValueError(f"expected a whole number {low}-{high}, got {value}")
     return int(value)

@@ -5,7 +5,11 @@ set it has hung: a known fly-away cause. So this adapter is never the one decidi
 `VehicleLink` keeps the mode policy and the watchdogs, and when a watchdog trips (the stalled main loop
 above all) it calls `stop()` from the watchdog thread, which sets zero velocity and then stops offboard
 (MAVSDK switches PX4 to HOLD). MAVSDK runs in its own asyncio thread, so none of this waits for the main
-loop. The wheel ships `mavsdk_server`; `System.connect` starts it on a free gRPC port.
+loop. The wheel ships `mavsdk_server`; `System.connect` starts it on a free gRPC port, as the vehicle's
+system id and component 191, with its MAVLink carried over the companion's link by `MavsdkRelay` (which
+keeps its ground-station HEARTBEAT away from the autopilot). Its gRPC API listens on every interface: the
+3.x binary has no option to bind it to loopback (docs/safety.md, threat model). Install with
+`pip install 'cloudtrack[mavsdk]'`.
 """
 
 from __future__ import annotations
@@ -33,18 +37,12 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def mavsdk_address(address: str) -> str:
-    """MAVSDK's connection URL; the old `udp://:PORT` form becomes `udpin://0.0.0.0:PORT`."""
-    if address.startswith("udp://:"):
-        return "udpin://0.0.0.0:" + address[len("udp://:") :]
-    return address
-
-
 class MavsdkOffboard:
     """Thread-safe wrapper: blocking calls that run MAVSDK coroutines on a private event loop."""
 
-    def __init__(self, address: str):
-        self._address = mavsdk_address(address)
+    def __init__(self, address: str, system_id: int = 1, component_id: int = 191):
+        self._address = address  # MAVSDK's URL form (the relay's udpout://127.0.0.1:PORT)
+        self._ids = (system_id, component_id)
         self._loop = asyncio.new_event_loop()
         self._thread = threading.Thread(target=self._loop.run_forever, name="mavsdk", daemon=True)
         self._drone: Any = None
@@ -61,7 +59,7 @@ class MavsdkOffboard:
             warnings.simplefilter("ignore", FutureWarning)  # the 3.x gRPC wrapper announces its rename
             from mavsdk import System
 
-        self._drone = System(port=_free_port())
+        self._drone = System(port=_free_port(), sysid=self._ids[0], compid=self._ids[1])
         await self._drone.connect(system_address=self._address)
         async for state in self._drone.core.connection_state():
             if state.is_connected:
@@ -98,13 +96,16 @@ class MavsdkOffboard:
         return True
 
     def stop(self, reason: str) -> None:
-        """Zero velocity, then stop offboard (PX4 goes to HOLD) so MAVSDK stops re-sending."""
+        """Zero velocity, then stop offboard (PX4 goes to HOLD) so MAVSDK stops re-sending.
+
+        Always, not only when MAVSDK started offboard itself: the pilot may have selected OFFBOARD, and a
+        zero left re-sending in OFFBOARD is not the configured hold.
+        """
         with self._lock:
-            was_active, self._active = self._active, False
+            self._active = False
         try:
             self.set_velocity(Setpoint.zero())
-            if was_active:
-                self._call(self._drone.offboard.stop())
+            self._call(self._drone.offboard.stop())
             log.warning("MAVSDK offboard stopped: %s", reason)
         except Exception as exc:  # the watchdog calls this; it must report, not die
             log.error("MAVSDK offboard stop failed (%s): %s", reason, exc)

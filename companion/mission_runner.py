@@ -444,7 +444,7 @@ class MissionRunner:
             self.notifier.stopping("companion stopping")
         try:
             if self.state.mode in ACTIVE:
-                self.vehicle.hold("companion stopping")
+                self.vehicle.release_offboard("companion stopping")  # stop, hold mode, then silence
             self.vehicle.send_status("CloudTrack companion stopping", SEVERITY["warning"])
         except Exception:  # the link may already be gone; shutting down must still finish
             log.exception("could not tell the vehicle we are stopping")

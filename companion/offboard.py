@@ -13,12 +13,17 @@ from dataclasses import dataclass
 
 from behaviors.setpoint import Setpoint
 from companion.autopilot_modes import AutopilotKind
+from companion.mavlink_connection import mavlink
 
-MAV_FRAME_BODY_NED = 8
-MAV_FRAME_BODY_OFFSET_NED = 9
-# POSITION_TARGET_TYPEMASK bits: X/Y/Z 1,2,4; VX/VY/VZ 8,16,32; AX/AY/AZ 64,128,256; FORCE 512;
-# YAW 1024; YAW_RATE 2048.
-TYPE_MASK_VELOCITY_YAW_RATE = 1 | 2 | 4 | 64 | 128 | 256 | 1024
+MAV_FRAME_BODY_NED = int(mavlink.MAV_FRAME_BODY_NED)
+MAV_FRAME_BODY_OFFSET_NED = int(mavlink.MAV_FRAME_BODY_OFFSET_NED)
+# Ignore position, acceleration and the yaw angle; use velocity and yaw rate.
+TYPE_MASK_VELOCITY_YAW_RATE = int(
+    mavlink.POSITION_TARGET_TYPEMASK_X_IGNORE | mavlink.POSITION_TARGET_TYPEMASK_Y_IGNORE
+    | mavlink.POSITION_TARGET_TYPEMASK_Z_IGNORE | mavlink.POSITION_TARGET_TYPEMASK_AX_IGNORE
+    | mavlink.POSITION_TARGET_TYPEMASK_AY_IGNORE | mavlink.POSITION_TARGET_TYPEMASK_AZ_IGNORE
+    | mavlink.POSITION_TARGET_TYPEMASK_YAW_IGNORE
+)
 PX4_MIN_PRESTREAM_S = 1.0  # setpoints streamed before OFFBOARD is requested
 
 

@@ -7,7 +7,8 @@ Five conditions, each armed by its first report (a watchdog cannot go stale on s
 - `autopilot_heartbeat_lost`: no autopilot HEARTBEAT for `heartbeat_timeout_s`;
 - `main_loop_stalled`: the main loop has not called `kick()` for `loop_stall_s`.
 
-The thread checks every `check_period_s`, independently of the main loop, so a hung main loop is caught:
+The thread checks every `check_period_s`, independently of the main loop, so a hung main loop is caught
+(and a frozen process too: a gap in the watchdog's own checks longer than `loop_stall_s` counts as a stall):
 on the rising edge of a condition it calls `on_trip(reason)` (the link sends an explicit zero-velocity
 stop, then the configured hold) and on the falling edge `on_clear(reason)`. A condition trips at most
 `threshold + check_period_s` after its input went silent.
@@ -83,6 +84,7 @@ class SafetyWatchdog:
         self._lock = threading.Lock()
         self._last_seen: dict[str, float] = {}
         self._active: set[str] = set()
+        self._last_check: float | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -114,6 +116,12 @@ class SafetyWatchdog:
         now = self._clock()
         with self._lock:
             stale = stale_conditions(self._last_seen, self._limits, now)
+            # The watchdog's own thread missed its checks for longer than the stall bound: the whole process
+            # was frozen (SIGSTOP, swap, a blocked interpreter), even if the main loop kicked first on resume.
+            frozen = self._last_check is not None and now - self._last_check > self._limits[LOOP_STALLED]
+            self._last_check = now
+            if frozen and LOOP_STALLED in self._last_seen:
+                stale.add(LOOP_STALLED)
             tripped, cleared = stale - self._active, self._active - stale
             self._active = stale
         for reason in sorted(tripped):

@@ -15,14 +15,15 @@ from typing import Any
 
 from behaviors.telemetry import Telemetry
 from companion.autopilot_modes import AutopilotKind, detect_autopilot, is_armed, mode_name, offboard_mode
+from companion.mavlink_connection import mavlink
 
-MSG_ID_HEARTBEAT = 0
-MSG_ID_SYS_STATUS = 1
-MSG_ID_ATTITUDE = 30
-MSG_ID_LOCAL_POSITION_NED = 32
-MSG_ID_GLOBAL_POSITION_INT = 33
-MAV_TYPE_GCS = 6
-MAV_TYPE_ONBOARD_CONTROLLER = 18
+MSG_ID_HEARTBEAT = int(mavlink.MAVLINK_MSG_ID_HEARTBEAT)
+MSG_ID_SYS_STATUS = int(mavlink.MAVLINK_MSG_ID_SYS_STATUS)
+MSG_ID_ATTITUDE = int(mavlink.MAVLINK_MSG_ID_ATTITUDE)
+MSG_ID_LOCAL_POSITION_NED = int(mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED)
+MSG_ID_GLOBAL_POSITION_INT = int(mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT)
+MAV_TYPE_GCS = int(mavlink.MAV_TYPE_GCS)
+MAV_TYPE_ONBOARD_CONTROLLER = int(mavlink.MAV_TYPE_ONBOARD_CONTROLLER)
 
 
 def stream_intervals_us(rate_hz: float) -> list[tuple[int, float]]:
@@ -43,6 +44,7 @@ class AutopilotHeartbeat:
     mode: str
     armed: bool
     time_s: float
+    vehicle_type: int = 2  # HEARTBEAT.type (MAV_TYPE_QUADROTOR): picks ArduPilot's mode table
 
 
 class TelemetryDecoder:
@@ -54,6 +56,7 @@ class TelemetryDecoder:
         self._lock = threading.Lock()
         self._fields: dict[str, Any] = {}
         self._time: float | None = None
+        self._height: tuple[float, float] | None = None  # (height above ground, when), GLOBAL_POSITION_INT
         self.heartbeat: AutopilotHeartbeat | None = None
         self.battery_remaining: int | None = None
         self.local_position: tuple[float, float, float] | None = None
@@ -69,6 +72,8 @@ class TelemetryDecoder:
             if mtype == "ATTITUDE":
                 self._update(now, roll=msg.roll, pitch=msg.pitch, yaw=msg.yaw)
             elif mtype == "GLOBAL_POSITION_INT":
+                if math.isfinite(msg.relative_alt):
+                    self._height = (msg.relative_alt / 1000.0, now)
                 self._update(
                     now, lat_deg=msg.lat / 1e7, lon_deg=msg.lon / 1e7, height_agl=msg.relative_alt / 1000.0,
                     vn=msg.vx / 100.0, ve=msg.vy / 100.0, vd=msg.vz / 100.0,
@@ -86,13 +91,19 @@ class TelemetryDecoder:
         kind = self._forced_kind or detect_autopilot(msg.autopilot)
         if kind is None:
             return None
-        self.heartbeat = AutopilotHeartbeat(kind, mode_name(kind, msg.custom_mode), is_armed(msg.base_mode), now)
+        mode = mode_name(kind, msg.custom_mode, msg.type)
+        self.heartbeat = AutopilotHeartbeat(kind, mode, is_armed(msg.base_mode), now, msg.type)
         return self.heartbeat
 
     def _update(self, now: float, **values: float) -> None:
         if all(math.isfinite(v) for v in values.values()):
             self._fields.update(values)
             self._time = now
+
+    def height(self) -> tuple[float | None, float | None]:
+        """(height above ground, when it arrived) from the last GLOBAL_POSITION_INT; (None, None) before."""
+        with self._lock:
+            return self._height if self._height is not None else (None, None)
 
     def snapshot(self) -> Telemetry | None:
         """The latest vehicle state, or None before any attitude or position arrived."""

@@ -7,6 +7,17 @@ Threads (all owned here, started by `start()`):
 - watchdog (`SafetyWatchdog`): stale frames, lost target, unreachable back-end, lost autopilot heartbeat,
   stalled main loop. Each ends motion with an explicit zero-velocity setpoint, then the configured hold.
 
+Two ways to stop. `hold()` keeps the vehicle while the mission still owns it (lost target, back-end
+unreachable): an explicit zero, then zeros in GUIDED or the configured BRAKE/LOITER. `release_offboard()` lets
+go (every abort, a pilot's takeover): an explicit zero, the hold mode requested (PX4 HOLD, ArduPilot BRAKE or
+LOITER) unless the pilot already chose a mode, then silence; zeros go on only while GUIDED/OFFBOARD remains,
+at most RELEASE_TIMEOUT_S, after which the GCS is told the hold mode was not set and the companion falls
+silent.
+
+Every setpoint carries the time it was computed (in time_boot_ms) and is never encoded once older than
+`[safety] setpoint_max_age_s`: after a freeze the first message out is a fresh zero, not the old command.
+Telemetry older than `[safety] telemetry_stale_s` counts as missing: zeros (hold), never extrapolation.
+
 Mode policy: the companion never arms, takes off or lands on its own. It asks for GUIDED/OFFBOARD only
 after `request_offboard()` (the operator allowed it at mission start); after `enable_offboard()` it only
 streams once the pilot or GCS selected that mode. When anyone else changes the mode away from
@@ -33,7 +44,13 @@ from behaviors.mission_commands import MissionCommand
 from behaviors.safety_limits import MotionLimits, apply_limits
 from behaviors.setpoint import Setpoint
 from behaviors.telemetry import Telemetry
-from companion.autopilot_modes import AutopilotKind, mode_for_action, offboard_mode, set_mode_params
+from companion.autopilot_modes import (
+    QUADROTOR,
+    AutopilotKind,
+    mode_for_action,
+    offboard_mode,
+    set_mode_params,
+)
 from companion.config import MavlinkConfig, SafetyConfig
 from companion.gcs_link import (
     CAMERA_CAP_FLAGS_HAS_TRACKING_POINT,
@@ -47,6 +64,7 @@ from companion.gcs_link import (
 from companion.mavlink_connection import MavlinkEndpoint, mavlink
 from companion.mavlink_signing import SigningGuard, parse_signing_key
 from companion.mavsdk_offboard import MavsdkOffboard
+from companion.mavsdk_relay import MavsdkRelay
 from companion.offboard import PX4_MIN_PRESTREAM_S, encode_velocity
 from companion.safety_watchdog import (
     BACKEND_UNREACHABLE,
@@ -62,6 +80,7 @@ from companion.telemetry import AutopilotHeartbeat, TelemetryDecoder, stream_int
 log = logging.getLogger(__name__)
 
 MODE_REQUEST_RETRY_S = 1.0
+RELEASE_TIMEOUT_S = 3.0  # after letting go, zeros in GUIDED/OFFBOARD at most this long, then silence
 OWN_MODE_CHANGE_WINDOW_S = 5.0  # a mode we asked for that shows up this soon is our own change
 STREAM_REQUEST_RETRY_S = 2.0
 TRACKING_STATUS_PERIOD_S = 0.1
@@ -103,15 +122,21 @@ class VehicleLink:
         self._threads: list[threading.Thread] = []
         self._endpoint: MavlinkEndpoint | None = None
         self._mavsdk: MavsdkOffboard | None = None  # PX4 offboard through MAVSDK (mavlink.use_mavsdk)
+        self._relay: MavsdkRelay | None = None  # mavsdk_server's MAVLink over our link
         self.signing = SigningGuard(on_refused=lambda text: self._record(SafetyEvent(self._clock(), "signing", "refused", text)))
         self._watchdog = SafetyWatchdog(safety, self._on_trip, self._on_clear, clock)
         self._camera_component = mavlink_config.camera_component
         self._gcs = GcsProtocol(
             mavlink_config.target_system, mavlink_config.source_component, self._camera_component,
-            lambda: self._image_size, self,
+            lambda: self._image_size, self, frozenset(mavlink_config.gcs_system_ids),
         )  # fmt: skip
+        self._setpoint_max_age = safety.setpoint_max_age_s
+        self._telemetry_stale = safety.telemetry_stale_s
 
         self._setpoint = Setpoint.zero()
+        self._setpoint_time = -math.inf  # when the main loop computed `_setpoint`
+        self._release: tuple[str, float] | None = None  # letting go: (hold mode requested, since)
+        self._telemetry_missing = False
         self._descent_allowed = False
         self._held_reason = ""  # a hold the main loop asked for, until its next set_velocity
         self._enabled = False  # the mission wants offboard control
@@ -123,40 +148,49 @@ class VehicleLink:
         self._last_heartbeat_sent = -math.inf
         self._last_tracking_sent = -math.inf
         self._tracking_box: Box | None = None
-        self._latest_status = "CloudTrack ready: no mission"
+        self._latest_status = ("CloudTrack ready: no mission", MAV_SEVERITY_INFO)
         self._text_id = 0
         self._commands: deque[MissionCommand] = deque(maxlen=100)
         self._events: deque[SafetyEvent] = deque(maxlen=1000)
         self.setpoints_sent = 0
+        self.stale_setpoints_dropped = 0
 
     # ------------------------------------------------------------------------------------ lifecycle
     def start(self) -> None:
-        self._endpoint = MavlinkEndpoint.open(self._cfg.connection, self._cfg.target_system, self._cfg.source_component)
+        self._endpoint = MavlinkEndpoint.open(
+            self._cfg.connection, self._cfg.target_system, self._cfg.source_component, self._cfg.target_system
+        )
         if self._signing_key is not None:
             self.signing.enable(self._endpoint.conn, self._signing_key)
         if self._camera_component:
             self._endpoint.add_identity(self._camera_component)
         if self._cfg.use_mavsdk:
-            self._mavsdk = MavsdkOffboard(self._cfg.mavsdk_address)
-            self._mavsdk.start()
+            self._relay = MavsdkRelay(self._endpoint)
+            self._relay.start()
+            ids = (self._cfg.target_system, self._cfg.source_component)
+            self._mavsdk = MavsdkOffboard(self._relay.url, *ids)
         self._watchdog.seen(LOOP_STALLED)
         self._send_heartbeat(self._clock())  # opens udpout/tcp links so the autopilot learns where we are
         for target, name in ((self._reader, "mavlink-reader"), (self._streamer, "mavlink-streamer")):
             thread = threading.Thread(target=target, name=name, daemon=True)
             self._threads.append(thread)
             thread.start()
+        if self._mavsdk is not None:
+            self._mavsdk.start()  # needs the reader: it discovers the autopilot through the relay
         self._watchdog.start()
 
     def close(self) -> None:
         """Explicit stop and hold if we are flying the vehicle, then shut the threads and the link."""
         if self._endpoint is not None and self._enabled:
-            self._stop_and_hold("companion link closing")
+            self.release_offboard("companion link closing")
         self._stop.set()
         self._watchdog.close()
         for thread in self._threads:
             thread.join(timeout=2.0)
         if self._mavsdk is not None:
             self._mavsdk.close()
+        if self._relay is not None:
+            self._relay.close()
         if self._endpoint is not None:
             self._endpoint.close()
 
@@ -200,6 +234,7 @@ class VehicleLink:
         """The latest body-frame command; streamed after `apply_limits`. Ends a hold the main loop asked for."""
         with self._lock:
             self._setpoint = setpoint
+            self._setpoint_time = self._clock()
             self._descent_allowed = descent_allowed
             self._held_reason = ""
 
@@ -219,19 +254,47 @@ class VehicleLink:
         """The mission may fly the vehicle once the pilot or GCS selects GUIDED/OFFBOARD."""
         with self._lock:
             self._enabled = True
+            self._release = None  # a new mission ends the letting-go of the last one
 
     def request_offboard(self) -> None:
         """The operator allowed engagement: ask for GUIDED, or OFFBOARD after >= 1 s of setpoints (PX4)."""
         with self._lock:
             self._enabled = True
             self._engage = True
+            self._release = None
 
     def release_offboard(self, reason: str) -> None:
-        """The mission no longer flies the vehicle: explicit stop, hold, stop streaming."""
-        self.hold(reason)
-        with self._lock:
-            self._enabled = False
-            self._engage = False
+        """Let go: explicit zero, the hold mode requested if we were flying it, then silence (bounded).
+
+        After a pilot's takeover the mode is already theirs: nothing is requested, nothing more is sent.
+        """
+        with self._offboard_lock:
+            kind = self.autopilot_kind
+            with self._lock:
+                flying = kind is not None and self._enabled and self._mode == offboard_mode(kind)
+                self._enabled = self._engage = False
+                self._held_reason = ""
+                self._setpoint = Setpoint.zero()
+                self._stream_since = None
+            if not flying or kind is None:
+                return
+            log.warning("letting go: %s", reason)
+            if self._mavsdk is not None and kind is AutopilotKind.PX4:
+                with self._lock:
+                    self._mode_request = ("HOLD", self._clock())
+                self._mavsdk.stop(reason)  # zero, then HOLD; MAVSDK would keep re-sending otherwise
+                return
+            mode = self._release_mode(kind)
+            with self._lock:
+                self._release = (mode, self._clock())
+            self._send_zero()
+            self._request_mode(mode)
+
+    def _release_mode(self, kind: AutopilotKind) -> str:
+        if kind is AutopilotKind.PX4:
+            return "HOLD"
+        hold = self._cfg.ardupilot_hold
+        return mode_for_action(kind, "loiter" if hold == "guided_zero" else hold)
 
     def request_mode(self, action: str) -> None:
         """Ask for loiter / rtl / land / brake (the lost action). Requested, never forced; streaming ends."""
@@ -270,7 +333,7 @@ class VehicleLink:
     def send_status(self, text: str, severity: int = MAV_SEVERITY_INFO) -> None:
         """A line a person reads on the GCS (longer than 50 bytes goes out in linked chunks)."""
         with self._lock:
-            self._latest_status = text
+            self._latest_status = (text, severity)
         self.status(text, severity)
 
     def send_value(self, name: str, value: float) -> None:
@@ -331,8 +394,8 @@ class VehicleLink:
 
     def latest_status(self) -> None:
         with self._lock:
-            text = self._latest_status
-        self.status(text)
+            text, severity = self._latest_status
+        self.status(text, severity)
 
     def camera_information(self, image_size: tuple[int, int], component: int) -> None:
         flags = CAMERA_CAP_FLAGS_HAS_TRACKING_RECTANGLE | CAMERA_CAP_FLAGS_HAS_TRACKING_POINT
@@ -374,20 +437,31 @@ class VehicleLink:
                 self._camera_component,
             )
 
-    def _send_setpoint(self, kind: AutopilotKind, setpoint: Setpoint) -> None:
+    def _send_setpoint(
+        self, kind: AutopilotKind, setpoint: Setpoint, computed_at: float | None = None
+    ) -> None:
+        """Send `setpoint`, computed at `computed_at` (default now), unless it is older than the bound by the
+        time it is encoded (checked under the send lock, the last moment before it leaves)."""
+        computed = self._clock() if computed_at is None else computed_at
         if self._mavsdk is not None and kind is AutopilotKind.PX4:
-            self._mavsdk.set_velocity(setpoint)  # MAVSDK re-sends it at 20 Hz by itself
-            self.setpoints_sent += 1
+            if self._clock() - computed <= self._setpoint_max_age:
+                self._mavsdk.set_velocity(setpoint)  # MAVSDK re-sends it at 20 Hz by itself
+                self.setpoints_sent += 1
             return
         fields = encode_velocity(kind, setpoint)
-        target, boot_ms = self._cfg.target_system, self._boot_ms()
-        sent = self.endpoint.send(
-            lambda m: m.set_position_target_local_ned_send(
+        target, boot_ms = self._cfg.target_system, int(computed * 1000) & 0xFFFFFFFF
+
+        def build(m: Any) -> bool:
+            if self._clock() - computed > self._setpoint_max_age:
+                self.stale_setpoints_dropped += 1
+                return False
+            m.set_position_target_local_ned_send(
                 boot_ms, target, 1, fields.frame, fields.type_mask, 0, 0, 0,
                 fields.vx, fields.vy, fields.vz, 0, 0, 0, 0, fields.yaw_rate,
-            )
-        )  # fmt: skip
-        if sent:
+            )  # fmt: skip
+            return True
+
+        if self.endpoint.send(build):
             self.setpoints_sent += 1
 
     def _send_zero(self) -> None:
@@ -399,7 +473,13 @@ class VehicleLink:
         kind = self.autopilot_kind
         if kind is None:
             return
-        params = set_mode_params(kind, name)
+        hb = self._decoder.heartbeat
+        try:
+            params = set_mode_params(kind, name, hb.vehicle_type if hb is not None else QUADROTOR)
+        except ValueError as exc:  # e.g. BRAKE on a Plane: say so instead of failing in a watchdog thread
+            log.error("mode %s not requested: %s", name, exc)
+            self.status(f"MODE {name} UNAVAILABLE", MAV_SEVERITY_WARNING)
+            return
         with self._lock:
             self._mode_request = (name, self._clock())
         log.info("requesting mode %s", name)
@@ -443,9 +523,16 @@ class VehicleLink:
     def _on_trip(self, reason: str, now: float) -> None:
         self._record(SafetyEvent(now, reason, "stop"))
         self._stop_and_hold(reason)
+        if reason == LOOP_STALLED and self._endpoint is not None:
+            # The real cause, not only the LOST/link-lost that follow from it.
+            self.status("COMPANION STALLED: stopping", MAV_SEVERITY_WARNING)
 
     def _on_clear(self, reason: str, now: float) -> None:
         self._record(SafetyEvent(now, reason, "cleared"))
+        if reason == LOOP_STALLED and self._endpoint is not None:
+            self.status("companion running again", MAV_SEVERITY_WARNING)
+        elif reason == HEARTBEAT_LOST and self._endpoint is not None:
+            self.latest_status()  # a notice sent while the link was down (an abort) was lost: say it again
 
     # ---------------------------------------------------------------------------------- reader thread
     def _reader(self) -> None:
@@ -454,6 +541,8 @@ class VehicleLink:
             if msg is None:
                 continue
             now = self._clock()
+            if self._relay is not None and msg.get_srcSystem() == self._cfg.target_system:
+                self._relay.to_mavsdk(msg)
             try:
                 event = None
                 with self._lock:
@@ -530,31 +619,67 @@ class VehicleLink:
         kind = hb.kind
         request_mode = None
         setpoint = None
+        computed_at = now
+        gave_up = ""
         with self._lock:
             ours = offboard_mode(kind)
             in_offboard = self._mode == ours
-            stopped = bool(self._watchdog.active()) or bool(self._held_reason)
-            # ArduPilot flies setpoints only in GUIDED; PX4 needs them before OFFBOARD may be selected.
-            streaming = self._enabled and (in_offboard or kind is AutopilotKind.PX4)
-            if not streaming:
-                self._stream_since = None
-            elif self._stream_since is None:
-                self._stream_since = now
-            if streaming and stopped and self._mavsdk is not None and kind is AutopilotKind.PX4:
-                pass  # MAVSDK would re-send any setpoint forever: after its stop() it gets none while stopped
-            elif streaming and stopped:
-                setpoint = Setpoint.zero()
-            elif streaming:
-                telemetry = self._decoder.snapshot()
-                height = telemetry.height_agl if telemetry is not None else None
-                setpoint = apply_limits(self._setpoint, self._limits, height, self._descent_allowed)
-            prestreamed = kind is AutopilotKind.ARDUPILOT or (
-                self._stream_since is not None and now - self._stream_since >= PX4_MIN_PRESTREAM_S
-            )
-            recently = self._mode_request is not None and now - self._mode_request[1] < MODE_REQUEST_RETRY_S
-            if self._enabled and self._engage and not in_offboard and not stopped and prestreamed and not recently:
-                request_mode = ours
+            if self._release is not None:
+                setpoint, request_mode, gave_up = self._releasing(in_offboard, now)
+            else:
+                stopped = bool(self._watchdog.active()) or bool(self._held_reason)
+                # ArduPilot flies setpoints only in GUIDED; PX4 needs them before OFFBOARD may be selected.
+                streaming = self._enabled and (in_offboard or kind is AutopilotKind.PX4)
+                if not streaming:
+                    self._stream_since = None
+                elif self._stream_since is None:
+                    self._stream_since = now
+                height = self._fresh_height(now)
+                if streaming and stopped and self._mavsdk is not None and kind is AutopilotKind.PX4:
+                    pass  # MAVSDK re-sends any setpoint forever: after its stop() it gets none while stopped
+                elif streaming and (stopped or self._telemetry_missing):
+                    setpoint = Setpoint.zero()
+                elif streaming and now - self._setpoint_time > self._setpoint_max_age:
+                    setpoint = Setpoint.zero()  # the main loop's command is too old to fly: hold instead
+                elif streaming:
+                    setpoint = apply_limits(self._setpoint, self._limits, height, self._descent_allowed)
+                    computed_at = self._setpoint_time
+                prestreamed = kind is AutopilotKind.ARDUPILOT or (
+                    self._stream_since is not None and now - self._stream_since >= PX4_MIN_PRESTREAM_S
+                )
+                request = self._mode_request
+                recently = request is not None and now - request[1] < MODE_REQUEST_RETRY_S
+                may_engage = self._enabled and self._engage and not in_offboard and not stopped
+                if may_engage and prestreamed and not recently:
+                    request_mode = ours
         if setpoint is not None:
-            self._send_setpoint(kind, setpoint)
+            self._send_setpoint(kind, setpoint, computed_at)
         if request_mode is not None:
             self._request_mode(request_mode)
+        if gave_up:
+            log.warning("%s", gave_up)
+            self.status(gave_up, MAV_SEVERITY_WARNING)
+
+    def _releasing(self, in_offboard: bool, now: float) -> tuple[Setpoint | None, str | None, str]:
+        """While letting go (lock held): zeros and the hold-mode request until the mode leaves GUIDED/OFFBOARD
+        or RELEASE_TIMEOUT_S passes; then nothing more. Returns (setpoint, mode to request, notice)."""
+        assert self._release is not None
+        mode, since = self._release
+        if not in_offboard:
+            self._release = None  # the autopilot holds (or the pilot chose a mode): silence
+            return None, None, ""
+        if now - since > RELEASE_TIMEOUT_S:
+            self._release = None
+            return None, None, f"HOLD MODE {mode} NOT SET: companion silent in {self._mode}"
+        recently = self._mode_request is not None and now - self._mode_request[1] < MODE_REQUEST_RETRY_S
+        return Setpoint.zero(), (None if recently else mode), ""
+
+    def _fresh_height(self, now: float) -> float | None:
+        """The height above ground if the position telemetry is recent (lock held); notes when it is not."""
+        height, when = self._decoder.height()
+        missing = when is None or now - when > self._telemetry_stale
+        if missing != self._telemetry_missing:
+            self._telemetry_missing = missing
+            if missing and self._enabled:
+                log.warning("position telemetry older than %.1f s: holding", self._telemetry_stale)
+        return None if missing else height

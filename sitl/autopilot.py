@@ -5,7 +5,8 @@ It behaves the way the companion has to cope with on a real vehicle:
   (ArduCopter mode numbers; PX4 main/sub mode packed in bytes 2 and 3 of custom_mode);
 - COMMAND_LONG MAV_CMD_DO_SET_MODE (and the legacy SET_MODE message) answered with COMMAND_ACK;
 - SET_POSITION_TARGET_LOCAL_NED honouring coordinate_frame and type_mask. ArduCopter flies it only in
-  GUIDED and keeps flying the last velocity until GUID_TIMEOUT (3 s) runs out, then brakes. PX4 refuses
+  GUIDED and keeps flying the last velocity until GUID_TIMEOUT (3 s) runs out, then brakes (a position
+  target, e.g. a GCS's "fly to", is flown until reached: GUID_TIMEOUT does not apply to it). PX4 refuses
   OFFBOARD until a setpoint stream is coming in and falls back to HOLD when it stops (COM_OF_LOSS_T);
 - ArduCopter's silence: only HEARTBEAT until a link asks for streams with MAV_CMD_SET_MESSAGE_INTERVAL;
   PX4 streams a default set. Intervals are per link, as on the real autopilots;
@@ -22,17 +23,15 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-os.environ.setdefault("MAVLINK20", "1")
-from pymavlink import mavutil  # noqa: E402
+from pymavlink import mavutil
 
-from companion.mavlink_connection import receive_message  # noqa: E402
-from sitl.vehicle_dynamics import (  # noqa: E402
+from companion.mavlink_connection import mavlink, receive_message, use_mavlink2
+from sitl.vehicle_dynamics import (
     VehicleLimits,
     VehicleState,
     VelocityCommand,
@@ -42,8 +41,6 @@ from sitl.vehicle_dynamics import (  # noqa: E402
     wrap_pi,
 )
 
-mavutil.set_dialect("ardupilotmega")
-mavlink = mavutil.mavlink
 log = logging.getLogger(__name__)
 
 ARDUCOPTER_MODES = {
@@ -93,6 +90,7 @@ class AutopilotOptions:
     land_speed_m_s: float = 1.0
     limits: VehicleLimits = VehicleLimits()
     wind: Wind = Wind()
+    signing_key: bytes | None = None  # sign everything sent (unsigned input is still accepted)
 
 
 @dataclass(frozen=True)
@@ -110,6 +108,7 @@ class ReceivedSetpoint:
     vz: float
     yaw_rate: float
     mode: str
+    time_boot_ms: int = 0  # the sender's stamp: the companion puts the time the setpoint was computed here
 
 
 @dataclass
@@ -153,7 +152,13 @@ class SimulatedAutopilot:
         defaults = PX4_DEFAULT_INTERVALS if not self.is_ardupilot else ARDUPILOT_DEFAULT_INTERVALS
         self._links: dict[str, _Link] = {}
         for name, url in links.items():
-            conn = mavutil.mavlink_connection(url, source_system=options.system_id, source_component=1, dialect="ardupilotmega")
+            conn = use_mavlink2(
+                mavutil.mavlink_connection(url, source_system=options.system_id, source_component=1)
+            )
+            if options.signing_key is not None:
+                conn.setup_signing(
+                    options.signing_key, sign_outgoing=True, allow_unsigned_callback=lambda *_: True
+                )
             self._links[name] = _Link(name, url, conn, dict(defaults))
 
     # ----------------------------------------------------------------------------------------------- API
@@ -346,7 +351,7 @@ class SimulatedAutopilot:
         self.setpoints.append(
             ReceivedSetpoint(
                 now, link.name, msg.get_srcSystem(), msg.get_srcComponent(), msg.coordinate_frame,
-                msg.type_mask, msg.vx, msg.vy, msg.vz, msg.yaw_rate, self.mode,
+                msg.type_mask, msg.vx, msg.vy, msg.vz, msg.yaw_rate, self.mode, msg.time_boot_ms,
             )
         )  # fmt: skip
         if len(self.setpoints) > 20000:
@@ -402,7 +407,10 @@ class SimulatedAutopilot:
         s = self.state
         if self.mode in ("GUIDED", "OFFBOARD"):
             timeout = self.options.guid_timeout_s if self.is_ardupilot else self.options.offboard_loss_s
-            if now - self._last_setpoint_time > timeout:
+            # ArduCopter's GUID_TIMEOUT stops velocity commands only; a position target is flown until
+            # reached.
+            position_held = self.is_ardupilot and self._position_target is not None
+            if now - self._last_setpoint_time > timeout and not position_held:
                 if not self.is_ardupilot:
                     self._try_set_mode("HOLD", "failsafe")
                     self._status("Offboard setpoints lost: switching to HOLD")

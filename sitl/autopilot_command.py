@@ -14,7 +14,7 @@ EXAMPLES = """\
 examples:
   cloudtrack-sim autopilot
       ArduCopter personality; GCS link udpout:127.0.0.1:14550 (MAVProxy/QGC listen there),
-      companion link udpout:127.0.0.1:14540 (cloudtrack-companion's default udpin:0.0.0.0:14540)
+      companion link udpout:127.0.0.1:14540 (cloudtrack-companion's default udpin:127.0.0.1:14540)
   cloudtrack-sim autopilot --autopilot px4 --gcs udpin:0.0.0.0:14560 --companion tcpin:0.0.0.0:5760
   cloudtrack-sim autopilot --guid-timeout 1 --wind 0 4     # short GUID_TIMEOUT, 4 m/s wind towards east
   mavproxy.py --master udpin:0.0.0.0:14550      # then: mode GUIDED, mode BRAKE, ...

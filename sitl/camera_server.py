@@ -21,6 +21,7 @@ from collections.abc import Callable
 from pymavlink import mavutil
 
 from behaviors.camera_model import CameraModel
+from companion.mavlink_connection import use_mavlink2
 from sitl.camera_render import FrameTruth, RenderedFrame, Renderer, VehiclePose
 from sitl.frame_transport import encode_frame
 from sitl.world import World
@@ -43,7 +44,9 @@ class PoseFollower:
         self._pose_time = 0.0
         self._lock = threading.Lock()
         self._stop = threading.Event()
-        self._conn = mavutil.mavlink_connection(url, source_system=source_system, source_component=source_component)
+        self._conn = use_mavlink2(
+            mavutil.mavlink_connection(url, source_system=source_system, source_component=source_component)
+        )
         self._thread = threading.Thread(target=self._run, name="pose-follower", daemon=True)
 
     def start(self) -> PoseFollower:

@@ -509,8 +509,8 @@ class ScenarioRun:
                 events.append(TimedEvent(t, "candidate"))
             elif kind == "reinit":
                 events.append(TimedEvent(t, "reinit"))
-            elif kind == "hold":
-                events.append(TimedEvent(t, "hold", {"reason": e.get("reason", "")}))
+            elif kind in ("hold", "release"):  # a release (stop, hold mode, silence) stops the vehicle too
+                events.append(TimedEvent(t, "hold", {"reason": e.get("reason", ""), "action": kind}))
             elif kind == "safety":
                 events.append(TimedEvent(t, "watchdog", {"reason": e.get("reason"), "action": e.get("action"),
                                                          "detail": e.get("detail", "")}))

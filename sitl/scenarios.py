@@ -19,6 +19,7 @@ from typing import Any, Literal
 
 from pymavlink import mavutil
 
+from companion.mavlink_connection import use_mavlink2
 from sitl.world import Person, World, distractor_world
 
 log = logging.getLogger(__name__)
@@ -179,7 +180,7 @@ class ScriptedGcs:
     """
 
     def __init__(self, url: str, target_system: int = 1, target_component: int = 191) -> None:
-        self.conn = mavutil.mavlink_connection(url, source_system=255, source_component=190)
+        self.conn = use_mavlink2(mavutil.mavlink_connection(url, source_system=255, source_component=190))
         self.target = (target_system, target_component)
         self.statustexts: list[tuple[float, str]] = []
         self.acks: list[tuple[float, int, int]] = []

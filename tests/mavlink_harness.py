@@ -29,7 +29,10 @@ def wait_for(predicate: Callable[[], Any], timeout: float = 5.0, period: float =
 
 
 class MainLoop:
-    """Stands in for the companion's main loop: kicks the link (and reports frames) every 50 ms."""
+    """Stands in for the companion's main loop: every 50 ms it kicks the link (and reports frames) and, like
+    the real loop computing its command each iteration, gives the link the test's latest `set_velocity`
+    again (setpoints older than `[safety] setpoint_max_age_s` are never sent). A `hold`, `release_offboard`
+    or `request_mode` ends that command, as a new behaviour state would. `paused` freezes all of it."""
 
     def __init__(self, link: VehicleLink, frames: bool = False):
         self.link = link
@@ -37,6 +40,27 @@ class MainLoop:
         self.paused = threading.Event()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
+        self._command: tuple[Any, bool] | None = None
+        self._lock = threading.Lock()
+        set_velocity = link.set_velocity
+
+        def command(setpoint: Any, descent_allowed: bool = False) -> None:
+            with self._lock:
+                self._command = (setpoint, descent_allowed)
+            set_velocity(setpoint, descent_allowed)
+
+        self._set_velocity = set_velocity
+        link.set_velocity = command  # type: ignore[method-assign]
+        for name in ("hold", "release_offboard", "request_mode"):
+            setattr(link, name, self._ending(getattr(link, name)))
+
+    def _ending(self, method: Callable[..., Any]) -> Callable[..., Any]:
+        def call(*args: Any, **kwargs: Any) -> Any:
+            with self._lock:
+                self._command = None
+            return method(*args, **kwargs)
+
+        return call
 
     def _run(self) -> None:
         while not self._stop.wait(0.05):
@@ -44,6 +68,10 @@ class MainLoop:
                 self.link.kick()
                 if self.frames:
                     self.link.report_frame()
+                with self._lock:
+                    command = self._command
+                if command is not None:
+                    self._set_velocity(*command)
 
     def __enter__(self) -> MainLoop:
         self._thread.start()

@@ -86,7 +86,8 @@ def test_no_autopilot_times_out_with_a_clear_message(capsys: pytest.CaptureFixtu
 
 
 def test_wrong_signing_key_gets_no_acknowledgement(capsys: pytest.CaptureFixture[str]) -> None:
-    with autopilot("ardupilot") as sim, vehicle_link(sim, signing_key=KEY_HEX) as link, MainLoop(link):
+    key = bytes.fromhex(KEY_HEX)  # the autopilot signs too: with signing on the companion acts on nothing unsigned
+    with autopilot("ardupilot", signing_key=key) as sim, vehicle_link(sim, signing_key=KEY_HEX) as link, MainLoop(link):
         assert gcs_cli.main(_gcs_args(sim, "--signing-key", "77" * 32, "abort", timeout=1.5)) == 3
         assert "no acknowledgement for abort" in capsys.readouterr().err
         assert gcs_cli.main(_gcs_args(sim, "--signing-key", KEY_HEX, "abort")) == 0

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import math
+import os
 import random
 import socket
+import subprocess
+import sys
 import time
 
 import pytest
@@ -35,15 +38,39 @@ def test_connection_strings() -> None:
     assert parse_connection("udpin:0.0.0.0:14540").device == "udpin:0.0.0.0:14540"
     assert parse_connection("udpout:127.0.0.1:14550").kind == "udpout"
     assert parse_connection("tcp:127.0.0.1:5760").kind == "tcp"
-    for bad in ("", "udp:1.2.3.4", "udpin:0.0.0.0:99999", "serial:/dev/ttyUSB0", "tcp::5760", "bogus:x:1"):
+    # pymavlink's / MAVProxy's serial form: the device, then ",BAUD"
+    assert parse_connection("/dev/ttyAMA0,921600") == parse_connection("serial:/dev/ttyAMA0:921600")
+    assert parse_connection("/dev/ttyUSB0").baud == 115200
+    for bad in ("", "udp:1.2.3.4", "udpin:0.0.0.0:99999", "serial:/dev/ttyUSB0", "tcp::5760", "bogus:x:1",
+                "/dev/ttyUSB0,fast"):
         with pytest.raises(ValueError, match="MAVLink connection"):
             parse_connection(bad)
 
 
-def test_bad_connection_string_is_refused_at_start() -> None:
-    link = VehicleLink(MavlinkConfig(connection="udp:nowhere"), SafetyConfig())
+def test_bad_connection_string_is_refused_with_the_configuration() -> None:
     with pytest.raises(ValueError, match="expected one of"):
-        link.start()
+        MavlinkConfig(connection="udp:nowhere")
+
+
+def test_default_connection_listens_on_loopback_only() -> None:
+    assert MavlinkConfig().connection.startswith("udpin:127.0.0.1:")
+
+
+def test_importing_the_link_sets_no_environment_variable_or_dialect() -> None:
+    code = (
+        "import os, pkgutil, importlib; from pymavlink import mavutil; d = mavutil.mavlink\n"
+        "before = dict(os.environ); import companion.vehicle_link, companion.gcs_cli, sitl.autopilot\n"
+        "assert dict(os.environ) == before, set(os.environ) ^ set(before)\n"
+        # every module of ours: no MAVLink variable and the same global dialect (cv2's own loader sets
+        # LD_LIBRARY_PATH when it is imported; that one is OpenCV's, not ours)
+        "for pkg in ('companion', 'sitl', 'cloudtrack'):\n"
+        "    for m in pkgutil.iter_modules(importlib.import_module(pkg).__path__):\n"
+        "        importlib.import_module(pkg + '.' + m.name)\n"
+        "assert not [k for k in os.environ if k.startswith('MAVLINK') and k not in before], os.environ\n"
+        "assert mavutil.mavlink is d, mavutil.mavlink\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "MAVLINK20"}
+    subprocess.run([sys.executable, "-c", code], check=True, env=env)
 
 
 def test_mode_tables_match_the_autopilots_encodings() -> None:
@@ -59,6 +86,14 @@ def test_mode_tables_match_the_autopilots_encodings() -> None:
     assert mode_for_action(AutopilotKind.PX4, "loiter") == "HOLD"
     with pytest.raises(ValueError):
         mode_for_action(AutopilotKind.ARDUPILOT, "arm")
+    # pymavlink's tables: every Copter mode (FOLLOW, ZIGZAG...), and Plane/Rover numbers by vehicle type
+    assert mode_name(AutopilotKind.ARDUPILOT, 23) == "FOLLOW" and mode_name(AutopilotKind.ARDUPILOT, 24) == "ZIGZAG"
+    assert mode_name(AutopilotKind.ARDUPILOT, 15, vehicle_type=1) == "GUIDED"  # MAV_TYPE_FIXED_WING
+    assert mode_name(AutopilotKind.ARDUPILOT, 4, vehicle_type=10) == "HOLD"  # MAV_TYPE_GROUND_ROVER
+    assert set_mode_params(AutopilotKind.ARDUPILOT, "GUIDED", vehicle_type=10).custom_mode == 15
+    with pytest.raises(ValueError, match="no mode 'BRAKE'"):
+        set_mode_params(AutopilotKind.ARDUPILOT, "BRAKE", vehicle_type=1)
+    assert mode_name(AutopilotKind.ARDUPILOT, 250) == "MODE(250)"
 
 
 def test_stream_requests_cover_every_decoded_message() -> None:
@@ -98,13 +133,18 @@ def test_garbage_on_the_link_crashes_nothing() -> None:
         assert len(sim.setpoints) - before >= 8  # still streaming
         stamp = link.telemetry().time_s
         assert wait_for(lambda: link.telemetry().time_s > stamp, 2.0)  # still decoding telemetry
-        assert link.endpoint.bad_data > 0
+        assert link.endpoint.conn.refused_datagrams >= 1000  # not the autopilot: dropped before parsing
+        assert sim._links["companion"].bad_data > 0  # the autopilot parsed the junk and went on too
         assert all(t.is_alive() for t in link._threads)
 
 
 def test_signing_refuses_forged_and_unsigned_commands() -> None:
     key = parse_signing_key(KEY_HEX)
-    with autopilot("ardupilot") as sim, vehicle_link(sim, signing_key=KEY_HEX) as link, MainLoop(link):
+    with (
+        autopilot("ardupilot", signing_key=key) as sim,
+        vehicle_link(sim, signing_key=KEY_HEX, gcs_system_ids=[253, 254, 255]) as link,
+        MainLoop(link),
+    ):
         # forged: signed with the wrong key
         with gcs(sim, signing_key=bytes(32 * [7])) as forger:
             forger.send(lambda m: m.command_long_send(1, 191, CMD_CONFIRM, 0, 0, 0, 0, 0, 0, 0, 0))
@@ -131,7 +171,8 @@ def test_bad_signing_key_is_a_clear_error() -> None:
         VehicleLink(MavlinkConfig(signing_key="abcd"), SafetyConfig())
 
 
-def test_serial_link_over_a_pseudo_terminal() -> None:
+@pytest.mark.parametrize("form", ["{tty},57600", "serial:{tty}:57600"])
+def test_serial_link_over_a_pseudo_terminal(form: str) -> None:
     """serial:DEVICE:BAUD through pyserial: the companion detects the autopilot and asks for its streams."""
     import contextlib
     import os
@@ -149,7 +190,7 @@ def test_serial_link_over_a_pseudo_terminal() -> None:
 
     autopilot_side = mavlink.MAVLink(PtyWriter(), srcSystem=1, srcComponent=1)
     autopilot_side.robust_parsing = True
-    link = VehicleLink(MavlinkConfig(connection=f"serial:{os.ttyname(slave)}:57600"), SafetyConfig())
+    link = VehicleLink(MavlinkConfig(connection=form.format(tty=os.ttyname(slave))), SafetyConfig())
     received: list = []
     try:
         link.start()

@@ -176,4 +176,4 @@ def test_release_stops_streaming_after_an_explicit_zero() -> None:
         assert after and after[-1].vx == 0.0  # the explicit stop is the last thing the autopilot heard
         assert not [s for s in sim.setpoints if s.time > released + 0.2]
         assert wait_for(lambda: abs(sim.snapshot().vn) < 0.05, 3.0)  # stopped now, not after GUID_TIMEOUT
-        assert sim.mode == "GUIDED"
+        assert sim.mode == "LOITER"  # let go: the hold mode (LOITER for ardupilot_hold = guided_zero), then silence

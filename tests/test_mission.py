@@ -139,7 +139,8 @@ def test_every_state_is_reachable(mode: MissionState) -> None:
 TRANSITIONS: list[tuple[str, MissionState, Event, MissionState, list[str]]] = [
     ("idle start", S.IDLE, cmd(1, StartMission(PROMPT)), S.SEARCHING, ["GcsMessage", "SendSetpoint", "BackendQuery"]),
     ("idle empty prompt", S.IDLE, cmd(1, StartMission("  ")), S.IDLE, ["GcsMessage"]),
-    ("idle operator rectangle", S.IDLE, cmd(1, TrackRectangle(FAR)), S.CONFIRMED, ["TrackerInit", "GcsMessage"]),
+    # a GCS track rectangle is followed like a candidate: only the supervisor's confirm allows descent
+    ("idle operator rectangle", S.IDLE, cmd(1, TrackRectangle(FAR)), S.FOLLOWING, ["TrackerInit", "GcsMessage"]),
     ("idle bad rectangle", S.IDLE, cmd(1, TrackRectangle(Box(0, 0, 0, 5))), S.IDLE, ["GcsMessage"]),
     ("idle tick", S.IDLE, TimerTick(5), S.IDLE, []),
     ("idle tracker result", S.IDLE, tracked(1, FAR), S.IDLE, []),
@@ -154,14 +155,14 @@ TRANSITIONS: list[tuple[str, MissionState, Event, MissionState, list[str]]] = [
      S.SEARCHING, []),
     ("searching answer empty", S.SEARCHING, BackendAnswer(1, 1, 30, ()), S.SEARCHING, []),
     ("searching unknown query", S.SEARCHING, BackendAnswer(1, 99, 30, (candidate(FAR),)), S.SEARCHING, []),
-    ("searching stop", S.SEARCHING, cmd(1, StopTracking()), S.IDLE, ["Hold", "GcsMessage"]),
+    ("searching stop", S.SEARCHING, cmd(1, StopTracking()), S.IDLE, ["ReleaseControl", "GcsMessage"]),
     ("searching reject unknown id", S.SEARCHING, cmd(1, RejectCandidate("c7")), S.SEARCHING, ["RememberRejection"]),
     ("searching reject nothing", S.SEARCHING, cmd(1, RejectCandidate()), S.SEARCHING, ["GcsMessage"]),
     ("acquiring locked", S.ACQUIRING, tracked(1.1, FAR), S.FOLLOWING, ["GcsMessage", "SendSetpoint"]),
     ("acquiring not yet", S.ACQUIRING, tracked(1.5, None, ok=False), S.ACQUIRING, []),
     ("acquiring timeout", S.ACQUIRING, TimerTick(4.5), S.SEARCHING,
      ["TrackerStop", "GcsMessage", "SendSetpoint", "BackendQuery"]),
-    ("acquiring stop", S.ACQUIRING, cmd(1.1, StopTracking()), S.IDLE, ["Hold", "TrackerStop", "GcsMessage"]),
+    ("acquiring stop", S.ACQUIRING, cmd(1.1, StopTracking()), S.IDLE, ["ReleaseControl", "TrackerStop", "GcsMessage"]),
     ("following far", S.FOLLOWING, tracked(1.2, FAR), S.FOLLOWING, ["SendSetpoint"]),
     ("following arrived", S.FOLLOWING, tracked(1.2, AT_STANDOFF), S.AWAITING_SUPERVISOR,
      ["SendSetpoint", "ReportCandidate", "GcsMessage"]),
@@ -212,13 +213,24 @@ def test_transition_table(
     assert kinds(actions) == expected_kinds, name
 
 
+def test_gcs_track_rectangle_confirms_only_when_configured() -> None:
+    box = TrackRectangle(FAR)
+    assert step(initial_state(CFG), cmd(1, box), CFG)[0].mode is S.FOLLOWING
+    trusting = replace(CFG, operator_box_confirms=True)
+    assert step(initial_state(trusting), cmd(1, box), trusting)[0].mode is S.CONFIRMED
+    assert MissionConfig.from_sections(
+        behavior={}, control={}, camera={}, backend={}, safety={"gcs_track_confirms": True}
+    ).operator_box_confirms
+
+
 def test_table_covers_every_state_as_a_source() -> None:
     assert {t[1] for t in TRANSITIONS} == set(MissionState)
 
 
 STOPS: list[tuple[str, Callable[[float], Event], type[Action]]] = [
-    ("gcs abort", lambda t: cmd(t, AbortMission("operator")), Hold),
-    ("autopilot link lost", lambda t: AutopilotLinkLost(t), Hold),
+    # every abort lets go (stop, hold mode, silence): a Hold would keep streaming zeros in GUIDED
+    ("gcs abort", lambda t: cmd(t, AbortMission("operator")), ReleaseControl),
+    ("autopilot link lost", lambda t: AutopilotLinkLost(t), ReleaseControl),
     ("pilot takeover", lambda t: PilotTakeover(t, "LOITER"), ReleaseControl),
     ("offboard lost in telemetry", lambda t: telemetry(t, offboard=False), ReleaseControl),
 ]
@@ -343,7 +355,8 @@ def test_confirmed_behaviours(on_confirm: ConfirmAction) -> None:
     assert state.mode is S.CONFIRMED
     report = [a for a in actions if isinstance(a, ReportCandidate)][0]
     assert report.status == "confirmed" and report.position is not None
-    assert (Hold("confirmed: hold") in actions) == (on_confirm is ConfirmAction.HOLD)
+    assert (ReleaseControl("confirmed: hold") in actions) == (on_confirm is ConfirmAction.HOLD)
+    assert not any(isinstance(a, Hold) for a in actions)
     for i in range(20):
         state, actions = step(state, tracked(1.35 + 0.05 * i, AT_STANDOFF), config)
     setpoints = [a.setpoint for a in actions if isinstance(a, SendSetpoint)]
@@ -509,7 +522,7 @@ def test_zero_setpoint_on_entering_lost() -> None:
 def test_operator_rectangle_outside_a_mission_never_engages() -> None:
     state = reach(S.ABORTED, allow_engage=True)
     state, actions = step(state, cmd(3.0, TrackRectangle(FAR)), CFG)
-    assert state.mode is S.CONFIRMED and state.mission is None
+    assert state.mode is S.FOLLOWING and state.mission is None
     assert kinds(actions) == ["TrackerInit", "GcsMessage"]
     # Lost without a prompt: nothing to ask the back-end, it stops and holds.
     state, actions = step(state, tracked(3.1, None, ok=False), CFG)
@@ -565,7 +578,7 @@ def test_rejection_memory_matching_rules() -> None:
 def test_operator_target_is_re_found_whatever_the_verdict() -> None:
     state = reach(S.SEARCHING)
     state, _ = step(state, cmd(1.0, TrackRectangle(FAR)), CFG)
-    assert state.mode is S.CONFIRMED and state.mission is not None  # inside a running mission: prompt kept
+    assert state.mode is S.FOLLOWING and state.mission is not None  # inside a running mission: prompt kept
     state, actions = run(state, [tracked(1.1, FAR), tracked(1.2, None, ok=False)])
     query = last_query(actions)
     no_match = candidate(FAR, "n", Verdict.NO)

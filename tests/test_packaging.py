@@ -7,7 +7,7 @@ from importlib import metadata
 
 from packaging.requirements import Requirement
 
-HEAVY = {"fastapi", "starlette", "uvicorn", "torch", "transformers", "flask", "django", "tensorflow"}
+HEAVY = {"fastapi", "starlette", "uvicorn", "torch", "transformers", "flask", "django", "tensorflow", "grpcio", "mavsdk"}
 
 
 def _canonical(name: str) -> str:

@@ -83,7 +83,7 @@ def test_install_print_writes_nothing_and_names_installed_program(tmp_path: Path
     assert not (tmp_path / "u").exists() and not (tmp_path / "c").exists()
     program = Path(sys.executable).parent / "cloudtrack-companion"
     assert f"ExecStart={program} run --config {tmp_path / 'c' / 'companion.toml'}" in result.stdout
-    assert 'connection = "serial:/dev/ttyAMA0:921600"' in result.stdout
+    assert 'connection = "/dev/ttyAMA0,921600"' in result.stdout
 
 
 def test_install_writes_unit_systemd_accepts_and_config_that_validates(tmp_path: Path) -> None:
@@ -94,7 +94,7 @@ def test_install_writes_unit_systemd_accepts_and_config_that_validates(tmp_path:
     unit_path = unit_dir / "cloudtrack-companion.service"
     config_path = config_dir / "companion.toml"
     config = load_config(CompanionConfig, config_path, environ={})
-    assert config.mavlink.connection == "serial:/dev/ttyAMA0:921600"
+    assert config.mavlink.connection == "/dev/ttyAMA0,921600"
     assert config.recording.dir == "/var/lib/cloudtrack/records"  # inside the unit's StateDirectory
 
     # The ExecStart line parses with the real command-line parser.
@@ -116,7 +116,7 @@ def test_install_writes_unit_systemd_accepts_and_config_that_validates(tmp_path:
     again = subprocess.run(args, capture_output=True, text=True, check=True)
     assert "kept" in again.stdout and config_path.read_text() == "# edited by the operator\n"
     subprocess.run([*args, "--force"], capture_output=True, text=True, check=True)
-    assert "serial:/dev/ttyAMA0:921600" in config_path.read_text()
+    assert "/dev/ttyAMA0,921600" in config_path.read_text()
 
 
 def test_install_into_unwritable_place_is_a_clear_error(tmp_path: Path) -> None:
