@@ -41,7 +41,16 @@ $(CHROMIUM):
 	$$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null 2>&1 || \
 	{ $$SUDO apt-get update -qq >/dev/null && $$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; }
 
-pytest: install $(CHROMIUM)
+# The COCO word table's test rebuilds it from Debian's WordNet 3.0 (wordnet-base) and compares.
+WORDNET ?= /usr/share/wordnet/data.noun
+
+$(WORDNET):
+	@echo "installing Debian's wordnet-base for the COCO vocabulary test"
+	@SUDO=$$([ "$$(id -u)" = 0 ] || echo sudo); \
+	$$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq wordnet-base >/dev/null 2>&1 || \
+	{ $$SUDO apt-get update -qq >/dev/null && $$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq wordnet-base >/dev/null; }
+
+pytest: install $(CHROMIUM) $(WORDNET)
 	$(BIN)/python -m pytest
 
 test: lint types pytest

@@ -79,8 +79,9 @@ def test_superset_mapping_and_clear_error_for_unmapped() -> None:
     assert coco_classes_for("person") == ("person",)
     assert "truck" in coco_classes_for("vehicle")
     assert coco_classes_for("Truck") == ("truck",)
-    with pytest.raises(UnknownSupersetError, match="'life raft'.*person"):
-        coco_classes_for("life raft")
+    assert coco_classes_for("life raft") == ("boat",)
+    with pytest.raises(UnknownSupersetError, match="'life buoy'.*nearest known classes"):
+        coco_classes_for("life buoy")
 
 
 @pytest.mark.parametrize(
@@ -90,7 +91,8 @@ def test_superset_mapping_and_clear_error_for_unmapped() -> None:
         ("the surfer in a black wetsuit riding the wave", "person"),
         ("a red kayak near the shore", "boat"),
         ("the white plastic bag on the ground", "bag"),
-        ("something shiny", None),
+        ("something shiny", "something shiny"),  # no class: the phrase itself, for an open-vocabulary detector
+        ("the of a", None),
     ],
 )
 def test_superset_from_prompt(prompt: str, superset: str | None) -> None:
