@@ -8,10 +8,15 @@ import cv2
 import numpy as np
 import pytest
 
-from backend.detectors.nms import nms
+from backend.config import DetectorConfig
+from backend.detectors.factory import build_detector
+from backend.detectors.nms import merge_overlapping, nms
+from backend.detectors.quantize import main as quantize_main
+from backend.detectors.tiling import TiledDetector, tile_grid
 from backend.detectors.yolox import YoloxDetector
 from backend.supersets import UnknownSupersetError, coco_classes_for, superset_from_prompt
 from behaviors.geometry import Box, iou
+from cloudtrack.model_store import ModelError
 
 
 @pytest.fixture(scope="module")
@@ -102,3 +107,66 @@ def test_superset_from_prompt(prompt: str, superset: str | None) -> None:
 def test_nms_keeps_the_best_of_overlapping_boxes() -> None:
     boxes = np.array([[0, 0, 10, 10], [1, 1, 11, 11], [20, 20, 30, 30]], np.float32)
     assert nms(boxes, np.array([0.5, 0.9, 0.3]), 0.5) == [1, 2]
+
+
+def test_tiles_grid_covers_the_frame_with_overlap() -> None:
+    tiles = tile_grid(640, 360, 2, 0.2)
+    assert len(tiles) == 2  # rows follow the aspect ratio: 2 x 360/640 rounds to 1
+    (ax1, ay1, ax2, ay2), (bx1, by1, bx2, by2) = tiles
+    assert (ax1, ay1, by2, bx2, ay2) == (0, 0, 360, 640, 360) and ax2 - bx1 >= 0.2 * (ax2 - ax1) - 1
+    grid = tile_grid(1280, 720, 3, 0.2)
+    assert len(grid) == 6 and {t[2] for t in grid} >= {1280} and {t[3] for t in grid} >= {720}
+    assert tile_grid(360, 640, 1, 0.2) == [(0, 0, 360, 356), (0, 284, 360, 640)]  # portrait: 1 x 2
+
+
+def test_tiles_merge_keeps_side_by_side_people_apart_and_joins_cut_boxes() -> None:
+    # A child in front of an adult: IoU 0.35, but the smaller lies mostly inside (IoS 0.75); neither is cut.
+    boxes = np.array([[100, 100, 120, 160], [108, 110, 124, 150]], np.float64)
+    keep, _ = merge_overlapping(boxes, np.array([0.9, 0.8]), np.array([0, 0]), np.array([False, False]), 0.45, 0.6)
+    assert keep == [0, 1]
+    # A person cut at a tile's edge (higher score, top half) and whole in the frame pass: one whole box.
+    boxes = np.array([[100, 100, 120, 130], [100, 100, 121, 160]], np.float64)
+    keep, merged = merge_overlapping(boxes, np.array([0.9, 0.6]), np.array([0, 0]), np.array([True, False]), 0.45, 0.6)
+    assert keep == [0] and merged[0].tolist() == [100, 100, 121, 160]
+
+
+def test_tiles_find_small_people_the_whole_frame_misses(detector: YoloxDetector, sequences_dir: Path) -> None:
+    tiled = TiledDetector(detector, 2)
+    seq = sequences_dir / "uav123_wakeboard7"
+    truth = _groundtruth(seq)
+    whole_hits = tiled_hits = frames = 0
+    for index in range(0, len(truth), 6):
+        box = truth[index]
+        if box is None:
+            continue
+        image = _read(seq / "frames" / f"{index + 1:06d}.jpg")
+        keyframe = cv2.resize(image, (640, 360), interpolation=cv2.INTER_AREA)  # the companion's keyframe size
+        target = box.scaled(0.5, 0.5)
+        found = tiled.detect(keyframe, ["person"])
+        assert all(d.box.x >= 0 and d.box.x2 <= 640 and d.box.y >= 0 and d.box.y2 <= 360 for d in found)
+        whole_hits += any(iou(target, d.box) >= 0.5 for d in detector.detect(keyframe, ["person"]))
+        tiled_hits += any(iou(target, d.box) >= 0.5 for d in found)
+        frames += 1
+    print(f"uav123_wakeboard7 at 640x360, {frames} frames: recall whole frame {whole_hits / frames:.2f}, "
+          f"tiles2 {tiled_hits / frames:.2f}")
+    assert tiled_hits > whole_hits
+
+
+def test_factory_builds_tiles_and_names_the_int8_command(models_dir: Path) -> None:
+    tiled = build_detector(DetectorConfig(model_dir=str(models_dir), tiles=2))
+    assert isinstance(tiled, TiledDetector) and tiled.name == "yolox_nano+tiles2"
+    with pytest.raises(ModelError, match="backend.detectors.quantize"):
+        build_detector(DetectorConfig(model_dir=str(models_dir), precision="int8"))
+
+
+@pytest.mark.slow
+def test_int8_model_is_derived_from_the_shared_weights(models_dir: Path, sequences_dir: Path, tmp_path: Path) -> None:
+    (tmp_path / "yolox_nano").mkdir()
+    (tmp_path / "yolox_nano" / "yolox_nano.onnx").symlink_to(models_dir / "yolox_nano" / "yolox_nano.onnx")
+    sequences = [str(sequences_dir / "uav123_group1_1"), str(sequences_dir / "otb_Crossing")]
+    assert quantize_main([*sequences, "--model-dir", str(tmp_path), "--frames-per-sequence", "2"]) == 0
+    int8 = build_detector(DetectorConfig(model_dir=str(tmp_path), precision="int8", threads=1))
+    assert int8.name == "yolox_nano_int8"
+    image = _read(sequences_dir / "uav123_person12_1" / "frames" / "000001.jpg")
+    found = int8.detect(image, ["person"])
+    assert found and all(d.label == "person" and d.box.is_valid() for d in found)

@@ -4,16 +4,30 @@ from __future__ import annotations
 
 from backend.config import DetectorConfig
 from backend.detectors.interface import SupersetDetector
-from cloudtrack.model_store import require, resolve_model_dir
+from cloudtrack.model_store import ModelError, require, resolve_model_dir
 
 
 def build_detector(config: DetectorConfig) -> SupersetDetector:
     """The detector for `config.kind`; heavy or optional dependencies are imported only when chosen."""
     if config.kind == "yolox":
+        from backend.detectors.quantize import INT8_NAME
         from backend.detectors.yolox import YoloxDetector
 
-        paths = require("yolox", resolve_model_dir(config.model_dir or None))
-        return YoloxDetector(paths["yolox_nano.onnx"], config.score_threshold, config.nms_threshold, threads=config.threads)
+        model_dir = resolve_model_dir(config.model_dir or None)
+        weights = require("yolox", model_dir)["yolox_nano.onnx"]
+        if config.precision == "int8":
+            weights = weights.with_name(INT8_NAME)
+            if not weights.is_file():
+                raise ModelError(
+                    f"detector precision int8: {weights} is missing; derive it from the fp32 weights with "
+                    f"`python -m backend.detectors.quantize SEQUENCE_FOLDERS... --model-dir {model_dir}`"
+                )
+        detector: SupersetDetector = YoloxDetector(weights, config.score_threshold, config.nms_threshold, threads=config.threads)
+        if config.tiles:
+            from backend.detectors.tiling import TiledDetector
+
+            detector = TiledDetector(detector, config.tiles, config.tile_overlap, config.nms_threshold)
+        return detector
     if config.kind in ("grounding_dino", "owlv2"):
         from backend.detectors.open_vocabulary import OpenVocabularyDetector
 

@@ -5,11 +5,15 @@
 
 The shared fp32 weights are read, never changed; the int8 model is written where `[detector] precision =
 "int8"` looks for it (`<model_dir>/yolox_nano/yolox_nano_int8.onnx`) or to --out. Weights are never
-committed. QDQ format, per-channel int8 weights, uint8 activations, MinMax calibration on letterboxed
-frames exactly as the detector feeds them. The detection head's last convolutions and everything after
-them (sigmoids, the concatenation of box, objectness and class outputs, reshape, transpose) stay fp32:
-box offsets (up to ~10) and probabilities (0-1) share one tensor there, and one uint8 scale for both
-would wipe out the scores.
+committed. QDQ format, convolutions only, per-channel int8 weights, uint8 activations, MinMax calibration
+on letterboxed frames exactly as the detector feeds them. What stays fp32, and why (measured on
+uav123_person12_1, docs/benchmarks.md):
+- the detection head's last convolutions and everything after them: box offsets (up to ~10) and
+  probabilities (0-1) share one tensor there, and one uint8 scale for both wipes out the scores;
+- the stem (the first STEM_CONVS convolutions): YOLOX takes unnormalised 0-255 pixels, so its first
+  activations span hundreds of units and uint8 steps erase the small values SiLU depends on; quantising
+  the first convolution alone dropped the person-score correlation with fp32 to 0.3;
+- the SiLU activations (Sigmoid x Mul): quantised too, recall on uav123_person12_1 fell from 0.71 to 0.0.
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ import cv2
 import numpy as np
 
 INT8_NAME = "yolox_nano_int8.onnx"
+STEM_CONVS = 10
 
 
 def calibration_frames(sequences: Sequence[Path], per_sequence: int) -> Iterator[np.ndarray]:
@@ -40,11 +45,12 @@ def calibration_frames(sequences: Sequence[Path], per_sequence: int) -> Iterator
             yield image
 
 
-def head_nodes(model_path: Path) -> list[str]:
-    """Names of the nodes from the prediction convolutions to the output (kept in fp32)."""
+def fp32_nodes(model_path: Path) -> list[str]:
+    """Nodes kept in fp32: the stem's convolutions and the head from its prediction convolutions on."""
     import onnx
 
     graph = onnx.load(str(model_path)).graph
+    stem = [node.name for node in graph.node if node.op_type == "Conv"][:STEM_CONVS]
     producer = {out: node for node in graph.node for out in node.output}
     names: list[str] = []
     todo = [o.name for o in graph.output]
@@ -55,11 +61,13 @@ def head_nodes(model_path: Path) -> list[str]:
         names.append(node.name)
         if node.op_type != "Conv":  # walk up until the prediction convolutions
             todo.extend(node.input)
-    return names
+    return stem + names
 
 
 def quantize(model_path: Path, out: Path, sequences: Sequence[Path], per_sequence: int = 16) -> dict[str, float]:
     """Write the int8 model to `out`; returns how many calibration frames and seconds it took."""
+    import onnx
+    import onnx.version_converter
     from onnxruntime.quantization import (
         CalibrationDataReader,
         CalibrationMethod,
@@ -86,12 +94,17 @@ def quantize(model_path: Path, out: Path, sequences: Sequence[Path], per_sequenc
 
     out.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as tmp:
-        prepared = Path(tmp) / "prepared.onnx"
-        quant_pre_process(str(model_path), str(prepared), skip_symbolic_shape=True)
+        # Per-channel QDQ needs DequantizeLinear's `axis` (opset 13); the 2022 export is opset 11.
+        model = onnx.load(str(model_path))
+        if max(o.version for o in model.opset_import if o.domain in ("", "ai.onnx")) < 13:
+            model = onnx.version_converter.convert_version(model, 13)
+        upgraded, prepared = Path(tmp) / "opset13.onnx", Path(tmp) / "prepared.onnx"
+        onnx.save(model, str(upgraded))
+        quant_pre_process(str(upgraded), str(prepared), skip_symbolic_shape=True)
         quantize_static(
-            str(prepared), str(out), Frames(), quant_format=QuantFormat.QDQ, per_channel=True,
+            str(prepared), str(out), Frames(), quant_format=QuantFormat.QDQ, per_channel=True, op_types_to_quantize=["Conv"],
             activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, calibrate_method=CalibrationMethod.MinMax,
-            nodes_to_exclude=head_nodes(prepared),
+            nodes_to_exclude=fp32_nodes(prepared),
         )  # fmt: skip
     return {"calibration_frames": float(len(blobs)), "seconds": time.perf_counter() - start}
 

@@ -90,8 +90,9 @@ def _groundtruth(seq: Path) -> list[Box | None]:
 
 
 def measure_recall(
-    sequences: Sequence[Path], variants: dict[str, SupersetDetector], step: int
+    sequences: Sequence[Path], variants: dict[str, SupersetDetector], step: int, max_width: int = 0
 ) -> dict[str, Tally]:
+    """Every `step`-th frame with a target, downscaled to `max_width` like the companion's keyframes (0: native)."""
     tallies = {name: Tally() for name in variants}
     for seq in sequences:
         referring = seq / "referring.txt"
@@ -103,6 +104,10 @@ def measure_recall(
             image = cv2.imread(str(frames[index]))
             if image is None:
                 raise ValueError(f"cannot read {frames[index]}")
+            if max_width and image.shape[1] > max_width:
+                scale = max_width / image.shape[1]
+                image = cv2.resize(image, (max_width, round(image.shape[0] * scale)), interpolation=cv2.INTER_AREA)
+                box = box.scaled(scale, scale)
             size = float(np.sqrt(box.w * box.h))
             for name, detector in variants.items():
                 start = time.perf_counter()
@@ -151,20 +156,25 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--int8-model", type=Path, help="int8 model (default: <model-dir>/yolox_nano/yolox_nano_int8.onnx)")
     parser.add_argument("--threads", type=int, default=1, help="onnxruntime threads per detector, 0 = all cores (default 1)")
     parser.add_argument("--step", type=int, default=1, help="use every STEP-th frame (default 1)")
+    parser.add_argument("--max-width", type=int, default=640,
+                        help="downscale wider frames to this width, as the companion's keyframes "
+                        "([backend] max_keyframe_width, default 640); 0 = native size; size bins are in these pixels")
     parser.add_argument("--speed-runs", type=int, default=0, help="also time N interleaved rounds on a 640x480 frame")
     parser.add_argument("--json", type=Path, metavar="OUT", help="write the figures as JSON")
     args = parser.parse_args(argv)
     try:
         model_dir = resolve_model_dir(args.model_dir)
         variants = {v: build_variant(v, model_dir, args.int8_model, args.threads) for v in args.variants.split(",") if v}
-        tallies = measure_recall(args.sequences, variants, max(1, args.step))
+        tallies = measure_recall(args.sequences, variants, max(1, args.step), args.max_width)
     except (ModelError, ValueError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     result: dict[str, object] = {"load_average_1min": os.getloadavg()[0], "threads": args.threads, "step": args.step,
+                                 "max_width": args.max_width,
                                  "variants": {name: t.summary() for name, t in tallies.items()}}  # fmt: skip
     base = next(iter(tallies.values())).summary()
-    print(f"load average {os.getloadavg()[0]:.1f}; recall at IoU >= 0.5 (frames); time per keyframe (x first variant)")
+    width = f"frames at most {args.max_width} px wide" if args.max_width else "native frames"
+    print(f"load average {os.getloadavg()[0]:.1f}; {width}; recall at IoU >= 0.5 (frames); time per keyframe (x first)")
     print("| variant | <32 px | 32-96 px | >96 px | all | median ms | time ratio |")
     print("|---|---|---|---|---|---|---|")
     for name, tally in tallies.items():

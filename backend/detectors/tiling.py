@@ -47,8 +47,8 @@ class TiledDetector:
         nms_threshold: float = 0.45,
         ios_threshold: float = 0.6,
     ) -> None:
-        if columns < 2:
-            raise ValueError(f"tiling needs at least 2 columns, not {columns}")
+        if columns < 1:
+            raise ValueError(f"tiling needs at least 1 column, not {columns}")
         self.inner = inner
         self.columns = columns
         self.overlap = overlap
