@@ -84,7 +84,7 @@ def quantize(model_path: Path, out: Path, sequences: Sequence[Path], per_sequenc
     blobs = [letterbox.preprocess(image)[0] for image in calibration_frames(sequences, per_sequence)]
     input_name = letterbox.input_name
 
-    class Frames(CalibrationDataReader):
+    class Frames(CalibrationDataReader):  # type: ignore[misc]
         def __init__(self) -> None:
             self._items = iter(blobs)
 

@@ -192,14 +192,17 @@ def main(argv: list[str] | None = None) -> int:
         print(f"| {name} | " + " | ".join(_fmt(per[n]) for n in names) + " |")
     if args.speed_runs:
         seq = next((s for s in args.sequences if s.name == "uav123_person12_1"), args.sequences[0])
-        frame = cv2.resize(cv2.imread(str(sorted((seq / "frames").glob("*.jpg"))[0])), (640, 480))
-        speed = measure_speed(frame, variants, args.speed_runs)
+        first_frame = cv2.imread(str(sorted((seq / "frames").glob("*.jpg"))[0]))
+        if first_frame is None:
+            print(f"error: cannot read the first frame of {seq}", file=sys.stderr)
+            return 2
+        speed = measure_speed(cv2.resize(first_frame, (640, 480)), variants, args.speed_runs)
         result["speed_640x480"] = speed
         first = next(iter(speed.values()))["median_ms"]
         print(f"\n640x480 frame of {seq.name}, {args.speed_runs} interleaved rounds, threads {args.threads}:")
-        for name, s in speed.items():
-            print(f"  {name}: median {s['median_ms']:.2f} ms (p10 {s['p10_ms']:.2f}, p90 {s['p90_ms']:.2f}), "
-                  f"x{s['median_ms'] / first:.2f}")
+        for name, figures in speed.items():
+            print(f"  {name}: median {figures['median_ms']:.2f} ms (p10 {figures['p10_ms']:.2f}, "
+                  f"p90 {figures['p90_ms']:.2f}), x{figures['median_ms'] / first:.2f}")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(result, indent=2))
