@@ -153,8 +153,9 @@ def test_tiles_find_small_people_the_whole_frame_misses(detector: YoloxDetector,
 
 
 def test_factory_builds_tiles_and_names_the_int8_command(models_dir: Path) -> None:
-    tiled = build_detector(DetectorConfig(model_dir=str(models_dir), tiles=2))
-    assert isinstance(tiled, TiledDetector) and tiled.name == "yolox_nano+tiles2"
+    tiled = build_detector(DetectorConfig(model_dir=str(models_dir)))  # tiles = 2 by default
+    assert isinstance(tiled, TiledDetector) and tiled.columns == 2 and tiled.name == "yolox_nano"
+    assert isinstance(build_detector(DetectorConfig(model_dir=str(models_dir), tiles=0)), YoloxDetector)
     with pytest.raises(ModelError, match="backend.detectors.quantize"):
         build_detector(DetectorConfig(model_dir=str(models_dir), precision="int8"))
 

@@ -54,7 +54,7 @@ class TiledDetector:
         self.overlap = overlap
         self.nms_threshold = nms_threshold
         self.ios_threshold = ios_threshold
-        self.name = f"{inner.name}+tiles{columns}"
+        self.name = inner.name  # the model's name; tiling is a setting, like the score threshold
 
     def detect(self, image_bgr: np.ndarray, classes: Sequence[str], frame_id: int | None = None) -> list[Detection]:
         height, width = image_bgr.shape[:2]
