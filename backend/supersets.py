@@ -157,8 +157,9 @@ def coco_classes_for(name: str) -> tuple[str, ...]:
     nearest = nearest_known(key)
     hint = f"nearest known classes: {', '.join(nearest)}" if nearest else f"known supersets: {', '.join(known_supersets())}"
     raise UnknownSupersetError(
-        f"superset {name!r} has no COCO mapping ({hint}); name a COCO class or a word for one (e.g. 'boat', "
-        "'truck', 'person'), or configure an open-vocabulary detector (grounding_dino, owlv2)"
+        f"superset {name!r} has no COCO mapping ({hint}); set the superset ('superset' in the request, "
+        "--superset on the command line) to a COCO class or a word for one (e.g. 'boat', 'truck', 'person'), "
+        "or configure an open-vocabulary detector (grounding_dino, owlv2)"
     )
 
 
