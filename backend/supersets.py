@@ -49,17 +49,83 @@ SUPERSET_TO_COCO: dict[str, tuple[str, ...]] = {
 VOCABULARY_FILE = Path(__file__).with_name("coco_vocabulary.txt")
 
 # Words that end the prompt's head noun phrase: "the man | in a green shirt", "a red kayak | near the shore".
-_HEAD_ENDS = frozenset((
-    "with", "in", "on", "at", "near", "next", "beside", "by", "under", "over", "behind", "from", "of", "into",
-    "onto", "along", "across", "around", "between", "who", "that", "which", "whose", "while", "wearing",
-    "carrying", "holding", "riding", "pulling", "pushing", "walking", "standing", "sitting", "lying", "and", "or",
-))
+_HEAD_ENDS = frozenset(
+    (
+        "with",
+        "in",
+        "on",
+        "at",
+        "near",
+        "next",
+        "beside",
+        "by",
+        "under",
+        "over",
+        "behind",
+        "from",
+        "of",
+        "into",
+        "onto",
+        "along",
+        "across",
+        "around",
+        "between",
+        "who",
+        "that",
+        "which",
+        "whose",
+        "while",
+        "wearing",
+        "carrying",
+        "holding",
+        "riding",
+        "pulling",
+        "pushing",
+        "walking",
+        "standing",
+        "sitting",
+        "lying",
+        "and",
+        "or",
+    )
+)
 # Words left out of an unmapped phrase passed on to an open-vocabulary detector.
-_FILLER = frozenset((
-    "a", "an", "the", "this", "that", "these", "those", "some", "any", "my", "our", "your", "their", "his",
-    "her", "its", "one", "two", "three", "four", "five", "several", "many", "few", "find", "locate", "track",
-    "follow", "search", "look", "for", "spot",
-))
+_FILLER = frozenset(
+    (
+        "a",
+        "an",
+        "the",
+        "this",
+        "that",
+        "these",
+        "those",
+        "some",
+        "any",
+        "my",
+        "our",
+        "your",
+        "their",
+        "his",
+        "her",
+        "its",
+        "one",
+        "two",
+        "three",
+        "four",
+        "five",
+        "several",
+        "many",
+        "few",
+        "find",
+        "locate",
+        "track",
+        "follow",
+        "search",
+        "look",
+        "for",
+        "spot",
+    )
+)
 # After these a table word is still used as a noun ("an orange" is the fruit, "an orange kayak" is not).
 _FUNCTION_WORDS = _HEAD_ENDS | _FILLER | {"is", "are", "was", "to"}
 
@@ -155,7 +221,11 @@ def coco_classes_for(name: str) -> tuple[str, ...]:
     if target in COCO_CLASSES:
         return (target,)
     nearest = nearest_known(key)
-    hint = f"nearest known classes: {', '.join(nearest)}" if nearest else f"known supersets: {', '.join(known_supersets())}"
+    hint = (
+        f"nearest known classes: {', '.join(nearest)}"
+        if nearest
+        else f"known supersets: {', '.join(known_supersets())}"
+    )
     raise UnknownSupersetError(
         f"superset {name!r} has no COCO mapping ({hint}); set the superset ('superset' in the request, "
         "--superset on the command line) to a COCO class or a word for one (e.g. 'boat', 'truck', 'person'), "
@@ -177,8 +247,9 @@ def _first_target(tokens: list[str]) -> str | None:
             end, target = following  # a compound's head is its last noun: "dog walker", "orange kayak"
         word = " ".join(tokens[i:end])
         next_word = tokens[end] if end < len(tokens) else ""
-        if word in vocab.adjectives and next_word and next_word not in _FUNCTION_WORDS and not next_word.endswith("ing"):
-            i = end  # "a young man", "an orange buoy": the adjective names nothing ("a pedestrian crossing" does)
+        modifies = bool(next_word) and next_word not in _FUNCTION_WORDS and not next_word.endswith("ing")
+        if word in vocab.adjectives and modifies:
+            i = end  # "a young man", "an orange buoy": the adjective names nothing
             continue
         return target
     return None

@@ -12,9 +12,11 @@ target its senses vote for, each weighted by how often it was seen in WordNet's 
 (cntlist.rev) plus 1/rank, so unseen senses still count a little. A word whose mapped senses make up less
 than MIN_SHARE of that weight keeps no mapping ("plant": factory and flora, rarely the planted person).
 Person senses vote at PERSON_WEIGHT: WordNet lists figurative person senses for many animals and things
-("tiger": a fierce person), and in a search prompt the literal thing is meant. Irregular plurals come from WordNet's exception list; regular ones are
-derived when a prompt is read (`backend.supersets`). A few words newer than WordNet 3.0 (2006) are added
-under the WordNet word they are a kind of (EXTRA_WORDS).
+("tiger": a fierce person), and in a search prompt the literal thing is meant. Named instances (people,
+places: "Lincoln", "Ford") are left out: their senses neither vote nor count in a word's weight.
+Irregular plurals come from WordNet's exception list; regular ones are derived when a prompt
+is read (`backend.supersets`). A few words newer than WordNet 3.0 (2006), or filed by WordNet away from
+the class a search means, are added under the word they are a kind of (EXTRA_WORDS).
 """
 
 from __future__ import annotations
@@ -144,11 +146,13 @@ class WordNet:
     plurals: list[tuple[str, str]]  # irregular (plural, singular) from noun.exc
     adjectives: set[str]
     counts: dict[tuple[str, int], int]  # (lemma, sense number) -> times tagged in the sense-tagged corpus
+    instances: set[int]  # synsets that are named individuals ("Lincoln"), not kinds
 
     @classmethod
     def read(cls, folder: Path) -> WordNet:
         hypernyms: dict[int, list[int]] = {}
         words: dict[int, list[str]] = {}
+        instances: set[int] = set()
         for line in (folder / "data.noun").read_text(encoding="latin-1").splitlines():
             if line.startswith("  "):
                 continue  # licence header
@@ -158,7 +162,9 @@ class WordNet:
             at = 4 + 2 * count
             pointers = int(fields[at])
             ptrs = [fields[at + 1 + 4 * i : at + 5 + 4 * i] for i in range(pointers)]
-            hypernyms[offset] = [int(p[1]) for p in ptrs if p[0] in ("@", "@i") and p[2] == "n"]
+            hypernyms[offset] = [int(p[1]) for p in ptrs if p[0] == "@" and p[2] == "n"]
+            if any(p[0] == "@i" for p in ptrs):
+                instances.add(offset)
         senses: dict[str, list[int]] = {}
         for line in (folder / "index.noun").read_text(encoding="latin-1").splitlines():
             if line.startswith("  "):
@@ -167,15 +173,15 @@ class WordNet:
             synsets = int(fields[2])
             senses[fields[0]] = [int(v) for v in fields[-synsets:]]
         plurals = [tuple(line.split()[:2]) for line in (folder / "noun.exc").read_text().splitlines() if line]
-        adjectives = {line.split()[0] for line in (folder / "index.adj").read_text(encoding="latin-1").splitlines()
-                      if not line.startswith("  ")}
+        adjective_lines = (folder / "index.adj").read_text(encoding="latin-1").splitlines()
+        adjectives = {line.split()[0] for line in adjective_lines if not line.startswith("  ")}
         counts: dict[tuple[str, int], int] = {}
         for line in (folder / "cntlist.rev").read_text(encoding="latin-1").splitlines():
             key, number, tagged = line.split()
             lemma, sense_key = key.split("%", 1)
             if sense_key.startswith("1:"):  # nouns
                 counts[(lemma, int(number))] = int(tagged)
-        return cls(hypernyms, words, senses, [(p, s) for p, s in plurals], adjectives, counts)
+        return cls(hypernyms, words, senses, [(p, s) for p, s in plurals], adjectives, counts, instances)
 
     def synset(self, lemma: str, sense: int) -> int:
         try:
@@ -184,7 +190,9 @@ class WordNet:
             raise ValueError(f"WordNet has no noun sense {lemma}#{sense}") from None
 
 
-def _nearest_anchor(wordnet: WordNet, start: int, anchors: dict[int, str], cache: dict[int, str | None]) -> str | None:
+def _nearest_anchor(
+    wordnet: WordNet, start: int, anchors: dict[int, str], cache: dict[int, str | None]
+) -> str | None:
     """The target of the nearest anchor above `start` in the hypernym graph (breadth first), or None."""
     if start in cache:
         return cache[start]
@@ -202,7 +210,9 @@ def _nearest_anchor(wordnet: WordNet, start: int, anchors: dict[int, str], cache
 
 def build(wordnet: WordNet) -> dict[str, str]:
     """Word (lower case, spaces) -> target, for every noun under an anchor."""
-    anchors = {wordnet.synset(lemma, sense): target for target, specs in ANCHORS.items() for lemma, sense in specs}
+    anchors = {
+        wordnet.synset(lemma, sense): target for target, specs in ANCHORS.items() for lemma, sense in specs
+    }
     person = wordnet.synset("person", 1)
     cache: dict[int, str | None] = {}
     table: dict[str, str] = {}
@@ -213,6 +223,8 @@ def build(wordnet: WordNet) -> dict[str, str]:
         votes: dict[str, float] = defaultdict(float)
         total = mapped = 0.0
         for rank, offset in enumerate(offsets, start=1):
+            if offset in wordnet.instances:
+                continue
             weight = wordnet.counts.get((lemma, rank), 0) + 1.0 / rank
             total += weight
             target = _nearest_anchor(wordnet, offset, anchors, cache)
@@ -241,8 +253,9 @@ def adjective_words(wordnet: WordNet, table: Iterable[str]) -> set[str]:
 
 def render(table: dict[str, str], adjectives: set[str]) -> str:
     header = (
-        "# Generated by `python -m backend.wordnet_vocabulary` from WordNet 3.0 (Princeton University, WordNet\n"
-        "# licence); do not edit by hand. word<TAB>target (COCO class or superset)<TAB>'adj' when also an adjective.\n"
+        "# Generated by `python -m backend.wordnet_vocabulary` from WordNet 3.0 (Princeton University,\n"
+        "# WordNet licence); do not edit by hand.\n"
+        "# word<TAB>target (COCO class or superset)<TAB>'adj' when also an adjective.\n"
     )
     rows = (f"{w}\t{t}\t{'adj' if w in adjectives else ''}".rstrip("\t") for w, t in sorted(table.items()))
     return header + "\n".join(rows) + "\n"
@@ -253,8 +266,13 @@ def main(argv: list[str] | None = None) -> int:
         prog="python -m backend.wordnet_vocabulary",
         description="Regenerate backend/coco_vocabulary.txt from a WordNet 3.0 database folder.",
     )
-    parser.add_argument("--wordnet", type=Path, default=Path("/usr/share/wordnet"),
-                        help="folder with data.noun, index.noun, noun.exc, index.adj (default: Debian's wordnet-base)")
+    parser.add_argument(
+        "--wordnet",
+        type=Path,
+        default=Path("/usr/share/wordnet"),
+        help="folder with data.noun, index.noun, noun.exc, index.adj, cntlist.rev "
+        "(default: Debian's wordnet-base)",
+    )
     parser.add_argument("--out", type=Path, default=TABLE, help=f"output (default: {TABLE})")
     args = parser.parse_args(argv)
     wordnet = WordNet.read(args.wordnet)

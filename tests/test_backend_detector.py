@@ -69,7 +69,9 @@ def test_boxes_are_in_the_callers_pixels_at_any_size(detector: YoloxDetector, se
         assert d.box.x >= 0 and d.box.x2 <= 640 and d.box.y >= 0 and d.box.y2 <= 360
 
 
-def test_blank_image_has_no_detections_and_other_classes_are_filtered(detector: YoloxDetector, sequences_dir: Path) -> None:
+def test_blank_image_has_no_detections_and_other_classes_are_filtered(
+    detector: YoloxDetector, sequences_dir: Path
+) -> None:
     assert detector.detect(np.full((480, 640, 3), 127, np.uint8), ["person"]) == []
     image = _read(sequences_dir / "uav123_person12_1" / "frames" / "000001.jpg")
     assert detector.detect(image, ["boat"]) == []
@@ -96,7 +98,10 @@ def test_superset_mapping_and_clear_error_for_unmapped() -> None:
         ("the surfer in a black wetsuit riding the wave", "person"),
         ("a red kayak near the shore", "boat"),
         ("the white plastic bag on the ground", "bag"),
-        ("something shiny", "something shiny"),  # no class: the phrase itself, for an open-vocabulary detector
+        (
+            "something shiny",
+            "something shiny",
+        ),  # no class: the phrase itself, for an open-vocabulary detector
         ("the of a", None),
     ],
 )
@@ -122,11 +127,15 @@ def test_tiles_grid_covers_the_frame_with_overlap() -> None:
 def test_tiles_merge_keeps_side_by_side_people_apart_and_joins_cut_boxes() -> None:
     # A child in front of an adult: IoU 0.35, but the smaller lies mostly inside (IoS 0.75); neither is cut.
     boxes = np.array([[100, 100, 120, 160], [108, 110, 124, 150]], np.float64)
-    keep, _ = merge_overlapping(boxes, np.array([0.9, 0.8]), np.array([0, 0]), np.array([False, False]), 0.45, 0.6)
+    keep, _ = merge_overlapping(
+        boxes, np.array([0.9, 0.8]), np.array([0, 0]), np.array([False, False]), 0.45, 0.6
+    )
     assert keep == [0, 1]
     # A person cut at a tile's edge (higher score, top half) and whole in the frame pass: one whole box.
     boxes = np.array([[100, 100, 120, 130], [100, 100, 121, 160]], np.float64)
-    keep, merged = merge_overlapping(boxes, np.array([0.9, 0.6]), np.array([0, 0]), np.array([True, False]), 0.45, 0.6)
+    keep, merged = merge_overlapping(
+        boxes, np.array([0.9, 0.6]), np.array([0, 0]), np.array([True, False]), 0.45, 0.6
+    )
     assert keep == [0] and merged[0].tolist() == [100, 100, 121, 160]
 
 
@@ -140,15 +149,19 @@ def test_tiles_find_small_people_the_whole_frame_misses(detector: YoloxDetector,
         if box is None:
             continue
         image = _read(seq / "frames" / f"{index + 1:06d}.jpg")
-        keyframe = cv2.resize(image, (640, 360), interpolation=cv2.INTER_AREA)  # the companion's keyframe size
+        keyframe = cv2.resize(
+            image, (640, 360), interpolation=cv2.INTER_AREA
+        )  # the companion's keyframe size
         target = box.scaled(0.5, 0.5)
         found = tiled.detect(keyframe, ["person"])
         assert all(d.box.x >= 0 and d.box.x2 <= 640 and d.box.y >= 0 and d.box.y2 <= 360 for d in found)
         whole_hits += any(iou(target, d.box) >= 0.5 for d in detector.detect(keyframe, ["person"]))
         tiled_hits += any(iou(target, d.box) >= 0.5 for d in found)
         frames += 1
-    print(f"uav123_wakeboard7 at 640x360, {frames} frames: recall whole frame {whole_hits / frames:.2f}, "
-          f"tiles2 {tiled_hits / frames:.2f}")
+    print(
+        f"uav123_wakeboard7 at 640x360, {frames} frames: recall whole frame {whole_hits / frames:.2f}, "
+        f"tiles2 {tiled_hits / frames:.2f}"
+    )
     assert tiled_hits > whole_hits
 
 
@@ -161,7 +174,9 @@ def test_factory_builds_tiles_and_names_the_int8_command(models_dir: Path) -> No
 
 
 @pytest.mark.slow
-def test_int8_model_is_derived_from_the_shared_weights(models_dir: Path, sequences_dir: Path, tmp_path: Path) -> None:
+def test_int8_model_is_derived_from_the_shared_weights(
+    models_dir: Path, sequences_dir: Path, tmp_path: Path
+) -> None:
     (tmp_path / "yolox_nano").mkdir()
     (tmp_path / "yolox_nano" / "yolox_nano.onnx").symlink_to(models_dir / "yolox_nano" / "yolox_nano.onnx")
     sequences = [str(sequences_dir / "uav123_group1_1"), str(sequences_dir / "otb_Crossing")]

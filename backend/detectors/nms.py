@@ -24,7 +24,9 @@ def nms(boxes_xyxy: np.ndarray, scores: np.ndarray, iou_threshold: float) -> lis
     return keep
 
 
-def class_aware_nms(boxes_xyxy: np.ndarray, scores: np.ndarray, labels: np.ndarray, iou_threshold: float) -> list[int]:
+def class_aware_nms(
+    boxes_xyxy: np.ndarray, scores: np.ndarray, labels: np.ndarray, iou_threshold: float
+) -> list[int]:
     """NMS within each class only: boxes are offset per class so different classes never overlap."""
     if len(scores) == 0:
         return []
@@ -33,7 +35,11 @@ def class_aware_nms(boxes_xyxy: np.ndarray, scores: np.ndarray, labels: np.ndarr
 
 
 def merge_overlapping(
-    boxes_xyxy: np.ndarray, scores: np.ndarray, labels: np.ndarray, cut: np.ndarray, iou_threshold: float,
+    boxes_xyxy: np.ndarray,
+    scores: np.ndarray,
+    labels: np.ndarray,
+    cut: np.ndarray,
+    iou_threshold: float,
     ios_threshold: float,
 ) -> tuple[list[int], np.ndarray]:
     """Class-aware greedy merge of boxes from overlapping views (whole frame and tiles), best score first.
@@ -61,8 +67,12 @@ def merge_overlapping(
             partial = bool(cut[i] or cut[j]) and smaller > 0 and inter / smaller > ios_threshold
             if (union > 0 and inter / union > iou_threshold) or partial:
                 if partial and cut[i] and areas[j] > areas[i]:
-                    merged[i] = [min(merged[i, 0], merged[j, 0]), min(merged[i, 1], merged[j, 1]),
-                                 max(merged[i, 2], merged[j, 2]), max(merged[i, 3], merged[j, 3])]
+                    merged[i] = [
+                        min(merged[i, 0], merged[j, 0]),
+                        min(merged[i, 1], merged[j, 1]),
+                        max(merged[i, 2], merged[j, 2]),
+                        max(merged[i, 3], merged[j, 3]),
+                    ]
                     areas[i] = (merged[i, 2] - merged[i, 0]) * (merged[i, 3] - merged[i, 1])
                 break
         else:

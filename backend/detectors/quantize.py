@@ -64,7 +64,9 @@ def fp32_nodes(model_path: Path) -> list[str]:
     return stem + names
 
 
-def quantize(model_path: Path, out: Path, sequences: Sequence[Path], per_sequence: int = 16) -> dict[str, float]:
+def quantize(
+    model_path: Path, out: Path, sequences: Sequence[Path], per_sequence: int = 16
+) -> dict[str, float]:
     """Write the int8 model to `out`; returns how many calibration frames and seconds it took."""
     import onnx
     import onnx.version_converter
@@ -102,8 +104,9 @@ def quantize(model_path: Path, out: Path, sequences: Sequence[Path], per_sequenc
         onnx.save(model, str(upgraded))
         quant_pre_process(str(upgraded), str(prepared), skip_symbolic_shape=True)
         quantize_static(
-            str(prepared), str(out), Frames(), quant_format=QuantFormat.QDQ, per_channel=True, op_types_to_quantize=["Conv"],
-            activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, calibrate_method=CalibrationMethod.MinMax,
+            str(prepared), str(out), Frames(), quant_format=QuantFormat.QDQ, per_channel=True,
+            op_types_to_quantize=["Conv"], activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
+            calibrate_method=CalibrationMethod.MinMax,
             nodes_to_exclude=fp32_nodes(prepared),
         )  # fmt: skip
     return {"calibration_frames": float(len(blobs)), "seconds": time.perf_counter() - start}
@@ -115,15 +118,25 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m backend.detectors.quantize",
         description="Derive an int8 YOLOX-nano from the fp32 weights (static quantisation, calibrated on "
-        "frames of the given sequences) for [detector] precision = \"int8\".",
-        epilog="example:\n  python -m backend.detectors.quantize ../shared/data/sequences/* --model-dir ../shared/models "
+        'frames of the given sequences) for [detector] precision = "int8".',
+        epilog="example:\n  python -m backend.detectors.quantize ../shared/data/sequences/* "
+        "--model-dir ../shared/models "
         "--out /tmp/models/yolox_nano/yolox_nano_int8.onnx",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("sequences", nargs="+", type=Path, help="sequence folders with frames/*.jpg (calibration)")
-    parser.add_argument("--model-dir", help="folder with yolox_nano/yolox_nano.onnx (default: $CLOUDTRACK_MODEL_DIR, then the cache)")
-    parser.add_argument("--out", type=Path, help=f"int8 model to write (default: <model-dir>/yolox_nano/{INT8_NAME})")
-    parser.add_argument("--frames-per-sequence", type=int, default=16, help="calibration frames per sequence (default 16)")
+    parser.add_argument(
+        "sequences", nargs="+", type=Path, help="sequence folders with frames/*.jpg (calibration)"
+    )
+    parser.add_argument(
+        "--model-dir",
+        help="folder with yolox_nano/yolox_nano.onnx (default: $CLOUDTRACK_MODEL_DIR, then the cache)",
+    )
+    parser.add_argument(
+        "--out", type=Path, help=f"int8 model to write (default: <model-dir>/yolox_nano/{INT8_NAME})"
+    )
+    parser.add_argument(
+        "--frames-per-sequence", type=int, default=16, help="calibration frames per sequence (default 16)"
+    )
     args = parser.parse_args(argv)
     try:
         model_dir = resolve_model_dir(args.model_dir)
@@ -133,7 +146,10 @@ def main(argv: list[str] | None = None) -> int:
     except (ModelError, ValueError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    print(f"{out}: int8 from {fp32}, {info['calibration_frames']:.0f} calibration frames, {info['seconds']:.1f} s")
+    print(
+        f"{out}: int8 from {fp32}, {info['calibration_frames']:.0f} calibration frames, "
+        f"{info['seconds']:.1f} s"
+    )
     return 0
 
 

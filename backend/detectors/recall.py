@@ -53,11 +53,16 @@ class Tally:
         return {
             "recall": found / total if total else float("nan"),
             "frames": total,
-            "by_size": {b: {"recall": self.found[b] / self.total[b] if self.total[b] else None, "frames": self.total[b]}
-                        for b, _, _ in SIZE_BINS},
+            "by_size": {
+                b: {
+                    "recall": self.found[b] / self.total[b] if self.total[b] else None,
+                    "frames": self.total[b],
+                }
+                for b, _, _ in SIZE_BINS
+            },
             "per_sequence": {name: f / t for name, (f, t) in self.per_sequence.items()},
             "median_ms": 1000 * float(np.median(self.times)) if self.times else float("nan"),
-        }  # fmt: skip
+        }
 
 
 def build_variant(spec: str, model_dir: Path, int8_model: Path | None, threads: int) -> SupersetDetector:
@@ -72,7 +77,9 @@ def build_variant(spec: str, model_dir: Path, int8_model: Path | None, threads: 
         raise ValueError(f"variant {spec!r}: precision must be fp32 or int8")
     path = fp32 if precision == "fp32" else (int8_model or fp32.with_name("yolox_nano_int8.onnx"))
     if not path.is_file():
-        raise ValueError(f"{path} is missing; make it with `python -m backend.detectors.quantize SEQUENCES --out {path}`")
+        raise ValueError(
+            f"{path} is missing; make it with `python -m backend.detectors.quantize SEQUENCES --out {path}`"
+        )
     detector: SupersetDetector = YoloxDetector(path, threads=threads)
     if tiling:
         if not tiling.startswith("tiles") or not tiling[5:].isdigit():
@@ -92,7 +99,7 @@ def _groundtruth(seq: Path) -> list[Box | None]:
 def measure_recall(
     sequences: Sequence[Path], variants: dict[str, SupersetDetector], step: int, max_width: int = 0
 ) -> dict[str, Tally]:
-    """Every `step`-th frame with a target, downscaled to `max_width` like the companion's keyframes (0: native)."""
+    """Every `step`-th frame with a target, downscaled to `max_width` like keyframes (0: native)."""
     tallies = {name: Tally() for name in variants}
     for seq in sequences:
         referring = seq / "referring.txt"
@@ -106,7 +113,9 @@ def measure_recall(
                 raise ValueError(f"cannot read {frames[index]}")
             if max_width and image.shape[1] > max_width:
                 scale = max_width / image.shape[1]
-                image = cv2.resize(image, (max_width, round(image.shape[0] * scale)), interpolation=cv2.INTER_AREA)
+                image = cv2.resize(
+                    image, (max_width, round(image.shape[0] * scale)), interpolation=cv2.INTER_AREA
+                )
                 box = box.scaled(scale, scale)
             size = float(np.sqrt(box.w * box.h))
             for name, detector in variants.items():
@@ -117,7 +126,9 @@ def measure_recall(
     return tallies
 
 
-def measure_speed(frame: np.ndarray, variants: dict[str, SupersetDetector], runs: int) -> dict[str, dict[str, float]]:
+def measure_speed(
+    frame: np.ndarray, variants: dict[str, SupersetDetector], runs: int
+) -> dict[str, dict[str, float]]:
     """Interleaved rounds on one frame: each round runs every variant once, in turn."""
     times: dict[str, list[float]] = {name: [] for name in variants}
     for detector in variants.values():
@@ -146,35 +157,63 @@ def main(argv: list[str] | None = None) -> int:
         epilog="examples:\n"
         "  python -m backend.detectors.recall ../shared/data/sequences/* --model-dir ../shared/models "
         "--variants fp32,fp32+tiles2,fp32+tiles3\n"
-        "  python -m backend.detectors.recall ../shared/data/sequences/uav123_person12_1 --model-dir ../shared/models "
+        "  python -m backend.detectors.recall ../shared/data/sequences/uav123_person12_1 "
+        "--model-dir ../shared/models "
         "--variants fp32,int8 --int8-model /tmp/yolox_nano_int8.onnx --step 1 --speed-runs 300 --threads 0",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("sequences", nargs="+", type=Path, help="folders with frames/, groundtruth.txt, referring.txt")
+    parser.add_argument(
+        "sequences", nargs="+", type=Path, help="folders with frames/, groundtruth.txt, referring.txt"
+    )
     parser.add_argument("--model-dir", help="weights folder (default: $CLOUDTRACK_MODEL_DIR, then the cache)")
-    parser.add_argument("--variants", default="fp32", help="comma-separated: fp32, int8, each optionally +tilesN (default fp32)")
-    parser.add_argument("--int8-model", type=Path, help="int8 model (default: <model-dir>/yolox_nano/yolox_nano_int8.onnx)")
-    parser.add_argument("--threads", type=int, default=1, help="onnxruntime threads per detector, 0 = all cores (default 1)")
+    parser.add_argument(
+        "--variants",
+        default="fp32",
+        help="comma-separated: fp32, int8, each optionally +tilesN (default fp32)",
+    )
+    parser.add_argument(
+        "--int8-model", type=Path, help="int8 model (default: <model-dir>/yolox_nano/yolox_nano_int8.onnx)"
+    )
+    parser.add_argument(
+        "--threads", type=int, default=1, help="onnxruntime threads per detector, 0 = all cores (default 1)"
+    )
     parser.add_argument("--step", type=int, default=1, help="use every STEP-th frame (default 1)")
-    parser.add_argument("--max-width", type=int, default=640,
-                        help="downscale wider frames to this width, as the companion's keyframes "
-                        "([backend] max_keyframe_width, default 640); 0 = native size; size bins are in these pixels")
-    parser.add_argument("--speed-runs", type=int, default=0, help="also time N interleaved rounds on a 640x480 frame")
+    parser.add_argument(
+        "--max-width",
+        type=int,
+        default=640,
+        help="downscale wider frames to this width, as the companion's keyframes "
+        "([backend] max_keyframe_width, default 640); 0 = native size; size bins are in these pixels",
+    )
+    parser.add_argument(
+        "--speed-runs", type=int, default=0, help="also time N interleaved rounds on a 640x480 frame"
+    )
     parser.add_argument("--json", type=Path, metavar="OUT", help="write the figures as JSON")
     args = parser.parse_args(argv)
     try:
         model_dir = resolve_model_dir(args.model_dir)
-        variants = {v: build_variant(v, model_dir, args.int8_model, args.threads) for v in args.variants.split(",") if v}
+        variants = {
+            v: build_variant(v, model_dir, args.int8_model, args.threads)
+            for v in args.variants.split(",")
+            if v
+        }
         tallies = measure_recall(args.sequences, variants, max(1, args.step), args.max_width)
     except (ModelError, ValueError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    result: dict[str, object] = {"load_average_1min": os.getloadavg()[0], "threads": args.threads, "step": args.step,
-                                 "max_width": args.max_width,
-                                 "variants": {name: t.summary() for name, t in tallies.items()}}  # fmt: skip
+    result: dict[str, object] = {
+        "load_average_1min": os.getloadavg()[0],
+        "threads": args.threads,
+        "step": args.step,
+        "max_width": args.max_width,
+        "variants": {name: t.summary() for name, t in tallies.items()},
+    }
     base = next(iter(tallies.values())).summary()
     width = f"frames at most {args.max_width} px wide" if args.max_width else "native frames"
-    print(f"load average {os.getloadavg()[0]:.1f}; {width}; recall at IoU >= 0.5 (frames); time per keyframe (x first)")
+    print(
+        f"load average {os.getloadavg()[0]:.1f}; {width}; recall at IoU >= 0.5 (frames); "
+        "time per keyframe (x first)"
+    )
     print("| variant | <32 px | 32-96 px | >96 px | all | median ms | time ratio |")
     print("|---|---|---|---|---|---|---|")
     for name, tally in tallies.items():
@@ -183,7 +222,10 @@ def main(argv: list[str] | None = None) -> int:
         assert isinstance(bins, dict)
         cells = [f"{_fmt(bins[b]['recall'])} ({bins[b]['frames']})" for b, _, _ in SIZE_BINS]
         ratio = float(s["median_ms"]) / float(base["median_ms"])  # type: ignore[arg-type]
-        print(f"| {name} | {' | '.join(cells)} | {_fmt(s['recall'])} ({s['frames']}) | {_fmt(s['median_ms'])} | {ratio:.2f} |")
+        print(
+            f"| {name} | {' | '.join(cells)} | {_fmt(s['recall'])} ({s['frames']}) | "
+            f"{_fmt(s['median_ms'])} | {ratio:.2f} |"
+        )
     names = list(next(iter(tallies.values())).per_sequence)
     print("\n| variant | " + " | ".join(names) + " |\n|---|" + "---|" * len(names))
     for name, tally in tallies.items():
@@ -201,8 +243,10 @@ def main(argv: list[str] | None = None) -> int:
         first = next(iter(speed.values()))["median_ms"]
         print(f"\n640x480 frame of {seq.name}, {args.speed_runs} interleaved rounds, threads {args.threads}:")
         for name, figures in speed.items():
-            print(f"  {name}: median {figures['median_ms']:.2f} ms (p10 {figures['p10_ms']:.2f}, "
-                  f"p90 {figures['p90_ms']:.2f}), x{figures['median_ms'] / first:.2f}")
+            print(
+                f"  {name}: median {figures['median_ms']:.2f} ms (p10 {figures['p10_ms']:.2f}, "
+                f"p90 {figures['p90_ms']:.2f}), x{figures['median_ms'] / first:.2f}"
+            )
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(result, indent=2))

@@ -56,7 +56,9 @@ class TiledDetector:
         self.ios_threshold = ios_threshold
         self.name = inner.name  # the model's name; tiling is a setting, like the score threshold
 
-    def detect(self, image_bgr: np.ndarray, classes: Sequence[str], frame_id: int | None = None) -> list[Detection]:
+    def detect(
+        self, image_bgr: np.ndarray, classes: Sequence[str], frame_id: int | None = None
+    ) -> list[Detection]:
         height, width = image_bgr.shape[:2]
         found = list(self.inner.detect(image_bgr, classes, frame_id))
         cut = [False] * len(found)
@@ -65,8 +67,17 @@ class TiledDetector:
             # Inner edges only: a box at the frame's own border is not cut by the tiling.
             edges = (x1 > 0, y1 > 0, x2 < width, y2 < height)
             for d in self.inner.detect(tile, classes, frame_id):
-                found.append(Detection(box=Box(d.box.x + x1, d.box.y + y1, d.box.w, d.box.h), score=d.score, label=d.label))
-                near = (d.box.x <= EDGE_PX, d.box.y <= EDGE_PX, d.box.x2 >= x2 - x1 - EDGE_PX, d.box.y2 >= y2 - y1 - EDGE_PX)
+                found.append(
+                    Detection(
+                        box=Box(d.box.x + x1, d.box.y + y1, d.box.w, d.box.h), score=d.score, label=d.label
+                    )
+                )
+                near = (
+                    d.box.x <= EDGE_PX,
+                    d.box.y <= EDGE_PX,
+                    d.box.x2 >= x2 - x1 - EDGE_PX,
+                    d.box.y2 >= y2 - y1 - EDGE_PX,
+                )
                 cut.append(any(e and n for e, n in zip(edges, near, strict=True)))
         if not found:
             return []
@@ -74,8 +85,12 @@ class TiledDetector:
         scores = np.array([d.score for d in found], np.float64)
         names = sorted({d.label for d in found})
         labels = np.array([names.index(d.label) for d in found])
-        keep, merged = merge_overlapping(boxes, scores, labels, np.array(cut), self.nms_threshold, self.ios_threshold)
+        keep, merged = merge_overlapping(
+            boxes, scores, labels, np.array(cut), self.nms_threshold, self.ios_threshold
+        )
         return [
-            Detection(box=Box.from_xyxy(*(float(v) for v in merged[i])), score=found[i].score, label=found[i].label)
+            Detection(
+                box=Box.from_xyxy(*(float(v) for v in merged[i])), score=found[i].score, label=found[i].label
+            )
             for i in keep
         ]
