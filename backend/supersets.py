@@ -63,7 +63,6 @@ _HEAD_ENDS = frozenset(
         "over",
         "behind",
         "from",
-        "of",
         "into",
         "onto",
         "along",
@@ -263,15 +262,19 @@ def _ends_head(token: str, before: list[str]) -> bool:
 def superset_from_prompt(prompt: str) -> str | None:
     """The superset a prompt names ("the man in a gray shirt" -> "person"), or None when it names nothing.
 
-    The prompt's head noun phrase (before "in", "with", "near", "wearing", ...) is read first, then the
-    rest, so "a red life raft with two people" is a boat search and "someone lying next to a car" a person
-    search. A prompt whose words map to no class gives its head phrase ("a life buoy" -> "life buoy"): an
+    The prompt's head noun phrase (before "in", "with", "near", "wearing", ...) decides: "a red life raft
+    with two people" is a boat search, "a group of people" a person search. A head whose words map to no
+    class gives its words ("a life buoy next to a man" -> "life buoy"), never a later noun: an
     open-vocabulary detector takes that text as it is, a closed-set one answers with the nearest classes.
+    Only a head with no word of its own ("the one in the red kayak") lets the rest decide.
     """
     tokens: list[str] = re.findall(r"[a-z]+(?:-[a-z]+)*", prompt.lower())
     end = next((i for i, t in enumerate(tokens) if i > 0 and _ends_head(t, tokens[:i])), len(tokens))
-    target = _first_target(tokens[:end]) or _first_target(tokens)
+    head = tokens[:end]
+    target = _first_target(head)
     if target is not None:
         return target
-    phrase = [t for t in tokens[:end] if t not in _FILLER]
-    return " ".join(phrase) or None
+    named = [t for t in (head[: head.index("of")] if "of" in head else head) if t not in _FILLER]
+    if named:
+        return " ".join(named)
+    return _first_target(tokens)

@@ -122,6 +122,8 @@ ANCHORS: dict[str, tuple[tuple[str, int], ...]] = {
 # Words WordNet 3.0 lacks, or files away from the class a search means ("people" is a group there, a "driver"
 # an operator beside person, a "raft" a float, a "whale" first a large person) -> the word they are a kind of.
 EXTRA_WORDS: dict[str, str] = {
+    # search-and-rescue usage: "a figure on the ridge", "the subject", "the injured lying by the road"
+    "figure": "person", "subject": "person", "injured": "person", "missing": "person",
     "people": "person", "folk": "person", "folks": "person", "driver": "person", "police": "person",
     "bike": "bicycle", "potted plant": "pot_plant", "kayaker": "canoeist",
     "whale": "animal", "seal": "animal", "raft": "boat", "life raft": "boat", "liferaft": "boat",

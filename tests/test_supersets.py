@@ -84,6 +84,10 @@ PROMPTS: list[tuple[str, str]] = [
     ("a nurse", "person"),
     ("a doctor", "person"),
     ("a hunter in camouflage", "person"),
+    ("a lone figure on the ridge", "person"),
+    ("the subject was last seen near the lake", "person"),
+    ("the injured lying near the car", "person"),
+    ("a group of hikers", "person"),
     # vehicles
     ("a red car", "car"),
     ("cars in the parking lot", "car"),
@@ -300,6 +304,8 @@ def test_supersets_user_given_superset_takes_any_word_for_a_class() -> None:
 
 def test_supersets_unmapped_prompt_gives_its_head_phrase_and_the_error_names_nearest_classes() -> None:
     assert superset_from_prompt("a life buoy floating near the rocks") == "life buoy"
+    assert superset_from_prompt("a life buoy next to a man") == "life buoy"  # the head, not a later noun
+    assert superset_from_prompt("the one in the red kayak") == "boat"  # a head with no noun: the rest decides
     assert superset_from_prompt("the the of") is None
     with pytest.raises(UnknownSupersetError, match=r"'kayk'.*nearest known classes: boat"):
         coco_classes_for("kayk")
