@@ -186,3 +186,9 @@ def test_int8_model_is_derived_from_the_shared_weights(
     image = _read(sequences_dir / "uav123_person12_1" / "frames" / "000001.jpg")
     found = int8.detect(image, ["person"])
     assert found and all(d.label == "person" and d.box.is_valid() for d in found)
+
+
+def test_tiles_leave_frames_the_model_sees_whole(detector: YoloxDetector, sequences_dir: Path) -> None:
+    image = _read(sequences_dir / "otb_Crossing" / "frames" / "000001.jpg")  # 360x240, under the 416 input
+    tiled = TiledDetector(detector, 2, min_side=detector.input_size)
+    assert tiled.detect(image, ["person"]) == detector.detect(image, ["person"])

@@ -22,12 +22,14 @@ def build_detector(config: DetectorConfig) -> SupersetDetector:
                     f"detector precision int8: {weights} is missing; derive it from the fp32 weights with "
                     f"`python -m backend.detectors.quantize SEQUENCE_FOLDERS... --model-dir {model_dir}`"
                 )
-        detector: SupersetDetector = YoloxDetector(weights, config.score_threshold, config.nms_threshold, threads=config.threads)
-        if config.tiles:
-            from backend.detectors.tiling import TiledDetector
+        yolox = YoloxDetector(weights, config.score_threshold, config.nms_threshold, threads=config.threads)
+        if not config.tiles:
+            return yolox
+        from backend.detectors.tiling import TiledDetector
 
-            detector = TiledDetector(detector, config.tiles, config.tile_overlap, config.nms_threshold)
-        return detector
+        return TiledDetector(
+            yolox, config.tiles, config.tile_overlap, config.nms_threshold, min_side=yolox.input_size
+        )
     if config.kind in ("grounding_dino", "owlv2"):
         from backend.detectors.open_vocabulary import OpenVocabularyDetector
 

@@ -80,11 +80,12 @@ def build_variant(spec: str, model_dir: Path, int8_model: Path | None, threads: 
         raise ValueError(
             f"{path} is missing; make it with `python -m backend.detectors.quantize SEQUENCES --out {path}`"
         )
-    detector: SupersetDetector = YoloxDetector(path, threads=threads)
+    yolox = YoloxDetector(path, threads=threads)
+    detector: SupersetDetector = yolox
     if tiling:
         if not tiling.startswith("tiles") or not tiling[5:].isdigit():
             raise ValueError(f"variant {spec!r}: expected +tilesN")
-        detector = TiledDetector(detector, int(tiling[5:]))
+        detector = TiledDetector(yolox, int(tiling[5:]), min_side=yolox.input_size)
     return detector
 
 

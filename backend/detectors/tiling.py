@@ -4,7 +4,9 @@ YOLOX-nano sees a 1280x720 keyframe at 416x234, so a 30 px person becomes 10 px 
 Each tile is letterboxed to the model's input on its own, so a grid of `columns` x rows tiles magnifies
 targets about `columns` times (rows follow the frame's aspect ratio, tiles overlap by `overlap`). Boxes
 from the tiles are shifted into the frame and merged with the whole frame's (`merge_overlapping`), so
-large targets are still found whole. Costs one inference per tile plus one for the frame.
+large targets are still found whole. Costs one inference per tile plus one for the frame. Frames whose
+longer side is at most `min_side` (the model's input size) are not sliced: the model already sees them at
+full resolution, and tiles would only upsample them and add false detections.
 """
 
 from __future__ import annotations
@@ -46,6 +48,7 @@ class TiledDetector:
         overlap: float = 0.2,
         nms_threshold: float = 0.45,
         ios_threshold: float = 0.6,
+        min_side: int = 0,
     ) -> None:
         if columns < 1:
             raise ValueError(f"tiling needs at least 1 column, not {columns}")
@@ -54,6 +57,7 @@ class TiledDetector:
         self.overlap = overlap
         self.nms_threshold = nms_threshold
         self.ios_threshold = ios_threshold
+        self.min_side = min_side
         self.name = inner.name  # the model's name; tiling is a setting, like the score threshold
 
     def detect(
@@ -61,6 +65,8 @@ class TiledDetector:
     ) -> list[Detection]:
         height, width = image_bgr.shape[:2]
         found = list(self.inner.detect(image_bgr, classes, frame_id))
+        if max(height, width) <= self.min_side:
+            return found  # the model already sees this frame at full resolution: tiles would only upsample
         cut = [False] * len(found)
         for x1, y1, x2, y2 in tile_grid(width, height, self.columns, self.overlap):
             tile = np.ascontiguousarray(image_bgr[y1:y2, x1:x2])
