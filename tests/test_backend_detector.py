@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import cv2
@@ -192,3 +193,40 @@ def test_tiles_leave_frames_the_model_sees_whole(detector: YoloxDetector, sequen
     image = _read(sequences_dir / "otb_Crossing" / "frames" / "000001.jpg")  # 360x240, under the 416 input
     tiled = TiledDetector(detector, 2, min_side=detector.input_size)
     assert tiled.detect(image, ["person"]) == detector.detect(image, ["person"])
+
+
+@pytest.mark.parametrize("module", ["backend.detectors.recall", "backend.detectors.quantize"])
+def test_detector_tools_have_help_with_examples(module: str, capsys: pytest.CaptureFixture[str]) -> None:
+    import importlib
+
+    with pytest.raises(SystemExit) as done:
+        importlib.import_module(module).main(["--help"])
+    assert done.value.code == 0 and "example" in capsys.readouterr().out
+
+
+def test_recall_command_reports_size_bins_and_ratios(
+    models_dir: Path, sequences_dir: Path, tmp_path: Path
+) -> None:
+    from backend.detectors.recall import main as recall_main
+
+    out = tmp_path / "recall.json"
+    seq = str(sequences_dir / "uav123_wakeboard7")
+    args = [
+        seq,
+        "--model-dir",
+        str(models_dir),
+        "--variants",
+        "fp32,fp32+tiles2",
+        "--step",
+        "12",
+        "--json",
+        str(out),
+    ]
+    assert recall_main(args) == 0
+    figures = json.loads(out.read_text())["variants"]
+    assert (
+        set(figures) == {"fp32", "fp32+tiles2"}
+        and figures["fp32"]["frames"] == figures["fp32+tiles2"]["frames"] > 0
+    )
+    assert set(figures["fp32"]["by_size"]) == {"<32", "32-96", ">96"}
+    assert figures["fp32+tiles2"]["recall"] >= figures["fp32"]["recall"]
