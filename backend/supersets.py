@@ -136,11 +136,11 @@ def known_supersets() -> list[str]:
 
 
 def nearest_known(name: str, limit: int = 5) -> list[str]:
-    """Known classes whose words are spelled closest to `name` or to one of its words (typos, variants)."""
+    """Known classes whose words are spelled closest to `name` or to its last word, the head (typos)."""
     vocab = vocabulary()
     found: list[str] = []
-    for part in [name, *name.split()]:
-        for word in difflib.get_close_matches(part, vocab.words, n=8, cutoff=0.75):
+    for part in dict.fromkeys([name, name.rpartition(" ")[2]]):
+        for word in difflib.get_close_matches(part, vocab.words, n=8, cutoff=0.8):
             target = vocab.words[word]
             if target not in found:
                 found.append(target)
@@ -156,11 +156,10 @@ def coco_classes_for(name: str) -> tuple[str, ...]:
     if target in COCO_CLASSES:
         return (target,)
     nearest = nearest_known(key)
-    hint = (
-        f"nearest known classes: {', '.join(nearest)}"
-        if nearest
-        else f"known supersets: {', '.join(known_supersets())}"
-    )
+    # Spelling catches typos ("sailbaot"); for a thing COCO lacks the supersets are the honest list.
+    hint = f"supersets: {', '.join(known_supersets())}"
+    if nearest:
+        hint = f"nearest known classes: {', '.join(nearest)} (by spelling); {hint}"
     raise UnknownSupersetError(
         f"superset {name!r} has no COCO mapping ({hint}); set the superset ('superset' in the request, "
         "--superset on the command line) to a COCO class or a word for one (e.g. 'boat', 'truck', 'person'), "
