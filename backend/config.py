@@ -57,6 +57,9 @@ class DetectorConfig(ConfigSection):
     # inferences: 2 lifted recall of people under 32 px in 640-px keyframes 0.61 -> 0.81 (2.4-3.1x the time).
     tiles: int = Field(2, ge=0, le=8)
     tile_overlap: float = Field(0.2, ge=0, le=0.5)
+    # With kind = "yolox": the open-vocabulary detector for prompts naming no COCO class (built from hf_model
+    # and device; needs the gpu extra). Empty: such prompts are answered 422 with the nearest known classes.
+    open_vocabulary: Literal["", "grounding_dino", "owlv2"] = ""
 
 
 class CropConfig(ConfigSection):

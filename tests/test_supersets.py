@@ -356,21 +356,47 @@ def test_supersets_closed_set_server_answers_422_naming_the_nearest_classes(
 def test_supersets_unmapped_prompt_goes_to_the_open_vocabulary_detector(
     models_dir: Path, sequences_dir: Path
 ) -> None:
+    """YOLOX answers what it maps; a prompt naming no COCO class goes to the configured open-vocabulary model."""
     from backend.detectors.open_vocabulary import OpenVocabularyDetector
+    from backend.detectors.routing import RoutingDetector
+    from backend.detectors.yolox import YoloxDetector
     from tests.test_backend_open_vocabulary import tiny_owlv2
 
     model, processor = tiny_owlv2()
     owlv2 = OpenVocabularyDetector("owlv2", model, processor, score_threshold=0.05)
-    app = create_app(backend_config(models_dir, 'detector.kind="owlv2"'), detector=owlv2)
+    routing = RoutingDetector(YoloxDetector(models_dir / "yolox_nano" / "yolox_nano.onnx", threads=1), owlv2)
+    app = create_app(backend_config(models_dir, 'detector.open_vocabulary="owlv2"'), detector=routing)
     with TestClient(app) as client:
-        keyframe = jpeg(frame(sequences_dir, size=(320, 180)))
-        response = client.post(
-            "/v1/detect",
-            headers=auth(),
-            **detect_parts(keyframe, prompt="an orange life buoy near the rocks"),
-        )
+        keyframe = jpeg(frame(sequences_dir, size=(640, 360)))
+        parts = detect_parts(keyframe, prompt="an orange life buoy near the rocks")
+        response = client.post("/v1/detect", headers=auth(), **parts)
         assert response.status_code == 200, response.text
         body = response.json()
-        assert body["superset"] == "orange life buoy" and all(
-            c["label"] == "orange life buoy" for c in body["candidates"]
+        assert body["superset"] == "orange life buoy" and body["candidates"]
+        assert all(c["label"] == "orange life buoy" for c in body["candidates"])
+        response = client.post(
+            "/v1/detect", headers=auth(), **detect_parts(keyframe, prompt="a man in a gray shirt")
         )
+        assert response.status_code == 200, response.text
+        body = response.json()  # the walker in uav123_person12_1, found by YOLOX
+        assert body["superset"] == "person" and body["candidates"]
+        assert all(c["label"] == "person" for c in body["candidates"])
+
+
+def test_supersets_factory_pairs_yolox_with_the_open_vocabulary_detector(
+    models_dir: Path, tmp_path: Path
+) -> None:
+    from backend.config import DetectorConfig
+    from backend.detectors.factory import build_detector
+    from backend.detectors.routing import RoutingDetector
+    from tests.test_backend_open_vocabulary import tiny_owlv2
+
+    model, processor = tiny_owlv2()
+    model.save_pretrained(tmp_path / "owlv2-tiny")  # type: ignore[attr-defined]
+    processor.save_pretrained(tmp_path / "owlv2-tiny")  # type: ignore[attr-defined]
+    config = DetectorConfig(
+        model_dir=str(models_dir), open_vocabulary="owlv2", hf_model=str(tmp_path / "owlv2-tiny")
+    )
+    detector = build_detector(config)
+    assert isinstance(detector, RoutingDetector)
+    assert detector.name == f"yolox_nano+owlv2:{tmp_path / 'owlv2-tiny'}"
