@@ -61,7 +61,16 @@ backend-redis: $(REDIS_SERVER)
 	mkdir -p out/redis
 	$(REDIS_SERVER) --bind 127.0.0.1 --port 6379 --dir out/redis --save "" --appendonly yes --appendfsync always
 
-pytest: install $(CHROMIUM) $(REDIS_SERVER) $(NGINX)
+# The COCO word table's test rebuilds it from Debian's WordNet 3.0 (wordnet-base) and compares.
+WORDNET ?= /usr/share/wordnet/data.noun
+
+$(WORDNET):
+	@echo "installing Debian's wordnet-base for the COCO vocabulary test"
+	@SUDO=$$([ "$$(id -u)" = 0 ] || echo sudo); \
+	$$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq wordnet-base >/dev/null 2>&1 || \
+	{ $$SUDO apt-get update -qq >/dev/null && $$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq wordnet-base >/dev/null; }
+
+pytest: install $(CHROMIUM) $(REDIS_SERVER) $(NGINX) $(WORDNET)
 	$(BIN)/python -m pytest
 
 test: lint types pytest

@@ -2,12 +2,21 @@
 
 A superset is a broad class ("person", "vehicle", "boat") that the prompt's target belongs to. Closed-set
 detectors (YOLOX, COCO-80) need it mapped to their own class names; open-vocabulary detectors take the
-superset text as it is. An unmapped superset is an error, never a silent empty answer.
+superset text as it is. An unmapped superset is an error naming the nearest known classes, never a silent
+empty answer.
+
+The words come from `coco_vocabulary.txt`, generated from WordNet by `backend.wordnet_vocabulary` (every
+noun below a COCO class's synsets: "kayak", "labrador retriever", "hiker", "moose" -> animal) and read once
+per process. Plurals are reduced to the singular the table knows (irregular ones are in the table).
 """
 
 from __future__ import annotations
 
+import difflib
 import re
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
 
 # The 80 COCO class names in YOLOX's output order (the names shipped beside the weights, coco.names).
 COCO_CLASSES: tuple[str, ...] = (
@@ -24,61 +33,183 @@ COCO_CLASSES: tuple[str, ...] = (
 )  # fmt: skip
 
 # Superset name -> the COCO classes that make it up. Every COCO name also maps to itself.
+COCO_ANIMALS = ("bird", "cat", "dog", "horse", "sheep", "cow", "elephant", "bear", "zebra", "giraffe")
 SUPERSET_TO_COCO: dict[str, tuple[str, ...]] = {
     "person": ("person",),
     "vehicle": ("car", "truck", "bus", "motorbike", "bicycle"),
     "car": ("car", "truck"),  # a pick-up or van is often labelled truck by COCO detectors
     "boat": ("boat",),
-    "animal": ("dog", "horse", "sheep", "cow", "cat", "bear", "bird"),
+    # An animal COCO has no class for (a deer, a goat) is searched as every COCO animal; the verifier
+    # then judges the description.
+    "animal": COCO_ANIMALS,
     "bag": ("backpack", "handbag", "suitcase"),
     "aircraft": ("aeroplane",),
 }
 
-# Words in a prompt that name a superset ("an injured man ..." -> person). Longest words first.
-PROMPT_WORDS: dict[str, str] = {
-    **{w: "person" for w in (
-        "person", "people", "persons", "man", "men", "woman", "women", "child", "children", "kid", "boy",
-        "girl", "human", "hiker", "climber", "skier", "swimmer", "surfer", "wakeboarder", "pedestrian",
-        "runner", "cyclist", "victim", "casualty", "survivor", "rescuer", "worker", "individual",
-    )},
-    **{w: "car" for w in ("car", "cars", "van", "suv", "jeep", "pickup")},
-    **{w: "vehicle" for w in ("vehicle", "vehicles", "truck", "lorry", "bus", "motorbike", "motorcycle")},
-    **{w: "boat" for w in ("boat", "boats", "kayak", "canoe", "dinghy", "raft", "ship", "sailboat")},
-    **{w: "animal" for w in ("animal", "dog", "horse", "cow", "sheep", "deer")},
-    **{w: "bag" for w in ("bag", "backpack", "rucksack", "suitcase", "handbag")},
-}  # fmt: skip
+VOCABULARY_FILE = Path(__file__).with_name("coco_vocabulary.txt")
+
+# Words that end the prompt's head noun phrase: "the man | in a green shirt", "a red kayak | near the shore".
+_HEAD_ENDS = frozenset((
+    "with", "in", "on", "at", "near", "next", "beside", "by", "under", "over", "behind", "from", "into",
+    "onto", "along", "across", "around", "between", "who", "that", "which", "whose", "while", "wearing",
+    "carrying", "holding", "riding", "pulling", "pushing", "walking", "standing", "sitting", "lying",
+    "and", "or",
+))  # fmt: skip
+# Words left out of an unmapped phrase passed on to an open-vocabulary detector.
+_FILLER = frozenset((
+    "a", "an", "the", "this", "that", "these", "those", "some", "any", "my", "our", "your", "their", "his",
+    "her", "its", "one", "two", "three", "four", "five", "several", "many", "few", "find", "locate",
+    "track", "follow", "search", "look", "for", "spot",
+))  # fmt: skip
+# After these a table word is still used as a noun ("an orange" is the fruit, "an orange kayak" is not).
+_FUNCTION_WORDS = _HEAD_ENDS | _FILLER | {"is", "are", "was", "to"}
 
 
 class UnknownSupersetError(ValueError):
-    """A superset the detector cannot map to its classes; the message lists what is known."""
+    """A superset the detector cannot map to its classes; the message names the nearest known ones."""
+
+
+@dataclass(frozen=True)
+class Vocabulary:
+    words: dict[str, str]  # word (lower case, spaces) -> COCO class or superset
+    adjectives: frozenset[str]  # words that are also adjectives: a noun after them is the head
+    longest: int  # most words in one entry
+
+    @classmethod
+    def read(cls, path: Path = VOCABULARY_FILE) -> Vocabulary:
+        words: dict[str, str] = {}
+        adjectives: set[str] = set()
+        for line in path.read_text(encoding="utf-8").splitlines():
+            if not line or line.startswith("#"):
+                continue
+            fields = line.split("\t")
+            words[fields[0]] = fields[1]
+            if len(fields) > 2 and fields[2] == "adj":
+                adjectives.add(fields[0])
+        return cls(words, frozenset(adjectives), max(len(w.split()) for w in words))
+
+    def lookup(self, phrase: str) -> str | None:
+        """The target of a word or phrase, singular or plural ("jet skis" -> boat), or None."""
+        if phrase in self.words:
+            return self.words[phrase]
+        stem, _, last = phrase.rpartition(" ")
+        for singular in _singulars(last):
+            target = self.words.get(f"{stem} {singular}" if stem else singular)
+            if target is not None:
+                return target
+        return None
+
+    def match_at(self, tokens: list[str], i: int) -> tuple[int, str] | None:
+        """The longest entry starting at tokens[i]: (its end index, its target), or None."""
+        for n in range(min(self.longest, len(tokens) - i), 0, -1):
+            target = self.lookup(" ".join(tokens[i : i + n]))
+            if target is not None:
+                return i + n, target
+        return None
+
+
+def _singulars(word: str) -> list[str]:
+    """Regular singular forms a plural could come from; the table decides which one is a word."""
+    forms = [word[:-3] + "man"] if word.endswith("men") else []  # women, firemen
+    if word.endswith("ies"):
+        forms.append(word[:-3] + "y")
+    if word.endswith("ves"):
+        forms += [word[:-3] + "f", word[:-3] + "fe"]
+    sibilant = word.endswith(("ses", "xes", "zes", "ches", "shes"))  # buses, boxes; but oranges, canoes
+    if word.endswith("es") and sibilant:
+        forms.append(word[:-2])
+    if word.endswith("s") and not word.endswith("ss"):
+        forms.append(word[:-1])
+    if word.endswith("es") and not sibilant:
+        forms.append(word[:-2])
+    return forms
+
+
+@lru_cache(maxsize=1)
+def vocabulary() -> Vocabulary:
+    """The word table, read on first use and kept (about 19,000 words; about 20 ms)."""
+    return Vocabulary.read()
 
 
 def known_supersets() -> list[str]:
     return sorted(SUPERSET_TO_COCO)
 
 
+def nearest_known(name: str, limit: int = 5) -> list[str]:
+    """Known classes whose words are spelled closest to `name` or to its last word, the head (typos)."""
+    vocab = vocabulary()
+    found: list[str] = []
+    for part in dict.fromkeys([name, name.rpartition(" ")[2]]):
+        for word in difflib.get_close_matches(part, vocab.words, n=8, cutoff=0.8):
+            target = vocab.words[word]
+            if target not in found:
+                found.append(target)
+    return found[:limit]
+
+
 def coco_classes_for(name: str) -> tuple[str, ...]:
-    """The COCO classes a superset (or a COCO class name itself) stands for."""
-    key = name.strip().lower()
-    if key in SUPERSET_TO_COCO:
-        return SUPERSET_TO_COCO[key]
-    if key in COCO_CLASSES:
-        return (key,)
+    """The COCO classes a superset, a COCO class name or any word for one stands for ("kayaks" -> boat)."""
+    key = " ".join(re.findall(r"[a-z]+(?:-[a-z]+)*", name.lower()))
+    target = key if key in SUPERSET_TO_COCO or key in COCO_CLASSES else vocabulary().lookup(key)
+    if target in SUPERSET_TO_COCO:
+        return SUPERSET_TO_COCO[target]
+    if target in COCO_CLASSES:
+        return (target,)
+    nearest = nearest_known(key)
+    # Spelling catches typos ("sailbaot"); for a thing COCO lacks the supersets are the honest list.
+    hint = f"supersets: {', '.join(known_supersets())}"
+    if nearest:
+        hint = f"nearest known classes: {', '.join(nearest)} (by spelling); {hint}"
     raise UnknownSupersetError(
-        f"superset {name!r} has no COCO mapping; use one of {', '.join(known_supersets())} "
-        "or a COCO class name (e.g. 'truck'), or an open-vocabulary detector (grounding_dino, owlv2)"
+        f"superset {name!r} has no COCO mapping ({hint}); set the superset ('superset' in the request, "
+        "--superset on the command line) to a COCO class or a word for one (e.g. 'boat', 'truck', 'person'), "
+        "or configure an open-vocabulary detector (grounding_dino, owlv2)"
     )
 
 
-def superset_from_prompt(prompt: str) -> str | None:
-    """The superset a prompt names ("the man in a gray shirt" -> "person"), or None when it names none.
-
-    The first matching word wins, so "a man next to a car" is a person search.
-    """
-    words: list[str] = re.findall(r"[a-z]+", prompt.lower())
-    for word in words:
-        if word in PROMPT_WORDS:
-            return PROMPT_WORDS[word]
-        if word in COCO_CLASSES:
-            return word
+def _first_target(tokens: list[str]) -> str | None:
+    """The first table word in `tokens`, taking the last of a run of nouns as the head ("horse rider")."""
+    vocab = vocabulary()
+    i = 0
+    while i < len(tokens):
+        match = vocab.match_at(tokens, i)
+        if match is None:
+            i += 1
+            continue
+        end, target = match
+        while end < len(tokens) and (following := vocab.match_at(tokens, end)) is not None:
+            end, target = following  # a compound's head is its last noun: "dog walker", "orange kayak"
+        word = " ".join(tokens[i:end])
+        next_word = tokens[end] if end < len(tokens) else ""
+        modifies = bool(next_word) and next_word not in _FUNCTION_WORDS and not next_word.endswith("ing")
+        if word in vocab.adjectives and modifies:
+            i = end  # "a young man", "an orange buoy": the adjective names nothing
+            continue
+        return target
     return None
+
+
+def _ends_head(token: str, before: list[str]) -> bool:
+    """A preposition or relative word, or a participle after a noun ("a life buoy | floating ...")."""
+    return token in _HEAD_ENDS or (token.endswith("ing") and any(t not in _FILLER for t in before))
+
+
+def superset_from_prompt(prompt: str) -> str | None:
+    """The superset a prompt names ("the man in a gray shirt" -> "person"), or None when it names nothing.
+
+    The prompt's head noun phrase (before "in", "with", "near", "wearing", ...) decides: "a red life raft
+    with two people" is a boat search, "a group of people" a person search. A head whose words map to no
+    class gives its words ("a life buoy next to a man" -> "life buoy"), never a later noun: an
+    open-vocabulary detector takes that text as it is, a closed-set one answers with the nearest classes.
+    Only a head with no word of its own ("the one in the red kayak") lets the rest decide.
+    """
+    tokens: list[str] = re.findall(r"[a-z]+(?:-[a-z]+)*", prompt.lower())
+    end = next((i for i, t in enumerate(tokens) if i > 0 and _ends_head(t, tokens[:i])), len(tokens))
+    head = tokens[:end]
+    target = _first_target(head)
+    if target is not None:
+        return target
+    named = [t for t in (head[: head.index("of")] if "of" in head else head) if t not in _FILLER]
+    if named:
+        return " ".join(named)
+    return _first_target(tokens)

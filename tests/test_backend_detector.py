@@ -2,16 +2,22 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
-from backend.detectors.nms import nms
+from backend.config import DetectorConfig
+from backend.detectors.factory import build_detector
+from backend.detectors.nms import merge_overlapping, nms
+from backend.detectors.quantize import main as quantize_main
+from backend.detectors.tiling import TiledDetector, tile_grid
 from backend.detectors.yolox import YoloxDetector
 from backend.supersets import UnknownSupersetError, coco_classes_for, superset_from_prompt
 from behaviors.geometry import Box, iou
+from cloudtrack.model_store import ModelError
 
 
 @pytest.fixture(scope="module")
@@ -64,7 +70,9 @@ def test_boxes_are_in_the_callers_pixels_at_any_size(detector: YoloxDetector, se
         assert d.box.x >= 0 and d.box.x2 <= 640 and d.box.y >= 0 and d.box.y2 <= 360
 
 
-def test_blank_image_has_no_detections_and_other_classes_are_filtered(detector: YoloxDetector, sequences_dir: Path) -> None:
+def test_blank_image_has_no_detections_and_other_classes_are_filtered(
+    detector: YoloxDetector, sequences_dir: Path
+) -> None:
     assert detector.detect(np.full((480, 640, 3), 127, np.uint8), ["person"]) == []
     image = _read(sequences_dir / "uav123_person12_1" / "frames" / "000001.jpg")
     assert detector.detect(image, ["boat"]) == []
@@ -79,8 +87,9 @@ def test_superset_mapping_and_clear_error_for_unmapped() -> None:
     assert coco_classes_for("person") == ("person",)
     assert "truck" in coco_classes_for("vehicle")
     assert coco_classes_for("Truck") == ("truck",)
-    with pytest.raises(UnknownSupersetError, match="'life raft'.*person"):
-        coco_classes_for("life raft")
+    assert coco_classes_for("life raft") == ("boat",)
+    with pytest.raises(UnknownSupersetError, match="'life buoy'.*nearest known classes"):
+        coco_classes_for("life buoy")
 
 
 @pytest.mark.parametrize(
@@ -90,7 +99,11 @@ def test_superset_mapping_and_clear_error_for_unmapped() -> None:
         ("the surfer in a black wetsuit riding the wave", "person"),
         ("a red kayak near the shore", "boat"),
         ("the white plastic bag on the ground", "bag"),
-        ("something shiny", None),
+        (
+            "something shiny",
+            "something shiny",
+        ),  # no class: the phrase itself, for an open-vocabulary detector
+        ("the of a", None),
     ],
 )
 def test_superset_from_prompt(prompt: str, superset: str | None) -> None:
@@ -100,3 +113,120 @@ def test_superset_from_prompt(prompt: str, superset: str | None) -> None:
 def test_nms_keeps_the_best_of_overlapping_boxes() -> None:
     boxes = np.array([[0, 0, 10, 10], [1, 1, 11, 11], [20, 20, 30, 30]], np.float32)
     assert nms(boxes, np.array([0.5, 0.9, 0.3]), 0.5) == [1, 2]
+
+
+def test_tiles_grid_covers_the_frame_with_overlap() -> None:
+    tiles = tile_grid(640, 360, 2, 0.2)
+    assert len(tiles) == 2  # rows follow the aspect ratio: 2 x 360/640 rounds to 1
+    (ax1, ay1, ax2, ay2), (bx1, by1, bx2, by2) = tiles
+    assert (ax1, ay1, by2, bx2, ay2) == (0, 0, 360, 640, 360) and ax2 - bx1 >= 0.2 * (ax2 - ax1) - 1
+    grid = tile_grid(1280, 720, 3, 0.2)
+    assert len(grid) == 6 and {t[2] for t in grid} >= {1280} and {t[3] for t in grid} >= {720}
+    assert tile_grid(360, 640, 1, 0.2) == [(0, 0, 360, 356), (0, 284, 360, 640)]  # portrait: 1 x 2
+
+
+def test_tiles_merge_keeps_side_by_side_people_apart_and_joins_cut_boxes() -> None:
+    # A child in front of an adult: IoU 0.35, but the smaller lies mostly inside (IoS 0.75); neither is cut.
+    boxes = np.array([[100, 100, 120, 160], [108, 110, 124, 150]], np.float64)
+    keep, _ = merge_overlapping(
+        boxes, np.array([0.9, 0.8]), np.array([0, 0]), np.array([False, False]), 0.45, 0.6
+    )
+    assert keep == [0, 1]
+    # A person cut at a tile's edge (higher score, top half) and whole in the frame pass: one whole box.
+    boxes = np.array([[100, 100, 120, 130], [100, 100, 121, 160]], np.float64)
+    keep, merged = merge_overlapping(
+        boxes, np.array([0.9, 0.6]), np.array([0, 0]), np.array([True, False]), 0.45, 0.6
+    )
+    assert keep == [0] and merged[0].tolist() == [100, 100, 121, 160]
+
+
+def test_tiles_find_small_people_the_whole_frame_misses(detector: YoloxDetector, sequences_dir: Path) -> None:
+    tiled = TiledDetector(detector, 2)
+    seq = sequences_dir / "uav123_wakeboard7"
+    truth = _groundtruth(seq)
+    whole_hits = tiled_hits = frames = 0
+    for index in range(0, len(truth), 6):
+        box = truth[index]
+        if box is None:
+            continue
+        image = _read(seq / "frames" / f"{index + 1:06d}.jpg")
+        keyframe = cv2.resize(
+            image, (640, 360), interpolation=cv2.INTER_AREA
+        )  # the companion's keyframe size
+        target = box.scaled(0.5, 0.5)
+        found = tiled.detect(keyframe, ["person"])
+        assert all(d.box.x >= 0 and d.box.x2 <= 640 and d.box.y >= 0 and d.box.y2 <= 360 for d in found)
+        whole_hits += any(iou(target, d.box) >= 0.5 for d in detector.detect(keyframe, ["person"]))
+        tiled_hits += any(iou(target, d.box) >= 0.5 for d in found)
+        frames += 1
+    print(
+        f"uav123_wakeboard7 at 640x360, {frames} frames: recall whole frame {whole_hits / frames:.2f}, "
+        f"tiles2 {tiled_hits / frames:.2f}"
+    )
+    assert tiled_hits > whole_hits
+
+
+def test_factory_builds_tiles_and_names_the_int8_command(models_dir: Path) -> None:
+    tiled = build_detector(DetectorConfig(model_dir=str(models_dir)))  # tiles = 2 by default
+    assert isinstance(tiled, TiledDetector) and tiled.columns == 2 and tiled.name == "yolox_nano"
+    assert isinstance(build_detector(DetectorConfig(model_dir=str(models_dir), tiles=0)), YoloxDetector)
+    with pytest.raises(ModelError, match="backend.detectors.quantize"):
+        build_detector(DetectorConfig(model_dir=str(models_dir), precision="int8"))
+
+
+@pytest.mark.slow
+def test_int8_model_is_derived_from_the_shared_weights(
+    models_dir: Path, sequences_dir: Path, tmp_path: Path
+) -> None:
+    (tmp_path / "yolox_nano").mkdir()
+    (tmp_path / "yolox_nano" / "yolox_nano.onnx").symlink_to(models_dir / "yolox_nano" / "yolox_nano.onnx")
+    sequences = [str(sequences_dir / "uav123_group1_1"), str(sequences_dir / "otb_Crossing")]
+    assert quantize_main([*sequences, "--model-dir", str(tmp_path), "--frames-per-sequence", "2"]) == 0
+    int8 = build_detector(DetectorConfig(model_dir=str(tmp_path), precision="int8", threads=1))
+    assert int8.name == "yolox_nano_int8"
+    image = _read(sequences_dir / "uav123_person12_1" / "frames" / "000001.jpg")
+    found = int8.detect(image, ["person"])
+    assert found and all(d.label == "person" and d.box.is_valid() for d in found)
+
+
+def test_tiles_leave_frames_the_model_sees_whole(detector: YoloxDetector, sequences_dir: Path) -> None:
+    image = _read(sequences_dir / "otb_Crossing" / "frames" / "000001.jpg")  # 360x240, under the 416 input
+    tiled = TiledDetector(detector, 2, min_side=detector.input_size)
+    assert tiled.detect(image, ["person"]) == detector.detect(image, ["person"])
+
+
+@pytest.mark.parametrize("module", ["backend.detectors.recall", "backend.detectors.quantize"])
+def test_detector_tools_have_help_with_examples(module: str, capsys: pytest.CaptureFixture[str]) -> None:
+    import importlib
+
+    with pytest.raises(SystemExit) as done:
+        importlib.import_module(module).main(["--help"])
+    assert done.value.code == 0 and "example" in capsys.readouterr().out
+
+
+def test_recall_command_reports_size_bins_and_ratios(
+    models_dir: Path, sequences_dir: Path, tmp_path: Path
+) -> None:
+    from backend.detectors.recall import main as recall_main
+
+    out = tmp_path / "recall.json"
+    seq = str(sequences_dir / "uav123_wakeboard7")
+    args = [
+        seq,
+        "--model-dir",
+        str(models_dir),
+        "--variants",
+        "fp32,fp32+tiles2",
+        "--step",
+        "12",
+        "--json",
+        str(out),
+    ]
+    assert recall_main(args) == 0
+    figures = json.loads(out.read_text())["variants"]
+    assert (
+        set(figures) == {"fp32", "fp32+tiles2"}
+        and figures["fp32"]["frames"] == figures["fp32+tiles2"]["frames"] > 0
+    )
+    assert set(figures["fp32"]["by_size"]) == {"<32", "32-96", ">96"}
+    assert figures["fp32+tiles2"]["recall"] >= figures["fp32"]["recall"]

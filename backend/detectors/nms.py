@@ -24,9 +24,57 @@ def nms(boxes_xyxy: np.ndarray, scores: np.ndarray, iou_threshold: float) -> lis
     return keep
 
 
-def class_aware_nms(boxes_xyxy: np.ndarray, scores: np.ndarray, labels: np.ndarray, iou_threshold: float) -> list[int]:
+def class_aware_nms(
+    boxes_xyxy: np.ndarray, scores: np.ndarray, labels: np.ndarray, iou_threshold: float
+) -> list[int]:
     """NMS within each class only: boxes are offset per class so different classes never overlap."""
     if len(scores) == 0:
         return []
     span = float(np.abs(boxes_xyxy).max()) + 1.0
     return nms(boxes_xyxy + labels[:, None].astype(np.float64) * span, scores, iou_threshold)
+
+
+def merge_overlapping(
+    boxes_xyxy: np.ndarray,
+    scores: np.ndarray,
+    labels: np.ndarray,
+    cut: np.ndarray,
+    iou_threshold: float,
+    ios_threshold: float,
+) -> tuple[list[int], np.ndarray]:
+    """Class-aware greedy merge of boxes from overlapping views (whole frame and tiles), best score first.
+
+    A box is dropped when it overlaps a kept box of its class by IoU above `iou_threshold`, or when one of
+    the two is `cut` (touches a tile's inner edge) and it lies mostly inside the other (intersection over
+    the smaller area above `ios_threshold`). A cut kept box grows to cover a larger dropped one, so a target
+    split by a tile keeps its whole extent. The IoS rule is limited to cut boxes because people walking
+    side by side also overlap mostly, and must stay apart. Returns the kept indices and their boxes.
+    """
+    order = np.argsort(-scores, kind="stable")
+    merged = boxes_xyxy.astype(np.float64).copy()
+    areas = np.maximum(0, merged[:, 2] - merged[:, 0]) * np.maximum(0, merged[:, 3] - merged[:, 1])
+    keep: list[int] = []
+    for j in order:
+        j = int(j)
+        for i in keep:
+            if labels[i] != labels[j]:
+                continue
+            iw = max(0.0, min(merged[i, 2], merged[j, 2]) - max(merged[i, 0], merged[j, 0]))
+            ih = max(0.0, min(merged[i, 3], merged[j, 3]) - max(merged[i, 1], merged[j, 1]))
+            inter = iw * ih
+            union = areas[i] + areas[j] - inter
+            smaller = min(areas[i], areas[j])
+            partial = bool(cut[i] or cut[j]) and smaller > 0 and inter / smaller > ios_threshold
+            if (union > 0 and inter / union > iou_threshold) or partial:
+                if partial and cut[i] and areas[j] > areas[i]:
+                    merged[i] = [
+                        min(merged[i, 0], merged[j, 0]),
+                        min(merged[i, 1], merged[j, 1]),
+                        max(merged[i, 2], merged[j, 2]),
+                        max(merged[i, 3], merged[j, 3]),
+                    ]
+                    areas[i] = (merged[i, 2] - merged[i, 0]) * (merged[i, 3] - merged[i, 1])
+                break
+        else:
+            keep.append(j)
+    return keep, merged

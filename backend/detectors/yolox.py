@@ -38,8 +38,6 @@ def _grids(size: int) -> tuple[np.ndarray, np.ndarray]:
 class YoloxDetector:
     """`detect(image_bgr, classes)` -> detections in the image's pixels, best first."""
 
-    name = "yolox_nano"
-
     def __init__(
         self,
         model_path: str | Path,
@@ -51,13 +49,15 @@ class YoloxDetector:
         options = ort.SessionOptions()
         options.intra_op_num_threads = threads  # 0: onnxruntime's default (all cores)
         self._session = ort.InferenceSession(str(model_path), options, providers=["CPUExecutionProvider"])
-        self._input_name = self._session.get_inputs()[0].name
+        self.input_name = self._session.get_inputs()[0].name
+        self.name = Path(model_path).stem  # yolox_nano, or yolox_nano_int8 for the quantised model
         self.input_size = input_size
         self.score_threshold = score_threshold
         self.nms_threshold = nms_threshold
         self._grid, self._stride = _grids(input_size)
 
-    def _letterbox(self, image_bgr: np.ndarray) -> tuple[np.ndarray, float]:
+    def preprocess(self, image_bgr: np.ndarray) -> tuple[np.ndarray, float]:
+        """The network's input (1x3xSxS float32, letterboxed) and the frame-to-input scale."""
         h, w = image_bgr.shape[:2]
         ratio = min(self.input_size / h, self.input_size / w)
         nh, nw = max(1, int(round(h * ratio))), max(1, int(round(w * ratio)))
@@ -72,8 +72,8 @@ class YoloxDetector:
         if image_bgr.ndim != 3 or image_bgr.shape[2] != 3:
             raise ValueError(f"expected a BGR image H x W x 3, got shape {image_bgr.shape}")
         wanted = sorted({COCO_CLASSES.index(c) for name in classes for c in coco_classes_for(name)})
-        blob, ratio = self._letterbox(image_bgr)
-        raw = self._session.run(None, {self._input_name: blob})[0][0]
+        blob, ratio = self.preprocess(image_bgr)
+        raw = self._session.run(None, {self.input_name: blob})[0][0]
         # score = objectness x class probability <= objectness: drop weak rows before any other work.
         rows = np.flatnonzero(raw[:, 4] >= self.score_threshold)
         if rows.size == 0:
