@@ -56,6 +56,13 @@ PX4_MODES = {
     "MISSION": (4, 4), "RTL": (4, 5), "LAND": (4, 6), "OFFBOARD": (6, 0),
 }  # fmt: skip
 PERSONALITIES = ("ardupilot", "px4")
+# ArduCopter's flight-mode switch (FLTMODE_CH 5) with the shipped SITL copter.parm's FLTMODE1..6, and the
+# PWM each slot ends at (RC_Channel: <=1230, <=1360, <=1490, <=1620, <=1749, above). CIRCLE and STABILIZE are
+# not flown here; they stay unmapped.
+FLTMODE_SLOTS = (("CIRCLE", 1230), ("LAND", 1360), ("RTL", 1490), ("AUTO", 1620), ("LOITER", 1749),
+                 ("STABILIZE", 2200))
+RC_MODE_SWITCH_PWM = {"LAND": 1295, "RTL": 1425, "LOITER": 1685}
+RC_START_PWM = 1800  # the SITL's own RC input on channel 5 (slot 6): no switch change until someone moves it
 
 POSITION_IGNORE = 0b111
 VELOCITY_IGNORE = 0b111000
@@ -149,6 +156,7 @@ class SimulatedAutopilot:
         self._auto_yaw = False
         self._position_target: tuple[float, float, float] | None = None
         self._last_setpoint_time = -math.inf
+        self._mode_switch_slot = self._slot(RC_START_PWM)
         self._boot = clock()
         defaults = PX4_DEFAULT_INTERVALS if not self.is_ardupilot else ARDUPILOT_DEFAULT_INTERVALS
         self._links: dict[str, _Link] = {}
@@ -278,12 +286,32 @@ class SimulatedAutopilot:
             self._on_command(link, msg)
         elif mtype == "SET_POSITION_TARGET_LOCAL_NED":
             self._on_setpoint(link, msg)
+        elif mtype == "RC_CHANNELS_OVERRIDE" and self.is_ardupilot:
+            self._on_rc_override(link, msg)
         elif mtype == "SET_MODE":
             name = self._mode_from_numbers(msg.custom_mode, 0) if self.is_ardupilot else self._mode_from_numbers(
                 (msg.custom_mode >> 16) & 0xFF, (msg.custom_mode >> 24) & 0xFF
             )
             if name is not None:
                 self._try_set_mode(name, f"{link.name} {src[0]}/{src[1]}")
+
+    @staticmethod
+    def _slot(pwm: int) -> int:
+        return next(i for i, (_, top) in enumerate(FLTMODE_SLOTS) if pwm <= top)
+
+    def _on_rc_override(self, link: _Link, msg: mavutil.mavlink.MAVLink_message) -> None:
+        """ArduCopter's flight-mode switch: a new switch position selects its FLTMODE (0 and UINT16_MAX
+        release the channel, so nothing changes)."""
+        pwm = int(msg.chan5_raw)
+        if pwm in (0, 65535) or not 800 <= pwm <= 2200:
+            return
+        slot = self._slot(pwm)
+        if slot == self._mode_switch_slot:
+            return
+        self._mode_switch_slot = slot
+        name = FLTMODE_SLOTS[slot][0]
+        if name in ARDUCOPTER_MODES:
+            self._try_set_mode(name, f"pilot rc {link.name}")
 
     def _route(self, source: _Link, msg: mavutil.mavlink.MAVLink_message, ts: int | None, tc: int | None) -> None:
         buf = msg.get_msgbuf()
