@@ -355,6 +355,7 @@ class RealAutopilot:
                 g.takeoff(height_m)  # the first one may have come before GUIDED took effect
                 last_try = time.monotonic()
             time.sleep(0.1)
+        g.hold_rc(3, 1500)  # the pilot's throttle at mid-stick from here on: LOITER after a takeover holds height
         if self.sitl.speedup != 1.0:
             g.params.pop("SIM_SPEEDUP", None)
             while g.params.get("SIM_SPEEDUP") != 1.0:

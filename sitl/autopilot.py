@@ -335,8 +335,8 @@ class SimulatedAutopilot:
         cmd = msg.command
         if cmd == mavlink.MAV_CMD_DO_SET_MODE:
             name = self._mode_from_numbers(msg.param2, msg.param3)
-            if name is None:
-                self._ack(link, msg, mavlink.MAV_RESULT_DENIED)
+            if name is None:  # ArduCopter 4.7 answers FAILED to a mode number it does not have (conformance suite)
+                self._ack(link, msg, mavlink.MAV_RESULT_FAILED if self.is_ardupilot else mavlink.MAV_RESULT_DENIED)
                 return
             ok = self._try_set_mode(name, who)
             self._ack(link, msg, mavlink.MAV_RESULT_ACCEPTED if ok else mavlink.MAV_RESULT_TEMPORARILY_REJECTED)
@@ -359,7 +359,9 @@ class SimulatedAutopilot:
             self._ack(link, msg, mavlink.MAV_RESULT_ACCEPTED if sent else mavlink.MAV_RESULT_UNSUPPORTED)
         elif cmd in (mavlink.MAV_CMD_COMPONENT_ARM_DISARM, mavlink.MAV_CMD_NAV_TAKEOFF):
             self._status(f"Arming/take-off request from {who} refused: the simulator never arms for anyone")
-            self._ack(link, msg, mavlink.MAV_RESULT_DENIED)
+            # ArduCopter answers FAILED to a take-off while flying (this simulator always is, or has landed).
+            failed = cmd == mavlink.MAV_CMD_NAV_TAKEOFF and self.is_ardupilot
+            self._ack(link, msg, mavlink.MAV_RESULT_FAILED if failed else mavlink.MAV_RESULT_DENIED)
         elif cmd == mavlink.MAV_CMD_NAV_LAND:
             self._try_set_mode("LAND", who)
             self._ack(link, msg, mavlink.MAV_RESULT_ACCEPTED)
@@ -430,7 +432,10 @@ class SimulatedAutopilot:
         s = self.state
         if self.mode in ("GUIDED", "OFFBOARD"):
             timeout = self.options.guid_timeout_s if self.is_ardupilot else self.options.offboard_loss_s
-            if now - self._last_setpoint_time > timeout:
+            # ArduCopter's GUID_TIMEOUT applies to velocity targets only: a position target (a GCS "fly to")
+            # is flown to the end however long ago it came (conformance suite).
+            position_flight = self.is_ardupilot and self._position_target is not None
+            if now - self._last_setpoint_time > timeout and not position_flight:
                 if not self.is_ardupilot:
                     self._try_set_mode("HOLD", "failsafe")
                     self._status("Offboard setpoints lost: switching to HOLD")

@@ -237,7 +237,7 @@ class ScriptedGcs:
         self.modes: list[tuple[float, int, bool]] = []
         self.positions: list[tuple[float, float, float, float]] = []  # (time, north, east, down)
         self.params: dict[str, float] = {}
-        self._rc_override: int | None = None  # channel 5 PWM held by the pilot's radio, re-sent at 10 Hz
+        self._rc: dict[int, int] = {}  # channel -> PWM the pilot's radio holds, re-sent at 10 Hz
         self._stop = threading.Event()
         self._lock = threading.Lock()
         self._thread = threading.Thread(target=self._run, name="scripted-gcs", daemon=True)
@@ -255,8 +255,8 @@ class ScriptedGcs:
                 with self._lock:
                     self.conn.mav.heartbeat_send(mavutil.mavlink.MAV_TYPE_GCS, mavutil.mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
                 last_hb = now
-            if self._rc_override is not None and now - last_rc >= 0.1:
-                self._send_rc(self._rc_override)
+            if self._rc and now - last_rc >= 0.1:
+                self._send_rc()
                 last_rc = now
             try:
                 msg = self.conn.recv_match(type=types, blocking=True, timeout=0.05)
@@ -312,17 +312,22 @@ class ScriptedGcs:
             self.conn.mav.param_set_send(self.target[0], 1, name.encode(), value,
                                          mavutil.mavlink.MAV_PARAM_TYPE_REAL32)
 
-    def hold_rc_mode_switch(self, pwm: int | None) -> None:
-        """The pilot's radio: hold channel 5 (the flight-mode switch) at `pwm`, sent at 10 Hz as the radio
-        would (an override not refreshed within RC_OVERRIDE_TIME falls back to the real RC input)."""
-        self._rc_override = pwm
-        if pwm is not None:
-            self._send_rc(pwm)
+    def hold_rc(self, channel: int, pwm: int) -> None:
+        """The pilot's radio holds `channel` (1-8) at `pwm`, re-sent at 10 Hz as a radio would (an override not
+        refreshed within RC_OVERRIDE_TIME falls back to the SITL's own RC input)."""
+        self._rc[channel] = pwm
+        self._send_rc()
 
-    def _send_rc(self, pwm: int) -> None:
-        keep = 0  # 0: this channel is not overridden (MAVLink 1 fields); UINT16_MAX would mean "ignore"
+    def hold_rc_mode_switch(self, pwm: int) -> None:
+        """Flip the flight-mode switch (channel 5, FLTMODE_CH)."""
+        self.hold_rc(5, pwm)
+
+    def _send_rc(self) -> None:
+        # 0: channel not overridden (the SITL's own input stays); the throttle the pilot holds at mid-stick
+        # keeps LOITER/ALT_HOLD level after a takeover instead of descending on the SITL's idle throttle.
+        pwm = [self._rc.get(ch, 0) for ch in range(1, 9)]
         with self._lock:
-            self.conn.mav.rc_channels_override_send(self.target[0], 1, keep, keep, keep, keep, pwm, keep, keep, keep)
+            self.conn.mav.rc_channels_override_send(self.target[0], 1, *pwm)
 
     def fly_to(self, north: float, east: float, down: float) -> None:
         """A GCS "fly to here" in GUIDED: a position target in MAV_FRAME_LOCAL_NED."""
