@@ -226,3 +226,64 @@ def test_backend_session_reports_status_and_delivers_supervisor_decisions(tmp_pa
             assert after is not None and before is not None and after > before
         finally:
             session.close()
+
+
+def test_arducopter_missing_binary_says_where_to_put_it(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`--autopilot arducopter` without the binary: exit 2 and where to put it; never the mock instead."""
+    code = sim_main(["run", "follow", "--autopilot", "arducopter", "--arducopter-binary", str(tmp_path / "nope")])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert "../shared/sitl/arducopter" in err and "--arducopter-binary" in err and "CLOUDTRACK_ARDUCOPTER" in err
+
+
+def test_sim_run_removes_its_temp_work_dir() -> None:
+    from sitl.scenario_runner import ScenarioRun
+
+    run = ScenarioRun(SCENARIOS["follow"], RunOptions(tracker="csrt"), progress=lambda _: None)
+    assert run.work.is_dir() and run.work.name.startswith("cloudtrack-sim-follow-")
+    run._teardown()
+    assert not run.work.exists()
+
+
+def test_sim_run_keeps_a_given_work_dir(tmp_path: Path) -> None:
+    from sitl.scenario_runner import ScenarioRun
+
+    run = ScenarioRun(SCENARIOS["follow"], RunOptions(tracker="csrt", work_dir=tmp_path / "w"), progress=lambda _: None)
+    run._teardown()
+    assert (tmp_path / "w").is_dir()
+
+
+def test_world_holds_still_until_the_mission_starts() -> None:
+    """People stand at their start while the camera's epoch is unset (boot, take-off), then walk."""
+    import math
+    import time
+
+    from behaviors.camera_model import CameraModel
+    from sitl.camera_command import is_mission_start
+    from sitl.camera_render import VehiclePose
+    from sitl.camera_server import CameraServer
+
+    world = SCENARIOS["follow"].build_world(1)
+    server = CameraServer(world, CameraModel.from_hfov(64, 48, 70.0, -40.0), lambda: VehiclePose(0, 0, -10)).start()
+    try:
+        server.epoch = math.inf
+        assert server.world_time() == 0.0
+        assert world.person("target").state_at(server.world_time())[:2] == (12.0, 0.0)
+        server.epoch = time.monotonic() - 2.0
+        assert server.world_time() >= 2.0
+        assert world.person("target").state_at(server.world_time())[0] >= 12.0 + 2.9  # 1.5 m/s
+    finally:
+        server.stop()
+    assert is_mission_start("MISSION 1 STARTED: a person in a green shirt")
+    assert not is_mission_start("MISSION 1 ABORTED") and not is_mission_start("PreArm: Need Position Estimate")
+
+
+def test_sim_help_describes_every_flag(capsys: pytest.CaptureFixture[str]) -> None:
+    for argv, expected in ((["bench", "--help"], ("frames to render", "image width", "image height")),
+                           (["camera", "--help"], ("--world-start", "MISSION n STARTED")),
+                           (["run", "--help"], ("--arducopter-binary", "--speedup", "arducopter"))):
+        with pytest.raises(SystemExit):
+            sim_main(argv)
+        out = capsys.readouterr().out
+        for text in expected:
+            assert text in out, (argv, text)
