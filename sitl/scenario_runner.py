@@ -693,15 +693,28 @@ class ScenarioRun:
                 run_start = None
         takeover_t = self.fault_times.get("takeover")
         late = None
+        mode_seen_after: float | None = None
         if takeover_t is not None:
             mode_times = [t - epoch for t, _, source in v.autopilot.mode_history if source.startswith("pilot")]
             takeover_t = mode_times[0] if mode_times else takeover_t
+            if self.real:
+                # The real autopilot changes mode some time after the pilot's action (the RC switch is
+                # debounced for 200 ms); the stop latency counts from the HEARTBEAT that reported the change.
+                from sitl.arducopter_sitl import ARDUCOPTER_MODES
+
+                wanted = ARDUCOPTER_MODES[TAKEOVER_MODE[self.personality]]
+                seen = [t - epoch for t, mode, _ in list(v.gcs.modes) if t - epoch >= takeover_t and mode == wanted]
+                if seen:
+                    mode_seen_after = seen[0] - takeover_t
+                    takeover_t = seen[0]
             after = [sp.t for sp in setpoints if sp.t > takeover_t]
             late = (max(after) - takeover_t) if after else 0.0
         holds = tuple(e.t for e in events if e.kind == "hold" or (e.kind == "watchdog" and e.detail.get("action") == "stop"))
         metrics = summarise(samples, setpoints, events, STANDOFF_M, (self.camera.width, self.camera.height), end_t,
                             outcome="pending")
         metrics["last_setpoint_after_takeover_s"] = None if late is None else round(late, 3)
+        if mode_seen_after is not None:
+            metrics["takeover_mode_reported_after_action_s"] = round(mode_seen_after, 3)
         metrics["occlusion_s"] = None if occlusion is None else [round(occlusion[0], 2), round(occlusion[1], 2)]
         metrics["frames_rendered"] = len(v.frames)
         # ArduCopter flies a setpoint only in GUIDED, PX4 only in OFFBOARD: those are the accepted ones.
