@@ -243,6 +243,10 @@ class SimulatedAutopilot:
             if name in ("GUIDED", "OFFBOARD"):
                 self._velocity_target = VelocityCommand()
             log.info("mode %s (by %s)", name, source)
+            if self.is_ardupilot:  # ArduCopter announces a new mode at once on every link (conformance suite)
+                for link in self._links.values():
+                    if not link.down:
+                        self._send_message(link, mavlink.MAVLINK_MSG_ID_HEARTBEAT, now)
         return True
 
     def _px4_stream_alive(self, now: float) -> bool:

@@ -45,6 +45,7 @@ REAL: dict[str, Any] = {
     "course_deg": {"LOCAL_NED": 0, "BODY_NED": 90, "BODY_OFFSET_NED": 90},
     "ignored_outside_guided": True,
     "fly_to_arrives": True,
+    "heartbeat_within_0_2_s_of_a_mode_change": True,
 }
 KNOWN_DIFFERENCES: dict[str, str] = {
     # name -> reason; the mock's answer is not compared for these (docs/sitl.md lists them).
@@ -269,4 +270,27 @@ def test_gcs_position_target_in_local_ned(vehicle: Vehicle) -> None:
     miss = math.dist((end.x, end.y), (start.x + 8.0, start.y))
     print(f"{vehicle.kind}: {miss:.2f} m from the target after 8 s")
     _compare(vehicle, "fly_to_arrives", miss < 1.5)
+    vehicle.settle()
+
+
+def test_heartbeat_follows_a_mode_change(vehicle: Vehicle) -> None:
+    """With HEARTBEAT at its default 1 Hz, how soon a mode change shows: what a companion's takeover
+    detection waits for when it has not asked for faster heartbeats."""
+    vehicle.settle()
+    delays = []
+    for name in ("LOITER", "GUIDED", "BRAKE", "GUIDED"):
+        number = MODES[name]
+        vehicle.client.mav.command_long_send(1, 1, mavlink.MAV_CMD_DO_SET_MODE, 0,
+                                             mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, number, 0, 0, 0, 0, 0)
+        sent = time.monotonic()
+        while time.monotonic() - sent < 2.0:
+            msg = vehicle.recv(["HEARTBEAT"], 0.05)
+            if msg is not None and msg.get_srcComponent() == 1 and msg.custom_mode == number:
+                delays.append(time.monotonic() - sent)
+                break
+        else:
+            delays.append(math.inf)
+        time.sleep(0.5)
+    print(f"{vehicle.kind}: HEARTBEAT with the new mode {[round(d, 3) for d in delays]} s after DO_SET_MODE")
+    _compare(vehicle, "heartbeat_within_0_2_s_of_a_mode_change", max(delays) < 0.2)
     vehicle.settle()
