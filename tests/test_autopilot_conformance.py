@@ -46,6 +46,7 @@ REAL: dict[str, Any] = {
     "ignored_outside_guided": True,
     "fly_to_arrives": True,
     "heartbeat_within_0_2_s_of_a_mode_change": True,
+    "yaw_rate": {"clockwise": True, "within_30_percent": True},
 }
 KNOWN_DIFFERENCES: dict[str, str] = {
     # name -> reason; the mock's answer is not compared for these (docs/sitl.md lists them).
@@ -162,6 +163,11 @@ def _compare(v: Vehicle, name: str, answer: Any) -> None:
     assert answer == REAL[name], f"{v.kind} answers {answer} to {name}; the real ArduCopter answers {REAL[name]}"
 
 
+def _drain(v: Vehicle) -> None:
+    while v.client.recv_match(blocking=False) is not None:
+        pass
+
+
 def _course(track: list[tuple[float, Any]], t0: float, t1: float) -> tuple[float, float]:
     """Mean course (deg, 0 = north, 90 = east) and speed over [t0, t1] of a LOCAL_POSITION_NED track."""
     pts = [m for t, m in track if t0 <= t <= t1]
@@ -213,6 +219,7 @@ def test_message_rates_after_set_message_interval(vehicle: Vehicle) -> None:
     for msg_id, hz in rates.values():
         assert vehicle.interval(msg_id, hz) == 0
     time.sleep(0.5)
+    _drain(vehicle)  # what queued while the new rates settled is not part of the 3 s count
     counts = dict.fromkeys(rates, 0)
     end = time.monotonic() + 3.0
     while time.monotonic() < end:
@@ -228,6 +235,7 @@ def test_message_rates_after_set_message_interval(vehicle: Vehicle) -> None:
     for msg_id, _ in rates.values():
         assert vehicle.interval(msg_id, -1) == 0
     time.sleep(0.5)
+    _drain(vehicle)
     seen = 0
     end = time.monotonic() + 1.5
     while time.monotonic() < end:
@@ -293,4 +301,28 @@ def test_heartbeat_follows_a_mode_change(vehicle: Vehicle) -> None:
         time.sleep(0.5)
     print(f"{vehicle.kind}: HEARTBEAT with the new mode {[round(d, 3) for d in delays]} s after DO_SET_MODE")
     _compare(vehicle, "heartbeat_within_0_2_s_of_a_mode_change", max(delays) < 0.2)
+    vehicle.settle()
+
+
+def test_yaw_rate_in_the_companions_frame(vehicle: Vehicle) -> None:
+    """The follow law's yaw: 0.3 rad/s in BODY_OFFSET_NED with zero velocity turns the vehicle clockwise."""
+    vehicle.settle()
+    assert vehicle.interval(mavlink.MAVLINK_MSG_ID_ATTITUDE, 10) == 0
+    yaws: list[tuple[float, float]] = []
+    start = time.monotonic()
+    while (elapsed := time.monotonic() - start) < 3.0:
+        vehicle.setpoint(mavlink.MAV_FRAME_BODY_OFFSET_NED, VELOCITY_ONLY)
+        vehicle.client.mav.set_position_target_local_ned_send(
+            0, 1, 1, mavlink.MAV_FRAME_BODY_OFFSET_NED, VELOCITY_ONLY, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0.3)
+        end = time.monotonic() + 0.1
+        while time.monotonic() < end:
+            msg = vehicle.recv(["ATTITUDE"], 0.05)
+            if msg is not None:
+                yaws.append((elapsed, msg.yaw))
+    vehicle.interval(mavlink.MAVLINK_MSG_ID_ATTITUDE, -1)
+    window = [(t, y) for t, y in yaws if 1.5 <= t <= 3.0]
+    turned = math.remainder(window[-1][1] - window[0][1], math.tau)
+    rate = turned / (window[-1][0] - window[0][0])
+    print(f"{vehicle.kind}: yaw rate {rate:.3f} rad/s for 0.3 commanded")
+    _compare(vehicle, "yaw_rate", {"clockwise": rate > 0, "within_30_percent": abs(rate - 0.3) <= 0.09})
     vehicle.settle()
