@@ -156,6 +156,11 @@ class ScenarioRun:
         self.camera = CameraModel.from_hfov(640, 480, 70.0, MOUNT_PITCH_DEG, stabilised=True)
         self.model_dir = resolve_model_dir(options.model_dir)
         self.tracker = options.tracker or default_tracker(self.model_dir)
+        self.arducopter: Path | None = None
+        if self.personality == "arducopter":
+            from sitl.arducopter_sitl import find_binary
+
+            self.arducopter = find_binary(options.arducopter_binary)  # never a silent fall-back to the mock
         # A temp work dir is removed after the run (--work-dir keeps one).
         self._own_work = options.work_dir is None
         self.work = options.work_dir or Path(tempfile.mkdtemp(prefix=f"cloudtrack-sim-{scenario.name}-"))
@@ -170,11 +175,6 @@ class ScenarioRun:
         self._t_mission: float | None = None
         self._flood_threads: list[Any] = []
         self._stopping = False
-        self.arducopter: Path | None = None
-        if self.personality == "arducopter":
-            from sitl.arducopter_sitl import find_binary
-
-            self.arducopter = find_binary(options.arducopter_binary)  # never a silent fall-back to the mock
 
     @property
     def real(self) -> bool:
@@ -215,7 +215,7 @@ class ScenarioRun:
         vid = f"drone-{index + 1}"
         udp_port = _free_udp_port() if self.scenario.companion_listens else None
         if self.real:
-            autopilot, gcs, camera_url = self._start_arducopter(index, vid, origin, udp_port)
+            autopilot, gcs, camera_url = self._start_arducopter(vid, origin, udp_port)
         else:
             autopilot, gcs, camera_url = self._start_mock(origin, udp_port)
         follower = PoseFollower(camera_url, origin=origin).start()
@@ -243,7 +243,7 @@ class ScenarioRun:
         gcs = ScriptedGcs(f"udpout:127.0.0.1:{autopilot.link_port('gcs')}").start()
         return autopilot, gcs, f"udpout:127.0.0.1:{autopilot.link_port('camera')}"
 
-    def _start_arducopter(self, index: int, vid: str, origin: tuple[float, float],
+    def _start_arducopter(self, vid: str, origin: tuple[float, float],
                           udp_port: int | None) -> tuple[Any, ScriptedGcs, str]:
         from sitl.arducopter_sitl import ArduCopterSitl, RealAutopilot
 

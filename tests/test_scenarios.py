@@ -259,10 +259,14 @@ def test_backend_session_reports_status_and_delivers_supervisor_decisions(tmp_pa
 
 def test_arducopter_missing_binary_says_where_to_put_it(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """`--autopilot arducopter` without the binary: exit 2 and where to put it; never the mock instead."""
+    import tempfile
+
+    before = set(Path(tempfile.gettempdir()).glob("cloudtrack-sim-follow-*"))
     code = sim_main(["run", "follow", "--autopilot", "arducopter", "--arducopter-binary", str(tmp_path / "nope")])
     err = capsys.readouterr().err
     assert code == 2
     assert "../shared/sitl/arducopter" in err and "--arducopter-binary" in err and "CLOUDTRACK_ARDUCOPTER" in err
+    assert set(Path(tempfile.gettempdir()).glob("cloudtrack-sim-follow-*")) == before  # nothing left behind
 
 
 def test_sim_run_removes_its_temp_work_dir() -> None:
