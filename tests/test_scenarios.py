@@ -257,25 +257,29 @@ def test_backend_session_reports_status_and_delivers_supervisor_decisions(tmp_pa
             session.close()
 
 
-def test_arducopter_missing_binary_says_where_to_put_it(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_arducopter_missing_binary_says_where_to_put_it(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
     """`--autopilot arducopter` without the binary: exit 2 and where to put it; never the mock instead."""
     import tempfile
 
-    before = set(Path(tempfile.gettempdir()).glob("cloudtrack-sim-follow-*"))
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))  # where a run would make its work dir
     code = sim_main(["run", "follow", "--autopilot", "arducopter", "--arducopter-binary", str(tmp_path / "nope")])
     err = capsys.readouterr().err
     assert code == 2
     assert "../shared/sitl/arducopter" in err and "--arducopter-binary" in err and "CLOUDTRACK_ARDUCOPTER" in err
-    assert set(Path(tempfile.gettempdir()).glob("cloudtrack-sim-follow-*")) == before  # nothing left behind
+    assert not list(tmp_path.glob("cloudtrack-sim-*"))  # nothing left behind
 
 
-def test_sim_run_removes_its_temp_work_dir() -> None:
+def test_sim_run_removes_its_temp_work_dir(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import tempfile
+
     from sitl.scenario_runner import ScenarioRun
 
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     run = ScenarioRun(SCENARIOS["follow"], RunOptions(tracker="csrt"), progress=lambda _: None)
     assert run.work.is_dir() and run.work.name.startswith("cloudtrack-sim-follow-")
     run._teardown()
-    assert not run.work.exists()
+    assert not run.work.exists() and not list(tmp_path.iterdir())
 
 
 def test_sim_run_keeps_a_given_work_dir(tmp_path: Path) -> None:
