@@ -436,10 +436,10 @@ class SimulatedAutopilot:
         s = self.state
         if self.mode in ("GUIDED", "OFFBOARD"):
             timeout = self.options.guid_timeout_s if self.is_ardupilot else self.options.offboard_loss_s
-            # ArduCopter's GUID_TIMEOUT applies to velocity targets only: a position target (a GCS "fly to")
-            # is flown to the end however long ago it came (conformance suite).
-            position_flight = self.is_ardupilot and self._position_target is not None
-            if now - self._last_setpoint_time > timeout and not position_flight:
+            # ArduCopter's GUID_TIMEOUT stops velocity commands only; a position target is flown until
+            # reached.
+            position_held = self.is_ardupilot and self._position_target is not None
+            if now - self._last_setpoint_time > timeout and not position_held:
                 if not self.is_ardupilot:
                     self._try_set_mode("HOLD", "failsafe")
                     self._status("Offboard setpoints lost: switching to HOLD")
