@@ -312,6 +312,19 @@ class ScriptedGcs:
             self.conn.mav.param_set_send(self.target[0], 1, name.encode(), value,
                                          mavutil.mavlink.MAV_PARAM_TYPE_REAL32)
 
+    def read_param(self, name: str, timeout_s: float = 5.0) -> float | None:
+        """PARAM_REQUEST_READ by name; the value the autopilot answers (None if it does not)."""
+        self.params.pop(name, None)
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end:
+            with self._lock:
+                self.conn.mav.param_request_read_send(self.target[0], 1, name.encode(), -1)
+            for _ in range(10):
+                if name in self.params:
+                    return self.params[name]
+                time.sleep(0.05)
+        return None
+
     def hold_rc(self, channel: int, pwm: int) -> None:
         """The pilot's radio holds `channel` (1-8) at `pwm`, re-sent at 10 Hz as a radio would (an override not
         refreshed within RC_OVERRIDE_TIME falls back to the SITL's own RC input)."""

@@ -139,6 +139,10 @@ def _arducopter(work: Path) -> Vehicle:
         gcs.stop()
         real.close()
         raise
+    # The project's parameters took: GUID_TIMEOUT 1 s and the 4.5+ stream-rate names on the companion's port.
+    params = {name: gcs.read_param(name) for name in ("GUID_TIMEOUT", "MAV3_POSITION", "MAV3_EXTRA1", "SIM_SPEEDUP")}
+    print(f"arducopter parameters: {params}")
+    assert params == {"GUID_TIMEOUT": 1.0, "MAV3_POSITION": 10.0, "MAV3_EXTRA1": 10.0, "SIM_SPEEDUP": 1.0}
     client = mavutil.mavlink_connection(f"udpout:127.0.0.1:{real.bridge.udp_port}", source_system=1,
                                         source_component=191)
     client.mav.heartbeat_send(mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
