@@ -12,7 +12,6 @@ selects the real side (slow: one SITL boot for the module, about a minute).
 from __future__ import annotations
 
 import math
-import os
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -20,11 +19,9 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from pymavlink import mavutil
 
-os.environ.setdefault("MAVLINK20", "1")
-from pymavlink import mavutil  # noqa: E402
-
-from sitl.scenarios import ScriptedGcs  # noqa: E402
+from sitl.scenarios import ScriptedGcs
 
 pytestmark = pytest.mark.slow  # real time on both sides: about a minute each
 mavlink = mavutil.mavlink
