@@ -53,6 +53,13 @@ PX4_MODES = {
     "MISSION": (4, 4), "RTL": (4, 5), "LAND": (4, 6), "OFFBOARD": (6, 0),
 }  # fmt: skip
 PERSONALITIES = ("ardupilot", "px4")
+# ArduCopter's flight-mode switch (FLTMODE_CH 5) with the shipped SITL copter.parm's FLTMODE1..6, and the
+# PWM each slot ends at (RC_Channel: <=1230, <=1360, <=1490, <=1620, <=1749, above). CIRCLE and STABILIZE are
+# not flown here; they stay unmapped.
+FLTMODE_SLOTS = (("CIRCLE", 1230), ("LAND", 1360), ("RTL", 1490), ("AUTO", 1620), ("LOITER", 1749),
+                 ("STABILIZE", 2200))
+RC_MODE_SWITCH_PWM = {"LAND": 1295, "RTL": 1425, "LOITER": 1685}
+RC_START_PWM = 1800  # the SITL's own RC input on channel 5 (slot 6): no switch change until someone moves it
 
 POSITION_IGNORE = 0b111
 VELOCITY_IGNORE = 0b111000
@@ -148,6 +155,7 @@ class SimulatedAutopilot:
         self._auto_yaw = False
         self._position_target: tuple[float, float, float] | None = None
         self._last_setpoint_time = -math.inf
+        self._mode_switch_slot = self._slot(RC_START_PWM)
         self._boot = clock()
         defaults = PX4_DEFAULT_INTERVALS if not self.is_ardupilot else ARDUPILOT_DEFAULT_INTERVALS
         self._links: dict[str, _Link] = {}
@@ -240,6 +248,10 @@ class SimulatedAutopilot:
             if name in ("GUIDED", "OFFBOARD"):
                 self._velocity_target = VelocityCommand()
             log.info("mode %s (by %s)", name, source)
+            if self.is_ardupilot:  # ArduCopter announces a new mode at once on every link (conformance suite)
+                for link in self._links.values():
+                    if not link.down:
+                        self._send_message(link, mavlink.MAVLINK_MSG_ID_HEARTBEAT, now)
         return True
 
     def _px4_stream_alive(self, now: float) -> bool:
@@ -283,12 +295,32 @@ class SimulatedAutopilot:
             self._on_command(link, msg)
         elif mtype == "SET_POSITION_TARGET_LOCAL_NED":
             self._on_setpoint(link, msg)
+        elif mtype == "RC_CHANNELS_OVERRIDE" and self.is_ardupilot:
+            self._on_rc_override(link, msg)
         elif mtype == "SET_MODE":
             name = self._mode_from_numbers(msg.custom_mode, 0) if self.is_ardupilot else self._mode_from_numbers(
                 (msg.custom_mode >> 16) & 0xFF, (msg.custom_mode >> 24) & 0xFF
             )
             if name is not None:
                 self._try_set_mode(name, f"{link.name} {src[0]}/{src[1]}")
+
+    @staticmethod
+    def _slot(pwm: int) -> int:
+        return next(i for i, (_, top) in enumerate(FLTMODE_SLOTS) if pwm <= top)
+
+    def _on_rc_override(self, link: _Link, msg: mavutil.mavlink.MAVLink_message) -> None:
+        """ArduCopter's flight-mode switch: a new switch position selects its FLTMODE (0 and UINT16_MAX
+        release the channel, so nothing changes)."""
+        pwm = int(msg.chan5_raw)
+        if pwm in (0, 65535) or not 800 <= pwm <= 2200:
+            return
+        slot = self._slot(pwm)
+        if slot == self._mode_switch_slot:
+            return
+        self._mode_switch_slot = slot
+        name = FLTMODE_SLOTS[slot][0]
+        if name in ARDUCOPTER_MODES:
+            self._try_set_mode(name, f"pilot rc {link.name}")
 
     def _route(self, source: _Link, msg: mavutil.mavlink.MAVLink_message, ts: int | None, tc: int | None) -> None:
         buf = msg.get_msgbuf()
@@ -312,8 +344,8 @@ class SimulatedAutopilot:
         cmd = msg.command
         if cmd == mavlink.MAV_CMD_DO_SET_MODE:
             name = self._mode_from_numbers(msg.param2, msg.param3)
-            if name is None:
-                self._ack(link, msg, mavlink.MAV_RESULT_DENIED)
+            if name is None:  # ArduCopter 4.7 answers FAILED to a mode number it does not have (conformance suite)
+                self._ack(link, msg, mavlink.MAV_RESULT_FAILED if self.is_ardupilot else mavlink.MAV_RESULT_DENIED)
                 return
             ok = self._try_set_mode(name, who)
             self._ack(link, msg, mavlink.MAV_RESULT_ACCEPTED if ok else mavlink.MAV_RESULT_TEMPORARILY_REJECTED)
@@ -336,7 +368,9 @@ class SimulatedAutopilot:
             self._ack(link, msg, mavlink.MAV_RESULT_ACCEPTED if sent else mavlink.MAV_RESULT_UNSUPPORTED)
         elif cmd in (mavlink.MAV_CMD_COMPONENT_ARM_DISARM, mavlink.MAV_CMD_NAV_TAKEOFF):
             self._status(f"Arming/take-off request from {who} refused: the simulator never arms for anyone")
-            self._ack(link, msg, mavlink.MAV_RESULT_DENIED)
+            # ArduCopter answers FAILED to a take-off while flying (this simulator always is, or has landed).
+            failed = cmd == mavlink.MAV_CMD_NAV_TAKEOFF and self.is_ardupilot
+            self._ack(link, msg, mavlink.MAV_RESULT_FAILED if failed else mavlink.MAV_RESULT_DENIED)
         elif cmd == mavlink.MAV_CMD_NAV_LAND:
             self._try_set_mode("LAND", who)
             self._ack(link, msg, mavlink.MAV_RESULT_ACCEPTED)

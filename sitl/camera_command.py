@@ -9,6 +9,8 @@ real back-end with the simulated person detector on this world, so a companion s
 from __future__ import annotations
 
 import argparse
+import math
+import re
 import signal
 import threading
 import time
@@ -48,6 +50,10 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:  # type: ignore
     cam.add_argument("--token", default="sim-camera-vehicle-token",
                      help="bearer token the back-end accepts for the vehicle (16+ characters)")
     cam.add_argument("--vehicle-id", default="drone-1", help="vehicle id the token is issued to (default drone-1)")
+    cam.add_argument("--world-start", choices=("mission", "now"), default="mission",
+                     help="when the people start walking: 'mission' (default) holds them at their start until the "
+                     "companion's 'MISSION n STARTED' STATUSTEXT is heard on the link, so boot and take-off do not "
+                     "lose the target; 'now' starts them with the camera")
     cam.set_defaults(func=run_camera)
     bench = subparsers.add_parser(
         "bench",
@@ -57,10 +63,18 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:  # type: ignore
         epilog=BENCH_EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    bench.add_argument("--frames", type=int, default=300)
-    bench.add_argument("--width", type=int, default=640)
-    bench.add_argument("--height", type=int, default=480)
+    bench.add_argument("--frames", type=int, default=300, help="frames to render (default 300)")
+    bench.add_argument("--width", type=int, default=640, help="image width in pixels (default 640)")
+    bench.add_argument("--height", type=int, default=480, help="image height in pixels (default 480)")
     bench.set_defaults(func=run_bench)
+
+
+MISSION_START = re.compile(r"\bMISSION \d+ STARTED\b")
+
+
+def is_mission_start(text: str) -> bool:
+    """The companion's STATUSTEXT on a GCS mission start (companion/gcs_link.py), broadcast to every link."""
+    return MISSION_START.search(text) is not None
 
 
 def run_camera(args: argparse.Namespace) -> int:
@@ -72,12 +86,24 @@ def run_camera(args: argparse.Namespace) -> int:
         return 2
     world = SCENARIOS[args.scenario].build_world(args.seed)
     camera = CameraModel.from_hfov(640, 480, 70.0, args.mount_pitch)
+    servers: list[CameraServer] = []
+
+    def on_text(text: str) -> None:
+        if servers and is_mission_start(text) and math.isinf(servers[0].epoch):
+            servers[0].epoch = time.monotonic()
+            print(f"mission started ({text!r}): the people start walking", flush=True)
+
     try:
-        follower = PoseFollower(args.autopilot_url).start()
-        server = CameraServer(world, camera, follower.pose, host=args.host, port=args.port).start()
+        follower = PoseFollower(args.autopilot_url, on_text=on_text).start()
+        server = CameraServer(world, camera, follower.pose, host=args.host, port=args.port)
+        if args.world_start == "mission":
+            server.epoch = math.inf  # world time stays 0 until the mission starts
+        servers.append(server.start())
     except (OSError, ValueError) as exc:
         print(f"error: {exc}")
         return 2
+    if args.world_start == "mission":
+        print("people hold their start positions until the companion reports 'MISSION n STARTED'", flush=True)
     backend = None
     if args.backend_port is not None:
         from backend.app import create_app

@@ -36,8 +36,10 @@ class PoseFollower:
     """The vehicle pose from the autopilot's telemetry, read on a background thread."""
 
     def __init__(self, url: str, rate_hz: float = 30.0, source_system: int = 254, source_component: int = 100,
-                 initial: VehiclePose | None = None, origin: tuple[float, float] = (0.0, 0.0)) -> None:
+                 initial: VehiclePose | None = None, origin: tuple[float, float] = (0.0, 0.0),
+                 on_text: Callable[[str], None] | None = None) -> None:
         self.url = url
+        self.on_text = on_text  # every STATUSTEXT heard on the link (the companion's are broadcast)
         self.rate_hz = rate_hz
         self.origin = origin  # where this vehicle's home (LOCAL_POSITION_NED origin) lies in the world
         self._pose = initial or VehiclePose(0.0, 0.0, -10.0)
@@ -83,13 +85,18 @@ class PoseFollower:
                 self._request_streams()
                 last_request = now
             try:
-                msg = self._conn.recv_match(type=["ATTITUDE", "LOCAL_POSITION_NED", "HEARTBEAT"], blocking=True, timeout=0.2)
+                msg = self._conn.recv_match(type=["ATTITUDE", "LOCAL_POSITION_NED", "HEARTBEAT", "STATUSTEXT"],
+                                            blocking=True, timeout=0.2)
             except (OSError, ValueError) as exc:  # garbage or a closed socket: keep the last pose
                 log.debug("pose follower: %s", exc)
                 continue
             if msg is None:
                 continue
             kind = msg.get_type()
+            if kind == "STATUSTEXT":
+                if self.on_text is not None:
+                    self.on_text(str(msg.text))
+                continue
             if kind == "HEARTBEAT" and not self._conn.target_system:
                 self._conn.target_system = msg.get_srcSystem()
             with self._lock:
@@ -153,7 +160,8 @@ class CameraServer:
         return f"sim+tcp://{self.address[0]}:{self.address[1]}"
 
     def world_time(self) -> float:
-        return self._clock() - self.epoch
+        """Seconds since world time zero; 0 (people at their start) while `epoch` is inf (not started)."""
+        return max(0.0, self._clock() - self.epoch)
 
     def add_hook(self, hook: FrameHook) -> None:
         """Called on the render thread with every frame (video writer, metrics); keep it quick."""

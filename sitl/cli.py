@@ -19,6 +19,7 @@ examples:
   cloudtrack-sim run follow --video out/demo.mp4 --plot out/demo.png --json out/demo.json
   cloudtrack-sim run reject --seed 3 --json out/reject.json
   cloudtrack-sim run follow --autopilot px4 --tracker vit --model-dir ../shared/models
+  cloudtrack-sim run follow --autopilot arducopter --json out/follow-arducopter.json
   cloudtrack-sim autopilot --autopilot px4 --gcs udpout:127.0.0.1:14550
   cloudtrack-sim camera --autopilot-url udpin:0.0.0.0:14551 --backend-port 8080
   cloudtrack-sim bench
@@ -36,7 +37,17 @@ def _add_run(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     run.add_argument("scenario", choices=sorted(SCENARIOS), metavar="SCENARIO", help=", ".join(SCENARIOS))
-    run.add_argument("--autopilot", choices=PERSONALITIES, help="override the scenario's autopilot personality")
+    run.add_argument("--autopilot", choices=(*PERSONALITIES, "arducopter"),
+                     help="override the scenario's autopilot: a mock personality (ardupilot, px4) or 'arducopter', "
+                     "the real ArduCopter SITL binary (see --arducopter-binary)")
+    run.add_argument("--arducopter-binary", type=Path, metavar="PATH",
+                     help="the ArduCopter SITL binary for --autopilot arducopter (default: $CLOUDTRACK_ARDUCOPTER, "
+                     "else $CLOUDTRACK_SHARED/sitl/arducopter, else ../shared/sitl/arducopter); a missing binary "
+                     "is an error, never a fall-back to the mock")
+    run.add_argument("--speedup", type=float, default=5.0, metavar="X",
+                     help="with --autopilot arducopter: SITL speed-up while it boots, arms and takes off (default 5); "
+                     "the mission itself always runs at 1, since the world, the camera and the companion run in "
+                     "wall-clock time")
     run.add_argument("--seed", type=int, default=1, help="world seed (default 1)")
     run.add_argument("--json", type=Path, metavar="OUT", help="write the metrics JSON here")
     run.add_argument("--video", type=Path, metavar="OUT.mp4", help="write the first vehicle's camera view with overlays")
@@ -45,7 +56,8 @@ def _add_run(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     run.add_argument("--model-dir", type=Path, help="weights folder (default: $CLOUDTRACK_MODEL_DIR, then the cache)")
     run.add_argument("--verifier", choices=("local", "none"), default="local",
                      help="back-end verifier on the rendered crops (default local colour verifier)")
-    run.add_argument("--work-dir", type=Path, help="keep companion logs and event files here (default: a temp dir)")
+    run.add_argument("--work-dir", type=Path, help="keep companion logs, event files, flight records and the SITL's "
+                     "files here (default: a temp dir, removed after the run)")
     run.set_defaults(func=_run)
 
 
@@ -55,6 +67,7 @@ def _run(args: argparse.Namespace) -> int:
     options = RunOptions(
         autopilot=args.autopilot, seed=args.seed, json_out=args.json, video_out=args.video, plot_out=args.plot,
         tracker=args.tracker, model_dir=args.model_dir, work_dir=args.work_dir, verifier=args.verifier,
+        arducopter_binary=args.arducopter_binary, speedup=args.speedup,
     )
     try:
         results = run_scenario(SCENARIOS[args.scenario], options, progress=lambda line: print(line, flush=True))

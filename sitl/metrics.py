@@ -154,3 +154,31 @@ def summarise(
         "setpoints_received": len(setpoints),
         "safety_events": safety,
     }
+
+
+def distance_coasted(
+    track: Sequence[tuple[float, float, float]], t_fault: float, still_m_s: float = 0.3, window_s: float = 10.0
+) -> float:
+    """Ground distance (m) the vehicle travelled from `t_fault` until it came to rest.
+
+    `track` is (t, north, east) per rendered frame. At rest: under `still_m_s` averaged over 0.5 s. The
+    path is summed over 0.1 s steps, so position noise at a standstill adds little; `window_s` bounds it.
+    """
+    pts = [p for p in track if t_fault <= p[0] <= t_fault + window_s]
+    if len(pts) < 2:
+        return 0.0
+    thinned = [pts[0]]
+    for p in pts[1:]:
+        if p[0] - thinned[-1][0] >= 0.1:
+            thinned.append(p)
+    travelled = 0.0
+    for i in range(1, len(thinned)):
+        a, b = thinned[i - 1], thinned[i]
+        later = [q for q in thinned[i:] if q[0] - b[0] <= 0.5]
+        if b[0] - t_fault > 0.2 and len(later) >= 2:
+            span = later[-1][0] - later[0][0]
+            if span > 0 and math.dist(later[0][1:], later[-1][1:]) / span < still_m_s:
+                travelled += math.dist(a[1:], b[1:])
+                break
+        travelled += math.dist(a[1:], b[1:])
+    return travelled

@@ -17,7 +17,9 @@ import json
 import math
 import os
 import secrets
+import shutil
 import signal
+import socket
 import subprocess
 import sys
 import tempfile
@@ -39,10 +41,11 @@ from sitl.metrics import (
     FrameSample,
     SetpointSample,
     TimedEvent,
+    distance_coasted,
     following_intervals,
     summarise,
 )
-from sitl.scenarios import TAKEOVER_MODE, Scenario, ScriptedGcs, VehicleOutcome, assess
+from sitl.scenarios import COASTING_FAULTS, TAKEOVER_MODE, Scenario, ScriptedGcs, VehicleOutcome, assess
 from sitl.simulated_detector import DetectorNoise, SimulatedPersonDetector
 from sitl.video_overlay import OverlayState, VideoWriter, draw_overlay
 
@@ -53,6 +56,10 @@ MOUNT_PITCH_DEG = -40.0  # at 10 m up and 12 m standoff the target sits near the
 STANDOFF_M = 12.0
 VIDEO_DELAY_FRAMES = 20
 VEHICLE_ORIGINS = ((0.0, 0.0), (0.0, -8.0))  # where each vehicle's home lies in the world (north, east)
+HOME_ALT_M = 488.0
+GUID_TIMEOUT_S = 1.0  # what docs/operations.md recommends; the mock and the real SITL both run with it
+FLOOD_SENDERS = 200
+FLY_TO_OFFSET_M = (0.0, 15.0)  # the GCS "fly to" target, from where the vehicle is (north, east)
 
 Progress = Callable[[str], None]
 
@@ -69,6 +76,8 @@ class RunOptions:
     work_dir: Path | None = None
     verifier: str = "local"
     startup_timeout_s: float = 90.0
+    arducopter_binary: Path | None = None  # None: sitl.arducopter_sitl.default_binary()
+    speedup: float = 5.0  # the real SITL's speed-up while it boots and takes off (the mission runs at 1)
 
 
 @dataclass(frozen=True)
@@ -109,6 +118,11 @@ class _Vehicle:
     track_boxes: dict[int, Box | None] = field(default_factory=dict)  # the companion's box per frame id
     video_queue: deque[tuple[int, float, Any]] = field(default_factory=deque)
     start_sent: tuple[float, int] | None = None  # (when, mission id) of the last unacknowledged start
+    origin: tuple[float, float] = (0.0, 0.0)
+    companion_udp_port: int | None = None  # the companion listens here (udpin) in scenarios that need it
+    stall_resumed: float | None = None  # monotonic time of SIGCONT
+    fly_to: tuple[float, tuple[float, float], tuple[float, float]] | None = None  # (t, from, to) world n/e
+    flood: dict[str, int] = field(default_factory=dict)
 
 
 def default_tracker(model_dir: Path) -> str:
@@ -142,6 +156,13 @@ class ScenarioRun:
         self.camera = CameraModel.from_hfov(640, 480, 70.0, MOUNT_PITCH_DEG, stabilised=True)
         self.model_dir = resolve_model_dir(options.model_dir)
         self.tracker = options.tracker or default_tracker(self.model_dir)
+        self.arducopter: Path | None = None
+        if self.personality == "arducopter":
+            from sitl.arducopter_sitl import find_binary
+
+            self.arducopter = find_binary(options.arducopter_binary)  # never a silent fall-back to the mock
+        # A temp work dir is removed after the run (--work-dir keeps one).
+        self._own_work = options.work_dir is None
         self.work = options.work_dir or Path(tempfile.mkdtemp(prefix=f"cloudtrack-sim-{scenario.name}-"))
         self.work.mkdir(parents=True, exist_ok=True)
         self.vehicles: list[_Vehicle] = []
@@ -152,6 +173,12 @@ class ScenarioRun:
         self.tokens = {f"drone-{i + 1}": secrets.token_hex(16) for i in range(scenario.vehicles)}
         self._backend: Any = None
         self._t_mission: float | None = None
+        self._flood_threads: list[Any] = []
+        self._stopping = False
+
+    @property
+    def real(self) -> bool:
+        return self.personality == "arducopter"
 
     # ----------------------------------------------------------------------------------------- helpers
     def now(self) -> float:
@@ -185,25 +212,55 @@ class ScenarioRun:
         return str(self._backend.url)
 
     def _start_vehicle(self, index: int, backend_url: str) -> _Vehicle:
-        from sitl.autopilot import AutopilotOptions, SimulatedAutopilot
-
         origin = VEHICLE_ORIGINS[index % len(VEHICLE_ORIGINS)]
-        lat, lon = _home(origin)
-        options = AutopilotOptions(personality=self.personality, start_height_m=ALTITUDE_M, home_lat=lat, home_lon=lon)
-        links = {name: "udpin:127.0.0.1:0" for name in ("gcs", "companion", "camera")}
-        autopilot = SimulatedAutopilot(options, links)
-        autopilot.start()
-        follower = PoseFollower(f"udpout:127.0.0.1:{autopilot.link_port('camera')}", origin=origin).start()
+        vid = f"drone-{index + 1}"
+        udp_port = _free_udp_port() if self.scenario.companion_listens else None
+        if self.real:
+            autopilot, gcs, camera_url = self._start_arducopter(vid, origin, udp_port)
+        else:
+            autopilot, gcs, camera_url = self._start_mock(origin, udp_port)
+        follower = PoseFollower(camera_url, origin=origin).start()
         camera = CameraServer(self.world, self.camera, follower.pose, fps=30.0, frame_id_base=index << FRAME_ID_BITS)
+        camera.epoch = math.inf  # people hold their start positions until the mission starts
         host, port = backend_url.removeprefix("http://").split(":")
         proxy = FaultProxy((host, int(port))).start()
-        gcs = ScriptedGcs(f"udpout:127.0.0.1:{autopilot.link_port('gcs')}").start()
-        vid = f"drone-{index + 1}"
         v = _Vehicle(index, vid, autopilot, follower, camera, proxy, gcs, self.work / f"{vid}-events.jsonl",
-                     self.work / f"{vid}-companion.log")
+                     self.work / f"{vid}-companion.log", origin=origin, companion_udp_port=udp_port)
         camera.add_hook(partial(self._on_frame, v))
         camera.start()
         return v
+
+    def _start_mock(self, origin: tuple[float, float], udp_port: int | None) -> tuple[Any, ScriptedGcs, str]:
+        from sitl.autopilot import AutopilotOptions, SimulatedAutopilot
+
+        lat, lon = _home(origin)
+        options = AutopilotOptions(personality=self.personality, start_height_m=ALTITUDE_M, home_lat=lat, home_lon=lon,
+                                   guid_timeout_s=GUID_TIMEOUT_S)
+        links = {name: "udpin:127.0.0.1:0" for name in ("gcs", "companion", "camera")}
+        if udp_port is not None:
+            links["companion"] = f"udpout:127.0.0.1:{udp_port}"  # the companion listens (udpin)
+        autopilot = SimulatedAutopilot(options, links)
+        autopilot.start()
+        gcs = ScriptedGcs(f"udpout:127.0.0.1:{autopilot.link_port('gcs')}").start()
+        return autopilot, gcs, f"udpout:127.0.0.1:{autopilot.link_port('camera')}"
+
+    def _start_arducopter(self, vid: str, origin: tuple[float, float],
+                          udp_port: int | None) -> tuple[Any, ScriptedGcs, str]:
+        from sitl.arducopter_sitl import ArduCopterSitl, RealAutopilot
+
+        assert self.arducopter is not None
+        lat, lon = _home(origin)
+        sitl = ArduCopterSitl(self.arducopter, self.work / f"{vid}-arducopter", (lat, lon, HOME_ALT_M, 0.0),
+                              speedup=self.options.speedup).start()
+        self.progress(f"{vid}: ArduCopter SITL {self.arducopter} (pid {sitl.process.pid if sitl.process else '?'}, "
+                      f"instance {sitl.instance}, speed-up {self.options.speedup:g} until airborne)")
+        try:
+            gcs = ScriptedGcs(f"tcp:127.0.0.1:{sitl.ports.gcs}").start()
+            autopilot = RealAutopilot(sitl, gcs, udp_port)
+        except Exception:
+            sitl.stop()
+            raise
+        return autopilot, gcs, f"tcp:127.0.0.1:{sitl.ports.camera}"
 
     def _start_companion(self, v: _Vehicle) -> None:
         v.events_path.unlink(missing_ok=True)  # a work dir may be reused: only this run's events count
@@ -212,7 +269,7 @@ class ScenarioRun:
             f"camera.source={v.camera.url}",
             f"camera.mount_pitch_deg={MOUNT_PITCH_DEG}",
             "camera.hfov_deg=70.0",
-            f"mavlink.connection=udpout:127.0.0.1:{v.autopilot.link_port('companion')}",
+            f"mavlink.connection={self._companion_link(v)}",
             f"backend.url={v.proxy.url}",
             f"tracker.name={self.tracker}",
             f"tracker.model_dir={self.model_dir}",
@@ -227,6 +284,13 @@ class ScenarioRun:
         env.pop("NOTIFY_SOCKET", None)
         with open(v.log_path, "wb") as log_file:
             v.process = subprocess.Popen(cmd, stdout=log_file, stderr=subprocess.STDOUT, env=env)
+
+    def _companion_link(self, v: _Vehicle) -> str:
+        if v.companion_udp_port is not None:
+            return f"udpin:127.0.0.1:{v.companion_udp_port}"
+        if self.real:
+            return f"udpout:127.0.0.1:{v.autopilot.bridge.udp_port}"
+        return f"udpout:127.0.0.1:{v.autopilot.link_port('companion')}"
 
     def _on_frame(self, v: _Vehicle, frame: RenderedFrame) -> None:
         if self.epoch is None:
@@ -359,6 +423,29 @@ class ScenarioRun:
             self.say(f"FAULT {fault.kind} on {v.vehicle_id}")
             if fault.kind == "takeover":
                 v.autopilot.set_mode(TAKEOVER_MODE[self.personality], source="pilot")
+            elif fault.kind == "rc_takeover":
+                self.fault_times["takeover"] = self.now()
+                if self.real:
+                    from sitl.arducopter_sitl import RC_LOITER_PWM
+
+                    v.autopilot.rc_mode_switch(RC_LOITER_PWM, "LOITER")
+                else:
+                    from sitl.autopilot import RC_MODE_SWITCH_PWM
+
+                    v.gcs.hold_rc_mode_switch(RC_MODE_SWITCH_PWM["LOITER"])
+            elif fault.kind == "abort":
+                v.gcs.abort()
+            elif fault.kind == "fly_to":
+                self._fly_to(v)
+            elif fault.kind == "stall":
+                assert v.process is not None
+                os.kill(v.process.pid, signal.SIGSTOP)
+            elif fault.kind == "resume":
+                assert v.process is not None
+                os.kill(v.process.pid, signal.SIGCONT)
+                v.stall_resumed = time.monotonic()
+            elif fault.kind == "flood":
+                self._flood(v)
             elif fault.kind == "backend_down":
                 v.proxy.cut()
             elif fault.kind == "backend_up":
@@ -370,6 +457,61 @@ class ScenarioRun:
             elif fault.kind == "restart":
                 v.pending_decision = None
                 self._send_start(v, 2)
+
+    def _fly_to(self, v: _Vehicle) -> None:
+        """The GCS takes the vehicle back: GUIDED, then a position target 15 m east of where it is."""
+        pose = v.follower.pose()
+        here = (pose.north, pose.east)
+        there = (here[0] + FLY_TO_OFFSET_M[0], here[1] + FLY_TO_OFFSET_M[1])
+        v.gcs.set_mode(4)  # GUIDED on ArduCopter
+        time.sleep(0.1)
+        v.gcs.fly_to(there[0] - v.origin[0], there[1] - v.origin[1], pose.down)
+        v.fly_to = (self.now(), here, there)
+        self.say(f"{v.vehicle_id}: GCS fly-to ({there[0]:.1f}, {there[1]:.1f}) from ({here[0]:.1f}, {here[1]:.1f})")
+
+    def _flood(self, v: _Vehicle) -> None:
+        """200 one-datagram UDP senders at the companion's port; each then listens for what comes back."""
+        import threading
+
+        assert v.companion_udp_port is not None, "the flood scenario needs the companion listening on UDP"
+        from pymavlink import mavutil
+
+        socks = []
+        for i in range(FLOOD_SENDERS):
+            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            s.bind(("127.0.0.1", 0))
+            s.setblocking(False)
+            mav = mavutil.mavlink.MAVLink(None, srcSystem=100 + i % 100, srcComponent=1)
+            hb = mav.heartbeat_encode(mavutil.mavlink.MAV_TYPE_GCS, mavutil.mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+            s.sendto(hb.pack(mav) if i % 2 == 0 else os.urandom(40), ("127.0.0.1", v.companion_udp_port))
+            socks.append(s)
+        v.flood = {"senders": FLOOD_SENDERS, "datagrams": 0, "setpoints": 0}
+
+        def listen() -> None:
+            import select
+
+            parser = mavutil.mavlink.MAVLink(None)
+            parser.robust_parsing = True
+            end = time.monotonic() + 6.0
+            while time.monotonic() < end and not self._stopping:
+                ready, _, _ = select.select(socks, [], [], 0.2)
+                for s in ready:
+                    try:
+                        data = s.recv(65535)
+                    except OSError:
+                        continue
+                    v.flood["datagrams"] += 1
+                    try:
+                        msgs = parser.parse_buffer(data) or []
+                    except Exception:
+                        msgs = []
+                    v.flood["setpoints"] += sum(1 for m in msgs if m.get_type() == "SET_POSITION_TARGET_LOCAL_NED")
+            for s in socks:
+                s.close()
+
+        t = threading.Thread(target=listen, name="flood-listener", daemon=True)
+        t.start()
+        self._flood_threads.append(t)
 
     def _finished(self) -> bool:
         if any(v.process is not None and v.process.poll() is not None for v in self.vehicles):
@@ -401,6 +543,10 @@ class ScenarioRun:
         self.vehicles = [self._start_vehicle(i, backend_url) for i in range(s.vehicles)]
         for v in self.vehicles:
             self._start_companion(v)
+        if self.real:
+            for v in self.vehicles:  # the pilot arms and takes off; the companion never does
+                took = v.autopilot.fly_up(ALTITUDE_M, progress=self.progress)
+                self.progress(f"{v.vehicle_id}: airborne at {ALTITUDE_M:g} m in GUIDED after {took:.1f} s, SITL at real time")
         deadline = time.monotonic() + self.options.startup_timeout_s
         while not all(v.ready for v in self.vehicles):
             for v in self.vehicles:
@@ -428,6 +574,8 @@ class ScenarioRun:
             self._faults()
             time.sleep(0.05)
         end_t = self.now()
+        for t in self._flood_threads:
+            t.join(timeout=7.0)
         self._stop_companions()
         for v in self.vehicles:
             for e in self._read_events(v):
@@ -444,6 +592,8 @@ class ScenarioRun:
     def _stop_companions(self) -> None:
         for v in self.vehicles:
             if v.process is not None and v.process.poll() is None:
+                if "stall" in self.fault_times and v.stall_resumed is None:
+                    v.process.send_signal(signal.SIGCONT)
                 v.process.send_signal(signal.SIGTERM)
         for v in self.vehicles:
             if v.process is None:
@@ -459,6 +609,7 @@ class ScenarioRun:
                 self.say(f"{v.vehicle_id}: companion did not stop within 5 s of SIGTERM: killed")
 
     def _teardown(self) -> None:
+        self._stopping = True
         for v in self.vehicles:
             if v.process is not None and v.process.poll() is None:
                 v.process.kill()
@@ -478,6 +629,8 @@ class ScenarioRun:
                     self.progress(f"teardown: {exc}")
         if self._backend is not None:
             self._backend.stop()
+        if self._own_work:
+            shutil.rmtree(self.work, ignore_errors=True)
 
     # ------------------------------------------------------------------------------------------ scoring
     def _outcome(self, v: _Vehicle, end_t: float) -> VehicleOutcome:
@@ -541,17 +694,39 @@ class ScenarioRun:
                 run_start = None
         takeover_t = self.fault_times.get("takeover")
         late = None
+        mode_seen_after: float | None = None
         if takeover_t is not None:
-            mode_times = [t - epoch for t, _, source in v.autopilot.mode_history if source == "pilot"]
+            mode_times = [t - epoch for t, _, source in v.autopilot.mode_history if source.startswith("pilot")]
             takeover_t = mode_times[0] if mode_times else takeover_t
+            if self.real:
+                # The real autopilot changes mode some time after the pilot's action (the RC switch is
+                # debounced for 200 ms); the stop latency counts from the HEARTBEAT that reported the change.
+                from sitl.arducopter_sitl import ARDUCOPTER_MODES
+
+                wanted = ARDUCOPTER_MODES[TAKEOVER_MODE[self.personality]]
+                seen = [t - epoch for t, mode, _ in list(v.gcs.modes) if t - epoch >= takeover_t and mode == wanted]
+                if seen:
+                    mode_seen_after = seen[0] - takeover_t
+                    takeover_t = seen[0]
             after = [sp.t for sp in setpoints if sp.t > takeover_t]
             late = (max(after) - takeover_t) if after else 0.0
         holds = tuple(e.t for e in events if e.kind == "hold" or (e.kind == "watchdog" and e.detail.get("action") == "stop"))
         metrics = summarise(samples, setpoints, events, STANDOFF_M, (self.camera.width, self.camera.height), end_t,
                             outcome="pending")
         metrics["last_setpoint_after_takeover_s"] = None if late is None else round(late, 3)
+        if mode_seen_after is not None:
+            metrics["takeover_mode_reported_after_action_s"] = round(mode_seen_after, 3)
         metrics["occlusion_s"] = None if occlusion is None else [round(occlusion[0], 2), round(occlusion[1], 2)]
         metrics["frames_rendered"] = len(v.frames)
+        # ArduCopter flies a setpoint only in GUIDED, PX4 only in OFFBOARD: those are the accepted ones.
+        active = "OFFBOARD" if self.personality == "px4" else "GUIDED"
+        metrics["setpoints_accepted"] = sum(1 for sp in list(v.autopilot.setpoints)
+                                            if sp.link == "companion" and sp.mode == active)
+        track = [(f.time_s, f.pose.north, f.pose.east) for f in v.frames]
+        metrics["coasted_m"] = {
+            kind: round(distance_coasted(track, t), 2) for kind, t in self.fault_times.items() if kind in COASTING_FAULTS
+        }
+        metrics.update(self._fault_metrics(v, setpoints))
         return VehicleOutcome(
             metrics=metrics,
             confirmations=tuple(t for t, _ in v.confirmations),
@@ -565,6 +740,27 @@ class ScenarioRun:
             hold_times=holds,
             following_after=following_after,
         )
+
+    def _fault_metrics(self, v: _Vehicle, setpoints: list[SetpointSample]) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        if v.fly_to is not None:
+            t0, here, there = v.fly_to
+            start = math.dist(here, there)
+            closest = min((math.dist((f.pose.north, f.pose.east), there) for f in v.frames if t0 <= f.time_s <= t0 + 8.0),
+                          default=start)
+            out["fly_to_progress_m"] = round(start - closest, 2)  # how far it got toward the GCS target in 8 s
+        if v.stall_resumed is not None:
+            resumed = v.stall_resumed - (self.epoch or 0.0)
+            texts = [(t - (self.epoch or 0.0), text) for t, text in v.gcs.statustexts]
+            cause = [(t, text) for t, text in texts if t >= resumed - 0.5 and "stall" in text.lower()]
+            out["stall_reported"] = None if not cause else {"after_s": round(cause[0][0] - resumed, 3), "text": cause[0][1]}
+            out["statustexts_after_resume"] = [text for t, text in texts if resumed - 0.5 <= t <= resumed + 3.0][:10]
+            after = [sp for sp in setpoints if sp.t >= resumed]
+            out["first_setpoint_after_resume"] = None if not after else {
+                "after_s": round(after[0].t - resumed, 3), "speed_m_s": round(after[0].horizontal_speed, 3)}
+        if v.flood:
+            out["flood"] = dict(v.flood)
+        return out
 
     def _results(self, end_t: float) -> dict[str, Any]:
         s = self.scenario
@@ -583,7 +779,7 @@ class ScenarioRun:
             "duration_s": round(end_t, 2),
             "faults": {k: round(t, 2) for k, t in self.fault_times.items()},
             "vehicles": {},
-            "work_dir": str(self.work),
+            "work_dir": None if self._own_work else str(self.work),
         }
         for v, o in zip(self.vehicles, outcomes, strict=True):
             o.metrics["outcome"] = outcome
@@ -613,6 +809,12 @@ class ScenarioRun:
     def _sample(self, f: _Seen) -> FrameSample:
         tn, te, _ = self.world.person(self.world.target_id).state_at(f.time_s)
         return FrameSample(f.time_s, f.pose.north, f.pose.east, tn, te, None)
+
+
+def _free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
 
 
 def run_scenario(scenario: Scenario, options: RunOptions, progress: Progress = print) -> dict[str, Any]:

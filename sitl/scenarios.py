@@ -24,7 +24,10 @@ from sitl.world import Person, World, distractor_world
 
 log = logging.getLogger(__name__)
 
-FaultKind = Literal["takeover", "backend_down", "backend_up", "link_down", "link_up", "restart"]
+FaultKind = Literal["takeover", "rc_takeover", "backend_down", "backend_up", "link_down", "link_up", "restart",
+                    "abort", "fly_to", "stall", "resume", "flood"]
+# Faults after which the vehicle should come to rest: the metrics report how far it coasted after each.
+COASTING_FAULTS = ("takeover", "backend_down", "link_down", "abort", "stall")
 
 
 @dataclass(frozen=True)
@@ -52,6 +55,7 @@ class Scenario:
     miss_rate: float = 0.05  # the simulated detector's chance of missing a visible person in a keyframe
     companion_settings: tuple[str, ...] = ()
     checks: tuple[str, ...] = field(default_factory=tuple)
+    companion_listens: bool = False  # the companion's MAVLink link is udpin (the flood's target port)
 
     def build_world(self, seed: int) -> World:
         # The turn comes after the roof, so the occlusion happens on a straight stretch.
@@ -67,7 +71,9 @@ class Scenario:
                      world.target_id)
 
 
-TAKEOVER_MODE = {"ardupilot": "LOITER", "px4": "POSCTL"}
+TAKEOVER_MODE = {"ardupilot": "LOITER", "arducopter": "LOITER", "px4": "POSCTL"}
+FLY_TO_MIN_PROGRESS_M = 5.0  # after an abort the GCS's "fly to" must move the vehicle at least this far in 8 s
+STALL_MAX_COAST_M = 4.0  # GUID_TIMEOUT 1 s at the follow speeds: about 2.6 m measured at 1.5 m/s (issue 13)
 
 # The issue's bound: hold within 1 s of a back-end outage or a link drop. The product's defaults
 # (backend_lost_s 10 s, heartbeat_timeout_s 2 s, status every 1 s) suit real uplinks that stall for
@@ -99,6 +105,19 @@ SCENARIOS: dict[str, Scenario] = {
                  checks=("confirmed_target", "in_view", "standoff")),
         Scenario("two-vehicles", "two drones share one back-end; both confirm the person in green", vehicles=2,
                  follow_s=8.0, checks=("confirmed_target",)),
+        Scenario("takeover-rc", "the pilot flips the RC flight-mode switch to LOITER mid-follow: setpoints stop "
+                 "within 200 ms", faults=(Fault("rc_takeover", 5.0),), follow_s=8.0,
+                 checks=("confirmed_target", "takeover")),
+        Scenario("abort-flyto", "the GCS aborts mid-follow, then sends a GUIDED 'fly to' 15 m away: the vehicle "
+                 "must go there (the companion has let go)", faults=(Fault("abort", 5.0), Fault("fly_to", 7.0)),
+                 follow_s=12.0, checks=("confirmed_target", "fly_to_moves")),
+        Scenario("stall", "the companion is frozen 3 s (SIGSTOP/SIGCONT) mid-follow: the vehicle coasts at most "
+                 "GUID_TIMEOUT, no stale setpoint after the resume, the stall is reported",
+                 faults=(Fault("stall", 5.0), Fault("resume", 8.0)), follow_s=12.0,
+                 checks=("confirmed_target", "stall_coast", "stall_reported", "no_stale_setpoint")),
+        Scenario("flood", "200 UDP senders hit the companion's MAVLink port mid-follow: it keeps following and "
+                 "sends them nothing", faults=(Fault("flood", 4.0),), follow_s=12.0, companion_listens=True,
+                 checks=("confirmed_target", "flood")),
     )
 }
 
@@ -126,6 +145,7 @@ def assess(scenario: Scenario, outcomes: Sequence[VehicleOutcome], fault_times: 
     for i, o in enumerate(outcomes):
         name = f"vehicle {i + 1}"
         m = o.metrics
+        failures += _fault_checks(scenario, name, m, o, fault_times)
         if "confirmed_target" in scenario.checks and (not o.confirmed_ids or o.confirmed_ids[0] != "target"):
             failures.append(f"{name}: the right person was not confirmed (confirmed: {list(o.confirmed_ids)})")
         if "in_view" in scenario.checks:
@@ -172,6 +192,36 @@ def assess(scenario: Scenario, outcomes: Sequence[VehicleOutcome], fault_times: 
     return failures
 
 
+def _fault_checks(scenario: Scenario, name: str, m: dict[str, Any], o: VehicleOutcome,
+                  fault_times: dict[str, float]) -> list[str]:
+    failures: list[str] = []
+    if "fly_to_moves" in scenario.checks:
+        progress = m.get("fly_to_progress_m")
+        if progress is None or progress < FLY_TO_MIN_PROGRESS_M:
+            failures.append(f"{name}: after the abort the GCS fly-to moved the vehicle {progress} m toward its "
+                            f"target, needs >= {FLY_TO_MIN_PROGRESS_M:g} m (the companion still holds it?)")
+    if "stall_coast" in scenario.checks:
+        coasted = m.get("coasted_m", {}).get("stall")
+        if coasted is None or coasted > STALL_MAX_COAST_M:
+            failures.append(f"{name}: coasted {coasted} m after the companion froze, limit {STALL_MAX_COAST_M:g} m")
+    if "stall_reported" in scenario.checks and not m.get("stall_reported"):
+        failures.append(f"{name}: the GCS was not told that the companion had stalled (heard after the resume: "
+                        f"{m.get('statustexts_after_resume')})")
+    if "no_stale_setpoint" in scenario.checks:
+        first = m.get("first_setpoint_after_resume")
+        if first is not None and first["speed_m_s"] > 0.05:
+            failures.append(f"{name}: the first setpoint after the resume ({first['after_s']} s) commanded "
+                            f"{first['speed_m_s']} m/s: a stale pre-freeze command")
+    if "flood" in scenario.checks:
+        flood = m.get("flood") or {}
+        if flood.get("setpoints", 0) > 0:
+            failures.append(f"{name}: {flood['setpoints']} setpoints ({flood['datagrams']} datagrams) went to the "
+                            f"{flood['senders']} flood senders")
+        if "flood" in fault_times and o.following_after(fault_times["flood"] + 1.0) < 4.0:
+            failures.append(f"{name}: did not keep following after the flood")
+    return failures
+
+
 class ScriptedGcs:
     """A ground station on the autopilot's GCS link: mission start with a prompt, confirm, reject.
 
@@ -184,6 +234,11 @@ class ScriptedGcs:
         self.target = (target_system, target_component)
         self.statustexts: list[tuple[float, str]] = []
         self.acks: list[tuple[float, int, int]] = []
+        # What the autopilot (target_system/1) reports: its mode and armed flag per HEARTBEAT, its position.
+        self.modes: list[tuple[float, int, bool]] = []
+        self.positions: list[tuple[float, float, float, float]] = []  # (time, north, east, down)
+        self.params: dict[str, float] = {}
+        self._rc: dict[int, int] = {}  # channel -> PWM the pilot's radio holds, re-sent at 10 Hz
         self._stop = threading.Event()
         self._lock = threading.Lock()
         self._thread = threading.Thread(target=self._run, name="scripted-gcs", daemon=True)
@@ -193,28 +248,113 @@ class ScriptedGcs:
         return self
 
     def _run(self) -> None:
-        last_hb = 0.0
+        last_hb = last_rc = 0.0
+        types = ["STATUSTEXT", "COMMAND_ACK", "HEARTBEAT", "LOCAL_POSITION_NED", "PARAM_VALUE"]
         while not self._stop.is_set():
             now = time.monotonic()
             if now - last_hb >= 1.0:
                 with self._lock:
                     self.conn.mav.heartbeat_send(mavutil.mavlink.MAV_TYPE_GCS, mavutil.mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
                 last_hb = now
+            if self._rc and now - last_rc >= 0.1:
+                self._send_rc()
+                last_rc = now
             try:
-                msg = self.conn.recv_match(type=["STATUSTEXT", "COMMAND_ACK"], blocking=True, timeout=0.2)
+                msg = self.conn.recv_match(type=types, blocking=True, timeout=0.05)
             except (OSError, ValueError):
                 continue
             if msg is None:
                 continue
-            if msg.get_type() == "STATUSTEXT":
+            now = time.monotonic()
+            kind = msg.get_type()
+            if kind == "STATUSTEXT":
                 self.statustexts.append((now, str(msg.text)))
-            else:
+            elif kind == "COMMAND_ACK":
                 self.acks.append((now, int(msg.command), int(msg.result)))
+            elif kind == "PARAM_VALUE":
+                self.params[str(msg.param_id)] = float(msg.param_value)
+            elif msg.get_srcSystem() != self.target[0] or msg.get_srcComponent() != 1:
+                continue  # the companion's own HEARTBEAT, or another system's
+            elif kind == "HEARTBEAT":
+                armed = bool(msg.base_mode & mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+                self.modes.append((now, int(msg.custom_mode), armed))
+            else:
+                self.positions.append((now, float(msg.x), float(msg.y), float(msg.z)))
 
-    def _command(self, command: int, *params: float) -> None:
+    def _command(self, command: int, *params: float, component: int | None = None) -> None:
         p = [*params, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0][:7]
         with self._lock:
-            self.conn.mav.command_long_send(self.target[0], self.target[1], command, 0, *p)
+            self.conn.mav.command_long_send(self.target[0], self.target[1] if component is None else component,
+                                            command, 0, *p)
+
+    # ------------------------------------------------------------------- the pilot's side (autopilot 1/1)
+    def mode(self) -> int | None:
+        """The autopilot's custom_mode from its last HEARTBEAT."""
+        return self.modes[-1][1] if self.modes else None
+
+    def position(self) -> tuple[float, float, float] | None:
+        return self.positions[-1][1:] if self.positions else None
+
+    def request_interval(self, msg_id: int, hz: float) -> None:
+        self._command(mavutil.mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, 1e6 / hz, component=1)
+
+    def set_mode(self, custom_mode: int) -> None:
+        self._command(mavutil.mavlink.MAV_CMD_DO_SET_MODE, mavutil.mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+                      custom_mode, component=1)
+
+    def arm(self) -> None:
+        self._command(mavutil.mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1, component=1)
+
+    def takeoff(self, height_m: float) -> None:
+        self._command(mavutil.mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, height_m, component=1)
+
+    def set_param(self, name: str, value: float) -> None:
+        with self._lock:
+            self.conn.mav.param_set_send(self.target[0], 1, name.encode(), value,
+                                         mavutil.mavlink.MAV_PARAM_TYPE_REAL32)
+
+    def read_param(self, name: str, timeout_s: float = 5.0) -> float | None:
+        """PARAM_REQUEST_READ by name; the value the autopilot answers (None if it does not)."""
+        self.params.pop(name, None)
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end:
+            with self._lock:
+                self.conn.mav.param_request_read_send(self.target[0], 1, name.encode(), -1)
+            for _ in range(10):
+                if name in self.params:
+                    return self.params[name]
+                time.sleep(0.05)
+        return None
+
+    def hold_rc(self, channel: int, pwm: int) -> None:
+        """The pilot's radio holds `channel` (1-8) at `pwm`, re-sent at 10 Hz as a radio would (an override not
+        refreshed within RC_OVERRIDE_TIME falls back to the SITL's own RC input)."""
+        self._rc[channel] = pwm
+        self._send_rc()
+
+    def hold_rc_mode_switch(self, pwm: int) -> None:
+        """Flip the flight-mode switch (channel 5, FLTMODE_CH)."""
+        self.hold_rc(5, pwm)
+
+    def _send_rc(self) -> None:
+        # 0: channel not overridden (the SITL's own input stays); the throttle the pilot holds at mid-stick
+        # keeps LOITER/ALT_HOLD level after a takeover instead of descending on the SITL's idle throttle.
+        pwm = [self._rc.get(ch, 0) for ch in range(1, 9)]
+        with self._lock:
+            self.conn.mav.rc_channels_override_send(self.target[0], 1, *pwm)
+
+    def fly_to(self, north: float, east: float, down: float) -> None:
+        """A GCS "fly to here" in GUIDED: a position target in MAV_FRAME_LOCAL_NED."""
+        mask = 0b0000_1101_1111_1000  # position only: velocity, acceleration, yaw and yaw rate ignored
+        with self._lock:
+            self.conn.mav.set_position_target_local_ned_send(
+                0, self.target[0], 1, mavutil.mavlink.MAV_FRAME_LOCAL_NED, mask, north, east, down,
+                0, 0, 0, 0, 0, 0, 0, 0)
+
+    def abort(self) -> None:
+        from companion.gcs_link import CMD_ABORT
+
+        self._command(CMD_ABORT)
 
     def start_mission(self, prompt: str, mission_id: int, superset: str = "person", allow_engage: bool = True) -> None:
         from companion.gcs_link import CMD_START, PROMPT_PAYLOAD_TYPE, encode_prompt

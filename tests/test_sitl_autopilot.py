@@ -81,7 +81,7 @@ def test_px4_streams_by_default() -> None:
 def test_set_mode_is_acknowledged_and_arming_is_refused() -> None:
     with autopilot("ardupilot") as sim, gcs(sim) as ground:
         assert set_mode_from_gcs(ground, 17).result == 0 and sim.mode == "BRAKE"
-        assert set_mode_from_gcs(ground, 99).result == 2  # no such mode: DENIED
+        assert set_mode_from_gcs(ground, 99).result == 4  # no such mode: FAILED, as ArduCopter 4.7 answers
         ack = command(ground, 400, 1)  # MAV_CMD_COMPONENT_ARM_DISARM: the simulator never arms for anyone
         assert ack.result == 2
 

@@ -1,0 +1,371 @@
+"""The real ArduCopter SITL binary as the scenarios' autopilot: find it, start it, bridge the companion to it.
+
+`ArduCopterSitl` starts `arducopter` (the shared ArduPilot build, see ../shared/sitl/SOURCE.md) in its own
+temporary working directory with wiped parameters, the project's defaults on top of the shipped
+`copter.parm` (`GUID_TIMEOUT` 1 s and the MAVLink stream rates docs/operations.md recommends) and three TCP
+serial ports, laid out as on a real flight controller:
+
+    SERIAL0  GCS (the scripted pilot/GCS: arming, take-off, mode changes, RC override, fly-to)
+    SERIAL1  a spare output the simulated camera follows (like `cloudtrack-sim camera --autopilot-url`)
+    SERIAL2  TELEM2, the companion: reached through `CompanionBridge` (MAV3_* stream rates, 4.5+ names)
+
+`CompanionBridge` relays the companion's UDP datagrams to SERIAL2's TCP stream and back. It records every
+SET_POSITION_TARGET_LOCAL_NED the companion sends (the metrics' "setpoints received") and can cut the
+link both ways, the real-autopilot counterpart of the mock's `set_link_down`.
+
+The binary exits when its parent dies, so a crashed runner never leaves it flying.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import shutil
+import socket
+import subprocess
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from pymavlink import mavutil
+
+log = logging.getLogger(__name__)
+
+BINARY_ENV = "CLOUDTRACK_ARDUCOPTER"
+REPO_ROOT = Path(__file__).resolve().parents[1]
+GUID_TIMEOUT_S = 1.0  # docs/operations.md: a frozen companion coasts 1 s, not the default 3 s
+TELEMETRY_HZ = 10  # MAVn_POSITION / EXTRA1 / EXTRA2 on the companion's and the camera's ports
+# ArduCopter 4.5+ names its stream-rate parameters MAVn_* (n = SERIALn-1 + 1); SRn_* no longer exist.
+STREAM_GROUPS = ("POSITION", "EXTRA1", "EXTRA2", "EXTRA3")
+ARDUCOPTER_MODES = {"STABILIZE": 0, "ALT_HOLD": 2, "AUTO": 3, "GUIDED": 4, "LOITER": 5, "RTL": 6, "LAND": 9,
+                    "POSHOLD": 16, "BRAKE": 17}
+# copter.parm's flight-mode switch: FLTMODE_CH 5, FLTMODE5 = LOITER (PWM 1621-1749), FLTMODE6 = STABILIZE.
+RC_LOITER_PWM = 1685
+
+
+class ArduCopterNotFound(RuntimeError):
+    """The binary is not where the runner looks: the message says where to put it."""
+
+
+def default_binary() -> Path:
+    """$CLOUDTRACK_ARDUCOPTER, else $CLOUDTRACK_SHARED/sitl/arducopter, else ../shared/sitl/arducopter."""
+    if os.environ.get(BINARY_ENV):
+        return Path(os.environ[BINARY_ENV])
+    shared = os.environ.get("CLOUDTRACK_SHARED")
+    return (Path(shared) if shared else REPO_ROOT.parent / "shared") / "sitl" / "arducopter"
+
+
+def find_binary(override: Path | None = None) -> Path:
+    path = (override or default_binary()).expanduser()
+    if path.is_file() and os.access(path, os.X_OK):
+        return path.resolve()
+    raise ArduCopterNotFound(
+        f"ArduCopter SITL binary not found (or not executable) at {path}. Put the `arducopter` SITL build "
+        f"(x86-64 Linux, GLIBC >= 2.34; see ../shared/sitl/SOURCE.md) at ../shared/sitl/arducopter beside "
+        f"the repository, or point --arducopter-binary or ${BINARY_ENV} at it. The run does not fall back "
+        f"to the mock autopilot."
+    )
+
+
+def free_tcp_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _udp_free(port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
+
+
+def _free_instance() -> int:
+    """A SITL instance number whose fixed UDP ports (5501+10i simulator input, 9005+10i IRLock) are free."""
+    start = os.getpid() % 50
+    for k in range(50):
+        i = (start + k) % 50 + 1
+        if _udp_free(5501 + 10 * i) and _udp_free(9005 + 10 * i):
+            return i
+    raise RuntimeError("no free ArduCopter SITL instance number (ports 5511-6001 all in use)")
+
+
+def project_parameters() -> dict[str, float]:
+    """What the runner sets on top of copter.parm: the values docs/operations.md recommends."""
+    params: dict[str, float] = {"GUID_TIMEOUT": GUID_TIMEOUT_S}
+    for n in (2, 3):  # SERIAL1 (camera) and SERIAL2 (companion, TELEM2)
+        for group in STREAM_GROUPS:
+            params[f"MAV{n}_{group}"] = TELEMETRY_HZ if group != "EXTRA3" else 2
+    return params
+
+
+@dataclass(frozen=True)
+class SitlPorts:
+    gcs: int
+    camera: int
+    companion: int
+
+
+class ArduCopterSitl:
+    """One `arducopter` process in its own working directory (eeprom.bin, logs/, terrain/ go there)."""
+
+    def __init__(self, binary: Path, work_dir: Path, home: tuple[float, float, float, float],
+                 speedup: float = 1.0, extra_params: dict[str, float] | None = None) -> None:
+        self.binary = binary
+        self.work_dir = work_dir
+        self.home = home  # lat, lon, alt (m AMSL), heading (deg)
+        self.speedup = speedup
+        self.params = {**project_parameters(), **(extra_params or {})}
+        self.ports = SitlPorts(free_tcp_port(), free_tcp_port(), free_tcp_port())
+        self.instance = _free_instance()
+        self.process: subprocess.Popen[bytes] | None = None
+
+    def start(self, timeout_s: float = 20.0) -> ArduCopterSitl:
+        self.work_dir.mkdir(parents=True, exist_ok=True)
+        parm = self.work_dir / "cloudtrack.parm"
+        parm.write_text("".join(f"{k} {v:g}\n" for k, v in self.params.items()))
+        defaults = f"{self.binary.parent / 'copter.parm'},{parm}" if (self.binary.parent / "copter.parm").is_file() \
+            else str(parm)
+        lat, lon, alt, heading = self.home
+        cmd = [
+            str(self.binary), "--model", "+", "--speedup", f"{self.speedup:g}", "--slave", "0",
+            "--sim-address=127.0.0.1", "--defaults", defaults, "-I", str(self.instance),
+            "--home", f"{lat:.7f},{lon:.7f},{alt:.1f},{heading:.0f}", "--wipe",
+            "--serial0", f"tcp:{self.ports.gcs}", "--serial1", f"tcp:{self.ports.camera}",
+            "--serial2", f"tcp:{self.ports.companion}",
+        ]
+        with open(self.work_dir / "arducopter.log", "wb") as out:
+            self.process = subprocess.Popen(cmd, cwd=self.work_dir, stdout=out, stderr=subprocess.STDOUT)
+        deadline = time.monotonic() + timeout_s
+        for port in (self.ports.gcs, self.ports.camera, self.ports.companion):
+            while not self._listening(port):
+                if self.process.poll() is not None:
+                    raise RuntimeError(f"arducopter exited with {self.process.returncode} during start-up:\n"
+                                       + self.log_tail())
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"arducopter did not open TCP port {port} in {timeout_s:.0f} s:\n"
+                                       + self.log_tail())
+                time.sleep(0.1)
+        return self
+
+    @staticmethod
+    def _listening(port: int) -> bool:
+        """True once SITL listens on the port. Probing would take the port's single client slot, so read
+        the kernel's socket table instead of connecting."""
+        hexport = f":{port:04X}"
+        for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+            with contextlib.suppress(OSError), open(table) as f:
+                for line in f.readlines()[1:]:
+                    fields = line.split()
+                    if fields[1].endswith(hexport) and fields[3] == "0A":  # 0A: LISTEN
+                        return True
+        return False
+
+    def log_tail(self, lines: int = 20) -> str:
+        try:
+            return "\n".join((self.work_dir / "arducopter.log").read_text(errors="replace").splitlines()[-lines:])
+        except OSError:
+            return "(no arducopter log)"
+
+    def stop(self) -> None:
+        if self.process is not None and self.process.poll() is None:
+            self.process.terminate()
+            try:
+                self.process.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+
+    def remove_work_dir(self) -> None:
+        shutil.rmtree(self.work_dir, ignore_errors=True)
+
+
+@dataclass(frozen=True)
+class BridgedSetpoint:
+    """One SET_POSITION_TARGET_LOCAL_NED the companion sent to the real autopilot (as `ReceivedSetpoint`)."""
+
+    time: float
+    link: str
+    frame: int
+    type_mask: int
+    vx: float
+    vy: float
+    vz: float
+    yaw_rate: float
+    mode: str
+
+
+class CompanionBridge:
+    """UDP (companion side) <-> TCP (SITL SERIAL2), recording the companion's setpoints; `cut()` drops both ways.
+
+    `companion_port` None: the companion sends to us (`udpout:` to `udp_port`) and we answer its address;
+    a port: the companion listens there (`udpin:`) and we send to it, as a flight controller's UDP output.
+    """
+
+    def __init__(self, sitl_port: int, mode_of: Callable[[], str], companion_port: int | None = None) -> None:
+        self._tcp = socket.create_connection(("127.0.0.1", sitl_port), timeout=5.0)
+        self._tcp.settimeout(0.2)
+        self._udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self._udp.bind(("127.0.0.1", 0))
+        self._udp.settimeout(0.2)
+        self.udp_port = int(self._udp.getsockname()[1])
+        self._peer: tuple[str, int] | None = ("127.0.0.1", companion_port) if companion_port else None
+        self._mode_of = mode_of
+        self._parser = mavutil.mavlink.MAVLink(None)
+        self._parser.robust_parsing = True
+        self.setpoints: list[BridgedSetpoint] = []
+        self._down = threading.Event()
+        self._stop = threading.Event()
+        self._threads = [threading.Thread(target=self._up, name="bridge-up", daemon=True),
+                         threading.Thread(target=self._downlink, name="bridge-down", daemon=True)]
+
+    def start(self) -> CompanionBridge:
+        for t in self._threads:
+            t.start()
+        return self
+
+    def set_down(self, down: bool) -> None:
+        if down:
+            self._down.set()
+        else:
+            self._down.clear()
+
+    def _up(self) -> None:
+        """Companion -> autopilot."""
+        while not self._stop.is_set():
+            try:
+                data, addr = self._udp.recvfrom(65535)
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            if self._peer is None or self._peer[1] != addr[1]:
+                if self._peer is None:
+                    self._peer = addr
+                else:
+                    continue  # only the companion's own address speaks to the autopilot through us
+            if self._down.is_set():
+                continue
+            now = time.monotonic()
+            try:
+                msgs = self._parser.parse_buffer(data) or []
+            except Exception:  # the bridge only observes; the autopilot judges the bytes
+                msgs = []
+            for m in msgs:
+                if m.get_type() == "SET_POSITION_TARGET_LOCAL_NED":
+                    self.setpoints.append(BridgedSetpoint(now, "companion", m.coordinate_frame, m.type_mask,
+                                                          m.vx, m.vy, m.vz, m.yaw_rate, self._mode_of()))
+            try:
+                self._tcp.sendall(data)
+            except OSError:
+                return
+
+    def _downlink(self) -> None:
+        """Autopilot -> companion (TCP is a byte stream: forwarded in chunks, MAVLink framing survives)."""
+        while not self._stop.is_set():
+            try:
+                data = self._tcp.recv(65536)
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            if not data:
+                return
+            if self._down.is_set() or self._peer is None:
+                continue
+            with contextlib.suppress(OSError):
+                self._udp.sendto(data, self._peer)
+
+    def close(self) -> None:
+        self._stop.set()
+        for t in self._threads:
+            t.join(timeout=2)
+        for s in (self._tcp, self._udp):
+            s.close()
+
+
+class RealAutopilot:
+    """The real SITL behind the interface the scenario runner uses for the mock (`SimulatedAutopilot`).
+
+    The pilot's actions go over the GCS link (`gcs`: a `sitl.scenarios.ScriptedGcs` on SERIAL0), never
+    through the companion: arming, take-off, mode changes and the RC override are the pilot's.
+    """
+
+    def __init__(self, sitl: ArduCopterSitl, gcs: Any, companion_port: int | None = None) -> None:
+        self.sitl = sitl
+        self.gcs = gcs
+        self.mode_history: list[tuple[float, str, str]] = []
+        self.bridge = CompanionBridge(sitl.ports.companion, self.mode_name, companion_port).start()
+
+    @property
+    def setpoints(self) -> list[BridgedSetpoint]:
+        return self.bridge.setpoints
+
+    def mode_name(self) -> str:
+        number = self.gcs.mode()
+        return next((n for n, v in ARDUCOPTER_MODES.items() if v == number), str(number))
+
+    def set_mode(self, name: str, source: str = "pilot") -> bool:
+        self.mode_history.append((time.monotonic(), name, source))
+        self.gcs.set_mode(ARDUCOPTER_MODES[name])
+        return True
+
+    def rc_mode_switch(self, pwm: int, name: str) -> None:
+        self.mode_history.append((time.monotonic(), name, "pilot rc"))
+        self.gcs.hold_rc_mode_switch(pwm)
+
+    def set_link_down(self, name: str, down: bool) -> None:
+        if name != "companion":
+            raise ValueError(f"only the companion's link can be cut on the real autopilot, not {name!r}")
+        self.bridge.set_down(down)
+
+    def fly_up(self, height_m: float, timeout_s: float = 90.0, progress: Callable[[str], None] = print) -> float:
+        """Arm and take off in GUIDED as the pilot would, then run at real time; returns the seconds taken."""
+        g = self.gcs
+        started = time.monotonic()
+        deadline = started + timeout_s
+        for msg_id in (0, 32):  # HEARTBEAT (mode changes seen within 0.1 s), LOCAL_POSITION_NED
+            g.request_interval(msg_id, 10.0)
+        last_try = 0.0
+        while not (g.modes and g.modes[-1][2]):  # armed
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"arducopter did not arm in {timeout_s:.0f} s (statustexts: "
+                                   f"{[t for _, t in g.statustexts[-5:]]}):\n{self.sitl.log_tail()}")
+            if time.monotonic() - last_try > 1.0:  # pre-arm checks pass once the EKF uses GPS
+                g.set_mode(ARDUCOPTER_MODES["GUIDED"])
+                g.arm()
+                last_try = time.monotonic()
+            time.sleep(0.1)
+        progress(f"arducopter armed after {time.monotonic() - started:.1f} s; taking off to {height_m:g} m")
+        g.takeoff(height_m)
+        last_try = time.monotonic()
+        while True:
+            pos = g.position()
+            if pos is not None and -pos[2] >= height_m - 0.3:
+                break
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"arducopter did not reach {height_m} m (at {pos}):\n{self.sitl.log_tail()}")
+            if time.monotonic() - last_try > 3.0 and (pos is None or -pos[2] < 0.5):
+                g.takeoff(height_m)  # the first one may have come before GUIDED took effect
+                last_try = time.monotonic()
+            time.sleep(0.1)
+        g.hold_rc(3, 1500)  # the pilot's throttle at mid-stick from here on: LOITER after a takeover holds height
+        if self.sitl.speedup != 1.0:
+            g.params.pop("SIM_SPEEDUP", None)
+            while g.params.get("SIM_SPEEDUP") != 1.0:
+                if time.monotonic() > deadline:
+                    raise RuntimeError("arducopter did not take SIM_SPEEDUP=1")
+                g.set_param("SIM_SPEEDUP", 1.0)
+                time.sleep(0.3)
+        time.sleep(0.5)  # settle the climb's last decimetres at real time
+        return time.monotonic() - started
+
+    def close(self) -> None:
+        self.bridge.close()
+        self.sitl.stop()
