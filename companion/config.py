@@ -12,7 +12,7 @@ from typing import Literal
 
 from pydantic import Field, model_validator
 
-from cloudtrack.config_files import ConfigSection, load_config
+from cloudtrack.config_files import ConfigSection, default_config_files, load_config
 
 TrackerName = Literal["nano", "vit", "dasiamrpn", "csrt", "kcf", "mil", "goturn"]
 
@@ -142,7 +142,9 @@ class ControlConfig(ConfigSection):
 
 class RecordingConfig(ConfigSection):
     enabled: bool = True
-    dir: str = "~/.local/share/cloudtrack/records"
+    # Empty: $STATE_DIRECTORY/records under systemd, else $XDG_DATA_HOME/cloudtrack/records
+    # (~/.local/share/cloudtrack/records); see companion.flight_record.records_dir.
+    dir: str = ""
     max_bytes: int = Field(2_000_000_000, ge=1_000_000)
     video: bool = False
 
@@ -160,6 +162,7 @@ class CompanionConfig(ConfigSection):
 
 
 ENV_PREFIX = "CLOUDTRACK_"
+CONFIG_FILE_NAME = "companion.toml"  # looked up in /etc/cloudtrack/ and $XDG_CONFIG_HOME/cloudtrack/
 # The back-end's variables (CLOUDTRACK_BACKEND_<SECTION>__<KEY>) share our prefix; one shell or host may
 # hold both processes' settings, so they are not ours to validate. Our own [backend] section is
 # CLOUDTRACK_BACKEND__<KEY> (two underscores) and stays.
@@ -177,6 +180,11 @@ def companion_environment(environ: Mapping[str, str]) -> dict[str, str]:
 def load_companion_config(
     path: Path | None = None, assignments: Iterable[str] = (), environ: Mapping[str, str] | None = None
 ) -> CompanionConfig:
-    """Defaults, then FILE, then CLOUDTRACK_<SECTION>__<KEY> variables, then --set; ConfigError if not allowed."""
-    env = companion_environment(os.environ if environ is None else environ)
-    return load_config(CompanionConfig, path, env_prefix=ENV_PREFIX, environ=env, assignments=assignments)
+    """Defaults, then FILE (without one: /etc/cloudtrack/companion.toml, then
+    $XDG_CONFIG_HOME/cloudtrack/companion.toml, where they exist), then CLOUDTRACK_<SECTION>__<KEY>
+    variables, then --set; ConfigError if not allowed."""
+    full = os.environ if environ is None else environ
+    return load_config(
+        CompanionConfig, path, env_prefix=ENV_PREFIX, environ=companion_environment(full), assignments=assignments,
+        default_files=default_config_files(CONFIG_FILE_NAME, full),
+    )

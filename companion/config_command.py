@@ -12,7 +12,11 @@ from companion.config import CompanionConfig, load_companion_config
 
 def add_config_flags(parser: argparse.ArgumentParser) -> None:
     """--config and --set, shared by every subcommand that reads the configuration."""
-    parser.add_argument("--config", type=Path, help="TOML file (defaults: config/companion.toml)")
+    parser.add_argument(
+        "--config", type=Path,
+        help="TOML file (default: /etc/cloudtrack/companion.toml, then "
+        "$XDG_CONFIG_HOME/cloudtrack/companion.toml, where they exist)",
+    )
     parser.add_argument(
         "--set",
         action="append",

@@ -341,6 +341,20 @@ class NoRecord:
         pass
 
 
+def records_dir(configured: str, environ: Mapping[str, str] | None = None) -> Path:
+    """Where mission folders go: `[recording] dir` when set; else, under systemd, `records/` in the unit's
+    state directory (`$STATE_DIRECTORY`, set by `StateDirectory=`; the first one when it lists several);
+    else `$XDG_DATA_HOME/cloudtrack/records` (default `~/.local/share/cloudtrack/records`)."""
+    env = os.environ if environ is None else environ
+    if configured:
+        return Path(configured).expanduser()
+    state = env.get("STATE_DIRECTORY", "").split(":")[0]
+    if state:
+        return Path(state) / "records"
+    data = env.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
+    return Path(data) / "cloudtrack" / "records"
+
+
 def open_record(
     enabled: bool, directory: str, max_bytes: int, video: bool, vehicle_id: str, mission_id: str,
     video_fps: float = 10.0,

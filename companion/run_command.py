@@ -115,9 +115,9 @@ def run(args: argparse.Namespace) -> int:
     rec = config.recording
     record = None
     if rec.enabled:
-        from companion.flight_record import FlightRecordObserver, open_record
+        from companion.flight_record import FlightRecordObserver, open_record, records_dir
 
-        record_dir = str(Path(rec.dir).expanduser())
+        record_dir = str(records_dir(rec.dir))
         record = FlightRecordObserver(
             mission, lambda mission_id: open_record(True, record_dir, rec.max_bytes, rec.video, config.vehicle.id, mission_id,
                                                     video_fps=cam.fps)
