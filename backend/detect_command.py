@@ -17,7 +17,7 @@ from backend.supersets import UnknownSupersetError, superset_from_prompt
 from backend.verifiers.factory import build_verifier
 from behaviors.detection import Verdict
 from cloudtrack.config_files import ConfigError
-from cloudtrack.model_store import ModelError
+from cloudtrack.model_store import MODEL_DIR_HELP, ModelError
 
 COLOURS = {Verdict.YES: (0, 200, 0), Verdict.NO: (0, 0, 230), Verdict.UNCERTAIN: (0, 200, 230)}
 
@@ -40,7 +40,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
     parser.add_argument("--prompt", required=True, help="the full description of the target")
     parser.add_argument("--superset", help="detector class (default: derived from the prompt)")
     parser.add_argument("--verifier", choices=["none", "local", "vlm", "cascade"], help="override [verifier] kind")
-    parser.add_argument("--model-dir", help="weights folder (default: $CLOUDTRACK_MODEL_DIR, then the cache)")
+    parser.add_argument("--model-dir", metavar="DIR", help=MODEL_DIR_HELP)
     parser.add_argument("--json", type=Path, metavar="OUT", help="write the candidates as JSON")
     parser.add_argument("--draw", type=Path, metavar="OUT.jpg", help="write the image with boxes and verdicts")
     add_config_flags(parser)

@@ -21,6 +21,9 @@ from backend.detectors.factory import build_detector
 from backend.detectors.open_vocabulary import OpenVocabularyDetector
 from tests.backend_fixtures import auth, backend_config, detect_parts, frame, jpeg
 
+# torch + transformers and two models built in a fixture: seconds before the first test, so out of the inner loop.
+pytestmark = pytest.mark.slow
+
 WORDS = ["person", "car", "boat", "life", "raft", "a", "photo", "of", "man", "in", "gray", "shirt"]
 
 
@@ -58,7 +61,13 @@ def tiny_grounding_dino(folder: Path) -> tuple[object, object]:
 
 def tiny_owlv2() -> tuple[object, object]:
     import torch
-    from transformers import CLIPTokenizer, Owlv2Config, Owlv2ForObjectDetection, Owlv2ImageProcessorPil, Owlv2Processor
+    from transformers import (
+        CLIPTokenizer,
+        Owlv2Config,
+        Owlv2ForObjectDetection,
+        Owlv2ImageProcessorPil,
+        Owlv2Processor,
+    )
 
     tokens = ["!", "<|startoftext|>", "<|endoftext|>", *(w + "</w>" for w in WORDS), *"abcdefghijklmnopqrstuvwxyz"]
     tokenizer = CLIPTokenizer(vocab={t: i for i, t in enumerate(tokens)}, merges=[], model_max_length=16)

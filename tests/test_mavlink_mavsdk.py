@@ -28,6 +28,7 @@ def test_address_form() -> None:
 
 
 @pytest.mark.filterwarnings("ignore::DeprecationWarning")  # inside mavsdk's own server start-up
+@pytest.mark.slow
 def test_mavsdk_offboard_is_stopped_when_the_main_loop_stalls() -> None:
     port = _free_udp_port()
     sim = SimulatedAutopilot(

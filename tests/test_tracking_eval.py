@@ -88,6 +88,7 @@ def test_evaluate_sequence_tracks_and_reinitialises(models_dir: Path, sequences_
     assert helped.miou > plain.miou
 
 
+@pytest.mark.slow
 def test_occlusion_hides_the_target_and_marks_frames_nan(models_dir: Path, sequences_dir: Path) -> None:
     seq = load_sequence(sequences_dir / "uav123_wakeboard7")
     result = evaluate_sequence(seq, TrackerConfig(), models_dir, EvalSettings(tracker="nano", occlude=True))
