@@ -7,7 +7,9 @@ import time
 from pathlib import Path
 
 import av
+import cv2
 import numpy as np
+import pytest
 
 from cloudtrack.h264_video import H264Writer
 
@@ -63,3 +65,23 @@ def test_h264_writer_odd_sizes_and_failures_stay_off_the_caller(tmp_path: Path) 
     broken.close()
     assert broken.error is not None and "differs" in broken.error
     assert broken.write(_frames(1)[0]) is False  # later frames are refused, nothing raised
+
+
+@pytest.mark.slow
+def test_h264_video_plays_in_chromium_where_mp4v_does_not(tmp_path: Path) -> None:
+    from tests.browser_video import play_in_chromium
+
+    writer = H264Writer(tmp_path / "h264.mp4", 30.0)
+    for image in _frames(60, (320, 240)):
+        writer.write(image, wait=True)
+    writer.close()
+    shown = play_in_chromium(tmp_path / "h264.mp4")
+    assert shown["error"] is None and shown["readyState"] >= 2, shown
+    assert abs(shown["duration"] - 2.0) < 0.1 and (shown["width"], shown["height"]) == (320, 240)
+
+    # What the demo wrote before: OpenCV's MPEG-4 Part 2, which the browser refuses (MEDIA_ERR_SRC_NOT_SUPPORTED).
+    old = cv2.VideoWriter(str(tmp_path / "mp4v.mp4"), cv2.VideoWriter.fourcc(*"mp4v"), 30.0, (320, 240))
+    for image in _frames(60, (320, 240)):
+        old.write(image)
+    old.release()
+    assert play_in_chromium(tmp_path / "mp4v.mp4")["error"] == 4
