@@ -40,11 +40,7 @@ class H264Writer:
         threads: int = 1,
         on_frame_written: Callable[[H264Writer], None] | None = None,
     ) -> None:
-        import av  # imported here: only processes that record video pay for loading FFmpeg
-
-        self._av = av
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
         self.fps = fps
         self.frames_written = 0
         self.frames_dropped = 0
@@ -53,8 +49,8 @@ class H264Writer:
         self._options = {"preset": preset, "crf": str(crf)}
         self._threads = threads
         self._on_frame_written = on_frame_written
-        # faststart: the index goes first, so a browser plays the file before it has all of it.
-        self._container: Any = av.open(str(self.path), "w", options={"movflags": "faststart"})
+        self._av: Any = None
+        self._container: Any = None
         self._stream: Any = None
         self._queue: queue.Queue[Any] = queue.Queue(maxsize=max(1, queue_frames))
         self._closed = False
@@ -83,7 +79,10 @@ class H264Writer:
         if self._closed:
             return
         self._closed = True
-        self._queue.put(_STOP)  # blocks only while the encoder still has a full queue to drain
+        try:
+            self._queue.put(_STOP, timeout=timeout_s)  # waits only while the encoder drains a full queue
+        except queue.Full:
+            pass
         self._thread.join(timeout_s)
         if self._thread.is_alive():
             log.warning("video %s: encoder still busy after %.0f s; the file may be cut short", self.path, timeout_s)
@@ -98,6 +97,20 @@ class H264Writer:
     # --- encoder thread --------------------------------------------------------------------------
 
     def _run(self) -> None:
+        try:
+            # On this thread: loading FFmpeg (a first import takes a few hundred ms) and opening the file
+            # never cost the caller's loop. faststart puts the index first: a browser plays the file
+            # before it has all of it.
+            import av
+
+            self._av = av
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._container = av.open(str(self.path), "w", options={"movflags": "faststart"})
+        except Exception as exc:
+            self.error = f"cannot open {self.path}: {type(exc).__name__}: {exc}"
+            log.warning("video stopped: %s", self.error)
+            self._drain()
+            return
         try:
             while (item := self._queue.get()) is not _STOP:
                 if self.error is None:

@@ -6,6 +6,10 @@ limits, encode SET_POSITION_TARGET_LOCAL_NED and send it over MAVLink to a recei
 bare pass runs only the OpenCV tracker's `update()` on the same frames. Passes alternate (bare, loop,
 bare, loop ...) so machine load affects both alike; rates are medians over the passes.
 
+With `recording`, every loop iteration also writes the flight record as a mission does with
+`[recording] video = true`: one event-log line and the frame handed to the H.264 video encoder (which
+runs on its own thread and drops a frame rather than make the loop wait; drops are counted).
+
 Frames are decoded and resized once before timing: a camera driver delivers decoded frames, and JPEG
 decoding of the recorded sequence is not part of the onboard loop (its cost is reported separately).
 """
@@ -15,6 +19,7 @@ from __future__ import annotations
 import resource
 import socket
 import statistics
+import tempfile
 import threading
 import time
 from collections.abc import Sequence
@@ -33,6 +38,7 @@ from behaviors.setpoint import Setpoint
 from behaviors.telemetry import Telemetry
 from companion.autopilot_modes import AutopilotKind
 from companion.config import CompanionConfig
+from companion.flight_record import FlightRecorder
 from companion.frame_sources import FolderSource, Frame, SourceStats
 from companion.mavlink_connection import MavlinkEndpoint
 from companion.offboard import SetpointMessage, encode_velocity
@@ -59,6 +65,9 @@ class BenchResult:
     setpoints_sent: int
     setpoints_received: int
     trusted_frames: int
+    recording: bool = False
+    video_frames_encoded: int = 0  # with recording: frames in the videos, all loop passes
+    video_frames_dropped: int = 0  # with recording: frames the encoder's full queue turned away
 
     @property
     def ratio(self) -> float:
@@ -145,6 +154,7 @@ def run_bench(
     size: tuple[int, int] | None = (640, 480),
     passes: int = 3,
     max_frames: int | None = None,
+    recording: bool = False,
 ) -> BenchResult:
     seq = load_sequence(sequence)
     images, decode_ms = load_frames(sequence, size, max_frames)
@@ -178,6 +188,8 @@ def run_bench(
     overheads: list[float] = []
     updates: list[float] = []
     trusted = 0
+    encoded = dropped = 0
+    record_root = tempfile.TemporaryDirectory(prefix="cloudtrack-bench-records-") if recording else None
     try:
         for _ in range(passes):
             # Bare: the OpenCV tracker alone on the same frames.
@@ -196,10 +208,18 @@ def run_bench(
             frontend.feed(frame)
             frontend.start(frame.frame_id, box)
             state = ControlState()
+            record = (
+                FlightRecorder(Path(record_root.name), "bench", f"pass-{len(loop_rates)}", 10**12, video=True,
+                               video_fps=cam.fps)
+                if record_root is not None else None
+            )  # fmt: skip
             started = time.perf_counter()
             while (frame := source.read()) is not None:
                 t0 = time.perf_counter()
                 result = frontend.feed(frame)
+                if record is not None:
+                    record.event("step", frame_id=frame.frame_id, trusted=result.trusted)
+                    record.video_frame(frame.image, result.box, "FOLLOWING")
                 if result.trusted and result.box is not None:
                     trusted += 1
                     telemetry = Telemetry(time_s=frame.capture_time, height_agl=20.0, armed=True, offboard_active=True)
@@ -212,6 +232,10 @@ def run_bench(
                     sent += 1
                 latencies.append(time.perf_counter() - t0)
             loop_seconds = time.perf_counter() - started
+            if record is not None:
+                record.close()  # outside the timing: waits for the encoder to finish the queued frames
+                written, lost = record.video_frames
+                encoded, dropped = encoded + written, dropped + lost
             loop_rates.append((len(images) - 1) / loop_seconds)
             inside = frontend.stats.tracker_seconds + frontend.stats.catch_up_seconds
             overheads.append((loop_seconds - inside) * 1000.0 / (len(images) - 1))
@@ -222,6 +246,8 @@ def run_bench(
     finally:
         endpoint.close()
         receiver.close()
+        if record_root is not None:
+            record_root.cleanup()
     _check_first_message(receiver.first)
     lat_ms = np.asarray(latencies) * 1000.0
     return BenchResult(
@@ -241,6 +267,9 @@ def run_bench(
         setpoints_sent=sent,
         setpoints_received=receiver.count,
         trusted_frames=trusted,
+        recording=recording,
+        video_frames_encoded=encoded,
+        video_frames_dropped=dropped,
     )
 
 

@@ -66,6 +66,11 @@ def test_h264_writer_odd_sizes_and_failures_stay_off_the_caller(tmp_path: Path) 
     assert broken.error is not None and "differs" in broken.error
     assert broken.write(_frames(1)[0]) is False  # later frames are refused, nothing raised
 
+    unwritable = H264Writer(Path("/proc/cloudtrack-video/v.mp4"), 10.0)  # nothing can be created in /proc
+    unwritable.write(_frames(1)[0])
+    unwritable.close()
+    assert unwritable.error is not None and "cannot open" in unwritable.error
+
 
 @pytest.mark.slow
 def test_h264_video_plays_in_chromium_where_mp4v_does_not(tmp_path: Path) -> None:
