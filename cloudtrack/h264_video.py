@@ -9,6 +9,7 @@ kept in `error`; it never reaches the caller's thread as an exception.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import queue
 import threading
@@ -79,10 +80,8 @@ class H264Writer:
         if self._closed:
             return
         self._closed = True
-        try:
-            self._queue.put(_STOP, timeout=timeout_s)  # waits only while the encoder drains a full queue
-        except queue.Full:
-            pass
+        with contextlib.suppress(queue.Full):  # waits only while the encoder drains a full queue
+            self._queue.put(_STOP, timeout=timeout_s)
         self._thread.join(timeout_s)
         if self._thread.is_alive():
             log.warning("video %s: encoder still busy after %.0f s; the file may be cut short", self.path, timeout_s)

@@ -32,6 +32,22 @@ class CameraConfig(ConfigSection):
     mount_pitch_deg: float = Field(-45.0, ge=-90, le=30)
     stabilised: bool = True
     reconnect_interval_s: float = Field(1.0, gt=0, le=60)
+    # Lens calibration (OpenCV's model; companion/camera_calibration.py). Empty: an ideal pinhole from
+    # hfov_deg. Either a file (cv2.FileStorage YAML/XML/JSON, or a ROS camera_calibration YAML) or inline:
+    # camera_matrix = [fx, 0, cx, 0, fy, cy, 0, 0, 1] at width x height, distortion = [k1, k2, p1, p2, k3].
+    calibration_file: str = ""
+    camera_matrix: list[float] = Field(default_factory=list)
+    distortion: list[float] = Field(default_factory=list)
+
+    @model_validator(mode="after")
+    def _calibration_shape(self) -> CameraConfig:
+        if len(self.camera_matrix) not in (0, 9):
+            raise ValueError(f"camera_matrix takes 9 numbers (row-major 3x3), got {len(self.camera_matrix)}")
+        if self.distortion and not self.camera_matrix:
+            raise ValueError("distortion needs camera_matrix (or use calibration_file)")
+        if len(self.distortion) not in (0, 4, 5, 8, 12):
+            raise ValueError(f"distortion takes 4, 5, 8 or 12 coefficients, got {len(self.distortion)}")
+        return self
 
 
 class TrackerConfig(ConfigSection):

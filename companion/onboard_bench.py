@@ -31,12 +31,12 @@ from typing import Any
 import cv2
 import numpy as np
 
-from behaviors.camera_model import CameraModel
 from behaviors.control_law import ControlGains, ControlState, FollowGoal, follow_step
 from behaviors.safety_limits import MotionLimits
 from behaviors.setpoint import Setpoint
 from behaviors.telemetry import Telemetry
 from companion.autopilot_modes import AutopilotKind
+from companion.camera_calibration import camera_model
 from companion.config import CompanionConfig
 from companion.flight_record import FlightRecorder
 from companion.frame_sources import FolderSource, Frame, SourceStats
@@ -169,7 +169,7 @@ def run_bench(
     box = first.scaled(w / native.image.shape[1], h / native.image.shape[0]) if size is not None else first
 
     cam = config.camera
-    camera = CameraModel.from_hfov(w, h, cam.hfov_deg, cam.mount_pitch_deg, cam.stabilised)
+    camera = camera_model(cam.model_copy(update={"width": w, "height": h}))
     safety = config.safety
     limits = MotionLimits.from_degrees(
         safety.max_speed_m_s, safety.max_vertical_speed_m_s, safety.max_yaw_rate_deg_s,
