@@ -58,6 +58,7 @@ check: install
 
 demo: $(BIN)/.installed-demo
 	$(BIN)/cloudtrack-sim run follow --video out/demo.mp4 --plot out/demo.png --json out/demo.json
+	@echo "the console scripts are in $(BIN)/: 'source $(BIN)/activate' puts them on PATH (README, Set-up)"
 
 clean:
 	rm -rf $(VENV) out .mypy_cache .ruff_cache .pytest_cache

@@ -239,3 +239,36 @@ def test_a_nonsense_message_time_falls_back_to_the_clock(tmp_path: Path) -> None
     while (msg := log.recv_match(type="HEARTBEAT")) is not None:
         stamps.append(msg._timestamp)
     assert len(stamps) == 2 and all(START < t < START + 10 for t in stamps)
+
+
+def test_records_are_measured_off_the_main_loop(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A slow file system (a big records card): opening a record and writing video never waits for the
+    walk of the other missions; the cap still removes the oldest mission once the walk is done."""
+    import time
+
+    from companion import flight_record
+
+    older = tmp_path / "20200101T000000Z_drone-1_old"
+    older.mkdir()
+    (older / EVENTS_FILE).write_text('{"t":0,"kind":"recording_started"}\n')
+    (older / "mavlink-000.tlog").write_bytes(b"\0" * 400_000)
+    walked = flight_record._tree_size
+
+    def slow_walk(path: Path) -> int:
+        time.sleep(1.0)
+        return walked(path)
+
+    monkeypatch.setattr(flight_record, "_tree_size", slow_walk)
+    started = time.perf_counter()
+    rec = FlightRecorder(tmp_path, "drone-1", "m", 300_000, video=True, clock=fixed_clock())
+    frame = np.full((120, 160, 3), 80, np.uint8)
+    for _ in range(60):
+        rec.video_frame(frame, Box(40, 30, 50, 60), "TRACKING")
+        rec.event("step", n=1)
+    elapsed = time.perf_counter() - started
+    assert elapsed < 0.5, f"the loop's calls took {elapsed:.2f} s: they waited for the walk"
+    deadline = time.monotonic() + 10
+    while older.exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    rec.close()
+    assert not older.exists() and rec.folder.exists()
