@@ -151,12 +151,14 @@ def _detect(args: argparse.Namespace) -> int:
         print(f"  [{x1:.0f}, {y1:.0f}, {x2:.0f}, {y2:.0f}] score {c.detection.score:.2f} "
               f"{c.detection.verdict.value.upper():9s} {c.detection.justification}")
     if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(_as_json(result, args.image), indent=2))
     if args.draw:
         draw_candidates(image, [
             (c.detection.box.xyxy(), f"{c.detection.verdict.value} {c.detection.score:.2f}", COLOURS[c.detection.verdict])
             for c in result.candidates
         ])  # fmt: skip
+        args.draw.parent.mkdir(parents=True, exist_ok=True)
         if not cv2.imwrite(str(args.draw), image):
             print(f"error: cannot write {args.draw}", file=sys.stderr)
             return 2
