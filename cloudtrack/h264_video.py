@@ -84,7 +84,9 @@ class H264Writer:
             self._queue.put(_STOP, timeout=timeout_s)
         self._thread.join(timeout_s)
         if self._thread.is_alive():
-            log.warning("video %s: encoder still busy after %.0f s; the file may be cut short", self.path, timeout_s)
+            log.warning(
+                "video %s: encoder still busy after %.0f s; the file may be cut short", self.path, timeout_s
+            )
 
     @property
     def size_bytes(self) -> int:
@@ -137,7 +139,9 @@ class H264Writer:
             self._stream.options = self._options
             self._stream.codec_context.thread_count = self._threads
         elif (width, height) != (self._stream.width, self._stream.height):
-            raise ValueError(f"frame size {width}x{height} differs from the video's {self._stream.width}x{self._stream.height}")
+            raise ValueError(
+                f"frame size {width}x{height} differs from the video's {self._stream.width}x{self._stream.height}"
+            )
         frame = self._av.VideoFrame.from_ndarray(np.ascontiguousarray(image[:height, :width]), format="bgr24")
         frame.pts = self.frames_written
         frame.time_base = 1 / self._rate

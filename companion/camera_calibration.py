@@ -46,8 +46,17 @@ def camera_model(cam: CameraConfig) -> CameraModel:
             )
         # Distortion is in normalised coordinates: it does not change with the resolution.
         fx, cx, fy, cy = fx * sx, (cx + 0.5) * sx - 0.5, fy * sy, (cy + 0.5) * sy - 0.5
-    return CameraModel(cam.width, cam.height, fx, fy, cx, cy, math.radians(cam.mount_pitch_deg), cam.stabilised,
-                       calibration.distortion)
+    return CameraModel(
+        cam.width,
+        cam.height,
+        fx,
+        fy,
+        cx,
+        cy,
+        math.radians(cam.mount_pitch_deg),
+        cam.stabilised,
+        calibration.distortion,
+    )
 
 
 def load_calibration(cam: CameraConfig) -> Calibration | None:
@@ -75,7 +84,10 @@ def _read_opencv(path: Path) -> Calibration:
     if not storage.isOpened():
         raise CalibrationError(f"[camera] calibration_file {path}: OpenCV cannot read it")
     try:
-        matrix, coefficients = storage.getNode("camera_matrix").mat(), storage.getNode("distortion_coefficients").mat()
+        matrix, coefficients = (
+            storage.getNode("camera_matrix").mat(),
+            storage.getNode("distortion_coefficients").mat(),
+        )
         if matrix is None:
             raise CalibrationError(f"[camera] calibration_file {path}: no camera_matrix")
         width, height = storage.getNode("image_width"), storage.getNode("image_height")
@@ -94,18 +106,28 @@ def _read_ros(path: Path, text: str) -> Calibration:
     except yaml.YAMLError as exc:
         raise CalibrationError(f"[camera] calibration_file {path}: not YAML: {exc}") from None
     if not isinstance(data, dict) or not isinstance(data.get("camera_matrix"), dict):
-        raise CalibrationError(f"[camera] calibration_file {path}: no camera_matrix (ROS camera_calibration "
-                               "YAML or a file cv2.FileStorage wrote)")
+        raise CalibrationError(
+            f"[camera] calibration_file {path}: no camera_matrix (ROS camera_calibration "
+            "YAML or a file cv2.FileStorage wrote)"
+        )
     model = data.get("distortion_model", "plumb_bob")
     if model not in ("plumb_bob", "rational_polynomial"):
-        raise CalibrationError(f"[camera] calibration_file {path}: distortion_model {model!r} is not supported "
-                               "(plumb_bob, rational_polynomial)")
-    size = (int(data["image_width"]), int(data["image_height"])) if "image_width" in data and "image_height" in data else None
+        raise CalibrationError(
+            f"[camera] calibration_file {path}: distortion_model {model!r} is not supported "
+            "(plumb_bob, rational_polynomial)"
+        )
+    size = (
+        (int(data["image_width"]), int(data["image_height"]))
+        if "image_width" in data and "image_height" in data
+        else None
+    )
     distortion = (data.get("distortion_coefficients") or {}).get("data") or []
     return _checked(data["camera_matrix"].get("data") or [], distortion, size, str(path))
 
 
-def _checked(matrix: Sequence[Any], distortion: Sequence[Any], size: tuple[int, int] | None, source: str) -> Calibration:
+def _checked(
+    matrix: Sequence[Any], distortion: Sequence[Any], size: tuple[int, int] | None, source: str
+) -> Calibration:
     try:
         k = tuple(float(v) for v in matrix)
         d = tuple(float(v) for v in distortion)
@@ -115,11 +137,15 @@ def _checked(matrix: Sequence[Any], distortion: Sequence[Any], size: tuple[int, 
     while len(d) not in DISTORTION_LENGTHS and d and d[-1] == 0.0:
         d = d[:-1]
     if len(k) != 9 or not all(math.isfinite(v) for v in (*k, *d)):
-        raise CalibrationError(f"{source}: camera matrix must be 9 finite numbers (row-major 3x3), got {len(k)}")
+        raise CalibrationError(
+            f"{source}: camera matrix must be 9 finite numbers (row-major 3x3), got {len(k)}"
+        )
     if k[0] <= 0 or k[4] <= 0 or k[1] != 0 or k[3] != 0 or k[6:] != (0.0, 0.0, 1.0):
         raise CalibrationError(f"{source}: camera matrix must be [fx 0 cx; 0 fy cy; 0 0 1] with fx, fy > 0")
     if len(d) not in DISTORTION_LENGTHS:
-        raise CalibrationError(f"{source}: distortion takes 4, 5, 8 or 12 coefficients (OpenCV's order), got {len(d)}")
+        raise CalibrationError(
+            f"{source}: distortion takes 4, 5, 8 or 12 coefficients (OpenCV's order), got {len(d)}"
+        )
     if size is not None and (size[0] <= 0 or size[1] <= 0):
         raise CalibrationError(f"{source}: image size {size[0]}x{size[1]} is not a size")
     return Calibration(k, d, size)

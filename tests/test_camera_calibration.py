@@ -29,7 +29,9 @@ WIDE = CameraModel(1280, 720, 700.0, 698.0, 641.3, 357.8, math.radians(-40.0), T
 def _cv_pixel(camera: CameraModel, x: float, y: float) -> tuple[float, float]:
     """OpenCV's own projection of a normalised point through the lens (cv2.projectPoints)."""
     k = np.array([[camera.fx, 0, camera.cx], [0, camera.fy, camera.cy], [0, 0, 1]])
-    pixels, _ = cv2.projectPoints(np.array([[x, y, 1.0]]), np.zeros(3), np.zeros(3), k, np.array(camera.distortion))
+    pixels, _ = cv2.projectPoints(
+        np.array([[x, y, 1.0]]), np.zeros(3), np.zeros(3), k, np.array(camera.distortion)
+    )
     return float(pixels[0, 0, 0]), float(pixels[0, 0, 1])
 
 
@@ -40,7 +42,9 @@ def test_camera_undistortion_matches_opencv_across_the_image() -> None:
     us, vs = np.meshgrid(np.linspace(0, 1279, 17), np.linspace(0, 719, 11))
     pixels = np.stack([us.ravel(), vs.ravel()], axis=1)
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)
-    opencv = cv2.undistortPoints(pixels.reshape(-1, 1, 2), k, np.array(DIST), criteria=criteria).reshape(-1, 2)
+    opencv = cv2.undistortPoints(pixels.reshape(-1, 1, 2), k, np.array(DIST), criteria=criteria).reshape(
+        -1, 2
+    )
     ours = np.array([WIDE.normalised(float(u), float(v)) for u, v in pixels])
     converged = 0
     for pixel, theirs, mine in zip(pixels, opencv, ours, strict=True):
@@ -61,7 +65,9 @@ def test_camera_distortion_geolocation_near_the_corner_within_one_percent_of_ran
     u, v = 1215.0, 668.0  # near the bottom-right corner
     # The truth: OpenCV undistorts the pixel (cv2.undistortPoints), an ideal pinhole casts that ray.
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)
-    x, y = cv2.undistortPoints(np.array([[[u, v]]]), np.array(K).reshape(3, 3), np.array(DIST), criteria=criteria)[0, 0]
+    x, y = cv2.undistortPoints(
+        np.array([[[u, v]]]), np.array(K).reshape(3, 3), np.array(DIST), criteria=criteria
+    )[0, 0]
     ideal = replace(WIDE, distortion=())
     pu, pv = ideal.cx + ideal.fx * float(x), ideal.cy + ideal.fy * float(y)
     true_point = locate_pixel(ideal, telemetry, pu, pv)
@@ -78,7 +84,11 @@ def test_camera_distortion_geolocation_near_the_corner_within_one_percent_of_ran
 
     hfov = CameraModel.from_hfov(1280, 720, math.degrees(2 * math.atan(640 / WIDE.fx)), -40.0)  # the fallback
     uncorrected = locate_pixel(hfov, telemetry, u, v)
-    miss = math.inf if uncorrected is None else math.hypot(uncorrected.north_m - north, uncorrected.east_m - east)
+    miss = (
+        math.inf
+        if uncorrected is None
+        else math.hypot(uncorrected.north_m - north, uncorrected.east_m - east)
+    )
     assert miss > 0.05 * truth, f"without the calibration the error is only {miss:.2f} m"
     # The bearing to the target bends the same way.
     box = Box(u - 20, v - 60, 40, 60)
@@ -98,10 +108,18 @@ def _ros_yaml(path: Path, width: int, height: int, k: list[float]) -> Path:
 
 
 def test_camera_calibration_inline_ros_and_opencv_files_agree(tmp_path: Path) -> None:
-    inline = camera_model(CameraConfig(width=1280, height=720, mount_pitch_deg=-40.0, camera_matrix=K, distortion=DIST))
+    inline = camera_model(
+        CameraConfig(width=1280, height=720, mount_pitch_deg=-40.0, camera_matrix=K, distortion=DIST)
+    )
     assert inline == WIDE
-    ros = camera_model(CameraConfig(width=1280, height=720, mount_pitch_deg=-40.0,
-                                    calibration_file=str(_ros_yaml(tmp_path / "ost.yaml", 1280, 720, K))))
+    ros = camera_model(
+        CameraConfig(
+            width=1280,
+            height=720,
+            mount_pitch_deg=-40.0,
+            calibration_file=str(_ros_yaml(tmp_path / "ost.yaml", 1280, 720, K)),
+        )
+    )
     assert ros == WIDE
     storage = cv2.FileStorage(str(tmp_path / "calib.yaml"), cv2.FILE_STORAGE_WRITE)
     storage.write("camera_matrix", np.array(K).reshape(3, 3))
@@ -109,12 +127,18 @@ def test_camera_calibration_inline_ros_and_opencv_files_agree(tmp_path: Path) ->
     storage.write("image_width", 1280)
     storage.write("image_height", 720)
     storage.release()
-    opencv = camera_model(CameraConfig(width=1280, height=720, mount_pitch_deg=-40.0,
-                                       calibration_file=str(tmp_path / "calib.yaml")))
+    opencv = camera_model(
+        CameraConfig(
+            width=1280, height=720, mount_pitch_deg=-40.0, calibration_file=str(tmp_path / "calib.yaml")
+        )
+    )
     assert opencv == WIDE
     # Calibrated at 1280x720, flown at 640x360: focal lengths and centre scale, distortion does not.
-    half = camera_model(CameraConfig(width=640, height=360, mount_pitch_deg=-40.0,
-                                     calibration_file=str(tmp_path / "calib.yaml")))
+    half = camera_model(
+        CameraConfig(
+            width=640, height=360, mount_pitch_deg=-40.0, calibration_file=str(tmp_path / "calib.yaml")
+        )
+    )
     assert half.fx == pytest.approx(350.0) and half.distortion == WIDE.distortion
     assert half.normalised(600.0, 340.0) == pytest.approx(WIDE.normalised(1200.5, 680.5), abs=1e-9)
     # No calibration: the HFOV pinhole, as before.
@@ -125,8 +149,11 @@ def test_camera_calibration_errors_name_the_problem(tmp_path: Path) -> None:
     with pytest.raises(CalibrationError, match="no camera_matrix"):
         camera_model(CameraConfig(calibration_file=str(_write(tmp_path / "x.yaml", "foo: 1\n"))))
     with pytest.raises(CalibrationError, match="does not scale"):
-        camera_model(CameraConfig(width=640, height=480,
-                                  calibration_file=str(_ros_yaml(tmp_path / "o.yaml", 1280, 720, K))))
+        camera_model(
+            CameraConfig(
+                width=640, height=480, calibration_file=str(_ros_yaml(tmp_path / "o.yaml", 1280, 720, K))
+            )
+        )
     with pytest.raises(CalibrationError, match="missing.yaml"):
         camera_model(CameraConfig(calibration_file=str(tmp_path / "missing.yaml")))
     with pytest.raises(ValueError, match="camera_matrix takes 9"):

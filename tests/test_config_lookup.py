@@ -34,9 +34,13 @@ def test_config_lookup_reads_system_then_user_file(tmp_path: Path, system_dir: P
 
     (xdg / "cloudtrack" / "companion.toml").write_text('[vehicle]\nid = "from-user"\n')
     both = load_companion_config(None, environ=env)
-    assert both.vehicle.id == "from-user" and both.safety.max_speed_m_s == 2.0  # the user's file over the system's
+    assert (
+        both.vehicle.id == "from-user" and both.safety.max_speed_m_s == 2.0
+    )  # the user's file over the system's
     # The environment and --set still win over both files.
-    over = load_companion_config(None, ["vehicle.id=from-flag"], environ={**env, "CLOUDTRACK_SAFETY__MAX_SPEED_M_S": "1"})
+    over = load_companion_config(
+        None, ["vehicle.id=from-flag"], environ={**env, "CLOUDTRACK_SAFETY__MAX_SPEED_M_S": "1"}
+    )
     assert over.vehicle.id == "from-flag" and over.safety.max_speed_m_s == 1.0
 
 
@@ -59,7 +63,10 @@ def test_config_lookup_user_file_reaches_the_command_line(tmp_path: Path) -> Non
     (tmp_path / "cloudtrack" / "companion.toml").write_text('[vehicle]\nid = "xdg-drone"\n')
     result = subprocess.run(
         [sys.executable, "-m", "companion.cli", "config", "show"],
-        capture_output=True, text=True, env={**_environ(), "XDG_CONFIG_HOME": str(tmp_path)}, timeout=60,
+        capture_output=True,
+        text=True,
+        env={**_environ(), "XDG_CONFIG_HOME": str(tmp_path)},
+        timeout=60,
     )
     assert result.returncode == 0, result.stderr
     assert 'id = "xdg-drone"' in result.stdout
@@ -75,4 +82,6 @@ def test_records_dir_follows_config_then_systemd_then_xdg(tmp_path: Path) -> Non
 
 
 def _environ() -> dict[str, str]:
-    return {k: v for k, v in os.environ.items() if not k.startswith("CLOUDTRACK_") or k == "CLOUDTRACK_SHARED"}
+    return {
+        k: v for k, v in os.environ.items() if not k.startswith("CLOUDTRACK_") or k == "CLOUDTRACK_SHARED"
+    }

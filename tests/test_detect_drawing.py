@@ -37,9 +37,15 @@ def test_draw_labels_scale_with_the_image_on_a_filled_background(sequences_dir: 
 def test_draw_labels_of_nearby_boxes_never_overlap(sequences_dir: Path) -> None:
     image = _frame(sequences_dir)
     # Five people side by side and two boxes at the top edge: labels must find room without covering another.
-    boxes = [(500 + 25 * i, 300 + 6 * i, 560 + 25 * i, 420) for i in range(5)] + [(10, 0, 80, 90), (30, 2, 100, 95)]
+    boxes = [(500 + 25 * i, 300 + 6 * i, 560 + 25 * i, 420) for i in range(5)] + [
+        (10, 0, 80, 90),
+        (30, 2, 100, 95),
+    ]
     verdicts = itertools.cycle([Verdict.YES, Verdict.NO, Verdict.UNCERTAIN])
-    items = [(box, f"{v.value} 0.{50 + i}", COLOURS[v]) for i, (box, v) in enumerate(zip(boxes, verdicts, strict=False))]
+    items = [
+        (box, f"{v.value} 0.{50 + i}", COLOURS[v])
+        for i, (box, v) in enumerate(zip(boxes, verdicts, strict=False))
+    ]
     labels = draw_candidates(image, items)
     assert len(labels) == len(boxes)
     for a, b in itertools.combinations(labels, 2):
@@ -47,5 +53,5 @@ def test_draw_labels_of_nearby_boxes_never_overlap(sequences_dir: Path) -> None:
     assert all(min(r[0], r[1]) >= 0 and r[2] <= 1280 and r[3] <= 720 for r in labels)
     # White text on the dark red "no" fill.
     no = labels[1]
-    patch = image[no[1]:no[3], no[0]:no[2]].reshape(-1, 3)
+    patch = image[no[1] : no[3], no[0] : no[2]].reshape(-1, 3)
     assert np.all(patch > 200, axis=1).mean() > 0.05

@@ -57,7 +57,10 @@ def test_h264_writer_odd_sizes_and_failures_stay_off_the_caller(tmp_path: Path) 
         odd.write(image, wait=True)
     odd.close()
     with av.open(str(tmp_path / "odd.mp4")) as container:
-        assert (container.streams.video[0].codec_context.width, container.streams.video[0].codec_context.height) == (160, 120)
+        assert (
+            container.streams.video[0].codec_context.width,
+            container.streams.video[0].codec_context.height,
+        ) == (160, 120)
 
     broken = H264Writer(tmp_path / "broken.mp4", 10.0)
     broken.write(_frames(1, (160, 120))[0], wait=True)

@@ -14,10 +14,24 @@ def test_bench_recording_encodes_the_loops_frames_and_reports_the_goal_ratio(
     models_dir: Path, sequences_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     out = tmp_path / "bench.json"
-    code = main([
-        "bench", "--tracker", "nano", "--sequence", str(sequences_dir / "uav123_person12_1"), "--frames", "20",
-        "--passes", "2", "--model-dir", str(models_dir), "--recording", "--json", str(out),
-    ])
+    code = main(
+        [
+            "bench",
+            "--tracker",
+            "nano",
+            "--sequence",
+            str(sequences_dir / "uav123_person12_1"),
+            "--frames",
+            "20",
+            "--passes",
+            "2",
+            "--model-dir",
+            str(models_dir),
+            "--recording",
+            "--json",
+            str(out),
+        ]
+    )
     assert code == 0
     data = json.loads(out.read_text())
     assert data["recording"] is True

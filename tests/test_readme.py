@@ -76,9 +76,15 @@ def test_readme_offline_commands_parse(index: int) -> None:
 @pytest.mark.timeout(1800)
 @pytest.mark.parametrize("index", range(len(_blocks("offline"))))
 def test_readme_offline_block_runs_as_written(index: int) -> None:
-    assert (REPO.parent / "shared" / "models").is_dir(), "the README's examples use ../shared beside the repository"
+    assert (REPO.parent / "shared" / "models").is_dir(), (
+        "the README's examples use ../shared beside the repository"
+    )
     block = _blocks("offline")[index]
     env = {k: v for k, v in os.environ.items() if not k.startswith("CLOUDTRACK_") or k == "CLOUDTRACK_SHARED"}
     script = f"set -euo pipefail\n{_setup_script()}\n{block}\n"
-    result = subprocess.run(["bash", "-c", script], cwd=REPO, env=env, capture_output=True, text=True, timeout=1700)
-    assert result.returncode == 0, f"README block {index} failed:\n{block}\n--- stdout\n{result.stdout[-3000:]}\n--- stderr\n{result.stderr[-3000:]}"
+    result = subprocess.run(
+        ["bash", "-c", script], cwd=REPO, env=env, capture_output=True, text=True, timeout=1700
+    )
+    assert result.returncode == 0, (
+        f"README block {index} failed:\n{block}\n--- stdout\n{result.stdout[-3000:]}\n--- stderr\n{result.stderr[-3000:]}"
+    )
