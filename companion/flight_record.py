@@ -127,6 +127,11 @@ class FlightRecorder:
         self._video_rotate = False  # set by the encoder thread: the segment is full, start the next
         self._video_accounted: dict[Path, int] = {}  # bytes of each segment already counted in _used
         self._video_writers: list[H264Writer] = []
+        # The video is declared at video_fps: frames coming faster (a loop outrunning the camera) are
+        # skipped rather than encoded, so the encoder's CPU follows the camera's rate.
+        self._video_period = 1.0 / video_fps if video_fps > 0 else 0.0
+        self._video_due = 0.0
+        self.video_frames_skipped = 0
         # Oldest first: files of this mission that rotation may delete (closed segments, keyframes).
         self._rotatable: deque[Path] = deque()
         self._since_free_check = 0
@@ -211,6 +216,11 @@ class FlightRecorder:
         with self._lock:
             if not (self._active and self._video_wanted):
                 return
+            now = time.monotonic()
+            if now + 0.5 * self._video_period < self._video_due:  # half a period of jitter is fine
+                self.video_frames_skipped += 1
+                return
+            self._video_due = max(self._video_due, now - self._video_period) + self._video_period
             try:
                 if self._video is None or self._video_rotate:
                     self._next_video_segment()

@@ -8,7 +8,9 @@ bare, loop ...) so machine load affects both alike; rates are medians over the p
 
 With `recording`, every loop iteration also writes the flight record as a mission does with
 `[recording] video = true`: one event-log line and the frame handed to the H.264 video encoder (which
-runs on its own thread and drops a frame rather than make the loop wait; drops are counted).
+runs on its own thread and drops a frame rather than make the loop wait; drops are counted). The video
+takes frames at `[camera] fps`, as in flight: the bench's loop runs faster than a camera delivers, and
+the frames in between are skipped (counted too), not encoded.
 
 Frames are decoded and resized once before timing: a camera driver delivers decoded frames, and JPEG
 decoding of the recorded sequence is not part of the onboard loop (its cost is reported separately).
@@ -68,6 +70,7 @@ class BenchResult:
     recording: bool = False
     video_frames_encoded: int = 0  # with recording: frames in the videos, all loop passes
     video_frames_dropped: int = 0  # with recording: frames the encoder's full queue turned away
+    video_frames_skipped: int = 0  # with recording: frames above [camera] fps, not encoded (loop > camera)
 
     @property
     def ratio(self) -> float:
@@ -188,7 +191,7 @@ def run_bench(
     overheads: list[float] = []
     updates: list[float] = []
     trusted = 0
-    encoded = dropped = 0
+    encoded = dropped = skipped = 0
     record_root = tempfile.TemporaryDirectory(prefix="cloudtrack-bench-records-") if recording else None
     try:
         for _ in range(passes):
@@ -236,6 +239,7 @@ def run_bench(
                 record.close()  # outside the timing: waits for the encoder to finish the queued frames
                 written, lost = record.video_frames
                 encoded, dropped = encoded + written, dropped + lost
+                skipped += record.video_frames_skipped
             loop_rates.append((len(images) - 1) / loop_seconds)
             inside = frontend.stats.tracker_seconds + frontend.stats.catch_up_seconds
             overheads.append((loop_seconds - inside) * 1000.0 / (len(images) - 1))
@@ -270,6 +274,7 @@ def run_bench(
         recording=recording,
         video_frames_encoded=encoded,
         video_frames_dropped=dropped,
+        video_frames_skipped=skipped,
     )
 
 

@@ -87,7 +87,27 @@ def test_mission_folder_holds_events_tlog_keyframes_and_video(tmp_path: Path) ->
         assert container.streams.video[0].codec_context.name == "h264"
         decoded = sum(1 for _ in container.decode(video=0))
     encoded, dropped = rec.video_frames
-    assert decoded == encoded >= 1 and encoded + dropped == 12
+    assert decoded == encoded >= 1 and encoded + dropped + rec.video_frames_skipped == 12
+
+
+def test_video_takes_frames_at_the_camera_rate_not_faster(tmp_path: Path) -> None:
+    """A loop outrunning the camera's fps: frames in between are skipped (not encoded, not drops)."""
+    import time
+
+    import av
+
+    rec = FlightRecorder(tmp_path, "drone-1", "m", 50_000_000, video=True, video_fps=20.0, clock=fixed_clock())
+    frame = np.full((120, 160, 3), 80, np.uint8)
+    started = time.monotonic()
+    while time.monotonic() - started < 1.0:  # about 200 frames a second for one second
+        rec.video_frame(frame, None, "TRACKING")
+        time.sleep(0.005)
+    rec.close()
+    encoded, dropped = rec.video_frames
+    assert 15 <= encoded + dropped <= 23, (encoded, dropped)  # 20 FPS of the loop's frames
+    assert rec.video_frames_skipped > 100
+    with av.open(str(rec.folder / "video-000.mp4")) as container:
+        assert sum(1 for _ in container.decode(video=0)) == encoded
 
 
 def test_size_cap_rotates_older_missions_then_oldest_keyframes(tmp_path: Path) -> None:
