@@ -13,6 +13,7 @@ import contextlib
 import logging
 import queue
 import threading
+import time
 from collections.abc import Callable
 from fractions import Fraction
 from pathlib import Path
@@ -45,6 +46,7 @@ class H264Writer:
         self.fps = fps
         self.frames_written = 0
         self.frames_dropped = 0
+        self.encode_cpu_s = 0.0  # CPU time of the encoder thread spent on frames (draw, convert, encode)
         self.error: str | None = None
         self._rate = Fraction(fps).limit_denominator(1001)
         self._options = {"preset": preset, "crf": str(crf)}
@@ -130,6 +132,13 @@ class H264Writer:
             self._drain()
 
     def _encode(self, image: np.ndarray, draw: Draw | None) -> None:
+        started = time.thread_time()
+        try:
+            self._encode_frame(image, draw)
+        finally:
+            self.encode_cpu_s += time.thread_time() - started
+
+    def _encode_frame(self, image: np.ndarray, draw: Draw | None) -> None:
         if draw is not None:
             image = draw(image.copy())
         height, width = (image.shape[0] // 2) * 2, (image.shape[1] // 2) * 2

@@ -231,6 +231,11 @@ class FlightRecorder:
                 self._stop(f"video write failed: {exc}")
 
     @property
+    def video_encode_cpu_s(self) -> float:
+        """CPU seconds the encoder threads spent on this record's frames."""
+        return sum(w.encode_cpu_s for w in self._video_writers)
+
+    @property
     def video_frames(self) -> tuple[int, int]:
         """(encoded, dropped) over every segment: dropped frames found the encoder's queue full."""
         return (sum(w.frames_written for w in self._video_writers), sum(w.frames_dropped for w in self._video_writers))

@@ -71,6 +71,8 @@ class BenchResult:
     video_frames_encoded: int = 0  # with recording: frames in the videos, all loop passes
     video_frames_dropped: int = 0  # with recording: frames the encoder's full queue turned away
     video_frames_skipped: int = 0  # with recording: frames above [camera] fps, not encoded (loop > camera)
+    recording_ms: float = 0.0  # with recording: median over passes of the loop's time in the record's calls
+    encode_cpu_ms: float = 0.0  # with recording: encoder-thread CPU per encoded frame
 
     @property
     def ratio(self) -> float:
@@ -192,6 +194,8 @@ def run_bench(
     updates: list[float] = []
     trusted = 0
     encoded = dropped = skipped = 0
+    recording_times: list[float] = []
+    encode_cpu_s = 0.0
     record_root = tempfile.TemporaryDirectory(prefix="cloudtrack-bench-records-") if recording else None
     try:
         for _ in range(passes):
@@ -216,13 +220,16 @@ def run_bench(
                                video_fps=cam.fps)
                 if record_root is not None else None
             )  # fmt: skip
+            in_record = 0.0
             started = time.perf_counter()
             while (frame := source.read()) is not None:
                 t0 = time.perf_counter()
                 result = frontend.feed(frame)
                 if record is not None:
+                    r0 = time.perf_counter()
                     record.event("step", frame_id=frame.frame_id, trusted=result.trusted)
                     record.video_frame(frame.image, result.box, "FOLLOWING")
+                    in_record += time.perf_counter() - r0
                 if result.trusted and result.box is not None:
                     trusted += 1
                     telemetry = Telemetry(time_s=frame.capture_time, height_agl=20.0, armed=True, offboard_active=True)
@@ -240,6 +247,8 @@ def run_bench(
                 written, lost = record.video_frames
                 encoded, dropped = encoded + written, dropped + lost
                 skipped += record.video_frames_skipped
+                encode_cpu_s += record.video_encode_cpu_s
+                recording_times.append(in_record * 1000.0 / (len(images) - 1))
             loop_rates.append((len(images) - 1) / loop_seconds)
             inside = frontend.stats.tracker_seconds + frontend.stats.catch_up_seconds
             overheads.append((loop_seconds - inside) * 1000.0 / (len(images) - 1))
@@ -275,6 +284,8 @@ def run_bench(
         video_frames_encoded=encoded,
         video_frames_dropped=dropped,
         video_frames_skipped=skipped,
+        recording_ms=statistics.median(recording_times) if recording_times else 0.0,
+        encode_cpu_ms=encode_cpu_s * 1000.0 / encoded if encoded else 0.0,
     )
 
 

@@ -39,6 +39,7 @@ def test_bench_recording_encodes_the_loops_frames_and_reports_the_goal_ratio(
     total = data["video_frames_encoded"] + data["video_frames_dropped"] + data["video_frames_skipped"]
     assert total == 2 * 19
     assert data["video_frames_encoded"] > 0
+    assert 0 < data["recording_ms"] < data["overhead_ms"] and data["encode_cpu_ms"] > 0
     assert data["setpoints_received"] == 2 * 19
     printed = capsys.readouterr().out
     assert "everything else with recording" in printed and "GOAL ratio (in-loop)" in printed
