@@ -248,9 +248,9 @@ def _http_fetch(url: str, destination: Path) -> None:
                     bar.update(len(chunk))
     except requests.ConnectionError as exc:
         raise ModelError(
-            f"cannot reach {host} to download {url} ({_cause(exc)}): this machine looks offline. Connect it to "
-            f"the internet, or copy the weight files into {destination.parent} by other means "
-            f"(e.g. export {MODEL_DIR_ENV}=/path/to/shared/models)"
+            f"cannot reach {host} to download {url} ({_cause(exc)}): this machine looks offline. Connect it "
+            f"to the internet, or use weights you already have: --model-dir DIR or {MODEL_DIR_ENV}=DIR "
+            "(e.g. ../shared/models), or copy the files into the model directory"
         ) from None
     except requests.Timeout:
         raise ModelError(f"{host} did not answer in time while downloading {url}; try again later") from None
