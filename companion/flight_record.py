@@ -65,6 +65,8 @@ _TLOG_FLUSH_S = 1.0
 # Frames the video encoder may hold before the loop's frames are dropped (640x480: about 1 MB each).
 _VIDEO_QUEUE_FRAMES = 8
 _VIDEO_CHECK_EVERY_FRAMES = 30
+# The longest the loop waits for the walk of the other missions, and only when over the cap before it ends.
+_MEASURE_WAIT_S = 0.25
 
 
 class MissionRecord(Protocol):
@@ -367,13 +369,13 @@ class FlightRecorder:
             self._others_counted = True
 
     def _enforce_cap(self) -> None:
-        # Which older missions may go, and their sizes, come from the measuring thread: wait for it (once,
-        # and only when over the cap) rather than walk the records here.
-        self._others_measured.wait(30.0)
-        if not self._others_measured.is_set():
-            return
-        self._count_others()
-        for victim in self._older_missions():
+        # Which older missions may go, and their sizes, come from the measuring thread. Only when over the
+        # cap before it has finished (a tiny cap, a huge card) is it waited for, briefly: the loop must not
+        # stall. Until then this mission's own oldest files go; the thread enforces the cap when it is done.
+        measured = self._others_measured.wait(_MEASURE_WAIT_S)
+        if measured:
+            self._count_others()
+        for victim in self._older_missions() if measured else []:
             if self._used <= self.max_bytes:
                 return
             size = self._others.pop(victim, 0)
@@ -388,7 +390,7 @@ class FlightRecorder:
             except OSError:
                 continue
             self._used -= size
-        if self._used > self.max_bytes:
+        if self._used > self.max_bytes and measured:
             self._stop(f"size cap of {self.max_bytes} bytes reached with nothing left to rotate")
 
     def _older_missions(self) -> list[Path]:
