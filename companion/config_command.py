@@ -50,9 +50,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
 
 
 def _check(args: argparse.Namespace) -> int:
+    from companion.camera_calibration import camera_model
+
     try:
-        load_companion_config(args.file, args.set)
-    except ConfigError as exc:
+        config = load_companion_config(args.file, args.set)
+        camera_model(config.camera)  # a [camera] calibration_file that cannot be read fails here, not in flight
+    except (ConfigError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     print(f"{args.file}: ok")

@@ -165,3 +165,13 @@ def test_camera_calibration_errors_name_the_problem(tmp_path: Path) -> None:
 def _write(path: Path, text: str) -> Path:
     path.write_text(text)
     return path
+
+
+def test_camera_calibration_config_check_reads_the_file(tmp_path: Path) -> None:
+    from companion.cli import main
+
+    config = tmp_path / "companion.toml"
+    config.write_text(f'[camera]\ncalibration_file = "{tmp_path / "nothere.yaml"}"\n')
+    assert main(["config", "check", str(config)]) == 2
+    _ros_yaml(tmp_path / "nothere.yaml", 640, 480, [350.0, 0.0, 320.0, 0.0, 349.0, 240.0, 0.0, 0.0, 1.0])
+    assert main(["config", "check", str(config)]) == 0
