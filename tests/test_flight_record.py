@@ -292,3 +292,31 @@ def test_records_are_measured_off_the_main_loop(tmp_path: Path, monkeypatch: pyt
         time.sleep(0.05)
     rec.close()
     assert not older.exists() and rec.folder.exists()
+
+
+def test_video_segments_rotate_under_the_cap_from_the_encoder_thread(tmp_path: Path) -> None:
+    """Incompressible video into a 1 MB cap: the encoder thread's size checks roll segments and the oldest
+    go, the recording stays on and under the cap, and close() returns (no lock held across threads)."""
+    import threading
+    import time
+
+    cap = 1_000_000
+    rec = FlightRecorder(tmp_path, "drone-1", "m", cap, video=True, video_fps=1000.0, clock=fixed_clock())
+    rng = np.random.default_rng(0)
+    noise = [rng.integers(0, 255, (240, 320, 3), dtype=np.uint8) for _ in range(4)]
+    started = time.monotonic()
+    i = 0
+    while time.monotonic() - started < 4.0:
+        rec.video_frame(noise[i % 4], None, "TRACKING")
+        i += 1
+        time.sleep(0.002)
+    assert rec.active
+    closer = threading.Thread(target=rec.close)
+    closer.start()
+    closer.join(15)
+    assert not closer.is_alive(), "close() deadlocked"
+    segments = sorted(p.name for p in rec.folder.glob("video-*.mp4"))
+    assert segments and segments[0] != "video-000.mp4", segments  # rolled, and the oldest rotated away
+    total = sum(p.stat().st_size for p in tmp_path.rglob("*") if p.is_file())
+    # Checked every 30 frames, so the newest segment may run a little past before the next check.
+    assert total <= cap * 1.3, total
