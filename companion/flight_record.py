@@ -64,7 +64,8 @@ _FREE_CHECK_EVERY_BYTES = 1024 * 1024
 _TLOG_FLUSH_S = 1.0
 # Frames the video encoder may hold before the loop's frames are dropped (640x480: about 1 MB each).
 _VIDEO_QUEUE_FRAMES = 8
-_VIDEO_CHECK_EVERY_FRAMES = 30
+# The encoder thread counts the video's growth against the cap in steps of this many bytes.
+_VIDEO_ACCOUNT_BYTES = 64 * 1024
 # The longest the loop waits for the walk of the other missions, and only when over the cap before it ends.
 _MEASURE_WAIT_S = 0.25
 
@@ -292,9 +293,10 @@ class FlightRecorder:
         self._video_writers.append(self._video)
 
     def _video_progress(self, writer: H264Writer) -> None:
-        """Encoder thread, after each frame: every 30 frames count the segment's growth (one stat of one
-        file) and ask for the next segment once this one is full."""
-        if writer.frames_written % _VIDEO_CHECK_EVERY_FRAMES:
+        """Encoder thread, after each frame: one stat of the segment; once it has grown by
+        _VIDEO_ACCOUNT_BYTES (or is full) count the growth and ask for the next segment when full."""
+        size = writer.size_bytes
+        if size - self._video_accounted.get(writer.path, 0) < _VIDEO_ACCOUNT_BYTES and size < self.segment_bytes:
             return
         with self._lock:
             if not self._active:

@@ -318,5 +318,5 @@ def test_video_segments_rotate_under_the_cap_from_the_encoder_thread(tmp_path: P
     segments = sorted(p.name for p in rec.folder.glob("video-*.mp4"))
     assert segments and segments[0] != "video-000.mp4", segments  # rolled, and the oldest rotated away
     total = sum(p.stat().st_size for p in tmp_path.rglob("*") if p.is_file())
-    # Checked every 30 frames, so the newest segment may run a little past before the next check.
+    # Counted in 64 KB steps after each frame: the newest segment may run a little past the cap.
     assert total <= cap * 1.3, total
