@@ -287,8 +287,9 @@ class FlightRecorder:
         self._video = None
         self._video_rotate = False
         path = self.folder / f"video-{self._video_index:03d}.mp4"
+        # An encoder process, not a thread: the encoder must never hold the control loop's GIL.
         self._video = H264Writer(path, self._video_fps, queue_frames=_VIDEO_QUEUE_FRAMES, preset="ultrafast",
-                                 on_frame_written=self._video_progress)
+                                 on_frame_written=self._video_progress, process=True)
         self._video_accounted[path] = 0
         self._video_writers.append(self._video)
 
