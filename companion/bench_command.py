@@ -87,10 +87,10 @@ def run(args: argparse.Namespace) -> int:
     print(f"ratio of pass rates      {result.ratio:8.3f}   loop FPS / bare FPS: for reference, swings with machine load")
     if result.recording:
         print(f"video frames encoded     {result.video_frames_encoded}, dropped {result.video_frames_dropped} "
-              "(H.264 on the encoder thread; a full queue drops, the loop never waits), "
+              "(H.264 in the encoder process; a full queue drops, the loop never waits), "
               f"skipped {result.video_frames_skipped} (loop faster than [camera] fps)")
         print(f"recording cost           {result.recording_ms:.3f} ms per frame in the loop (event line + frame "
-              f"hand-off, inside 'everything else'); encoder thread {result.encode_cpu_ms:.2f} ms CPU per encoded frame")
+              f"hand-off, inside 'everything else'); encoder {result.encode_cpu_ms:.2f} ms CPU per encoded frame")
     print(f"loop latency p50 / p95   {result.latency_p50_ms:6.2f} / {result.latency_p95_ms:.2f} ms")
     print(f"peak memory (RSS)        {result.peak_rss_mib:8.1f} MiB")
     print(f"JPEG decode + resize     {result.decode_ms:8.2f} ms/frame (outside the loop)")

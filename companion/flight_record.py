@@ -8,7 +8,7 @@ A mission folder `<dir>/<UTC start>_<vehicle>_<mission>/` holds:
                       (8-byte big-endian microseconds since the epoch, then the raw message)
   keyframes/NNNNNN.jpg  the keyframes sent to the back-end (the event log names them)
   video-NNN.mp4       optional camera video (H.264, plays in a browser) with the track box and state drawn
-                      on it, encoded on a thread of its own: the loop only queues frames, and a frame
+                      on it, encoded in a process of its own: the loop only queues frames, and a frame
                       that finds the encoder's queue full is dropped, never waited for
 
 Size cap: the records directory as a whole (all missions) stays under `max_bytes`; what the other
@@ -64,7 +64,7 @@ _FREE_CHECK_EVERY_BYTES = 1024 * 1024
 _TLOG_FLUSH_S = 1.0
 # Frames the video encoder may hold before the loop's frames are dropped (640x480: about 1 MB each).
 _VIDEO_QUEUE_FRAMES = 8
-# The encoder thread counts the video's growth against the cap in steps of this many bytes.
+# The video's growth is counted against the cap, as the encoder reports frames, in steps of this many bytes.
 _VIDEO_ACCOUNT_BYTES = 64 * 1024
 # The longest the loop waits for the walk of the other missions, and only when over the cap before it ends.
 _MEASURE_WAIT_S = 0.25
@@ -127,7 +127,7 @@ class FlightRecorder:
         self._video_fps = video_fps
         self._video: H264Writer | None = None
         self._video_index = 0
-        self._video_rotate = False  # set by the encoder thread: the segment is full, start the next
+        self._video_rotate = False  # set on the encoder's reports: the segment is full, start the next
         self._video_accounted: dict[Path, int] = {}  # bytes of each segment already counted in _used
         self._video_writers: list[H264Writer] = []
         # The video is declared at video_fps: frames coming faster (a loop outrunning the camera) are
@@ -214,7 +214,7 @@ class FlightRecorder:
     def video_frame(self, image: np.ndarray, box: Box | None, state: str) -> None:
         """One camera frame for the overlay video (no-op unless video was asked for).
 
-        Costs the caller a queue put: drawing and H.264 encoding happen on the encoder's thread. The image
+        Costs the caller a queue put: drawing and H.264 encoding happen in the encoder process. The image
         must not be modified afterwards (camera frames are fresh arrays)."""
         with self._lock:
             if not (self._active and self._video_wanted):
@@ -235,7 +235,7 @@ class FlightRecorder:
 
     @property
     def video_encode_cpu_s(self) -> float:
-        """CPU seconds the encoder threads spent on this record's frames."""
+        """CPU seconds the encoders spent on this record's frames."""
         return sum(w.encode_cpu_s for w in self._video_writers)
 
     @property
@@ -253,7 +253,7 @@ class FlightRecorder:
             self._close_files()
             self._active = False
         if video is not None:
-            video.close()  # outside the lock: the encoder thread takes it to account what it wrote
+            video.close()  # outside the lock: the encoder's reports take it to account what it wrote
 
     # --- internals (called with the lock held) --------------------------------------------------
 
@@ -415,7 +415,7 @@ class FlightRecorder:
             with contextlib.suppress(OSError):
                 self._tlog.close()
         if self._video is not None:
-            # Never joined here: _stop may run on the encoder's own thread, or with the lock it needs held.
+            # Never joined here: _stop may run on the writer's report thread, or with the lock it needs held.
             video = self._video
             threading.Thread(target=video.close, name="flight-record-video-close", daemon=True).start()
         self._events = None
@@ -424,7 +424,7 @@ class FlightRecorder:
 
 
 def _draw_record_overlay(image: np.ndarray, box: Box | None, label: str) -> np.ndarray:
-    """The record video's overlay, drawn in the encoder thread on its own copy of the frame."""
+    """The record video's overlay, drawn in the encoder process on its own copy of the frame."""
     import cv2
 
     if box is not None and box.is_valid():

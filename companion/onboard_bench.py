@@ -8,7 +8,7 @@ bare, loop ...) so machine load affects both alike; rates are medians over the p
 
 With `recording`, every loop iteration also writes the flight record as a mission does with
 `[recording] video = true`: one event-log line and the frame handed to the H.264 video encoder (which
-runs on its own thread and drops a frame rather than make the loop wait; drops are counted). The video
+runs in a process of its own and drops a frame rather than make the loop wait; drops are counted). The video
 takes frames at `[camera] fps`, as in flight: the bench's loop runs faster than a camera delivers, and
 the frames in between are skipped (counted too), not encoded.
 
