@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 SHARED ?= $(abspath ../shared)
 export CLOUDTRACK_SHARED ?= $(SHARED)
 
-.PHONY: test lint types pytest demo install clean install-services backend-redis
+.PHONY: test check lint format-check types pytest demo install clean install-services backend-redis
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -34,6 +34,9 @@ lint: install
 
 types: install
 	$(BIN)/mypy
+
+format-check: install
+	$(BIN)/ruff format --check .
 
 # The supervisor page's browser test drives Debian's chromium (never a browser downloaded by playwright).
 CHROMIUM ?= /usr/bin/chromium
@@ -73,10 +76,18 @@ $(WORDNET):
 pytest: install $(CHROMIUM) $(REDIS_SERVER) $(NGINX) $(WORDNET)
 	$(BIN)/python -m pytest
 
-test: lint types pytest
+test: lint format-check types pytest
+
+# The developer's inner loop: lint, types and every test without the slow mark (closed-loop scenarios,
+# browser, real-time MAVLink and SITL flights); under 2 minutes on a 2-core machine. `make test` runs all.
+check: install
+	$(BIN)/ruff check .
+	$(BIN)/mypy
+	$(BIN)/python -m pytest -q -m "not slow"
 
 demo: $(BIN)/.installed-demo
 	$(BIN)/cloudtrack-sim run follow --video out/demo.mp4 --plot out/demo.png --json out/demo.json
+	@echo "the console scripts are in $(BIN)/: 'source $(BIN)/activate' puts them on PATH (README, Set-up)"
 
 clean:
 	rm -rf $(VENV) out .mypy_cache .ruff_cache .pytest_cache

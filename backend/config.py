@@ -14,7 +14,7 @@ from typing import Literal
 
 from pydantic import Field, field_validator, model_validator
 
-from cloudtrack.config_files import ConfigSection, load_config
+from cloudtrack.config_files import ConfigSection, default_config_files, load_config
 
 ENV_PREFIX = "CLOUDTRACK_BACKEND_"
 
@@ -174,5 +174,6 @@ def load_backend_config(
     path: Path | None = None, assignments: Iterable[str] = (), environ: Mapping[str, str] | None = None
 ) -> BackendConfig:
     """Defaults, then FILE, then the environment, then --set flags; ConfigError on anything not allowed."""
-    env = backend_environment(os.environ if environ is None else environ)
-    return load_config(BackendConfig, path, env_prefix=ENV_PREFIX, environ=env, assignments=assignments)
+    full = os.environ if environ is None else environ
+    return load_config(BackendConfig, path, env_prefix=ENV_PREFIX, environ=backend_environment(full),
+                       assignments=assignments, default_files=default_config_files("backend.toml", full))

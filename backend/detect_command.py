@@ -9,6 +9,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import cv2
+import numpy as np
 
 from backend.detectors.factory import build_detector
 from backend.images import ImageError, decode_image
@@ -17,7 +18,7 @@ from backend.supersets import UnknownSupersetError, superset_from_prompt
 from backend.verifiers.factory import build_verifier
 from behaviors.detection import Verdict
 from cloudtrack.config_files import ConfigError
-from cloudtrack.model_store import ModelError
+from cloudtrack.model_store import MODEL_DIR_HELP, ModelError
 
 COLOURS = {Verdict.YES: (0, 200, 0), Verdict.NO: (0, 0, 230), Verdict.UNCERTAIN: (0, 200, 230)}
 
@@ -40,11 +41,66 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
     parser.add_argument("--prompt", required=True, help="the full description of the target")
     parser.add_argument("--superset", help="detector class (default: derived from the prompt)")
     parser.add_argument("--verifier", choices=["none", "local", "vlm", "cascade"], help="override [verifier] kind")
-    parser.add_argument("--model-dir", help="weights folder (default: $CLOUDTRACK_MODEL_DIR, then the cache)")
+    parser.add_argument("--model-dir", metavar="DIR", help=MODEL_DIR_HELP)
     parser.add_argument("--json", type=Path, metavar="OUT", help="write the candidates as JSON")
     parser.add_argument("--draw", type=Path, metavar="OUT.jpg", help="write the image with boxes and verdicts")
     add_config_flags(parser)
     parser.set_defaults(func=_detect)
+
+
+Rect = tuple[int, int, int, int]  # x1, y1, x2, y2 in pixels, exclusive ends
+
+
+def draw_candidates(
+    image: np.ndarray, items: list[tuple[tuple[float, float, float, float], str, tuple[int, int, int]]]
+) -> list[Rect]:
+    """Draw each (box xyxy, label, BGR colour) on image; returns where the labels went.
+
+    Text and lines scale with the image (about 2.5 % of its shorter side: 18 px on 1280x720), each label
+    sits on a filled box of its colour with dark or light text, whichever reads better, and a label never
+    covers another: it goes above its box, else below, else inside, else is moved down past the others.
+    """
+    height, width = image.shape[:2]
+    scale = max(0.4, min(width, height) / 900.0)
+    thickness = max(1, round(scale * 2))
+    line = max(2, round(min(width, height) / 300.0))
+    pad = max(2, round(4 * scale))
+    placed: list[Rect] = []
+    for box, _, colour in items:
+        x1, y1, x2, y2 = (int(round(v)) for v in box)
+        cv2.rectangle(image, (x1, y1), (x2, y2), colour, line)
+    for box, text, colour in items:
+        x1, y1, x2, y2 = (int(round(v)) for v in box)
+        (tw, th), baseline = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, thickness)
+        lw, lh = tw + 2 * pad, th + baseline + 2 * pad
+        left = min(max(0, x1), max(0, width - lw))
+        tops = [y1 - lh, y2, y1]  # above the box, below it, inside its top
+        rect = next(
+            (r for top in tops if 0 <= top <= height - lh and not _overlaps(r := (left, top, left + lw, top + lh), placed)),
+            None,
+        )
+        if rect is None:  # slide down past the labels in the way (wrapping to the top once), bounded
+            start = top = min(max(0, y1 - lh), max(0, height - lh))
+            for _ in range(2 * len(placed) + 2):
+                blockers = [p for p in placed if _overlaps((left, top, left + lw, top + lh), [p])]
+                if not blockers:
+                    rect = (left, top, left + lw, top + lh)
+                    break
+                top = max(b[3] for b in blockers)
+                if top + lh > height:
+                    top = 0
+            if rect is None:  # more labels than fit: overlap rather than lose one
+                rect = (left, start, left + lw, start + lh)
+        placed.append(rect)
+        cv2.rectangle(image, rect[:2], (rect[2] - 1, rect[3] - 1), colour, cv2.FILLED)
+        ink = (0, 0, 0) if 0.114 * colour[0] + 0.587 * colour[1] + 0.299 * colour[2] > 110 else (255, 255, 255)
+        cv2.putText(image, text, (rect[0] + pad, rect[3] - pad - baseline), cv2.FONT_HERSHEY_SIMPLEX, scale, ink,
+                    thickness, cv2.LINE_AA)
+    return placed
+
+
+def _overlaps(rect: Rect, others: list[Rect]) -> bool:
+    return any(rect[0] < o[2] and o[0] < rect[2] and rect[1] < o[3] and o[1] < rect[3] for o in others)
 
 
 def _as_json(result: PipelineResult, image_path: Path) -> dict[str, object]:
@@ -95,14 +151,14 @@ def _detect(args: argparse.Namespace) -> int:
         print(f"  [{x1:.0f}, {y1:.0f}, {x2:.0f}, {y2:.0f}] score {c.detection.score:.2f} "
               f"{c.detection.verdict.value.upper():9s} {c.detection.justification}")
     if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(_as_json(result, args.image), indent=2))
     if args.draw:
-        for c in result.candidates:
-            colour = COLOURS[c.detection.verdict]
-            x1, y1, x2, y2 = (int(round(v)) for v in c.detection.box.xyxy())
-            cv2.rectangle(image, (x1, y1), (x2, y2), colour, 2)
-            cv2.putText(image, f"{c.detection.verdict.value} {c.detection.score:.2f}", (x1, max(12, y1 - 4)),
-                        cv2.FONT_HERSHEY_SIMPLEX, 0.45, colour, 1, cv2.LINE_AA)
+        draw_candidates(image, [
+            (c.detection.box.xyxy(), f"{c.detection.verdict.value} {c.detection.score:.2f}", COLOURS[c.detection.verdict])
+            for c in result.candidates
+        ])  # fmt: skip
+        args.draw.parent.mkdir(parents=True, exist_ok=True)
         if not cv2.imwrite(str(args.draw), image):
             print(f"error: cannot write {args.draw}", file=sys.stderr)
             return 2

@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import sys
 
 from cloudtrack.config_files import ConfigError
-from cloudtrack.model_store import ModelError
+from cloudtrack.model_store import MODEL_DIR_HELP, ModelError
 
 log = logging.getLogger(__name__)
 
@@ -26,6 +27,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
         "  CLOUDTRACK_BACKEND_SERVER__PORT=9000 cloudtrack-backend serve",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    parser.add_argument("--model-dir", metavar="DIR", help=MODEL_DIR_HELP)
     add_config_flags(parser)
     parser.set_defaults(func=_serve)
 
@@ -36,7 +38,8 @@ def _serve(args: argparse.Namespace) -> int:
     from backend.serving import serve
 
     try:
-        config = config_from_args(args)
+        extra = [f"detector.model_dir={json.dumps(args.model_dir)}"] if args.model_dir else []
+        config = config_from_args(args, *extra)
         app = create_app(config)
     except (ConfigError, ModelError, ValueError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)

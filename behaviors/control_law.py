@@ -77,7 +77,7 @@ class DistanceEstimate:
 
 def horizontal_angle(camera: CameraModel, box: Box) -> float:
     """Angle of the box centre off the optical axis in the image's horizontal direction; right is positive."""
-    return math.atan2(box.cx - camera.cx, camera.fx)
+    return math.atan(camera.normalised(box.cx, box.cy)[0])  # through the lens model, as geolocation
 
 
 def estimate_distance(

@@ -1,5 +1,8 @@
 """Where on the ground a box's foot point is: flat-ground ray casting from the camera, with an error estimate.
 
+A pixel becomes a ray through the camera's lens model (`CameraModel.normalised`: OpenCV's distortion
+inverted when the camera is calibrated, the pinhole of the field of view otherwise).
+
 Frames: NED world, FRD body, attitude as ZYX Euler angles (yaw, pitch, roll). The camera looks along the
 body's forward axis pitched by the mount; a stabilised gimbal cancels the vehicle's roll and pitch. A
 pixel's ray is intersected with the ground plane `height_agl` below the camera.
@@ -64,7 +67,8 @@ def pixel_ray_ned(
     camera: CameraModel, u: float, v: float, roll: float, pitch: float, yaw: float
 ) -> Vec3:
     """The (unnormalised) NED direction of pixel (u, v) for a vehicle at the given attitude."""
-    ray: Vec3 = (1.0, (u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy)  # FRD of the camera
+    x, y = camera.normalised(u, v)  # through the lens model: wide lenses bend the edges most
+    ray: Vec3 = (1.0, x, y)  # FRD of the camera
     ray = _rot_y(camera.mount_pitch, ray)
     if not camera.stabilised:
         ray = _rot_y(pitch, _rot_x(roll, ray))

@@ -1,8 +1,10 @@
 """Loading a typed configuration from TOML defaults, a user file, environment variables and flags.
 
-Precedence, lowest first: the schema's defaults (mirrored in `config/*.toml`), the file given with
-`--config`, environment variables `<PREFIX><SECTION>__<KEY>` (e.g. `CLOUDTRACK_MAVLINK__CONNECTION`),
-then `--set section.key=value` flags. Any unknown key, wrong type or out-of-range value raises
+Precedence, lowest first: the schema's defaults (mirrored in `config/*.toml`), the configuration
+file(s), environment variables `<PREFIX><SECTION>__<KEY>` (e.g. `CLOUDTRACK_MAVLINK__CONNECTION`),
+then `--set section.key=value` flags. The file is the one given with `--config`; without `--config`,
+`/etc/cloudtrack/NAME` and then `$XDG_CONFIG_HOME/cloudtrack/NAME` (default `~/.config/cloudtrack/NAME`)
+are read when they exist, the user's file over the system's (`config_search_path`). Any unknown key, wrong type or out-of-range value raises
 `ConfigError` naming the source, the key and what is allowed.
 """
 
@@ -11,7 +13,7 @@ from __future__ import annotations
 import json
 import os
 import sys
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -39,6 +41,22 @@ def _holds_secret(value: Any) -> bool:
     if isinstance(value, Mapping):
         return any(is_secret_key(str(k)) or _holds_secret(v) for k, v in value.items())
     return isinstance(value, (list, tuple)) and any(_holds_secret(v) for v in value)
+
+
+SYSTEM_CONFIG_DIR = Path("/etc/cloudtrack")
+
+
+def config_search_path(name: str, environ: Mapping[str, str] | None = None) -> list[Path]:
+    """Where a configuration file NAME is looked for without `--config`, lowest precedence first:
+    the system's (`/etc/cloudtrack/NAME`), then the user's (`$XDG_CONFIG_HOME/cloudtrack/NAME`)."""
+    env = os.environ if environ is None else environ
+    user_base = Path(env["XDG_CONFIG_HOME"]) if env.get("XDG_CONFIG_HOME") else Path.home() / ".config"
+    return [SYSTEM_CONFIG_DIR / name, user_base / "cloudtrack" / name]
+
+
+def default_config_files(name: str, environ: Mapping[str, str] | None = None) -> list[Path]:
+    """The files of `config_search_path` that exist."""
+    return [p for p in config_search_path(name, environ) if p.is_file()]
 
 
 class ConfigSection(BaseModel):
@@ -174,11 +192,15 @@ def load_config(
     env_prefix: str = "CLOUDTRACK_",
     environ: Mapping[str, str] | None = None,
     assignments: Iterable[str] = (),
+    default_files: Sequence[Path] = (),
 ) -> T:
-    """Build the effective configuration; raise ConfigError on anything the schema does not allow."""
+    """Build the effective configuration; raise ConfigError on anything the schema does not allow.
+
+    `default_files` (from `default_config_files`) are read, in order, only when no `path` is given.
+    """
     layers: list[tuple[str, dict[str, Any]]] = []
-    if path is not None:
-        layers.append((str(path), read_toml(path)))
+    for file in [path] if path is not None else default_files:
+        layers.append((str(file), read_toml(file)))
     layers.append(("environment", env_overrides(env_prefix, os.environ if environ is None else environ)))
     layers.append(("--set", flag_overrides(assignments)))
     merged: dict[str, Any] = {}

@@ -8,13 +8,17 @@ from __future__ import annotations
 
 import hashlib
 import os
+import sys
 import tempfile
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
+from urllib.parse import urlsplit
 
 MODEL_DIR_ENV = "CLOUDTRACK_MODEL_DIR"
+# The help of the one --model-dir flag every command that loads weights takes.
+MODEL_DIR_HELP = "folder of weight files (default: $CLOUDTRACK_MODEL_DIR, then ~/.cache/cloudtrack/models)"
 
 
 @dataclass(frozen=True)
@@ -226,10 +230,41 @@ def download(
 
 
 def _http_fetch(url: str, destination: Path) -> None:
+    """Stream URL to destination with a progress bar on stderr; network failures become one clear ModelError."""
     import requests
+    from tqdm import tqdm
 
-    with requests.get(url, stream=True, timeout=(10, 60)) as response:
-        response.raise_for_status()
-        with open(destination, "wb") as f:
-            for chunk in response.iter_content(chunk_size=1 << 20):
-                f.write(chunk)
+    host = urlsplit(url).hostname or url
+    try:
+        with requests.get(url, stream=True, timeout=(10, 60)) as response:
+            response.raise_for_status()
+            total = int(response.headers.get("Content-Length") or 0) or None
+            with open(destination, "wb") as f, tqdm(
+                total=total, unit="B", unit_scale=True, unit_divisor=1024, desc=Path(urlsplit(url).path).name,
+                file=sys.stderr,
+            ) as bar:
+                for chunk in response.iter_content(chunk_size=1 << 16):
+                    f.write(chunk)
+                    bar.update(len(chunk))
+    except requests.ConnectionError as exc:
+        raise ModelError(
+            f"cannot reach {host} to download {url} ({_cause(exc)}): this machine looks offline. Connect it "
+            f"to the internet, or use weights you already have: --model-dir DIR or {MODEL_DIR_ENV}=DIR "
+            "(e.g. ../shared/models), or copy the files into the model directory"
+        ) from None
+    except requests.Timeout:
+        raise ModelError(f"{host} did not answer in time while downloading {url}; try again later") from None
+    except requests.HTTPError as exc:
+        raise ModelError(f"{url} answered {exc.response.status_code if exc.response is not None else '?'}; "
+                         "the upstream file may have moved") from None
+
+
+def _cause(exc: BaseException) -> str:
+    """The innermost reason of a requests/urllib3 connection error, in a few words."""
+    text = str(exc)
+    for marker, words in (("NameResolutionError", "name resolution failed"), ("Name or service not known",
+                          "name resolution failed"), ("Temporary failure in name resolution", "name resolution failed"),
+                          ("Connection refused", "connection refused"), ("Network is unreachable", "network unreachable")):
+        if marker in text:
+            return words
+    return "connection failed"

@@ -58,12 +58,12 @@ def _example_config(defaults: str, backend: bool) -> str:
     )
     if backend:
         return header + defaults
-    # On the vehicle the autopilot is on the Pi's UART wired to TELEM2 (docs/operations.md), and the
-    # service may write only its state directory (ProtectSystem=strict, ProtectHome=yes).
+    # On the vehicle the autopilot is on the Pi's UART wired to TELEM2 (docs/operations.md). Records need no
+    # rewrite: an empty [recording] dir means $STATE_DIRECTORY/records, which the unit's StateDirectory= sets.
     loopback = 'connection = "udpin:127.0.0.1:14540"'
     if loopback not in defaults:
         raise ValueError(f"the companion's default configuration no longer holds {loopback!r}")
-    return header + defaults.replace(loopback, 'connection = "/dev/ttyAMA0,921600"', 1).replace('dir = "~/.local/share/cloudtrack/records"', 'dir = "/var/lib/cloudtrack/records"', 1)
+    return header + defaults.replace(loopback, 'connection = "/dev/ttyAMA0,921600"', 1)
 
 
 def service_files(unit_dir: Path, config_dir: Path, backend: bool) -> ServiceFiles:

@@ -22,10 +22,14 @@ examples:
   cloudtrack-companion bench --tracker nano --sequence ../shared/data/sequences/uav123_person12_1
   cloudtrack-companion bench --tracker vit --size 1280x720 --passes 5 --json out/bench.json
   cloudtrack-companion bench --tracker csrt --frames 60
+  cloudtrack-companion bench --tracker nano --recording     # with the flight record's H.264 video on
 
 One loop iteration: frame from the source -> tracking front-end (tracker, loss signals, ring buffer) ->
 follow control law with the safety limits -> SET_POSITION_TARGET_LOCAL_NED -> MAVLink over loopback UDP.
 Frames are decoded before timing (a camera delivers pixels); the decode cost is printed separately.
+Two ratios are printed. The goal (>= 0.9) applies to the in-loop ratio, update() / (update() + the rest
+of the loop) measured inside the same loop passes; the ratio of the two pass rates is shown beside it but
+swings with machine load between the bare and the loop passes (0.76-1.04 for the same code).
 """
 
 
@@ -50,6 +54,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
     parser.add_argument("--passes", type=int, default=3, help="alternating bare/loop passes (default 3)")
     parser.add_argument("--frames", type=int, help="use only the first N frames")
     parser.add_argument("--json", type=Path, metavar="OUT", help="write the figures as JSON")
+    parser.add_argument("--recording", action="store_true",
+                        help="write the flight record with H.264 video in the loop, as [recording] video = true "
+                        "does (default: off)")
     add_model_dir_flag(parser)
     add_config_flags(parser)
     parser.set_defaults(func=run)
@@ -63,7 +70,8 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError("--passes must be at least 1")
         sequence = args.sequence or _default_sequence()
         model_dir = resolve_model_dir(args.model_dir or config.tracker.model_dir or None)
-        result = run_bench(sequence, model_dir, config, args.tracker or config.tracker.name, size, args.passes, args.frames)
+        result = run_bench(sequence, model_dir, config, args.tracker or config.tracker.name, size, args.passes, args.frames,
+                           recording=args.recording)
     except (ConfigError, ModelError, TrackerUnavailableError, ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -71,9 +79,18 @@ def run(args: argparse.Namespace) -> int:
     print(f"tracker {result.tracker} on {result.sequence}, {w}x{h}, {result.frames} frames x {result.passes} passes")
     print(f"bare update() rate       {result.bare_fps:8.1f} FPS")
     print(f"onboard loop rate        {result.loop_fps:8.1f} FPS")
-    print(f"ratio loop / bare        {result.ratio:8.3f}   (goal >= 0.9)")
-    print(f"inside the loop          update() {result.update_ms:.2f} ms + everything else {result.overhead_ms:.2f} ms "
-          f"per frame -> ratio {result.ratio_from_overhead:.3f}")
+    recording = " with recording" if result.recording else ""
+    verdict = "met" if result.ratio_from_overhead >= 0.9 else "NOT met"
+    print(f"inside the loop          update() {result.update_ms:.2f} ms + everything else{recording} "
+          f"{result.overhead_ms:.2f} ms per frame")
+    print(f"GOAL ratio (in-loop)     {result.ratio_from_overhead:8.3f}   update / (update + rest): goal >= 0.9, {verdict}")
+    print(f"ratio of pass rates      {result.ratio:8.3f}   loop FPS / bare FPS: for reference, swings with machine load")
+    if result.recording:
+        print(f"video frames encoded     {result.video_frames_encoded}, dropped {result.video_frames_dropped} "
+              "(H.264 in the encoder process; a full queue drops, the loop never waits), "
+              f"skipped {result.video_frames_skipped} (loop faster than [camera] fps)")
+        print(f"recording cost           {result.recording_ms:.3f} ms per frame in the loop (event line + frame "
+              f"hand-off, inside 'everything else'); encoder {result.encode_cpu_ms:.2f} ms CPU per encoded frame")
     print(f"loop latency p50 / p95   {result.latency_p50_ms:6.2f} / {result.latency_p95_ms:.2f} ms")
     print(f"peak memory (RSS)        {result.peak_rss_mib:8.1f} MiB")
     print(f"JPEG decode + resize     {result.decode_ms:8.2f} ms/frame (outside the loop)")

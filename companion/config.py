@@ -15,7 +15,7 @@ from typing import Literal
 from pydantic import Field, model_validator
 
 from behaviors.control_law import ControlGains
-from cloudtrack.config_files import ConfigSection, load_config
+from cloudtrack.config_files import ConfigSection, default_config_files, load_config
 
 TrackerName = Literal["nano", "vit", "dasiamrpn", "csrt", "kcf", "mil", "goturn"]
 
@@ -35,6 +35,22 @@ class CameraConfig(ConfigSection):
     mount_pitch_deg: float = Field(-45.0, ge=-90, le=30)
     stabilised: bool = True
     reconnect_interval_s: float = Field(1.0, gt=0, le=60)
+    # Lens calibration (OpenCV's model; companion/camera_calibration.py). Empty: an ideal pinhole from
+    # hfov_deg. Either a file (cv2.FileStorage YAML/XML/JSON, or a ROS camera_calibration YAML) or inline:
+    # camera_matrix = [fx, 0, cx, 0, fy, cy, 0, 0, 1] at width x height, distortion = [k1, k2, p1, p2, k3].
+    calibration_file: str = ""
+    camera_matrix: list[float] = Field(default_factory=list)
+    distortion: list[float] = Field(default_factory=list)
+
+    @model_validator(mode="after")
+    def _calibration_shape(self) -> CameraConfig:
+        if len(self.camera_matrix) not in (0, 9):
+            raise ValueError(f"camera_matrix takes 9 numbers (row-major 3x3), got {len(self.camera_matrix)}")
+        if self.distortion and not self.camera_matrix:
+            raise ValueError("distortion needs camera_matrix (or use calibration_file)")
+        if len(self.distortion) not in (0, 4, 5, 8, 12):
+            raise ValueError(f"distortion takes 4, 5, 8 or 12 coefficients, got {len(self.distortion)}")
+        return self
 
 
 class TrackerConfig(ConfigSection):
@@ -164,7 +180,9 @@ class ControlConfig(ConfigSection):
 
 class RecordingConfig(ConfigSection):
     enabled: bool = True
-    dir: str = "~/.local/share/cloudtrack/records"
+    # Empty: $STATE_DIRECTORY/records under systemd, else $XDG_DATA_HOME/cloudtrack/records
+    # (~/.local/share/cloudtrack/records); see companion.flight_record.records_dir.
+    dir: str = ""
     max_bytes: int = Field(2_000_000_000, ge=1_000_000)
     video: bool = False
 
@@ -182,6 +200,7 @@ class CompanionConfig(ConfigSection):
 
 
 ENV_PREFIX = "CLOUDTRACK_"
+CONFIG_FILE_NAME = "companion.toml"  # looked up in /etc/cloudtrack/ and $XDG_CONFIG_HOME/cloudtrack/
 # The back-end's variables (CLOUDTRACK_BACKEND_<SECTION>__<KEY>) share our prefix; one shell or host may
 # hold both processes' settings, so they are not ours to validate. Our own [backend] section is
 # CLOUDTRACK_BACKEND__<KEY> (two underscores) and stays.
@@ -199,6 +218,11 @@ def companion_environment(environ: Mapping[str, str]) -> dict[str, str]:
 def load_companion_config(
     path: Path | None = None, assignments: Iterable[str] = (), environ: Mapping[str, str] | None = None
 ) -> CompanionConfig:
-    """Defaults, then FILE, then CLOUDTRACK_<SECTION>__<KEY> variables, then --set; ConfigError if not allowed."""
-    env = companion_environment(os.environ if environ is None else environ)
-    return load_config(CompanionConfig, path, env_prefix=ENV_PREFIX, environ=env, assignments=assignments)
+    """Defaults, then FILE (without one: /etc/cloudtrack/companion.toml, then
+    $XDG_CONFIG_HOME/cloudtrack/companion.toml, where they exist), then CLOUDTRACK_<SECTION>__<KEY>
+    variables, then --set; ConfigError if not allowed."""
+    full = os.environ if environ is None else environ
+    return load_config(
+        CompanionConfig, path, env_prefix=ENV_PREFIX, environ=companion_environment(full), assignments=assignments,
+        default_files=default_config_files(CONFIG_FILE_NAME, full),
+    )

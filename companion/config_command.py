@@ -12,7 +12,11 @@ from companion.config import CompanionConfig, load_companion_config
 
 def add_config_flags(parser: argparse.ArgumentParser) -> None:
     """--config and --set, shared by every subcommand that reads the configuration."""
-    parser.add_argument("--config", type=Path, help="TOML file (defaults: config/companion.toml)")
+    parser.add_argument(
+        "--config", type=Path,
+        help="TOML file (default: /etc/cloudtrack/companion.toml, then "
+        "$XDG_CONFIG_HOME/cloudtrack/companion.toml, where they exist)",
+    )
     parser.add_argument(
         "--set",
         action="append",
@@ -46,9 +50,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
 
 
 def _check(args: argparse.Namespace) -> int:
+    from companion.camera_calibration import camera_model
+
     try:
-        load_companion_config(args.file, args.set)
-    except ConfigError as exc:
+        config = load_companion_config(args.file, args.set)
+        camera_model(config.camera)  # a [camera] calibration_file that cannot be read fails here, not in flight
+    except (ConfigError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     print(f"{args.file}: ok")

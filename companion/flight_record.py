@@ -7,9 +7,12 @@ A mission folder `<dir>/<UTC start>_<vehicle>_<mission>/` holds:
   mavlink-NNN.tlog    every MAVLink message in the tlog format MAVProxy writes and pymavlink reads
                       (8-byte big-endian microseconds since the epoch, then the raw message)
   keyframes/NNNNNN.jpg  the keyframes sent to the back-end (the event log names them)
-  video-NNN.mp4       optional camera video with the track box and state drawn on it
+  video-NNN.mp4       optional camera video (H.264, plays in a browser) with the track box and state drawn
+                      on it, encoded in a process of its own: the loop only queues frames, and a frame
+                      that finds the encoder's queue full is dropped, never waited for
 
-Size cap: the records directory as a whole (all missions) stays under `max_bytes`. Over the cap the
+Size cap: the records directory as a whole (all missions) stays under `max_bytes`; what the other
+missions hold is measured once, on a thread (never a walk of all records in the main loop). Over the cap the
 oldest data goes first: whole older missions, then this mission's oldest keyframes and closed tlog/video
 segments. The event log of the running mission is never rotated away. If the cap or the disk leaves no
 room (ENOSPC, read-only, too little free space) recording stops with one warning and every later call
@@ -29,6 +32,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Mapping
+from functools import partial
 from pathlib import Path
 from typing import IO, Any, Protocol
 
@@ -48,6 +52,7 @@ from behaviors.geometry import Box
 from behaviors.mission import State, initial_state
 from behaviors.mission_commands import ConfirmCandidate, RejectCandidate, StartMission
 from behaviors.mission_config import MissionConfig
+from cloudtrack.h264_video import H264Writer
 
 log = logging.getLogger(__name__)
 
@@ -57,6 +62,12 @@ KEYFRAMES_DIR = "keyframes"
 DEFAULT_MIN_FREE_BYTES = 64 * 1024 * 1024
 _FREE_CHECK_EVERY_BYTES = 1024 * 1024
 _TLOG_FLUSH_S = 1.0
+# Frames the video encoder may hold before the loop's frames are dropped (640x480: about 1 MB each).
+_VIDEO_QUEUE_FRAMES = 8
+# The video's growth is counted against the cap, as the encoder reports frames, in steps of this many bytes.
+_VIDEO_ACCOUNT_BYTES = 64 * 1024
+# The longest the loop waits for the walk of the other missions, and only when over the cap before it ends.
+_MEASURE_WAIT_S = 0.25
 
 
 class MissionRecord(Protocol):
@@ -114,18 +125,31 @@ class FlightRecorder:
         self._tlog_flushed = 0.0
         self._video_wanted = video
         self._video_fps = video_fps
-        self._video: Any = None  # cv2.VideoWriter, imported only when video is on
+        self._video: H264Writer | None = None
         self._video_index = 0
-        self._video_frames = 0
+        self._video_rotate = False  # set on the encoder's reports: the segment is full, start the next
+        self._video_accounted: dict[Path, int] = {}  # bytes of each segment already counted in _used
+        self._video_writers: list[H264Writer] = []
+        # The video is declared at video_fps: frames coming faster (a loop outrunning the camera) are
+        # skipped rather than encoded, so the encoder's CPU follows the camera's rate.
+        self._video_period = 1.0 / video_fps if video_fps > 0 else 0.0
+        self._video_due = 0.0
+        self.video_frames_skipped = 0
         # Oldest first: files of this mission that rotation may delete (closed segments, keyframes).
         self._rotatable: deque[Path] = deque()
         self._since_free_check = 0
         self.root = Path(root).expanduser()
         started = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime(clock()))
         self.folder = self.root / f"{started}_{_safe_name(vehicle_id)}_{_safe_name(mission_id)}"
+        # Bytes under root: this mission's, counted as written, plus the rest, measured on a thread.
+        self._used = 0
+        self._others: dict[Path, int] = {}  # older mission folders and their sizes
+        self._others_measured = threading.Event()
+        self._others_counted = False
+        self._others_total = 0
         try:
             (self.folder / KEYFRAMES_DIR).mkdir(parents=True, exist_ok=True)
-            self._used = _tree_size(self.root)
+            threading.Thread(target=self._measure_others, name="flight-record-measure", daemon=True).start()
             self._events = open(self.folder / EVENTS_FILE, "a", encoding="utf-8")  # noqa: SIM115 - lives as long as the mission
             self._check_free_space()
         except OSError as exc:
@@ -188,22 +212,48 @@ class FlightRecorder:
             return relative if self._active else None
 
     def video_frame(self, image: np.ndarray, box: Box | None, state: str) -> None:
-        """One camera frame for the overlay video (no-op unless video was asked for)."""
+        """One camera frame for the overlay video (no-op unless video was asked for).
+
+        Costs the caller a queue put: drawing and H.264 encoding happen in the encoder process. The image
+        must not be modified afterwards (camera frames are fresh arrays)."""
         with self._lock:
             if not (self._active and self._video_wanted):
                 return
+            now = time.monotonic()
+            if now + 0.5 * self._video_period < self._video_due:  # half a period of jitter is fine
+                self.video_frames_skipped += 1
+                return
+            self._video_due = max(self._video_due, now - self._video_period) + self._video_period
             try:
-                self._write_video(image, box, state)
-            except (OSError, ValueError) as exc:
+                if self._video is None or self._video_rotate:
+                    self._next_video_segment()
+                assert self._video is not None
+                stamp = time.strftime("%H:%M:%S", time.gmtime(self._clock()))
+                self._video.write(image, partial(_draw_record_overlay, box=box, label=f"{stamp} {state}"))
+            except Exception as exc:  # FFmpeg cannot open the file, ...: the flight goes on without video
                 self._stop(f"video write failed: {exc}")
 
+    @property
+    def video_encode_cpu_s(self) -> float:
+        """CPU seconds the encoders spent on this record's frames."""
+        return sum(w.encode_cpu_s for w in self._video_writers)
+
+    @property
+    def video_frames(self) -> tuple[int, int]:
+        """(encoded, dropped) over every segment: dropped frames found the encoder's queue full."""
+        return (sum(w.frames_written for w in self._video_writers), sum(w.frames_dropped for w in self._video_writers))
+
     def close(self) -> None:
-        """Flush and close everything; safe to call twice and after a failure."""
+        """Flush and close everything; safe to call twice and after a failure. Waits for the video to be
+        encoded to its end (a few queued frames)."""
         with self._lock:
             if self._active:
                 self._write_event({"kind": "recording_closed"})
+            video, self._video = self._video, None
             self._close_files()
             self._active = False
+        if video is not None:
+            video.close()  # outside the lock: the encoder's reports take it to account what it wrote
 
     # --- internals (called with the lock held) --------------------------------------------------
 
@@ -226,33 +276,50 @@ class FlightRecorder:
         self._tlog = open(self.folder / f"mavlink-{self._tlog_index:03d}.tlog", "ab")  # noqa: SIM115 - one segment
         self._tlog_bytes = 0
 
-    def _write_video(self, image: np.ndarray, box: Box | None, state: str) -> None:
-        import cv2
-
-        height, width = image.shape[:2]
-        path = self.folder / f"video-{self._video_index:03d}.mp4"
-        if self._video is not None and self._video_frames % 30 == 0 and path.stat().st_size >= self.segment_bytes:
-            self._video.release()
-            self._rotatable.append(path)
+    def _next_video_segment(self) -> None:
+        """Open video-NNN.mp4; the full segment before it is finished on a thread and becomes rotatable."""
+        old = self._video
+        if old is not None:
+            self._rotatable.append(old.path)
             self._video_index += 1
-            self._video = None
-            path = self.folder / f"video-{self._video_index:03d}.mp4"
-        if self._video is None:
-            self._video = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"mp4v"), self._video_fps, (width, height))
-            if not self._video.isOpened():
-                raise OSError(f"cannot open {path} for video")
-            self._video_frames = 0
-        frame = image.copy()
-        if box is not None and box.is_valid():
-            x1, y1, x2, y2 = (int(round(v)) for v in box.xyxy())
-            cv2.rectangle(frame, (x1, y1), (x2, y2), (0, 255, 0), 2)
-        stamp = time.strftime("%H:%M:%S", time.gmtime(self._clock()))
-        cv2.putText(frame, f"{stamp} {state}", (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 255, 255), 2)
-        self._video.write(frame)
-        self._video_frames += 1
-        if self._video_frames % 30 == 0:
-            self._used = _tree_size(self.root)  # the encoder's output size is known only on disk
-            self._enforce_cap()
+            threading.Thread(target=self._finish_video_segment, args=(old,), name="flight-record-video-close",
+                             daemon=True).start()
+        self._video = None
+        self._video_rotate = False
+        path = self.folder / f"video-{self._video_index:03d}.mp4"
+        # An encoder process, not a thread: the encoder must never hold the control loop's GIL.
+        self._video = H264Writer(path, self._video_fps, queue_frames=_VIDEO_QUEUE_FRAMES, preset="ultrafast",
+                                 on_frame_written=self._video_progress, process=True)
+        self._video_accounted[path] = 0
+        self._video_writers.append(self._video)
+
+    def _video_progress(self, writer: H264Writer) -> None:
+        """Encoder thread, after each frame: one stat of the segment; once it has grown by
+        _VIDEO_ACCOUNT_BYTES (or is full) count the growth and ask for the next segment when full."""
+        size = writer.size_bytes
+        if size - self._video_accounted.get(writer.path, 0) < _VIDEO_ACCOUNT_BYTES and size < self.segment_bytes:
+            return
+        with self._lock:
+            if not self._active:
+                return
+            size = self._count_video_bytes(writer)
+            if writer is self._video and size >= self.segment_bytes:
+                self._video_rotate = True
+
+    def _finish_video_segment(self, writer: H264Writer) -> None:
+        writer.close()
+        with self._lock:
+            if self._active:
+                self._count_video_bytes(writer)
+
+    def _count_video_bytes(self, writer: H264Writer) -> int:
+        size = writer.size_bytes
+        if writer.path in self._video_accounted:
+            grown = size - self._video_accounted[writer.path]
+            self._video_accounted[writer.path] = size
+            if grown > 0:
+                self._account(grown)
+        return size
 
     def _account(self, written: int) -> None:
         self._used += written
@@ -272,11 +339,49 @@ class FlightRecorder:
         if free < self.min_free_bytes:
             raise OSError(f"only {free} bytes free on {self.root} (need {self.min_free_bytes})")
 
+    def _measure_others(self) -> None:
+        """Thread: the size of everything under root but this mission (walked once, off the main loop)."""
+        others: dict[Path, int] = {}
+        total = 0
+        try:
+            entries = list(os.scandir(self.root))
+        except OSError:
+            entries = []
+        for entry in entries:
+            path = Path(entry.path)
+            if path == self.folder:
+                continue
+            try:
+                size = _tree_size(path) if entry.is_dir(follow_symlinks=False) else entry.stat(follow_symlinks=False).st_size
+            except OSError:
+                continue
+            total += size
+            if entry.is_dir(follow_symlinks=False) and (path / EVENTS_FILE).exists():
+                others[path] = size
+        self._others = others
+        self._others_total = total
+        self._others_measured.set()  # before taking the lock: _enforce_cap may be waiting for it, lock held
+        with self._lock:
+            self._count_others()
+            if self._active and self._used > self.max_bytes:
+                self._enforce_cap()
+
+    def _count_others(self) -> None:
+        if not self._others_counted:
+            self._used += self._others_total
+            self._others_counted = True
+
     def _enforce_cap(self) -> None:
-        for victim in self._older_missions():
+        # Which older missions may go, and their sizes, come from the measuring thread. Only when over the
+        # cap before it has finished (a tiny cap, a huge card) is it waited for, briefly: the loop must not
+        # stall. Until then this mission's own oldest files go; the thread enforces the cap when it is done.
+        measured = self._others_measured.wait(_MEASURE_WAIT_S)
+        if measured:
+            self._count_others()
+        for victim in self._older_missions() if measured else []:
             if self._used <= self.max_bytes:
                 return
-            size = _tree_size(victim)
+            size = self._others.pop(victim, 0)
             shutil.rmtree(victim, ignore_errors=True)
             self._used -= size
             log.info("flight record: removed old mission %s (%d bytes) to stay under the cap", victim.name, size)
@@ -288,16 +393,12 @@ class FlightRecorder:
             except OSError:
                 continue
             self._used -= size
-        if self._used > self.max_bytes:
+        if self._used > self.max_bytes and measured:
             self._stop(f"size cap of {self.max_bytes} bytes reached with nothing left to rotate")
 
     def _older_missions(self) -> list[Path]:
         """Other mission folders (ours: they hold an event log), oldest first by their UTC-stamped names."""
-        try:
-            folders = [p for p in self.root.iterdir() if p.is_dir() and p != self.folder and (p / EVENTS_FILE).exists()]
-        except OSError:
-            return []
-        return sorted(folders, key=lambda p: p.name)
+        return sorted(self._others, key=lambda p: p.name)
 
     def _stop(self, reason: str) -> None:
         if self._active:
@@ -314,10 +415,23 @@ class FlightRecorder:
             with contextlib.suppress(OSError):
                 self._tlog.close()
         if self._video is not None:
-            self._video.release()
+            # Never joined here: _stop may run on the writer's report thread, or with the lock it needs held.
+            video = self._video
+            threading.Thread(target=video.close, name="flight-record-video-close", daemon=True).start()
         self._events = None
         self._tlog = None
         self._video = None
+
+
+def _draw_record_overlay(image: np.ndarray, box: Box | None, label: str) -> np.ndarray:
+    """The record video's overlay, drawn in the encoder process on its own copy of the frame."""
+    import cv2
+
+    if box is not None and box.is_valid():
+        x1, y1, x2, y2 = (int(round(v)) for v in box.xyxy())
+        cv2.rectangle(image, (x1, y1), (x2, y2), (0, 255, 0), 2)
+    cv2.putText(image, label, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 255, 255), 2)
+    return image
 
 
 class NoRecord:
@@ -339,6 +453,20 @@ class NoRecord:
 
     def close(self) -> None:
         pass
+
+
+def records_dir(configured: str, environ: Mapping[str, str] | None = None) -> Path:
+    """Where mission folders go: `[recording] dir` when set; else, under systemd, `records/` in the unit's
+    state directory (`$STATE_DIRECTORY`, set by `StateDirectory=`; the first one when it lists several);
+    else `$XDG_DATA_HOME/cloudtrack/records` (default `~/.local/share/cloudtrack/records`)."""
+    env = os.environ if environ is None else environ
+    if configured:
+        return Path(configured).expanduser()
+    state = env.get("STATE_DIRECTORY", "").split(":")[0]
+    if state:
+        return Path(state) / "records"
+    data = env.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
+    return Path(data) / "cloudtrack" / "records"
 
 
 def open_record(

@@ -5,14 +5,20 @@ from __future__ import annotations
 import argparse
 import sys
 
-from cloudtrack.model_store import REGISTRY, FileStatus, ModelError, download, file_status, resolve_model_dir
+from cloudtrack.model_store import (
+    MODEL_DIR_HELP,
+    REGISTRY,
+    FileStatus,
+    ModelError,
+    download,
+    file_status,
+    resolve_model_dir,
+)
 
 
 def add_model_dir_flag(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--model-dir",
-        help="folder of weight files (default: $CLOUDTRACK_MODEL_DIR, then ~/.cache/cloudtrack/models)",
-    )
+    """The one --model-dir flag every command that loads weights takes (same name, same help, same default)."""
+    parser.add_argument("--model-dir", metavar="DIR", help=MODEL_DIR_HELP)
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -43,14 +49,18 @@ def _report(args: argparse.Namespace, required_only: bool) -> int:
     bad = 0
     for spec in REGISTRY.values():
         statuses = [(mf, file_status(model_dir, mf)) for mf in spec.files]
+        origin = "user-supplied" if spec.user_supplied else "downloadable"
         for mf, status in statuses:
-            print(f"  {spec.name:<10} {status.value:<38} {model_dir / mf.relpath}")
+            print(f"  {spec.name:<10} {origin:<13} {status.value:<38} {model_dir / mf.relpath}")
             if status is FileStatus.CORRUPT or status is FileStatus.MISSING and required_only and not spec.user_supplied:
                 bad += 1
         if any(s is FileStatus.CORRUPT for _, s in statuses) or (
             required_only and not spec.user_supplied and any(s is FileStatus.MISSING for _, s in statuses)
         ):
             print(f"    fix: cloudtrack-companion models download {spec.name} --model-dir {model_dir}")
+    user = ", ".join(spec.name for spec in REGISTRY.values() if spec.user_supplied)
+    print(f"user-supplied ({user}): large, no stable checksum upstream; you place their files "
+          "(README, 'Model weights')")
     return 1 if bad else 0
 
 
@@ -69,7 +79,7 @@ def _download(args: argparse.Namespace) -> int:
     except (ModelError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
-    except Exception as exc:  # network errors from requests: report, do not trace back
+    except Exception as exc:  # anything else from requests: report, do not trace back
         print(f"error: download of {args.name} failed: {exc}", file=sys.stderr)
         return 1
     for path in written:

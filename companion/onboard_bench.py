@@ -6,6 +6,12 @@ limits, encode SET_POSITION_TARGET_LOCAL_NED and send it over MAVLink to a recei
 bare pass runs only the OpenCV tracker's `update()` on the same frames. Passes alternate (bare, loop,
 bare, loop ...) so machine load affects both alike; rates are medians over the passes.
 
+With `recording`, every loop iteration also writes the flight record as a mission does with
+`[recording] video = true`: one event-log line and the frame handed to the H.264 video encoder (which
+runs in a process of its own and drops a frame rather than make the loop wait; drops are counted). The video
+takes frames at `[camera] fps`, as in flight: the bench's loop runs faster than a camera delivers, and
+the frames in between are skipped (counted too), not encoded.
+
 Frames are decoded and resized once before timing: a camera driver delivers decoded frames, and JPEG
 decoding of the recorded sequence is not part of the onboard loop (its cost is reported separately).
 """
@@ -15,6 +21,7 @@ from __future__ import annotations
 import resource
 import socket
 import statistics
+import tempfile
 import threading
 import time
 from collections.abc import Sequence
@@ -26,13 +33,14 @@ from typing import Any
 import cv2
 import numpy as np
 
-from behaviors.camera_model import CameraModel
 from behaviors.control_law import ControlGains, ControlState, FollowGoal, follow_step
 from behaviors.safety_limits import MotionLimits
 from behaviors.setpoint import Setpoint
 from behaviors.telemetry import Telemetry
 from companion.autopilot_modes import AutopilotKind
+from companion.camera_calibration import camera_model
 from companion.config import CompanionConfig
+from companion.flight_record import FlightRecorder
 from companion.frame_sources import FolderSource, Frame, SourceStats
 from companion.mavlink_connection import MavlinkEndpoint
 from companion.offboard import SetpointMessage, encode_velocity
@@ -59,6 +67,12 @@ class BenchResult:
     setpoints_sent: int
     setpoints_received: int
     trusted_frames: int
+    recording: bool = False
+    video_frames_encoded: int = 0  # with recording: frames in the videos, all loop passes
+    video_frames_dropped: int = 0  # with recording: frames the encoder's full queue turned away
+    video_frames_skipped: int = 0  # with recording: frames above [camera] fps, not encoded (loop > camera)
+    recording_ms: float = 0.0  # with recording: median over passes of the loop's time in the record's calls
+    encode_cpu_ms: float = 0.0  # with recording: encoder-thread CPU per encoded frame
 
     @property
     def ratio(self) -> float:
@@ -145,6 +159,7 @@ def run_bench(
     size: tuple[int, int] | None = (640, 480),
     passes: int = 3,
     max_frames: int | None = None,
+    recording: bool = False,
 ) -> BenchResult:
     seq = load_sequence(sequence)
     images, decode_ms = load_frames(sequence, size, max_frames)
@@ -159,7 +174,7 @@ def run_bench(
     box = first.scaled(w / native.image.shape[1], h / native.image.shape[0]) if size is not None else first
 
     cam = config.camera
-    camera = CameraModel.from_hfov(w, h, cam.hfov_deg, cam.mount_pitch_deg, cam.stabilised)
+    camera = camera_model(cam.model_copy(update={"width": w, "height": h}))
     safety = config.safety
     limits = MotionLimits.from_degrees(
         safety.max_speed_m_s, safety.max_vertical_speed_m_s, safety.max_yaw_rate_deg_s,
@@ -178,6 +193,10 @@ def run_bench(
     overheads: list[float] = []
     updates: list[float] = []
     trusted = 0
+    encoded = dropped = skipped = 0
+    recording_times: list[float] = []
+    encode_cpu_s = 0.0
+    record_root = tempfile.TemporaryDirectory(prefix="cloudtrack-bench-records-") if recording else None
     try:
         for _ in range(passes):
             # Bare: the OpenCV tracker alone on the same frames.
@@ -196,10 +215,21 @@ def run_bench(
             frontend.feed(frame)
             frontend.start(frame.frame_id, box)
             state = ControlState()
+            record = (
+                FlightRecorder(Path(record_root.name), "bench", f"pass-{len(loop_rates)}", 10**12, video=True,
+                               video_fps=cam.fps)
+                if record_root is not None else None
+            )  # fmt: skip
+            in_record = 0.0
             started = time.perf_counter()
             while (frame := source.read()) is not None:
                 t0 = time.perf_counter()
                 result = frontend.feed(frame)
+                if record is not None:
+                    r0 = time.perf_counter()
+                    record.event("step", frame_id=frame.frame_id, trusted=result.trusted)
+                    record.video_frame(frame.image, result.box, "FOLLOWING")
+                    in_record += time.perf_counter() - r0
                 if result.trusted and result.box is not None:
                     trusted += 1
                     telemetry = Telemetry(time_s=frame.capture_time, height_agl=20.0, armed=True, offboard_active=True)
@@ -212,6 +242,13 @@ def run_bench(
                     sent += 1
                 latencies.append(time.perf_counter() - t0)
             loop_seconds = time.perf_counter() - started
+            if record is not None:
+                record.close()  # outside the timing: waits for the encoder to finish the queued frames
+                written, lost = record.video_frames
+                encoded, dropped = encoded + written, dropped + lost
+                skipped += record.video_frames_skipped
+                encode_cpu_s += record.video_encode_cpu_s
+                recording_times.append(in_record * 1000.0 / (len(images) - 1))
             loop_rates.append((len(images) - 1) / loop_seconds)
             inside = frontend.stats.tracker_seconds + frontend.stats.catch_up_seconds
             overheads.append((loop_seconds - inside) * 1000.0 / (len(images) - 1))
@@ -222,6 +259,8 @@ def run_bench(
     finally:
         endpoint.close()
         receiver.close()
+        if record_root is not None:
+            record_root.cleanup()
     _check_first_message(receiver.first)
     lat_ms = np.asarray(latencies) * 1000.0
     return BenchResult(
@@ -241,6 +280,12 @@ def run_bench(
         setpoints_sent=sent,
         setpoints_received=receiver.count,
         trusted_frames=trusted,
+        recording=recording,
+        video_frames_encoded=encoded,
+        video_frames_dropped=dropped,
+        video_frames_skipped=skipped,
+        recording_ms=statistics.median(recording_times) if recording_times else 0.0,
+        encode_cpu_ms=encode_cpu_s * 1000.0 / encoded if encoded else 0.0,
     )
 
 

@@ -16,9 +16,12 @@ from companion.replay import RecordError, load_recording, replay
 
 EXAMPLES = """\
 examples:
-  cloudtrack-companion replay /var/lib/cloudtrack/records/20261121T203000Z_drone-1_m42
+  cloudtrack-companion replay ~/.local/share/cloudtrack/records/20261121T203000Z_drone-1_m42
+  cloudtrack-companion replay /var/lib/cloudtrack/records/20261121T203000Z_drone-1_m42   # under systemd
   cloudtrack-companion replay RECORD_DIR --set behavior.standoff_m=15     # what would change?
   cloudtrack-companion replay RECORD_DIR --config new.toml --json out/replay.json --show 50
+Records are in [recording] dir; by default $XDG_DATA_HOME/cloudtrack/records (~/.local/share/...), or
+$STATE_DIRECTORY/records (/var/lib/cloudtrack/records) under systemd.
 exit status: 0 same decisions, 1 decisions differ, 2 the record or the configuration is unusable
 """
 

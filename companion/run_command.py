@@ -11,6 +11,7 @@ import argparse
 import logging
 import signal
 import sys
+from dataclasses import replace
 from pathlib import Path
 from typing import IO, Any
 
@@ -63,19 +64,24 @@ class _QueryService:
 
 
 def mission_config(config: CompanionConfig) -> MissionConfig:
-    return MissionConfig.from_sections(
+    from companion.camera_calibration import camera_model
+
+    sections = MissionConfig.from_sections(
         behavior=config.behavior.model_dump(),
         control=config.control.model_dump(),
         safety=config.safety.model_dump(),
         camera=config.camera.model_dump(),
         backend=config.backend.model_dump(),
     )
+    # The lens calibration is read here (a file, OpenCV): the behaviours get the resulting numbers.
+    return replace(sections, camera=camera_model(config.camera))
 
 
 def run(args: argparse.Namespace) -> int:
     try:
         config = load_from_args(args)
-    except ConfigError as exc:
+        mission = mission_config(config)  # reads [camera] calibration_file, if any
+    except (ConfigError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     from cloudtrack.api_client import BackendClient
@@ -111,13 +117,12 @@ def run(args: argparse.Namespace) -> int:
             events_file = open(args.events_out, "a", buffering=1, encoding="utf-8")  # noqa: SIM115 - closed below
         observers.append(EventLogObserver(events_file.write))
 
-    mission = mission_config(config)
     rec = config.recording
     record = None
     if rec.enabled:
-        from companion.flight_record import FlightRecordObserver, open_record
+        from companion.flight_record import FlightRecordObserver, open_record, records_dir
 
-        record_dir = str(Path(rec.dir).expanduser())
+        record_dir = str(records_dir(rec.dir))
         record = FlightRecordObserver(
             mission, lambda mission_id: open_record(True, record_dir, rec.max_bytes, rec.video, config.vehicle.id, mission_id,
                                                     video_fps=cam.fps)

@@ -168,6 +168,7 @@ metas = st.fixed_dictionaries(
 
 @settings(max_examples=60, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(meta=st.one_of(metas, st.text(max_size=50)), image=st.one_of(st.binary(max_size=200), st.just(b"VALID")))
+@pytest.mark.slow
 def test_fuzzed_requests_never_cause_a_server_error(client: TestClient, keyframe: bytes, meta: object, image: bytes) -> None:
     payload = keyframe if image == b"VALID" else image
     text = meta if isinstance(meta, str) else json.dumps(meta)

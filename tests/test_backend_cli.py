@@ -80,6 +80,7 @@ def test_eval_prints_the_table_and_writes_json(
     assert (tmp_path / "e.md").read_text().startswith("| Verifier |")
 
 
+@pytest.mark.slow
 def test_eval_on_tracking_sequences(models_dir: Path, sequences_dir: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["eval", "--sequences", str(sequences_dir), "--step", "50", "--verifier", "none", "--model-dir", str(models_dir)]) == 0
     out = capsys.readouterr().out
@@ -101,6 +102,7 @@ def test_serve_refuses_a_bad_configuration(capsys: pytest.CaptureFixture[str]) -
     assert "cloudtrack-sim" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_bench_runs_servers_and_emulator(models_dir: Path, shared_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "bench.json"
     code = main(["bench", "--latency", "0.3", "--candidates", "3", "--vehicles", "1", "3", "--requests", "2",

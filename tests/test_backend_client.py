@@ -124,6 +124,7 @@ def test_encode_keyframe_refuses_non_images() -> None:
 
 
 
+@pytest.mark.slow
 def test_slow_and_garbage_vlm_answers_through_the_server(models_dir: Path, sequences_dir: Path) -> None:
     image = frame(sequences_dir)
     with VlmEmulator(latency_s=2.0) as slow, VlmEmulator(mode="garbage") as garbage:

@@ -12,22 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 from fastapi.testclient import TestClient
-from transformers import (
-    BertConfig,
-    BertTokenizer,
-    CLIPTokenizer,
-    GroundingDinoConfig,
-    GroundingDinoForObjectDetection,
-    GroundingDinoImageProcessorPil,
-    GroundingDinoProcessor,
-    Owlv2Config,
-    Owlv2ForObjectDetection,
-    Owlv2ImageProcessorPil,
-    Owlv2Processor,
-    SwinConfig,
-)
 
 from backend.app import create_app
 from backend.cli import main
@@ -36,10 +21,26 @@ from backend.detectors.factory import build_detector
 from backend.detectors.open_vocabulary import OpenVocabularyDetector
 from tests.backend_fixtures import auth, backend_config, detect_parts, frame, jpeg
 
+# torch + transformers and two models built in a fixture: seconds before the first test, so out of the inner loop.
+pytestmark = pytest.mark.slow
+
 WORDS = ["person", "car", "boat", "life", "raft", "a", "photo", "of", "man", "in", "gray", "shirt"]
 
 
+# torch and transformers are imported inside the helpers: at module level they cost seconds of every
+# `pytest --collect-only`, whichever tests are selected.
 def tiny_grounding_dino(folder: Path) -> tuple[object, object]:
+    import torch
+    from transformers import (
+        BertConfig,
+        BertTokenizer,
+        GroundingDinoConfig,
+        GroundingDinoForObjectDetection,
+        GroundingDinoImageProcessorPil,
+        GroundingDinoProcessor,
+        SwinConfig,
+    )
+
     (folder / "vocab.txt").write_text("\n".join(["[PAD]", "[UNK]", "[CLS]", "[SEP]", "[MASK]", ".", *WORDS]) + "\n")
     tokenizer = BertTokenizer(str(folder / "vocab.txt"))
     config = GroundingDinoConfig(
@@ -59,6 +60,15 @@ def tiny_grounding_dino(folder: Path) -> tuple[object, object]:
 
 
 def tiny_owlv2() -> tuple[object, object]:
+    import torch
+    from transformers import (
+        CLIPTokenizer,
+        Owlv2Config,
+        Owlv2ForObjectDetection,
+        Owlv2ImageProcessorPil,
+        Owlv2Processor,
+    )
+
     tokens = ["!", "<|startoftext|>", "<|endoftext|>", *(w + "</w>" for w in WORDS), *"abcdefghijklmnopqrstuvwxyz"]
     tokenizer = CLIPTokenizer(vocab={t: i for i, t in enumerate(tokens)}, merges=[], model_max_length=16)
     text = dict(vocab_size=len(tokens), hidden_size=32, intermediate_size=37, num_hidden_layers=1, num_attention_heads=2,
@@ -103,6 +113,8 @@ def test_owlv2_boxes_use_the_padded_square(detectors: dict[str, OpenVocabularyDe
 
 
 def test_bad_input_is_refused(detectors: dict[str, OpenVocabularyDetector]) -> None:
+    import torch
+
     with pytest.raises(ValueError, match="BGR"):
         detectors["owlv2"].detect(np.zeros((10, 10), np.uint8), ["person"])
     with pytest.raises(ValueError, match="no class"):

@@ -166,6 +166,7 @@ def test_pipeline_turns_timeouts_and_garbage_into_the_uncertain_policy(yolox: Yo
             assert "quick brown fox" in candidate.detection.justification
 
 
+@pytest.mark.slow
 def test_request_deadline_bounds_queued_verifications(yolox: YoloxDetector, crowd: np.ndarray) -> None:
     with VlmEmulator(latency_s=0.5, mode="yes") as vlm, ThreadPoolExecutor(1) as pool:
         pipeline = Pipeline(yolox, OpenAIChatVerifier(vlm.base_url, MODEL_NAME), pool, max_candidates=5, timeout_s=5, deadline_s=1.2)

@@ -44,3 +44,26 @@ def test_every_subcommand_help_renders_with_an_example(script: str) -> None:
         text = sub.format_help()
         assert "usage:" in text, name
         assert f"{script} {name}" in text.split("xample", 1)[-1], f"{script} {name} --help shows no example of itself"
+
+
+WEIGHT_COMMANDS = [
+    ("cloudtrack-companion", "run"), ("cloudtrack-companion", "eval"), ("cloudtrack-companion", "bench"),
+    ("cloudtrack-backend", "serve"), ("cloudtrack-backend", "detect"), ("cloudtrack-backend", "eval"),
+    ("cloudtrack-backend", "bench"), ("cloudtrack-sim", "run"),
+]
+
+
+@pytest.mark.parametrize(("script", "command"), WEIGHT_COMMANDS)
+def test_every_command_that_loads_weights_takes_model_dir(script: str, command: str) -> None:
+    sub = _subparsers(importlib.import_module(SCRIPTS[script]).build_parser())[command]
+    options = {o for action in sub._actions for o in action.option_strings}
+    assert "--model-dir" in options, f"{script} {command} has no --model-dir"
+    assert "CLOUDTRACK_MODEL_DIR" in sub.format_help()  # and says what the default is
+
+
+def test_serve_applies_model_dir_to_the_detector(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from backend.cli import main
+
+    # An empty folder: serve must look for YOLOX there (and say so), not in the cache or the environment.
+    assert main(["serve", "--model-dir", str(tmp_path)]) == 2
+    assert str(tmp_path / "yolox_nano" / "yolox_nano.onnx") in capsys.readouterr().err

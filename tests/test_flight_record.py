@@ -80,11 +80,34 @@ def test_mission_folder_holds_events_tlog_keyframes_and_video(tmp_path: Path) ->
     assert START < received[0]._timestamp < START + 10
     assert received[0].type == mavlink2.MAV_TYPE_ONBOARD_CONTROLLER
 
-    video = cv2.VideoCapture(str(rec.folder / "video-000.mp4"))
-    count = 0
-    while video.read()[0]:
-        count += 1
-    assert count == 12
+    # H.264 that decodes; the loop never waited for the encoder, so a frame may have been dropped.
+    import av
+
+    with av.open(str(rec.folder / "video-000.mp4")) as container:
+        assert container.streams.video[0].codec_context.name == "h264"
+        decoded = sum(1 for _ in container.decode(video=0))
+    encoded, dropped = rec.video_frames
+    assert decoded == encoded >= 1 and encoded + dropped + rec.video_frames_skipped == 12
+
+
+def test_video_takes_frames_at_the_camera_rate_not_faster(tmp_path: Path) -> None:
+    """A loop outrunning the camera's fps: frames in between are skipped (not encoded, not drops)."""
+    import time
+
+    import av
+
+    rec = FlightRecorder(tmp_path, "drone-1", "m", 50_000_000, video=True, video_fps=20.0, clock=fixed_clock())
+    frame = np.full((120, 160, 3), 80, np.uint8)
+    started = time.monotonic()
+    while time.monotonic() - started < 1.0:  # about 200 frames a second for one second
+        rec.video_frame(frame, None, "TRACKING")
+        time.sleep(0.005)
+    rec.close()
+    encoded, dropped = rec.video_frames
+    assert 15 <= encoded + dropped <= 23, (encoded, dropped)  # 20 FPS of the loop's frames
+    assert rec.video_frames_skipped > 100
+    with av.open(str(rec.folder / "video-000.mp4")) as container:
+        assert sum(1 for _ in container.decode(video=0)) == encoded
 
 
 def test_size_cap_rotates_older_missions_then_oldest_keyframes(tmp_path: Path) -> None:
@@ -236,3 +259,65 @@ def test_a_nonsense_message_time_falls_back_to_the_clock(tmp_path: Path) -> None
     while (msg := log.recv_match(type="HEARTBEAT")) is not None:
         stamps.append(msg._timestamp)
     assert len(stamps) == 2 and all(START < t < START + 10 for t in stamps)
+
+
+def test_records_are_measured_off_the_main_loop(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A slow file system (a big records card): opening a record and writing video never waits for the
+    walk of the other missions; the cap still removes the oldest mission once the walk is done."""
+    import time
+
+    from companion import flight_record
+
+    older = tmp_path / "20200101T000000Z_drone-1_old"
+    older.mkdir()
+    (older / EVENTS_FILE).write_text('{"t":0,"kind":"recording_started"}\n')
+    (older / "mavlink-000.tlog").write_bytes(b"\0" * 400_000)
+    walked = flight_record._tree_size
+
+    def slow_walk(path: Path) -> int:
+        time.sleep(1.0)
+        return walked(path)
+
+    monkeypatch.setattr(flight_record, "_tree_size", slow_walk)
+    started = time.perf_counter()
+    rec = FlightRecorder(tmp_path, "drone-1", "m", 300_000, video=True, clock=fixed_clock())
+    frame = np.full((120, 160, 3), 80, np.uint8)
+    for _ in range(60):
+        rec.video_frame(frame, Box(40, 30, 50, 60), "TRACKING")
+        rec.event("step", n=1)
+    elapsed = time.perf_counter() - started
+    assert elapsed < 0.5, f"the loop's calls took {elapsed:.2f} s: they waited for the walk"
+    deadline = time.monotonic() + 10
+    while older.exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    rec.close()
+    assert not older.exists() and rec.folder.exists()
+
+
+@pytest.mark.slow
+def test_video_segments_rotate_under_the_cap_from_the_encoder_thread(tmp_path: Path) -> None:
+    """Incompressible video into an 8 MB cap (segments of 0.5 MB, a few frames each): the encoder's size
+    reports roll segments and the oldest go, the recording stays on and near the cap, and close() returns
+    (no lock held across threads)."""
+    import threading
+    import time
+
+    cap = 8_000_000
+    rec = FlightRecorder(tmp_path, "drone-1", "m", cap, video=True, video_fps=1000.0, clock=fixed_clock())
+    rng = np.random.default_rng(0)
+    noise = [rng.integers(0, 255, (480, 640, 3), dtype=np.uint8) for _ in range(4)]
+    deadline = time.monotonic() + 60
+    i = 0
+    while not (rec.folder / "video-001.mp4").exists() or (rec.folder / "video-000.mp4").exists():
+        assert time.monotonic() < deadline, "the first segment was never rotated away"
+        rec.video_frame(noise[i % 4], None, "TRACKING")
+        i += 1
+        time.sleep(0.01)
+    assert rec.active
+    closer = threading.Thread(target=rec.close)
+    closer.start()
+    closer.join(30)
+    assert not closer.is_alive(), "close() deadlocked"
+    total = sum(p.stat().st_size for p in tmp_path.rglob("*") if p.is_file())
+    # Counted as the encoder reports each frame: the segments still being written may run a little past.
+    assert total <= cap * 1.3, total

@@ -228,6 +228,7 @@ def test_new_schemes_can_be_registered(folder: Path) -> None:
     assert frame is not None and frame.frame_id == 1
 
 
+@pytest.mark.slow
 def test_sim_stream_keeps_the_renderers_frame_ids_and_survives_a_silent_camera(sequence_dirs: list[Path]) -> None:
     """sim+tcp:// goes through the same LiveSource as real cameras, but its frames keep the stream's ids
     (the simulated detector looks ground truth up by them)."""

@@ -33,6 +33,7 @@ def test_start_ack_status_round_trip_through_the_autopilot() -> None:
         assert link.commands() == [StartMission("injured man in a gray shirt", "person", allow_engage=True, mission_id="7")]
 
 
+@pytest.mark.slow
 def test_supervisor_commands_and_track_box(capsys: pytest.CaptureFixture[str]) -> None:
     with autopilot("px4") as sim, vehicle_link(sim) as link, MainLoop(link):
         assert gcs_cli.main(_gcs_args(sim, "confirm", "--candidate", "4")) == 0
@@ -45,6 +46,7 @@ def test_supervisor_commands_and_track_box(capsys: pytest.CaptureFixture[str]) -
         assert isinstance(commands[1], TrackRectangle) and commands[1].box.xywh() == (160.0, 240.0, 160.0, 240.0)
 
 
+@pytest.mark.slow
 def test_watch_prints_status_values_and_target(capsys: pytest.CaptureFixture[str]) -> None:
     import threading
 
@@ -73,6 +75,7 @@ def test_watch_prints_status_values_and_target(capsys: pytest.CaptureFixture[str
         assert "[1/100] target at (0.550, 0.375) box (0.500, 0.250)-(0.600, 0.500)" in out
 
 
+@pytest.mark.slow
 def test_no_companion_times_out_with_a_clear_message(capsys: pytest.CaptureFixture[str]) -> None:
     with autopilot("ardupilot") as sim:
         assert gcs_cli.main(_gcs_args(sim, "confirm", timeout=1.5)) == 3
@@ -85,6 +88,7 @@ def test_no_autopilot_times_out_with_a_clear_message(capsys: pytest.CaptureFixtu
     assert "no HEARTBEAT from system 1" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_wrong_signing_key_gets_no_acknowledgement(capsys: pytest.CaptureFixture[str]) -> None:
     key = bytes.fromhex(KEY_HEX)  # the autopilot signs too: with signing on the companion acts on nothing unsigned
     with autopilot("ardupilot", signing_key=key) as sim, vehicle_link(sim, signing_key=KEY_HEX) as link, MainLoop(link):

@@ -85,6 +85,7 @@ def _run(seq_dir: Path, models_dir: Path, keyframe: int, delay: int, compensate:
 
 
 @pytest.mark.parametrize(("name", "keyframes"), [("uav123_person12_1", (20, 90, 150)), ("dtb70_Surfing06", (10, 50))])
+@pytest.mark.slow
 def test_compensated_box_beats_the_stale_one_after_a_1s_backend_delay(
     name: str, keyframes: tuple[int, ...], models_dir: Path, sequences_dir: Path
 ) -> None:

@@ -109,6 +109,7 @@ def test_vit_score_falls_when_the_target_is_hidden(models_dir: Path, person) -> 
     assert visible > max(hidden)  # type: ignore[type-var]
 
 
+@pytest.mark.slow
 def test_nano_jumps_to_a_distractor_with_a_high_score_and_the_other_signals_catch_it(
     models_dir: Path, sequences_dir: Path
 ) -> None:

@@ -114,6 +114,7 @@ def test_telemetry_is_decoded_from_the_autopilot(personality: str) -> None:
         assert t.offboard_active is (personality == "ardupilot")
 
 
+@pytest.mark.slow
 def test_garbage_on_the_link_crashes_nothing() -> None:
     rng = random.Random(1234)
     with autopilot("ardupilot") as sim, vehicle_link(sim) as link, MainLoop(link):
@@ -138,6 +139,7 @@ def test_garbage_on_the_link_crashes_nothing() -> None:
         assert all(t.is_alive() for t in link._threads)
 
 
+@pytest.mark.slow
 def test_signing_refuses_forged_and_unsigned_commands() -> None:
     key = parse_signing_key(KEY_HEX)
     with (

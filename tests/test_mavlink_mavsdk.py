@@ -22,6 +22,7 @@ def _px4_with_mavsdk() -> tuple[SimulatedAutopilot, VehicleLink]:
 
 
 @pytest.mark.filterwarnings("ignore::DeprecationWarning")  # inside mavsdk's own server start-up
+@pytest.mark.slow
 def test_mavsdk_offboard_is_stopped_when_the_main_loop_stalls() -> None:
     sim, link = _px4_with_mavsdk()
     try:

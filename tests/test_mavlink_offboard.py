@@ -39,6 +39,7 @@ def test_ardupilot_setpoint_fields_are_body_offset_velocity_with_yaw_rate() -> N
         assert wait_for(lambda: sim.snapshot().vn > 1.0, 5.0)
 
 
+@pytest.mark.slow
 def test_setpoint_rate_within_20_percent_of_configured() -> None:
     with autopilot("ardupilot") as sim, vehicle_link(sim, setpoint_rate_hz=15.0) as link, MainLoop(link):
         link.request_offboard()
@@ -70,6 +71,7 @@ def test_limits_are_applied_before_sending() -> None:
     ("personality", "ours", "theirs", "mode_numbers", "back"),
     [("ardupilot", "GUIDED", "LOITER", (5, 0), (4, 0)), ("px4", "OFFBOARD", "POSCTL", (3, 0), (6, 0))],
 )
+@pytest.mark.slow
 def test_mode_change_by_gcs_stops_setpoints_within_200_ms(
     personality: str, ours: str, theirs: str, mode_numbers: tuple[int, int], back: tuple[int, int]
 ) -> None:
@@ -128,6 +130,7 @@ def test_px4_streams_a_second_before_requesting_offboard() -> None:
         assert (sp.vx, sp.vy) == (1.0, 0.5) and abs(sp.yaw_rate + 0.2) < 1e-6  # float32 on the wire
 
 
+@pytest.mark.slow
 def test_hold_sends_explicit_zero_then_configured_brake() -> None:
     with autopilot("ardupilot") as sim, vehicle_link(sim, ardupilot_hold="brake") as link, MainLoop(link):
         link.request_offboard()
@@ -147,6 +150,7 @@ def test_hold_sends_explicit_zero_then_configured_brake() -> None:
         assert wait_for(lambda: sim.mode == "GUIDED", 3.0)
 
 
+@pytest.mark.slow
 def test_lost_action_mode_is_requested_and_streaming_ends() -> None:
     with autopilot("px4") as sim, vehicle_link(sim) as link, MainLoop(link):
         link.request_offboard()

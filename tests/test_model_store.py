@@ -1,8 +1,11 @@
 from __future__ import annotations
 
+import functools
+import http.server
 import shutil
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import pytest
@@ -64,7 +67,11 @@ def test_models_list_cli(models_dir: Path, tmp_path: Path) -> None:
     ok = subprocess.run([*cmd, str(models_dir)], capture_output=True, text=True)
     assert ok.returncode == 0, ok.stderr
     for name in ("nano", "vit", "yolox"):
-        assert any(line.split()[:2] == [name, "present+verified"] for line in ok.stdout.splitlines() if line.strip())
+        assert any(
+            line.split()[:3] == [name, "downloadable", "present+verified"] for line in ok.stdout.splitlines() if line.strip()
+        )
+    for name in ("dasiamrpn", "goturn"):
+        assert any(line.split()[:2] == [name, "user-supplied"] for line in ok.stdout.splitlines()), name
     bad = subprocess.run([*cmd, str(_corrupt_copy(models_dir, tmp_path))], capture_output=True, text=True)
     assert bad.returncode != 0
     corrupt_lines = [line for line in bad.stdout.splitlines() if "corrupt" in line]
@@ -89,3 +96,54 @@ def test_download_with_wrong_bytes_installs_nothing(tmp_path: Path) -> None:
     with pytest.raises(ModelError, match="does not match sha256"):
         download("vit", tmp_path, fetch=fetch)
     assert not any(tmp_path.rglob("*.onnx")) and not any(tmp_path.rglob("*.part"))
+
+
+class _FileServer:
+    """A real HTTP server on loopback serving one folder."""
+
+    def __init__(self, folder: Path) -> None:
+        handler = functools.partial(_QuietHandler, directory=str(folder))
+        self.httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+        self.url = f"http://127.0.0.1:{self.httpd.server_address[1]}"
+        self.thread = threading.Thread(target=self.httpd.serve_forever, daemon=True)
+        self.thread.start()
+
+    def close(self) -> None:
+        self.httpd.shutdown()
+        self.httpd.server_close()
+
+
+class _QuietHandler(http.server.SimpleHTTPRequestHandler):
+    def log_message(self, format: str, *args: object) -> None:
+        pass
+
+
+def test_models_download_shows_progress_over_http(models_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from cloudtrack.model_store import _http_fetch
+
+    server = _FileServer(models_dir / "yolox_nano")
+    try:
+        _http_fetch(f"{server.url}/yolox_nano.onnx", tmp_path / "yolox_nano.onnx")
+    finally:
+        server.close()
+    assert (tmp_path / "yolox_nano.onnx").read_bytes() == (models_dir / "yolox_nano" / "yolox_nano.onnx").read_bytes()
+    err = capsys.readouterr().err
+    assert "yolox_nano.onnx" in err and "100%" in err  # tqdm's bar, sized from Content-Length
+
+
+def test_models_download_offline_says_so_in_a_sentence(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from dataclasses import replace
+
+    from companion.cli import main
+
+    # .invalid never resolves (RFC 2606): the same failure a machine without network gives.
+    spec = REGISTRY["vit"]
+    offline = replace(spec, files=tuple(replace(mf, url="https://weights.cloudtrack.invalid/vit.onnx") for mf in spec.files))
+    monkeypatch.setitem(REGISTRY, "vit", offline)  # type: ignore[arg-type]
+    assert main(["models", "download", "vit", "--model-dir", str(tmp_path)]) == 1
+    err = capsys.readouterr().err
+    assert "cannot reach weights.cloudtrack.invalid" in err and "offline" in err and "name resolution failed" in err
+    assert "NameResolutionError" not in err and "Traceback" not in err
+    assert not any(tmp_path.rglob("*.part"))

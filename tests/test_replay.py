@@ -126,6 +126,7 @@ def test_a_tampered_decision_is_found_at_its_step(tmp_path: Path) -> None:
     assert "mode: recorded REJECTED, replayed CONFIRMED" in difference.describe()
 
 
+@pytest.mark.slow
 def test_unusable_records_are_clear_errors(tmp_path: Path) -> None:
     empty = tmp_path / "empty"
     empty.mkdir()

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import time
 
+import pytest
+
 from behaviors.setpoint import Setpoint
 from companion.config import SafetyConfig
 from companion.safety_watchdog import (
@@ -98,6 +100,7 @@ def _companion_heartbeats(ground, seconds: float) -> int:  # type: ignore[no-unt
     return count
 
 
+@pytest.mark.slow
 def test_stalled_main_loop_stops_the_vehicle_and_its_heartbeat() -> None:
     safety = {"loop_stall_s": 0.3}
     with (
@@ -124,6 +127,7 @@ def test_stalled_main_loop_stops_the_vehicle_and_its_heartbeat() -> None:
         assert wait_for(lambda: any(e.reason == LOOP_STALLED and e.action == "cleared" for e in link.safety_events()), 3.0)
 
 
+@pytest.mark.slow
 def test_stalled_main_loop_on_px4_switches_to_hold() -> None:
     with autopilot("px4") as sim, vehicle_link(sim, safety={"loop_stall_s": 0.3}) as link, MainLoop(link) as loop:
         _flying(sim, link)
@@ -132,6 +136,7 @@ def test_stalled_main_loop_on_px4_switches_to_hold() -> None:
         assert wait_for(lambda: abs(sim.snapshot().vn) < 0.05, 3.0)
 
 
+@pytest.mark.slow
 def test_autopilot_heartbeat_loss_leads_to_hold() -> None:
     safety = {"heartbeat_timeout_s": 0.5}
     with autopilot("px4") as sim, vehicle_link(sim, safety=safety) as link, MainLoop(link):
@@ -146,6 +151,7 @@ def test_autopilot_heartbeat_loss_leads_to_hold() -> None:
         assert wait_for(lambda: any(e.reason == HEARTBEAT_LOST and e.action == "cleared" for e in link.safety_events()), 3.0)
 
 
+@pytest.mark.slow
 def test_stale_frames_stop_motion_and_recover_when_frames_return() -> None:
     with autopilot("ardupilot") as sim, vehicle_link(sim, safety={"frame_stale_s": 0.3}) as link, MainLoop(link, frames=True) as loop:
         _flying(sim, link)

@@ -55,6 +55,12 @@ def test_follow(models_dir: Path, tmp_path: Path) -> None:
     assert (out / "m.json").stat().st_size > 0 and (out / "p.png").stat().st_size > 0
     assert (out / "v.mp4").stat().st_size > 10_000
     _flight_record_checks(tmp_path / "records")
+    # The demo's video (`make demo` runs this scenario) plays in a browser: chromium decodes it.
+    from tests.browser_video import play_in_chromium
+
+    shown = play_in_chromium(out / "v.mp4")
+    assert shown["error"] is None and shown["readyState"] >= 2, shown
+    assert shown["duration"] >= 15.0 and (shown["width"], shown["height"]) == (640, 480), shown
 
 
 def _flight_record_checks(records: Path) -> None:

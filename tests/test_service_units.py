@@ -11,6 +11,7 @@ import pytest
 
 from cloudtrack.config_files import load_config
 from companion.config import CompanionConfig
+from companion.flight_record import records_dir
 
 REPO = Path(__file__).resolve().parents[1]
 CLI = [sys.executable, "-m", "companion.cli"]
@@ -95,7 +96,12 @@ def test_install_writes_unit_systemd_accepts_and_config_that_validates(tmp_path:
     config_path = config_dir / "companion.toml"
     config = load_config(CompanionConfig, config_path, environ={})
     assert config.mavlink.connection == "/dev/ttyAMA0,921600"
-    assert config.recording.dir == "/var/lib/cloudtrack/records"  # inside the unit's StateDirectory
+    # Records go to the unit's StateDirectory through $STATE_DIRECTORY, not a path written into the file.
+    assert config.recording.dir == ""
+    state_directory = value(parse_unit(unit_path.read_text())["Service"], "StateDirectory")
+    assert records_dir(config.recording.dir, {"STATE_DIRECTORY": f"/var/lib/{state_directory}"}) == Path(
+        "/var/lib/cloudtrack/records"
+    )
 
     # The ExecStart line parses with the real command-line parser.
     exec_start = value(parse_unit(unit_path.read_text())["Service"], "ExecStart").split()

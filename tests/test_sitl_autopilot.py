@@ -55,6 +55,7 @@ def test_heartbeat_identifies_autopilot_type_and_mode(personality: str, autopilo
         assert sim.snapshot().height == pytest.approx(20.0)
 
 
+@pytest.mark.slow
 def test_ardupilot_is_silent_until_set_message_interval() -> None:
     with autopilot("ardupilot") as sim, companion(sim) as link:
         seen: set[str] = set()
@@ -86,6 +87,7 @@ def test_set_mode_is_acknowledged_and_arming_is_refused() -> None:
         assert ack.result == 2
 
 
+@pytest.mark.slow
 def test_guided_flies_last_velocity_until_guid_timeout_then_brakes() -> None:
     with autopilot("ardupilot", guid_timeout_s=1.5) as sim, companion(sim) as link:
         velocity(link, 2.0)  # one setpoint, then silence
@@ -108,6 +110,7 @@ def test_ardupilot_ignores_setpoints_outside_guided() -> None:
         assert abs(sim.snapshot().vn) < 1e-6 and len(sim.setpoints) == 10
 
 
+@pytest.mark.slow
 def test_setpoint_frame_and_type_mask_are_honoured() -> None:
     with autopilot("ardupilot", start_yaw_deg=90.0) as sim, companion(sim) as link:
         velocity(link, 2.0, frame=BODY_OFFSET_NED)  # forward while facing east
@@ -121,6 +124,7 @@ def test_setpoint_frame_and_type_mask_are_honoured() -> None:
         assert wait_for(lambda: sim.snapshot().yaw_rate > 0.45, 3.0)
 
 
+@pytest.mark.slow
 def test_px4_offboard_needs_a_stream_and_falls_back_to_hold() -> None:
     with autopilot("px4", offboard_loss_s=0.5) as sim, companion(sim) as link:
         ack = command(link, 176, 1, 6, 0)  # OFFBOARD with no setpoints yet
@@ -144,6 +148,7 @@ def test_px4_offboard_needs_a_stream_and_falls_back_to_hold() -> None:
         assert wait_for(lambda: abs(sim.snapshot().vn) < 0.01, 3.0)
 
 
+@pytest.mark.slow
 def test_routing_between_gcs_and_companion_links() -> None:
     with autopilot("ardupilot") as sim, companion(sim) as comp, gcs(sim) as ground:
         # addressed to the companion: routed to the companion link only
@@ -160,6 +165,7 @@ def test_routing_between_gcs_and_companion_links() -> None:
         assert receive_until(comp, lambda m: m.get_type() == "COMMAND_LONG", 1.0) is None
 
 
+@pytest.mark.slow
 def test_rtl_flies_home_then_lands_and_disarms() -> None:
     with autopilot("ardupilot", start_height_m=1.5, land_speed_m_s=1.5, rtl_speed_m_s=3.0) as sim, companion(sim) as link:
         velocity(link, 3.0)

@@ -88,6 +88,7 @@ def test_evaluate_sequence_tracks_and_reinitialises(models_dir: Path, sequences_
     assert helped.miou > plain.miou
 
 
+@pytest.mark.slow
 def test_occlusion_hides_the_target_and_marks_frames_nan(models_dir: Path, sequences_dir: Path) -> None:
     seq = load_sequence(sequences_dir / "uav123_wakeboard7")
     result = evaluate_sequence(seq, TrackerConfig(), models_dir, EvalSettings(tracker="nano", occlude=True))
@@ -163,7 +164,8 @@ def test_bench_runs_the_whole_loop_and_mavlink_reaches_loopback(
     assert data["trusted_frames"] == 19
     assert data["bare_fps"] > 0 and data["loop_fps"] > 0 and data["latency_p95_ms"] >= data["latency_p50_ms"]
     printed = capsys.readouterr().out
-    assert "ratio loop / bare" in printed and "peak memory" in printed
+    assert "GOAL ratio (in-loop)" in printed and "goal >= 0.9" in printed and "peak memory" in printed
+    assert "ratio of pass rates" in printed and "for reference" in printed  # the other ratio says it is not the goal
 
 
 def test_bench_bad_input(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
