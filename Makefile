@@ -12,8 +12,10 @@ $(BIN)/python:
 	$(BIN)/pip install -q --upgrade pip
 
 # The demo needs the back-end and plotting extras only; the tests add the test tools and CPU torch.
+# The local verifier's pose model is copied out of the mediapipe 0.10.14 wheel that pip fetches from PyPI.
 $(BIN)/.installed-demo: pyproject.toml | $(BIN)/python
-	$(BIN)/pip install -q -e '.[backend,eval]'
+	$(BIN)/pip install -q -e '.[backend,eval,person]'
+	$(BIN)/python -m backend.verifiers.person_model install
 	touch $@
 
 $(BIN)/.installed: pyproject.toml | $(BIN)/python
@@ -22,6 +24,7 @@ $(BIN)/.installed: pyproject.toml | $(BIN)/python
 	$(BIN)/pip install -q "torch==2.13.0+cpu" || \
 	  $(BIN)/pip install -q "torch==2.13.0+cpu" --extra-index-url https://download.pytorch.org/whl/cpu
 	$(BIN)/pip install -q -e '.[test]'
+	$(BIN)/python -m backend.verifiers.person_model install
 	touch $@
 
 install: $(BIN)/.installed

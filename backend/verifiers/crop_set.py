@@ -79,14 +79,14 @@ def propose(sequences_dir: Path, models_dir: Path, step: int, min_height: int = 
         gt = [tuple(float(v) for v in line.split(",")) for line in (seq / "groundtruth.txt").read_text().split()]
         frames = sorted((seq / "frames").glob("*.jpg"))
         for index in range(1, len(frames) + 1, step):
-            image = cv2.imread(str(frames[index - 1]))
+            image = np.asarray(cv2.imread(str(frames[index - 1])))
             target = gt[index - 1]
             found = [d.box for d in detector.detect(image, ["person"])]
-            boxes = [target] if target[2] > 1 and target[3] > 1 else []
+            boxes: list[tuple[float, ...]] = [target] if target[2] > 1 and target[3] > 1 else []
             is_person_target = any(_iou(target, (b.x, b.y, b.w, b.h)) >= 0.3 for b in found)
             if not is_person_target:
                 boxes = []  # the target is no person (the bag) or YOLOX cannot see one here
-            others = [(b.x, b.y, b.w, b.h) for b in found if _iou(target, (b.x, b.y, b.w, b.h)) < 0.3]
+            others: list[tuple[float, ...]] = [(b.x, b.y, b.w, b.h) for b in found if _iou(target, (b.x, b.y, b.w, b.h)) < 0.3]
             for n, box in enumerate(boxes + others):
                 if box[3] < min_height:
                     continue
@@ -106,7 +106,7 @@ def contact_sheet(crops: list[LabelledCrop], sequences_dir: Path, first_number: 
         side = int(max(w, h) * 1.3) + 4
         cx, cy = x + w / 2, y + h / 2
         scale = cell / side
-        m = np.float32([[scale, 0, cell / 2 - cx * scale], [0, scale, cell / 2 - cy * scale]])
+        m = np.array([[scale, 0, cell / 2 - cx * scale], [0, scale, cell / 2 - cy * scale]], np.float32)
         view = cv2.warpAffine(image, m, (cell, cell), flags=cv2.INTER_CUBIC, borderValue=(255, 255, 255))
         p1 = (int((x - cx) * scale + cell / 2) - 1, int((y - cy) * scale + cell / 2) - 1)
         p2 = (int((x + w - cx) * scale + cell / 2) + 1, int((y + h - cy) * scale + cell / 2) + 1)
