@@ -97,13 +97,31 @@ def _assign(namer: ColourNamer, names: list[str], lab: np.ndarray) -> dict[str, 
     return {name: lab[nearest == name] for name in names}
 
 
+ACHROMATIC = {"black", "white", "gray"}
+MIN_CHROMA = 6.0  # a calibrated prototype of a chromatic name keeps some colour...
+MAX_HUE_SHIFT_DEG = 70.0  # ...and roughly its hue: calibration moves lightness and saturation, not hue
+
+
+MAX_ACHROMATIC_CHROMA = 10.0  # and a grey stays a grey (a grey-blue shirt's pixels are not all grey)
+
+
+def _keeps_its_hue(name: str, lab: np.ndarray) -> bool:
+    if name in ACHROMATIC:
+        return bool(np.hypot(lab[1], lab[2]) <= MAX_ACHROMATIC_CHROMA)
+    basic = srgb_to_lab(np.array([BASIC_SRGB[name][::-1]], np.uint8))[0]
+    shift = abs(np.degrees(np.arctan2(lab[2], lab[1]) - np.arctan2(basic[2], basic[1])))
+    return bool(np.hypot(lab[1], lab[2]) >= MIN_CHROMA and min(shift, 360 - shift) <= MAX_HUE_SHIFT_DEG)
+
+
 def _prototypes(per_name: dict[str, list[np.ndarray]]) -> dict[str, list[list[float]]]:
     """Per name, the median garment colour of each lightness tercile (LEVELS prototypes)."""
     table = {}
     for name, rows in sorted(per_name.items()):
         ordered = sorted(rows, key=lambda v: float(v[0]))
-        groups = [g for g in np.array_split(np.array(ordered), min(LEVELS, len(ordered))) if len(g)]
-        table[name] = [[round(float(v), 2) for v in np.median(g, axis=0)] for g in groups]
+        groups = [np.median(g, axis=0) for g in np.array_split(np.array(ordered), min(LEVELS, len(ordered))) if len(g)]
+        kept = [[round(float(v), 2) for v in g] for g in groups if _keeps_its_hue(name, g)]
+        if kept:
+            table[name] = kept
     return table
 
 

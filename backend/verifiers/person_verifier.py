@@ -36,6 +36,7 @@ STANDING_MIN_KNEE_DEG = 125.0  # on one's feet, walking included (a stride bends
 SITTING_MAX_KNEE_DEG = 105.0
 DARK_PRESENT_SHARE = 0.5  # "dark": at least half the garment below L* 35
 DARK_ABSENT_SHARE = 0.2
+OTHER_COLOUR_SHARE = 0.4  # another colour this much of the garment, the named one under present: no
 
 
 @dataclass
@@ -192,8 +193,14 @@ class PersonVerifier:
             for part in visible:
                 shares = namer.shares(observation.regions[part])
                 share = sum(shares.get(c, 0.0) for c in group)
-                notes.append(f"{name} {share:.0%} of {part} garment")
-                verdicts.append(Verdict.YES if share >= present else Verdict.NO if share < absent else Verdict.UNCERTAIN)
+                # Clearly another colour: one colour other than the named ones (black aside: shade is black)
+                # covers much of the garment while the named one stays under `present`.
+                other, other_share = max(((c, v) for c, v in shares.items() if c not in group | {"black", "dark"}),
+                                         key=lambda cv: cv[1], default=("", 0.0))
+                elsewhere = share < present and other_share >= OTHER_COLOUR_SHARE
+                notes.append(f"{name} {share:.0%} of {part} garment" + (f" (mostly {other})" if elsewhere else ""))
+                verdicts.append(Verdict.YES if share >= present
+                                else Verdict.NO if share < absent or elsewhere else Verdict.UNCERTAIN)
         if Verdict.NO in verdicts:
             verdict = Verdict.NO
         elif all(v is Verdict.YES for v in verdicts):
