@@ -19,8 +19,13 @@ from backend.verifiers.colour_names import BASIC_SRGB, ColourNamer, calibrate, s
 from backend.verifiers.crop_set import COLOUR_NAMES, POSTURES, LabelledCrop, load_crops, read_frame
 from backend.verifiers.factory import build_verifier
 from backend.verifiers.person_model import (
-    L_HIP, L_SHOULDER, R_HIP, R_SHOULDER, PersonModel, PersonModelUnavailable,
-)  # fmt: skip
+    L_HIP,
+    L_SHOULDER,
+    R_HIP,
+    R_SHOULDER,
+    PersonModel,
+    PersonModelUnavailable,
+)
 from backend.verifiers.person_verifier import PersonVerifier, compound_colours, own_description
 from backend.verifiers.verifier_eval import DEFAULT_CROPS, evaluate, report
 from behaviors.detection import Verdict
