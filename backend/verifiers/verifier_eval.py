@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -209,6 +210,24 @@ def report(result: dict[str, object]) -> str:
     return "\n".join(lines)
 
 
+def timing(crops: list[LabelledCrop], sequences_dir: Path, count: int) -> str:
+    """Time per `verify` call (whole verdict: model, garments, colours) of both verifiers, one thread."""
+    people = [s for s in samples(crops, sequences_dir) if not s.lying]
+    chosen = people[:: max(len(people) // count, 1)][:count]
+    prompt = "the person in the grey-blue striped shirt and dark trousers walking"
+    lines = [f"{len(chosen)} crops, load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores"]
+    for name, verifier in (("local-hsv", AttributeVerifier()), ("local", PersonVerifier())):
+        verifier.verify(chosen[0].image, chosen[0].box, prompt, "person")  # warm-up (model load)
+        times = []
+        for s in chosen:
+            start = time.perf_counter()
+            verifier.verify(s.image, s.box, prompt, "person")
+            times.append(1000 * (time.perf_counter() - start))
+        lines.append(f"{name}: median {np.median(times):.1f} ms, mean {np.mean(times):.1f} ms, "
+                     f"p90 {np.percentile(times, 90):.1f} ms per crop")
+    return "\n".join(lines)
+
+
 def write_prototypes(crops: list[LabelledCrop], sequences_dir: Path, path: Path) -> None:
     verifier = PersonVerifier()
     garments = []
@@ -229,10 +248,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sequences", type=Path, required=True, help="folder of the dev sequences (frames/)")
     parser.add_argument("--crops", type=Path, default=DEFAULT_CROPS, help="labelled crops (default: tests/data/verifier_crops.json)")
     parser.add_argument("--json", type=Path, help="also write the scores as JSON here")
+    parser.add_argument("--timing", type=int, metavar="N",
+                        help="instead of the table: time per crop of both verifiers on N crops")
     parser.add_argument("--write-prototypes", action="store_true",
                         help=f"calibrate on all crops and write {PROTOTYPES_PATH.name} instead of the table")
     args = parser.parse_args(argv)
     crops = load_crops(args.crops)
+    if args.timing:
+        print(timing(crops, args.sequences, args.timing))
+        return 0
     if args.write_prototypes:
         write_prototypes(crops, args.sequences, PROTOTYPES_PATH)
         print(PROTOTYPES_PATH)
