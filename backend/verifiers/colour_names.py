@@ -68,7 +68,8 @@ class ColourNamer:
 
     @classmethod
     def load(cls, path: Path = PROTOTYPES_PATH) -> ColourNamer:
-        return cls(json.loads(path.read_text())["calibrated"] if path.exists() else None)
+        """The shipped calibration (a missing file is an error: the basic prototypes alone do much worse)."""
+        return cls(json.loads(path.read_text())["calibrated"])
 
     def prototype(self, name: str) -> np.ndarray:
         """The first (basic) prototype of a name."""
