@@ -26,20 +26,21 @@ PROTOTYPES_PATH = Path(__file__).with_name("colour_prototypes.json")
 MAX_PIXELS = 800  # pixels judged per region: an even subsample keeps a crop in a few ms
 
 
-WHITE_PERCENTILE = 97.0  # of the crop's linear RGB, per channel: taken as the scene's white
+WHITE_PERCENTILE = 97.0  # of the crop's brightest channel per pixel: taken as the scene's white
 WHITE_LEVEL = 0.8  # linear value that white is brought to (L* about 92)
 MAX_GAIN = 4.0
 
 
 def white_gains(crop_bgr: np.ndarray) -> np.ndarray:
-    """Per-channel linear gains that bring the bright end of the crop to a neutral white (white patch).
+    """One linear gain for all channels that brings the bright end of the crop to WHITE_LEVEL (exposure).
 
-    An aerial camera's exposure and white balance change from scene to scene and frame to frame; the
-    brightest surfaces around the person (pavement, foam, road marking) are the reference.
+    An aerial camera's exposure changes from scene to scene and frame to frame; the brightest surfaces
+    around the person (pavement, foam, road marking) are the reference. The same gain on every channel
+    keeps hues: balancing each channel on its own turns a green shirt yellow on grass.
     """
     linear = np.asarray(colour.cctf_decoding(crop_bgr.reshape(-1, 3)[:, ::-1].astype(np.float64) / 255.0, function="sRGB"))
-    white = np.percentile(linear, WHITE_PERCENTILE, axis=0)
-    return np.asarray(np.clip(WHITE_LEVEL / np.maximum(white, 1e-6), 1.0 / MAX_GAIN, MAX_GAIN))
+    white = float(np.percentile(linear.max(axis=1), WHITE_PERCENTILE))
+    return np.full(3, np.clip(WHITE_LEVEL / max(white, 1e-6), 1.0 / MAX_GAIN, MAX_GAIN))
 
 
 def srgb_to_lab(pixels_bgr: np.ndarray, gains: np.ndarray | None = None) -> np.ndarray:
