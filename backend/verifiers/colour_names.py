@@ -23,6 +23,8 @@ BASIC_SRGB: dict[str, tuple[int, int, int]] = {
 }  # fmt: skip
 DARK_L = 35.0  # "dark": CIE L* below this (between black at ~10 and mid grey at ~54)
 PROTOTYPES_PATH = Path(__file__).with_name("colour_prototypes.json")
+SHADE_AND_SUN = (0.35, 2.0)
+ACHROMATIC = {"black", "white", "gray"}
 MAX_PIXELS = 800  # pixels judged per region: an even subsample keeps a crop in a few ms
 
 
@@ -62,7 +64,14 @@ class ColourNamer:
     def __init__(self, prototypes: Mapping[str, Iterable[Iterable[float]]] | None = None) -> None:
         table = {name: [list(v) for v in rows] for name, rows in (prototypes or {}).items()}
         for name, rgb in BASIC_SRGB.items():
-            table.setdefault(name, []).insert(0, list(srgb_to_lab(np.array([rgb[::-1]], np.uint8))[0]))
+            basic = srgb_to_lab(np.array([rgb[::-1]], np.uint8))
+            table.setdefault(name, []).insert(0, list(basic[0]))
+            if name not in ACHROMATIC:
+                # The same colour in shade and in full sun (linear intensity x0.35 and x2): a bright green
+                # is nearer to basic yellow than to basic green in CIEDE2000, but people call it green.
+                for gain in SHADE_AND_SUN:
+                    shade = srgb_to_lab(np.array([rgb[::-1]], np.uint8), np.full(3, gain))[0]
+                    table[name].append(list(shade))
         self.names = list(table)
         self._owner = np.array([i for i, name in enumerate(self.names) for _ in table[name]])
         self._labs = np.array([v for name in self.names for v in table[name]], np.float64)
@@ -99,7 +108,6 @@ def _assign(namer: ColourNamer, names: list[str], lab: np.ndarray) -> dict[str, 
     return {name: lab[nearest == name] for name in names}
 
 
-ACHROMATIC = {"black", "white", "gray"}
 MIN_CHROMA = 6.0  # a calibrated prototype of a chromatic name keeps some colour...
 MAX_HUE_SHIFT_DEG = 70.0  # ...and roughly its hue: calibration moves lightness and saturation, not hue
 
