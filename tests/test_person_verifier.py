@@ -139,13 +139,15 @@ def test_verifier_colour_names_in_lab() -> None:
     for name, rgb in BASIC_SRGB.items():
         assert namer.shares(srgb_to_lab(np.array([rgb[::-1]], np.uint8)))[name] == 1.0
     maroon = srgb_to_lab(np.full((10, 3), (30, 20, 70), np.uint8))  # BGR: dark red in shade
-    assert ColourNamer().shares(maroon)["black"] == 1.0
-    calibrated = ColourNamer(calibrate([(("red",), maroon)]))
-    assert calibrated.shares(maroon)["red"] == 1.0 and calibrated.shares(maroon)["dark"] == 1.0
+    assert namer.shares(maroon)["red"] == 1.0 and namer.shares(maroon)["dark"] == 1.0
+    teal = srgb_to_lab(np.full((10, 3), (110, 120, 100), np.uint8))  # a green stripe gone grey in the haze
+    assert namer.shares(teal)["gray"] == 1.0
+    assert ColourNamer(calibrate([(("green",), teal)])).shares(teal)["green"] == 1.0
+    assert calibrate([(("red",), srgb_to_lab(np.full((10, 3), (128, 128, 128), np.uint8)))]) == {}  # keeps its hue
     # A striped garment gives each of its colours the pixels nearest to it.
-    stripes = np.concatenate([maroon, srgb_to_lab(np.full((10, 3), (235, 235, 235), np.uint8))])
-    table = calibrate([(("red", "white"), stripes)])
-    assert set(table) == {"red", "white"} and table["white"][0][0] > 90 > 30 > table["red"][0][0]
+    stripes = np.concatenate([teal, srgb_to_lab(np.full((10, 3), (235, 235, 235), np.uint8))])
+    table = calibrate([(("green", "white"), stripes)])
+    assert set(table) == {"green", "white"} and table["white"][0][0] > 90 > 60 > table["green"][0][0]
 
 
 def test_verifier_objects_other_than_people_use_the_box(sequences_dir: Path, verifier: PersonVerifier) -> None:
