@@ -186,16 +186,20 @@ class PersonVerifier:
                 verdicts.append(Verdict.UNCERTAIN)
                 notes.append(f"{region} garment too small to judge {name}")
                 continue
-            # "dark" is most of the garment; a colour needs a real share of it. A whole-body claim ("a
-            # black wetsuit", "dark clothes") holds for each garment seen.
-            present = DARK_PRESENT_SHARE if group == {"dark"} else self.present_share
-            absent = DARK_ABSENT_SHARE if group == {"dark"} else self.absent_share
+            # "dark" is most of the garment; a colour needs a real share of it, shared out when the
+            # description gives the garment several colours ("green-and-white": each 10 %, stripes of
+            # one colour fade into the other in the haze). A whole-body claim ("a black wetsuit",
+            # "dark clothes") holds for each garment seen.
+            siblings = sum(1 for r, g in judged if r == region and g != {"dark"})
+            present = DARK_PRESENT_SHARE if group == {"dark"} else self.present_share / max(siblings, 1)
+            absent = DARK_ABSENT_SHARE if group == {"dark"} else self.absent_share / max(siblings, 1)
+            named = set().union(*(g for r, g in judged if r == region))
             for part in visible:
                 shares = namer.shares(observation.regions[part])
                 share = sum(shares.get(c, 0.0) for c in group)
                 # Clearly another colour: one colour other than the named ones (black aside: shade is black)
                 # covers much of the garment while the named one stays under `present`.
-                other, other_share = max(((c, v) for c, v in shares.items() if c not in group | {"black", "dark"}),
+                other, other_share = max(((c, v) for c, v in shares.items() if c not in named | {"black", "dark"}),
                                          key=lambda cv: cv[1], default=("", 0.0))
                 elsewhere = share < present and other_share >= OTHER_COLOUR_SHARE
                 notes.append(f"{name} {share:.0%} of {part} garment" + (f" (mostly {other})" if elsewhere else ""))
