@@ -7,9 +7,10 @@ when the model finds the body (presence and shoulder/hip visibility at least 0.5
 - colour words are judged on those pixels in CIE Lab: the share whose nearest named prototype by
   CIEDE2000 is the colour (backend/verifiers/colour_names.py); "dark" is the share with L* < 35;
 - posture from keypoints: torso more than 60 degrees from the image vertical is lying; an upright torso
-  with straight knees (mean knee angle >= 150 degrees) is standing, with bent knees (<= 110) sitting.
+  with knees at least 125 degrees (a walking stride included) is standing, at most 105 sitting.
 Answers: yes when every named attribute is seen (a colour covering at least `present_share` of its
-garment), no when one is clearly not (under `absent_share`, or another posture), otherwise uncertain.
+garment; shared out among several colours named for one garment), no when one is clearly not (under
+`absent_share`, another colour covering 40 %, or another posture), otherwise uncertain.
 A person the model cannot see (no body found, a garment under `min_region_px` pixels, a hat or bag it
 has no region for) is `uncertain`: nothing is guessed from the box. Other objects (a bag, a boat) have
 no body model: their colours are judged the same way on the middle of the box.
