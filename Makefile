@@ -12,8 +12,10 @@ $(BIN)/python:
 	$(BIN)/pip install -q --upgrade pip
 
 # The demo needs the back-end and plotting extras only; the tests add the test tools and CPU torch.
+# The local verifier's pose model is copied out of the mediapipe 0.10.14 wheel that pip fetches from PyPI.
 $(BIN)/.installed-demo: pyproject.toml | $(BIN)/python
-	$(BIN)/pip install -q -e '.[backend,eval]'
+	$(BIN)/pip install -q -e '.[backend,eval,person]'
+	$(BIN)/python -m backend.verifiers.person_model install
 	touch $@
 
 $(BIN)/.installed: pyproject.toml | $(BIN)/python
@@ -25,6 +27,7 @@ $(BIN)/.installed: pyproject.toml | $(BIN)/python
 	# MAVProxy for the `module load cloudtrack` test, without its declared dependencies: its opencv-python
 	# would shadow the contrib OpenCV the trackers need, and vtk & co. serve only its GUI modules.
 	$(BIN)/pip install -q --no-deps "MAVProxy==1.8.75"
+	$(BIN)/python -m backend.verifiers.person_model install
 	touch $@
 
 install: $(BIN)/.installed

@@ -19,7 +19,7 @@ from cloudtrack.config_files import ConfigSection, default_config_files, load_co
 ENV_PREFIX = "CLOUDTRACK_BACKEND_"
 
 DetectorKind = Literal["yolox", "grounding_dino", "owlv2", "simulated"]
-VerifierKind = Literal["none", "local", "vlm", "cascade"]
+VerifierKind = Literal["none", "local", "local-hsv", "vlm", "cascade"]
 UncertainPolicy = Literal["uncertain", "yes", "no"]
 
 

@@ -40,7 +40,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
     parser.add_argument("image", type=Path, help="JPEG or PNG file")
     parser.add_argument("--prompt", required=True, help="the full description of the target")
     parser.add_argument("--superset", help="detector class (default: derived from the prompt)")
-    parser.add_argument("--verifier", choices=["none", "local", "vlm", "cascade"], help="override [verifier] kind")
+    parser.add_argument("--verifier", choices=["none", "local", "local-hsv", "vlm", "cascade"], help="override [verifier] kind")
     parser.add_argument("--model-dir", metavar="DIR", help=MODEL_DIR_HELP)
     parser.add_argument("--json", type=Path, metavar="OUT", help="write the candidates as JSON")
     parser.add_argument("--draw", type=Path, metavar="OUT.jpg", help="write the image with boxes and verdicts")

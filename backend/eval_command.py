@@ -52,7 +52,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
     parser.add_argument("--step", type=int, default=5, help="with --sequences: every STEP-th frame (default 5)")
     parser.add_argument("--images", type=Path, metavar="DIR", help="image folder for --coco")
     parser.add_argument("--attributes", type=Path, metavar="CSV", help="image,xmin,ymin,xmax,ymax,attribute rows for --voc")
-    parser.add_argument("--verifier", action="append", choices=["none", "local", "vlm", "cascade"],
+    parser.add_argument("--verifier", action="append", choices=["none", "local", "local-hsv", "vlm", "cascade"],
                         help="verifier(s) to compare, one table row each (default: [verifier] kind)")
     parser.add_argument("--strict", action="store_true", help="count only 'yes' (default: 'uncertain' counts too)")
     parser.add_argument("--model-dir", help="weights folder (default: $CLOUDTRACK_MODEL_DIR, then the cache)")

@@ -64,9 +64,10 @@ class Scenario:
                                  turn_at_m=turn_at)
         if not self.decoy:
             return world
-        # The look-alike sits nearer the drone than the target, so it is bigger in the image and the
-        # detector scores it higher: it is proposed first and the supervisor rejects it.
-        decoy = Person("decoy", "green", "blue", "sitting", ((8.0, -4.0),))
+        # The look-alike stands nearer the drone than the target, so it is bigger in the image and the
+        # detector scores it higher: it is proposed first and the supervisor rejects it. (Standing: the
+        # local verifier's body model finds no body in the rendered sitting figure and says uncertain.)
+        decoy = Person("decoy", "green", "blue", "standing", ((8.0, -4.0),))
         return World(world.seed, (*world.people, decoy), world.blocks, world.ground_size_m, world.ground_px,
                      world.target_id)
 

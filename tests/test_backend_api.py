@@ -33,7 +33,7 @@ def test_detect_finds_and_verifies_the_person(client: TestClient, keyframe: byte
     assert response.status_code == 200, response.text
     body = response.json()
     assert body["image_size"] == [640, 360] and body["superset"] == "person" and body["frame_id"] == 7
-    assert body["models"] == {"detector": "yolox_nano", "verifier": "local:colours"}
+    assert body["models"] == {"detector": "yolox_nano", "verifier": "local:person"}
     assert body["candidates"], "YOLOX found nobody"
     # Ground truth of frame 1 is (490, 235, 34, 85) at 1280x720, i.e. about (245, 117, 262, 160) here.
     best = max(body["candidates"], key=lambda c: c["score"])

@@ -29,7 +29,7 @@ def test_detect_one_image(models_dir: Path, sequences_dir: Path, tmp_path: Path,
                  str(models_dir), "--json", str(out_json), "--draw", str(out_jpg)])
     assert code == 0
     result = json.loads(out_json.read_text())
-    assert result["superset"] == "person" and result["models"]["verifier"] == "local:colours"
+    assert result["superset"] == "person" and result["models"]["verifier"] == "local:person"
     best = max(result["candidates"], key=lambda c: c["score"])
     assert best["verdict"] == "yes" and 190 < (best["box"][0] + best["box"][2]) / 2 < 230  # truth: x 205, w 17
     assert out_jpg.stat().st_size > 1000
@@ -71,11 +71,11 @@ def test_eval_prints_the_table_and_writes_json(
                  "--model-dir", str(models_dir), "--json", str(tmp_path / "e.json"), "--markdown", str(tmp_path / "e.md")])
     assert code == 0
     captured = capsys.readouterr()
-    assert "| local:colours |" in captured.out and "| none |" in captured.out
+    assert "| local:person |" in captured.out and "| none |" in captured.out
     assert "eval" in captured.err  # the progress bar
     scores = json.loads((tmp_path / "e.json").read_text())
     prompts = {a["referring"] for a in json.loads(coco.read_text())["annotations"]}
-    assert [r["verifier"] for r in scores["results"]] == ["local:colours", "none"]
+    assert [r["verifier"] for r in scores["results"]] == ["local:person", "none"]
     assert {t["prompt"] for t in scores["tasks"]} == prompts
     assert (tmp_path / "e.md").read_text().startswith("| Verifier |")
 

@@ -1,4 +1,7 @@
-"""The fast local verifier: clothing colours judged from pixels, no model download, a few ms per crop.
+"""The box-fraction colour verifier (`local-hsv`): colours from fixed parts of the box, no model.
+
+Kept for comparison with the person-model verifier (`local`, backend/verifiers/person_verifier.py), which
+shares this module's reading of the prompt (`colour_claims`, `posture_claim`).
 
 It reads colour words in the description and the garment they belong to ("gray shirt" -> upper body,
 "blue jeans" -> lower body, "red cap" -> head, "black wetsuit" / "white bag" -> the whole box), measures the share of each
@@ -68,6 +71,7 @@ def colour_masks(hsv: np.ndarray, hue_slack: float = 0.0) -> dict[str, np.ndarra
     return masks
 
 
+SITTING = {"sitting", "sits", "seated", "squatting", "kneeling"}
 LYING = {"lying", "lies", "laying", "prone", "collapsed", "fallen", "unconscious", "sprawled"}
 UPRIGHT = {"standing", "stands", "walking", "walks", "running", "runs", "upright"}
 LYING_MAX_RATIO = 0.8  # box height / width
@@ -75,12 +79,14 @@ UPRIGHT_MIN_RATIO = 1.6
 
 
 def posture_claim(prompt: str, superset: str = "person") -> str | None:
-    """"lying" or "upright" when the description of a person says so, else None."""
+    """"lying", "sitting" or "upright" when the description of a person says so, else None."""
     if superset != "person":
         return None
     words = set(re.findall(r"[a-z]+", prompt.lower()))
     if words & LYING:
         return "lying"
+    if words & SITTING:
+        return "sitting"
     if words & UPRIGHT:
         return "upright"
     return None
@@ -88,6 +94,8 @@ def posture_claim(prompt: str, superset: str = "person") -> str | None:
 
 def posture_verdict(claim: str, target_box: tuple[float, float, float, float]) -> tuple[Verdict, str]:
     ratio = target_box[3] / max(target_box[2], 1e-6)
+    if claim == "sitting":
+        return Verdict.UNCERTAIN, f"box height/width {ratio:.1f} cannot tell sitting"
     if claim == "lying":
         verdict = Verdict.YES if ratio <= LYING_MAX_RATIO else Verdict.NO if ratio >= UPRIGHT_MIN_RATIO else Verdict.UNCERTAIN
     else:

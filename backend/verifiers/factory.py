@@ -1,4 +1,4 @@
-"""Building the configured verifier (`[verifier] kind`): none, local, vlm or cascade."""
+"""Building the configured verifier (`[verifier] kind`): none, local, local-hsv, vlm or cascade."""
 
 from __future__ import annotations
 
@@ -7,16 +7,23 @@ from backend.verifiers.attributes import AttributeVerifier
 from backend.verifiers.cascade import CascadeVerifier
 from backend.verifiers.interface import Verifier
 from backend.verifiers.openai_chat import OpenAIChatVerifier
+from backend.verifiers.person_verifier import PersonVerifier
 
 
 def build_verifier(verifier: VerifierConfig, vlm: VlmConfig) -> Verifier | None:
-    """The verifier for `verifier.kind`; None for "none" (detector only)."""
+    """The verifier for `verifier.kind`; None for "none" (detector only).
+
+    "local" is the person-model verifier (needs the `person` extra and its model file, and says how to
+    install them when they are missing); "local-hsv" the older box-fraction colour rules, for comparison.
+    """
     if verifier.kind == "none":
         return None
     if verifier.kind == "local":
+        return PersonVerifier()
+    if verifier.kind == "local-hsv":
         return AttributeVerifier()
     chat = OpenAIChatVerifier(
         vlm.base_url, vlm.model, vlm.api_key_env, vlm.prompt_family, vlm.max_retries, vlm.backoff_s,
         vlm.max_tokens, vlm.crop_max_side, vlm.jpeg_quality,
     )
-    return chat if verifier.kind == "vlm" else CascadeVerifier(AttributeVerifier(), chat)
+    return chat if verifier.kind == "vlm" else CascadeVerifier(PersonVerifier(), chat)

@@ -1,0 +1,234 @@
+"""The local verifier (`local`): garments and posture of a person read through a learned body model.
+
+For a person it runs the pose model (backend/verifiers/person_model.py) on the candidate box and, only
+when the model finds the body (presence and shoulder/hip visibility at least 0.5):
+- upper garment = the person mask inside the torso (shoulders to hips, at least as wide as the
+  shoulders), lower garment = the mask along the legs (hips to knees to ankles), minus the torso;
+- colour words are judged on those pixels in CIE Lab: the share whose nearest named prototype by
+  CIEDE2000 is the colour (backend/verifiers/colour_names.py); "dark" is the share with L* < 35;
+- posture from keypoints: torso more than 60 degrees from the image vertical is lying; an upright torso
+  with knees at least 125 degrees (a walking stride included) is standing, at most 105 sitting.
+Answers: yes when every named attribute is seen (a colour covering at least `present_share` of its
+garment; shared out among several colours named for one garment), no when one is clearly not (under
+`absent_share`, another colour covering 40 %, or another posture), otherwise uncertain.
+A person the model cannot see (no body found, a garment under `min_region_px` pixels, a hat or bag it
+has no region for) is `uncertain`: nothing is guessed from the box. Other objects (a bag, a boat) have
+no body model: their colours are judged the same way on the middle of the box.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from backend.verifiers import person_model as body
+from backend.verifiers.attributes import COLOUR_WORDS, REGIONS, colour_claims, posture_claim
+from backend.verifiers.colour_names import ColourNamer, srgb_to_lab, subsample, white_gains
+from backend.verifiers.interface import VerifierAnswer
+from backend.verifiers.person_model import PersonModel
+from behaviors.detection import Verdict
+
+LYING_MIN_DEG = 60.0  # torso angle from the image vertical
+UPRIGHT_MAX_DEG = 30.0
+STANDING_MIN_KNEE_DEG = 125.0  # on one's feet, walking included (a stride bends the knee to ~130)
+SITTING_MAX_KNEE_DEG = 105.0
+DARK_PRESENT_SHARE = 0.5  # "dark": at least half the garment below L* 35
+DARK_ABSENT_SHARE = 0.2
+OTHER_COLOUR_SHARE = 0.4  # another colour this much of the garment, the named one under present: no
+
+
+@dataclass
+class Observation:
+    """What the model made of one box; `reason` says why it cannot judge (empty when it can)."""
+
+    reason: str = ""
+    presence: float = 0.0
+    regions: dict[str, np.ndarray] = field(default_factory=dict)  # "upper"/"lower" -> N x 3 Lab
+    posture: str | None = None  # "standing", "sitting", "lying" or None (cannot tell)
+    posture_note: str = ""
+
+
+# Words that bring in another person or thing ("between the man in the red shirt", "next to the car"):
+# what follows describes them, not the target.
+RELATIONS = re.compile(r"\b(between|beside|besides|behind|near|next to|in front of|left of|right of|close to|"
+                       r"following|followed by|towards?|with (?:the|a|an) (?:man|woman|person|people|boy|girl|child|dog))\b")
+
+
+def own_description(prompt: str) -> str:
+    """The part of a description about the target itself, before a relation to someone or something else."""
+    match = RELATIONS.search(prompt.lower())
+    return prompt[: match.start()] if match else prompt
+
+
+def compound_colours(prompt: str) -> list[set[str]]:
+    """Hyphenated colour pairs that name one mixed colour ("grey-blue", "blue-green"), as sets of names.
+
+    "green-and-white" names two colours and is not one of them.
+    """
+    groups = []
+    for first, second in re.findall(r"\b([a-z]+)-([a-z]+)\b", prompt.lower()):
+        if first in COLOUR_WORDS and second in COLOUR_WORDS:
+            groups.append({COLOUR_WORDS[first], COLOUR_WORDS[second]})
+    return groups
+
+
+def _angle(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> float:
+    """Angle at b between b->a and b->c, degrees."""
+    u, v = a - b, c - b
+    cos = float(np.dot(u, v) / max(np.linalg.norm(u) * np.linalg.norm(v), 1e-9))
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+
+def posture_from_keypoints(points: np.ndarray, visibility: np.ndarray, min_visibility: float) -> tuple[str | None, str]:
+    shoulders = (points[body.L_SHOULDER] + points[body.R_SHOULDER]) / 2
+    hips = (points[body.L_HIP] + points[body.R_HIP]) / 2
+    axis = shoulders - hips
+    tilt = float(np.degrees(np.arctan2(abs(axis[0]), -axis[1])))  # 0: head up, 90: level, 180: head down
+    if tilt >= LYING_MIN_DEG:
+        return "lying", f"torso {tilt:.0f} deg from vertical"
+    if tilt > UPRIGHT_MAX_DEG:
+        return None, f"torso {tilt:.0f} deg from vertical"
+    legs = [(h, k, a) for h, k, a in ((body.L_HIP, body.L_KNEE, body.L_ANKLE), (body.R_HIP, body.R_KNEE, body.R_ANKLE))
+            if min(visibility[k], visibility[a]) >= min_visibility]
+    if not legs:
+        return None, f"torso upright ({tilt:.0f} deg), legs not visible"
+    knee = float(np.mean([_angle(points[h], points[k], points[a]) for h, k, a in legs]))
+    note = f"torso {tilt:.0f} deg from vertical, knees {knee:.0f} deg"
+    if knee >= STANDING_MIN_KNEE_DEG:
+        return "standing", note
+    if knee <= SITTING_MAX_KNEE_DEG:
+        return "sitting", note
+    return None, note
+
+
+class PersonVerifier:
+    name = "local:person"
+
+    def __init__(self, model: PersonModel | None = None, namer: ColourNamer | None = None,
+                 min_presence: float = 0.5, min_visibility: float = 0.5, min_region_px: int = 40,
+                 present_share: float = 0.2, absent_share: float = 0.05) -> None:
+        self.model = model or PersonModel()
+        self.namer = namer or ColourNamer.load()
+        self.min_presence = min_presence
+        self.min_visibility = min_visibility
+        self.min_region_px = min_region_px
+        self.present_share = present_share
+        self.absent_share = absent_share
+
+    def observe(self, crop_bgr: np.ndarray, target_box: tuple[float, float, float, float]) -> Observation:
+        if min(target_box[2], target_box[3]) < 4:
+            return Observation("box too small for the body model")
+        pose = self.model.estimate(crop_bgr, target_box)
+        core = [body.L_SHOULDER, body.R_SHOULDER, body.L_HIP, body.R_HIP]
+        if pose.presence < self.min_presence or float(pose.visibility[core].min()) < self.min_visibility:
+            return Observation(f"no body found (presence {pose.presence:.2f})", pose.presence)
+        p = pose.keypoints
+        ls, rs, lh, rh = p[body.L_SHOULDER], p[body.R_SHOULDER], p[body.L_HIP], p[body.R_HIP]
+        torso_len = float(np.linalg.norm((ls + rs) / 2 - (lh + rh) / 2))
+        width = max(float(np.linalg.norm(ls - rs)), 0.35 * torso_len, 2.0)
+        upper = np.zeros(crop_bgr.shape[:2], np.uint8)
+        top_l, top_r = ls + 0.1 * (lh - ls), rs + 0.1 * (rh - rs)  # below the neck
+        cv2.fillConvexPoly(upper, np.round(np.array([top_l, top_r, rh, lh])).astype(np.int32), 1)
+        cv2.line(upper, tuple(np.round((top_l + top_r) / 2).astype(int)), tuple(np.round((lh + rh) / 2).astype(int)),
+                 1, max(int(round(width)), 1))
+        lower = np.zeros_like(upper)
+        leg_width = max(int(round(0.45 * width)), 1)
+        for hip, knee, ankle in ((body.L_HIP, body.L_KNEE, body.L_ANKLE), (body.R_HIP, body.R_KNEE, body.R_ANKLE)):
+            chain = [p[hip]]
+            if pose.visibility[knee] >= self.min_visibility:
+                chain.append(p[knee])
+                if pose.visibility[ankle] >= self.min_visibility:
+                    chain.append(0.85 * p[ankle] + 0.15 * p[knee])  # stop above the shoe
+            if len(chain) > 1:
+                cv2.polylines(lower, [np.round(np.array(chain)).astype(np.int32)], False, 1, leg_width)
+        upper_px = crop_bgr[(upper > 0) & pose.mask]
+        lower_px = crop_bgr[(lower > 0) & (upper == 0) & pose.mask]
+        gains = white_gains(crop_bgr)
+        regions = {name: srgb_to_lab(subsample(px), gains) for name, px in (("upper", upper_px), ("lower", lower_px))
+                   if len(px) >= self.min_region_px}
+        posture, note = posture_from_keypoints(p, pose.visibility, self.min_visibility)
+        return Observation("", pose.presence, regions, posture, note)
+
+    def judge(self, observation: Observation, prompt: str, superset: str = "person",
+              namer: ColourNamer | None = None) -> VerifierAnswer:
+        """The verdict for `prompt` on an observation (separate from `observe` so a study can re-judge)."""
+        namer = namer or self.namer
+        prompt = own_description(prompt)
+        claims = colour_claims(prompt, superset)
+        posture = posture_claim(prompt, superset)
+        if not claims and posture is None:
+            return VerifierAnswer(Verdict.UNCERTAIN, "no colour or posture named that can be judged from pixels", self.name)
+        if observation.reason:
+            return VerifierAnswer(Verdict.UNCERTAIN, observation.reason, self.name)
+        verdicts, notes = [], []
+        if posture is not None:
+            seen = observation.posture
+            wanted = "standing" if posture == "upright" else posture
+            verdicts.append(Verdict.UNCERTAIN if seen is None else Verdict.YES if seen == wanted else Verdict.NO)
+            notes.append(f"posture {seen or 'unclear'} ({observation.posture_note})")
+        compounds = compound_colours(prompt)
+        judged: list[tuple[str, set[str]]] = []  # (region, colours that together make the claim)
+        for claim in claims:
+            group = next((g for g in compounds if claim.colour in g), {claim.colour})
+            if (claim.region, group) not in judged:
+                judged.append((claim.region, group))
+        for region, group in judged:
+            name = "-".join(sorted(group))
+            if region == "head":
+                verdicts.append(Verdict.UNCERTAIN)
+                notes.append(f"{name} on the head: no head region")
+                continue
+            parts = ["upper", "lower"] if region == "whole" else [region]
+            visible = [r for r in parts if r in observation.regions]
+            if not visible:
+                verdicts.append(Verdict.UNCERTAIN)
+                notes.append(f"{region} garment too small to judge {name}")
+                continue
+            # "dark" is most of the garment; a colour needs a real share of it, shared out when the
+            # description gives the garment several colours ("green-and-white": each 10 %, stripes of
+            # one colour fade into the other in the haze). A whole-body claim ("a black wetsuit",
+            # "dark clothes") holds for each garment seen.
+            siblings = sum(1 for r, g in judged if r == region and g != {"dark"})
+            present = DARK_PRESENT_SHARE if group == {"dark"} else self.present_share / max(siblings, 1)
+            absent = DARK_ABSENT_SHARE if group == {"dark"} else self.absent_share / max(siblings, 1)
+            named = set().union(*(g for r, g in judged if r == region))
+            for part in visible:
+                shares = namer.shares(observation.regions[part])
+                share = sum(shares.get(c, 0.0) for c in group)
+                # Clearly another colour: one colour other than the named ones (black aside: shade is black)
+                # covers much of the garment while the named one stays under `present`.
+                other, other_share = max(((c, v) for c, v in shares.items() if c not in named | {"black", "dark"}),
+                                         key=lambda cv: cv[1], default=("", 0.0))
+                elsewhere = share < present and other_share >= OTHER_COLOUR_SHARE
+                notes.append(f"{name} {share:.0%} of {part} garment" + (f" (mostly {other})" if elsewhere else ""))
+                verdicts.append(Verdict.YES if share >= present
+                                else Verdict.NO if share < absent or elsewhere else Verdict.UNCERTAIN)
+        if Verdict.NO in verdicts:
+            verdict = Verdict.NO
+        elif all(v is Verdict.YES for v in verdicts):
+            verdict = Verdict.YES
+        else:
+            verdict = Verdict.UNCERTAIN
+        return VerifierAnswer(verdict, "; ".join(notes), self.name)
+
+    def observe_object(self, crop_bgr: np.ndarray, target_box: tuple[float, float, float, float]) -> Observation:
+        """Not a person: the middle of the box (no body model) as its one region, "whole"."""
+        x, y, w, h = target_box
+        top, bottom, left, right = REGIONS["whole"]
+        patch = crop_bgr[max(int(y + top * h), 0) : max(int(y + bottom * h), 1), max(int(x + left * w), 0) : max(int(x + right * w), 1)]
+        pixels = patch.reshape(-1, 3)
+        if len(pixels) < self.min_region_px:
+            return Observation("box too small to judge colours")
+        return Observation(regions={"upper": srgb_to_lab(subsample(pixels), white_gains(crop_bgr))})
+
+    def verify(self, crop_bgr: np.ndarray, target_box: tuple[float, float, float, float], prompt: str,
+               superset: str, timeout_s: float = 1.0) -> VerifierAnswer:
+        prompt = own_description(prompt)
+        if not colour_claims(prompt, superset) and posture_claim(prompt, superset) is None:
+            return VerifierAnswer(Verdict.UNCERTAIN, "no colour or posture named that can be judged from pixels", self.name)
+        if superset == "person":
+            return self.judge(self.observe(crop_bgr, target_box), prompt, superset)
+        return self.judge(self.observe_object(crop_bgr, target_box), prompt, superset)
