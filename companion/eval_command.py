@@ -178,7 +178,7 @@ def _pipeline(weights: Path, verifier_kind: str) -> Any:
     from backend.pipeline import Pipeline
     from backend.verifiers.factory import build_verifier
 
-    verifier = build_verifier(VerifierConfig(kind=verifier_kind), VlmConfig())  # type: ignore[arg-type]
+    verifier = build_verifier(VerifierConfig(kind=verifier_kind), VlmConfig())
     return Pipeline(_yolox(weights), verifier, ThreadPoolExecutor(max_workers=2, thread_name_prefix="eval-verify"))
 
 
@@ -264,6 +264,7 @@ def run(args: argparse.Namespace) -> int:
 
     from tqdm.contrib.logging import logging_redirect_tqdm
 
+    policies: list[str]
     if args.policy in ("both", "all"):
         policies = ["c_box", "score"] if args.policy == "both" else list(POLICIES)
     else:
@@ -287,7 +288,7 @@ def run(args: argparse.Namespace) -> int:
     if args.signal_table:
         for name in trackers:
             report = signal_table(seqs, config.tracker, model_dir, name, size, args.max_frames, args.occlude,
-                                  caches, keyframe_interval=max(1, round(args.keyframe_s * 10)))
+                                  caches, keyframe_s=args.keyframe_s)
             _print_signal_table(report)
             output["runs"].append({"signal_table": _signal_dict(report)})
         _write_json(args.json, output)

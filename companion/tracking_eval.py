@@ -284,7 +284,9 @@ def evaluate_sequence(
     reasons: Counter[str] = Counter()
     outcomes: Counter[str] = Counter()
     acquisition: list[AcquisitionKeyframe] = []
-    pending: tuple[int, int, list[Detection]] | None = None  # (apply at frame, keyframe, detections)
+    # Answers in flight, oldest first: (apply at frame, keyframe, detections). As in flight, a request goes
+    # out every keyframe interval whether or not the previous answer is back.
+    pending: list[tuple[int, int, list[Detection]]] = []
     last_request = -(10**9)
     calls = 0
     started = time.perf_counter()
@@ -326,9 +328,9 @@ def evaluate_sequence(
                 box = init  # the initialisation frame reports the box it started on
         if result.lost_reason and result.lost_reason not in ("idle", "acquiring"):
             reasons[result.lost_reason] += 1
-        if pending is not None and pending[0] <= frame.frame_id:
-            answer(pending[1], pending[2], frame.frame_id)
-            pending = None
+        while pending and pending[0][0] <= frame.frame_id:
+            _, keyframe, found = pending.pop(0)
+            answer(keyframe, found, frame.frame_id)
         if settings.policy == "verified":
             # Every answer is evidence for or against the track, so keyframes go out while trusted too.
             needs_candidates = frontend.tracking
@@ -341,7 +343,6 @@ def evaluate_sequence(
         if (
             detections is not None
             and needs_candidates
-            and pending is None
             and frame.frame_id - last_request >= interval
             and not frontend.catching_up
         ):
@@ -350,10 +351,10 @@ def evaluate_sequence(
             detector_seconds += time.perf_counter() - t0
             calls += 1
             last_request = frame.frame_id
-            pending = (frame.frame_id + settings.delay_frames, frame.frame_id, found)
             if settings.delay_frames == 0:
                 answer(frame.frame_id, found, frame.frame_id)
-                pending = None
+            else:
+                pending.append((frame.frame_id + settings.delay_frames, frame.frame_id, found))
         predicted.append(box)
         predicted_any.append(box if box is not None else result.box)
         if progress is not None:
@@ -466,14 +467,14 @@ def signal_table(
     max_frames: int | None = None,
     occlude: bool = False,
     detections: dict[str, DetectionCache | None] | None = None,
-    keyframe_interval: int = 10,
+    keyframe_s: float = 1.0,
 ) -> SignalReport:
     """Track each sequence from its first box without re-initialisation and score every loss signal.
 
     For each signal: frames it fired on and how many of them were really off target (precision), and
     over the off-target frames how many it caught (recall = fired_lost / lost_frames), and its false
     alarms: frames it fired on while the tracker was on target. With `detections`, every
-    `keyframe_interval` frames the detector's box on the target is compared in extent with the ground truth.
+    `keyframe_s` seconds of sequence time the detector's box on the target is compared in extent with the ground truth.
     """
     settings = EvalSettings(tracker=tracker_name, size=size, max_frames=max_frames, occlude=occlude)
     report = SignalReport(tracker_name)
@@ -513,7 +514,7 @@ def signal_table(
                     report.combos[combo].fired_lost += int(lost)
                     report.combos[combo].fired_on_target += int(on_target)
             cache = detections.get(seq.name) if detections is not None else None
-            if cache is not None and gt is not None and index % keyframe_interval == 0:
+            if cache is not None and gt is not None and index % max(1, round(keyframe_s * seq.fps)) == 0:
                 report.keyframes += 1
                 found = [d.box for d in cache.get(seq.name, frame.image, frame.frame_id)]
                 best = max(found, key=lambda b: iou(b, gt), default=None)
