@@ -33,8 +33,8 @@ from typing import Literal
 import numpy as np
 
 from behaviors.candidate_selection import c_box, select_by_c_box, select_by_score
-from behaviors.detection import Detection
-from behaviors.geometry import Box
+from behaviors.detection import Detection, Verdict
+from behaviors.geometry import Box, iou
 from behaviors.reinit_policy import (
     CandidateEvidence,
     ReinitAction,
@@ -97,6 +97,7 @@ class FrontendStats:
     rejected_candidates: int = 0  # nearest candidate beyond the C_box gate
     confirmations: int = 0  # "verified": answers whose candidate on the track withdrew a latched loss
     decisions: dict[str, int] = field(default_factory=dict)  # "verified": answers per ReinitAction
+    verdicts_ignored: int = 0  # tracks whose verifier said "no" to the target it started on
 
 
 class TrackingFrontend:
@@ -140,6 +141,11 @@ class TrackingFrontend:
         self._extent = (0.0, 0.0)
         self._extent_samples = 0
         self._confirmed = False  # "verified": the last answer confirmed the track
+        # The verifier is checked once per track against the candidate on the box the track started on
+        # (the target by definition: the operator's or ground truth's box, or the verifier's own "yes").
+        # One that says "no" to it cannot tell this target apart: its verdicts are not used for this track.
+        self._verdicts_checked = False
+        self._verdicts_used = True
 
     @classmethod
     def from_config(
@@ -179,6 +185,8 @@ class TrackingFrontend:
         self._anchor = appearance_histogram(keyframe.image, box) if keyframe is not None else None
         self._reinit_state = ReinitState()
         self._extent, self._extent_samples = (0.0, 0.0), 0
+        self._verdicts_checked = False
+        self._verdicts_used = True
         return self._begin(keyframe_id, box, keep_template=False)
 
     def apply_candidates(self, keyframe_id: int, detections: Sequence[Detection]) -> Detection | None:
@@ -234,6 +242,18 @@ class TrackingFrontend:
             return None
         track_box, lost = self._boxes.get(keyframe_id, (None, True))
         boxes = [self.to_tracker_convention(d.box) for d in detections]
+        verdicts = [d.verdict for d in detections]
+        if not self._verdicts_checked and track_box is not None and not lost:
+            on_track = [v for box, v in zip(boxes, verdicts, strict=True) if iou(box, track_box) >= self.reinit.agree_iou]
+            if on_track:
+                self._verdicts_checked = True
+                self._verdicts_used = on_track[0] is not Verdict.NO
+                if not self._verdicts_used:
+                    self.stats.verdicts_ignored += 1
+                    log.info("%sthe verifier said no to the tracked target at frame %d: its verdicts are not "
+                             "used for this track", self.label, keyframe_id)
+        if not self._verdicts_used:
+            verdicts = [Verdict.UNCERTAIN] * len(detections)
         track = TrackEvidence(
             box=track_box,
             lost=lost,
@@ -242,8 +262,8 @@ class TrackingFrontend:
             gate_px=self._gate(keyframe),
         )
         evidence = [
-            CandidateEvidence(box, d.verdict, self._distance(keyframe.image, box))
-            for box, d in zip(boxes, detections, strict=True)
+            CandidateEvidence(box, verdict, self._distance(keyframe.image, box))
+            for box, verdict in zip(boxes, verdicts, strict=True)
         ]
         decision = decide(self._reinit_state, track, evidence, self.reinit)
         self._reinit_state = decision.state
