@@ -33,6 +33,7 @@ import numpy as np
 
 from behaviors.detection import Detection, Verdict
 from behaviors.geometry import Box, iou
+from behaviors.spatial_relations import narrow_by_relation, parse_relation
 from behaviors.tracking_metrics import MiouResult, mean_iou, pooled_miou
 from companion.config import TrackerConfig
 from companion.frame_sources import FolderSource, Frame
@@ -248,13 +249,18 @@ def make_frontend(
     )
 
 
-def first_candidate(detections: Sequence[Detection], accept_uncertain: bool = False) -> Detection | None:
+def first_candidate(
+    detections: Sequence[Detection], accept_uncertain: bool = False, prompt: str = ""
+) -> Detection | None:
     """First acquisition: the best-scored candidate the verifier said yes to; with `accept_uncertain`
-    (the flight's [behavior] accept_uncertain) an uncertain one when nobody got a yes. Never a "no"."""
-    confirmed = [d for d in detections if d.verdict is Verdict.YES]
-    if not confirmed and accept_uncertain:
-        confirmed = [d for d in detections if d.verdict is Verdict.UNCERTAIN]
-    return max(confirmed, key=lambda d: d.score) if confirmed else None
+    (the flight's [behavior] accept_uncertain) an uncertain one when nobody got a yes. Never a "no".
+    A relation the prompt states between people ("between the man in red and ...") narrows the choice
+    to the candidates that stand so among everyone in view (`behaviors.spatial_relations`)."""
+    pool = [i for i, d in enumerate(detections) if d.verdict is Verdict.YES]
+    if not pool and accept_uncertain:
+        pool = [i for i, d in enumerate(detections) if d.verdict is Verdict.UNCERTAIN]
+    pool = narrow_by_relation(parse_relation(prompt), pool, [d.box for d in detections])
+    return max((detections[i] for i in pool), key=lambda d: d.score) if pool else None
 
 
 def _outcome(before: float, after: float) -> str:
@@ -300,7 +306,7 @@ def evaluate_sequence(
 
     def answer(keyframe: int, found: list[Detection], frame_id: int) -> None:
         if from_prompt and not frontend.tracking:
-            chosen = first_candidate(found, settings.accept_uncertain)
+            chosen = first_candidate(found, settings.accept_uncertain, seq.referring)
             truth = gt_at(keyframe)
             acquisition.append(AcquisitionKeyframe(
                 keyframe, frame_id, len(found), sum(d.verdict is Verdict.YES for d in found),
