@@ -206,6 +206,8 @@ def _print_table(label: str, results: Sequence[SequenceResult], bare: Sequence[S
           f"{_signed(total['mean_miou'] - base['mean_miou']):>7}")
     outcomes = ", ".join(f"{k}:{v}" for k, v in sorted(total["reinit_outcomes"].items())) or "none"
     print(f"re-initialisations by where the box was -> went (IoU >= 0.5 with ground truth): {outcomes}")
+    print("bare: first ground-truth box, no loss signals, no re-initialisation; mIoU: trusted boxes only; "
+          "any box: every tracker box, trusted or flagged lost")
     return total
 
 
