@@ -134,6 +134,9 @@ class TrackingFrontend:
         self.label = f"{name}: " if name else ""  # log lines name the sequence or camera
         self._reinit_state = ReinitState()
         self._anchor: np.ndarray | None = None  # the target as the track first saw it (appearance)
+        # The target as the answers that confirmed the track saw it (a running mean of the confirming
+        # candidates' histograms): a person's look drifts with scale and pose over a long track.
+        self._confirmed_look: np.ndarray | None = None
         self._boxes: dict[int, tuple[Box | None, bool]] = {}  # recent frame id -> tracker box, flagged lost
         self._last_box: Box | None = None
         # Tracker box size over detector box size (log, per axis), learnt from candidates that confirmed
@@ -183,6 +186,7 @@ class TrackingFrontend:
         """Track `box` as seen in frame `keyframe_id` (a new target: the appearance model restarts)."""
         keyframe = self.ring.get(keyframe_id)
         self._anchor = appearance_histogram(keyframe.image, box) if keyframe is not None else None
+        self._confirmed_look = None
         self._reinit_state = ReinitState()
         self._extent, self._extent_samples = (0.0, 0.0), 0
         self._verdicts_checked = False
@@ -271,6 +275,7 @@ class TrackingFrontend:
         self.stats.decisions[decision.action.value] = self.stats.decisions.get(decision.action.value, 0) + 1
         if decision.action is ReinitAction.CONFIRM and decision.index is not None:
             self._learn_extent(track_box, detections[decision.index].box)
+            self._learn_look(keyframe.image, boxes[decision.index])
             if lost or self._lost_reason:
                 self._withdraw_loss()
         elif decision.action is ReinitAction.REINIT and decision.index is not None:
@@ -281,10 +286,14 @@ class TrackingFrontend:
         return decision
 
     def _distance(self, image: np.ndarray, box: Box | None) -> float | None:
+        """Appearance distance to the target: as first seen, or as last confirmed, whichever is nearer."""
         if self._anchor is None or box is None:
             return None
         hist = appearance_histogram(image, box)
-        return appearance_distance(self._anchor, hist) if hist is not None else None
+        if hist is None:
+            return None
+        models = [m for m in (self._anchor, self._confirmed_look) if m is not None]
+        return min(appearance_distance(m, hist) for m in models)
 
     def _gate(self, keyframe: Frame) -> float:
         prev = self.last_trusted_box
@@ -307,6 +316,13 @@ class TrackingFrontend:
         fired = self.loss.last_signals
         return any(fired.get(name) for name in self.loss.settings.enabled if name not in APPEARANCE_SIGNALS)
 
+    def _learn_look(self, image: np.ndarray, box: Box) -> None:
+        hist = appearance_histogram(image, box)
+        if hist is None:
+            return
+        old = self._confirmed_look
+        self._confirmed_look = hist if old is None else 0.5 * old + 0.5 * hist  # the last few confirmations
+
     def _withdraw_loss(self) -> None:
         """A candidate on the track supports it: trust it again from the newest frame, with the appearance
         and shape references restarted there (the old ones are what fired)."""
@@ -326,6 +342,7 @@ class TrackingFrontend:
         self.last_trusted_box = None
         self.last_trusted_frame_id = None
         self._anchor = None
+        self._confirmed_look = None
         self._reinit_state = ReinitState()
         self._confirmed = False
 
