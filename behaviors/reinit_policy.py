@@ -146,7 +146,8 @@ def decide(
         track_rank = 0 if track.lost or track.box is None else 1
         track_appearance = track.appearance
     contenders = [
-        (i, c) for i, c in usable
+        (i, c)
+        for i, c in usable
         if (agreeing is None or i != agreeing[0])
         and (track.box is None or iou(c.box, track.box) < settings.agree_iou)
         and (
@@ -166,13 +167,21 @@ def decide(
                 t[0],
             ),
         )
-        streak = state.streak + 1 if state.pending is not None and _consistent(state.pending, winner.box) else 1
+        streak = (
+            state.streak + 1 if state.pending is not None and _consistent(state.pending, winner.box) else 1
+        )
         if streak >= settings.confirmations:
-            return ReinitDecision(ReinitAction.REINIT, index, ReinitState(), f"candidate beat the track {streak}x")
+            return ReinitDecision(
+                ReinitAction.REINIT, index, ReinitState(), f"candidate beat the track {streak}x"
+            )
         action = ReinitAction.WAIT if track.lost else ReinitAction.KEEP
-        return ReinitDecision(action, index, ReinitState(streak, winner.box), f"candidate beat the track {streak}x")
+        return ReinitDecision(
+            action, index, ReinitState(streak, winner.box), f"candidate beat the track {streak}x"
+        )
     if agreeing is not None and agreeing[1].verdict is not Verdict.NO:
-        return ReinitDecision(ReinitAction.CONFIRM, agreeing[0], ReinitState(), "a candidate on the track supports it")
+        return ReinitDecision(
+            ReinitAction.CONFIRM, agreeing[0], ReinitState(), "a candidate on the track supports it"
+        )
     if track.lost:
         return ReinitDecision(ReinitAction.WAIT, None, ReinitState(), "lost; no candidate with evidence")
     return ReinitDecision(ReinitAction.KEEP, None, ReinitState(), "nothing beats the track")

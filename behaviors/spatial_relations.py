@@ -33,7 +33,7 @@ def parse_relation(prompt: str) -> Relation | None:
 
 
 def is_between(box: Box, a: Box, b: Box, max_offset: float = 0.5) -> bool:
-    """`box`'s centre projects strictly between the centres of `a` and `b` and lies near the line joining them."""
+    """`box`'s centre projects strictly between the centres of `a` and `b`, near the line joining them."""
     ax, ay, bx, by = a.cx, a.cy, b.cx, b.cy
     dx, dy = bx - ax, by - ay
     length_sq = dx * dx + dy * dy

@@ -88,17 +88,18 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
     parser.add_argument("--threshold", type=float, help="t_c for scored trackers (default: [tracker] score_threshold)")
     parser.add_argument("--sweep", help="START:STOP:STEP of t_c, e.g. 0.3:0.95:0.05 (scored trackers only)")
     parser.add_argument("--policy", choices=(*POLICIES, "both", "all"), default=None,
-                        help="what a re-detection answer may do: verified (move only on evidence, twice in a row; "
-                        "else wait), c_box (the paper: nearest to the last trusted box), score (highest detector "
-                        "score), both (c_box and score) or all (default: [tracker] reinit_policy)")
+                        help="what a re-detection answer may do: verified (move only on evidence, twice in a "
+                        "row; else wait), c_box (the paper: nearest to the last trusted box), score (highest "
+                        "detector score), both (c_box and score) or all (default: [tracker] reinit_policy)")
     parser.add_argument("--init", choices=("gt", "prompt"), default="gt",
-                        help="first box: the first ground-truth box (gt, default) or the back-end's answer to "
-                        "the sequence's referring.txt (prompt)")
+                        help="first box: the first ground-truth box (gt, default) or the back-end's answer "
+                        "to the sequence's referring.txt (prompt)")
     parser.add_argument("--verifier", default=None,
                         help="in-process pipeline's verifier by factory name, e.g. none or local "
                         "(default: the back-end's [verifier] kind)")
     parser.add_argument("--keyframe-s", type=float, default=None,
-                        help="seconds of sequence time between back-end requests (default: [backend] keyframe_interval_s)")
+                        help="seconds of sequence time between back-end requests "
+                        "(default: [backend] keyframe_interval_s)")
     parser.add_argument("--signals", default=None,
                         help="loss signals in use: all, none or a list such as score,jump (default: [tracker] loss_signals)")
     parser.add_argument("--size", help="resize frames to WIDTHxHEIGHT, e.g. 640x480 (default: native)")
@@ -179,27 +180,34 @@ def _pipeline(weights: Path, verifier_kind: str) -> Any:
     from backend.verifiers.factory import build_verifier
 
     verifier = build_verifier(VerifierConfig(kind=verifier_kind), VlmConfig())
-    return Pipeline(_yolox(weights), verifier, ThreadPoolExecutor(max_workers=2, thread_name_prefix="eval-verify"))
+    pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="eval-verify")
+    return Pipeline(_yolox(weights), verifier, pool)
 
 
 def _fmt(value: float, digits: int = 3) -> str:
     return "nan" if not math.isfinite(value) else f"{value:.{digits}f}"
 
 
-def _print_table(label: str, results: Sequence[SequenceResult], bare: Sequence[SequenceResult]) -> dict[str, Any]:
+def _print_table(
+    label: str, results: Sequence[SequenceResult], bare: Sequence[SequenceResult]
+) -> dict[str, Any]:
     """The configuration beside the bare tracker, sequence by sequence, from the same run."""
     print(f"\n{label}")
     print(f"{'sequence':<22} {'frames':>6} {'bare':>6} {'mIoU':>6} {'diff':>7} {'any box':>7} {'FPS':>7} "
-          f"{'edge FPS':>8} {'re-inits':>8} {'moved off':>9} {'confirms':>8} {'losses':>6}  lost frames by reason")
+          f"{'edge FPS':>8} {'re-inits':>8} {'moved off':>9} {'confirms':>8} {'losses':>6}  "
+          "lost frames by reason")
     for r, b in zip(results, bare, strict=True):
         reasons = ", ".join(f"{k}:{v}" for k, v in sorted(r.loss_reasons.items())) or "-"
-        print(f"{r.sequence:<22} {r.frames:>6} {_fmt(b.miou):>6} {_fmt(r.miou):>6} {_signed(r.miou - b.miou):>7} "
-              f"{_fmt(r.miou_any_box):>7} {_fmt(r.fps, 1):>7} {_fmt(r.edge_fps, 1):>8} {r.reinits:>8} "
-              f"{r.reinit_outcomes.get('target->other', 0):>9} {r.confirmations:>8} {r.loss_events:>6}  {reasons}")
+        moved_off = r.reinit_outcomes.get("target->other", 0)
+        print(f"{r.sequence:<22} {r.frames:>6} {_fmt(b.miou):>6} {_fmt(r.miou):>6} "
+              f"{_signed(r.miou - b.miou):>7} {_fmt(r.miou_any_box):>7} {_fmt(r.fps, 1):>7} "
+              f"{_fmt(r.edge_fps, 1):>8} {r.reinits:>8} {moved_off:>9} {r.confirmations:>8} "
+              f"{r.loss_events:>6}  {reasons}")
     total, base = overall(results), overall(bare)
     moved = total["reinit_outcomes"].get("target->other", 0)
     print(f"{'overall (frames)':<22} {total['frames']:>6} {_fmt(base['miou']):>6} {_fmt(total['miou']):>6} "
-          f"{_signed(total['miou'] - base['miou']):>7} {_fmt(total['miou_any_box']):>7} {_fmt(total['fps'], 1):>7} "
+          f"{_signed(total['miou'] - base['miou']):>7} {_fmt(total['miou_any_box']):>7} "
+          f"{_fmt(total['fps'], 1):>7} "
           f"{_fmt(total['edge_fps'], 1):>8} {total['reinits']:>8} {moved:>9} {total['confirmations']:>8} "
           f"{total['loss_events']:>6}")
     print(f"{'mean (sequences)':<22} {'':>6} {_fmt(base['mean_miou']):>6} {_fmt(total['mean_miou']):>6} "
@@ -228,10 +236,12 @@ def _print_acquisition(results: Sequence[SequenceResult], reference: Sequence[Se
         ) or "-"
         first = "never" if r.first_box_s is None else f"{r.first_box_s:.1f}"
         ratio = r.miou / g.miou if g.miou > 0 else float("nan")
-        print(f"{r.sequence:<22} {first:>11} {_fmt(r.miou):>11} {_fmt(g.miou):>12} {_fmt(ratio, 2):>6}  {answers}")
+        print(f"{r.sequence:<22} {first:>11} {_fmt(r.miou):>11} {_fmt(g.miou):>12} {_fmt(ratio, 2):>6}  "
+              f"{answers}")
     total, ref = overall(results), overall(reference)
     ratio = total["miou"] / ref["miou"] if ref["miou"] > 0 else float("nan")
-    print(f"{'overall (frames)':<22} {'':>11} {_fmt(total['miou']):>11} {_fmt(ref['miou']):>12} {_fmt(ratio, 2):>6}")
+    print(f"{'overall (frames)':<22} {'':>11} {_fmt(total['miou']):>11} {_fmt(ref['miou']):>12} "
+          f"{_fmt(ratio, 2):>6}")
     chosen = [a for r in results for a in r.acquisition if a.chosen_iou is not None]
     right = sum(a.chosen_iou is not None and a.chosen_iou >= 0.5 for a in chosen)
     print(f"first boxes on the described target: {right} of {len(chosen)}")
@@ -255,7 +265,8 @@ def run(args: argparse.Namespace) -> int:
         if args.max_frames is not None and args.max_frames < 2:
             raise ValueError("--max-frames must be at least 2")
         seqs = [load_sequence(p) for p in args.sequences]
-        args.keyframe_s = args.keyframe_s if args.keyframe_s is not None else config.backend.keyframe_interval_s
+        if args.keyframe_s is None:
+            args.keyframe_s = config.backend.keyframe_interval_s
         if args.keyframe_s <= 0:
             raise ValueError("--keyframe-s must be positive")
         args.backend_config = config.backend
@@ -333,7 +344,8 @@ def _run_evals(
     last_results: list[SequenceResult] = []
     delay_s = args.delay_s if args.delay_s is not None else (2.0 if args.init == "prompt" else 0.0)
     has_candidates = any(c is not None for c in caches.values())
-    source = f"back-end {args.backend}" if args.backend else f"in-process YOLOX + verifier {args.verifier_kind}"
+    source = f"back-end {args.backend}" if args.backend else (
+        f"in-process YOLOX + verifier {args.verifier_kind}")
 
     def run_all(settings: EvalSettings, with_candidates: bool = True) -> list[SequenceResult]:
         results = []
@@ -380,9 +392,12 @@ def _run_evals(
                 if args.init == "prompt":
                     prompted = run_all(replace(settings, init="prompt"))
                     _print_table(f"{label}, first box from the ground truth", results, bare)
-                    total = _print_table(f"{label}, first box from the prompt (--init prompt)", prompted, bare)
+                    total = _print_table(f"{label}, first box from the prompt (--init prompt)", prompted,
+                                         bare)
                     _print_acquisition(prompted, results)
-                    run["gt_init"] = {"overall": overall(results), "sequences": [result_dict(r) for r in results]}
+                    run["gt_init"] = {
+                        "overall": overall(results), "sequences": [result_dict(r) for r in results],
+                    }
                     results = prompted
                 else:
                     total = _print_table(label, results, bare)
@@ -429,7 +444,8 @@ def _signal_dict(report: Any) -> dict[str, Any]:
 
 
 def _print_signal_table(report: Any) -> None:
-    print(f"\ntracker {report.tracker}: {report.frames} frames, {report.lost_frames} off target (IoU < 0.1 or "
+    print(f"\ntracker {report.tracker}: {report.frames} frames, {report.lost_frames} off target "
+          "(IoU < 0.1 or "
           f"target hidden), {report.on_target_frames} on target (IoU >= 0.5); tracked from the first box, "
           "never re-initialised")
     print(f"{'signal':<28} {'fired':>6} {'off target':>10} {'on target':>9} {'precision':>9} {'recall':>7}")
@@ -440,12 +456,15 @@ def _print_signal_table(report: Any) -> None:
               f"{_fmt(recall, 2):>7}")
     print("(off target: hits; on target: false alarms, each a frame the drone stops following a right track)")
     if report.keyframes:
-        print(f"detector on {report.keyframes} keyframes: the target detected (IoU >= 0.5) on {report.target_detected}")
-        for label, ratios in (("detector", report.detector_extent), ("tracker on target", report.tracker_extent)):
+        print(f"detector on {report.keyframes} keyframes: the target detected (IoU >= 0.5) on "
+              f"{report.target_detected}")
+        extents = (("detector", report.detector_extent), ("tracker on target", report.tracker_extent))
+        for label, ratios in extents:
             if ratios:
                 w = np.median([r[0] for r in ratios])
                 h = np.median([r[1] for r in ratios])
-                print(f"  {label:<18} box / ground truth, median width {w:.2f}, height {h:.2f} ({len(ratios)} boxes)")
+                print(f"  {label:<18} box / ground truth, median width {w:.2f}, height {h:.2f} "
+                      f"({len(ratios)} boxes)")
 
 
 def _plot_sweep(points: dict[str, list[tuple[float, float, float]]], out: Path) -> None:

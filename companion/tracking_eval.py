@@ -149,7 +149,7 @@ class SequenceResult:
     iou_sum: float = 0.0
     # Each re-initialisation by where the track was and where it went (IoU >= ON_TARGET_IOU is "target").
     reinit_outcomes: dict[str, int] = field(default_factory=dict)
-    confirmations: int = 0  # "verified": latched losses withdrawn because a candidate on the track supported it
+    confirmations: int = 0  # "verified": losses withdrawn because a candidate on the track supported it
     decisions: dict[str, int] = field(default_factory=dict)  # "verified": answers per action
     first_box_s: float | None = None  # sequence seconds until the first reported box (prompt init)
     acquisition: list[AcquisitionKeyframe] = field(default_factory=list)
@@ -480,7 +480,8 @@ def signal_table(
     For each signal: frames it fired on and how many of them were really off target (precision), and
     over the off-target frames how many it caught (recall = fired_lost / lost_frames), and its false
     alarms: frames it fired on while the tracker was on target. With `detections`, every
-    `keyframe_s` seconds of sequence time the detector's box on the target is compared in extent with the ground truth.
+    `keyframe_s` seconds of sequence time the detector's box on the target is compared in extent with the
+    ground truth.
     """
     settings = EvalSettings(tracker=tracker_name, size=size, max_frames=max_frames, occlude=occlude)
     report = SignalReport(tracker_name)

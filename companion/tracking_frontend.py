@@ -200,8 +200,9 @@ class TrackingFrontend:
         None when nothing was usable."""
         if self.policy == "verified":
             decision = self.judge_candidates(keyframe_id, detections)
-            return detections[decision.index] if decision is not None and decision.action is ReinitAction.REINIT \
-                and decision.index is not None else None
+            if decision is None or decision.action is not ReinitAction.REINIT or decision.index is None:
+                return None
+            return detections[decision.index]
         if self.policy == "score":
             chosen = select_by_score(detections)
         else:
@@ -217,8 +218,8 @@ class TrackingFrontend:
             if chosen is not None and c_box(prev, chosen.box) > gate:
                 # Nothing near where the target was: re-initialising on it would follow whoever else
                 # is in view (a detector's "person" is not the described person); stay lost instead.
-                log.info("%snearest candidate is %.0f px (C_box) from the last trusted box, gate %.0f: not used",
-                         self.label, c_box(prev, chosen.box), gate)
+                log.info("%snearest candidate is %.0f px (C_box) from the last trusted box, gate %.0f: "
+                         "not used", self.label, c_box(prev, chosen.box), gate)
                 self.stats.rejected_candidates += 1
                 return None
         if chosen is None:
@@ -231,7 +232,8 @@ class TrackingFrontend:
         """A detector box resized (about its centre) the way this track's confirmed candidates differed."""
         if self._extent_samples == 0:
             return box
-        return Box.from_center(box.cx, box.cy, box.w * math.exp(self._extent[0]), box.h * math.exp(self._extent[1]))
+        sw, sh = math.exp(self._extent[0]), math.exp(self._extent[1])
+        return Box.from_center(box.cx, box.cy, box.w * sw, box.h * sh)
 
     def box_at(self, frame_id: int) -> Box | None:
         """The tracker's box on a recent frame (None when it had none or the frame is too old)."""
@@ -248,7 +250,8 @@ class TrackingFrontend:
         boxes = [self.to_tracker_convention(d.box) for d in detections]
         verdicts = [d.verdict for d in detections]
         if not self._verdicts_checked and track_box is not None and not lost:
-            on_track = [v for box, v in zip(boxes, verdicts, strict=True) if iou(box, track_box) >= self.reinit.agree_iou]
+            agree = self.reinit.agree_iou
+            on_track = [v for box, v in zip(boxes, verdicts, strict=True) if iou(box, track_box) >= agree]
             if on_track:
                 self._verdicts_checked = True
                 self._verdicts_used = on_track[0] is not Verdict.NO

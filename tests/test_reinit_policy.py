@@ -35,28 +35,81 @@ def cand(box: Box, verdict: Verdict = UNSURE, appearance: float | None = 0.3) ->
     ("name", "track_view", "candidates", "action", "index"),
     [
         ("trusted, detector agrees: confirm", track(), [cand(ON_TRACK)], ReinitAction.CONFIRM, 0),
-        ("lost, detector agrees: the loss is withdrawn", track(lost=True), [cand(ON_TRACK)], ReinitAction.CONFIRM, 0),
+        (
+            "lost, detector agrees: the loss is withdrawn",
+            track(lost=True),
+            [cand(ON_TRACK)],
+            ReinitAction.CONFIRM,
+            0,
+        ),
         ("lost, nothing found: wait", track(lost=True), [], ReinitAction.WAIT, None),
         ("trusted, nothing found: keep", track(), [], ReinitAction.KEEP, None),
-        ("lost, a 'no' elsewhere never wins", track(lost=True), [cand(NEAR, NO, 0.0)], ReinitAction.WAIT, None),
-        ("lost, an unlike uncertain candidate has no evidence", track(lost=True), [cand(NEAR, UNSURE, 0.9)],
-         ReinitAction.WAIT, None),
-        ("the verifier says no to the track's own candidate: no confirmation", track(), [cand(ON_TRACK, NO)],
-         ReinitAction.KEEP, None),
-        ("far uncertain candidate needs a yes", track(lost=True), [cand(FAR, UNSURE, 0.0)], ReinitAction.WAIT, None),
-        ("a yes elsewhere leads the streak but one answer is not enough", track(), [cand(ON_TRACK), cand(NEAR, YES)],
-         ReinitAction.KEEP, 1),
+        (
+            "lost, a 'no' elsewhere never wins",
+            track(lost=True),
+            [cand(NEAR, NO, 0.0)],
+            ReinitAction.WAIT,
+            None,
+        ),
+        (
+            "lost, an unlike uncertain candidate has no evidence",
+            track(lost=True),
+            [cand(NEAR, UNSURE, 0.9)],
+            ReinitAction.WAIT,
+            None,
+        ),
+        (
+            "the verifier says no to the track's own candidate: no confirmation",
+            track(),
+            [cand(ON_TRACK, NO)],
+            ReinitAction.KEEP,
+            None,
+        ),
+        (
+            "far uncertain candidate needs a yes",
+            track(lost=True),
+            [cand(FAR, UNSURE, 0.0)],
+            ReinitAction.WAIT,
+            None,
+        ),
+        (
+            "a yes elsewhere leads the streak but one answer is not enough",
+            track(),
+            [cand(ON_TRACK), cand(NEAR, YES)],
+            ReinitAction.KEEP,
+            1,
+        ),
         ("lost: a far yes leads the streak", track(lost=True), [cand(FAR, YES)], ReinitAction.WAIT, 0),
-        ("verifier prefers it, appearance contradicts: no", track(appearance=0.2),
-         [cand(ON_TRACK, UNSURE, 0.2), cand(NEAR, YES, 0.7)], ReinitAction.CONFIRM, 0),
-        ("tie in verdicts, clearly more like the target: leads", track(appearance=0.6),
-         [cand(ON_TRACK, UNSURE, 0.6), cand(NEAR, UNSURE, 0.3)], ReinitAction.KEEP, 1),
-        ("tie in verdicts, within the margin: the track stays", track(appearance=0.4),
-         [cand(ON_TRACK, UNSURE, 0.4), cand(NEAR, UNSURE, 0.35)], ReinitAction.CONFIRM, 0),
+        (
+            "verifier prefers it, appearance contradicts: no",
+            track(appearance=0.2),
+            [cand(ON_TRACK, UNSURE, 0.2), cand(NEAR, YES, 0.7)],
+            ReinitAction.CONFIRM,
+            0,
+        ),
+        (
+            "tie in verdicts, clearly more like the target: leads",
+            track(appearance=0.6),
+            [cand(ON_TRACK, UNSURE, 0.6), cand(NEAR, UNSURE, 0.3)],
+            ReinitAction.KEEP,
+            1,
+        ),
+        (
+            "tie in verdicts, within the margin: the track stays",
+            track(appearance=0.4),
+            [cand(ON_TRACK, UNSURE, 0.4), cand(NEAR, UNSURE, 0.35)],
+            ReinitAction.CONFIRM,
+            0,
+        ),
     ],
 )
-def test_reinit_policy_single_answer(name: str, track_view: TrackEvidence, candidates: list[CandidateEvidence],
-                                     action: ReinitAction, index: int | None) -> None:
+def test_reinit_policy_single_answer(
+    name: str,
+    track_view: TrackEvidence,
+    candidates: list[CandidateEvidence],
+    action: ReinitAction,
+    index: int | None,
+) -> None:
     decision = decide(ReinitState(), track_view, candidates)
     assert (decision.action, decision.index) == (action, index), name
 
@@ -82,7 +135,9 @@ def test_reinit_policy_never_moves_onto_a_rejected_or_unevidenced_candidate() ->
             state = ReinitState()
             for _ in range(5):
                 view = TrackEvidence(track_box, lost, appearance=None, reference=TRACK)
-                decision = decide(state, view, [cand(NEAR, NO, 0.0), cand(FAR, UNSURE, 0.95), cand(NEAR, UNSURE, None)])
+                decision = decide(
+                    state, view, [cand(NEAR, NO, 0.0), cand(FAR, UNSURE, 0.95), cand(NEAR, UNSURE, None)]
+                )
                 assert decision.action is not ReinitAction.REINIT
                 state = decision.state
 
