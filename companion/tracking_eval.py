@@ -294,6 +294,7 @@ def evaluate_sequence(
     # out every keyframe interval whether or not the previous answer is back.
     pending: list[tuple[int, int, list[Detection]]] = []
     last_request = -(10**9)
+    was_trusted = False
     calls = 0
     started = time.perf_counter()
     detector_seconds = 0.0
@@ -344,12 +345,16 @@ def evaluate_sequence(
             reverify = settings.reverify_interval > 0 and result.trusted
             needs_candidates = frontend.last_trusted_box is not None and (not result.trusted or reverify)
         needs_candidates = (needs_candidates and index > 0) or (from_prompt and not frontend.tracking)
+        # As in flight, where losing the target sends a re-detection query at once (behaviors.mission).
+        flagged = bool(result.lost_reason) and result.lost_reason not in ("idle", "acquiring")
+        newly_lost = flagged and was_trusted
+        was_trusted = result.trusted
         reverify_now = settings.policy != "verified" and settings.reverify_interval > 0 and result.trusted
         interval = settings.reverify_interval if reverify_now else settings.keyframe_interval
         if (
             detections is not None
             and needs_candidates
-            and frame.frame_id - last_request >= interval
+            and (frame.frame_id - last_request >= interval or (newly_lost and frame.frame_id > last_request))
             and not frontend.catching_up
         ):
             t0 = time.perf_counter()
