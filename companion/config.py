@@ -71,6 +71,14 @@ class TrackerConfig(ConfigSection):
     catch_up_per_frame: int = Field(4, ge=1, le=100)  # fast-forward updates per live frame after a re-init
     max_c_box_sizes: float = Field(3.0, gt=0, le=100)  # re-init gate: C_box over (w + h) of the last trusted box
     max_aspect_change: float = Field(2.0, gt=1, le=100)  # width/height change since (re)init: "collapsed"
+    # What a re-detection answer may do (docs/tracking.md): "verified" moves the track only when a candidate
+    # beats it on evidence reinit_confirmations keyframes in a row and otherwise waits; "c_box" is the
+    # paper's (nearest candidate to the last trusted box whenever lost), "score" the reference code's.
+    # Used by `eval`; in flight the mission behaviour still picks the re-detection candidate itself.
+    reinit_policy: Literal["verified", "c_box", "score"] = "verified"
+    reinit_confirmations: int = Field(2, ge=1, le=10)
+    reinit_agree_iou: float = Field(0.5, gt=0, le=1)  # a candidate overlapping the track this much is its own
+    reinit_appearance_margin: float = Field(0.1, ge=0, le=1)  # tie in verdicts: closer to the target by this
     # Loss signals in use: tracker_failed, score, left_frame, collapsed, jump, appearance.
     loss_signals: list[str] = Field(
         default_factory=lambda: ["tracker_failed", "score", "left_frame", "collapsed", "jump", "appearance"]

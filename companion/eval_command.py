@@ -9,6 +9,7 @@ import logging
 import math
 import sys
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +36,7 @@ from companion.tracking_eval import (
     result_dict,
     signal_table,
 )
+from companion.tracking_frontend import POLICIES
 
 log = logging.getLogger(__name__)
 
@@ -44,14 +46,31 @@ examples:
   cloudtrack-companion eval ../shared/data/sequences/* --tracker nano,vit,csrt,kcf,mil
   cloudtrack-companion eval ../shared/data/sequences/* --tracker nano --size 640x480
   cloudtrack-companion eval ../shared/data/sequences/* --tracker nano,vit --sweep 0.3:0.95:0.05 --plot out/sweep.png
-  cloudtrack-companion eval ../shared/data/sequences/* --policy both --occlude --delay-s 1
-  cloudtrack-companion eval ../shared/data/sequences/* --signal-table --occlude --tracker nano,vit,csrt
-  CLOUDTRACK_BACKEND__TOKEN=... cloudtrack-companion eval ../shared/data/sequences/uav123_person12_1 --backend http://127.0.0.1:8080
+  cloudtrack-companion eval ../shared/data/sequences/* --policy all --occlude --delay-s 1
+  cloudtrack-companion eval ../shared/data/sequences/* --init prompt --model-dir ../shared/models
+  cloudtrack-companion eval ../shared/data/sequences/* --signal-table --tracker nano,vit,csrt
+  CLOUDTRACK_BACKEND__TOKEN=... cloudtrack-companion eval ../shared/data/sequences/uav123_person12_1 \
+      --backend http://127.0.0.1:8080 --init prompt
 
-Re-initialisation candidates come from the back-end with --backend URL (first acquisition too, from
-referring.txt), else from the YOLOX-nano detector in-process (--detector none: no re-initialisation).
-FPS counts the whole onboard loop except the detector (it runs on the back-end); edge FPS counts the
-tracker's update() alone.
+Every table prints the bare tracker beside the configuration, from the same run on the same frames:
+"bare" starts on the first ground-truth box with no loss signals and no re-initialisation (what
+--signals none --detector none gives). "overall" pools frames (longer sequences weigh more), "mean" is
+the mean of the sequences' mIoU; "diff" is the configuration minus bare.
+
+Columns: "mIoU" counts only boxes the front-end trusted (a box flagged lost counts 0: the drone follows
+nothing then); "any box" counts every box the tracker gave, trusted or flagged lost (the paper's view of
+the tracker alone). "moved off" counts re-initialisations that moved the box from the target (IoU >= 0.5
+with ground truth on the keyframe) to something else; "confirms" counts latched losses withdrawn because
+a candidate on the track supported it (policy verified).
+
+Candidates come from the back-end with --backend URL, else from the back-end pipeline in-process: the
+YOLOX-nano detector and the verifier named by --verifier (the factory's names: none, local, ... ; default
+the back-end's [verifier] kind). --detector none: no candidates, no re-initialisation. --init prompt: the
+first box is the back-end's answer to the sequence's referring.txt, asked every [backend]
+keyframe_interval_s of sequence time and applied --delay-s later (default 2 s, a hosted VLM) while the
+sequence runs on, latency-compensated as in flight; a start needs a "yes" (or "uncertain" with [behavior]
+accept_uncertain). FPS counts the whole onboard loop except the detector (it runs on the back-end); edge
+FPS counts the tracker's update() alone.
 """
 
 
@@ -68,23 +87,36 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
     parser.add_argument("--tracker", default=None, help="tracker name(s), comma separated (default: [tracker] name)")
     parser.add_argument("--threshold", type=float, help="t_c for scored trackers (default: [tracker] score_threshold)")
     parser.add_argument("--sweep", help="START:STOP:STEP of t_c, e.g. 0.3:0.95:0.05 (scored trackers only)")
-    parser.add_argument("--policy", choices=("c_box", "score", "both"), default="c_box",
-                        help="re-init candidate choice: C_box to the last trusted box, highest detector score, or both")
+    parser.add_argument("--policy", choices=(*POLICIES, "both", "all"), default=None,
+                        help="what a re-detection answer may do: verified (move only on evidence, twice in a "
+                        "row; else wait), c_box (the paper: nearest to the last trusted box), score (highest "
+                        "detector score), both (c_box and score) or all (default: [tracker] reinit_policy)")
+    parser.add_argument("--init", choices=("gt", "prompt"), default="gt",
+                        help="first box: the first ground-truth box (gt, default) or the back-end's answer "
+                        "to the sequence's referring.txt (prompt)")
+    parser.add_argument("--verifier", default=None,
+                        help="in-process pipeline's verifier by factory name, e.g. none or local "
+                        "(default: the back-end's [verifier] kind)")
+    parser.add_argument("--keyframe-s", type=float, default=None,
+                        help="seconds of sequence time between back-end requests "
+                        "(default: [backend] keyframe_interval_s)")
     parser.add_argument("--signals", default=None,
                         help="loss signals in use: all, none or a list such as score,jump (default: [tracker] loss_signals)")
     parser.add_argument("--size", help="resize frames to WIDTHxHEIGHT, e.g. 640x480 (default: native)")
     parser.add_argument("--detector", choices=("yolox", "none"), default="yolox",
                         help="in-process detector for re-initialisation when no --backend is given")
     parser.add_argument("--backend", metavar="URL", help="ask this CloudTrack back-end for candidates instead")
-    parser.add_argument("--delay-s", type=float, default=0.0,
-                        help="simulated back-end latency in seconds of sequence time (default 0)")
+    parser.add_argument("--delay-s", type=float, default=None,
+                        help="simulated back-end latency in seconds of sequence time "
+                        "(default 0 with --init gt, 2 with --init prompt)")
     parser.add_argument("--no-compensation", action="store_true", help="apply late answers without fast-forwarding")
     parser.add_argument("--reverify-s", type=float, default=0.0,
                         help="also re-initialise from candidates every S seconds while tracking (default 0: off)")
     parser.add_argument("--occlude", action="store_true",
                         help="stress test: hide the target for 1.5 s from a third of each sequence (ground truth nan there)")
     parser.add_argument("--signal-table", action="store_true",
-                        help="instead of mIoU: score every loss signal against the frames really off target")
+                        help="instead of mIoU: score every loss signal against the frames really off target "
+                        "(and its false alarms on target), and detector box extent against the ground truth")
     parser.add_argument("--max-frames", type=int, help="use only the first N frames of each sequence")
     parser.add_argument("--json", type=Path, metavar="OUT", help="write every result as JSON")
     parser.add_argument("--plot", type=Path, metavar="OUT.png",
@@ -103,6 +135,7 @@ def _yolox(path: Path) -> Any:
 
 
 def _detector(args: argparse.Namespace, model_dir: Path, seq: SequenceData) -> DetectFn | None:
+    prompt = seq.referring or "a person"
     if args.backend:
         from cloudtrack.api_client import BackendClient, BackendError
 
@@ -110,7 +143,6 @@ def _detector(args: argparse.Namespace, model_dir: Path, seq: SequenceData) -> D
         client = BackendClient(args.backend, backend.token, backend.timeout_s, backend.jpeg_quality,
                                backend.max_keyframe_width, vehicle_id=args.vehicle_id,
                                mission_id=f"eval-{seq.name}")
-        prompt = seq.referring or "a person"
 
         def ask_backend(image: np.ndarray, frame_id: int) -> list[Detection]:
             try:
@@ -124,36 +156,95 @@ def _detector(args: argparse.Namespace, model_dir: Path, seq: SequenceData) -> D
         return None
     from backend.supersets import UnknownSupersetError, coco_classes_for, superset_from_prompt
 
-    yolox = _yolox(require("yolox", model_dir)["yolox_nano.onnx"])
     superset = superset_from_prompt(seq.referring) or "person"
     try:
         coco_classes_for(superset)
     except UnknownSupersetError:
         log.warning("%s: no detector class for %r; no re-initialisation on this sequence", seq.name, superset)
         return None
+    pipeline = _pipeline(require("yolox", model_dir)["yolox_nano.onnx"], args.verifier_kind)
 
     def detect(image: np.ndarray, frame_id: int) -> list[Detection]:
-        return list(yolox.detect(image, [superset], frame_id=frame_id))
+        # The back-end's own path: detection, margin crops, the configured verifier's verdicts.
+        return [c.detection for c in pipeline.run(image, prompt, superset, frame_id=frame_id).candidates]
 
     return detect
+
+
+@functools.lru_cache(maxsize=4)
+def _pipeline(weights: Path, verifier_kind: str) -> Any:
+    from concurrent.futures import ThreadPoolExecutor
+
+    from backend.config import VerifierConfig, VlmConfig
+    from backend.pipeline import Pipeline
+    from backend.verifiers.factory import build_verifier
+
+    verifier = build_verifier(VerifierConfig(kind=verifier_kind), VlmConfig())
+    pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="eval-verify")
+    return Pipeline(_yolox(weights), verifier, pool)
 
 
 def _fmt(value: float, digits: int = 3) -> str:
     return "nan" if not math.isfinite(value) else f"{value:.{digits}f}"
 
 
-def _print_table(label: str, results: Sequence[SequenceResult]) -> dict[str, Any]:
+def _print_table(
+    label: str, results: Sequence[SequenceResult], bare: Sequence[SequenceResult]
+) -> dict[str, Any]:
+    """The configuration beside the bare tracker, sequence by sequence, from the same run."""
     print(f"\n{label}")
-    print(f"{'sequence':<22} {'frames':>6} {'mIoU':>6} {'any box':>7} {'FPS':>7} {'edge FPS':>8} {'re-inits':>8} "
-          f"{'losses':>6}  lost frames by reason")
-    for r in results:
+    print(f"{'sequence':<22} {'frames':>6} {'bare':>6} {'mIoU':>6} {'diff':>7} {'any box':>7} {'FPS':>7} "
+          f"{'edge FPS':>8} {'re-inits':>8} {'moved off':>9} {'confirms':>8} {'losses':>6}  "
+          "lost frames by reason")
+    for r, b in zip(results, bare, strict=True):
         reasons = ", ".join(f"{k}:{v}" for k, v in sorted(r.loss_reasons.items())) or "-"
-        print(f"{r.sequence:<22} {r.frames:>6} {_fmt(r.miou):>6} {_fmt(r.miou_any_box):>7} {_fmt(r.fps, 1):>7} "
-              f"{_fmt(r.edge_fps, 1):>8} {r.reinits:>8} {r.loss_events:>6}  {reasons}")
-    total = overall(results)
-    print(f"{'overall':<22} {total['frames']:>6} {_fmt(total['miou']):>6} {_fmt(total['miou_any_box']):>7} "
-          f"{_fmt(total['fps'], 1):>7} {_fmt(total['edge_fps'], 1):>8} {total['reinits']:>8} {total['loss_events']:>6}")
+        moved_off = r.reinit_outcomes.get("target->other", 0)
+        print(f"{r.sequence:<22} {r.frames:>6} {_fmt(b.miou):>6} {_fmt(r.miou):>6} "
+              f"{_signed(r.miou - b.miou):>7} {_fmt(r.miou_any_box):>7} {_fmt(r.fps, 1):>7} "
+              f"{_fmt(r.edge_fps, 1):>8} {r.reinits:>8} {moved_off:>9} {r.confirmations:>8} "
+              f"{r.loss_events:>6}  {reasons}")
+    total, base = overall(results), overall(bare)
+    moved = total["reinit_outcomes"].get("target->other", 0)
+    print(f"{'overall (frames)':<22} {total['frames']:>6} {_fmt(base['miou']):>6} {_fmt(total['miou']):>6} "
+          f"{_signed(total['miou'] - base['miou']):>7} {_fmt(total['miou_any_box']):>7} "
+          f"{_fmt(total['fps'], 1):>7} "
+          f"{_fmt(total['edge_fps'], 1):>8} {total['reinits']:>8} {moved:>9} {total['confirmations']:>8} "
+          f"{total['loss_events']:>6}")
+    print(f"{'mean (sequences)':<22} {'':>6} {_fmt(base['mean_miou']):>6} {_fmt(total['mean_miou']):>6} "
+          f"{_signed(total['mean_miou'] - base['mean_miou']):>7}")
+    outcomes = ", ".join(f"{k}:{v}" for k, v in sorted(total["reinit_outcomes"].items())) or "none"
+    print(f"re-initialisations by where the box was -> went (IoU >= 0.5 with ground truth): {outcomes}")
+    print("bare: first ground-truth box, no loss signals, no re-initialisation; mIoU: trusted boxes only; "
+          "any box: every tracker box, trusted or flagged lost")
     return total
+
+
+def _signed(value: float) -> str:
+    return "nan" if not math.isfinite(value) else f"{value:+.3f}"
+
+
+def _print_acquisition(results: Sequence[SequenceResult], reference: Sequence[SequenceResult]) -> None:
+    """--init prompt: time to the first box, mIoU beside the ground-truth start, and every answer while
+    looking (was the chosen candidate the described target?)."""
+    print(f"\n{'sequence':<22} {'first box s':>11} {'prompt mIoU':>11} {'gt-init mIoU':>12} {'ratio':>6}  "
+          "answers while acquiring (keyframe:candidates/yes, T target among them, =target/=OTHER chosen)")
+    for r, g in zip(results, reference, strict=True):
+        answers = " ".join(
+            f"{a.frame_id}:{a.candidates}/{a.confirmed}{'T' if a.target_found else '-'}"
+            f"{'' if a.chosen_iou is None else ('=target' if a.chosen_iou >= 0.5 else '=OTHER')}"
+            for a in r.acquisition
+        ) or "-"
+        first = "never" if r.first_box_s is None else f"{r.first_box_s:.1f}"
+        ratio = r.miou / g.miou if g.miou > 0 else float("nan")
+        print(f"{r.sequence:<22} {first:>11} {_fmt(r.miou):>11} {_fmt(g.miou):>12} {_fmt(ratio, 2):>6}  "
+              f"{answers}")
+    total, ref = overall(results), overall(reference)
+    ratio = total["miou"] / ref["miou"] if ref["miou"] > 0 else float("nan")
+    print(f"{'overall (frames)':<22} {'':>11} {_fmt(total['miou']):>11} {_fmt(ref['miou']):>12} "
+          f"{_fmt(ratio, 2):>6}")
+    chosen = [a for r in results for a in r.acquisition if a.chosen_iou is not None]
+    right = sum(a.chosen_iou is not None and a.chosen_iou >= 0.5 for a in chosen)
+    print(f"first boxes on the described target: {right} of {len(chosen)}")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -174,6 +265,10 @@ def run(args: argparse.Namespace) -> int:
         if args.max_frames is not None and args.max_frames < 2:
             raise ValueError("--max-frames must be at least 2")
         seqs = [load_sequence(p) for p in args.sequences]
+        if args.keyframe_s is None:
+            args.keyframe_s = config.backend.keyframe_interval_s
+        if args.keyframe_s <= 0:
+            raise ValueError("--keyframe-s must be positive")
         args.backend_config = config.backend
         args.vehicle_id = config.vehicle.id
     except (ConfigError, ModelError, TrackerUnavailableError, ValueError, FileNotFoundError) as exc:
@@ -182,18 +277,31 @@ def run(args: argparse.Namespace) -> int:
 
     from tqdm.contrib.logging import logging_redirect_tqdm
 
-    policies = ["c_box", "score"] if args.policy == "both" else [args.policy]
+    policies: list[str]
+    if args.policy in ("both", "all"):
+        policies = ["c_box", "score"] if args.policy == "both" else list(POLICIES)
+    else:
+        policies = [args.policy or config.tracker.reinit_policy]
     try:
+        from backend.config import load_backend_config
+
+        args.verifier_kind = args.verifier or load_backend_config().verifier.kind
+        if not args.backend and args.detector != "none":
+            _pipeline(require("yolox", model_dir)["yolox_nano.onnx"], args.verifier_kind)
         detectors = {s.name: _detector(args, model_dir, s) for s in seqs}
-    except ModelError as exc:
+    except (ModelError, ConfigError, ValueError) as exc:  # pydantic's ValidationError is a ValueError
         print(f"error: {exc}", file=sys.stderr)
+        return 2
+    if args.init == "prompt" and not any(detectors.values()):
+        print("error: --init prompt needs candidates (the in-process pipeline or --backend)", file=sys.stderr)
         return 2
     caches = {name: DetectionCache(fn) if fn is not None else None for name, fn in detectors.items()}
     output: dict[str, Any] = {"command": sys.argv[1:], "runs": []}
 
     if args.signal_table:
         for name in trackers:
-            report = signal_table(seqs, config.tracker, model_dir, name, size, args.max_frames, args.occlude)
+            report = signal_table(seqs, config.tracker, model_dir, name, size, args.max_frames, args.occlude,
+                                  caches, keyframe_s=args.keyframe_s)
             _print_signal_table(report)
             output["runs"].append({"signal_table": _signal_dict(report)})
         _write_json(args.json, output)
@@ -205,9 +313,10 @@ def run(args: argparse.Namespace) -> int:
             print(f"--sweep: {', '.join(skipped)} ha(s) no score and no t_c; not swept", file=sys.stderr)
         trackers = [t for t in trackers if t in config.tracker.score_threshold]
     thresholds: list[float | None] = list(sweep) if sweep else [args.threshold]
+    runs = len(policies) * len(thresholds) * (2 if args.init == "prompt" else 1) + 1  # + the bare tracker
     total_frames = sum(
         min(len(s.ground_truth), args.max_frames or len(s.ground_truth)) for s in seqs
-    ) * len(trackers) * len(policies) * len(thresholds)
+    ) * len(trackers) * runs
     with logging_redirect_tqdm():
         return _run_evals(args, config, model_dir, trackers, seqs, policies, thresholds, sweep, signals, size,
                           caches, output, total_frames)
@@ -233,7 +342,31 @@ def _run_evals(
     bar = tqdm(total=total_frames, unit="frame", disable=args.no_progress, file=sys.stderr)
     sweep_points: dict[str, list[tuple[float, float, float]]] = {}
     last_results: list[SequenceResult] = []
+    delay_s = args.delay_s if args.delay_s is not None else (2.0 if args.init == "prompt" else 0.0)
+    has_candidates = any(c is not None for c in caches.values())
+    source = f"back-end {args.backend}" if args.backend else (
+        f"in-process YOLOX + verifier {args.verifier_kind}")
+
+    def run_all(settings: EvalSettings, with_candidates: bool = True) -> list[SequenceResult]:
+        results = []
+        for seq in seqs:
+            seq_settings = replace(
+                settings,
+                delay_frames=round(delay_s * seq.fps),
+                keyframe_interval=max(1, round(args.keyframe_s * seq.fps)),
+                reverify_interval=round(args.reverify_s * seq.fps),
+            )
+            results.append(evaluate_sequence(
+                seq, config.tracker, model_dir, seq_settings, caches[seq.name] if with_candidates else None,
+                progress=bar.update,
+            ))
+        bar.clear()
+        return results
+
     for name in trackers:
+        # The baseline every configuration must beat, on the same frames and size in this same run.
+        bare = run_all(EvalSettings(tracker=name, signals=frozenset(), size=size, max_frames=args.max_frames,
+                                    occlude=args.occlude), with_candidates=False)
         for threshold in thresholds:
             for policy in policies:
                 settings = EvalSettings(
@@ -245,27 +378,34 @@ def _run_evals(
                     compensate=not args.no_compensation,
                     max_frames=args.max_frames,
                     occlude=args.occlude,
+                    accept_uncertain=config.behavior.accept_uncertain,
                 )
-                results = []
-                for seq in seqs:
-                    delay = round(args.delay_s * seq.fps)
-                    seq_settings = EvalSettings(**{
-                        **settings.__dict__,
-                        "delay_frames": delay,
-                        "keyframe_interval": max(1, round(0.5 * seq.fps)),
-                        "reverify_interval": round(args.reverify_s * seq.fps),
-                    })
-                    results.append(evaluate_sequence(
-                        seq, config.tracker, model_dir, seq_settings, caches[seq.name],
-                        init_from_detector=bool(args.backend), progress=bar.update,
-                    ))
-                bar.clear()
-                t_label = f"t_c={threshold}" if threshold is not None else f"t_c={config.tracker.score_threshold.get(name, '-')}"
-                total = _print_table(f"tracker {name}, {t_label}, policy {policy}, size {args.size or 'native'}", results)
-                output["runs"].append({
+                results = run_all(settings)
+                t_c = threshold if threshold is not None else config.tracker.score_threshold.get(name, "-")
+                label = (f"tracker {name}, t_c={t_c}, policy {policy}, size {args.size or 'native'}, "
+                         f"candidates: {source if has_candidates else 'none'}, "
+                         f"keyframe every {args.keyframe_s:g} s, delay {delay_s:g} s")
+                run: dict[str, Any] = {
                     "tracker": name, "threshold": threshold, "policy": policy, "size": args.size,
+                    "init": args.init, "delay_s": delay_s, "keyframe_s": args.keyframe_s,
+                }
+                if args.init == "prompt":
+                    prompted = run_all(replace(settings, init="prompt"))
+                    _print_table(f"{label}, first box from the ground truth", results, bare)
+                    total = _print_table(f"{label}, first box from the prompt (--init prompt)", prompted,
+                                         bare)
+                    _print_acquisition(prompted, results)
+                    run["gt_init"] = {
+                        "overall": overall(results), "sequences": [result_dict(r) for r in results],
+                    }
+                    results = prompted
+                else:
+                    total = _print_table(label, results, bare)
+                run.update({
                     "overall": total, "sequences": [result_dict(r) for r in results],
+                    "bare": {"overall": overall(bare), "sequences": [result_dict(r) for r in bare]},
                 })
+                output["runs"].append(run)
                 if sweep and threshold is not None:
                     sweep_points.setdefault(name, []).append((threshold, total["miou"], total["fps"]))
                 last_results = results
@@ -293,18 +433,38 @@ def _signal_dict(report: Any) -> dict[str, Any]:
         "tracker": report.tracker,
         "frames": report.frames,
         "lost_frames": report.lost_frames,
+        "on_target_frames": report.on_target_frames,
         "signals": {k: vars(v) for k, v in report.counts.items()},
         "combinations": {k: vars(v) for k, v in report.combos.items()},
+        "keyframes": report.keyframes,
+        "target_detected": report.target_detected,
+        "detector_extent": report.detector_extent,
+        "tracker_extent": report.tracker_extent,
     }
 
 
 def _print_signal_table(report: Any) -> None:
-    print(f"\ntracker {report.tracker}: {report.frames} frames, {report.lost_frames} off target (IoU < 0.1 or target hidden)")
-    print(f"{'signal':<28} {'fired':>6} {'precision':>9} {'recall':>7}")
+    print(f"\ntracker {report.tracker}: {report.frames} frames, {report.lost_frames} off target "
+          "(IoU < 0.1 or "
+          f"target hidden), {report.on_target_frames} on target (IoU >= 0.5); tracked from the first box, "
+          "never re-initialised")
+    print(f"{'signal':<28} {'fired':>6} {'off target':>10} {'on target':>9} {'precision':>9} {'recall':>7}")
     for name, c in [*report.counts.items(), *report.combos.items()]:
         precision = c.fired_lost / c.fired if c.fired else float("nan")
         recall = c.fired_lost / report.lost_frames if report.lost_frames else float("nan")
-        print(f"{name:<28} {c.fired:>6} {_fmt(precision, 2):>9} {_fmt(recall, 2):>7}")
+        print(f"{name:<28} {c.fired:>6} {c.fired_lost:>10} {c.fired_on_target:>9} {_fmt(precision, 2):>9} "
+              f"{_fmt(recall, 2):>7}")
+    print("(off target: hits; on target: false alarms, each a frame the drone stops following a right track)")
+    if report.keyframes:
+        print(f"detector on {report.keyframes} keyframes: the target detected (IoU >= 0.5) on "
+              f"{report.target_detected}")
+        extents = (("detector", report.detector_extent), ("tracker on target", report.tracker_extent))
+        for label, ratios in extents:
+            if ratios:
+                w = np.median([r[0] for r in ratios])
+                h = np.median([r[1] for r in ratios])
+                print(f"  {label:<18} box / ground truth, median width {w:.2f}, height {h:.2f} "
+                      f"({len(ratios)} boxes)")
 
 
 def _plot_sweep(points: dict[str, list[tuple[float, float, float]]], out: Path) -> None:

@@ -26,21 +26,25 @@ from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import cv2
 import numpy as np
 
 from behaviors.detection import Detection, Verdict
 from behaviors.geometry import Box, iou
+from behaviors.spatial_relations import narrow_by_relation, parse_relation
 from behaviors.tracking_metrics import MiouResult, mean_iou, pooled_miou
 from companion.config import TrackerConfig
 from companion.frame_sources import FolderSource, Frame
 from companion.loss_detection import SIGNALS, LossDetector
 from companion.trackers import create_tracker
-from companion.tracking_frontend import Policy, TrackingFrontend, loss_settings
+from companion.tracking_frontend import Policy, TrackingFrontend, loss_settings, reinit_settings
 
 LOST_IOU = 0.1  # a tracker box overlapping the ground truth less than this is off target
+ON_TARGET_IOU = 0.5  # a box overlapping the ground truth this much is on the target
+
+InitMode = Literal["gt", "prompt"]
 
 # Detector: image (already resized) and frame id -> candidates in that image's pixels.
 DetectFn = Callable[[np.ndarray, int], list[Detection]]
@@ -101,14 +105,28 @@ class EvalSettings:
     tracker: str = "nano"
     threshold: float | None = None  # t_c override; None: the configuration's value for this tracker
     signals: frozenset[str] = frozenset(SIGNALS)
-    policy: Policy = "c_box"
+    policy: Policy = "verified"
     size: tuple[int, int] | None = None  # resize frames (and boxes) to WIDTHxHEIGHT
     delay_frames: int = 0  # back-end latency in frames
-    keyframe_interval: int = 5  # frames between detector requests while lost
+    keyframe_interval: int = 5  # frames between detector requests
     compensate: bool = True
     max_frames: int | None = None
     occlude: bool = False  # hide the target for 1.5 s from a third of the way in (see occlusion_span)
-    reverify_interval: int = 0  # also re-initialise from candidates every N frames while trusted (0: off)
+    reverify_interval: int = 0  # c_box/score: also re-initialise from candidates every N frames while trusted
+    init: InitMode = "gt"  # first box: ground truth, or the back-end's answer to referring.txt
+    accept_uncertain: bool = False  # prompt init: may an "uncertain" candidate start the track
+
+
+@dataclass(frozen=True)
+class AcquisitionKeyframe:
+    """One back-end answer while looking for the described target (--init prompt)."""
+
+    frame_id: int  # the keyframe the answer refers to
+    answered_frame_id: int  # the frame on which the answer arrived (latency)
+    candidates: int
+    confirmed: int  # candidates the verifier said yes to
+    target_found: bool  # some candidate is the described target (IoU >= ON_TARGET_IOU with ground truth)
+    chosen_iou: float | None  # the chosen candidate's IoU with ground truth; None when none was chosen
 
 
 @dataclass
@@ -129,6 +147,12 @@ class SequenceResult:
     ious: list[float | None] = field(default_factory=list, repr=False)
     gt_frames: int = 0
     iou_sum: float = 0.0
+    # Each re-initialisation by where the track was and where it went (IoU >= ON_TARGET_IOU is "target").
+    reinit_outcomes: dict[str, int] = field(default_factory=dict)
+    confirmations: int = 0  # "verified": losses withdrawn because a candidate on the track supported it
+    decisions: dict[str, int] = field(default_factory=dict)  # "verified": answers per action
+    first_box_s: float | None = None  # sequence seconds until the first reported box (prompt init)
+    acquisition: list[AcquisitionKeyframe] = field(default_factory=list)
 
 
 class DetectionCache:
@@ -203,7 +227,9 @@ def _frames(seq: SequenceData, settings: EvalSettings) -> Iterable[tuple[Frame, 
         yield frame, sx, sy
 
 
-def make_frontend(config: TrackerConfig, model_dir: Path, settings: EvalSettings) -> TrackingFrontend:
+def make_frontend(
+    config: TrackerConfig, model_dir: Path, settings: EvalSettings, name: str = ""
+) -> TrackingFrontend:
     thresholds = dict(config.score_threshold)
     if settings.threshold is not None:
         thresholds[settings.tracker] = settings.threshold
@@ -218,14 +244,29 @@ def make_frontend(config: TrackerConfig, model_dir: Path, settings: EvalSettings
         policy=settings.policy,
         compensate=settings.compensate,
         max_c_box_sizes=cfg.max_c_box_sizes,
+        reinit=reinit_settings(cfg),
+        name=name,
     )
 
 
-def first_candidate(detections: Sequence[Detection]) -> Detection | None:
-    """First acquisition in eval: the best-scored candidate the verifier said yes to (else the best one)."""
-    confirmed = [d for d in detections if d.verdict is Verdict.YES]
-    pool = confirmed or list(detections)
-    return max(pool, key=lambda d: d.score) if pool else None
+def first_candidate(
+    detections: Sequence[Detection], accept_uncertain: bool = False, prompt: str = ""
+) -> Detection | None:
+    """First acquisition: the best-scored candidate the verifier said yes to; with `accept_uncertain`
+    (the flight's [behavior] accept_uncertain) an uncertain one when nobody got a yes. Never a "no".
+    A relation the prompt states between people ("between the man in red and ...") narrows the choice
+    to the candidates that stand so among everyone in view (`behaviors.spatial_relations`)."""
+    pool = [i for i, d in enumerate(detections) if d.verdict is Verdict.YES]
+    if not pool and accept_uncertain:
+        pool = [i for i, d in enumerate(detections) if d.verdict is Verdict.UNCERTAIN]
+    pool = narrow_by_relation(parse_relation(prompt), pool, [d.box for d in detections])
+    return max((detections[i] for i in pool), key=lambda d: d.score) if pool else None
+
+
+def _outcome(before: float, after: float) -> str:
+    src = "target" if before >= ON_TARGET_IOU else "off"
+    dst = "target" if after >= ON_TARGET_IOU else "other"
+    return f"{src}->{dst}"
 
 
 def evaluate_sequence(
@@ -237,47 +278,83 @@ def evaluate_sequence(
     init_from_detector: bool = False,
     progress: Callable[[int], None] | None = None,
 ) -> SequenceResult:
-    frontend = make_frontend(config, model_dir, settings)
+    """One run over `seq`. The track starts on the first ground-truth box, or with `settings.init`
+    "prompt" (or `init_from_detector`) on the back-end's answer to the sequence's description: answers
+    are asked for every `keyframe_interval` frames and arrive `delay_frames` later while the sequence
+    keeps running (the live frames are not held back for the back-end, as in flight)."""
+    from_prompt = settings.init == "prompt" or init_from_detector
+    frontend = make_frontend(config, model_dir, settings, seq.name)
     predicted: list[Box | None] = []
     predicted_any: list[Box | None] = []  # the tracker's box even when flagged lost (the paper's view)
     gt_used: list[Box | None] = []
     reasons: Counter[str] = Counter()
-    pending: tuple[int, int, list[Detection]] | None = None  # (apply at frame, keyframe, detections)
+    outcomes: Counter[str] = Counter()
+    acquisition: list[AcquisitionKeyframe] = []
+    # Answers in flight, oldest first: (apply at frame, keyframe, detections). As in flight, a request goes
+    # out every keyframe interval whether or not the previous answer is back.
+    pending: list[tuple[int, int, list[Detection]]] = []
     last_request = -(10**9)
+    was_trusted = False
     calls = 0
-    loop_seconds = 0.0
     started = time.perf_counter()
     detector_seconds = 0.0
     native_gt = ground_truth_for(seq, settings)
+    if from_prompt and detections is None:
+        raise ValueError("--init prompt needs a detector (the back-end pipeline)")
+
+    def gt_at(frame_id: int) -> Box | None:
+        return gt_used[frame_id - 1] if 0 < frame_id <= len(gt_used) else None
+
+    def answer(keyframe: int, found: list[Detection], frame_id: int) -> None:
+        if from_prompt and not frontend.tracking:
+            chosen = first_candidate(found, settings.accept_uncertain, seq.referring)
+            truth = gt_at(keyframe)
+            acquisition.append(AcquisitionKeyframe(
+                keyframe, frame_id, len(found), sum(d.verdict is Verdict.YES for d in found),
+                truth is not None and any(iou(d.box, truth) >= ON_TARGET_IOU for d in found),
+                (iou(chosen.box, truth) if truth is not None else 0.0) if chosen is not None else None,
+            ))
+            if chosen is not None:
+                frontend.start(keyframe, chosen.box)
+            return
+        before = frontend.box_at(keyframe)
+        chosen = frontend.apply_candidates(keyframe, found)
+        truth = gt_at(keyframe)
+        if chosen is not None and truth is not None:
+            outcomes[_outcome(iou(before, truth) if before is not None else 0.0, iou(chosen.box, truth))] += 1
+
     for frame, sx, sy in _frames(seq, settings):
         index = frame.frame_id - 1
         gt = _scaled(native_gt[index], sx, sy) if index < len(native_gt) else None
         gt_used.append(gt)
         result = frontend.feed(frame)
         box = result.box if result.trusted else None
-        if index == 0:
+        if index == 0 and not from_prompt:
             init = _scaled(seq.ground_truth[0], sx, sy)
-            if init_from_detector and detections is not None:
-                t0 = time.perf_counter()
-                cand = first_candidate(detections.get(seq.name, frame.image, frame.frame_id))
-                detector_seconds += time.perf_counter() - t0
-                calls += 1
-                init = cand.box if cand is not None else None
             if init is not None and frontend.start(frame.frame_id, init):
                 box = init  # the initialisation frame reports the box it started on
         if result.lost_reason and result.lost_reason not in ("idle", "acquiring"):
             reasons[result.lost_reason] += 1
-        if pending is not None and pending[0] <= frame.frame_id:
-            frontend.apply_candidates(pending[1], pending[2])
-            pending = None
-        reverify = settings.reverify_interval > 0 and result.trusted
-        needs_candidates = frontend.last_trusted_box is not None and index > 0 and (not result.trusted or reverify)
-        interval = settings.reverify_interval if result.trusted else settings.keyframe_interval
+        while pending and pending[0][0] <= frame.frame_id:
+            _, keyframe, found = pending.pop(0)
+            answer(keyframe, found, frame.frame_id)
+        if settings.policy == "verified":
+            # Every answer is evidence for or against the track, so keyframes go out while trusted too.
+            needs_candidates = frontend.tracking
+        else:
+            reverify = settings.reverify_interval > 0 and result.trusted
+            needs_candidates = frontend.last_trusted_box is not None and (not result.trusted or reverify)
+        needs_candidates = (needs_candidates and index > 0) or (from_prompt and not frontend.tracking)
+        # As in flight, where losing the target sends a re-detection query at once (behaviors.mission).
+        flagged = bool(result.lost_reason) and result.lost_reason not in ("idle", "acquiring")
+        newly_lost = flagged and was_trusted
+        was_trusted = result.trusted
+        reverify_now = settings.policy != "verified" and settings.reverify_interval > 0 and result.trusted
+        interval = settings.reverify_interval if reverify_now else settings.keyframe_interval
         if (
             detections is not None
             and needs_candidates
-            and pending is None
-            and frame.frame_id - last_request >= interval
+            and (frame.frame_id - last_request >= interval or (newly_lost and frame.frame_id > last_request))
             and not frontend.catching_up
         ):
             t0 = time.perf_counter()
@@ -285,10 +362,10 @@ def evaluate_sequence(
             detector_seconds += time.perf_counter() - t0
             calls += 1
             last_request = frame.frame_id
-            pending = (frame.frame_id + settings.delay_frames, frame.frame_id, found)
             if settings.delay_frames == 0:
-                frontend.apply_candidates(frame.frame_id, found)
-                pending = None
+                answer(frame.frame_id, found, frame.frame_id)
+            else:
+                pending.append((frame.frame_id + settings.delay_frames, frame.frame_id, found))
         predicted.append(box)
         predicted_any.append(box if box is not None else result.box)
         if progress is not None:
@@ -302,6 +379,7 @@ def evaluate_sequence(
     ]
     stats = frontend.stats
     n = len(predicted)
+    first = next((i for i, p in enumerate(predicted) if p is not None), None)
     return SequenceResult(
         sequence=seq.name,
         tracker=settings.tracker,
@@ -319,6 +397,11 @@ def evaluate_sequence(
         ious=ious,
         gt_frames=metric.gt_frames,
         iou_sum=metric.iou_sum,
+        reinit_outcomes=dict(outcomes),
+        confirmations=stats.confirmations,
+        decisions=dict(stats.decisions),
+        first_box_s=first / seq.fps if first is not None else None,
+        acquisition=acquisition,
     )
 
 
@@ -339,6 +422,10 @@ def overall(results: Sequence[SequenceResult]) -> dict[str, Any]:
         "edge_fps": sum(r.frames for r in edge) / edge_time if edge_time > 0 else float("nan"),
         "reinits": sum(r.reinits for r in results),
         "loss_events": sum(r.loss_events for r in results),
+        # Every sequence weighs the same here, however long (the frame-pooled figure is "miou").
+        "mean_miou": float(np.mean([r.miou for r in results])) if results else float("nan"),
+        "reinit_outcomes": dict(sum((Counter(r.reinit_outcomes) for r in results), Counter())),
+        "confirmations": sum(r.confirmations for r in results),
     }
 
 
@@ -352,6 +439,7 @@ def result_dict(result: SequenceResult) -> dict[str, Any]:
 class SignalCounts:
     fired: int = 0
     fired_lost: int = 0  # fired on a frame where the tracker was off target
+    fired_on_target: int = 0  # false alarms: fired while the tracker was on target (IoU >= ON_TARGET_IOU)
 
 
 @dataclass
@@ -359,8 +447,16 @@ class SignalReport:
     tracker: str
     frames: int = 0
     lost_frames: int = 0
+    on_target_frames: int = 0
     counts: dict[str, SignalCounts] = field(default_factory=lambda: {s: SignalCounts() for s in SIGNALS})
     combos: dict[str, SignalCounts] = field(default_factory=dict)
+    # Box extent over the ground truth's (width, height ratios): detector boxes on the target, and the
+    # tracker's own boxes on keyframes where it was on target. A re-init box of another extent changes
+    # what the tracker follows.
+    detector_extent: list[tuple[float, float]] = field(default_factory=list)
+    tracker_extent: list[tuple[float, float]] = field(default_factory=list)
+    keyframes: int = 0
+    target_detected: int = 0  # keyframes where some detector box is the target (IoU >= ON_TARGET_IOU)
 
 
 def _combos(has_score: bool) -> dict[str, frozenset[str]]:
@@ -381,11 +477,16 @@ def signal_table(
     size: tuple[int, int] | None = None,
     max_frames: int | None = None,
     occlude: bool = False,
+    detections: dict[str, DetectionCache | None] | None = None,
+    keyframe_s: float = 1.0,
 ) -> SignalReport:
     """Track each sequence from its first box without re-initialisation and score every loss signal.
 
     For each signal: frames it fired on and how many of them were really off target (precision), and
-    over the off-target frames how many it caught (recall = fired_lost / lost_frames).
+    over the off-target frames how many it caught (recall = fired_lost / lost_frames), and its false
+    alarms: frames it fired on while the tracker was on target. With `detections`, every
+    `keyframe_s` seconds of sequence time the detector's box on the target is compared in extent with the
+    ground truth.
     """
     settings = EvalSettings(tracker=tracker_name, size=size, max_frames=max_frames, occlude=occlude)
     report = SignalReport(tracker_name)
@@ -408,15 +509,30 @@ def signal_table(
             detector.check(frame.image, step)
             fired = detector.last_signals
             # Off target: no box, little overlap, or any box while the target is hidden.
-            lost = step.box is None or gt is None or iou(step.box, gt) < LOST_IOU
+            overlap = iou(step.box, gt) if step.box is not None and gt is not None else 0.0
+            lost = step.box is None or gt is None or overlap < LOST_IOU
+            on_target = overlap >= ON_TARGET_IOU
             report.frames += 1
             report.lost_frames += int(lost)
+            report.on_target_frames += int(on_target)
             for name in SIGNALS:
                 if fired[name]:
                     report.counts[name].fired += 1
                     report.counts[name].fired_lost += int(lost)
+                    report.counts[name].fired_on_target += int(on_target)
             for combo, members in combos.items():
                 if any(fired[s] for s in members):
                     report.combos[combo].fired += 1
                     report.combos[combo].fired_lost += int(lost)
+                    report.combos[combo].fired_on_target += int(on_target)
+            cache = detections.get(seq.name) if detections is not None else None
+            if cache is not None and gt is not None and index % max(1, round(keyframe_s * seq.fps)) == 0:
+                report.keyframes += 1
+                found = [d.box for d in cache.get(seq.name, frame.image, frame.frame_id)]
+                best = max(found, key=lambda b: iou(b, gt), default=None)
+                if best is not None and iou(best, gt) >= ON_TARGET_IOU:
+                    report.target_detected += 1
+                    report.detector_extent.append((best.w / gt.w, best.h / gt.h))
+                    if on_target and step.box is not None:
+                        report.tracker_extent.append((step.box.w / gt.w, step.box.h / gt.h))
     return report

@@ -2,39 +2,63 @@
 
 `feed(frame)` runs the tracker and loss detection and returns a `TrackResult`. `start(keyframe_id, box)`
 begins a track on a box the behaviour chose (first acquisition, operator rectangle);
-`apply_candidates(keyframe_id, detections)` re-initialises on the back-end candidate closest to the last
-trusted box by the paper's C_box. Both are latency-compensated: the new tracker starts on the keyframe
+`apply_candidates(keyframe_id, detections)` acts on a back-end answer by the front-end's policy: "verified"
+(`behaviors.reinit_policy`: move the track only when a candidate beats it on evidence, twice in a row;
+withdraw a loss a candidate on the track confirms; otherwise wait), or the paper's "c_box" (re-initialise on
+the candidate closest to the last trusted box) and "score" (highest detector score, the reference code).
+Starts and re-initialisations are latency-compensated: the new tracker starts on the keyframe
 and is fast-forwarded through the ring buffer a few updates per `feed`, while the current tracker (if
 any) keeps reporting; the new one takes over once it reaches the live frame.
 
-A loss is latched: once a signal fires, every result carries that `lost_reason` until the next
-`start`/`apply_candidates` completes, because a tracker that jumped to a distractor usually follows it
-smoothly afterwards and the per-frame signals would stop firing. Results while nothing is tracked carry
+With the paper's policies a loss is latched: once a signal fires, every result carries that `lost_reason`
+until the next `start`/`apply_candidates` completes, because a tracker that jumped to a distractor usually
+follows it smoothly afterwards and the per-frame signals would stop firing. With "verified" the signals
+judge each frame and are not latched: a signal's false alarm (measured: most of the appearance and
+collapsed alarms fire while the tracker is on target) then costs the frames it fires on, not every frame
+until a detector happens to find the target again; a silent switch to a distractor is what the keyframe
+evidence is for (the policy judges every answer, trusted or not). Results while nothing is tracked carry
 `lost_reason` "idle"; while the first acquisition is still catching up, "acquiring".
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+import numpy as np
+
 from behaviors.candidate_selection import c_box, select_by_c_box, select_by_score
-from behaviors.detection import Detection
-from behaviors.geometry import Box
+from behaviors.detection import Detection, Verdict
+from behaviors.geometry import Box, iou
+from behaviors.reinit_policy import (
+    CandidateEvidence,
+    ReinitAction,
+    ReinitDecision,
+    ReinitSettings,
+    ReinitState,
+    TrackEvidence,
+    decide,
+)
 from behaviors.track_result import TrackResult
 from companion.config import TrackerConfig
 from companion.frame_sources import Frame
 from companion.latency_compensation import CatchUp, FrameRing, KeyframeGoneError
-from companion.loss_detection import LossDetector, LossSettings
+from companion.loss_detection import LossDetector, LossSettings, appearance_distance, appearance_histogram
 from companion.trackers import Tracker, create_tracker
 
 log = logging.getLogger(__name__)
 
-Policy = Literal["c_box", "score"]
+# Signals that compare the target with a model of its look (or the tracker's own confidence in it). A
+# detector box on the track, with nothing in view more like the target, outweighs them until the next answer.
+APPEARANCE_SIGNALS = frozenset({"score", "appearance"})
+
+Policy = Literal["verified", "c_box", "score"]
+POLICIES: tuple[Policy, ...] = ("verified", "c_box", "score")
 
 
 def loss_settings(config: TrackerConfig, tracker_name: str | None = None) -> LossSettings:
@@ -52,6 +76,15 @@ def loss_settings(config: TrackerConfig, tracker_name: str | None = None) -> Los
     )
 
 
+def reinit_settings(config: TrackerConfig) -> ReinitSettings:
+    return ReinitSettings(
+        agree_iou=config.reinit_agree_iou,
+        confirmations=config.reinit_confirmations,
+        appearance_threshold=config.appearance_drift_threshold,
+        appearance_margin=config.reinit_appearance_margin,
+    )
+
+
 @dataclass
 class FrontendStats:
     tracker_updates: int = 0  # live-frame updates
@@ -62,6 +95,9 @@ class FrontendStats:
     loss_events: int = 0  # trusted -> lost transitions
     stale_answers: int = 0  # answers whose keyframe had left the ring
     rejected_candidates: int = 0  # nearest candidate beyond the C_box gate
+    confirmations: int = 0  # "verified": answers whose candidate on the track withdrew a latched loss
+    decisions: dict[str, int] = field(default_factory=dict)  # "verified": answers per ReinitAction
+    verdicts_ignored: int = 0  # tracks whose verifier said "no" to the target it started on
 
 
 class TrackingFrontend:
@@ -75,6 +111,8 @@ class TrackingFrontend:
         policy: Policy = "c_box",
         compensate: bool = True,
         max_c_box_sizes: float = 3.0,
+        reinit: ReinitSettings | None = None,
+        name: str = "",
     ) -> None:
         self._make_tracker = make_tracker
         self.loss = LossDetector(settings)
@@ -92,6 +130,25 @@ class TrackingFrontend:
         self._catch_up: CatchUp | None = None
         self._catch_up_keeps_template = False
         self._lost_reason = ""
+        self.reinit = reinit or ReinitSettings()
+        self.label = f"{name}: " if name else ""  # log lines name the sequence or camera
+        self._reinit_state = ReinitState()
+        self._anchor: np.ndarray | None = None  # the target as the track first saw it (appearance)
+        # The target as the answers that confirmed the track saw it (a running mean of the confirming
+        # candidates' histograms): a person's look drifts with scale and pose over a long track.
+        self._confirmed_look: np.ndarray | None = None
+        self._boxes: dict[int, tuple[Box | None, bool]] = {}  # recent frame id -> tracker box, flagged lost
+        self._last_box: Box | None = None
+        # Tracker box size over detector box size (log, per axis), learnt from candidates that confirmed
+        # the track: detector boxes frame a person differently (wider, feet included) than the tracker.
+        self._extent = (0.0, 0.0)
+        self._extent_samples = 0
+        self._confirmed = False  # "verified": the last answer confirmed the track
+        # The verifier is checked once per track against the candidate on the box the track started on
+        # (the target by definition: the operator's or ground truth's box, or the verifier's own "yes").
+        # One that says "no" to it cannot tell this target apart: its verdicts are not used for this track.
+        self._verdicts_checked = False
+        self._verdicts_used = True
 
     @classmethod
     def from_config(
@@ -107,6 +164,7 @@ class TrackingFrontend:
             max_fast_forward_frames=config.max_fast_forward_frames,
             catch_up_per_frame=config.catch_up_per_frame,
             max_c_box_sizes=config.max_c_box_sizes,
+            reinit=reinit_settings(config),
             **kwargs,  # type: ignore[arg-type]
         )
 
@@ -126,6 +184,13 @@ class TrackingFrontend:
 
     def start(self, keyframe_id: int, box: Box) -> bool:
         """Track `box` as seen in frame `keyframe_id` (a new target: the appearance model restarts)."""
+        keyframe = self.ring.get(keyframe_id)
+        self._anchor = appearance_histogram(keyframe.image, box) if keyframe is not None else None
+        self._confirmed_look = None
+        self._reinit_state = ReinitState()
+        self._extent, self._extent_samples = (0.0, 0.0), 0
+        self._verdicts_checked = False
+        self._verdicts_used = True
         return self._begin(keyframe_id, box, keep_template=False)
 
     def apply_candidates(self, keyframe_id: int, detections: Sequence[Detection]) -> Detection | None:
@@ -133,6 +198,11 @@ class TrackingFrontend:
         the highest detector score (the reference code's choice, ungated). With C_box, a candidate
         farther than `max_c_box_sizes` x (1 + seconds lost) x (w + h) of the last trusted box is not used.
         None when nothing was usable."""
+        if self.policy == "verified":
+            decision = self.judge_candidates(keyframe_id, detections)
+            if decision is None or decision.action is not ReinitAction.REINIT or decision.index is None:
+                return None
+            return detections[decision.index]
         if self.policy == "score":
             chosen = select_by_score(detections)
         else:
@@ -148,8 +218,8 @@ class TrackingFrontend:
             if chosen is not None and c_box(prev, chosen.box) > gate:
                 # Nothing near where the target was: re-initialising on it would follow whoever else
                 # is in view (a detector's "person" is not the described person); stay lost instead.
-                log.info("nearest candidate is %.0f px (C_box) from the last trusted box, gate %.0f: not used",
-                         c_box(prev, chosen.box), gate)
+                log.info("%snearest candidate is %.0f px (C_box) from the last trusted box, gate %.0f: "
+                         "not used", self.label, c_box(prev, chosen.box), gate)
                 self.stats.rejected_candidates += 1
                 return None
         if chosen is None:
@@ -158,16 +228,130 @@ class TrackingFrontend:
         # from the tracker's, and keeping the old model made every re-initialisation look lost at once.
         return chosen if self._begin(keyframe_id, chosen.box, keep_template=False) else None
 
+    def to_tracker_convention(self, box: Box) -> Box:
+        """A detector box resized (about its centre) the way this track's confirmed candidates differed."""
+        if self._extent_samples == 0:
+            return box
+        sw, sh = math.exp(self._extent[0]), math.exp(self._extent[1])
+        return Box.from_center(box.cx, box.cy, box.w * sw, box.h * sh)
+
+    def box_at(self, frame_id: int) -> Box | None:
+        """The tracker's box on a recent frame (None when it had none or the frame is too old)."""
+        return self._boxes.get(frame_id, (None, True))[0]
+
+    def judge_candidates(self, keyframe_id: int, detections: Sequence[Detection]) -> ReinitDecision | None:
+        """The "verified" policy on one answer (`behaviors.reinit_policy`), carried out: a confirmation
+        withdraws a latched loss, a re-initialisation starts on the winner in the tracker's convention.
+        None when there is no track to judge or the keyframe has left the ring."""
+        keyframe = self.ring.get(keyframe_id)
+        if keyframe is None or self._tracker is None or self._catch_up is not None:
+            return None
+        track_box, lost = self._boxes.get(keyframe_id, (None, True))
+        boxes = [self.to_tracker_convention(d.box) for d in detections]
+        verdicts = [d.verdict for d in detections]
+        if not self._verdicts_checked and track_box is not None and not lost:
+            agree = self.reinit.agree_iou
+            on_track = [v for box, v in zip(boxes, verdicts, strict=True) if iou(box, track_box) >= agree]
+            if on_track:
+                self._verdicts_checked = True
+                self._verdicts_used = on_track[0] is not Verdict.NO
+                if not self._verdicts_used:
+                    self.stats.verdicts_ignored += 1
+                    log.info("%sthe verifier said no to the tracked target at frame %d: its verdicts are not "
+                             "used for this track", self.label, keyframe_id)
+        if not self._verdicts_used:
+            verdicts = [Verdict.UNCERTAIN] * len(detections)
+        track = TrackEvidence(
+            box=track_box,
+            lost=lost,
+            appearance=self._distance(keyframe.image, track_box),
+            reference=self.last_trusted_box,
+            gate_px=self._gate(keyframe),
+        )
+        evidence = [
+            CandidateEvidence(box, verdict, self._distance(keyframe.image, box))
+            for box, verdict in zip(boxes, verdicts, strict=True)
+        ]
+        decision = decide(self._reinit_state, track, evidence, self.reinit)
+        self._reinit_state = decision.state
+        self._confirmed = decision.action is ReinitAction.CONFIRM
+        self.stats.decisions[decision.action.value] = self.stats.decisions.get(decision.action.value, 0) + 1
+        if decision.action is ReinitAction.CONFIRM and decision.index is not None:
+            self._learn_extent(track_box, detections[decision.index].box)
+            self._learn_look(keyframe.image, boxes[decision.index])
+            if lost or self._lost_reason:
+                self._withdraw_loss()
+        elif decision.action is ReinitAction.REINIT and decision.index is not None:
+            log.info("%sre-initialising on candidate %d at frame %d: %s",
+                     self.label, decision.index, keyframe_id, decision.reason)
+            if not self._begin(keyframe_id, boxes[decision.index], keep_template=False):
+                return None
+        return decision
+
+    def _distance(self, image: np.ndarray, box: Box | None) -> float | None:
+        """Appearance distance to the target: as first seen, or as last confirmed, whichever is nearer."""
+        if self._anchor is None or box is None:
+            return None
+        hist = appearance_histogram(image, box)
+        if hist is None:
+            return None
+        models = [m for m in (self._anchor, self._confirmed_look) if m is not None]
+        return min(appearance_distance(m, hist) for m in models)
+
+    def _gate(self, keyframe: Frame) -> float:
+        prev = self.last_trusted_box
+        if prev is None:
+            return math.inf
+        lost_for = max(0.0, keyframe.capture_time - self.last_trusted_time)
+        return self.max_c_box_sizes * (1.0 + lost_for) * (prev.w + prev.h)
+
+    def _learn_extent(self, track_box: Box | None, detector_box: Box) -> None:
+        if track_box is None or not track_box.is_valid() or not detector_box.is_valid():
+            return
+        sample = (math.log(track_box.w / detector_box.w), math.log(track_box.h / detector_box.h))
+        self._extent_samples += 1
+        rate = 1.0 / min(self._extent_samples, 10)  # a running mean over the last ~10 confirmations
+        self._extent = tuple(  # type: ignore[assignment]
+            (1.0 - rate) * old + rate * new for old, new in zip(self._extent, sample, strict=True)
+        )
+
+    def _hard_signal(self) -> bool:
+        fired = self.loss.last_signals
+        return any(fired.get(name) for name in self.loss.settings.enabled if name not in APPEARANCE_SIGNALS)
+
+    def _learn_look(self, image: np.ndarray, box: Box) -> None:
+        hist = appearance_histogram(image, box)
+        if hist is None:
+            return
+        old = self._confirmed_look
+        self._confirmed_look = hist if old is None else 0.5 * old + 0.5 * hist  # the last few confirmations
+
+    def _withdraw_loss(self) -> None:
+        """A candidate on the track supports it: trust it again from the newest frame, with the appearance
+        and shape references restarted there (the old ones are what fired)."""
+        newest = self.ring.newest
+        self._lost_reason = ""
+        self.stats.confirmations += 1
+        if newest is not None and self._last_box is not None:
+            self.loss.reset(newest.image, self._last_box)
+            self.last_trusted_box = self._last_box
+            self.last_trusted_frame_id = newest.frame_id
+            self.last_trusted_time = newest.capture_time
+
     def stop(self) -> None:
         self._tracker = None
         self._catch_up = None
         self._lost_reason = ""
         self.last_trusted_box = None
         self.last_trusted_frame_id = None
+        self._anchor = None
+        self._confirmed_look = None
+        self._reinit_state = ReinitState()
+        self._confirmed = False
 
     def _begin(self, keyframe_id: int, box: Box, keep_template: bool) -> bool:
         if not box.is_valid():
-            log.warning("ignoring invalid box %s for frame %d", box, keyframe_id)
+            log.warning("%signoring invalid box %s for frame %d", self.label, box, keyframe_id)
             return False
         tracker = self._make_tracker()
         newest = self.ring.newest
@@ -188,13 +372,23 @@ class TrackingFrontend:
                 raise KeyframeGoneError("no frame received yet")
         except KeyframeGoneError as exc:
             self.stats.stale_answers += 1
-            log.warning("cannot start on frame %d: %s", keyframe_id, exc)
+            log.warning("%scannot start on frame %d: %s", self.label, keyframe_id, exc)
             return False
         self._catch_up = catch_up
         self._catch_up_keeps_template = keep_template
+        self._confirmed = False
         return True
 
     def feed(self, frame: Frame) -> TrackResult:
+        result = self._feed(frame)
+        self._last_box = result.box
+        self._boxes[frame.frame_id] = (result.box, bool(result.lost_reason))
+        oldest = frame.frame_id - self.ring.capacity
+        for stale in [k for k in self._boxes if k <= oldest]:
+            del self._boxes[stale]
+        return result
+
+    def _feed(self, frame: Frame) -> TrackResult:
         self.ring.push(frame)
         image = frame.image
         result: TrackResult | None = None
@@ -216,12 +410,17 @@ class TrackingFrontend:
         self.stats.tracker_seconds += time.perf_counter() - started
         self.stats.tracker_updates += 1
         reason = self.loss.check(image, step)
-        if self._lost_reason:
+        if reason and self._confirmed and not self._hard_signal():
+            reason = ""  # the last answer's evidence outweighs a score or appearance alarm
+        if self._lost_reason and self.policy != "verified":
             reason = self._lost_reason
         elif reason:
+            if not self._lost_reason:
+                self.stats.loss_events += 1
+                log.info("%starget lost at frame %d: %s", self.label, frame.frame_id, reason)
             self._lost_reason = reason
-            self.stats.loss_events += 1
-            log.info("target lost at frame %d: %s", frame.frame_id, reason)
+        else:
+            self._lost_reason = ""  # "verified" only: the signals judge each frame (see the module docstring)
         if not reason and step.box is not None:
             self.last_trusted_box = step.box
             self.last_trusted_frame_id = frame.frame_id

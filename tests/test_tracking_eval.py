@@ -176,7 +176,7 @@ def test_bench_bad_input(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> 
 
 
 def test_eval_against_a_live_backend(models_dir: Path, sequences_dir: Path, tmp_path: Path) -> None:
-    """--backend: first acquisition and re-initialisation from the real back-end over HTTP on loopback."""
+    """--backend --init prompt: first acquisition and re-detection from the real back-end over HTTP on loopback."""
     from tests.live_backend import VEHICLE_TOKENS, live_backend
 
     out = tmp_path / "eval.json"
@@ -184,6 +184,7 @@ def test_eval_against_a_live_backend(models_dir: Path, sequences_dir: Path, tmp_
         code = main([
             "eval", str(sequences_dir / "uav123_person12_1"), "--tracker", "nano", "--max-frames", "12",
             "--model-dir", str(models_dir), "--backend", backend.url, "--json", str(out), "--no-progress",
+            "--init", "prompt", "--delay-s", "0", "--set", "behavior.accept_uncertain=true",
             "--set", f"backend.token={VEHICLE_TOKENS['drone-1']}", "--set", "vehicle.id=drone-1",
         ])
     assert code == 0
@@ -201,8 +202,90 @@ def test_eval_with_an_unreachable_backend_tracks_nothing_and_does_not_crash(
     code = main([
         "eval", str(sequences_dir / "otb_Crossing"), "--tracker", "kcf", "--max-frames", "5",
         "--model-dir", str(models_dir), "--backend", f"http://127.0.0.1:{free_port()}", "--json", str(out),
+        "--init", "prompt", "--delay-s", "0",
         "--no-progress", "--set", "backend.timeout_s=1",
     ])
     assert code == 0
     result = json.loads(out.read_text())["runs"][0]["sequences"][0]
     assert result["miou"] == 0.0 and result["detector_calls"] == 1
+
+
+def test_eval_prints_bare_beside_the_product_from_the_same_run(
+    models_dir: Path, sequences_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "eval.json"
+    code = main([
+        "eval", str(sequences_dir / "uav123_wakeboard7"), str(sequences_dir / "otb_Crossing"), "--tracker", "nano",
+        "--max-frames", "25", "--model-dir", str(models_dir), "--verifier", "none", "--json", str(out),
+        "--no-progress",
+    ])
+    assert code == 0
+    printed = capsys.readouterr().out
+    assert "bare" in printed and "diff" in printed and "overall (frames)" in printed and "mean (sequences)" in printed
+    run = json.loads(out.read_text())["runs"][0]
+    assert run["policy"] == "verified"  # the configuration's default
+    bare, product = run["bare"]["sequences"], run["sequences"]
+    assert [b["sequence"] for b in bare] == [p["sequence"] for p in product]
+    assert [b["frames"] for b in bare] == [p["frames"] for p in product] == [25, 25]
+    assert all(b["detector_calls"] == 0 and b["reinits"] == 0 for b in bare)  # the bare tracker is bare
+    assert all(p["detector_calls"] >= 1 for p in product)  # the product asked for keyframes while tracking
+    for b, p in zip(bare, product, strict=True):
+        line = next(line for line in printed.splitlines() if line.startswith(p["sequence"]))
+        assert f"{b['miou']:.3f}" in line and f"{p['miou']:.3f}" in line and f"{p['miou'] - b['miou']:+.3f}" in line
+
+
+def test_eval_init_prompt_acquires_the_described_target_while_the_clock_runs(
+    models_dir: Path, sequences_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """--init prompt: the in-process pipeline (YOLOX + the local verifier) answers referring.txt 0.5 s
+    late; the first box comes only after the answer and the first chosen candidate is the described man."""
+    out = tmp_path / "eval.json"
+    code = main([
+        "eval", str(sequences_dir / "uav123_person12_1"), "--tracker", "nano", "--max-frames", "30",
+        "--model-dir", str(models_dir), "--init", "prompt", "--verifier", "local", "--delay-s", "0.5",
+        "--json", str(out), "--no-progress",
+    ])
+    assert code == 0
+    run = json.loads(out.read_text())["runs"][0]
+    assert run["init"] == "prompt" and run["delay_s"] == 0.5
+    result = run["sequences"][0]
+    first = result["acquisition"][0]
+    assert first["frame_id"] == 1 and first["answered_frame_id"] == 6  # 0.5 s at 10 fps
+    assert first["chosen_iou"] is not None and first["chosen_iou"] >= 0.5  # the described target
+    assert result["first_box_s"] is not None and result["first_box_s"] >= 0.5  # no box before the answer
+    assert run["gt_init"]["sequences"][0]["miou"] > 0 and "first boxes on the described target: 1 of 1" in capsys.readouterr().out
+
+
+def test_signal_table_counts_false_alarms_on_target_and_detector_extent(models_dir: Path, sequences_dir: Path) -> None:
+    from backend.detectors.yolox import YoloxDetector
+    from cloudtrack.model_store import require
+
+    seq = load_sequence(sequences_dir / "uav123_wakeboard7")
+    yolox = YoloxDetector(require("yolox", models_dir)["yolox_nano.onnx"])
+    cache = DetectionCache(lambda image, frame_id: list(yolox.detect(image, ["person"], frame_id=frame_id)))
+    report = signal_table([seq], TrackerConfig(), models_dir, "nano", detections={seq.name: cache}, keyframe_s=1.0)
+    assert report.on_target_frames > 0 and report.frames == 66
+    fired = report.combos["+ geometry + appearance"]
+    assert fired.fired_on_target + fired.fired_lost <= fired.fired
+    # The wakeboarder's changing pose sets off "collapsed" while the tracker is on him: false alarms.
+    assert report.counts["collapsed"].fired_on_target > 0
+    assert report.keyframes == 6 and 0 < report.target_detected <= 6  # frames 11, 21, ... 61 at 10 fps
+    assert len(report.detector_extent) == report.target_detected
+
+
+@pytest.mark.slow
+def test_redetection_never_moves_the_box_off_the_target_on_the_dev_sequences(
+    models_dir: Path, sequences_dir: Path, tmp_path: Path
+) -> None:
+    """The defaults on every shared sequence, bare tracker beside them in the same run: no re-initialisation
+    takes the box off the target, and the product is not below the bare tracker overall."""
+    out = tmp_path / "eval.json"
+    sequences = sorted(p for p in sequences_dir.iterdir() if (p / "groundtruth.txt").is_file())
+    code = main(["eval", *map(str, sequences), "--tracker", "nano", "--model-dir", str(models_dir),
+                 "--json", str(out), "--no-progress"])
+    assert code == 0
+    run = json.loads(out.read_text())["runs"][0]
+    assert run["policy"] == "verified"
+    assert all(s["reinit_outcomes"].get("target->other", 0) == 0 for s in run["sequences"])
+    assert run["overall"]["miou"] >= run["bare"]["overall"]["miou"]
+    assert run["overall"]["frames"] == run["bare"]["overall"]["frames"]

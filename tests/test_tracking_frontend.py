@@ -121,3 +121,43 @@ def test_stop_and_stale_answers(models_dir: Path, crossing) -> None:  # type: ig
 def test_missing_weights_fail_at_construction(tmp_path: Path) -> None:
     with pytest.raises(ModelError, match="nanotrack_backbone_sim.onnx"):
         TrackingFrontend.from_config(TrackerConfig(), tmp_path)
+
+
+def test_verified_policy_never_reinits_onto_an_unverified_candidate(models_dir: Path, crossing) -> None:  # type: ignore[no-untyped-def]
+    """policy "verified": an uncertain candidate off the track, unlike the target, never takes the track,
+    however often it is offered; the answers are kept as "keep" decisions."""
+    seq, frames = crossing
+    fe = _frontend(models_dir, policy="verified")
+    fe.feed(frames[0])
+    fe.start(1, seq.ground_truth[0])
+    for frame in frames[1:10]:
+        fe.feed(frame)
+    for frame in frames[10:20]:
+        fe.feed(frame)
+        truth = seq.ground_truth[frame.frame_id - 1]
+        elsewhere = Detection(Box(truth.x + 3 * truth.w, truth.y - 30, truth.w, truth.h), 0.99)
+        assert fe.apply_candidates(frame.frame_id, [elsewhere]) is None
+    assert fe.stats.reinits == 1 and not fe.catching_up  # the first start only
+    assert sum(fe.stats.decisions.values()) == 10 and fe.stats.decisions.get("reinit", 0) == 0
+
+
+def test_verified_policy_withdraws_a_loss_a_candidate_on_the_track_confirms(models_dir: Path, crossing) -> None:  # type: ignore[no-untyped-def]
+    seq, frames = crossing
+    # An appearance threshold of 0 makes the appearance signal fire on every frame: a false alarm.
+    fe = TrackingFrontend.from_config(TrackerConfig(appearance_drift_threshold=0.0), models_dir,
+                                      tracker_name="nano", policy="verified")
+    fe.feed(frames[0])
+    fe.start(1, seq.ground_truth[0])
+    results = [fe.feed(frame) for frame in frames[1:10]]
+    assert results[-1].lost_reason == "appearance" and not results[-1].trusted
+    on_track = fe.box_at(10)
+    assert on_track is not None
+    detector_box = Box(on_track.x - 2, on_track.y - 3, on_track.w + 4, on_track.h + 5)  # wider, as detectors frame
+    assert fe.apply_candidates(10, [Detection(detector_box, 0.8)]) is None  # confirmed, not re-initialised
+    assert fe.stats.confirmations == 1 and fe.stats.decisions == {"confirm": 1}
+    after = fe.feed(frames[10])
+    assert after.trusted, after  # the answer's evidence outweighs the appearance alarm until the next answer
+    assert fe.stats.reinits == 1
+    # The detector's extent is learnt from the confirmation: a later detector box is converted to the tracker's.
+    converted = fe.to_tracker_convention(detector_box)
+    assert converted.w == pytest.approx(on_track.w) and converted.h == pytest.approx(on_track.h)

@@ -1,0 +1,151 @@
+"""The "verified" re-initialisation policy (behaviors.reinit_policy), table-tested."""
+
+from __future__ import annotations
+
+import pytest
+
+from behaviors.detection import Verdict
+from behaviors.geometry import Box
+from behaviors.reinit_policy import (
+    CandidateEvidence,
+    ReinitAction,
+    ReinitSettings,
+    ReinitState,
+    TrackEvidence,
+    decide,
+)
+
+TRACK = Box(100, 100, 20, 50)
+ON_TRACK = Box(101, 99, 21, 52)  # the detector's box on the tracked object
+NEAR = Box(160, 100, 20, 50)  # a neighbour, inside the gate
+FAR = Box(900, 600, 20, 50)  # beyond the gate around the last trusted box
+
+YES, UNSURE, NO = Verdict.YES, Verdict.UNCERTAIN, Verdict.NO
+
+
+def track(lost: bool = False, appearance: float | None = 0.3, box: Box | None = TRACK) -> TrackEvidence:
+    return TrackEvidence(box=box, lost=lost, appearance=appearance, reference=TRACK, gate_px=300.0)
+
+
+def cand(box: Box, verdict: Verdict = UNSURE, appearance: float | None = 0.3) -> CandidateEvidence:
+    return CandidateEvidence(box, verdict, appearance)
+
+
+@pytest.mark.parametrize(
+    ("name", "track_view", "candidates", "action", "index"),
+    [
+        ("trusted, detector agrees: confirm", track(), [cand(ON_TRACK)], ReinitAction.CONFIRM, 0),
+        (
+            "lost, detector agrees: the loss is withdrawn",
+            track(lost=True),
+            [cand(ON_TRACK)],
+            ReinitAction.CONFIRM,
+            0,
+        ),
+        ("lost, nothing found: wait", track(lost=True), [], ReinitAction.WAIT, None),
+        ("trusted, nothing found: keep", track(), [], ReinitAction.KEEP, None),
+        (
+            "lost, a 'no' elsewhere never wins",
+            track(lost=True),
+            [cand(NEAR, NO, 0.0)],
+            ReinitAction.WAIT,
+            None,
+        ),
+        (
+            "lost, an unlike uncertain candidate has no evidence",
+            track(lost=True),
+            [cand(NEAR, UNSURE, 0.9)],
+            ReinitAction.WAIT,
+            None,
+        ),
+        (
+            "the verifier says no to the track's own candidate: no confirmation",
+            track(),
+            [cand(ON_TRACK, NO)],
+            ReinitAction.KEEP,
+            None,
+        ),
+        (
+            "far uncertain candidate needs a yes",
+            track(lost=True),
+            [cand(FAR, UNSURE, 0.0)],
+            ReinitAction.WAIT,
+            None,
+        ),
+        (
+            "a yes elsewhere leads the streak but one answer is not enough",
+            track(),
+            [cand(ON_TRACK), cand(NEAR, YES)],
+            ReinitAction.KEEP,
+            1,
+        ),
+        ("lost: a far yes leads the streak", track(lost=True), [cand(FAR, YES)], ReinitAction.WAIT, 0),
+        (
+            "verifier prefers it, appearance contradicts: no",
+            track(appearance=0.2),
+            [cand(ON_TRACK, UNSURE, 0.2), cand(NEAR, YES, 0.7)],
+            ReinitAction.CONFIRM,
+            0,
+        ),
+        (
+            "tie in verdicts, clearly more like the target: leads",
+            track(appearance=0.6),
+            [cand(ON_TRACK, UNSURE, 0.6), cand(NEAR, UNSURE, 0.3)],
+            ReinitAction.KEEP,
+            1,
+        ),
+        (
+            "tie in verdicts, within the margin: the track stays",
+            track(appearance=0.4),
+            [cand(ON_TRACK, UNSURE, 0.4), cand(NEAR, UNSURE, 0.35)],
+            ReinitAction.CONFIRM,
+            0,
+        ),
+    ],
+)
+def test_reinit_policy_single_answer(
+    name: str,
+    track_view: TrackEvidence,
+    candidates: list[CandidateEvidence],
+    action: ReinitAction,
+    index: int | None,
+) -> None:
+    decision = decide(ReinitState(), track_view, candidates)
+    assert (decision.action, decision.index) == (action, index), name
+
+
+def test_reinit_policy_needs_two_consistent_answers() -> None:
+    answer = [cand(ON_TRACK, NO), cand(NEAR, YES)]
+    first = decide(ReinitState(), track(), answer)
+    assert first.action is ReinitAction.KEEP and first.state.streak == 1
+    second = decide(first.state, track(), [cand(ON_TRACK, NO), cand(Box(165, 102, 20, 50), YES)])
+    assert second.action is ReinitAction.REINIT and second.index == 1 and second.state == ReinitState()
+    # The second winner somewhere else entirely is a new streak, not a confirmation of the first.
+    elsewhere = decide(first.state, track(), [cand(ON_TRACK, NO), cand(Box(400, 100, 20, 50), YES)])
+    assert elsewhere.action is ReinitAction.KEEP and elsewhere.state.streak == 1
+    # An answer with no winner in between resets the streak.
+    quiet = decide(first.state, track(), [cand(ON_TRACK)])
+    assert quiet.action is ReinitAction.CONFIRM and quiet.state.streak == 0
+
+
+def test_reinit_policy_never_moves_onto_a_rejected_or_unevidenced_candidate() -> None:
+    """Whatever the state and the track, a 'no' or an uncertain candidate unlike the target is never taken."""
+    for lost in (False, True):
+        for track_box in (TRACK, None):
+            state = ReinitState()
+            for _ in range(5):
+                view = TrackEvidence(track_box, lost, appearance=None, reference=TRACK)
+                decision = decide(
+                    state, view, [cand(NEAR, NO, 0.0), cand(FAR, UNSURE, 0.95), cand(NEAR, UNSURE, None)]
+                )
+                assert decision.action is not ReinitAction.REINIT
+                state = decision.state
+
+
+def test_reinit_settings_confirmations_one_moves_at_once_and_bad_settings_fail() -> None:
+    once = ReinitSettings(confirmations=1)
+    assert decide(ReinitState(), track(lost=True), [cand(NEAR, YES)], once).action is ReinitAction.REINIT
+    with pytest.raises(ValueError, match="confirmations"):
+        ReinitSettings(confirmations=0)
+    with pytest.raises(ValueError, match="agree_iou"):
+        ReinitSettings(agree_iou=0.0)
