@@ -25,7 +25,7 @@ COMMAND_MODULES = (
     "backend.serve_command",
     "backend.detect_command",
     "backend.eval_command",
-    "backend.bench",
+    "backend.bench_command",
     "backend.service_command",
 )
 

@@ -1,3 +1,3 @@
-"""The onboard process on the drone: camera sources, trackers, the MAVLink link, the back-end session and the
-main loop that runs the mission (`behaviors`), plus its tools (eval, bench, replay) and the ground tool
-`cloudtrack-gcs`. It builds on `cloudtrack` and `behaviors` and never imports `backend` or `sitl`."""
+"""The onboard process on the drone: its runtime (main loop, run command, config, safety watchdog, flight
+record) at the root, `mavlink/`, `vision/` and `cloud/` by capability, and `tools/` (eval, bench, replay)
+apart. It builds on `cloudtrack` and `behaviors` and never imports `backend`, `sitl` or `gcs`."""

@@ -25,9 +25,9 @@ COMMAND_MODULES = (
     "companion.models_command",
     "companion.run_command",
     "companion.service_command",
-    "companion.replay_command",
-    "companion.eval_command",
-    "companion.bench_command",
+    "companion.tools.replay_command",
+    "companion.tools.eval_command",
+    "companion.tools.bench_command",
 )
 
 

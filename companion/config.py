@@ -35,7 +35,7 @@ class CameraConfig(ConfigSection):
     mount_pitch_deg: float = Field(-45.0, ge=-90, le=30)
     stabilised: bool = True
     reconnect_interval_s: float = Field(1.0, gt=0, le=60)
-    # Lens calibration (OpenCV's model; companion/camera_calibration.py). Empty: an ideal pinhole from
+    # Lens calibration (OpenCV's model; companion/vision/camera_calibration.py). Empty: an ideal pinhole from
     # hfov_deg. Either a file (cv2.FileStorage YAML/XML/JSON, or a ROS camera_calibration YAML) or inline:
     # camera_matrix = [fx, 0, cx, 0, fy, cy, 0, 0, 1] at width x height, distortion = [k1, k2, p1, p2, k3].
     calibration_file: str = ""
@@ -118,7 +118,7 @@ class MavlinkConfig(ConfigSection):
 
     @model_validator(mode="after")
     def _connections(self) -> MavlinkConfig:
-        from companion.mavlink_connection import parse_connection
+        from cloudtrack.mavlink_connection import parse_connection
 
         parse_connection(self.connection)  # ValueError names the string and the allowed forms
         if any(not 1 <= sysid <= 255 for sysid in self.gcs_system_ids):

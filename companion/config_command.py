@@ -50,7 +50,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
 
 
 def _check(args: argparse.Namespace) -> int:
-    from companion.camera_calibration import camera_model
+    from companion.vision.camera_calibration import camera_model
 
     try:
         config = load_companion_config(args.file, args.set)

@@ -54,10 +54,10 @@ from behaviors.setpoint import Setpoint
 from behaviors.telemetry import Telemetry
 from behaviors.track_result import TrackResult
 from cloudtrack.service_notify import Notifier
-from companion.backend_worker import BackendWorker
-from companion.candidate_crop import candidate_crop
-from companion.frame_sources import Frame, FrameSource
+from companion.cloud.backend_worker import BackendWorker
+from companion.cloud.candidate_crop import candidate_crop
 from companion.safety_watchdog import BACKEND_UNREACHABLE, HEARTBEAT_LOST, SafetyEvent
+from companion.vision.frame_sources import Frame, FrameSource
 
 log = logging.getLogger(__name__)
 
@@ -66,7 +66,7 @@ PROBE_QUERY_ID = 0
 
 
 class VehicleLink(Protocol):
-    """`companion.vehicle_link.VehicleLink` as the loop uses it (the autopilot, and the GCS through it)."""
+    """`companion.mavlink.vehicle_link.VehicleLink` as the loop uses it (the autopilot, and the GCS through it)."""
 
     def telemetry(self) -> Telemetry | None: ...
 
@@ -102,7 +102,7 @@ class VehicleLink(Protocol):
 
 
 class BackendSessionLike(Protocol):
-    """`companion.backend_session.BackendSession`: status for the supervisor page, its decisions, rejections."""
+    """`companion.cloud.backend_session.BackendSession`: status for the supervisor page, its decisions, rejections."""
 
     def update(self, status: dict[str, Any]) -> None: ...
 
@@ -114,7 +114,7 @@ class BackendSessionLike(Protocol):
 
 
 class TrackingFrontendLike(Protocol):
-    """`companion.tracking_frontend.TrackingFrontend` as the loop uses it."""
+    """`companion.vision.tracking_frontend.TrackingFrontend` as the loop uses it."""
 
     def feed(self, frame: Frame) -> TrackResult: ...
 
@@ -393,7 +393,7 @@ class MissionRunner:
                 on_safety = getattr(obs, "on_safety", None)
                 if on_safety is not None:
                     on_safety(ev)
-            event = behaviour_event(ev)
+            event = behavior_event(ev)
             if event is not None:
                 out.append(event)
         return out
@@ -462,7 +462,7 @@ def _operator_started(event: Event, state: State) -> bool:
     )
 
 
-def behaviour_event(ev: SafetyEvent) -> Event | None:
+def behavior_event(ev: SafetyEvent) -> Event | None:
     """The behaviour event a link safety event stands for, if any (the link has already stopped the vehicle)."""
     if ev.reason == HEARTBEAT_LOST and ev.action == "stop":
         return AutopilotLinkLost(ev.time_s)

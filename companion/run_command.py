@@ -64,7 +64,7 @@ class _QueryService:
 
 
 def mission_config(config: CompanionConfig) -> MissionConfig:
-    from companion.camera_calibration import camera_model
+    from companion.vision.camera_calibration import camera_model
 
     sections = MissionConfig.from_sections(
         behavior=config.behavior.model_dump(),
@@ -86,12 +86,12 @@ def run(args: argparse.Namespace) -> int:
         return 2
     from cloudtrack.api_client import BackendClient
     from cloudtrack.service_notify import ServiceNotifier
-    from companion.backend_session import BackendSession
-    from companion.backend_worker import BackendWorker
-    from companion.frame_sources import SourceError, open_source
+    from companion.cloud.backend_session import BackendSession
+    from companion.cloud.backend_worker import BackendWorker
+    from companion.mavlink.vehicle_link import VehicleLink
     from companion.mission_runner import EventLogObserver, LoopObserver, LoopSettings, MissionRunner
-    from companion.tracking_frontend import TrackingFrontend
-    from companion.vehicle_link import VehicleLink
+    from companion.vision.frame_sources import SourceError, open_source
+    from companion.vision.tracking_frontend import TrackingFrontend
 
     cam = config.camera
     model_dir = resolve_model_dir(args.model_dir or config.tracker.model_dir or None)

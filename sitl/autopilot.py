@@ -15,7 +15,7 @@ It behaves the way the companion has to cope with on a real vehicle:
   are forwarded so signatures survive;
 - it starts armed and hovering and never arms for anyone (arm and take-off requests are denied).
 
-Mode numbers are written out here independently of `companion.autopilot_modes` on purpose: a wrong table
+Mode numbers are written out here independently of `cloudtrack.autopilot_modes` on purpose: a wrong table
 on the companion side must show up as a failing test, not cancel out.
 """
 
@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 
 from pymavlink import mavutil
 
-from companion.mavlink_connection import mavlink, receive_message, use_mavlink2
+from cloudtrack.mavlink_connection import mavlink, receive_message, use_mavlink2
 from sitl.vehicle_dynamics import (
     VehicleLimits,
     VehicleState,

@@ -73,7 +73,7 @@ MISSION_START = re.compile(r"\bMISSION \d+ STARTED\b")
 
 
 def is_mission_start(text: str) -> bool:
-    """The companion's STATUSTEXT on a GCS mission start (companion/gcs_link.py), broadcast to every link."""
+    """The companion's STATUSTEXT on a GCS mission start (cloudtrack/gcs_protocol.py), broadcast to every link."""
     return MISSION_START.search(text) is not None
 
 

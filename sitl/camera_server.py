@@ -21,7 +21,7 @@ from collections.abc import Callable
 from pymavlink import mavutil
 
 from behaviors.camera_model import CameraModel
-from companion.mavlink_connection import use_mavlink2
+from cloudtrack.mavlink_connection import use_mavlink2
 from sitl.camera_render import FrameTruth, RenderedFrame, Renderer, VehiclePose
 from sitl.frame_transport import encode_frame
 from sitl.world import World

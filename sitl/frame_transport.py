@@ -85,7 +85,7 @@ class FrameStreamReader:
 
 
 class SimStreamCapture:
-    """sim+tcp:// as a capture for `companion.frame_sources.LiveSource`, which reads it in a background
+    """sim+tcp:// as a capture for `companion.vision.frame_sources.LiveSource`, which reads it in a background
     thread, keeps the newest frame, and reports and retries a lost or refused connection.
 
     Frames keep the stream's own ids (the renderer's), so a keyframe sent to the back-end names the
@@ -120,8 +120,8 @@ class SimStreamCapture:
 
 
 def register() -> None:
-    """Teach `companion.frame_sources.open_source` the sim+tcp:// scheme."""
-    from companion.frame_sources import FrameSource, LiveSource, register_scheme
+    """Teach `companion.vision.frame_sources.open_source` the sim+tcp:// scheme."""
+    from companion.vision.frame_sources import FrameSource, LiveSource, register_scheme
 
     def factory(spec: str, options: dict[str, Any]) -> FrameSource:
         parse_url(spec)  # fail at start-up on a malformed URL, not in the reader thread

@@ -19,7 +19,7 @@ from typing import Any, Literal
 
 from pymavlink import mavutil
 
-from companion.mavlink_connection import use_mavlink2
+from cloudtrack.mavlink_connection import use_mavlink2
 from sitl.world import Person, World, distractor_world
 
 log = logging.getLogger(__name__)
@@ -226,7 +226,7 @@ def _fault_checks(scenario: Scenario, name: str, m: dict[str, Any], o: VehicleOu
 class ScriptedGcs:
     """A ground station on the autopilot's GCS link: mission start with a prompt, confirm, reject.
 
-    Speaks the companion's GCS protocol (companion/gcs_link.py): the prompt in TUNNEL chunks, then
+    Speaks the companion's GCS protocol (cloudtrack/gcs_protocol.py): the prompt in TUNNEL chunks, then
     MAV_CMD_USER_1; confirm/reject as MAV_CMD_USER_3/4 with candidate 0 (the one awaiting the supervisor).
     """
 
@@ -353,12 +353,12 @@ class ScriptedGcs:
                 0, 0, 0, 0, 0, 0, 0, 0)
 
     def abort(self) -> None:
-        from companion.gcs_link import CMD_ABORT
+        from cloudtrack.gcs_protocol import CMD_ABORT
 
         self._command(CMD_ABORT)
 
     def start_mission(self, prompt: str, mission_id: int, superset: str = "person", allow_engage: bool = True) -> None:
-        from companion.gcs_link import CMD_START, PROMPT_PAYLOAD_TYPE, encode_prompt
+        from cloudtrack.gcs_protocol import CMD_START, PROMPT_PAYLOAD_TYPE, encode_prompt
 
         chunks = encode_prompt(mission_id, superset, prompt)
         for chunk in chunks:
@@ -369,12 +369,12 @@ class ScriptedGcs:
         self._command(CMD_START, mission_id, len(chunks), 1.0 if allow_engage else 0.0, length)
 
     def confirm(self) -> None:
-        from companion.gcs_link import CMD_CONFIRM
+        from cloudtrack.gcs_protocol import CMD_CONFIRM
 
         self._command(CMD_CONFIRM, 0)
 
     def reject(self) -> None:
-        from companion.gcs_link import CMD_REJECT
+        from cloudtrack.gcs_protocol import CMD_REJECT
 
         self._command(CMD_REJECT, 0)
 

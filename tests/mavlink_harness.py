@@ -12,9 +12,9 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
+from cloudtrack.mavlink_connection import MavlinkEndpoint
 from companion.config import MavlinkConfig, SafetyConfig
-from companion.mavlink_connection import MavlinkEndpoint
-from companion.vehicle_link import VehicleLink
+from companion.mavlink.vehicle_link import VehicleLink
 from sitl.autopilot import AutopilotOptions, SimulatedAutopilot
 
 

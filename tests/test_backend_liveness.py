@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 from behaviors.mission_config import MissionConfig
-from companion.backend_worker import WorkerHealth
+from companion.cloud.backend_worker import WorkerHealth
 from companion.mission_runner import MissionRunner
 
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import requests
 
-from backend.bench import mosaic
+from backend.bench_command import mosaic
 from backend.crops import crop_box, margin_crop
 from backend.detectors.yolox import YoloxDetector
 from backend.pipeline import Pipeline

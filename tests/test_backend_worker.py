@@ -11,7 +11,7 @@ import pytest
 
 from behaviors.detection import Detection
 from behaviors.geometry import Box
-from companion.backend_worker import BackendAnswer, BackendWorker
+from companion.cloud.backend_worker import BackendAnswer, BackendWorker
 
 
 class GatedService:

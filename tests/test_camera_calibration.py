@@ -15,8 +15,8 @@ from behaviors.control_law import horizontal_angle
 from behaviors.geolocation import locate_pixel
 from behaviors.geometry import Box
 from behaviors.telemetry import Telemetry
-from companion.camera_calibration import CalibrationError, camera_model
 from companion.config import CameraConfig
+from companion.vision.camera_calibration import CalibrationError, camera_model
 from tests.test_geolocation import LAT, LON, project
 
 # A 1280x720 wide drone camera (about 85 degrees across the undistorted centre row, more at the edges)

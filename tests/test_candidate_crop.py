@@ -18,9 +18,9 @@ from behaviors.geometry import Box
 from behaviors.mission import MissionState
 from behaviors.mission_commands import StartMission
 from behaviors.mission_config import MissionConfig
-from companion.candidate_crop import MAX_B64_CHARS, candidate_crop
-from companion.frame_sources import Frame
+from companion.cloud.candidate_crop import MAX_B64_CHARS, candidate_crop
 from companion.mission_runner import MissionRunner
+from companion.vision.frame_sources import Frame
 
 
 def _first_frame(sequence: Path) -> tuple[np.ndarray, Box]:
@@ -92,7 +92,7 @@ def test_crop_reaches_the_back_end_store(sequence_dirs: list[Path]) -> None:
     from backend.config import AuthConfig, BackendConfig, SessionConfig
     from backend.serving import BackgroundServer
     from cloudtrack.api_client import BackendClient
-    from companion.backend_session import BackendSession
+    from companion.cloud.backend_session import BackendSession
     from sitl.simulated_detector import SimulatedPersonDetector
 
     image, box = _first_frame(sequence_dirs[0])

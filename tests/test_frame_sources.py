@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 import pytest
 
-from companion.frame_sources import (
+from companion.vision.frame_sources import (
     FolderSource,
     LiveSource,
     SourceError,

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from behaviors.mission_commands import AbortMission, ConfirmCandidate, StartMission, TrackRectangle
-from companion import gcs_cli
+from gcs import cli as gcs_cli
 from tests.mavlink_harness import MainLoop, autopilot, vehicle_link, wait_for
 
 GCS = [str(Path(sys.executable).with_name("cloudtrack-gcs"))]

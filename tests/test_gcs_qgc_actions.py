@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 
 from behaviors.mission_commands import AbortMission, ConfirmCandidate, RejectCandidate
-from companion.gcs_link import CMD_ABORT, CMD_CONFIRM, CMD_REJECT, CMD_STATUS
+from cloudtrack.gcs_protocol import CMD_ABORT, CMD_CONFIRM, CMD_REJECT, CMD_STATUS
 from tests.mavlink_harness import MainLoop, autopilot, gcs, receive_until, vehicle_link
 
 ACTIONS = Path(__file__).resolve().parent.parent / "config" / "gcs" / "qgc-cloudtrack-actions.json"

@@ -20,9 +20,9 @@ from behaviors.mission import MissionState, Target, initial_state
 from behaviors.mission_commands import StartMission
 from behaviors.mission_config import MissionConfig
 from behaviors.setpoint import Setpoint
-from companion.gcs_link import CMD_ABORT
+from cloudtrack.gcs_protocol import CMD_ABORT
+from companion.mavlink.vehicle_link import RELEASE_TIMEOUT_S
 from companion.mission_runner import MissionRunner
-from companion.vehicle_link import RELEASE_TIMEOUT_S
 from tests.mavlink_harness import MainLoop, autopilot, gcs, receive_until, vehicle_link, wait_for
 
 MAV_CMD_DO_SET_MODE = 176

@@ -19,10 +19,10 @@ from typing import Any
 import pytest
 
 from behaviors.setpoint import Setpoint
-from companion.autopilot_modes import AutopilotKind, mode_name
+from cloudtrack.autopilot_modes import AutopilotKind, mode_name
+from cloudtrack.mavlink_connection import MavlinkEndpoint
 from companion.config import MavlinkConfig, SafetyConfig
-from companion.mavlink_connection import MavlinkEndpoint
-from companion.vehicle_link import VehicleLink
+from companion.mavlink.vehicle_link import VehicleLink
 from tests.mavlink_harness import MainLoop, wait_for
 
 POSITION_ONLY_MASK = 0b110111111000

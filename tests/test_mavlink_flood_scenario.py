@@ -17,7 +17,7 @@ from typing import Any
 
 import pytest
 
-from companion.mavlink_connection import mavlink
+from cloudtrack.mavlink_connection import mavlink
 from sitl.scenario_runner import RunOptions, ScenarioRun
 from sitl.scenarios import SCENARIOS
 from tests.mavlink_harness import wait_for

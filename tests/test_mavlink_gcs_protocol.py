@@ -14,7 +14,7 @@ from behaviors.mission_commands import (
     StopTracking,
     TrackRectangle,
 )
-from companion.gcs_link import (
+from cloudtrack.gcs_protocol import (
     CHUNK_TEXT_BYTES,
     PROMPT_PAYLOAD_TYPE,
     PromptAssembler,

@@ -17,8 +17,7 @@ from typing import Any
 import pytest
 
 from behaviors.setpoint import Setpoint
-from companion.config import MavlinkConfig, SafetyConfig
-from companion.gcs_link import (
+from cloudtrack.gcs_protocol import (
     CMD_ABORT,
     CMD_CAMERA_TRACK_RECTANGLE,
     CMD_CONFIRM,
@@ -27,9 +26,10 @@ from companion.gcs_link import (
     PROMPT_PAYLOAD_TYPE,
     encode_prompt,
 )
-from companion.mavlink_connection import MavlinkEndpoint, mavlink
-from companion.mavlink_signing import parse_signing_key
-from companion.vehicle_link import VehicleLink
+from cloudtrack.mavlink_connection import MavlinkEndpoint, mavlink
+from cloudtrack.mavlink_signing import parse_signing_key
+from companion.config import MavlinkConfig, SafetyConfig
+from companion.mavlink.vehicle_link import VehicleLink
 from sitl.autopilot import AutopilotOptions, SimulatedAutopilot
 from tests.mavlink_harness import MainLoop, autopilot, gcs, receive_until, vehicle_link, wait_for
 

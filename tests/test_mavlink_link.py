@@ -14,18 +14,18 @@ import pytest
 
 from behaviors.mission_commands import ConfirmCandidate
 from behaviors.setpoint import Setpoint
-from companion.autopilot_modes import (
+from cloudtrack.autopilot_modes import (
     AutopilotKind,
     detect_autopilot,
     mode_for_action,
     mode_name,
     set_mode_params,
 )
+from cloudtrack.mavlink_connection import parse_connection
+from cloudtrack.mavlink_signing import parse_signing_key
 from companion.config import MavlinkConfig, SafetyConfig
-from companion.mavlink_connection import parse_connection
-from companion.mavlink_signing import parse_signing_key
-from companion.telemetry import stream_intervals_us
-from companion.vehicle_link import VehicleLink
+from companion.mavlink.telemetry_decoder import stream_intervals_us
+from companion.mavlink.vehicle_link import VehicleLink
 from tests.mavlink_harness import MainLoop, autopilot, gcs, receive_until, vehicle_link, wait_for
 
 KEY_HEX = "a1" * 32
@@ -59,7 +59,7 @@ def test_default_connection_listens_on_loopback_only() -> None:
 def test_importing_the_link_sets_no_environment_variable_or_dialect() -> None:
     code = (
         "import os, pkgutil, importlib; from pymavlink import mavutil; d = mavutil.mavlink\n"
-        "before = dict(os.environ); import companion.vehicle_link, companion.gcs_cli, sitl.autopilot\n"
+        "before = dict(os.environ); import companion.mavlink.vehicle_link, gcs.cli, sitl.autopilot\n"
         "assert dict(os.environ) == before, set(os.environ) ^ set(before)\n"
         # every module of ours: no MAVLink variable and the same global dialect (cv2's own loader sets
         # LD_LIBRARY_PATH when it is imported; that one is OpenCV's, not ours)
@@ -180,7 +180,7 @@ def test_serial_link_over_a_pseudo_terminal(form: str) -> None:
     import os
     import tty
 
-    from companion.mavlink_connection import mavlink
+    from cloudtrack.mavlink_connection import mavlink
 
     master, slave = os.openpty()
     tty.setraw(slave)

@@ -8,8 +8,8 @@ import pytest
 
 from behaviors.setpoint import Setpoint
 from companion.config import MavlinkConfig, SafetyConfig
+from companion.mavlink.vehicle_link import VehicleLink
 from companion.safety_watchdog import LOOP_STALLED
-from companion.vehicle_link import VehicleLink
 from sitl.autopilot import AutopilotOptions, SimulatedAutopilot
 from tests.mavlink_harness import MainLoop, wait_for
 

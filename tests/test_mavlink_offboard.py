@@ -8,8 +8,12 @@ import pytest
 
 from behaviors.events import PilotTakeover
 from behaviors.setpoint import Setpoint
-from companion.mission_runner import behaviour_event
-from companion.offboard import MAV_FRAME_BODY_NED, MAV_FRAME_BODY_OFFSET_NED, TYPE_MASK_VELOCITY_YAW_RATE
+from companion.mavlink.offboard import (
+    MAV_FRAME_BODY_NED,
+    MAV_FRAME_BODY_OFFSET_NED,
+    TYPE_MASK_VELOCITY_YAW_RATE,
+)
+from companion.mission_runner import behavior_event
 from tests.mavlink_harness import (
     MainLoop,
     autopilot,
@@ -93,7 +97,7 @@ def test_mode_change_by_gcs_stops_setpoints_within_200_ms(
         # a takeover is a flag, not a wording: the main loop turns exactly that into PilotTakeover(theirs)
         takeovers = [e for e in events if e.by_other_party]
         assert [e.mode for e in takeovers] == [theirs]
-        assert [behaviour_event(e) for e in takeovers] == [PilotTakeover(takeovers[0].time_s, theirs)]
+        assert [behavior_event(e) for e in takeovers] == [PilotTakeover(takeovers[0].time_s, theirs)]
         # the GCS is told why, in words
         text = receive_until(ground, lambda m: m.get_type() == "STATUSTEXT" and "OFFBOARD ENDED" in m.text, 3.0)
         assert text is not None
@@ -164,7 +168,7 @@ def test_lost_action_mode_is_requested_and_streaming_ends() -> None:
         events = link.safety_events()
         assert any("OFFBOARD -> RTL (requested)" in e.detail for e in events)  # ours, not a takeover
         assert not any(e.by_other_party for e in events)
-        assert not any(isinstance(behaviour_event(e), PilotTakeover) for e in events)
+        assert not any(isinstance(behavior_event(e), PilotTakeover) for e in events)
 
 
 def test_release_stops_streaming_after_an_explicit_zero() -> None:

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from companion.mavlink_connection import open_connection
+from cloudtrack.mavlink_connection import open_connection
 
 ROOT = Path(__file__).resolve().parent.parent
 

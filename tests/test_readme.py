@@ -24,7 +24,7 @@ SCRIPTS = {
     "cloudtrack-companion": "companion.cli",
     "cloudtrack-backend": "backend.cli",
     "cloudtrack-sim": "sitl.cli",
-    "cloudtrack-gcs": "companion.gcs_cli",
+    "cloudtrack-gcs": "gcs.cli",
 }
 
 

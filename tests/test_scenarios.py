@@ -228,7 +228,7 @@ def test_backend_session_reports_status_and_delivers_supervisor_decisions(tmp_pa
     from backend.serving import BackgroundServer
     from behaviors.mission_commands import ConfirmCandidate, RejectCandidate
     from cloudtrack.api_client import BackendClient
-    from companion.backend_session import BackendSession
+    from companion.cloud.backend_session import BackendSession
     from sitl.simulated_detector import SimulatedPersonDetector
 
     config = BackendConfig(auth=AuthConfig(tokens={"drone-1": "drone-1-token-0001"}, supervisor_token="supervisor-token-0001"),

@@ -25,10 +25,10 @@ from pathlib import Path
 
 import pytest
 
+from cloudtrack.gcs_protocol import CMD_START, encode_prompt
 from cloudtrack.service_notify import ServiceNotifier, ping_while_healthy, watchdog_interval_s
 from companion.flight_record import read_events
-from companion.gcs_cli import _tunnel
-from companion.gcs_link import CMD_START, encode_prompt
+from gcs.cli import _tunnel
 from tests.camera_stream import CAMERA_FPS, CameraStream
 from tests.live_backend import free_port
 from tests.mavlink_harness import autopilot, gcs, receive_until, wait_for

@@ -11,7 +11,7 @@ from contextlib import contextmanager
 
 import pytest
 
-from companion.mavlink_connection import MavlinkEndpoint
+from cloudtrack.mavlink_connection import MavlinkEndpoint
 from sitl import autopilot_command
 from sitl.vehicle_dynamics import VehicleLimits, VehicleState, VelocityCommand, Wind, step
 from tests.mavlink_harness import autopilot, gcs, receive_until, set_mode_from_gcs, wait_for

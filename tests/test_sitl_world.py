@@ -13,7 +13,7 @@ import pytest
 
 from behaviors.camera_model import CameraModel
 from behaviors.geometry import Box
-from companion.frame_sources import open_source
+from companion.vision.frame_sources import open_source
 from sitl.camera_render import Projector, Renderer, VehiclePose, read_timecode
 from sitl.camera_server import CameraServer
 from sitl.frame_transport import (

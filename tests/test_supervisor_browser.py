@@ -26,11 +26,11 @@ import numpy as np
 import pytest
 from playwright.sync_api import Page, expect, sync_playwright
 
+from cloudtrack.gcs_protocol import CMD_START, encode_prompt
+from cloudtrack.mavlink_connection import MavlinkEndpoint
 from companion.flight_record import read_events
-from companion.gcs_cli import _tunnel
-from companion.gcs_link import CMD_START, encode_prompt
-from companion.mavlink_connection import MavlinkEndpoint
-from companion.replay import load_recording, replay
+from companion.tools.replay import load_recording, replay
+from gcs.cli import _tunnel
 from tests.camera_stream import CAMERA_FPS, CameraStream
 from tests.live_backend import SUPERVISOR_TOKEN, VEHICLE_TOKENS, live_backend
 from tests.mavlink_harness import autopilot, gcs, receive_until

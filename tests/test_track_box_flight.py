@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from companion import gcs_cli
+from gcs import cli as gcs_cli
 from tests.camera_stream import CAMERA_FPS, CameraStream
 from tests.live_backend import free_port
 from tests.mavlink_harness import autopilot, wait_for

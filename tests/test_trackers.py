@@ -10,7 +10,7 @@ import pytest
 
 from behaviors.geometry import Box, iou
 from cloudtrack.model_store import ModelError
-from companion.trackers import (
+from companion.vision.trackers import (
     TrackerUnavailableError,
     _factory,
     available_trackers,

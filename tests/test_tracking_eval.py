@@ -12,8 +12,7 @@ from behaviors.geometry import Box
 from behaviors.tracking_metrics import frame_ious, mean_iou, pooled_miou
 from companion.cli import main
 from companion.config import TrackerConfig
-from companion.trackers import available_trackers
-from companion.tracking_eval import (
+from companion.tools.tracking_eval import (
     DetectionCache,
     EvalSettings,
     evaluate_sequence,
@@ -22,6 +21,7 @@ from companion.tracking_eval import (
     parse_sweep,
     signal_table,
 )
+from companion.vision.trackers import available_trackers
 
 A = Box(0, 0, 10, 10)
 HALF = Box(5, 0, 10, 10)  # IoU with A = 50 / 150

@@ -29,7 +29,7 @@ import cv2
 import numpy as np
 
 from behaviors.geometry import Box
-from companion.trackers import TrackerStep
+from companion.vision.trackers import TrackerStep
 
 SIGNALS = ("tracker_failed", "score", "left_frame", "collapsed", "jump", "appearance")
 

@@ -36,10 +36,10 @@ from behaviors.geometry import Box, iou
 from behaviors.spatial_relations import narrow_by_relation, parse_relation
 from behaviors.tracking_metrics import MiouResult, mean_iou, pooled_miou
 from companion.config import TrackerConfig
-from companion.frame_sources import FolderSource, Frame
-from companion.loss_detection import SIGNALS, LossDetector
-from companion.trackers import create_tracker
-from companion.tracking_frontend import Policy, TrackingFrontend, loss_settings, reinit_settings
+from companion.vision.frame_sources import FolderSource, Frame
+from companion.vision.loss_detection import SIGNALS, LossDetector
+from companion.vision.trackers import create_tracker
+from companion.vision.tracking_frontend import Policy, TrackingFrontend, loss_settings, reinit_settings
 
 LOST_IOU = 0.1  # a tracker box overlapping the ground truth less than this is off target
 ON_TARGET_IOU = 0.5  # a box overlapping the ground truth this much is on the target

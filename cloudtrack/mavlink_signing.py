@@ -37,7 +37,7 @@ def parse_signing_key(text: str) -> bytes:
 
 
 def message_name(msg_id: int) -> str:
-    from companion.mavlink_connection import mavlink
+    from cloudtrack.mavlink_connection import mavlink
 
     entry = mavlink.mavlink_map.get(msg_id)
     return entry.msgname if entry is not None else f"message {msg_id}"

@@ -42,7 +42,7 @@ from behaviors.mission_commands import (
     StopTracking,
     TrackRectangle,
 )
-from companion.mavlink_connection import mavlink
+from cloudtrack.mavlink_connection import mavlink
 
 log = logging.getLogger(__name__)
 

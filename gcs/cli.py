@@ -14,8 +14,8 @@ from collections.abc import Sequence
 from functools import partial
 from typing import Any
 
-from companion.autopilot_modes import detect_autopilot, mode_name
-from companion.gcs_link import (
+from cloudtrack.autopilot_modes import detect_autopilot, mode_name
+from cloudtrack.gcs_protocol import (
     CMD_ABORT,
     CMD_CAMERA_TRACK_RECTANGLE,
     CMD_CONFIRM,
@@ -28,8 +28,8 @@ from companion.gcs_link import (
     PROMPT_PAYLOAD_TYPE,
     encode_prompt,
 )
-from companion.mavlink_connection import MavlinkEndpoint, mavlink, parse_connection
-from companion.mavlink_signing import parse_signing_key
+from cloudtrack.mavlink_connection import MavlinkEndpoint, mavlink, parse_connection
+from cloudtrack.mavlink_signing import parse_signing_key
 
 EXIT_REFUSED, EXIT_TIMEOUT = 1, 3
 RESULT_NAMES = {0: "ACCEPTED", 1: "TEMPORARILY_REJECTED", 2: "DENIED", 3: "UNSUPPORTED", 4: "FAILED", 5: "IN_PROGRESS", 6: "CANCELLED"}

@@ -5,7 +5,7 @@
   cloudtrack abort           cloudtrack status
   cloudtrack target SYS COMP                               the companion's ids (default 1 191)
 
-The same wire protocol as `cloudtrack-gcs` (companion/gcs_link.py); each COMMAND_ACK is printed as
+The same wire protocol as `cloudtrack-gcs` (cloudtrack/gcs_protocol.py); each COMMAND_ACK is printed as
 "CloudTrack <command>: <RESULT>". MAVProxy finds this module through `cloudtrack.init` (the package's
 `module load cloudtrack` entry point); MAVProxy itself must be installed (see docs/gcs-protocol.md).
 """
@@ -17,7 +17,7 @@ from typing import Any
 
 from MAVProxy.modules.lib import mp_module
 
-from companion.gcs_link import (
+from cloudtrack.gcs_protocol import (
     CMD_ABORT,
     CMD_CONFIRM,
     CMD_REJECT,

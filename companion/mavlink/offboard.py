@@ -12,8 +12,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from behaviors.setpoint import Setpoint
-from companion.autopilot_modes import AutopilotKind
-from companion.mavlink_connection import mavlink
+from cloudtrack.autopilot_modes import AutopilotKind
+from cloudtrack.mavlink_connection import mavlink
 
 MAV_FRAME_BODY_NED = int(mavlink.MAV_FRAME_BODY_NED)
 MAV_FRAME_BODY_OFFSET_NED = int(mavlink.MAV_FRAME_BODY_OFFSET_NED)

@@ -46,10 +46,15 @@ from behaviors.reinit_policy import (
 )
 from behaviors.track_result import TrackResult
 from companion.config import TrackerConfig
-from companion.frame_sources import Frame
-from companion.latency_compensation import CatchUp, FrameRing, KeyframeGoneError
-from companion.loss_detection import LossDetector, LossSettings, appearance_distance, appearance_histogram
-from companion.trackers import Tracker, create_tracker
+from companion.vision.frame_sources import Frame
+from companion.vision.latency_compensation import CatchUp, FrameRing, KeyframeGoneError
+from companion.vision.loss_detection import (
+    LossDetector,
+    LossSettings,
+    appearance_distance,
+    appearance_histogram,
+)
+from companion.vision.trackers import Tracker, create_tracker
 
 log = logging.getLogger(__name__)
 

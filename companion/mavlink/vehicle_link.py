@@ -44,15 +44,14 @@ from behaviors.mission_commands import MissionCommand
 from behaviors.safety_limits import MotionLimits, apply_limits
 from behaviors.setpoint import Setpoint
 from behaviors.telemetry import Telemetry
-from companion.autopilot_modes import (
+from cloudtrack.autopilot_modes import (
     QUADROTOR,
     AutopilotKind,
     mode_for_action,
     offboard_mode,
     set_mode_params,
 )
-from companion.config import MavlinkConfig, SafetyConfig
-from companion.gcs_link import (
+from cloudtrack.gcs_protocol import (
     CAMERA_CAP_FLAGS_HAS_TRACKING_POINT,
     CAMERA_CAP_FLAGS_HAS_TRACKING_RECTANGLE,
     MAV_SEVERITY_INFO,
@@ -61,11 +60,13 @@ from companion.gcs_link import (
     statustext_chunks,
     value_name,
 )
-from companion.mavlink_connection import MavlinkEndpoint, mavlink
-from companion.mavlink_signing import SigningGuard, parse_signing_key
-from companion.mavsdk_offboard import MavsdkOffboard
-from companion.mavsdk_relay import MavsdkRelay
-from companion.offboard import PX4_MIN_PRESTREAM_S, encode_velocity
+from cloudtrack.mavlink_connection import MavlinkEndpoint, mavlink
+from cloudtrack.mavlink_signing import SigningGuard, parse_signing_key
+from companion.config import MavlinkConfig, SafetyConfig
+from companion.mavlink.mavsdk_offboard import MavsdkOffboard
+from companion.mavlink.mavsdk_relay import MavsdkRelay
+from companion.mavlink.offboard import PX4_MIN_PRESTREAM_S, encode_velocity
+from companion.mavlink.telemetry_decoder import AutopilotHeartbeat, TelemetryDecoder, stream_intervals_us
 from companion.safety_watchdog import (
     BACKEND_UNREACHABLE,
     HEARTBEAT_LOST,
@@ -75,7 +76,6 @@ from companion.safety_watchdog import (
     SafetyEvent,
     SafetyWatchdog,
 )
-from companion.telemetry import AutopilotHeartbeat, TelemetryDecoder, stream_intervals_us
 
 log = logging.getLogger(__name__)
 

@@ -1,7 +1,7 @@
 """The companion's session with the back-end beside the keyframes: status, supervisor decisions, rejections.
 
 A background thread, once a `period_s`: posts the vehicle's status (state, prompt, position and the
-candidate awaiting the supervisor, with its small JPEG crop from `companion.candidate_crop`; the crop
+candidate awaiting the supervisor, with its small JPEG crop from `companion.cloud.candidate_crop`; the crop
 goes up once per candidate, the back-end keeps it, and it is sent again every CROP_REFRESH_S so a
 restarted back-end recovers it) so the supervisor page shows it, fetches the supervisor's new
 decisions and turns them into Confirm/Reject commands, and sends queued rejections so the back-end

@@ -18,7 +18,7 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
-from companion.mavlink_connection import MavlinkEndpoint, mavlink
+from cloudtrack.mavlink_connection import MavlinkEndpoint, mavlink
 
 log = logging.getLogger(__name__)
 

@@ -14,8 +14,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from behaviors.telemetry import Telemetry
-from companion.autopilot_modes import AutopilotKind, detect_autopilot, is_armed, mode_name, offboard_mode
-from companion.mavlink_connection import mavlink
+from cloudtrack.autopilot_modes import AutopilotKind, detect_autopilot, is_armed, mode_name, offboard_mode
+from cloudtrack.mavlink_connection import mavlink
 
 MSG_ID_HEARTBEAT = int(mavlink.MAVLINK_MSG_ID_HEARTBEAT)
 MSG_ID_SYS_STATUS = int(mavlink.MAVLINK_MSG_ID_SYS_STATUS)

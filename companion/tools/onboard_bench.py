@@ -37,16 +37,16 @@ from behaviors.control_law import ControlGains, ControlState, FollowGoal, follow
 from behaviors.safety_limits import MotionLimits
 from behaviors.setpoint import Setpoint
 from behaviors.telemetry import Telemetry
-from companion.autopilot_modes import AutopilotKind
-from companion.camera_calibration import camera_model
+from cloudtrack.autopilot_modes import AutopilotKind
+from cloudtrack.mavlink_connection import MavlinkEndpoint
 from companion.config import CompanionConfig
 from companion.flight_record import FlightRecorder
-from companion.frame_sources import FolderSource, Frame, SourceStats
-from companion.mavlink_connection import MavlinkEndpoint
-from companion.offboard import SetpointMessage, encode_velocity
-from companion.trackers import create_tracker
-from companion.tracking_eval import load_sequence
-from companion.tracking_frontend import TrackingFrontend
+from companion.mavlink.offboard import SetpointMessage, encode_velocity
+from companion.tools.tracking_eval import load_sequence
+from companion.vision.camera_calibration import camera_model
+from companion.vision.frame_sources import FolderSource, Frame, SourceStats
+from companion.vision.trackers import create_tracker
+from companion.vision.tracking_frontend import TrackingFrontend
 
 
 @dataclass(frozen=True)

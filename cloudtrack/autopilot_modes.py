@@ -15,7 +15,7 @@ from enum import Enum
 
 from pymavlink import mavutil
 
-from companion.mavlink_connection import mavlink
+from cloudtrack.mavlink_connection import mavlink
 
 QUADROTOR = int(mavlink.MAV_TYPE_QUADROTOR)
 _PX4_RENAMED = {"LOITER": "HOLD", "FOLLOWME": "FOLLOW_TARGET"}  # pymavlink's name -> PX4's

@@ -19,10 +19,8 @@ from behaviors.detection import Detection
 from cloudtrack.config_files import ConfigError
 from cloudtrack.model_store import ModelError, require, resolve_model_dir
 from companion.config_command import add_config_flags, load_from_args
-from companion.loss_detection import parse_signals
 from companion.models_command import add_model_dir_flag
-from companion.trackers import TrackerUnavailableError, available_trackers
-from companion.tracking_eval import (
+from companion.tools.tracking_eval import (
     DetectFn,
     DetectionCache,
     EvalSettings,
@@ -36,7 +34,9 @@ from companion.tracking_eval import (
     result_dict,
     signal_table,
 )
-from companion.tracking_frontend import POLICIES
+from companion.vision.loss_detection import parse_signals
+from companion.vision.trackers import TrackerUnavailableError, available_trackers
+from companion.vision.tracking_frontend import POLICIES
 
 log = logging.getLogger(__name__)
 

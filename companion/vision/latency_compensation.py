@@ -15,8 +15,8 @@ from collections import deque
 from dataclasses import dataclass
 
 from behaviors.geometry import Box
-from companion.frame_sources import Frame
-from companion.trackers import Tracker, TrackerStep
+from companion.vision.frame_sources import Frame
+from companion.vision.trackers import Tracker, TrackerStep
 
 log = logging.getLogger(__name__)
 
