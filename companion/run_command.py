@@ -95,10 +95,6 @@ def run(args: argparse.Namespace) -> int:
 
     cam = config.camera
     model_dir = resolve_model_dir(args.model_dir or config.tracker.model_dir or None)
-    if cam.source.startswith("sim+tcp://"):
-        from sitl.frame_transport import register
-
-        register()
     try:
         frontend = TrackingFrontend.from_config(config.tracker, model_dir)
         frames = open_source(cam.source, width=cam.width, height=cam.height, fps=cam.fps,

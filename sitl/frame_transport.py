@@ -12,10 +12,13 @@ import logging
 import socket
 import struct
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 from urllib.parse import urlparse
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from companion.vision.frame_sources import FrameSource
 
 log = logging.getLogger(__name__)
 
@@ -119,17 +122,15 @@ class SimStreamCapture:
             self._reader.close()
 
 
-def register() -> None:
-    """Teach `companion.vision.frame_sources.open_source` the sim+tcp:// scheme."""
-    from companion.vision.frame_sources import FrameSource, LiveSource, register_scheme
+def factory(spec: str, options: dict[str, Any]) -> FrameSource:
+    """The companion's frame source for a sim+tcp:// URL: declared in pyproject.toml's
+    `cloudtrack.frame_sources` entry points, so `open_source` finds it without importing the simulator."""
+    from companion.vision.frame_sources import LiveSource
 
-    def factory(spec: str, options: dict[str, Any]) -> FrameSource:
-        parse_url(spec)  # fail at start-up on a malformed URL, not in the reader thread
-        return LiveSource(
-            lambda: SimStreamCapture(spec),
-            spec,
-            reconnect_interval_s=float(options.get("reconnect_interval_s") or 1.0),
-            stall_timeout_s=float(options.get("stall_timeout_s") or 2.0),
-        )
-
-    register_scheme(SCHEME, factory)
+    parse_url(spec)  # fail at start-up on a malformed URL, not in the reader thread
+    return LiveSource(
+        lambda: SimStreamCapture(spec),
+        spec,
+        reconnect_interval_s=float(options.get("reconnect_interval_s") or 1.0),
+        stall_timeout_s=float(options.get("stall_timeout_s") or 2.0),
+    )

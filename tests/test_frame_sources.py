@@ -221,6 +221,19 @@ def test_stalled_camera_is_reported_and_a_new_connection_recovers(folder: Path) 
             conn.close()
 
 
+def test_installed_packages_plug_schemes_in_through_entry_points() -> None:
+    """The simulator's sim+tcp:// reaches the companion as a declared plugin, never as an import of sitl."""
+    import importlib.metadata
+
+    from companion.vision.frame_sources import ENTRY_POINT_GROUP
+    from sitl.frame_transport import factory
+
+    (entry,) = importlib.metadata.entry_points(group=ENTRY_POINT_GROUP, name="sim+tcp")
+    assert entry.load() is factory
+    with pytest.raises(SourceError, match="unknown scheme 'nosuch'"):
+        open_source("nosuch://127.0.0.1:1")
+
+
 def test_new_schemes_can_be_registered(folder: Path) -> None:
     register_scheme("replay", lambda spec, options: FolderSource(Path(spec.split("://", 1)[1])))
     source = open_source(f"replay://{folder}")
@@ -232,10 +245,7 @@ def test_new_schemes_can_be_registered(folder: Path) -> None:
 def test_sim_stream_keeps_the_renderers_frame_ids_and_survives_a_silent_camera(sequence_dirs: list[Path]) -> None:
     """sim+tcp:// goes through the same LiveSource as real cameras, but its frames keep the stream's ids
     (the simulated detector looks ground truth up by them)."""
-    from sitl.frame_transport import register
     from tests.camera_stream import CameraStream
-
-    register()
     camera = CameraStream(sequence_dirs[0] / "frames", count=5)
     camera.frame_id = 1000  # the renderer has been running a while
     source = open_source(f"sim+tcp://127.0.0.1:{camera.port}", stall_timeout_s=0.5)

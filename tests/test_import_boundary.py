@@ -48,7 +48,6 @@ MAY_IMPORT: dict[str, set[str]] = {
 # - companion/run_command.py imports sitl to register the `sim+tcp` frame-source scheme.
 KNOWN_VIOLATIONS_TO_REMOVE: set[tuple[str, str]] = {
     ("companion/tools/eval_command.py", "backend"),
-    ("companion/run_command.py", "sitl"),
 }
 
 

@@ -22,7 +22,6 @@ from sitl.frame_transport import (
     FrameStreamReader,
     encode_frame,
     parse_url,
-    register,
 )
 from sitl.metrics import FrameSample, SetpointSample, TimedEvent, last_setpoint_after, percentile, summarise
 from sitl.simulated_detector import DetectorNoise, SimulatedPersonDetector
@@ -169,7 +168,6 @@ def test_camera_server_streams_frames_with_truth_and_rejects_garbage() -> None:
         assert record is not None and {tb.person_id for tb in record.truth} >= {"target"}
         reader.close()
         # The companion's source keeps the renderer's frame ids, so keyframes name their ground truth.
-        register()
         source = open_source(server.url)
         frame = source.read(timeout_s=5.0)
         assert frame is not None and read_timecode(frame.image) == frame.frame_id

@@ -7,7 +7,10 @@
 - a folder holding `frames/000001.jpg...` (the layout of ../shared/data/sequences) or the images
   themselves: every frame, in name order;
 - any other existing file: a video file, every frame in order.
-Other schemes are added with `register_scheme("sim", factory)` (the SITL camera does this).
+Other schemes are added with `register_scheme("sim", factory)`, or by an installed package through the
+`cloudtrack.frame_sources` entry-point group (name: the scheme, value: the factory), looked up the first
+time the scheme is asked for: the simulator's `sim+tcp://` comes in that way, so the companion never
+imports the simulator.
 
 Live sources are read by a thread that keeps only the newest frame and counts the ones the consumer never
 saw (drops). A camera that fails to open, stops delivering (read fails) or stalls (no frame for
@@ -16,6 +19,8 @@ never a crash. Finite sources skip an unreadable image with a warning and count 
 """
 
 from __future__ import annotations
+
+import importlib.metadata
 
 import logging
 import threading
@@ -269,9 +274,21 @@ SourceFactory = Callable[[str, dict[str, Any]], FrameSource]
 _SCHEMES: dict[str, SourceFactory] = {}
 
 
+ENTRY_POINT_GROUP = "cloudtrack.frame_sources"
+
+
 def register_scheme(scheme: str, factory: SourceFactory) -> None:
     """Make `open_source("SCHEME://...")` call `factory(spec, options)`; options are open_source's keywords."""
     _SCHEMES[scheme.lower()] = factory
+
+
+def _plugin_factory(scheme: str) -> SourceFactory | None:
+    """The factory an installed package declares for `scheme` in the entry-point group, loaded once."""
+    for entry in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP, name=scheme):
+        factory: SourceFactory = entry.load()
+        register_scheme(scheme, factory)
+        return factory
+    return None
 
 
 def _capture_opener(target: int | str, api: int, options: dict[str, Any]) -> Callable[[], Capture]:
@@ -338,9 +355,10 @@ def open_source(
         return _live(pipeline, cv2.CAP_GSTREAMER, text, options)
     if "://" in text:
         scheme = text.split("://", 1)[0].lower()
-        if scheme not in _SCHEMES:
+        factory = _SCHEMES.get(scheme) or _plugin_factory(scheme)
+        if factory is None:
             raise SourceError(f"{spec}: unknown scheme {scheme!r}; known: {', '.join(sorted(_SCHEMES))}")
-        return _SCHEMES[scheme](text, options)
+        return factory(text, options)
     path = Path(text).expanduser()
     if path.is_dir():
         return FolderSource(path)
