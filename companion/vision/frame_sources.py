@@ -21,7 +21,6 @@ never a crash. Finite sources skip an unreadable image with a warning and count 
 from __future__ import annotations
 
 import importlib.metadata
-
 import logging
 import threading
 import time
