@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import importlib.metadata
 from collections.abc import Callable, Iterable, Sequence
 from typing import TYPE_CHECKING
 
@@ -22,10 +23,15 @@ def new_parser(prog: str, description: str, examples: str) -> tuple[argparse.Arg
     return parser, parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
 
-def add_command_modules(subparsers: SubParsers, module_names: Iterable[str]) -> None:
-    """Each module defines add_parser(subparsers) and sets `func` on the parser it adds."""
+def add_command_modules(subparsers: SubParsers, module_names: Iterable[str], plugin_group: str = "") -> None:
+    """Each module defines add_parser(subparsers) and sets `func` on the parser it adds. With
+    `plugin_group`, the modules installed packages declare in that entry-point group come after them (in
+    name order): tools on top of a process add its subcommands without the process importing them."""
     for module_name in module_names:
         importlib.import_module(module_name).add_parser(subparsers)
+    if plugin_group:
+        for entry in sorted(importlib.metadata.entry_points(group=plugin_group), key=lambda e: e.name):
+            entry.load().add_parser(subparsers)
 
 
 def run(build_parser: Callable[[], argparse.ArgumentParser], argv: Sequence[str] | None) -> int:

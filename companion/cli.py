@@ -25,10 +25,10 @@ COMMAND_MODULES = (
     "companion.models_command",
     "companion.run_command",
     "companion.service_command",
-    "companion.tools.replay_command",
-    "companion.tools.eval_command",
-    "companion.tools.bench_command",
 )
+# The tools (eval, bench, replay: package companion_tools) declare their subcommands in this entry-point
+# group (pyproject.toml), so the onboard process never imports them, nor what they import (the back-end).
+TOOL_COMMANDS = "cloudtrack.companion_commands"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -37,7 +37,7 @@ def build_parser() -> argparse.ArgumentParser:
         "CloudTrack onboard process: track a described person and fly to keep them in view.",
         EXAMPLES,
     )
-    add_command_modules(subparsers, COMMAND_MODULES)
+    add_command_modules(subparsers, COMMAND_MODULES, TOOL_COMMANDS)
     return parser
 
 

@@ -10,11 +10,11 @@ import pytest
 
 from behaviors.geometry import Box, iou
 from companion.config import TrackerConfig
-from companion.tools.tracking_eval import load_sequence
 from companion.vision.frame_sources import Frame
 from companion.vision.latency_compensation import CatchUp, FrameRing, KeyframeGoneError
 from companion.vision.trackers import create_tracker
 from companion.vision.tracking_frontend import TrackingFrontend
+from companion_tools.tracking_eval import load_sequence
 
 
 def _blank(frame_id: int) -> Frame:

@@ -11,7 +11,7 @@ import ast
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("behaviors", "cloudtrack", "companion", "gcs", "backend", "sitl")
+PACKAGES = ("behaviors", "cloudtrack", "companion", "companion_tools", "gcs", "backend", "sitl")
 CAPABILITIES = ("companion.mavlink", "companion.vision", "companion.cloud")
 # The main loop's wiring: capabilities are parts it puts together, so they never import it back.
 WIRING = ("companion.mission_runner", "companion.run_command", "companion.cli")
@@ -65,7 +65,7 @@ def _graph() -> dict[str, set[str]]:
 
 def test_layout_packages_exist() -> None:
     modules = _modules()
-    for package in (*CAPABILITIES, "companion.tools", "gcs"):
+    for package in (*CAPABILITIES, "companion_tools", "gcs"):
         assert package in modules, f"{package}/__init__.py is missing"
 
 
@@ -77,20 +77,20 @@ def test_layout_capabilities_do_not_import_each_other_nor_the_wiring_nor_the_too
         if _within(module, capability)
         for name in names
         if any(_within(name, other) for other in CAPABILITIES if other != capability)
-        or _within(name, "companion.tools")
+        or _within(name, "companion_tools")
         or any(_within(name, wiring) for wiring in WIRING)
     )
     assert wrong == [], "mavlink, vision and cloud are parts the runtime wires together, never each other"
 
 
 def test_layout_runtime_never_imports_the_tools() -> None:
-    """The tools may import the runtime; only the command line names them, as strings (COMMAND_MODULES)."""
+    """The tools may import the runtime; the runtime finds them only through entry points (companion/cli.py)."""
     wrong = sorted(
         (module, name)
         for module, names in _graph().items()
-        if _within(module, "companion") and not _within(module, "companion.tools")
+        if _within(module, "companion") and not _within(module, "companion_tools")
         for name in names
-        if _within(name, "companion.tools")
+        if _within(name, "companion_tools")
     )
     assert wrong == []
 

@@ -10,11 +10,11 @@ import pytest
 
 from behaviors.geometry import Box
 from companion.config import TrackerConfig
-from companion.tools.tracking_eval import _occluded, load_sequence, occlusion_span
 from companion.vision.frame_sources import Frame
 from companion.vision.loss_detection import SIGNALS, LossDetector, LossSettings, parse_signals
 from companion.vision.trackers import TrackerStep, create_tracker
 from companion.vision.tracking_frontend import TrackingFrontend
+from companion_tools.tracking_eval import _occluded, load_sequence, occlusion_span
 
 PERSON = "uav123_person12_1"  # 1280x720, one person on a roof
 

@@ -19,7 +19,7 @@ from behaviors.mission_config import MissionConfig
 from behaviors.telemetry import Telemetry
 from behaviors.track_result import TrackResult
 from companion.flight_record import EVENTS_FILE, FlightRecorder, FlightRecordObserver, read_events
-from companion.tools.replay import RecordError, load_recording, replay
+from companion_tools.replay import RecordError, load_recording, replay
 
 CLI = [sys.executable, "-m", "companion.cli"]
 

@@ -1,5 +1,5 @@
 """Relations between people stated in a description (behaviors.spatial_relations) and their use in the
-first acquisition (companion.tools.tracking_eval.first_candidate)."""
+first acquisition (companion_tools.tracking_eval.first_candidate)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import pytest
 from behaviors.detection import Detection, Verdict
 from behaviors.geometry import Box
 from behaviors.spatial_relations import Relation, is_between, narrow_by_relation, parse_relation, satisfies
-from companion.tools.tracking_eval import first_candidate
+from companion_tools.tracking_eval import first_candidate
 
 LEFT, MIDDLE, RIGHT = Box(0, 0, 20, 50), Box(40, 5, 20, 50), Box(80, 0, 20, 50)
 FAR_OFF_LINE = Box(40, 300, 20, 50)

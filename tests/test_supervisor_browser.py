@@ -29,7 +29,7 @@ from playwright.sync_api import Page, expect, sync_playwright
 from cloudtrack.gcs_protocol import CMD_START, encode_prompt
 from cloudtrack.mavlink_connection import MavlinkEndpoint
 from companion.flight_record import read_events
-from companion.tools.replay import load_recording, replay
+from companion_tools.replay import load_recording, replay
 from gcs.cli import _tunnel
 from tests.camera_stream import CAMERA_FPS, CameraStream
 from tests.live_backend import SUPERVISOR_TOKEN, VEHICLE_TOKENS, live_backend

@@ -11,9 +11,9 @@ from behaviors.detection import Detection
 from behaviors.geometry import Box, iou
 from cloudtrack.model_store import ModelError
 from companion.config import TrackerConfig
-from companion.tools.tracking_eval import load_sequence
 from companion.vision.frame_sources import Frame
 from companion.vision.tracking_frontend import TrackingFrontend
+from companion_tools.tracking_eval import load_sequence
 
 SEQ = "otb_Crossing"
 

@@ -13,9 +13,9 @@ from cloudtrack.config_files import ConfigError
 from cloudtrack.model_store import ModelError, resolve_model_dir
 from companion.config_command import add_config_flags, load_from_args
 from companion.models_command import add_model_dir_flag
-from companion.tools.onboard_bench import run_bench
-from companion.tools.tracking_eval import parse_size
 from companion.vision.trackers import TrackerUnavailableError
+from companion_tools.onboard_bench import run_bench
+from companion_tools.tracking_eval import parse_size
 
 EPILOG = """\
 examples:

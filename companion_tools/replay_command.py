@@ -12,7 +12,7 @@ from tqdm import tqdm
 from behaviors.mission_config import MissionConfig
 from cloudtrack.config_files import ConfigError
 from companion.config import load_companion_config
-from companion.tools.replay import RecordError, load_recording, replay
+from companion_tools.replay import RecordError, load_recording, replay
 
 EXAMPLES = """\
 examples:

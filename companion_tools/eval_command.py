@@ -20,7 +20,10 @@ from cloudtrack.config_files import ConfigError
 from cloudtrack.model_store import ModelError, require, resolve_model_dir
 from companion.config_command import add_config_flags, load_from_args
 from companion.models_command import add_model_dir_flag
-from companion.tools.tracking_eval import (
+from companion.vision.loss_detection import parse_signals
+from companion.vision.trackers import TrackerUnavailableError, available_trackers
+from companion.vision.tracking_frontend import POLICIES
+from companion_tools.tracking_eval import (
     DetectFn,
     DetectionCache,
     EvalSettings,
@@ -34,9 +37,6 @@ from companion.tools.tracking_eval import (
     result_dict,
     signal_table,
 )
-from companion.vision.loss_detection import parse_signals
-from companion.vision.trackers import TrackerUnavailableError, available_trackers
-from companion.vision.tracking_frontend import POLICIES
 
 log = logging.getLogger(__name__)
 

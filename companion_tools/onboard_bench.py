@@ -42,11 +42,11 @@ from cloudtrack.mavlink_connection import MavlinkEndpoint
 from companion.config import CompanionConfig
 from companion.flight_record import FlightRecorder
 from companion.mavlink.offboard import SetpointMessage, encode_velocity
-from companion.tools.tracking_eval import load_sequence
 from companion.vision.camera_calibration import camera_model
 from companion.vision.frame_sources import FolderSource, Frame, SourceStats
 from companion.vision.trackers import create_tracker
 from companion.vision.tracking_frontend import TrackingFrontend
+from companion_tools.tracking_eval import load_sequence
 
 
 @dataclass(frozen=True)

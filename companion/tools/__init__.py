@@ -1,2 +1,0 @@
-"""Tools that evaluate and benchmark the companion (eval, bench, replay), apart from the runtime as
-pytracking keeps its evaluation apart: they may import the runtime, the runtime never imports them."""
