@@ -28,6 +28,7 @@ class QueryPurpose(str, Enum):
     SEARCH = "search"  # find candidates anywhere in the frame
     REVERIFY = "reverify"  # check the tracked target again while the supervisor decides
     REDETECT = "redetect"  # find the lost target near its last position
+    TRACK_CHECK = "track_check"  # "verified" policy: evidence about the followed track (a silent switch?)
 
 
 @dataclass(frozen=True)

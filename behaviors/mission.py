@@ -466,6 +466,10 @@ def _tick(state: State, config: MissionConfig) -> Result:
             return state, query
         if mode is MissionState.CONFIRMED and _report_due(state, config):
             return replace(state, last_report_s=now), (_report(target, "confirmed"),)
+        if mode is MissionState.FOLLOWING and config.verified_reinit and _query_due(state, config.query_interval_s):
+            # Evidence for the front-end's policy while trusted too: a tracker that slid onto a neighbour
+            # follows them smoothly, and only a keyframe answer can show it.
+            return _query(state, QueryPurpose.TRACK_CHECK, _roi(target.box, config))
         return state, ()
     if mode is MissionState.LOST:
         return _lost_tick(state, target, config)
