@@ -100,7 +100,7 @@ class JudgeCandidates:
 
     keyframe_id: int
     candidates: tuple[Detection, ...]
-    refused: frozenset[int] = frozenset()
+    refused: tuple[int, ...] = ()  # indices into `candidates`, ascending
 
 
 @dataclass(frozen=True)

@@ -382,7 +382,7 @@ def _answer(state: State, answer: BackendAnswer, config: MissionConfig) -> Resul
     state, actions = _answer_for_target(state, target, purpose, answer, config)
     if config.verified_reinit and _judging(state, config) and answer.candidates:
         # Every answer for the track goes to the front-end's policy, with what the mission refuses marked.
-        refused = frozenset(i for i, d in enumerate(answer.candidates) if _refused(state, target, d, config))
+        refused = tuple(i for i, d in enumerate(answer.candidates) if _refused(state, target, d, config))
         actions = (*actions, JudgeCandidates(answer.keyframe_id, answer.candidates, refused))
     return state, actions
 

@@ -534,7 +534,7 @@ def describe_action(action: Action, t: float) -> dict[str, Any]:
                 "keyframe_id": action.keyframe_id, "candidate_id": action.candidate_id}
     if isinstance(action, JudgeCandidates):
         return {"kind": "judge", "t": t, "keyframe_id": action.keyframe_id, "candidates": len(action.candidates),
-                "refused": sorted(action.refused)}
+                "refused": list(action.refused)}
     if isinstance(action, ReportCandidate):
         return {"kind": "candidate_report", "t": t, "status": action.status, "candidate_id": action.candidate_id,
                 "verdict": action.verdict.value, "box": _box(action.box), "justification": action.justification[:120]}

@@ -34,12 +34,12 @@ SEQ = "otb_Crossing"
 class _Judged(TrackingFrontend):
     """The real front-end, counting the answers the loop hands to its policy."""
 
-    judged: list[tuple[int, int, frozenset[int]]]
+    judged: list[tuple[int, int, tuple[int, ...]]]
 
     def judge_candidates(
         self, keyframe_id: int, detections: Sequence[Detection], refused: Collection[int] = ()
     ) -> ReinitDecision | None:
-        self.judged.append((keyframe_id, len(detections), frozenset(refused)))
+        self.judged.append((keyframe_id, len(detections), tuple(refused)))
         return super().judge_candidates(keyframe_id, detections, refused)
 
 
@@ -168,7 +168,7 @@ def test_verified_flight_never_reinits_on_a_rejected_candidate_but_does_on_the_s
     seq, frames, fe, runner, _, record, feed = _following(models_dir, crossing)
     _slid_off(seq, frames, fe, feed)
     _offer_person(seq, frames, runner, feed, slice(12, 16, 2))
-    assert len(fe.judged) == 2 and fe.judged[0][2] == frozenset()
+    assert len(fe.judged) == 2 and fe.judged[0][2] == ()
     assert fe.stats.decisions == {"keep": 1, "reinit": 1}, fe.stats.decisions  # one answer is not enough
     assert [r.candidate_id for r in record.reinits] == ["p2"]
     for frame in frames[16:20]:
@@ -180,7 +180,7 @@ def test_verified_flight_never_reinits_on_a_rejected_candidate_but_does_on_the_s
     runner._handle(GcsCommand(frames[9].capture_time, RejectCandidate("p2")))  # someone else, remembered
     _slid_off(seq, frames, fe, feed)
     _offer_person(seq, frames, runner, feed, slice(12, 32, 2))  # trusted or lost on the ground: both judged
-    assert len(fe.judged) == 10 and all(refused == frozenset({0}) for _, _, refused in fe.judged)
+    assert len(fe.judged) == 10 and all(refused == (0,) for _, _, refused in fe.judged)
     assert fe.stats.decisions.get("reinit", 0) == 0 and not record.reinits and fe.stats.reinits == 2
 
 
