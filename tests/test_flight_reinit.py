@@ -88,7 +88,8 @@ def crossing(sequences_dir: Path):  # type: ignore[no-untyped-def]
 def _following(models_dir: Path, crossing, policy: str = "verified"):  # type: ignore[no-untyped-def]
     """A runner following the crossing person after a search answer found them on frame 1."""
     seq, frames = crossing
-    fe = _Judged.from_config(TrackerConfig(reinit_policy=policy), models_dir, tracker_name="nano")  # type: ignore[arg-type]
+    fe = _Judged.from_config(TrackerConfig(reinit_policy=policy), models_dir, tracker_name="nano")
+    assert isinstance(fe, _Judged)
     fe.judged = []
     backend, record = _Backend(), _Record()
     none: Any = None
@@ -127,8 +128,8 @@ def _elsewhere(truth: Box, verdict: Verdict, candidate_id: str) -> Detection:
 
 
 def test_verified_flight_judges_every_answer_and_never_moves_on_an_unverified_candidate(
-    models_dir: Path, crossing
-) -> None:  # type: ignore[no-untyped-def]
+    models_dir: Path, crossing: Any
+) -> None:
     seq, frames, fe, runner, backend, record, feed = _following(models_dir, crossing)
     for frame in frames[10:30:2]:  # an answer every other frame while the track is trusted
         feed(frame)
@@ -162,8 +163,8 @@ def _offer_person(seq, frames, runner, feed, frame_slice: slice) -> None:  # typ
 
 
 def test_verified_flight_never_reinits_on_a_rejected_candidate_but_does_on_the_same_evidence_unrejected(
-    models_dir: Path, crossing
-) -> None:  # type: ignore[no-untyped-def]
+    models_dir: Path, crossing: Any
+) -> None:
     # The control: a "yes" that looks like the target, twice in a row, undoes the switch.
     seq, frames, fe, runner, _, record, feed = _following(models_dir, crossing)
     _slid_off(seq, frames, fe, feed)
