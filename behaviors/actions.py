@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import Enum
 
-from behaviors.detection import Verdict
+from behaviors.detection import Detection, Verdict
 from behaviors.geolocation import GeoEstimate
 from behaviors.geometry import Box
 from behaviors.setpoint import Setpoint
@@ -28,6 +28,7 @@ class QueryPurpose(str, Enum):
     SEARCH = "search"  # find candidates anywhere in the frame
     REVERIFY = "reverify"  # check the tracked target again while the supervisor decides
     REDETECT = "redetect"  # find the lost target near its last position
+    TRACK_CHECK = "track_check"  # "verified" policy: evidence about the followed track (a silent switch?)
 
 
 @dataclass(frozen=True)
@@ -90,6 +91,19 @@ class TrackerInit:
 
 
 @dataclass(frozen=True)
+class JudgeCandidates:
+    """Give a back-end answer for the current track to the front-end's "verified" re-initialisation policy,
+    which decides whether the evidence moves the track. Candidates at indices in `refused` are ones the
+    mission does not accept as the described target (verdict "no", rejected by the supervisor or the
+    rejection memory, a non-"yes" away from the last box): they may be the track's evidence, never its
+    new target."""
+
+    keyframe_id: int
+    candidates: tuple[Detection, ...]
+    refused: tuple[int, ...] = ()  # indices into `candidates`, ascending
+
+
+@dataclass(frozen=True)
 class TrackerStop:
     reason: str = ""
 
@@ -123,6 +137,7 @@ Action = (
     | GcsMessage
     | BackendQuery
     | TrackerInit
+    | JudgeCandidates
     | TrackerStop
     | ReportCandidate
     | RememberRejection

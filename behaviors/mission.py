@@ -18,6 +18,7 @@ from behaviors.actions import (
     FlightMode,
     GcsMessage,
     Hold,
+    JudgeCandidates,
     QueryPurpose,
     ReleaseControl,
     RememberRejection,
@@ -89,6 +90,10 @@ TRACKING = frozenset(
         MissionState.CONFIRMED,
         MissionState.LOST,
     }
+)
+# States whose back-end answers the "verified" policy judges (see `_judging`).
+_JUDGED = frozenset(
+    {MissionState.FOLLOWING, MissionState.AWAITING_SUPERVISOR, MissionState.CONFIRMED, MissionState.LOST}
 )
 _MAX_QUERIES_IN_FLIGHT = 8  # answers to older queries are dropped as stale
 _REVERIFY_MIN_IOU = 0.2
@@ -374,6 +379,17 @@ def _answer(state: State, answer: BackendAnswer, config: MissionConfig) -> Resul
     target = state.target
     if target is None:
         return state, ()
+    state, actions = _answer_for_target(state, target, purpose, answer, config)
+    if config.verified_reinit and _judging(state, config) and answer.candidates:
+        # Every answer for the track goes to the front-end's policy, with what the mission refuses marked.
+        refused = tuple(i for i, d in enumerate(answer.candidates) if _refused(state, target, d, config))
+        actions = (*actions, JudgeCandidates(answer.keyframe_id, answer.candidates, refused))
+    return state, actions
+
+
+def _answer_for_target(
+    state: State, target: Target, purpose: QueryPurpose, answer: BackendAnswer, config: MissionConfig
+) -> Result:
     if purpose is QueryPurpose.REVERIFY and state.mode in (MissionState.AWAITING_SUPERVISOR, MissionState.CONFIRMED):
         tracked = target.box
         match = max(answer.candidates, key=lambda d: iou(d.box, tracked), default=None)
@@ -382,16 +398,13 @@ def _answer(state: State, answer: BackendAnswer, config: MissionConfig) -> Resul
         target = replace(target, verdict=match.verdict, justification=match.justification or target.justification)
         status = "reverified" if state.mode is MissionState.AWAITING_SUPERVISOR else "confirmed"
         return replace(state, target=target, last_report_s=state.now_s), (_report(target, status),)
-    if purpose is QueryPurpose.REDETECT and state.mode is MissionState.LOST and not _given_up(state, config):
-        # Away from the last box only a "yes" may re-find the target, however wide the query's region:
-        # anything less could be a distractor anywhere in view. Near it, the operator's own target
-        # (never checked against the prompt) may be re-found on any verdict, others on anything but "no".
-        near = _roi(target.box, config)
-        usable = [
-            d for d in answer.candidates
-            if _redetect_verdict_ok(d.verdict, _centre_inside(d.box, near), target.operator_selected)
-            and not _rejected(state, d, config)
-        ]
+    if (
+        purpose is QueryPurpose.REDETECT
+        and state.mode is MissionState.LOST
+        and not _given_up(state, config)
+        and not config.verified_reinit  # the paper's policy: the mission picks the box itself
+    ):
+        usable = [d for d in answer.candidates if not _refused(state, target, d, config)]
         best = select_by_c_box(target.box, usable)
         gate = config.reinit_gate * (config.camera.width + config.camera.height)
         if best is None or c_box(target.box, best.box) > gate:
@@ -399,6 +412,21 @@ def _answer(state: State, answer: BackendAnswer, config: MissionConfig) -> Resul
         target = replace(target, box=best.box, keyframe_id=answer.keyframe_id)
         return replace(state, target=target), (TrackerInit(best.box, answer.keyframe_id, target.candidate_id, reinit=True),)
     return state, ()
+
+
+def _judging(state: State, config: MissionConfig) -> bool:
+    """States in which an answer may move the track: a track the mission follows or re-detects (not while
+    the first lock is still being acquired, nor once LOST has given up)."""
+    return state.mode in _JUDGED and not _given_up(state, config)
+
+
+def _refused(state: State, target: Target, det: Detection, config: MissionConfig) -> bool:
+    """A candidate the mission would never re-initialise on. Away from the last box only a "yes" may re-find
+    the target, however wide the query's region: anything less could be a distractor anywhere in view.
+    Near it, the operator's own target (never checked against the prompt) may be re-found on any verdict,
+    others on anything but "no". The rejection memory (supervisor's rejections) is never re-found."""
+    near = _centre_inside(det.box, _roi(target.box, config))
+    return not _redetect_verdict_ok(det.verdict, near, target.operator_selected) or _rejected(state, det, config)
 
 
 def _backend_down(state: State, event: BackendUnreachable) -> Result:
@@ -438,6 +466,10 @@ def _tick(state: State, config: MissionConfig) -> Result:
             return state, query
         if mode is MissionState.CONFIRMED and _report_due(state, config):
             return replace(state, last_report_s=now), (_report(target, "confirmed"),)
+        if mode is MissionState.FOLLOWING and config.verified_reinit and _query_due(state, config.query_interval_s):
+            # Evidence for the front-end's policy while trusted too: a tracker that slid onto a neighbour
+            # follows them smoothly, and only a keyframe answer can show it.
+            return _query(state, QueryPurpose.TRACK_CHECK, _roi(target.box, config))
         return state, ()
     if mode is MissionState.LOST:
         return _lost_tick(state, target, config)

@@ -57,6 +57,9 @@ class MissionConfig:
     redetect_roi_scale: float = 3.0  # re-detection ROI on losing the target: the last box grown this many times
     redetect_full_frame_s: float = 4.0  # ... growing with time lost to the whole frame after this long
     reinit_gate: float = 0.5  # largest C_box for re-initialisation, as a fraction of (width + height)
+    # The tracking front-end judges every answer ([tracker] reinit_policy = "verified"; the runner sets this
+    # from the front-end): the mission hands it what it accepts instead of choosing a re-init box itself.
+    verified_reinit: bool = False
     rejection_radius_m: float = 5.0
     # A GCS track rectangle skips the supervisor's confirmation ([safety] gcs_track_confirms).
     operator_box_confirms: bool = False

@@ -74,7 +74,7 @@ class TrackerConfig(ConfigSection):
     # What a re-detection answer may do (docs/tracking.md): "verified" moves the track only when a candidate
     # beats it on evidence reinit_confirmations keyframes in a row and otherwise waits; "c_box" is the
     # paper's (nearest candidate to the last trusted box whenever lost), "score" the reference code's.
-    # Used by `eval`; in flight the mission behaviour still picks the re-detection candidate itself.
+    # Used by `eval` and in flight (the mission hands every answer for the track to this policy).
     reinit_policy: Literal["verified", "c_box", "score"] = "verified"
     reinit_confirmations: int = Field(2, ge=1, le=10)
     reinit_agree_iou: float = Field(0.5, gt=0, le=1)  # a candidate overlapping the track this much is its own

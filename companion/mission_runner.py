@@ -18,8 +18,8 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Collection, Sequence
+from dataclasses import dataclass, replace
 from typing import Any, Protocol
 
 from behaviors.actions import (
@@ -28,6 +28,7 @@ from behaviors.actions import (
     FlightMode,
     GcsMessage,
     Hold,
+    JudgeCandidates,
     ReleaseControl,
     RememberRejection,
     ReportCandidate,
@@ -50,6 +51,7 @@ from behaviors.geometry import Box
 from behaviors.mission import ACTIVE, MissionState, State, initial_state, step
 from behaviors.mission_commands import MissionCommand, StartMission, TrackRectangle
 from behaviors.mission_config import MissionConfig
+from behaviors.reinit_policy import ReinitAction, ReinitDecision
 from behaviors.setpoint import Setpoint
 from behaviors.telemetry import Telemetry
 from behaviors.track_result import TrackResult
@@ -122,6 +124,10 @@ class TrackingFrontendLike(Protocol):
 
     def apply_candidates(self, keyframe_id: int, detections: Sequence[Detection]) -> Detection | None: ...
 
+    def judge_candidates(
+        self, keyframe_id: int, detections: Sequence[Detection], refused: Collection[int] = ()
+    ) -> ReinitDecision | None: ...
+
     def stop(self) -> None: ...
 
 
@@ -135,7 +141,8 @@ class LoopObserver(Protocol):
     def on_health(self, time_s: float, healthy: bool, reasons: tuple[str, ...]) -> None: ...
 
 
-# An observer may also define `on_safety(event: SafetyEvent)` to see the link's watchdog and mode events.
+# An observer may also define `on_safety(event: SafetyEvent)` to see the link's watchdog and mode events, and
+# `on_reinit(init: TrackerInit, time_s: float)` to see a re-initialisation the front-end's policy decided.
 
 
 @dataclass(frozen=True)
@@ -178,7 +185,9 @@ class MissionRunner:
         clock: Callable[[], float] = time.monotonic,
         video_sinks: Sequence[Callable[[Any, Box | None, str], None]] = (),
     ) -> None:
-        self.mission = mission
+        # One policy for flight and eval: with the front-end's "verified" policy ([tracker] reinit_policy)
+        # the mission hands it every answer for the track instead of choosing a re-init box itself.
+        self.mission = replace(mission, verified_reinit=getattr(frontend, "policy", "c_box") == "verified")
         self.frames = frames
         self.frontend = frontend
         self.vehicle = vehicle
@@ -293,6 +302,8 @@ class MissionRunner:
             self._submit(action)
         elif isinstance(action, TrackerInit):
             self._tracker_init(action)
+        elif isinstance(action, JudgeCandidates):
+            self._judge(action)
         elif isinstance(action, TrackerStop):
             self.frontend.stop()
         elif isinstance(action, ReportCandidate):
@@ -326,6 +337,20 @@ class MissionRunner:
             if chosen is not None:
                 return
         self.frontend.start(keyframe, action.box)
+
+    def _judge(self, action: JudgeCandidates) -> None:
+        decision = self.frontend.judge_candidates(action.keyframe_id, action.candidates, action.refused)
+        if decision is None:
+            return
+        log.debug("answer on frame %d: %s (%s)", action.keyframe_id, decision.action.value, decision.reason)
+        if decision.action is ReinitAction.REINIT and decision.index is not None:
+            chosen = action.candidates[decision.index]
+            # The re-initialisation the front-end decided, told like the mission's own (flight record, SITL).
+            reinit = TrackerInit(chosen.box, action.keyframe_id, chosen.candidate_id, reinit=True)
+            for obs in self.observers:
+                on_reinit = getattr(obs, "on_reinit", None)
+                if on_reinit is not None:
+                    on_reinit(reinit, self.state.now_s)
 
     def _report_candidate(self, report: ReportCandidate) -> None:
         where = ""
@@ -507,6 +532,9 @@ def describe_action(action: Action, t: float) -> dict[str, Any]:
     if isinstance(action, TrackerInit):
         return {"kind": "reinit" if action.reinit else "tracker_init", "t": t, "box": _box(action.box),
                 "keyframe_id": action.keyframe_id, "candidate_id": action.candidate_id}
+    if isinstance(action, JudgeCandidates):
+        return {"kind": "judge", "t": t, "keyframe_id": action.keyframe_id, "candidates": len(action.candidates),
+                "refused": list(action.refused)}
     if isinstance(action, ReportCandidate):
         return {"kind": "candidate_report", "t": t, "status": action.status, "candidate_id": action.candidate_id,
                 "verdict": action.verdict.value, "box": _box(action.box), "justification": action.justification[:120]}
@@ -559,6 +587,9 @@ class EventLogObserver:
     def on_safety(self, event: SafetyEvent) -> None:
         self._emit({"kind": "safety", "t": event.time_s, "reason": event.reason, "action": event.action,
                     "detail": event.detail, "by_other_party": event.by_other_party})
+
+    def on_reinit(self, init: TrackerInit, time_s: float) -> None:
+        self._emit(describe_action(init, time_s))
 
     def on_health(self, time_s: float, healthy: bool, reasons: tuple[str, ...]) -> None:
         if healthy is not self._healthy:

@@ -74,7 +74,10 @@ def mission_config(config: CompanionConfig) -> MissionConfig:
         backend=config.backend.model_dump(),
     )
     # The lens calibration is read here (a file, OpenCV): the behaviours get the resulting numbers.
-    return replace(sections, camera=camera_model(config.camera))
+    # The front-end's re-initialisation policy decides how the mission hands it answers (docs/behavior.md);
+    # set here too so that the flight record holds the config the mission really ran with (replay).
+    verified = config.tracker.reinit_policy == "verified"
+    return replace(sections, camera=camera_model(config.camera), verified_reinit=verified)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -17,6 +17,7 @@ from behaviors.actions import (
     FlightMode,
     GcsMessage,
     Hold,
+    JudgeCandidates,
     QueryPurpose,
     ReleaseControl,
     RememberRejection,
@@ -96,6 +97,8 @@ actions: st.SearchStrategy[Action] = st.one_of(
     st.builds(BackendQuery, st.integers(0, 10**6), st.sampled_from(QueryPurpose), text, text, st.one_of(st.none(), boxes)),
     st.builds(TrackerInit, boxes, st.integers(-1, 10**6), text, st.booleans()),
     st.builds(TrackerStop, text),
+    st.builds(JudgeCandidates, st.integers(0, 10**6), st.lists(detections, max_size=3).map(tuple),
+              st.lists(st.integers(0, 2), max_size=3).map(tuple)),
     st.builds(ReportCandidate, text, text, st.sampled_from(Verdict), st.one_of(st.none(), geo), boxes, text),
     st.builds(RememberRejection, text, st.one_of(st.none(), geo), st.lists(finite, max_size=4).map(tuple)),
 )

@@ -15,6 +15,7 @@ from behaviors.actions import (
     FlightMode,
     GcsMessage,
     Hold,
+    JudgeCandidates,
     QueryPurpose,
     ReleaseControl,
     RememberRejection,
@@ -662,3 +663,72 @@ def test_redetect_settings_come_from_the_behavior_section() -> None:
     assert (config.redetect_roi_scale, config.redetect_full_frame_s) == (6.0, 8.0)
     with pytest.raises(ValueError, match="redetect_roi_scale"):
         MissionConfig.from_sections(behavior={"redetect_roi_scale": "big"}, control={}, safety={}, camera={}, backend={})
+
+
+# --- "verified" re-initialisation policy: the mission hands answers to the front-end --------------------
+
+VERIFIED = replace(CFG, verified_reinit=True)
+
+
+def test_verified_lost_hands_the_answer_to_the_front_end_with_what_the_mission_refuses() -> None:
+    state = reach(S.FOLLOWING, VERIFIED)
+    state, actions = step(state, cmd(1.15, RejectCandidate("r")), VERIFIED)  # someone else, remembered
+    state, actions = step(state, tracked(1.2, None, ok=False, reason="left_frame"), VERIFIED)
+    query = last_query(actions)
+    near = Box(FAR.x + 6, FAR.y + 3, FAR.w, FAR.h)
+    far_away = Box(5, 5, 60, 120)
+    cands = (
+        candidate(far_away, "z"),  # a "yes" away from the last box: acceptable
+        candidate(near, "n", Verdict.UNCERTAIN),  # near, not "no": acceptable
+        candidate(FAR, "no", Verdict.NO),  # refused: verdict no
+        candidate(far_away, "u", Verdict.UNCERTAIN),  # refused: away from the last box without a "yes"
+        candidate(near, "r"),  # refused: the supervisor rejected it
+    )
+    state, actions = step(state, BackendAnswer(1.5, query.query_id, 45, cands), VERIFIED)
+    assert actions == (JudgeCandidates(45, cands, (2, 3, 4)),)  # no TrackerInit: the front-end decides
+    assert state.mode is S.LOST and state.target is not None and state.target.box == FAR  # nothing moved yet
+    state, _ = step(state, tracked(1.6, near), VERIFIED)
+    assert state.mode is S.FOLLOWING  # a trusted result (whoever caused it) ends LOST as before
+
+
+def test_verified_following_checks_the_track_and_judges_the_answer() -> None:
+    state = reach(S.FOLLOWING, VERIFIED)
+    state, actions = run(state, [tracked(2.0, FAR), TimerTick(2.05)], VERIFIED)
+    query = last_query(actions)
+    assert query.purpose is QueryPurpose.TRACK_CHECK and query.roi is not None
+    assert query.roi.x <= FAR.x and query.roi.x2 >= FAR.x2
+    state, actions = step(state, tracked(2.06, FAR), VERIFIED)
+    answer = BackendAnswer(2.1, query.query_id, 62, (candidate(FAR, "c1", Verdict.NO),))
+    state, actions = step(state, answer, VERIFIED)
+    assert actions == (JudgeCandidates(62, answer.candidates, (0,)),) and state.mode is S.FOLLOWING
+
+
+@pytest.mark.parametrize("mode", [S.FOLLOWING, S.LOST])
+def test_paper_policy_sends_no_track_checks_and_judges_nothing(mode: MissionState) -> None:
+    state = reach(mode)
+    _, actions = run(state, [tracked(1.9, FAR if mode is S.FOLLOWING else None, ok=mode is S.FOLLOWING),
+                             TimerTick(2.05)], CFG)
+    assert all(q.purpose is not QueryPurpose.TRACK_CHECK for q in actions if isinstance(q, BackendQuery))
+    query = state.queries[-1][0] if state.queries else None
+    if query is not None:
+        _, actions = step(state, BackendAnswer(1.5, query, 45, (candidate(FAR, "n", Verdict.UNCERTAIN),)), CFG)
+        assert not [a for a in actions if isinstance(a, JudgeCandidates)]
+
+
+@pytest.mark.parametrize("mode", [S.ACQUIRING, S.SEARCHING])
+def test_verified_judges_nothing_before_a_track_is_locked(mode: MissionState) -> None:
+    state = reach(mode, VERIFIED)
+    state, actions = step(state, TimerTick(1.05), VERIFIED)
+    for qid, _ in state.queries:
+        _, actions = step(state, BackendAnswer(1.06, qid, 31, (candidate(FAR, "x", Verdict.UNCERTAIN),)), VERIFIED)
+        assert not [a for a in actions if isinstance(a, JudgeCandidates)]
+
+
+def test_verified_lost_that_gave_up_judges_nothing() -> None:
+    config = replace(VERIFIED, lost_action=LostAction.LOITER)
+    state = reach(S.LOST, config)
+    query = state.queries[-1][0]
+    state, _ = run(state, [TimerTick(1.2 + config.lost_hold_after_s), TimerTick(1.3 + config.lost_action_after_s)], config)
+    assert state.lost_stage == 2
+    _, actions = step(state, BackendAnswer(40.0, query, 45, (candidate(FAR),)), config)
+    assert actions == ()

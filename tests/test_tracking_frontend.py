@@ -48,7 +48,7 @@ def test_idle_then_tracks_from_start(models_dir: Path, crossing) -> None:  # typ
 
 def test_candidates_are_chosen_by_c_box_not_by_score(models_dir: Path, crossing) -> None:  # type: ignore[no-untyped-def]
     seq, frames = crossing
-    fe = _frontend(models_dir)
+    fe = _frontend(models_dir, policy="c_box")
     fe.feed(frames[0])
     fe.start(1, seq.ground_truth[0])
     for frame in frames[1:10]:
@@ -72,7 +72,7 @@ def test_candidates_are_chosen_by_c_box_not_by_score(models_dir: Path, crossing)
 
 def test_far_candidates_are_gated_and_no_trusted_box_means_no_choice(models_dir: Path, crossing) -> None:  # type: ignore[no-untyped-def]
     seq, frames = crossing
-    fe = _frontend(models_dir)
+    fe = _frontend(models_dir, policy="c_box")
     fe.feed(frames[0])
     assert fe.apply_candidates(1, [Detection(seq.ground_truth[0], 0.9)]) is None  # nothing trusted yet
     fe.start(1, seq.ground_truth[0])
@@ -86,7 +86,7 @@ def test_far_candidates_are_gated_and_no_trusted_box_means_no_choice(models_dir:
 
 def test_loss_is_latched_until_reinitialised(models_dir: Path, crossing) -> None:  # type: ignore[no-untyped-def]
     seq, frames = crossing
-    fe = _frontend(models_dir)
+    fe = _frontend(models_dir, policy="c_box")  # the paper's policies latch; "verified" judges each frame
     fe.feed(frames[0])
     fe.start(1, seq.ground_truth[0])
     fe.feed(frames[1])

@@ -25,7 +25,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -162,6 +162,7 @@ class TrackingFrontend:
         """A front-end for `config` (tracker weights are checked now: ModelError if missing)."""
         name = tracker_name or config.name
         create_tracker(name, model_dir)  # fail at start-up, not at the first acquisition
+        kwargs.setdefault("policy", config.reinit_policy)  # flight and eval fly the configured policy
         return cls(
             lambda: create_tracker(name, model_dir),
             loss_settings(config, name),
@@ -244,10 +245,14 @@ class TrackingFrontend:
         """The tracker's box on a recent frame (None when it had none or the frame is too old)."""
         return self._boxes.get(frame_id, (None, True))[0]
 
-    def judge_candidates(self, keyframe_id: int, detections: Sequence[Detection]) -> ReinitDecision | None:
+    def judge_candidates(
+        self, keyframe_id: int, detections: Sequence[Detection], refused: Collection[int] = ()
+    ) -> ReinitDecision | None:
         """The "verified" policy on one answer (`behaviors.reinit_policy`), carried out: a confirmation
         withdraws a latched loss, a re-initialisation starts on the winner in the tracker's convention.
-        None when there is no track to judge or the keyframe has left the ring."""
+        Candidates at indices in `refused` (the mission's: not acceptable as the described target) count
+        as a "no": evidence about the track, never a winner. None when there is no track to judge or the
+        keyframe has left the ring."""
         keyframe = self.ring.get(keyframe_id)
         if keyframe is None or self._tracker is None or self._catch_up is not None:
             return None
@@ -266,6 +271,7 @@ class TrackingFrontend:
                              "used for this track", self.label, keyframe_id)
         if not self._verdicts_used:
             verdicts = [Verdict.UNCERTAIN] * len(detections)
+        verdicts = [Verdict.NO if i in refused else v for i, v in enumerate(verdicts)]
         track = TrackEvidence(
             box=track_box,
             lost=lost,
