@@ -12,6 +12,7 @@ from typing import Any
 
 import cv2
 import pytest
+from companion.tools.tracking_eval import load_sequence
 
 from behaviors.actions import QueryPurpose
 from behaviors.detection import Detection, Verdict
@@ -24,7 +25,6 @@ from behaviors.reinit_policy import ReinitDecision
 from companion.cloud.backend_worker import WorkerHealth
 from companion.config import TrackerConfig
 from companion.mission_runner import MissionRunner
-from companion.tools.tracking_eval import load_sequence
 from companion.vision.frame_sources import Frame
 from companion.vision.tracking_frontend import TrackingFrontend
 
