@@ -12,7 +12,6 @@ from typing import Any
 
 import cv2
 import pytest
-from companion.tools.tracking_eval import load_sequence
 
 from behaviors.actions import QueryPurpose
 from behaviors.detection import Detection, Verdict
@@ -27,6 +26,7 @@ from companion.config import TrackerConfig
 from companion.mission_runner import MissionRunner
 from companion.vision.frame_sources import Frame
 from companion.vision.tracking_frontend import TrackingFrontend
+from companion_tools.tracking_eval import load_sequence
 
 SEQ = "otb_Crossing"
 
