@@ -86,8 +86,13 @@ def create_app(
     )
     s = config.sessions
     store = sessions or SessionStore(
-        build_state_store(s), s.rejection_similarity, s.rejection_radius_m, s.mission_ttl_s,
-        s.max_rejections_per_mission, s.max_missions_per_vehicle, config.server.max_crop_pixels,
+        build_state_store(s),
+        s.rejection_similarity,
+        s.rejection_radius_m,
+        s.mission_ttl_s,
+        s.max_rejections_per_mission,
+        s.max_missions_per_vehicle,
+        config.server.max_crop_pixels,
     )
     feed = ChangeFeed(store.state)
 
@@ -115,13 +120,18 @@ def create_app(
     app.state.scheduler = FairScheduler(s.detector_concurrency, s.max_queued_per_vehicle)
     app.state.supervisor_view = SupervisorView(store)
     app.state.started = time.time()
-    app.add_middleware(BodyLimits, max_bytes=config.server.max_request_bytes, timeout_s=config.server.body_timeout_s)
+    app.add_middleware(
+        BodyLimits, max_bytes=config.server.max_request_bytes, timeout_s=config.server.body_timeout_s
+    )
     app.add_middleware(SecurityHeaders)
 
     @app.exception_handler(QuotaExceededError)
     async def _quota(_: Request, exc: QuotaExceededError) -> JSONResponse:
-        return JSONResponse(status_code=429, content={"detail": str(exc)},
-                            headers={"Retry-After": str(int(exc.retry_after_s))})
+        return JSONResponse(
+            status_code=429,
+            content={"detail": str(exc)},
+            headers={"Retry-After": str(int(exc.retry_after_s))},
+        )
 
     @app.exception_handler(ImageError)
     async def _image(_: Request, exc: ImageError) -> JSONResponse:

@@ -36,7 +36,9 @@ def principal_for(auth: AuthConfig, authorization: str | None) -> Principal:
     scheme, _, token = authorization.partition(" ")
     token = token.strip()
     if scheme.lower() != "bearer" or not token:
-        raise HTTPException(401, "malformed Authorization header; expected 'Bearer <token>'", headers=CHALLENGE)
+        raise HTTPException(
+            401, "malformed Authorization header; expected 'Bearer <token>'", headers=CHALLENGE
+        )
     match: Principal | None = None
     for vehicle_id, expected in auth.tokens.items():
         if expected and hmac.compare_digest(token.encode(), expected.encode()):

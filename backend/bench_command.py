@@ -54,18 +54,33 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--latency", type=float, default=1.0, help="VLM latency L in seconds (default 1.0)")
-    parser.add_argument("--candidates", type=int, default=5, help="k candidates in the t_f keyframe (default 5)")
-    parser.add_argument("--vehicles", type=int, nargs="+", default=[1, 4, 16], help="fleet sizes N (default 1 4 16)")
+    parser.add_argument(
+        "--candidates", type=int, default=5, help="k candidates in the t_f keyframe (default 5)"
+    )
+    parser.add_argument(
+        "--vehicles", type=int, nargs="+", default=[1, 4, 16], help="fleet sizes N (default 1 4 16)"
+    )
     parser.add_argument("--requests", type=int, default=6, help="keyframes per vehicle (default 6)")
-    parser.add_argument("--verify-concurrency", type=int, default=64, help="server verifier pool for the fleet runs")
-    parser.add_argument("--data", type=Path, help="shared data folder (default: $CLOUDTRACK_SHARED or ../shared)")
+    parser.add_argument(
+        "--verify-concurrency", type=int, default=64, help="server verifier pool for the fleet runs"
+    )
+    parser.add_argument(
+        "--data", type=Path, help="shared data folder (default: $CLOUDTRACK_SHARED or ../shared)"
+    )
     parser.add_argument("--model-dir", help="weights folder (default: $CLOUDTRACK_MODEL_DIR, then the cache)")
     parser.add_argument("--url", help="measure this running server instead (fleet part only)")
     parser.add_argument("--tokens", help='JSON {"vehicle id": "token"} for --url')
-    parser.add_argument("--replica-vehicles", type=int, default=16,
-                        help="vehicles for the 1-vs-2-replica and failover runs (default 16)")
-    parser.add_argument("--no-replicas", action="store_true",
-                        help="skip the replica runs (they need redis-server and nginx: make install-services)")
+    parser.add_argument(
+        "--replica-vehicles",
+        type=int,
+        default=16,
+        help="vehicles for the 1-vs-2-replica and failover runs (default 16)",
+    )
+    parser.add_argument(
+        "--no-replicas",
+        action="store_true",
+        help="skip the replica runs (they need redis-server and nginx: make install-services)",
+    )
     parser.add_argument("--json", type=Path, metavar="OUT", help="write the figures as JSON")
     parser.set_defaults(func=_bench)
 
@@ -129,23 +144,43 @@ def detection_time(model_dir: Path, sequences: Path, runs: int = 50) -> dict[str
 
 def _vlm_settings(base_url: str, model_dir: Path) -> list[str]:
     # One onnxruntime thread per detection and two detections at once: no oversubscribed cores.
-    return ['verifier.kind="vlm"', f"vlm.base_url={json.dumps(base_url)}", f'vlm.model="{MODEL_NAME}"',
-            f"detector.model_dir={json.dumps(str(model_dir))}", "vlm.max_retries=0", "detector.threads=1",
-            "sessions.detector_concurrency=2", 'sessions.sqlite_path=":memory:"', "sessions.rate_limit_requests=100000"]
+    return [
+        'verifier.kind="vlm"',
+        f"vlm.base_url={json.dumps(base_url)}",
+        f'vlm.model="{MODEL_NAME}"',
+        f"detector.model_dir={json.dumps(str(model_dir))}",
+        "vlm.max_retries=0",
+        "detector.threads=1",
+        "sessions.detector_concurrency=2",
+        'sessions.sqlite_path=":memory:"',
+        "sessions.rate_limit_requests=100000",
+    ]
 
 
-def t_f_concurrent_vs_sequential(emulator: VlmEmulator, model_dir: Path, sequences: Path, k: int, latency: float) -> dict[str, Any]:
+def t_f_concurrent_vs_sequential(
+    emulator: VlmEmulator, model_dir: Path, sequences: Path, k: int, latency: float
+) -> dict[str, Any]:
     image = mosaic(sequences, k)
     result: dict[str, Any] = {"k": k, "latency_s": latency}
     for label, pool in (("concurrent", k), ("sequential", 1)):
-        settings = [*_vlm_settings(emulator.base_url, model_dir), f"verifier.concurrency={pool}",
-                    f"detector.max_candidates={k}", f"verifier.timeout_s={k * latency + 10}",
-                    f"verifier.request_deadline_s={k * latency + 30}"]
+        settings = [
+            *_vlm_settings(emulator.base_url, model_dir),
+            f"verifier.concurrency={pool}",
+            f"detector.max_candidates={k}",
+            f"verifier.timeout_s={k * latency + 10}",
+            f"verifier.request_deadline_s={k * latency + 30}",
+        ]
         say(f"  t_f with a verifier pool of {pool} ...")
         server = BackendProcess(settings, {"bench-0": "bench-vehicle-token-0000"})
         try:
             server.wait_ready()
-            client = BackendClient(server.url, "bench-vehicle-token-0000", timeout_s=k * latency + 60, vehicle_id="bench-0", mission_id="t-f")
+            client = BackendClient(
+                server.url,
+                "bench-vehicle-token-0000",
+                timeout_s=k * latency + 60,
+                vehicle_id="bench-0",
+                mission_id="t-f",
+            )
             times, counts = [], []
             for _ in range(3):
                 start = time.perf_counter()
@@ -159,7 +194,9 @@ def t_f_concurrent_vs_sequential(emulator: VlmEmulator, model_dir: Path, sequenc
     return result
 
 
-def fleet(url: str, tokens: dict[str, str], n: int, requests_each: int, frames: list[np.ndarray]) -> dict[str, float]:
+def fleet(
+    url: str, tokens: dict[str, str], n: int, requests_each: int, frames: list[np.ndarray]
+) -> dict[str, float]:
     vehicles = list(tokens)[:n]
     latencies: list[float] = []
     sizes: list[int] = []
@@ -167,7 +204,9 @@ def fleet(url: str, tokens: dict[str, str], n: int, requests_each: int, frames: 
     lock = threading.Lock()
 
     def vehicle(vehicle_id: str, offset: int) -> None:
-        client = BackendClient(url, tokens[vehicle_id], timeout_s=120, vehicle_id=vehicle_id, mission_id=f"bench-{vehicle_id}")
+        client = BackendClient(
+            url, tokens[vehicle_id], timeout_s=120, vehicle_id=vehicle_id, mission_id=f"bench-{vehicle_id}"
+        )
         for i in range(requests_each):
             frame = frames[(offset + i) % len(frames)]
             start = time.perf_counter()
@@ -205,7 +244,9 @@ def _fleet_frames(sequences: Path) -> list[np.ndarray]:
     frames = []
     for name in ("uav123_person12_1", "otb_Crossing", "dtb70_Surfing06", "uav123_wakeboard7"):
         for index in (1, 21, 41, 61):
-            frames.append(cv2.resize(_frame(sequences, name, index), (640, 480), interpolation=cv2.INTER_AREA))
+            frames.append(
+                cv2.resize(_frame(sequences, name, index), (640, 480), interpolation=cv2.INTER_AREA)
+            )
     return frames
 
 
@@ -214,8 +255,10 @@ def _print_report(report: dict[str, Any]) -> None:
         d = report["detection"]
         print(f"YOLOX-nano, 640x480 frame ({d['cpus']:.0f} CPUs, load average {d['load_average_1min']:.1f}):")
         for label, text in (("1thread", "1 thread"), ("allcores", "all cores")):
-            print(f"  {text}: median {d['median_ms_' + label]:.1f} ms, min {d['min_ms_' + label]:.1f} ms, "
-                  f"p95 {d['p95_ms_' + label]:.1f} ms")
+            print(
+                f"  {text}: median {d['median_ms_' + label]:.1f} ms, min {d['min_ms_' + label]:.1f} ms, "
+                f"p95 {d['p95_ms_' + label]:.1f} ms"
+            )
         print()
     if "t_f" in report:
         t = report["t_f"]
@@ -224,26 +267,38 @@ def _print_report(report: dict[str, Any]) -> None:
         for label in ("concurrent", "sequential"):
             print(f"| {label} | {t[label]['t_f_s']:.2f} | {t[label]['candidates'][0]} |")
         print(f"concurrent / sequential = {t['ratio']:.2f}\n")
-    print(f"Fleet: each vehicle sends keyframes back to back (640x480, JPEG 80), VLM latency L={report['latency_s']:.2f} s")
+    print(
+        f"Fleet: each vehicle sends keyframes back to back (640x480, JPEG 80), VLM latency L={report['latency_s']:.2f} s"
+    )
     print("| vehicles | requests | errors | p50 [s] | p95 [s] | throughput [req/s] | bytes/request |")
     print("|---|---|---|---|---|---|---|")
     for row in report["fleet"]:
-        print(f"| {row['vehicles']} | {row['requests']} | {row['errors']} | {row['p50_s']:.2f} | {row['p95_s']:.2f} | "
-              f"{row['throughput_rps']:.2f} | {row['bytes_per_request']:.0f} |")
+        print(
+            f"| {row['vehicles']} | {row['requests']} | {row['errors']} | {row['p50_s']:.2f} | {row['p95_s']:.2f} | "
+            f"{row['throughput_rps']:.2f} | {row['bytes_per_request']:.0f} |"
+        )
     if "replicas" in report:
         r = report["replicas"]
-        print(f"\nReplicas sharing one redis-server behind nginx, {r['vehicles']} vehicles "
-              f"(2 replicas on the same {os.cpu_count()} CPUs as 1):")
-        print("| replicas | requests | errors | p50 [s] | p95 [s] | throughput [req/s] |\n|---|---|---|---|---|---|")
+        print(
+            f"\nReplicas sharing one redis-server behind nginx, {r['vehicles']} vehicles "
+            f"(2 replicas on the same {os.cpu_count()} CPUs as 1):"
+        )
+        print(
+            "| replicas | requests | errors | p50 [s] | p95 [s] | throughput [req/s] |\n|---|---|---|---|---|---|"
+        )
         for count in (1, 2):
             row = r[f"replicas_{count}"]
-            print(f"| {count} | {row['requests']} | {row['errors']} | {row['p50_s']:.2f} | {row['p95_s']:.2f} | "
-                  f"{row['throughput_rps']:.2f} |")
+            print(
+                f"| {count} | {row['requests']} | {row['errors']} | {row['p50_s']:.2f} | {row['p95_s']:.2f} | "
+                f"{row['throughput_rps']:.2f} |"
+            )
         print(f"p95 2 replicas / 1 replica = {r['replicas_2']['p95_s'] / r['replicas_1']['p95_s']:.2f}")
         f = r["failover"]
-        print(f"Failover (one replica SIGKILLed half-way): {f['keyframes']} keyframes, {f['errors']} errors, "
-              f"p95 {f['p95_s']:.2f} s; rejections acknowledged {f['acknowledged_rejections']}, lost "
-              f"{f['lost_rejections']}; decisions acknowledged {f['acknowledged_decisions']}, lost {f['lost_decisions']}")
+        print(
+            f"Failover (one replica SIGKILLed half-way): {f['keyframes']} keyframes, {f['errors']} errors, "
+            f"p95 {f['p95_s']:.2f} s; rejections acknowledged {f['acknowledged_rejections']}, lost "
+            f"{f['lost_rejections']}; decisions acknowledged {f['acknowledged_decisions']}, lost {f['lost_decisions']}"
+        )
 
 
 def _bench(args: argparse.Namespace) -> int:
@@ -256,16 +311,23 @@ def _bench(args: argparse.Namespace) -> int:
             tokens = json.loads(args.tokens or "{}")
             if not isinstance(tokens, dict) or len(tokens) < max(args.vehicles):
                 raise ValueError(f"--url needs --tokens with at least {max(args.vehicles)} vehicles")
-            report["fleet"] = [fleet(args.url.rstrip("/"), tokens, n, args.requests, frames) for n in args.vehicles]
+            report["fleet"] = [
+                fleet(args.url.rstrip("/"), tokens, n, args.requests, frames) for n in args.vehicles
+            ]
         else:
             require("yolox", model_dir)
             say("[1/4] YOLOX detection time on one frame ...")
             report["detection"] = detection_time(model_dir, sequences)
             with VlmEmulator(latency_s=args.latency) as emulator:
                 say(f"[2/4] t_f for k={args.candidates} candidates, concurrent vs sequential ...")
-                report["t_f"] = t_f_concurrent_vs_sequential(emulator, model_dir, sequences, args.candidates, args.latency)
+                report["t_f"] = t_f_concurrent_vs_sequential(
+                    emulator, model_dir, sequences, args.candidates, args.latency
+                )
                 tokens = fleet_tokens(max(args.vehicles))
-                settings = [*_vlm_settings(emulator.base_url, model_dir), f"verifier.concurrency={args.verify_concurrency}"]
+                settings = [
+                    *_vlm_settings(emulator.base_url, model_dir),
+                    f"verifier.concurrency={args.verify_concurrency}",
+                ]
                 server = BackendProcess(settings, tokens)
                 try:
                     server.wait_ready()
@@ -276,9 +338,12 @@ def _bench(args: argparse.Namespace) -> int:
                 finally:
                     server.stop()
                 if not args.no_replicas:
-                    say(f"[4/4] {args.replica_vehicles} vehicles over 1 and 2 replicas (redis-server, nginx) ...")
-                    report["replicas"] = replicated_bench(settings, args.replica_vehicles, args.requests, frames, PROMPT,
-                                                          fleet, say)
+                    say(
+                        f"[4/4] {args.replica_vehicles} vehicles over 1 and 2 replicas (redis-server, nginx) ..."
+                    )
+                    report["replicas"] = replicated_bench(
+                        settings, args.replica_vehicles, args.requests, frames, PROMPT, fleet, say
+                    )
     except (ConfigError, ModelError, ValueError, OSError, RuntimeError, BackendError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -51,7 +51,9 @@ class AuthConfig(ConfigSection):
     def _tokens_as_text(cls, value: object) -> object:
         # An all-digit token in JSON is still a token.
         if isinstance(value, dict):
-            return {k: str(v) if isinstance(v, int) and not isinstance(v, bool) else v for k, v in value.items()}
+            return {
+                k: str(v) if isinstance(v, int) and not isinstance(v, bool) else v for k, v in value.items()
+            }
         return value
 
     @field_validator("supervisor_token", mode="before")
@@ -73,7 +75,9 @@ class AuthConfig(ConfigSection):
         for vehicles in by_token.values():
             if len(vehicles) > 1:
                 problems.append(f"vehicles {', '.join(sorted(vehicles))} share one token")
-        same = sorted(v for v, t in self.tokens.items() if self.supervisor_token and t == self.supervisor_token)
+        same = sorted(
+            v for v, t in self.tokens.items() if self.supervisor_token and t == self.supervisor_token
+        )
         if same:
             problems.append(f"the token of {', '.join(same)} equals supervisor_token")
         if problems:
@@ -167,7 +171,11 @@ def backend_environment(environ: Mapping[str, str]) -> dict[str, str]:
     The companion's CLOUDTRACK_BACKEND__<KEY> (its [backend] section, note the double underscore) shares
     the prefix and is left out, so one environment can hold both processes' settings.
     """
-    return {k: v for k, v in environ.items() if k.startswith(ENV_PREFIX) and not k[len(ENV_PREFIX) :].startswith("_")}
+    return {
+        k: v
+        for k, v in environ.items()
+        if k.startswith(ENV_PREFIX) and not k[len(ENV_PREFIX) :].startswith("_")
+    }
 
 
 def load_backend_config(
@@ -175,5 +183,11 @@ def load_backend_config(
 ) -> BackendConfig:
     """Defaults, then FILE, then the environment, then --set flags; ConfigError on anything not allowed."""
     full = os.environ if environ is None else environ
-    return load_config(BackendConfig, path, env_prefix=ENV_PREFIX, environ=backend_environment(full),
-                       assignments=assignments, default_files=default_config_files("backend.toml", full))
+    return load_config(
+        BackendConfig,
+        path,
+        env_prefix=ENV_PREFIX,
+        environ=backend_environment(full),
+        assignments=assignments,
+        default_files=default_config_files("backend.toml", full),
+    )

@@ -122,9 +122,12 @@ def admit(settings: BackendConfig, sessions: SessionStore, principal: Principal)
     if principal.vehicle_id is None:
         return
     s = settings.sessions
-    wait = sessions.state.rate_hit(principal.vehicle_id, time.time(), s.rate_limit_requests, s.rate_limit_window_s)
+    wait = sessions.state.rate_hit(
+        principal.vehicle_id, time.time(), s.rate_limit_requests, s.rate_limit_window_s
+    )
     if wait is not None:
         raise QuotaExceededError(
             f"vehicle {principal.vehicle_id!r} sent more than {s.rate_limit_requests} requests in "
-            f"{s.rate_limit_window_s:g} s", wait
+            f"{s.rate_limit_window_s:g} s",
+            wait,
         )

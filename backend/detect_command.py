@@ -40,10 +40,16 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
     parser.add_argument("image", type=Path, help="JPEG or PNG file")
     parser.add_argument("--prompt", required=True, help="the full description of the target")
     parser.add_argument("--superset", help="detector class (default: derived from the prompt)")
-    parser.add_argument("--verifier", choices=["none", "local", "local-hsv", "vlm", "cascade"], help="override [verifier] kind")
+    parser.add_argument(
+        "--verifier",
+        choices=["none", "local", "local-hsv", "vlm", "cascade"],
+        help="override [verifier] kind",
+    )
     parser.add_argument("--model-dir", metavar="DIR", help=MODEL_DIR_HELP)
     parser.add_argument("--json", type=Path, metavar="OUT", help="write the candidates as JSON")
-    parser.add_argument("--draw", type=Path, metavar="OUT.jpg", help="write the image with boxes and verdicts")
+    parser.add_argument(
+        "--draw", type=Path, metavar="OUT.jpg", help="write the image with boxes and verdicts"
+    )
     add_config_flags(parser)
     parser.set_defaults(func=_detect)
 
@@ -76,7 +82,11 @@ def draw_candidates(
         left = min(max(0, x1), max(0, width - lw))
         tops = [y1 - lh, y2, y1]  # above the box, below it, inside its top
         rect = next(
-            (r for top in tops if 0 <= top <= height - lh and not _overlaps(r := (left, top, left + lw, top + lh), placed)),
+            (
+                r
+                for top in tops
+                if 0 <= top <= height - lh and not _overlaps(r := (left, top, left + lw, top + lh), placed)
+            ),
             None,
         )
         if rect is None:  # slide down past the labels in the way (wrapping to the top once), bounded
@@ -93,9 +103,19 @@ def draw_candidates(
                 rect = (left, start, left + lw, start + lh)
         placed.append(rect)
         cv2.rectangle(image, rect[:2], (rect[2] - 1, rect[3] - 1), colour, cv2.FILLED)
-        ink = (0, 0, 0) if 0.114 * colour[0] + 0.587 * colour[1] + 0.299 * colour[2] > 110 else (255, 255, 255)
-        cv2.putText(image, text, (rect[0] + pad, rect[3] - pad - baseline), cv2.FONT_HERSHEY_SIMPLEX, scale, ink,
-                    thickness, cv2.LINE_AA)
+        ink = (
+            (0, 0, 0) if 0.114 * colour[0] + 0.587 * colour[1] + 0.299 * colour[2] > 110 else (255, 255, 255)
+        )
+        cv2.putText(
+            image,
+            text,
+            (rect[0] + pad, rect[3] - pad - baseline),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            scale,
+            ink,
+            thickness,
+            cv2.LINE_AA,
+        )
     return placed
 
 
@@ -138,18 +158,30 @@ def _detect(args: argparse.Namespace) -> int:
         detector = build_detector(config.detector)
         verifier = build_verifier(config.verifier, config.vlm)
         with ThreadPoolExecutor(config.verifier.concurrency) as pool:
-            pipeline = Pipeline(detector, verifier, pool, config.crops.margin_px, config.detector.max_candidates,
-                                config.verifier.timeout_s, config.verifier.request_deadline_s, config.verifier.uncertain_policy)
+            pipeline = Pipeline(
+                detector,
+                verifier,
+                pool,
+                config.crops.margin_px,
+                config.detector.max_candidates,
+                config.verifier.timeout_s,
+                config.verifier.request_deadline_s,
+                config.verifier.uncertain_policy,
+            )
             result = pipeline.run(image, args.prompt, superset)
     except (ConfigError, ModelError, ImageError, UnknownSupersetError, ValueError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    print(f"{args.image}: {len(result.candidates)} candidate(s) of {result.superset!r}; detector {result.detector}, "
-          f"verifier {result.verifier}; t_detect {result.t_detect * 1000:.1f} ms, t_verify {result.t_verify * 1000:.1f} ms")
+    print(
+        f"{args.image}: {len(result.candidates)} candidate(s) of {result.superset!r}; detector {result.detector}, "
+        f"verifier {result.verifier}; t_detect {result.t_detect * 1000:.1f} ms, t_verify {result.t_verify * 1000:.1f} ms"
+    )
     for c in result.candidates:
         x1, y1, x2, y2 = c.detection.box.xyxy()
-        print(f"  [{x1:.0f}, {y1:.0f}, {x2:.0f}, {y2:.0f}] score {c.detection.score:.2f} "
-              f"{c.detection.verdict.value.upper():9s} {c.detection.justification}")
+        print(
+            f"  [{x1:.0f}, {y1:.0f}, {x2:.0f}, {y2:.0f}] score {c.detection.score:.2f} "
+            f"{c.detection.verdict.value.upper():9s} {c.detection.justification}"
+        )
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(_as_json(result, args.image), indent=2))

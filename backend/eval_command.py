@@ -45,16 +45,34 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     source = parser.add_mutually_exclusive_group(required=True)
-    source.add_argument("--coco", type=Path, metavar="FILE", help="COCO annotations with referring/attributes texts")
-    source.add_argument("--voc", type=Path, metavar="DIR", help="SARD-style VOC folder (JPEGImages/, Annotations/)")
-    source.add_argument("--sequences", type=Path, metavar="DIR",
-                        help="tracking sequences (frames/, groundtruth.txt, referring.txt): one task per sequence")
-    parser.add_argument("--step", type=int, default=5, help="with --sequences: every STEP-th frame (default 5)")
+    source.add_argument(
+        "--coco", type=Path, metavar="FILE", help="COCO annotations with referring/attributes texts"
+    )
+    source.add_argument(
+        "--voc", type=Path, metavar="DIR", help="SARD-style VOC folder (JPEGImages/, Annotations/)"
+    )
+    source.add_argument(
+        "--sequences",
+        type=Path,
+        metavar="DIR",
+        help="tracking sequences (frames/, groundtruth.txt, referring.txt): one task per sequence",
+    )
+    parser.add_argument(
+        "--step", type=int, default=5, help="with --sequences: every STEP-th frame (default 5)"
+    )
     parser.add_argument("--images", type=Path, metavar="DIR", help="image folder for --coco")
-    parser.add_argument("--attributes", type=Path, metavar="CSV", help="image,xmin,ymin,xmax,ymax,attribute rows for --voc")
-    parser.add_argument("--verifier", action="append", choices=["none", "local", "local-hsv", "vlm", "cascade"],
-                        help="verifier(s) to compare, one table row each (default: [verifier] kind)")
-    parser.add_argument("--strict", action="store_true", help="count only 'yes' (default: 'uncertain' counts too)")
+    parser.add_argument(
+        "--attributes", type=Path, metavar="CSV", help="image,xmin,ymin,xmax,ymax,attribute rows for --voc"
+    )
+    parser.add_argument(
+        "--verifier",
+        action="append",
+        choices=["none", "local", "local-hsv", "vlm", "cascade"],
+        help="verifier(s) to compare, one table row each (default: [verifier] kind)",
+    )
+    parser.add_argument(
+        "--strict", action="store_true", help="count only 'yes' (default: 'uncertain' counts too)"
+    )
     parser.add_argument("--model-dir", help="weights folder (default: $CLOUDTRACK_MODEL_DIR, then the cache)")
     parser.add_argument("--markdown", type=Path, metavar="OUT", help="also write the table to this file")
     parser.add_argument("--json", type=Path, metavar="OUT", help="write the scores as JSON")
@@ -90,11 +108,23 @@ def _eval(args: argparse.Namespace) -> int:
             for kind in kinds:
                 verifier = build_verifier(config.verifier.model_copy(update={"kind": kind}), config.vlm)
                 name = verifier.name if verifier is not None else "none"
-                pipelines[name] = Pipeline(detector, verifier, pool, config.crops.margin_px, config.detector.max_candidates,
-                                           config.verifier.timeout_s, config.verifier.request_deadline_s,
-                                           config.verifier.uncertain_policy)
-            results = evaluate(evalset, detector, pipelines, count_uncertain=not args.strict,
-                               progress=lambda images: tqdm(images, desc="eval", unit="image", file=sys.stderr))
+                pipelines[name] = Pipeline(
+                    detector,
+                    verifier,
+                    pool,
+                    config.crops.margin_px,
+                    config.detector.max_candidates,
+                    config.verifier.timeout_s,
+                    config.verifier.request_deadline_s,
+                    config.verifier.uncertain_policy,
+                )
+            results = evaluate(
+                evalset,
+                detector,
+                pipelines,
+                count_uncertain=not args.strict,
+                progress=lambda images: tqdm(images, desc="eval", unit="image", file=sys.stderr),
+            )
     except (ConfigError, ModelError, DatasetError, ValueError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -105,7 +135,10 @@ def _eval(args: argparse.Namespace) -> int:
         args.markdown.write_text(table + "\n")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        payload = {"tasks": [asdict(t) for t in evalset.tasks], "images": len(evalset.images),
-                   "results": [{**asdict(r), "mAP": r.mean_ap, "mAP50_coco": r.mean_ap50} for r in results]}
+        payload = {
+            "tasks": [asdict(t) for t in evalset.tasks],
+            "images": len(evalset.images),
+            "results": [{**asdict(r), "mAP": r.mean_ap, "mAP50_coco": r.mean_ap50} for r in results],
+        }
         args.json.write_text(json.dumps(payload, indent=2))
     return 0

@@ -105,7 +105,9 @@ def load_coco(coco_file: Path, images_dir: Path) -> EvalSet:
         texts = ([ann["referring"]] if ann.get("referring") else []) + list(ann.get("attributes") or [])
         x, y, w, h = (float(v) for v in ann["bbox"])
         for text in texts:
-            labelled.append((ann["image_id"], str(text), categories.get(ann.get("category_id"), ""), Box(x, y, w, h)))
+            labelled.append(
+                (ann["image_id"], str(text), categories.get(ann.get("category_id"), ""), Box(x, y, w, h))
+            )
     if not labelled:
         raise DatasetError(f"{coco_file}: no annotation carries 'referring' or 'attributes'")
     tasks = _tasks_from((text, category) for _, text, category, _ in labelled)
@@ -125,7 +127,11 @@ def load_coco(coco_file: Path, images_dir: Path) -> EvalSet:
 
 def load_sequences(sequences_dir: Path, step: int = 5) -> EvalSet:
     """Tracking sequences (frames/, groundtruth.txt, referring.txt) as a set: one task per sequence."""
-    folders = sorted(p for p in sequences_dir.iterdir() if (p / "groundtruth.txt").is_file() and (p / "referring.txt").is_file())
+    folders = sorted(
+        p
+        for p in sequences_dir.iterdir()
+        if (p / "groundtruth.txt").is_file() and (p / "referring.txt").is_file()
+    )
     if not folders:
         raise DatasetError(f"{sequences_dir}: no sequence folders with groundtruth.txt and referring.txt")
     tasks: list[EvalTask] = []
@@ -161,10 +167,14 @@ def load_sard_voc(folder: Path, attribute_file: Path, superset: str = "person") 
     try:
         with open(attribute_file, newline="") as f:
             for row in csv.DictReader(f):
-                box = Box.from_xyxy(float(row["xmin"]), float(row["ymin"]), float(row["xmax"]), float(row["ymax"]))
+                box = Box.from_xyxy(
+                    float(row["xmin"]), float(row["ymin"]), float(row["xmax"]), float(row["ymax"])
+                )
                 rows.append((row["image"], row["attribute"].strip(), box))
     except (OSError, KeyError, ValueError) as exc:
-        raise DatasetError(f"{attribute_file}: expected CSV columns image,xmin,ymin,xmax,ymax,attribute: {exc}") from exc
+        raise DatasetError(
+            f"{attribute_file}: expected CSV columns image,xmin,ymin,xmax,ymax,attribute: {exc}"
+        ) from exc
     tasks = _tasks_from((text, superset) for _, text, _ in rows)
     by_prompt = {t.prompt: t.name for t in tasks}
     images = []
@@ -173,11 +183,15 @@ def load_sard_voc(folder: Path, attribute_file: Path, superset: str = "person") 
         for image_name, text, box in rows:
             if image_name == name:
                 truth.setdefault(by_prompt[text], []).append(box)
-        images.append(EvalImage(image_id, folder / "JPEGImages" / name, {k: tuple(v) for k, v in truth.items()}))
+        images.append(
+            EvalImage(image_id, folder / "JPEGImages" / name, {k: tuple(v) for k, v in truth.items()})
+        )
     return EvalSet(tasks, images)
 
 
-def average_precision_voc11(detections: list[Scored], truth: Mapping[int, tuple[Box, ...]], iou_threshold: float = 0.5) -> float:
+def average_precision_voc11(
+    detections: list[Scored], truth: Mapping[int, tuple[Box, ...]], iou_threshold: float = 0.5
+) -> float:
     """11-point interpolated AP (PASCAL VOC 2007): mean over recall r in 0, 0.1, ..., 1 of max precision at recall >= r.
 
     A detection is a true positive when its IoU with a not yet matched ground-truth box exceeds the
@@ -202,7 +216,9 @@ def average_precision_voc11(detections: list[Scored], truth: Mapping[int, tuple[
     tp = np.cumsum(hits)
     recall = tp / total
     precision = tp / np.arange(1, len(hits) + 1)
-    return float(np.mean([precision[recall >= r].max() if (recall >= r).any() else 0.0 for r in np.linspace(0, 1, 11)]))
+    return float(
+        np.mean([precision[recall >= r].max() if (recall >= r).any() else 0.0 for r in np.linspace(0, 1, 11)])
+    )
 
 
 def _quiet(*_: object) -> None:
@@ -220,12 +236,29 @@ def coco_ap50(evalset: EvalSet, detections: dict[str, list[Scored]]) -> dict[str
         images.append({"id": image.image_id, "file_name": image.path.name, "width": 1, "height": 1})
         for task_name, boxes in image.truth.items():
             for box in boxes:
-                annotations.append({"id": len(annotations) + 1, "image_id": image.image_id, "category_id": category[task_name],
-                                    "bbox": list(box.xywh()), "area": box.area, "iscrowd": 0})
-    ground = COCO(print_function=_quiet, annotation_file={"images": images, "annotations": annotations,
-                   "categories": [{"id": i, "name": n} for n, i in category.items()]})
-    results = [{"image_id": image_id, "category_id": category[task], "bbox": list(box.xywh()), "score": score}
-               for task, scored in detections.items() for image_id, score, box in scored]
+                annotations.append(
+                    {
+                        "id": len(annotations) + 1,
+                        "image_id": image.image_id,
+                        "category_id": category[task_name],
+                        "bbox": list(box.xywh()),
+                        "area": box.area,
+                        "iscrowd": 0,
+                    }
+                )
+    ground = COCO(
+        print_function=_quiet,
+        annotation_file={
+            "images": images,
+            "annotations": annotations,
+            "categories": [{"id": i, "name": n} for n, i in category.items()],
+        },
+    )
+    results = [
+        {"image_id": image_id, "category_id": category[task], "bbox": list(box.xywh()), "score": score}
+        for task, scored in detections.items()
+        for image_id, score, box in scored
+    ]
     if not results:
         return {t.name: 0.0 for t in evalset.tasks}
     evaluator = COCOeval_faster(ground, ground.loadRes(results), "bbox", print_function=_quiet)
@@ -250,7 +283,9 @@ def evaluate(
 ) -> list[VerifierScores]:
     """Scores per verifier (one Pipeline each, sharing the detector's output per image)."""
     accepted = {Verdict.YES, Verdict.UNCERTAIN} if count_uncertain else {Verdict.YES}
-    found: dict[str, dict[str, list[Scored]]] = {name: {t.name: [] for t in evalset.tasks} for name in pipelines}
+    found: dict[str, dict[str, list[Scored]]] = {
+        name: {t.name: [] for t in evalset.tasks} for name in pipelines
+    }
     frame_times: dict[str, list[float]] = {name: [] for name in pipelines}
     object_times: dict[str, list[float]] = {name: [] for name in pipelines}
     for image in progress(evalset.images):
@@ -271,7 +306,9 @@ def evaluate(
                 if pipeline.verifier is not None:
                     object_times[name].extend(c.t_verify for c in candidates)
                 found[name][task.name].extend(
-                    (image.image_id, c.detection.score, c.detection.box) for c in candidates if c.detection.verdict in accepted
+                    (image.image_id, c.detection.score, c.detection.box)
+                    for c in candidates
+                    if c.detection.verdict in accepted
                 )
     results = []
     for name in pipelines:
@@ -291,10 +328,18 @@ def markdown_table(evalset: EvalSet, results: list[VerifierScores], detector: st
     head = ["Verifier", *(t.name for t in evalset.tasks), "mAP", "AP50 (coco)", "t_f [s]", "t_obj [s]"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in results:
-        cells = [r.verifier, *(f"{100 * r.ap[t.name]:.1f}" for t in evalset.tasks), f"{100 * r.mean_ap:.1f}",
-                 f"{100 * r.mean_ap50:.1f}", f"{r.t_f:.3f}", f"{r.t_obj:.4f}" if r.objects else "-"]
+        cells = [
+            r.verifier,
+            *(f"{100 * r.ap[t.name]:.1f}" for t in evalset.tasks),
+            f"{100 * r.mean_ap:.1f}",
+            f"{100 * r.mean_ap50:.1f}",
+            f"{r.t_f:.3f}",
+            f"{r.t_obj:.4f}" if r.objects else "-",
+        ]
         lines.append("| " + " | ".join(cells) + " |")
     lines.append("")
-    lines.append(f"AP in %, 11-point VOC, IoU > 0.5; detector {detector}; {len(evalset.images)} images, every task on every image.")
+    lines.append(
+        f"AP in %, 11-point VOC, IoU > 0.5; detector {detector}; {len(evalset.images)} images, every task on every image."
+    )
     lines.extend(f"- {t.name} ({t.superset}): {t.prompt}" for t in evalset.tasks)
     return "\n".join(lines)

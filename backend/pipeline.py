@@ -78,7 +78,9 @@ class Pipeline:
     def verifier_name(self) -> str:
         return self.verifier.name if self.verifier is not None else "none"
 
-    def _detect(self, image: np.ndarray, superset: str, roi: Box | None, frame_id: int | None) -> list[Detection]:
+    def _detect(
+        self, image: np.ndarray, superset: str, roi: Box | None, frame_id: int | None
+    ) -> list[Detection]:
         if roi is None:
             return self.detector.detect(image, [superset], frame_id=frame_id)
         height, width = image.shape[:2]
@@ -89,21 +91,34 @@ class Pipeline:
         found = self.detector.detect(np.ascontiguousarray(image[y1:y2, x1:x2]), [superset], frame_id=frame_id)
         return [replace(d, box=Box(d.box.x + x1, d.box.y + y1, d.box.w, d.box.h)) for d in found]
 
-    def _verify_one(self, crop: np.ndarray, inner: Box, prompt: str, superset: str, timeout_s: float) -> tuple[VerifierAnswer, float]:
+    def _verify_one(
+        self, crop: np.ndarray, inner: Box, prompt: str, superset: str, timeout_s: float
+    ) -> tuple[VerifierAnswer, float]:
         assert self.verifier is not None
         start = time.perf_counter()
         try:
             answer = self.verifier.verify(crop, inner.xywh(), prompt, superset, timeout_s)
         except VerifierTimeout as exc:
-            answer = VerifierAnswer(_policy_verdict(self.uncertain_policy), f"verification timed out: {exc}", self.verifier.name)
+            answer = VerifierAnswer(
+                _policy_verdict(self.uncertain_policy), f"verification timed out: {exc}", self.verifier.name
+            )
         except VerifierError as exc:
-            answer = VerifierAnswer(_policy_verdict(self.uncertain_policy), f"verifier failed: {exc}", self.verifier.name)
+            answer = VerifierAnswer(
+                _policy_verdict(self.uncertain_policy), f"verifier failed: {exc}", self.verifier.name
+            )
         if answer.verdict is Verdict.UNCERTAIN and self.uncertain_policy != "uncertain":
-            answer = VerifierAnswer(_policy_verdict(self.uncertain_policy), answer.justification, answer.verifier)
+            answer = VerifierAnswer(
+                _policy_verdict(self.uncertain_policy), answer.justification, answer.verifier
+            )
         return answer, time.perf_counter() - start
 
     def submit(
-        self, image: np.ndarray, detections: list[Detection], prompt: str, superset: str, rejected: RejectionCheck | None = None
+        self,
+        image: np.ndarray,
+        detections: list[Detection],
+        prompt: str,
+        superset: str,
+        rejected: RejectionCheck | None = None,
     ) -> tuple[list[VerifiedCandidate], list[tuple[int, Future[tuple[VerifierAnswer, float]]]]]:
         """Candidates with the rejection memory applied, and their verifications started on the pool."""
         candidates: list[VerifiedCandidate] = []
@@ -120,7 +135,9 @@ class Pipeline:
             else:
                 crop, inner = margin_crop(image, det.box, self.margin_px)
                 candidates.append(VerifiedCandidate(det, self.verifier.name, 0.0, appearance))
-                future = self.verify_pool.submit(self._verify_one, crop, inner, prompt, superset, self.timeout_s)
+                future = self.verify_pool.submit(
+                    self._verify_one, crop, inner, prompt, superset, self.timeout_s
+                )
                 pending.append((len(candidates) - 1, future))
         return candidates, pending
 
@@ -181,7 +198,9 @@ class Pipeline:
             candidates[i] = self._settle(candidates[i], answer, t_verify)
         return candidates
 
-    def detect(self, image: np.ndarray, superset: str, roi: Box | None = None, frame_id: int | None = None) -> list[Detection]:
+    def detect(
+        self, image: np.ndarray, superset: str, roi: Box | None = None, frame_id: int | None = None
+    ) -> list[Detection]:
         """The best `max_candidates` detections of the superset, highest score first."""
         found = sorted(self._detect(image, superset, roi, frame_id), key=lambda d: -d.score)
         return found[: self.max_candidates]

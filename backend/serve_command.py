@@ -46,7 +46,12 @@ def _serve(args: argparse.Namespace) -> int:
         return 2
     if not config.auth.tokens:
         log.warning("no vehicle tokens configured ([auth] tokens): every /v1/detect request will get 401")
-    log.info("serving on http://%s:%d (detector %s, verifier %s)", config.server.host, config.server.port,
-             app.state.pipeline.detector.name, app.state.pipeline.verifier_name)
+    log.info(
+        "serving on http://%s:%d (detector %s, verifier %s)",
+        config.server.host,
+        config.server.port,
+        app.state.pipeline.detector.name,
+        app.state.pipeline.verifier_name,
+    )
     serve(app, config.server.host, config.server.port, args.log_level)
     return 0

@@ -12,7 +12,9 @@ from fastapi import FastAPI
 
 def serve(app: FastAPI, host: str, port: int, log_level: str = "info") -> None:
     """Serve until interrupted. TLS is the reverse proxy's job (docs/backend.md)."""
-    uvicorn.run(app, host=host, port=port, log_level=log_level.lower(), proxy_headers=True, server_header=False)
+    uvicorn.run(
+        app, host=host, port=port, log_level=log_level.lower(), proxy_headers=True, server_header=False
+    )
 
 
 class BackgroundServer:
@@ -23,7 +25,9 @@ class BackgroundServer:
     """
 
     def __init__(self, app: FastAPI, host: str = "127.0.0.1", port: int = 0) -> None:
-        config = uvicorn.Config(app, host=host, port=port, log_level="warning", lifespan="on", server_header=False)
+        config = uvicorn.Config(
+            app, host=host, port=port, log_level="warning", lifespan="on", server_header=False
+        )
         self._server = uvicorn.Server(config)
         self._thread = threading.Thread(target=self._server.run, name="uvicorn", daemon=True)
         self.url = ""
@@ -46,5 +50,7 @@ class BackgroundServer:
     def __enter__(self) -> BackgroundServer:
         return self.start()
 
-    def __exit__(self, kind: type[BaseException] | None, value: BaseException | None, tb: TracebackType | None) -> None:
+    def __exit__(
+        self, kind: type[BaseException] | None, value: BaseException | None, tb: TracebackType | None
+    ) -> None:
         self.stop()

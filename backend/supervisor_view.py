@@ -34,13 +34,19 @@ class SupervisorView:
                 key = (status.vehicle_id, awaiting.candidate_id)
                 waiting.add(key)
                 first = self._first_seen.setdefault(key, min(now, status.updated_at))
-                decided = [d for d in self.store.decisions(status.vehicle_id) if d.candidate_id == awaiting.candidate_id]
+                decided = [
+                    d
+                    for d in self.store.decisions(status.vehicle_id)
+                    if d.candidate_id == awaiting.candidate_id
+                ]
                 candidates.append(
                     CandidateView(
                         id=awaiting.candidate_id,
                         verdict=awaiting.verdict,
                         justification=awaiting.justification,
-                        position=LatLon(lat=awaiting.position[0], lon=awaiting.position[1]) if awaiting.position else None,
+                        position=LatLon(lat=awaiting.position[0], lon=awaiting.position[1])
+                        if awaiting.position
+                        else None,
                         box=awaiting.box,
                         age_s=round(max(0.0, now - first), 1),
                         crop_url=(
@@ -70,5 +76,8 @@ class SupervisorView:
 
 def without_ages(snapshot: SupervisorSnapshot) -> str:
     """The snapshot's content minus what changes every second, to tell a real change from time passing."""
-    ages = {"server_time": True, "vehicles": {"__all__": {"age_s": True, "candidates": {"__all__": {"age_s"}}}}}
+    ages = {
+        "server_time": True,
+        "vehicles": {"__all__": {"age_s": True, "candidates": {"__all__": {"age_s"}}}},
+    }
     return snapshot.model_dump_json(exclude=ages)  # type: ignore[arg-type]

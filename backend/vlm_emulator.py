@@ -42,7 +42,9 @@ def answer_for(image_bgr: np.ndarray | None, text: str, mode: str) -> str:
     h, w = image_bgr.shape[:2]
     # The crop carries the candidate in the middle with the pipeline's 50 px context margin around it.
     mx, my = min(50.0, 0.25 * w), min(50.0, 0.25 * h)
-    answer: VerifierAnswer = AttributeVerifier().verify(image_bgr, (mx, my, w - 2 * mx, h - 2 * my), description, "person")
+    answer: VerifierAnswer = AttributeVerifier().verify(
+        image_bgr, (mx, my, w - 2 * mx, h - 2 * my), description, "person"
+    )
     # "If in doubt, rather say yes", as the prompt asks.
     word = "No" if answer.verdict is Verdict.NO else "Yes"
     return f"Emulated from pixels: {answer.justification}.\nAnswer: {word}."
@@ -76,8 +78,15 @@ class _QuietServer(ThreadingHTTPServer):
 class VlmEmulator:
     """with VlmEmulator(latency_s=1.0) as vlm: ... base_url = vlm.base_url ..."""
 
-    def __init__(self, latency_s: float = 0.0, mode: str = "pixels", fail_first: int = 0, fail_status: int = 503,
-                 host: str = "127.0.0.1", port: int = 0) -> None:
+    def __init__(
+        self,
+        latency_s: float = 0.0,
+        mode: str = "pixels",
+        fail_first: int = 0,
+        fail_status: int = 503,
+        host: str = "127.0.0.1",
+        port: int = 0,
+    ) -> None:
         self.latency_s = latency_s
         self.mode = mode
         self.fail_first = fail_first
@@ -158,5 +167,7 @@ class VlmEmulator:
     def __enter__(self) -> VlmEmulator:
         return self.start()
 
-    def __exit__(self, kind: type[BaseException] | None, value: BaseException | None, tb: TracebackType | None) -> None:
+    def __exit__(
+        self, kind: type[BaseException] | None, value: BaseException | None, tb: TracebackType | None
+    ) -> None:
         self.stop()

@@ -35,8 +35,10 @@ class CameraModel:
 
     def __post_init__(self) -> None:
         if len(self.distortion) not in DISTORTION_LENGTHS:
-            raise ValueError(f"distortion takes {', '.join(map(str, DISTORTION_LENGTHS[1:]))} coefficients, "
-                             f"got {len(self.distortion)}")
+            raise ValueError(
+                f"distortion takes {', '.join(map(str, DISTORTION_LENGTHS[1:]))} coefficients, "
+                f"got {len(self.distortion)}"
+            )
 
     @classmethod
     def from_hfov(
@@ -89,7 +91,10 @@ class CameraModel:
 
     def _distorted(self, x: float, y: float) -> tuple[float, float]:
         """OpenCV's lens model: undistorted normalised coordinates to distorted normalised coordinates."""
-        k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = (*self.distortion, *(0.0,) * (12 - len(self.distortion)))
+        k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = (
+            *self.distortion,
+            *(0.0,) * (12 - len(self.distortion)),
+        )
         r2 = x * x + y * y
         radial = (1 + ((k3 * r2 + k2) * r2 + k1) * r2) / (1 + ((k6 * r2 + k5) * r2 + k4) * r2)
         return (

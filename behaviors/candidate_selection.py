@@ -10,12 +10,7 @@ from behaviors.geometry import Box
 
 def c_box(prev: Box, cand: Box) -> float:
     """C_box = sum over d in {x, y} of |c_prev - c_cand| + |s_prev - s_cand| (centres and sizes, pixels, L1)."""
-    return (
-        abs(prev.cx - cand.cx)
-        + abs(prev.cy - cand.cy)
-        + abs(prev.w - cand.w)
-        + abs(prev.h - cand.h)
-    )
+    return abs(prev.cx - cand.cx) + abs(prev.cy - cand.cy) + abs(prev.w - cand.w) + abs(prev.h - cand.h)
 
 
 def select_by_c_box(prev: Box, candidates: Sequence[Detection]) -> Detection | None:

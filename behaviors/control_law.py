@@ -132,8 +132,15 @@ def _integrate(
 
 def _inputs_valid(camera: CameraModel, telemetry: Telemetry, box: Box, time_s: float) -> bool:
     numbers = (
-        time_s, telemetry.height_agl, telemetry.roll, telemetry.pitch, telemetry.yaw,
-        camera.fx, camera.fy, camera.cx, camera.cy,
+        time_s,
+        telemetry.height_agl,
+        telemetry.roll,
+        telemetry.pitch,
+        telemetry.yaw,
+        camera.fx,
+        camera.fy,
+        camera.cx,
+        camera.cy,
     )
     return box.is_valid() and all(math.isfinite(x) for x in numbers) and camera.fx > 0 and camera.fy > 0
 
@@ -162,7 +169,12 @@ def follow_step(
     yaw_error = _dead_band(angle, gains.yaw_dead_band)
     yaw_filtered = state.yaw_error + alpha * (yaw_error - state.yaw_error)
     yaw_integral = _integrate(
-        state.yaw_integral, yaw_error, dt, gains.yaw_kp * yaw_filtered, gains.yaw_ki, limits.max_yaw_rate,
+        state.yaw_integral,
+        yaw_error,
+        dt,
+        gains.yaw_kp * yaw_filtered,
+        gains.yaw_ki,
+        limits.max_yaw_rate,
         gains.integral_leak_s,
     )
     yaw_rate = gains.yaw_kp * yaw_filtered + gains.yaw_ki * yaw_integral
@@ -174,7 +186,12 @@ def follow_step(
         dist_error = _dead_band(distance.ground_m - goal.standoff_m, gains.distance_dead_band_m)
         dist_filtered = state.distance_error + alpha * (dist_error - state.distance_error)
         forward_integral = _integrate(
-            state.forward_integral, dist_error, dt, gains.forward_kp * dist_filtered, gains.forward_ki, limits.max_speed,
+            state.forward_integral,
+            dist_error,
+            dt,
+            gains.forward_kp * dist_filtered,
+            gains.forward_ki,
+            limits.max_speed,
             gains.integral_leak_s,
         )
         # Approach along the view direction only while the target is roughly ahead; turn first.

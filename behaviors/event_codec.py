@@ -34,8 +34,21 @@ from behaviors import (
 )
 
 _MODULES = (
-    actions, camera_model, control_law, detection, events, geolocation, geometry, mission,
-    mission_commands, mission_config, rejection_memory, safety_limits, setpoint, telemetry, track_result,
+    actions,
+    camera_model,
+    control_law,
+    detection,
+    events,
+    geolocation,
+    geometry,
+    mission,
+    mission_commands,
+    mission_config,
+    rejection_memory,
+    safety_limits,
+    setpoint,
+    telemetry,
+    track_result,
 )
 _NON_FINITE = {"NaN": math.nan, "Infinity": math.inf, "-Infinity": -math.inf}
 
@@ -45,7 +58,11 @@ def _field_types() -> dict[type[Any], dict[str, Any]]:
     found: dict[type[Any], dict[str, Any]] = {}
     for module in _MODULES:
         for value in vars(module).values():
-            if isinstance(value, type) and dataclasses.is_dataclass(value) and value.__module__ == module.__name__:
+            if (
+                isinstance(value, type)
+                and dataclasses.is_dataclass(value)
+                and value.__module__ == module.__name__
+            ):
                 found[value] = typing.get_type_hints(value)
     return found
 
@@ -185,4 +202,3 @@ def decode_action(data: Any) -> actions.Action:
 def decode_as(data: Any, cls: type[Any]) -> Any:
     """Decode any registered dataclass (the mission `State`, `MissionConfig` ...) by its class."""
     return decode(data, cls)
-

@@ -63,9 +63,7 @@ def _rot_z(a: float, v: Vec3) -> Vec3:
     return (c * v[0] - s * v[1], s * v[0] + c * v[1], v[2])
 
 
-def pixel_ray_ned(
-    camera: CameraModel, u: float, v: float, roll: float, pitch: float, yaw: float
-) -> Vec3:
+def pixel_ray_ned(camera: CameraModel, u: float, v: float, roll: float, pitch: float, yaw: float) -> Vec3:
     """The (unnormalised) NED direction of pixel (u, v) for a vehicle at the given attitude."""
     x, y = camera.normalised(u, v)  # through the lens model: wide lenses bend the edges most
     ray: Vec3 = (1.0, x, y)  # FRD of the camera
@@ -133,8 +131,12 @@ def locate_pixel(
     a, dh, dp = sigmas.angle_rad, sigmas.height_m, sigmas.pixel
     # (height, roll, yaw, u, v, camera pitch): the mount pitch stands for gimbal or airframe pitch error.
     deltas = (
-        (dh, 0, 0, 0, 0, 0), (0, a, 0, 0, 0, 0), (0, 0, a, 0, 0, 0),
-        (0, 0, 0, dp, 0, 0), (0, 0, 0, 0, dp, 0), (0, 0, 0, 0, 0, a),
+        (dh, 0, 0, 0, 0, 0),
+        (0, a, 0, 0, 0, 0),
+        (0, 0, a, 0, 0, 0),
+        (0, 0, 0, dp, 0, 0),
+        (0, 0, 0, 0, dp, 0),
+        (0, 0, 0, 0, 0, a),
     )
     variance = 0.0
     for d_h, d_roll, d_yaw, d_u, d_v, d_mount in deltas:
@@ -142,7 +144,13 @@ def locate_pixel(
         for k in (1.0, -1.0):
             cam = replace(camera, mount_pitch=camera.mount_pitch + k * d_mount) if d_mount else camera
             moved = _ground_offset(
-                cam, u + k * d_u, v + k * d_v, t.height_agl + k * d_h, t.roll + k * d_roll, t.pitch, t.yaw + k * d_yaw
+                cam,
+                u + k * d_u,
+                v + k * d_v,
+                t.height_agl + k * d_h,
+                t.roll + k * d_roll,
+                t.pitch,
+                t.yaw + k * d_yaw,
             )
             if moved is None:
                 worst = math.inf

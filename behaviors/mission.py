@@ -140,7 +140,11 @@ Result = tuple[State, tuple[Action, ...]]
 
 
 def initial_state(config: MissionConfig) -> State:
-    return State(rejections=RejectionMemory(radius_m=config.rejection_radius_m, signature_threshold=config.signature_threshold))
+    return State(
+        rejections=RejectionMemory(
+            radius_m=config.rejection_radius_m, signature_threshold=config.signature_threshold
+        )
+    )
 
 
 def step(state: State, event: Event, config: MissionConfig) -> Result:
@@ -183,7 +187,9 @@ def _abort(state: State, reason: str) -> Result:
         stop.append(ReleaseControl(reason))
     if state.mode in TRACKING:
         stop.append(TrackerStop(reason))
-    new, msg = _enter(replace(state, control=ControlState(), queries=()), MissionState.ABORTED, reason, "critical")
+    new, msg = _enter(
+        replace(state, control=ControlState(), queries=()), MissionState.ABORTED, reason, "critical"
+    )
     return new, (*stop, *msg)
 
 
@@ -218,7 +224,9 @@ def _confirm(state: State, config: MissionConfig) -> Result:
     if state.mode is MissionState.LOST:
         new = replace(state, resume=MissionState.CONFIRMED, last_report_s=state.now_s)
         return new, (report, GcsMessage("CONFIRMED while lost: re-detecting"))
-    new, msg = _enter(replace(state, last_report_s=state.now_s), MissionState.CONFIRMED, "supervisor confirmed")
+    new, msg = _enter(
+        replace(state, last_report_s=state.now_s), MissionState.CONFIRMED, "supervisor confirmed"
+    )
     hold: tuple[Action, ...] = ()
     if config.on_confirm is ConfirmAction.HOLD:
         hold = (ReleaseControl("confirmed: hold"),)  # the autopilot holds there; the GCS owns the vehicle
@@ -232,7 +240,9 @@ def _reject(state: State, candidate_id: str) -> Result:
             return state, (GcsMessage("reject: no candidate awaiting", "warning"),)
         # Not the one we track: remember the id so the back-end's candidate is never picked.
         entry = RejectedTarget(candidate_id=candidate_id, time_s=state.now_s)
-        return replace(state, rejections=state.rejections.remember(entry)), (RememberRejection(candidate_id, None),)
+        return replace(state, rejections=state.rejections.remember(entry)), (
+            RememberRejection(candidate_id, None),
+        )
     entry = RejectedTarget(target.candidate_id, target.position, target.signature, state.now_s)
     new, msg = _enter(
         replace(state, rejections=state.rejections.remember(entry), target=None, control=ControlState()),
@@ -259,20 +269,40 @@ def _command(state: State, event: GcsCommand, config: MissionConfig) -> Result:
         if not cmd.prompt.strip():
             return state, (GcsMessage("start refused: empty prompt", "warning"),)
         keep = state.mission is not None and state.mission.prompt == cmd.prompt
-        rejections = state.rejections if keep else RejectionMemory((), state.rejections.radius_m, state.rejections.signature_threshold)
+        rejections = (
+            state.rejections
+            if keep
+            else RejectionMemory((), state.rejections.radius_m, state.rejections.signature_threshold)
+        )
         stop: tuple[Action, ...] = (TrackerStop("new mission"),) if state.mode in TRACKING else ()
-        new = replace(state, mission=cmd, rejections=rejections, backend_down=False, mode_requested=None, holding=False)
+        new = replace(
+            state, mission=cmd, rejections=rejections, backend_down=False, mode_requested=None, holding=False
+        )
         new, engage = _engage(new, "mission start")
         new, actions = _start_search(new, "mission started", config)
         return new, (*stop, *engage, *actions)
     if isinstance(cmd, TrackRectangle):
         if not cmd.box.is_valid():
             return state, (GcsMessage("track refused: invalid rectangle", "warning"),)
-        target = Target("operator", "selected by the operator", Verdict.YES, cmd.box, -1, state.now_s, operator_selected=True)
+        target = Target(
+            "operator",
+            "selected by the operator",
+            Verdict.YES,
+            cmd.box,
+            -1,
+            state.now_s,
+            operator_selected=True,
+        )
         # Outside a running mission an old mission's prompt and engage permission no longer apply.
         mission = state.mission if state.mode in ACTIVE else None
         new = replace(
-            state, mission=mission, target=target, control=ControlState(), lost_stage=0, mode_requested=None, holding=False
+            state,
+            mission=mission,
+            target=target,
+            control=ControlState(),
+            lost_stage=0,
+            mode_requested=None,
+            holding=False,
         )
         new, engage = _engage(new, "operator target")
         if config.operator_box_confirms:
@@ -284,11 +314,19 @@ def _command(state: State, event: GcsCommand, config: MissionConfig) -> Result:
         if state.mode not in ACTIVE:
             return state, ()
         stop = (TrackerStop("operator stop"),) if state.mode in TRACKING else ()
-        new, msg = _enter(replace(state, target=None, control=ControlState(), queries=()), MissionState.IDLE, "operator stop")
+        new, msg = _enter(
+            replace(state, target=None, control=ControlState(), queries=()),
+            MissionState.IDLE,
+            "operator stop",
+        )
         return new, (ReleaseControl("operator stop"), *stop, *msg)
     if isinstance(cmd, ConfirmCandidate):
         current = state.target
-        if current is None or state.mode not in TRACKING or (cmd.candidate_id and cmd.candidate_id != current.candidate_id):
+        if (
+            current is None
+            or state.mode not in TRACKING
+            or (cmd.candidate_id and cmd.candidate_id != current.candidate_id)
+        ):
             return state, (GcsMessage("confirm: no such candidate", "warning"),)
         if state.mode is MissionState.CONFIRMED:
             return state, ()
@@ -354,14 +392,18 @@ def _track(state: State, result: TrackResult, config: MissionConfig) -> Result:
     actions.extend(setpoint)
 
     if state.mode is MissionState.FOLLOWING and _arrived(state, result.box, config):
-        state, msg = _enter(replace(state, last_report_s=state.now_s), MissionState.AWAITING_SUPERVISOR, "awaiting supervisor")
+        state, msg = _enter(
+            replace(state, last_report_s=state.now_s), MissionState.AWAITING_SUPERVISOR, "awaiting supervisor"
+        )
         actions.extend((_report(target, "awaiting"), *msg))
     return state, tuple(actions)
 
 
 def _answer(state: State, answer: BackendAnswer, config: MissionConfig) -> Result:
     purpose = dict(state.queries).get(answer.query_id)
-    state = replace(state, queries=tuple(q for q in state.queries if q[0] != answer.query_id), backend_down=False)
+    state = replace(
+        state, queries=tuple(q for q in state.queries if q[0] != answer.query_id), backend_down=False
+    )
     if purpose is None:
         return state, ()
     if purpose is QueryPurpose.SEARCH and state.mode is MissionState.SEARCHING:
@@ -370,12 +412,26 @@ def _answer(state: State, answer: BackendAnswer, config: MissionConfig) -> Resul
             return state, ()
         det, position = chosen
         picked = Target(
-            det.candidate_id, det.justification, det.verdict, det.box, answer.keyframe_id, answer.time_s,
-            position, det.signature,
+            det.candidate_id,
+            det.justification,
+            det.verdict,
+            det.box,
+            answer.keyframe_id,
+            answer.time_s,
+            position,
+            det.signature,
         )
-        new, msg = _enter(replace(state, target=picked, control=ControlState()), MissionState.ACQUIRING, f"candidate {det.candidate_id}")
+        new, msg = _enter(
+            replace(state, target=picked, control=ControlState()),
+            MissionState.ACQUIRING,
+            f"candidate {det.candidate_id}",
+        )
         # Stop any search scan while the tracker locks on; the link repeats the last setpoint.
-        return new, (SendSetpoint(Setpoint.zero()), TrackerInit(det.box, answer.keyframe_id, det.candidate_id), *msg)
+        return new, (
+            SendSetpoint(Setpoint.zero()),
+            TrackerInit(det.box, answer.keyframe_id, det.candidate_id),
+            *msg,
+        )
     target = state.target
     if target is None:
         return state, ()
@@ -390,12 +446,17 @@ def _answer(state: State, answer: BackendAnswer, config: MissionConfig) -> Resul
 def _answer_for_target(
     state: State, target: Target, purpose: QueryPurpose, answer: BackendAnswer, config: MissionConfig
 ) -> Result:
-    if purpose is QueryPurpose.REVERIFY and state.mode in (MissionState.AWAITING_SUPERVISOR, MissionState.CONFIRMED):
+    if purpose is QueryPurpose.REVERIFY and state.mode in (
+        MissionState.AWAITING_SUPERVISOR,
+        MissionState.CONFIRMED,
+    ):
         tracked = target.box
         match = max(answer.candidates, key=lambda d: iou(d.box, tracked), default=None)
         if match is None or iou(match.box, tracked) < _REVERIFY_MIN_IOU:
             return state, (GcsMessage("re-verify: target not in keyframe", "warning"),)
-        target = replace(target, verdict=match.verdict, justification=match.justification or target.justification)
+        target = replace(
+            target, verdict=match.verdict, justification=match.justification or target.justification
+        )
         status = "reverified" if state.mode is MissionState.AWAITING_SUPERVISOR else "confirmed"
         return replace(state, target=target, last_report_s=state.now_s), (_report(target, status),)
     if (
@@ -410,7 +471,9 @@ def _answer_for_target(
         if best is None or c_box(target.box, best.box) > gate:
             return state, ()
         target = replace(target, box=best.box, keyframe_id=answer.keyframe_id)
-        return replace(state, target=target), (TrackerInit(best.box, answer.keyframe_id, target.candidate_id, reinit=True),)
+        return replace(state, target=target), (
+            TrackerInit(best.box, answer.keyframe_id, target.candidate_id, reinit=True),
+        )
     return state, ()
 
 
@@ -426,7 +489,9 @@ def _refused(state: State, target: Target, det: Detection, config: MissionConfig
     Near it, the operator's own target (never checked against the prompt) may be re-found on any verdict,
     others on anything but "no". The rejection memory (supervisor's rejections) is never re-found."""
     near = _centre_inside(det.box, _roi(target.box, config))
-    return not _redetect_verdict_ok(det.verdict, near, target.operator_selected) or _rejected(state, det, config)
+    return not _redetect_verdict_ok(det.verdict, near, target.operator_selected) or _rejected(
+        state, det, config
+    )
 
 
 def _backend_down(state: State, event: BackendUnreachable) -> Result:
@@ -462,11 +527,17 @@ def _tick(state: State, config: MissionConfig) -> Result:
         if now - target.last_seen_s > config.frame_stale_s:
             return _start_lost(state, "no tracker result", config)
         if mode is MissionState.AWAITING_SUPERVISOR and _report_due(state, config):
-            state, query = _query(replace(state, last_report_s=now), QueryPurpose.REVERIFY, _roi(target.box, config))
+            state, query = _query(
+                replace(state, last_report_s=now), QueryPurpose.REVERIFY, _roi(target.box, config)
+            )
             return state, query
         if mode is MissionState.CONFIRMED and _report_due(state, config):
             return replace(state, last_report_s=now), (_report(target, "confirmed"),)
-        if mode is MissionState.FOLLOWING and config.verified_reinit and _query_due(state, config.query_interval_s):
+        if (
+            mode is MissionState.FOLLOWING
+            and config.verified_reinit
+            and _query_due(state, config.query_interval_s)
+        ):
             # Evidence for the front-end's policy while trusted too: a tracker that slid onto a neighbour
             # follows them smoothly, and only a keyframe answer can show it.
             return _query(state, QueryPurpose.TRACK_CHECK, _roi(target.box, config))
@@ -492,7 +563,11 @@ def _lost_tick(state: State, target: Target, config: MissionConfig) -> Result:
             mode = FlightMode(config.lost_action.value)
             state = replace(state, mode_requested=mode, queries=())
             actions.extend(
-                (RequestMode(mode, "target lost"), TrackerStop("target lost"), GcsMessage(f"LOST: requesting {mode.value}", "warning"))
+                (
+                    RequestMode(mode, "target lost"),
+                    TrackerStop("target lost"),
+                    GcsMessage(f"LOST: requesting {mode.value}", "warning"),
+                )
             )
             return state, tuple(actions)
     if _query_due(state, config.query_interval_s):
@@ -503,7 +578,11 @@ def _lost_tick(state: State, target: Target, config: MissionConfig) -> Result:
 
 def _given_up(state: State, config: MissionConfig) -> bool:
     """LOST's action was a mode request (loiter, RTL, land): the mission ends until the GCS restarts it."""
-    return state.mode is MissionState.LOST and state.lost_stage >= 2 and config.lost_action is not LostAction.HOLD
+    return (
+        state.mode is MissionState.LOST
+        and state.lost_stage >= 2
+        and config.lost_action is not LostAction.HOLD
+    )
 
 
 # --- helpers -----------------------------------------------------------------------------------------
@@ -540,7 +619,10 @@ def _scan(state: State, config: MissionConfig) -> Result:
         return state, ()
     height = state.telemetry.height_agl if state.telemetry is not None else None
     state, engage = _resume_from_hold(state)
-    return state, (*engage, SendSetpoint(apply_limits(Setpoint(yaw_rate=config.search_yaw_rate), config.limits, height)))
+    return state, (
+        *engage,
+        SendSetpoint(apply_limits(Setpoint(yaw_rate=config.search_yaw_rate), config.limits, height)),
+    )
 
 
 def _resume_from_hold(state: State) -> Result:
@@ -588,7 +670,9 @@ def _centre_inside(box: Box, region: Box | None) -> bool:
 def _roi(box: Box, config: MissionConfig) -> Box | None:
     """Where to look for a lost target: its last box grown by `redetect_roi_scale`, inside the image."""
     cam = config.camera
-    grown = Box.from_center(box.cx, box.cy, box.w * config.redetect_roi_scale, box.h * config.redetect_roi_scale)
+    grown = Box.from_center(
+        box.cx, box.cy, box.w * config.redetect_roi_scale, box.h * config.redetect_roi_scale
+    )
     roi = grown.clamped(cam.width, cam.height)
     return roi if roi.is_valid() else None
 
@@ -600,7 +684,9 @@ def _follow(state: State, box: Box, time_s: float, config: MissionConfig) -> tup
     confirmed = state.mode is MissionState.CONFIRMED
     lateral = config.orbit_speed_m_s if confirmed and config.on_confirm is ConfirmAction.ORBIT else 0.0
     goal = FollowGoal(config.standoff_m, lateral, descent_allowed=confirmed)
-    setpoint, control = follow_step(box, config.camera, telemetry, goal, config.gains, config.limits, state.control, time_s)
+    setpoint, control = follow_step(
+        box, config.camera, telemetry, goal, config.gains, config.limits, state.control, time_s
+    )
     state, engage = _resume_from_hold(replace(state, control=control))
     return state, (*engage, SendSetpoint(setpoint))
 
@@ -626,7 +712,8 @@ def _choose(
     accepted = [Verdict.YES, Verdict.UNCERTAIN] if config.accept_uncertain else [Verdict.YES]
     for verdict in accepted:
         pool = [
-            d for d in candidates
+            d
+            for d in candidates
             if d.verdict is verdict and d.box.is_valid() and not _rejected(state, d, config)
         ]
         if pool:
@@ -637,4 +724,6 @@ def _choose(
 
 
 def _report(target: Target, status: str) -> ReportCandidate:
-    return ReportCandidate(target.candidate_id, target.justification, target.verdict, target.position, target.box, status)
+    return ReportCandidate(
+        target.candidate_id, target.justification, target.verdict, target.position, target.box, status
+    )

@@ -44,4 +44,6 @@ class StopTracking:
     pass
 
 
-MissionCommand = StartMission | AbortMission | ConfirmCandidate | RejectCandidate | TrackRectangle | StopTracking
+MissionCommand = (
+    StartMission | AbortMission | ConfirmCandidate | RejectCandidate | TrackRectangle | StopTracking
+)

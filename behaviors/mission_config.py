@@ -54,7 +54,9 @@ class MissionConfig:
     acquire_timeout_s: float = 3.0  # tracker must report a trusted box this soon after init
     arrive_tolerance_m: float = 2.0  # within this of the standoff the supervisor is asked
     approach_timeout_s: float = 60.0  # ask the supervisor anyway after following this long
-    redetect_roi_scale: float = 3.0  # re-detection ROI on losing the target: the last box grown this many times
+    redetect_roi_scale: float = (
+        3.0  # re-detection ROI on losing the target: the last box grown this many times
+    )
     redetect_full_frame_s: float = 4.0  # ... growing with time lost to the whole frame after this long
     reinit_gate: float = 0.5  # largest C_box for re-initialisation, as a fraction of (width + height)
     # The tracking front-end judges every answer ([tracker] reinit_policy = "verified"; the runner sets this
@@ -102,7 +104,9 @@ class MissionConfig:
             distance_dead_band_m=_float(control, "distance_dead_band_m", g.distance_dead_band_m),
             filter_time_constant_s=_float(control, "filter_time_constant_s", g.filter_time_constant_s),
             max_accel_m_s2=_float(control, "max_accel_m_s2", g.max_accel_m_s2),
-            max_yaw_accel=math.radians(_float(control, "max_yaw_accel_deg_s2", math.degrees(g.max_yaw_accel))),
+            max_yaw_accel=math.radians(
+                _float(control, "max_yaw_accel_deg_s2", math.degrees(g.max_yaw_accel))
+            ),
         )
         return cls(
             camera=cam,

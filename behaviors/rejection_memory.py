@@ -45,7 +45,11 @@ class RejectionMemory:
                 return entry
             if position is not None and entry.position is not None and self._near(entry.position, position):
                 return entry
-            if signature and entry.signature and cosine_similarity(entry.signature, signature) >= self.signature_threshold:
+            if (
+                signature
+                and entry.signature
+                and cosine_similarity(entry.signature, signature) >= self.signature_threshold
+            ):
                 return entry
         return None
 

@@ -30,7 +30,9 @@ class MotionLimits:
         min_altitude: float,
         max_altitude: float,
     ) -> MotionLimits:
-        return cls(max_speed, max_vertical_speed, math.radians(max_yaw_rate_deg_s), min_altitude, max_altitude)
+        return cls(
+            max_speed, max_vertical_speed, math.radians(max_yaw_rate_deg_s), min_altitude, max_altitude
+        )
 
 
 def _clamp(value: float, bound: float) -> float:

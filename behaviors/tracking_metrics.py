@@ -41,7 +41,9 @@ def mean_iou(predicted: Sequence[Box | None], ground_truth: Sequence[Box | None]
     total = sum(v for v in ious if v is not None)
     false_tracks = sum(1 for v, p in zip(ious, predicted, strict=True) if v is None and p is not None)
     missed = sum(1 for v, p in zip(ious, predicted, strict=True) if v is not None and p is None)
-    return MiouResult(total / gt_frames if gt_frames else float("nan"), total, gt_frames, false_tracks, missed)
+    return MiouResult(
+        total / gt_frames if gt_frames else float("nan"), total, gt_frames, false_tracks, missed
+    )
 
 
 def pooled_miou(results: Sequence[MiouResult]) -> float:

@@ -56,7 +56,9 @@ class DetectReply:
     raw: DetectResponse | None = None  # the validated answer
 
 
-def encode_keyframe(image: np.ndarray, max_width: int, jpeg_quality: int, max_bytes: int = 90_000) -> tuple[bytes, float]:
+def encode_keyframe(
+    image: np.ndarray, max_width: int, jpeg_quality: int, max_bytes: int = 90_000
+) -> tuple[bytes, float]:
     """JPEG bytes of the keyframe downscaled to at most `max_width`, and the scale applied (<= 1).
 
     A busy scene (foliage, water glare, sensor noise) can double a JPEG's size; past `max_bytes` the
@@ -123,7 +125,9 @@ class BackendClient:
         try:
             response = self._session().request(method, self.url + path, timeout=self.timeout_s, **kwargs)
         except requests.Timeout as exc:
-            raise BackendError(f"back-end {self.url}: no answer within {self.timeout_s:.1f} s", retryable=True) from exc
+            raise BackendError(
+                f"back-end {self.url}: no answer within {self.timeout_s:.1f} s", retryable=True
+            ) from exc
         except requests.RequestException as exc:
             raise BackendError(f"back-end {self.url} unreachable: {exc}", retryable=True) from exc
         if response.status_code >= 400:
@@ -132,12 +136,16 @@ class BackendClient:
             except ValueError:
                 detail = response.text[:300]
             retryable = response.status_code == 429 or response.status_code >= 500
-            raise BackendError(f"back-end {path}: HTTP {response.status_code}: {detail}", response.status_code, retryable)
+            raise BackendError(
+                f"back-end {path}: HTTP {response.status_code}: {detail}", response.status_code, retryable
+            )
         try:
             return reply.validate_json(response.content)
         except ValidationError as exc:
             problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors()[:3])
-            raise BackendError(f"back-end {path}: malformed answer: {problems}", response.status_code) from exc
+            raise BackendError(
+                f"back-end {path}: malformed answer: {problems}", response.status_code
+            ) from exc
 
     def detect_reply(
         self,
@@ -174,7 +182,11 @@ class BackendClient:
         if vehicle_position is not None:
             meta["vehicle_position"] = [float(v) for v in vehicle_position]
         body, content_type = _multipart(jpeg, json.dumps(meta))
-        headers = {"Content-Type": content_type, "X-CloudTrack-Vehicle": vehicle, "X-CloudTrack-Mission": mission}
+        headers = {
+            "Content-Type": content_type,
+            "X-CloudTrack-Vehicle": vehicle,
+            "X-CloudTrack-Mission": mission,
+        }
         answer = self._call("POST", "/v1/detect", _DETECT, data=body, headers=headers)
         try:
             detections = [
@@ -190,8 +202,9 @@ class BackendClient:
             ]
         except (TypeError, ValueError) as exc:  # e.g. a box that is not 4 numbers
             raise BackendError(f"back-end /v1/detect: malformed answer: {exc}") from exc
-        reply = DetectReply(detections, answer.timings.model_dump(), answer.models.model_dump(), len(body), len(jpeg),
-                            answer)
+        reply = DetectReply(
+            detections, answer.timings.model_dump(), answer.models.model_dump(), len(body), len(jpeg), answer
+        )
         self.last_reply = reply
         return reply
 
@@ -241,12 +254,18 @@ class BackendClient:
             body["crop_box"] = list(crop_box.xyxy())
         if position is not None:
             body["position"] = [float(v) for v in position]
-        return self._call("POST", f"/v1/missions/{mission_id or self.mission_id}/rejections", _REJECTION, json=body)
+        return self._call(
+            "POST", f"/v1/missions/{mission_id or self.mission_id}/rejections", _REJECTION, json=body
+        )
 
     def decisions(self, after: int = 0, vehicle_id: str | None = None) -> list[Decision]:
         """Supervisor decisions for this vehicle newer than decision id `after`."""
-        return self._call("GET", f"/v1/vehicles/{vehicle_id or self.vehicle_id}/decisions", _DECISIONS,
-                          params={"after": after})
+        return self._call(
+            "GET",
+            f"/v1/vehicles/{vehicle_id or self.vehicle_id}/decisions",
+            _DECISIONS,
+            params={"after": after},
+        )
 
 
 def crop_to_base64(crop_bgr: np.ndarray, quality: int = 85) -> str:

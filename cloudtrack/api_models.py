@@ -15,7 +15,9 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 IDENTIFIER = r"^[A-Za-z0-9_.-]{1,64}$"
 ID_FIELD = Field(pattern=IDENTIFIER, description="letters, digits, '_', '.', '-'; 1-64 characters")
 # Candidate ids become path segments of the supervisor page's URLs: the same safe alphabet, never '/'.
-CANDIDATE_ID = Field(pattern=IDENTIFIER, description="as returned by /v1/detect (letters, digits, '_', '.', '-')")
+CANDIDATE_ID = Field(
+    pattern=IDENTIFIER, description="as returned by /v1/detect (letters, digits, '_', '.', '-')"
+)
 NOTE_MAX = 500  # one limit for a supervisor's note, on the API and on the page
 
 
@@ -34,17 +36,28 @@ class DetectMeta(ApiModel):
 
     vehicle_id: str = ID_FIELD
     mission_id: str = ID_FIELD
-    prompt: str = Field(min_length=1, max_length=500, description='full description, e.g. "an injured man in a gray shirt"')
+    prompt: str = Field(
+        min_length=1, max_length=500, description='full description, e.g. "an injured man in a gray shirt"'
+    )
     superset: str | None = Field(
-        None, min_length=1, max_length=64, description='detector class, e.g. "person"; default: derived from the prompt'
+        None,
+        min_length=1,
+        max_length=64,
+        description='detector class, e.g. "person"; default: derived from the prompt',
     )
     roi: list[float] | None = Field(
-        None, min_length=4, max_length=4, description="[x1, y1, x2, y2] region to search, in the sent image's pixels"
+        None,
+        min_length=4,
+        max_length=4,
+        description="[x1, y1, x2, y2] region to search, in the sent image's pixels",
     )
     frame_id: int | None = Field(None, ge=0, le=2**53)
     capture_time: float | None = Field(None, description="Unix time the frame was captured (s)")
     vehicle_position: list[float] | None = Field(
-        None, min_length=2, max_length=2, description="[lat, lon] degrees, lets rejections be matched by place"
+        None,
+        min_length=2,
+        max_length=2,
+        description="[lat, lon] degrees, lets rejections be matched by place",
     )
 
     @field_validator("prompt")
@@ -88,7 +101,9 @@ class Candidate(ApiModel):
     justification: str
     verifier: str = Field(description='who decided: a verifier name, "none" or "rejection-memory"')
     t_verify: float
-    previously_rejected: bool = Field(False, description="matches a candidate the supervisor rejected in this mission")
+    previously_rejected: bool = Field(
+        False, description="matches a candidate the supervisor rejected in this mission"
+    )
 
 
 class Timings(ApiModel):
@@ -132,7 +147,9 @@ class HealthResponse(ApiModel):
 class ModelsResponse(ApiModel):
     detector: str
     detector_kind: str
-    supersets: list[str] = Field(description="superset names the detector maps; open-vocabulary detectors take any")
+    supersets: list[str] = Field(
+        description="superset names the detector maps; open-vocabulary detectors take any"
+    )
     verifier: str
     verifier_kind: str
 
@@ -151,9 +168,14 @@ class RejectionIn(ApiModel):
         None, max_length=400_000, description="the candidate's crop, when the back-end may not know the id"
     )
     crop_box: list[float] | None = Field(
-        None, min_length=4, max_length=4, description="[x1, y1, x2, y2] of the candidate inside the crop; default: all of it"
+        None,
+        min_length=4,
+        max_length=4,
+        description="[x1, y1, x2, y2] of the candidate inside the crop; default: all of it",
     )
-    position: GeoPoint | None = Field(None, min_length=2, max_length=2, description="[lat, lon] of the candidate")
+    position: GeoPoint | None = Field(
+        None, min_length=2, max_length=2, description="[lat, lon] of the candidate"
+    )
     reason: str = Field("", max_length=500)
 
 
@@ -174,16 +196,23 @@ class AwaitingCandidate(ApiModel):
     justification: str = Field("", max_length=2000)
     crop_jpeg_b64: str | None = Field(None, max_length=400_000)
     crop_box: list[float] | None = Field(
-        None, min_length=4, max_length=4, description="[x1, y1, x2, y2] of the candidate inside the crop; default: all of it"
+        None,
+        min_length=4,
+        max_length=4,
+        description="[x1, y1, x2, y2] of the candidate inside the crop; default: all of it",
     )
     position: GeoPoint | None = Field(None, min_length=2, max_length=2, description="[lat, lon] estimate")
 
 
 class VehicleStatusIn(ApiModel):
     mission_id: str | None = Field(None, pattern=IDENTIFIER)
-    state: str = Field(max_length=64, description="the companion's mission state, e.g. SEARCH, TRACK, AWAIT_SUPERVISOR")
+    state: str = Field(
+        max_length=64, description="the companion's mission state, e.g. SEARCH, TRACK, AWAIT_SUPERVISOR"
+    )
     prompt: str | None = Field(None, max_length=500)
-    position: GeoPoint | None = Field(None, min_length=2, max_length=2, description="[lat, lon] of the vehicle")
+    position: GeoPoint | None = Field(
+        None, min_length=2, max_length=2, description="[lat, lon] of the vehicle"
+    )
     altitude_m: float | None = None
     awaiting: AwaitingCandidate | None = None
 

@@ -17,7 +17,10 @@ if TYPE_CHECKING:
 def new_parser(prog: str, description: str, examples: str) -> tuple[argparse.ArgumentParser, SubParsers]:
     """A top-level parser with the logging flags and an empty, required set of subcommands."""
     parser = argparse.ArgumentParser(
-        prog=prog, description=description, epilog=examples, formatter_class=argparse.RawDescriptionHelpFormatter
+        prog=prog,
+        description=description,
+        epilog=examples,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     add_logging_flags(parser)
     return parser, parser.add_subparsers(dest="command", required=True, metavar="COMMAND")

@@ -148,7 +148,11 @@ def _describe(error: Mapping[str, Any], source_of: Mapping[str, str], allowed: l
     key = ".".join(parts)
     # The layer that set this key, or the nearest enclosing section that was set.
     source = next(
-        (source_of[".".join(parts[:n])] for n in range(len(parts), 0, -1) if ".".join(parts[:n]) in source_of),
+        (
+            source_of[".".join(parts[:n])]
+            for n in range(len(parts), 0, -1)
+            if ".".join(parts[:n]) in source_of
+        ),
         "defaults",
     )
     if error["type"] == "extra_forbidden":
@@ -179,7 +183,9 @@ def _allowed_keys(schema: type[BaseModel], loc: tuple[Any, ...]) -> list[str]:
     model: Any = schema
     for part in loc[:-1]:
         field = model.model_fields.get(part) if isinstance(part, str) else None
-        if field is None or not (isinstance(field.annotation, type) and issubclass(field.annotation, BaseModel)):
+        if field is None or not (
+            isinstance(field.annotation, type) and issubclass(field.annotation, BaseModel)
+        ):
             return []
         model = field.annotation
     return list(model.model_fields)
@@ -210,9 +216,7 @@ def load_config(
         return schema.model_validate(merged)
     except ValidationError as exc:
         source_of = _sources(layers)
-        lines = [
-            _describe(err, source_of, _allowed_keys(schema, tuple(err["loc"]))) for err in exc.errors()
-        ]
+        lines = [_describe(err, source_of, _allowed_keys(schema, tuple(err["loc"]))) for err in exc.errors()]
         raise ConfigError("invalid configuration:\n  " + "\n  ".join(lines)) from None
 
 

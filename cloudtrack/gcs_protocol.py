@@ -129,7 +129,11 @@ class PromptChunk:
 
 def decode_chunk(payload_type: int, payload: bytes) -> PromptChunk | None:
     """A prompt chunk from a TUNNEL payload (trimmed to payload_length); None if it is not one of ours."""
-    if payload_type != PROMPT_PAYLOAD_TYPE or len(payload) < CHUNK_HEADER or payload[0] != PROMPT_FORMAT_VERSION:
+    if (
+        payload_type != PROMPT_PAYLOAD_TYPE
+        or len(payload) < CHUNK_HEADER
+        or payload[0] != PROMPT_FORMAT_VERSION
+    ):
         return None
     mission_id, index, count = payload[1], payload[2], payload[3]
     if not 0 < count <= MAX_CHUNKS or index >= count:
@@ -173,7 +177,9 @@ class PromptAssembler:
             raise LookupError(f"no prompt received for mission {mission_id}; send the TUNNEL chunks first")
         _, have_count, parts = self._chunks[mission_id]
         if have_count != count:
-            raise LookupError(f"mission {mission_id}: {have_count} chunks announced in TUNNEL, {count} in the command")
+            raise LookupError(
+                f"mission {mission_id}: {have_count} chunks announced in TUNNEL, {count} in the command"
+            )
         missing = [i for i in range(count) if i not in parts]
         if missing:
             raise LookupError(f"mission {mission_id}: chunks {missing} missing")
@@ -306,7 +312,11 @@ class GcsProtocol:
     def _decode(self, msg: Any) -> MissionCommand | None:
         cmd, p = msg.command, (msg.param1, msg.param2, msg.param3, msg.param4)
         if cmd == CMD_START:
-            mission_id, count, length = _whole(p[0], 0, 255), _whole(p[1], 1, MAX_CHUNKS), _whole(p[3], 1, 1024)
+            mission_id, count, length = (
+                _whole(p[0], 0, 255),
+                _whole(p[1], 1, MAX_CHUNKS),
+                _whole(p[3], 1, 1024),
+            )
             superset, prompt = parse_prompt_text(self._prompts.take(mission_id, count, length))
             return StartMission(prompt, superset, allow_engage=p[2] >= 0.5, mission_id=str(mission_id))
         if cmd == CMD_ABORT:

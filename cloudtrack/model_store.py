@@ -93,9 +93,24 @@ REGISTRY: Mapping[str, ModelSpec] = {
             "DaSiamRPN (model + two kernels) for cv2.TrackerDaSiamRPN; about 160 MB",
             "see upstream (foolwood/DaSiamRPN)",
             (
-                ModelFile("dasiamrpn/dasiamrpn_model.onnx", None, None, "https://www.dropbox.com/s/rr1lk9355vzolqv/dasiamrpn_model.onnx?dl=1"),
-                ModelFile("dasiamrpn/dasiamrpn_kernel_r1.onnx", None, None, "https://www.dropbox.com/s/999cqx5zrfi7w4p/dasiamrpn_kernel_r1.onnx?dl=1"),
-                ModelFile("dasiamrpn/dasiamrpn_kernel_cls1.onnx", None, None, "https://www.dropbox.com/s/qvmtszx5h339a0w/dasiamrpn_kernel_cls1.onnx?dl=1"),
+                ModelFile(
+                    "dasiamrpn/dasiamrpn_model.onnx",
+                    None,
+                    None,
+                    "https://www.dropbox.com/s/rr1lk9355vzolqv/dasiamrpn_model.onnx?dl=1",
+                ),
+                ModelFile(
+                    "dasiamrpn/dasiamrpn_kernel_r1.onnx",
+                    None,
+                    None,
+                    "https://www.dropbox.com/s/999cqx5zrfi7w4p/dasiamrpn_kernel_r1.onnx?dl=1",
+                ),
+                ModelFile(
+                    "dasiamrpn/dasiamrpn_kernel_cls1.onnx",
+                    None,
+                    None,
+                    "https://www.dropbox.com/s/qvmtszx5h339a0w/dasiamrpn_kernel_cls1.onnx?dl=1",
+                ),
             ),
             user_supplied=True,
         ),
@@ -221,7 +236,9 @@ def download(
         try:
             fetch(mf.url, tmp)
             if mf.sha256 is not None and sha256_of(tmp) != mf.sha256:
-                raise ModelError(f"model {name!r}: download of {mf.url} does not match sha256 {mf.sha256}; not installed")
+                raise ModelError(
+                    f"model {name!r}: download of {mf.url} does not match sha256 {mf.sha256}; not installed"
+                )
             os.replace(tmp, target)
         finally:
             tmp.unlink(missing_ok=True)
@@ -239,10 +256,17 @@ def _http_fetch(url: str, destination: Path) -> None:
         with requests.get(url, stream=True, timeout=(10, 60)) as response:
             response.raise_for_status()
             total = int(response.headers.get("Content-Length") or 0) or None
-            with open(destination, "wb") as f, tqdm(
-                total=total, unit="B", unit_scale=True, unit_divisor=1024, desc=Path(urlsplit(url).path).name,
-                file=sys.stderr,
-            ) as bar:
+            with (
+                open(destination, "wb") as f,
+                tqdm(
+                    total=total,
+                    unit="B",
+                    unit_scale=True,
+                    unit_divisor=1024,
+                    desc=Path(urlsplit(url).path).name,
+                    file=sys.stderr,
+                ) as bar,
+            ):
                 for chunk in response.iter_content(chunk_size=1 << 16):
                     f.write(chunk)
                     bar.update(len(chunk))
@@ -255,16 +279,22 @@ def _http_fetch(url: str, destination: Path) -> None:
     except requests.Timeout:
         raise ModelError(f"{host} did not answer in time while downloading {url}; try again later") from None
     except requests.HTTPError as exc:
-        raise ModelError(f"{url} answered {exc.response.status_code if exc.response is not None else '?'}; "
-                         "the upstream file may have moved") from None
+        raise ModelError(
+            f"{url} answered {exc.response.status_code if exc.response is not None else '?'}; "
+            "the upstream file may have moved"
+        ) from None
 
 
 def _cause(exc: BaseException) -> str:
     """The innermost reason of a requests/urllib3 connection error, in a few words."""
     text = str(exc)
-    for marker, words in (("NameResolutionError", "name resolution failed"), ("Name or service not known",
-                          "name resolution failed"), ("Temporary failure in name resolution", "name resolution failed"),
-                          ("Connection refused", "connection refused"), ("Network is unreachable", "network unreachable")):
+    for marker, words in (
+        ("NameResolutionError", "name resolution failed"),
+        ("Name or service not known", "name resolution failed"),
+        ("Temporary failure in name resolution", "name resolution failed"),
+        ("Connection refused", "connection refused"),
+        ("Network is unreachable", "network unreachable"),
+    ):
         if marker in text:
             return words
     return "connection failed"

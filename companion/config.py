@@ -69,7 +69,9 @@ class TrackerConfig(ConfigSection):
     max_scale_change: float = Field(3.0, gt=1, le=100)  # box area ratio per frame beyond which it "collapsed"
     min_visible_fraction: float = Field(0.5, ge=0, le=1)  # less of the box inside the image: "left_frame"
     catch_up_per_frame: int = Field(4, ge=1, le=100)  # fast-forward updates per live frame after a re-init
-    max_c_box_sizes: float = Field(3.0, gt=0, le=100)  # re-init gate: C_box over (w + h) of the last trusted box
+    max_c_box_sizes: float = Field(
+        3.0, gt=0, le=100
+    )  # re-init gate: C_box over (w + h) of the last trusted box
     max_aspect_change: float = Field(2.0, gt=1, le=100)  # width/height change since (re)init: "collapsed"
     # What a re-detection answer may do (docs/tracking.md): "verified" moves the track only when a candidate
     # beats it on evidence reinit_confirmations keyframes in a row and otherwise waits; "c_box" is the
@@ -231,6 +233,10 @@ def load_companion_config(
     variables, then --set; ConfigError if not allowed."""
     full = os.environ if environ is None else environ
     return load_config(
-        CompanionConfig, path, env_prefix=ENV_PREFIX, environ=companion_environment(full), assignments=assignments,
+        CompanionConfig,
+        path,
+        env_prefix=ENV_PREFIX,
+        environ=companion_environment(full),
+        assignments=assignments,
         default_files=default_config_files(CONFIG_FILE_NAME, full),
     )

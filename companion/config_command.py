@@ -13,7 +13,8 @@ from companion.config import CompanionConfig, load_companion_config
 def add_config_flags(parser: argparse.ArgumentParser) -> None:
     """--config and --set, shared by every subcommand that reads the configuration."""
     parser.add_argument(
-        "--config", type=Path,
+        "--config",
+        type=Path,
         help="TOML file (default: /etc/cloudtrack/companion.toml, then "
         "$XDG_CONFIG_HOME/cloudtrack/companion.toml, where they exist)",
     )
@@ -54,7 +55,9 @@ def _check(args: argparse.Namespace) -> int:
 
     try:
         config = load_companion_config(args.file, args.set)
-        camera_model(config.camera)  # a [camera] calibration_file that cannot be read fails here, not in flight
+        camera_model(
+            config.camera
+        )  # a [camera] calibration_file that cannot be read fails here, not in flight
     except (ConfigError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

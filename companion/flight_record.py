@@ -207,7 +207,9 @@ class FlightRecorder:
                 self._stop(f"keyframe write failed: {exc}")
                 return None
             self._rotatable.append(path)
-            self._write_event({"kind": "keyframe", "frame_id": frame_id, "file": relative, "bytes": len(jpeg)})
+            self._write_event(
+                {"kind": "keyframe", "frame_id": frame_id, "file": relative, "bytes": len(jpeg)}
+            )
             self._account(len(jpeg))
             return relative if self._active else None
 
@@ -241,7 +243,10 @@ class FlightRecorder:
     @property
     def video_frames(self) -> tuple[int, int]:
         """(encoded, dropped) over every segment: dropped frames found the encoder's queue full."""
-        return (sum(w.frames_written for w in self._video_writers), sum(w.frames_dropped for w in self._video_writers))
+        return (
+            sum(w.frames_written for w in self._video_writers),
+            sum(w.frames_dropped for w in self._video_writers),
+        )
 
     def close(self) -> None:
         """Flush and close everything; safe to call twice and after a failure. Waits for the video to be
@@ -282,14 +287,21 @@ class FlightRecorder:
         if old is not None:
             self._rotatable.append(old.path)
             self._video_index += 1
-            threading.Thread(target=self._finish_video_segment, args=(old,), name="flight-record-video-close",
-                             daemon=True).start()
+            threading.Thread(
+                target=self._finish_video_segment, args=(old,), name="flight-record-video-close", daemon=True
+            ).start()
         self._video = None
         self._video_rotate = False
         path = self.folder / f"video-{self._video_index:03d}.mp4"
         # An encoder process, not a thread: the encoder must never hold the control loop's GIL.
-        self._video = H264Writer(path, self._video_fps, queue_frames=_VIDEO_QUEUE_FRAMES, preset="ultrafast",
-                                 on_frame_written=self._video_progress, process=True)
+        self._video = H264Writer(
+            path,
+            self._video_fps,
+            queue_frames=_VIDEO_QUEUE_FRAMES,
+            preset="ultrafast",
+            on_frame_written=self._video_progress,
+            process=True,
+        )
         self._video_accounted[path] = 0
         self._video_writers.append(self._video)
 
@@ -297,7 +309,10 @@ class FlightRecorder:
         """Encoder thread, after each frame: one stat of the segment; once it has grown by
         _VIDEO_ACCOUNT_BYTES (or is full) count the growth and ask for the next segment when full."""
         size = writer.size_bytes
-        if size - self._video_accounted.get(writer.path, 0) < _VIDEO_ACCOUNT_BYTES and size < self.segment_bytes:
+        if (
+            size - self._video_accounted.get(writer.path, 0) < _VIDEO_ACCOUNT_BYTES
+            and size < self.segment_bytes
+        ):
             return
         with self._lock:
             if not self._active:
@@ -352,7 +367,11 @@ class FlightRecorder:
             if path == self.folder:
                 continue
             try:
-                size = _tree_size(path) if entry.is_dir(follow_symlinks=False) else entry.stat(follow_symlinks=False).st_size
+                size = (
+                    _tree_size(path)
+                    if entry.is_dir(follow_symlinks=False)
+                    else entry.stat(follow_symlinks=False).st_size
+                )
             except OSError:
                 continue
             total += size
@@ -384,7 +403,9 @@ class FlightRecorder:
             size = self._others.pop(victim, 0)
             shutil.rmtree(victim, ignore_errors=True)
             self._used -= size
-            log.info("flight record: removed old mission %s (%d bytes) to stay under the cap", victim.name, size)
+            log.info(
+                "flight record: removed old mission %s (%d bytes) to stay under the cap", victim.name, size
+            )
         while self._used > self.max_bytes and self._rotatable:
             victim_file = self._rotatable.popleft()
             try:
@@ -470,14 +491,21 @@ def records_dir(configured: str, environ: Mapping[str, str] | None = None) -> Pa
 
 
 def open_record(
-    enabled: bool, directory: str, max_bytes: int, video: bool, vehicle_id: str, mission_id: str,
+    enabled: bool,
+    directory: str,
+    max_bytes: int,
+    video: bool,
+    vehicle_id: str,
+    mission_id: str,
     video_fps: float = 10.0,
 ) -> FlightRecorder | NoRecord:
     """The record for a mission from the `[recording]` configuration values (`video_fps`: the camera's
     rate, since every frame is written: the video then plays in real time)."""
     if not enabled:
         return NoRecord()
-    return FlightRecorder(Path(directory), vehicle_id, mission_id, max_bytes, video=video, video_fps=video_fps)
+    return FlightRecorder(
+        Path(directory), vehicle_id, mission_id, max_bytes, video=video, video_fps=video_fps
+    )
 
 
 def read_events(folder: Path) -> list[dict[str, Any]]:
@@ -570,7 +598,9 @@ class FlightRecordObserver:
             state=event_codec.encode(self._before),
         )
 
-    def _write_step(self, record: MissionRecord, event: Event, state: State, actions: tuple[Action, ...]) -> None:
+    def _write_step(
+        self, record: MissionRecord, event: Event, state: State, actions: tuple[Action, ...]
+    ) -> None:
         record.event(
             "step",
             event=event_codec.encode_event(event),
@@ -579,7 +609,11 @@ class FlightRecordObserver:
         )
         if state.mode is not self._before.mode:
             record.event(
-                "state", time_s=state.now_s, old=self._before.mode.value, new=state.mode.value, reason=state.reason
+                "state",
+                time_s=state.now_s,
+                old=self._before.mode.value,
+                new=state.mode.value,
+                reason=state.reason,
             )
         if isinstance(event, BackendAnswer):
             record.event(

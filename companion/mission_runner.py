@@ -154,7 +154,9 @@ class LoopSettings:
 
 
 SEVERITY = {"info": 6, "warning": 4, "critical": 2}  # MAV_SEVERITY for the GCS
-FOLLOWING_STATES = frozenset({MissionState.FOLLOWING, MissionState.AWAITING_SUPERVISOR, MissionState.CONFIRMED})
+FOLLOWING_STATES = frozenset(
+    {MissionState.FOLLOWING, MissionState.AWAITING_SUPERVISOR, MissionState.CONFIRMED}
+)
 
 
 @dataclass
@@ -235,7 +237,9 @@ class MissionRunner:
         now = self.clock()
         events: list[Event] = []
         telemetry = self.vehicle.telemetry()
-        if telemetry is not None and (self.state.telemetry is None or telemetry.time_s > self.state.telemetry.time_s):
+        if telemetry is not None and (
+            self.state.telemetry is None or telemetry.time_s > self.state.telemetry.time_s
+        ):
             events.append(telemetry)
         commands = self.vehicle.commands() + (self.session.commands() if self.session is not None else [])
         events.extend(GcsCommand(now, cmd) for cmd in commands)
@@ -285,7 +289,9 @@ class MissionRunner:
         self.stats.actions += 1
         if isinstance(action, SendSetpoint):
             self.stats.setpoints += 1
-            self.vehicle.set_velocity(action.setpoint, descent_allowed=self.state.mode is MissionState.CONFIRMED)
+            self.vehicle.set_velocity(
+                action.setpoint, descent_allowed=self.state.mode is MissionState.CONFIRMED
+            )
         elif isinstance(action, Hold):
             self.stats.holds += 1
             self.vehicle.hold(action.reason)
@@ -309,7 +315,9 @@ class MissionRunner:
         elif isinstance(action, ReportCandidate):
             self._report_candidate(action)
         elif isinstance(action, RememberRejection):
-            position = (action.position.lat_deg, action.position.lon_deg) if action.position is not None else None
+            position = (
+                (action.position.lat_deg, action.position.lon_deg) if action.position is not None else None
+            )
             if self.session is not None:
                 self.session.reject(action.candidate_id, position)
 
@@ -333,7 +341,9 @@ class MissionRunner:
         newest = self._latest.frame_id if self._latest is not None else 0
         keyframe = action.keyframe_id if action.keyframe_id >= 0 else newest
         if action.reinit:
-            chosen = self.frontend.apply_candidates(keyframe, [Detection(action.box, 1.0, candidate_id=action.candidate_id)])
+            chosen = self.frontend.apply_candidates(
+                keyframe, [Detection(action.box, 1.0, candidate_id=action.candidate_id)]
+            )
             if chosen is not None:
                 return
         self.frontend.start(keyframe, action.box)
@@ -356,7 +366,9 @@ class MissionRunner:
         where = ""
         if report.position is not None:
             where = f" at {report.position.lat_deg:.6f},{report.position.lon_deg:.6f}"
-        self.vehicle.send_status(f"CANDIDATE {report.status.upper()} {report.candidate_id}{where}", SEVERITY["info"])
+        self.vehicle.send_status(
+            f"CANDIDATE {report.status.upper()} {report.candidate_id}{where}", SEVERITY["info"]
+        )
         if self.session is not None:
             self.session.update(self._status(report))
 
@@ -403,7 +415,9 @@ class MissionRunner:
     def _report_track(self, result: TrackResult) -> None:
         cam = self.mission.camera
         following = self.state.mode in FOLLOWING_STATES
-        self.vehicle.report_tracking(result.box if result.trusted and following else None, (cam.width, cam.height))
+        self.vehicle.report_tracking(
+            result.box if result.trusted and following else None, (cam.width, cam.height)
+        )
         if following and result.trusted:
             self.vehicle.report_target(result.time_s)
         elif not following:
@@ -430,7 +444,9 @@ class MissionRunner:
         health = self.backend.health()
         if not health.busy:
             self._pending_since = None  # answered or failed: nothing is overdue any more
-        times = [t for t in (health.last_success_time, self.session.last_success() if self.session else None) if t]
+        times = [
+            t for t in (health.last_success_time, self.session.last_success() if self.session else None) if t
+        ]
         if self._pending_since is not None and health.consecutive_failures == 0:
             times.append(self._pending_since)
         elif self.session is None and health.consecutive_failures == 0:
@@ -508,15 +524,37 @@ def _box(box: Any) -> list[float] | None:
 def describe_event(event: Event) -> dict[str, Any] | None:
     """A JSON-ready summary of an event for the event log; None for plain telemetry and ticks (too many)."""
     if isinstance(event, TrackResult):
-        return {"kind": "track", "t": event.time_s, "frame_id": event.frame_id, "box": _box(event.box),
-                "trusted": event.trusted, "lost_reason": event.lost_reason}
+        return {
+            "kind": "track",
+            "t": event.time_s,
+            "frame_id": event.frame_id,
+            "box": _box(event.box),
+            "trusted": event.trusted,
+            "lost_reason": event.lost_reason,
+        }
     if isinstance(event, BackendAnswer):
-        return {"kind": "answer", "t": event.time_s, "query_id": event.query_id, "keyframe_id": event.keyframe_id,
-                "candidates": [{"id": c.candidate_id, "box": _box(c.box), "verdict": c.verdict.value,
-                                "justification": c.justification[:120]} for c in event.candidates]}
+        return {
+            "kind": "answer",
+            "t": event.time_s,
+            "query_id": event.query_id,
+            "keyframe_id": event.keyframe_id,
+            "candidates": [
+                {
+                    "id": c.candidate_id,
+                    "box": _box(c.box),
+                    "verdict": c.verdict.value,
+                    "justification": c.justification[:120],
+                }
+                for c in event.candidates
+            ],
+        }
     if isinstance(event, GcsCommand):
-        return {"kind": "command", "t": event.time_s, "command": type(event.command).__name__,
-                **{k: str(v) for k, v in vars(event.command).items()}}
+        return {
+            "kind": "command",
+            "t": event.time_s,
+            "command": type(event.command).__name__,
+            **{k: str(v) for k, v in vars(event.command).items()},
+        }
     if isinstance(event, (AutopilotLinkLost, BackendUnreachable)):
         return {"kind": type(event).__name__, "t": event.time_s}
     if not isinstance(event, (Telemetry, TimerTick)):
@@ -527,23 +565,55 @@ def describe_event(event: Event) -> dict[str, Any] | None:
 def describe_action(action: Action, t: float) -> dict[str, Any]:
     if isinstance(action, SendSetpoint):
         s = action.setpoint
-        return {"kind": "setpoint", "t": t, "forward": round(s.forward, 3), "right": round(s.right, 3),
-                "down": round(s.down, 3), "yaw_rate": round(s.yaw_rate, 4)}
+        return {
+            "kind": "setpoint",
+            "t": t,
+            "forward": round(s.forward, 3),
+            "right": round(s.right, 3),
+            "down": round(s.down, 3),
+            "yaw_rate": round(s.yaw_rate, 4),
+        }
     if isinstance(action, TrackerInit):
-        return {"kind": "reinit" if action.reinit else "tracker_init", "t": t, "box": _box(action.box),
-                "keyframe_id": action.keyframe_id, "candidate_id": action.candidate_id}
+        return {
+            "kind": "reinit" if action.reinit else "tracker_init",
+            "t": t,
+            "box": _box(action.box),
+            "keyframe_id": action.keyframe_id,
+            "candidate_id": action.candidate_id,
+        }
     if isinstance(action, JudgeCandidates):
-        return {"kind": "judge", "t": t, "keyframe_id": action.keyframe_id, "candidates": len(action.candidates),
-                "refused": list(action.refused)}
+        return {
+            "kind": "judge",
+            "t": t,
+            "keyframe_id": action.keyframe_id,
+            "candidates": len(action.candidates),
+            "refused": list(action.refused),
+        }
     if isinstance(action, ReportCandidate):
-        return {"kind": "candidate_report", "t": t, "status": action.status, "candidate_id": action.candidate_id,
-                "verdict": action.verdict.value, "box": _box(action.box), "justification": action.justification[:120]}
+        return {
+            "kind": "candidate_report",
+            "t": t,
+            "status": action.status,
+            "candidate_id": action.candidate_id,
+            "verdict": action.verdict.value,
+            "box": _box(action.box),
+            "justification": action.justification[:120],
+        }
     if isinstance(action, BackendQuery):
-        return {"kind": "query", "t": t, "query_id": action.query_id, "purpose": action.purpose.value,
-                "prompt": action.prompt, "roi": _box(action.roi)}
+        return {
+            "kind": "query",
+            "t": t,
+            "query_id": action.query_id,
+            "purpose": action.purpose.value,
+            "prompt": action.prompt,
+            "roi": _box(action.roi),
+        }
     if isinstance(action, (Hold, ReleaseControl, TrackerStop)):
-        return {"kind": {Hold: "hold", ReleaseControl: "release", TrackerStop: "tracker_stop"}[type(action)], "t": t,
-                "reason": action.reason}
+        return {
+            "kind": {Hold: "hold", ReleaseControl: "release", TrackerStop: "tracker_stop"}[type(action)],
+            "t": t,
+            "reason": action.reason,
+        }
     if isinstance(action, RequestMode):
         return {"kind": "request_mode", "t": t, "mode": action.mode.value, "reason": action.reason}
     if isinstance(action, GcsMessage):
@@ -579,14 +649,29 @@ class EventLogObserver:
     def on_step(self, event: Event, state: State, actions: tuple[Action, ...]) -> None:
         if state.mode is not self._mode:
             self._mode = state.mode
-            self._emit({"kind": "state", "t": state.now_s, "state": state.mode.value.lower(), "reason": state.reason,
-                        "prompt": state.mission.prompt if state.mission else ""})
+            self._emit(
+                {
+                    "kind": "state",
+                    "t": state.now_s,
+                    "state": state.mode.value.lower(),
+                    "reason": state.reason,
+                    "prompt": state.mission.prompt if state.mission else "",
+                }
+            )
         for action in actions:
             self._emit(describe_action(action, state.now_s))
 
     def on_safety(self, event: SafetyEvent) -> None:
-        self._emit({"kind": "safety", "t": event.time_s, "reason": event.reason, "action": event.action,
-                    "detail": event.detail, "by_other_party": event.by_other_party})
+        self._emit(
+            {
+                "kind": "safety",
+                "t": event.time_s,
+                "reason": event.reason,
+                "action": event.action,
+                "detail": event.detail,
+                "by_other_party": event.by_other_party,
+            }
+        )
 
     def on_reinit(self, init: TrackerInit, time_s: float) -> None:
         self._emit(describe_action(init, time_s))

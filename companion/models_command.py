@@ -37,7 +37,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
         sub = actions.add_parser(name, help=text)
         add_model_dir_flag(sub)
         sub.set_defaults(func=func)
-    dl = actions.add_parser("download", help="fetch NAME from its upstream URL, verify sha256, install atomically")
+    dl = actions.add_parser(
+        "download", help="fetch NAME from its upstream URL, verify sha256, install atomically"
+    )
     dl.add_argument("name", choices=sorted(REGISTRY))
     add_model_dir_flag(dl)
     dl.set_defaults(func=_download)
@@ -52,15 +54,22 @@ def _report(args: argparse.Namespace, required_only: bool) -> int:
         origin = "user-supplied" if spec.user_supplied else "downloadable"
         for mf, status in statuses:
             print(f"  {spec.name:<10} {origin:<13} {status.value:<38} {model_dir / mf.relpath}")
-            if status is FileStatus.CORRUPT or status is FileStatus.MISSING and required_only and not spec.user_supplied:
+            if (
+                status is FileStatus.CORRUPT
+                or status is FileStatus.MISSING
+                and required_only
+                and not spec.user_supplied
+            ):
                 bad += 1
         if any(s is FileStatus.CORRUPT for _, s in statuses) or (
             required_only and not spec.user_supplied and any(s is FileStatus.MISSING for _, s in statuses)
         ):
             print(f"    fix: cloudtrack-companion models download {spec.name} --model-dir {model_dir}")
     user = ", ".join(spec.name for spec in REGISTRY.values() if spec.user_supplied)
-    print(f"user-supplied ({user}): large, no stable checksum upstream; you place their files "
-          "(README, 'Model weights')")
+    print(
+        f"user-supplied ({user}): large, no stable checksum upstream; you place their files "
+        "(README, 'Model weights')"
+    )
     return 1 if bad else 0
 
 

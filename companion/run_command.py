@@ -46,9 +46,15 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     add_config_flags(parser)
-    parser.add_argument("--model-dir", help="weights folder (default: tracker.model_dir, $CLOUDTRACK_MODEL_DIR, cache)")
-    parser.add_argument("--events-out", type=Path, metavar="FILE",
-                        help="write every behaviour event and action as JSON lines to FILE ('-': stdout)")
+    parser.add_argument(
+        "--model-dir", help="weights folder (default: tracker.model_dir, $CLOUDTRACK_MODEL_DIR, cache)"
+    )
+    parser.add_argument(
+        "--events-out",
+        type=Path,
+        metavar="FILE",
+        help="write every behaviour event and action as JSON lines to FILE ('-': stdout)",
+    )
     parser.set_defaults(func=run)
 
 
@@ -100,8 +106,13 @@ def run(args: argparse.Namespace) -> int:
     model_dir = resolve_model_dir(args.model_dir or config.tracker.model_dir or None)
     try:
         frontend = TrackingFrontend.from_config(config.tracker, model_dir)
-        frames = open_source(cam.source, width=cam.width, height=cam.height, fps=cam.fps,
-                             reconnect_interval_s=cam.reconnect_interval_s)
+        frames = open_source(
+            cam.source,
+            width=cam.width,
+            height=cam.height,
+            fps=cam.fps,
+            reconnect_interval_s=cam.reconnect_interval_s,
+        )
     except (ModelError, SourceError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -123,21 +134,40 @@ def run(args: argparse.Namespace) -> int:
 
         record_dir = str(records_dir(rec.dir))
         record = FlightRecordObserver(
-            mission, lambda mission_id: open_record(True, record_dir, rec.max_bytes, rec.video, config.vehicle.id, mission_id,
-                                                    video_fps=cam.fps)
+            mission,
+            lambda mission_id: open_record(
+                True, record_dir, rec.max_bytes, rec.video, config.vehicle.id, mission_id, video_fps=cam.fps
+            ),
         )
         observers.append(record)
 
     link = VehicleLink(config.mavlink, config.safety, (cam.width, cam.height))
-    client = BackendClient(config.backend.url, config.backend.token, config.backend.timeout_s,
-                           config.backend.jpeg_quality, config.backend.max_keyframe_width, vehicle_id=config.vehicle.id,
-                           on_keyframe=record.keyframe if record is not None else None)
+    client = BackendClient(
+        config.backend.url,
+        config.backend.token,
+        config.backend.timeout_s,
+        config.backend.jpeg_quality,
+        config.backend.max_keyframe_width,
+        vehicle_id=config.vehicle.id,
+        on_keyframe=record.keyframe if record is not None else None,
+    )
     session = BackendSession(client, period_s=config.backend.status_interval_s)
     worker = BackendWorker(_QueryService(client))
-    settings = LoopSettings(frame_stale_s=config.safety.frame_stale_s, loop_stall_s=config.safety.loop_stall_s)
-    runner = MissionRunner(mission, frames, frontend, link, worker, session, settings, observers,
-                           ServiceNotifier.from_environment(),
-                           video_sinks=[record.video_frame] if record is not None and rec.video else [])
+    settings = LoopSettings(
+        frame_stale_s=config.safety.frame_stale_s, loop_stall_s=config.safety.loop_stall_s
+    )
+    runner = MissionRunner(
+        mission,
+        frames,
+        frontend,
+        link,
+        worker,
+        session,
+        settings,
+        observers,
+        ServiceNotifier.from_environment(),
+        video_sinks=[record.video_frame] if record is not None and rec.video else [],
+    )
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: runner.request_stop())
     try:
@@ -152,8 +182,14 @@ def run(args: argparse.Namespace) -> int:
 
         attach_tlog(link.endpoint.conn, record)  # every MAVLink message in and out goes into the record
     session.start()
-    log.info("companion %s: camera %s, tracker %s, back-end %s, MAVLink %s", config.vehicle.id, cam.source,
-             config.tracker.name, config.backend.url, config.mavlink.connection)
+    log.info(
+        "companion %s: camera %s, tracker %s, back-end %s, MAVLink %s",
+        config.vehicle.id,
+        cam.source,
+        config.tracker.name,
+        config.backend.url,
+        config.mavlink.connection,
+    )
     try:
         return runner.run()
     finally:

@@ -39,7 +39,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     install.add_argument("--print", dest="print_only", action="store_true", help="print, write nothing")
-    install.add_argument("--backend", action="store_true", help="the back-end's unit instead of the companion's")
+    install.add_argument(
+        "--backend", action="store_true", help="the back-end's unit instead of the companion's"
+    )
     install.add_argument("--unit-dir", type=Path, default=Path("/etc/systemd/system"))
     install.add_argument("--config-dir", type=Path, default=Path("/etc/cloudtrack"))
     install.add_argument("--force", action="store_true", help="overwrite an existing configuration file")

@@ -48,15 +48,24 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--tracker", default=None, help="tracker name (default: [tracker] name)")
-    parser.add_argument("--sequence", type=Path, default=None,
-                        help="sequence folder (default: $CLOUDTRACK_SHARED/data/sequences/uav123_person12_1)")
-    parser.add_argument("--size", default="640x480", help="frame size WIDTHxHEIGHT, or 'native' (default 640x480)")
+    parser.add_argument(
+        "--sequence",
+        type=Path,
+        default=None,
+        help="sequence folder (default: $CLOUDTRACK_SHARED/data/sequences/uav123_person12_1)",
+    )
+    parser.add_argument(
+        "--size", default="640x480", help="frame size WIDTHxHEIGHT, or 'native' (default 640x480)"
+    )
     parser.add_argument("--passes", type=int, default=3, help="alternating bare/loop passes (default 3)")
     parser.add_argument("--frames", type=int, help="use only the first N frames")
     parser.add_argument("--json", type=Path, metavar="OUT", help="write the figures as JSON")
-    parser.add_argument("--recording", action="store_true",
-                        help="write the flight record with H.264 video in the loop, as [recording] video = true "
-                        "does (default: off)")
+    parser.add_argument(
+        "--recording",
+        action="store_true",
+        help="write the flight record with H.264 video in the loop, as [recording] video = true "
+        "does (default: off)",
+    )
     add_model_dir_flag(parser)
     add_config_flags(parser)
     parser.set_defaults(func=run)
@@ -70,35 +79,60 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError("--passes must be at least 1")
         sequence = args.sequence or _default_sequence()
         model_dir = resolve_model_dir(args.model_dir or config.tracker.model_dir or None)
-        result = run_bench(sequence, model_dir, config, args.tracker or config.tracker.name, size, args.passes, args.frames,
-                           recording=args.recording)
+        result = run_bench(
+            sequence,
+            model_dir,
+            config,
+            args.tracker or config.tracker.name,
+            size,
+            args.passes,
+            args.frames,
+            recording=args.recording,
+        )
     except (ConfigError, ModelError, TrackerUnavailableError, ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     w, h = result.size
-    print(f"tracker {result.tracker} on {result.sequence}, {w}x{h}, {result.frames} frames x {result.passes} passes")
+    print(
+        f"tracker {result.tracker} on {result.sequence}, {w}x{h}, {result.frames} frames x {result.passes} passes"
+    )
     print(f"bare update() rate       {result.bare_fps:8.1f} FPS")
     print(f"onboard loop rate        {result.loop_fps:8.1f} FPS")
     recording = " with recording" if result.recording else ""
     verdict = "met" if result.ratio_from_overhead >= 0.9 else "NOT met"
-    print(f"inside the loop          update() {result.update_ms:.2f} ms + everything else{recording} "
-          f"{result.overhead_ms:.2f} ms per frame")
-    print(f"GOAL ratio (in-loop)     {result.ratio_from_overhead:8.3f}   update / (update + rest): goal >= 0.9, {verdict}")
-    print(f"ratio of pass rates      {result.ratio:8.3f}   loop FPS / bare FPS: for reference, swings with machine load")
+    print(
+        f"inside the loop          update() {result.update_ms:.2f} ms + everything else{recording} "
+        f"{result.overhead_ms:.2f} ms per frame"
+    )
+    print(
+        f"GOAL ratio (in-loop)     {result.ratio_from_overhead:8.3f}   update / (update + rest): goal >= 0.9, {verdict}"
+    )
+    print(
+        f"ratio of pass rates      {result.ratio:8.3f}   loop FPS / bare FPS: for reference, swings with machine load"
+    )
     if result.recording:
-        print(f"video frames encoded     {result.video_frames_encoded}, dropped {result.video_frames_dropped} "
-              "(H.264 in the encoder process; a full queue drops, the loop never waits), "
-              f"skipped {result.video_frames_skipped} (loop faster than [camera] fps)")
-        print(f"recording cost           {result.recording_ms:.3f} ms per frame in the loop (event line + frame "
-              f"hand-off, inside 'everything else'); encoder {result.encode_cpu_ms:.2f} ms CPU per encoded frame")
+        print(
+            f"video frames encoded     {result.video_frames_encoded}, dropped {result.video_frames_dropped} "
+            "(H.264 in the encoder process; a full queue drops, the loop never waits), "
+            f"skipped {result.video_frames_skipped} (loop faster than [camera] fps)"
+        )
+        print(
+            f"recording cost           {result.recording_ms:.3f} ms per frame in the loop (event line + frame "
+            f"hand-off, inside 'everything else'); encoder {result.encode_cpu_ms:.2f} ms CPU per encoded frame"
+        )
     print(f"loop latency p50 / p95   {result.latency_p50_ms:6.2f} / {result.latency_p95_ms:.2f} ms")
     print(f"peak memory (RSS)        {result.peak_rss_mib:8.1f} MiB")
     print(f"JPEG decode + resize     {result.decode_ms:8.2f} ms/frame (outside the loop)")
-    print(f"setpoints sent/received  {result.setpoints_sent} / {result.setpoints_received}; "
-          f"trusted frames {result.trusted_frames}")
+    print(
+        f"setpoints sent/received  {result.setpoints_sent} / {result.setpoints_received}; "
+        f"trusted frames {result.trusted_frames}"
+    )
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(
-            {**asdict(result), "ratio": result.ratio, "ratio_from_overhead": result.ratio_from_overhead}, indent=2
-        ))
+        args.json.write_text(
+            json.dumps(
+                {**asdict(result), "ratio": result.ratio, "ratio_from_overhead": result.ratio_from_overhead},
+                indent=2,
+            )
+        )
     return 0

@@ -84,43 +84,90 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("sequences", nargs="+", type=Path, metavar="SEQUENCE_DIR")
-    parser.add_argument("--tracker", default=None, help="tracker name(s), comma separated (default: [tracker] name)")
-    parser.add_argument("--threshold", type=float, help="t_c for scored trackers (default: [tracker] score_threshold)")
+    parser.add_argument(
+        "--tracker", default=None, help="tracker name(s), comma separated (default: [tracker] name)"
+    )
+    parser.add_argument(
+        "--threshold", type=float, help="t_c for scored trackers (default: [tracker] score_threshold)"
+    )
     parser.add_argument("--sweep", help="START:STOP:STEP of t_c, e.g. 0.3:0.95:0.05 (scored trackers only)")
-    parser.add_argument("--policy", choices=(*POLICIES, "both", "all"), default=None,
-                        help="what a re-detection answer may do: verified (move only on evidence, twice in a "
-                        "row; else wait), c_box (the paper: nearest to the last trusted box), score (highest "
-                        "detector score), both (c_box and score) or all (default: [tracker] reinit_policy)")
-    parser.add_argument("--init", choices=("gt", "prompt"), default="gt",
-                        help="first box: the first ground-truth box (gt, default) or the back-end's answer "
-                        "to the sequence's referring.txt (prompt)")
-    parser.add_argument("--verifier", default=None,
-                        help="in-process pipeline's verifier by factory name, e.g. none or local "
-                        "(default: the back-end's [verifier] kind)")
-    parser.add_argument("--keyframe-s", type=float, default=None,
-                        help="seconds of sequence time between back-end requests "
-                        "(default: [backend] keyframe_interval_s)")
-    parser.add_argument("--signals", default=None,
-                        help="loss signals in use: all, none or a list such as score,jump (default: [tracker] loss_signals)")
+    parser.add_argument(
+        "--policy",
+        choices=(*POLICIES, "both", "all"),
+        default=None,
+        help="what a re-detection answer may do: verified (move only on evidence, twice in a "
+        "row; else wait), c_box (the paper: nearest to the last trusted box), score (highest "
+        "detector score), both (c_box and score) or all (default: [tracker] reinit_policy)",
+    )
+    parser.add_argument(
+        "--init",
+        choices=("gt", "prompt"),
+        default="gt",
+        help="first box: the first ground-truth box (gt, default) or the back-end's answer "
+        "to the sequence's referring.txt (prompt)",
+    )
+    parser.add_argument(
+        "--verifier",
+        default=None,
+        help="in-process pipeline's verifier by factory name, e.g. none or local "
+        "(default: the back-end's [verifier] kind)",
+    )
+    parser.add_argument(
+        "--keyframe-s",
+        type=float,
+        default=None,
+        help="seconds of sequence time between back-end requests (default: [backend] keyframe_interval_s)",
+    )
+    parser.add_argument(
+        "--signals",
+        default=None,
+        help="loss signals in use: all, none or a list such as score,jump (default: [tracker] loss_signals)",
+    )
     parser.add_argument("--size", help="resize frames to WIDTHxHEIGHT, e.g. 640x480 (default: native)")
-    parser.add_argument("--detector", choices=("yolox", "none"), default="yolox",
-                        help="in-process detector for re-initialisation when no --backend is given")
-    parser.add_argument("--backend", metavar="URL", help="ask this CloudTrack back-end for candidates instead")
-    parser.add_argument("--delay-s", type=float, default=None,
-                        help="simulated back-end latency in seconds of sequence time "
-                        "(default 0 with --init gt, 2 with --init prompt)")
-    parser.add_argument("--no-compensation", action="store_true", help="apply late answers without fast-forwarding")
-    parser.add_argument("--reverify-s", type=float, default=0.0,
-                        help="also re-initialise from candidates every S seconds while tracking (default 0: off)")
-    parser.add_argument("--occlude", action="store_true",
-                        help="stress test: hide the target for 1.5 s from a third of each sequence (ground truth nan there)")
-    parser.add_argument("--signal-table", action="store_true",
-                        help="instead of mIoU: score every loss signal against the frames really off target "
-                        "(and its false alarms on target), and detector box extent against the ground truth")
+    parser.add_argument(
+        "--detector",
+        choices=("yolox", "none"),
+        default="yolox",
+        help="in-process detector for re-initialisation when no --backend is given",
+    )
+    parser.add_argument(
+        "--backend", metavar="URL", help="ask this CloudTrack back-end for candidates instead"
+    )
+    parser.add_argument(
+        "--delay-s",
+        type=float,
+        default=None,
+        help="simulated back-end latency in seconds of sequence time "
+        "(default 0 with --init gt, 2 with --init prompt)",
+    )
+    parser.add_argument(
+        "--no-compensation", action="store_true", help="apply late answers without fast-forwarding"
+    )
+    parser.add_argument(
+        "--reverify-s",
+        type=float,
+        default=0.0,
+        help="also re-initialise from candidates every S seconds while tracking (default 0: off)",
+    )
+    parser.add_argument(
+        "--occlude",
+        action="store_true",
+        help="stress test: hide the target for 1.5 s from a third of each sequence (ground truth nan there)",
+    )
+    parser.add_argument(
+        "--signal-table",
+        action="store_true",
+        help="instead of mIoU: score every loss signal against the frames really off target "
+        "(and its false alarms on target), and detector box extent against the ground truth",
+    )
     parser.add_argument("--max-frames", type=int, help="use only the first N frames of each sequence")
     parser.add_argument("--json", type=Path, metavar="OUT", help="write every result as JSON")
-    parser.add_argument("--plot", type=Path, metavar="OUT.png",
-                        help="IoU per frame per sequence, or with --sweep the mIoU/FPS-versus-t_c curves")
+    parser.add_argument(
+        "--plot",
+        type=Path,
+        metavar="OUT.png",
+        help="IoU per frame per sequence, or with --sweep the mIoU/FPS-versus-t_c curves",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_model_dir_flag(parser)
     add_config_flags(parser)
@@ -140,9 +187,15 @@ def _detector(args: argparse.Namespace, model_dir: Path, seq: SequenceData) -> D
         from cloudtrack.api_client import BackendClient, BackendError
 
         backend = args.backend_config
-        client = BackendClient(args.backend, backend.token, backend.timeout_s, backend.jpeg_quality,
-                               backend.max_keyframe_width, vehicle_id=args.vehicle_id,
-                               mission_id=f"eval-{seq.name}")
+        client = BackendClient(
+            args.backend,
+            backend.token,
+            backend.timeout_s,
+            backend.jpeg_quality,
+            backend.max_keyframe_width,
+            vehicle_id=args.vehicle_id,
+            mission_id=f"eval-{seq.name}",
+        )
 
         def ask_backend(image: np.ndarray, frame_id: int) -> list[Detection]:
             try:
@@ -193,29 +246,39 @@ def _print_table(
 ) -> dict[str, Any]:
     """The configuration beside the bare tracker, sequence by sequence, from the same run."""
     print(f"\n{label}")
-    print(f"{'sequence':<22} {'frames':>6} {'bare':>6} {'mIoU':>6} {'diff':>7} {'any box':>7} {'FPS':>7} "
-          f"{'edge FPS':>8} {'re-inits':>8} {'moved off':>9} {'confirms':>8} {'losses':>6}  "
-          "lost frames by reason")
+    print(
+        f"{'sequence':<22} {'frames':>6} {'bare':>6} {'mIoU':>6} {'diff':>7} {'any box':>7} {'FPS':>7} "
+        f"{'edge FPS':>8} {'re-inits':>8} {'moved off':>9} {'confirms':>8} {'losses':>6}  "
+        "lost frames by reason"
+    )
     for r, b in zip(results, bare, strict=True):
         reasons = ", ".join(f"{k}:{v}" for k, v in sorted(r.loss_reasons.items())) or "-"
         moved_off = r.reinit_outcomes.get("target->other", 0)
-        print(f"{r.sequence:<22} {r.frames:>6} {_fmt(b.miou):>6} {_fmt(r.miou):>6} "
-              f"{_signed(r.miou - b.miou):>7} {_fmt(r.miou_any_box):>7} {_fmt(r.fps, 1):>7} "
-              f"{_fmt(r.edge_fps, 1):>8} {r.reinits:>8} {moved_off:>9} {r.confirmations:>8} "
-              f"{r.loss_events:>6}  {reasons}")
+        print(
+            f"{r.sequence:<22} {r.frames:>6} {_fmt(b.miou):>6} {_fmt(r.miou):>6} "
+            f"{_signed(r.miou - b.miou):>7} {_fmt(r.miou_any_box):>7} {_fmt(r.fps, 1):>7} "
+            f"{_fmt(r.edge_fps, 1):>8} {r.reinits:>8} {moved_off:>9} {r.confirmations:>8} "
+            f"{r.loss_events:>6}  {reasons}"
+        )
     total, base = overall(results), overall(bare)
     moved = total["reinit_outcomes"].get("target->other", 0)
-    print(f"{'overall (frames)':<22} {total['frames']:>6} {_fmt(base['miou']):>6} {_fmt(total['miou']):>6} "
-          f"{_signed(total['miou'] - base['miou']):>7} {_fmt(total['miou_any_box']):>7} "
-          f"{_fmt(total['fps'], 1):>7} "
-          f"{_fmt(total['edge_fps'], 1):>8} {total['reinits']:>8} {moved:>9} {total['confirmations']:>8} "
-          f"{total['loss_events']:>6}")
-    print(f"{'mean (sequences)':<22} {'':>6} {_fmt(base['mean_miou']):>6} {_fmt(total['mean_miou']):>6} "
-          f"{_signed(total['mean_miou'] - base['mean_miou']):>7}")
+    print(
+        f"{'overall (frames)':<22} {total['frames']:>6} {_fmt(base['miou']):>6} {_fmt(total['miou']):>6} "
+        f"{_signed(total['miou'] - base['miou']):>7} {_fmt(total['miou_any_box']):>7} "
+        f"{_fmt(total['fps'], 1):>7} "
+        f"{_fmt(total['edge_fps'], 1):>8} {total['reinits']:>8} {moved:>9} {total['confirmations']:>8} "
+        f"{total['loss_events']:>6}"
+    )
+    print(
+        f"{'mean (sequences)':<22} {'':>6} {_fmt(base['mean_miou']):>6} {_fmt(total['mean_miou']):>6} "
+        f"{_signed(total['mean_miou'] - base['mean_miou']):>7}"
+    )
     outcomes = ", ".join(f"{k}:{v}" for k, v in sorted(total["reinit_outcomes"].items())) or "none"
     print(f"re-initialisations by where the box was -> went (IoU >= 0.5 with ground truth): {outcomes}")
-    print("bare: first ground-truth box, no loss signals, no re-initialisation; mIoU: trusted boxes only; "
-          "any box: every tracker box, trusted or flagged lost")
+    print(
+        "bare: first ground-truth box, no loss signals, no re-initialisation; mIoU: trusted boxes only; "
+        "any box: every tracker box, trusted or flagged lost"
+    )
     return total
 
 
@@ -226,22 +289,31 @@ def _signed(value: float) -> str:
 def _print_acquisition(results: Sequence[SequenceResult], reference: Sequence[SequenceResult]) -> None:
     """--init prompt: time to the first box, mIoU beside the ground-truth start, and every answer while
     looking (was the chosen candidate the described target?)."""
-    print(f"\n{'sequence':<22} {'first box s':>11} {'prompt mIoU':>11} {'gt-init mIoU':>12} {'ratio':>6}  "
-          "answers while acquiring (keyframe:candidates/yes, T target among them, =target/=OTHER chosen)")
+    print(
+        f"\n{'sequence':<22} {'first box s':>11} {'prompt mIoU':>11} {'gt-init mIoU':>12} {'ratio':>6}  "
+        "answers while acquiring (keyframe:candidates/yes, T target among them, =target/=OTHER chosen)"
+    )
     for r, g in zip(results, reference, strict=True):
-        answers = " ".join(
-            f"{a.frame_id}:{a.candidates}/{a.confirmed}{'T' if a.target_found else '-'}"
-            f"{'' if a.chosen_iou is None else ('=target' if a.chosen_iou >= 0.5 else '=OTHER')}"
-            for a in r.acquisition
-        ) or "-"
+        answers = (
+            " ".join(
+                f"{a.frame_id}:{a.candidates}/{a.confirmed}{'T' if a.target_found else '-'}"
+                f"{'' if a.chosen_iou is None else ('=target' if a.chosen_iou >= 0.5 else '=OTHER')}"
+                for a in r.acquisition
+            )
+            or "-"
+        )
         first = "never" if r.first_box_s is None else f"{r.first_box_s:.1f}"
         ratio = r.miou / g.miou if g.miou > 0 else float("nan")
-        print(f"{r.sequence:<22} {first:>11} {_fmt(r.miou):>11} {_fmt(g.miou):>12} {_fmt(ratio, 2):>6}  "
-              f"{answers}")
+        print(
+            f"{r.sequence:<22} {first:>11} {_fmt(r.miou):>11} {_fmt(g.miou):>12} {_fmt(ratio, 2):>6}  "
+            f"{answers}"
+        )
     total, ref = overall(results), overall(reference)
     ratio = total["miou"] / ref["miou"] if ref["miou"] > 0 else float("nan")
-    print(f"{'overall (frames)':<22} {'':>11} {_fmt(total['miou']):>11} {_fmt(ref['miou']):>12} "
-          f"{_fmt(ratio, 2):>6}")
+    print(
+        f"{'overall (frames)':<22} {'':>11} {_fmt(total['miou']):>11} {_fmt(ref['miou']):>12} "
+        f"{_fmt(ratio, 2):>6}"
+    )
     chosen = [a for r in results for a in r.acquisition if a.chosen_iou is not None]
     right = sum(a.chosen_iou is not None and a.chosen_iou >= 0.5 for a in chosen)
     print(f"first boxes on the described target: {right} of {len(chosen)}")
@@ -257,7 +329,11 @@ def run(args: argparse.Namespace) -> int:
                 raise TrackerUnavailableError(
                     f"tracker {name!r} is not provided by this OpenCV build; available: {', '.join(available_trackers())}"
                 )
-        signals = parse_signals(args.signals) if args.signals is not None else frozenset(config.tracker.loss_signals)
+        signals = (
+            parse_signals(args.signals)
+            if args.signals is not None
+            else frozenset(config.tracker.loss_signals)
+        )
         size = parse_size(args.size) if args.size else None
         sweep = parse_sweep(args.sweep) if args.sweep else None
         if args.threshold is not None and not 0 <= args.threshold <= 1:
@@ -300,8 +376,17 @@ def run(args: argparse.Namespace) -> int:
 
     if args.signal_table:
         for name in trackers:
-            report = signal_table(seqs, config.tracker, model_dir, name, size, args.max_frames, args.occlude,
-                                  caches, keyframe_s=args.keyframe_s)
+            report = signal_table(
+                seqs,
+                config.tracker,
+                model_dir,
+                name,
+                size,
+                args.max_frames,
+                args.occlude,
+                caches,
+                keyframe_s=args.keyframe_s,
+            )
             _print_signal_table(report)
             output["runs"].append({"signal_table": _signal_dict(report)})
         _write_json(args.json, output)
@@ -314,12 +399,27 @@ def run(args: argparse.Namespace) -> int:
         trackers = [t for t in trackers if t in config.tracker.score_threshold]
     thresholds: list[float | None] = list(sweep) if sweep else [args.threshold]
     runs = len(policies) * len(thresholds) * (2 if args.init == "prompt" else 1) + 1  # + the bare tracker
-    total_frames = sum(
-        min(len(s.ground_truth), args.max_frames or len(s.ground_truth)) for s in seqs
-    ) * len(trackers) * runs
+    total_frames = (
+        sum(min(len(s.ground_truth), args.max_frames or len(s.ground_truth)) for s in seqs)
+        * len(trackers)
+        * runs
+    )
     with logging_redirect_tqdm():
-        return _run_evals(args, config, model_dir, trackers, seqs, policies, thresholds, sweep, signals, size,
-                          caches, output, total_frames)
+        return _run_evals(
+            args,
+            config,
+            model_dir,
+            trackers,
+            seqs,
+            policies,
+            thresholds,
+            sweep,
+            signals,
+            size,
+            caches,
+            output,
+            total_frames,
+        )
 
 
 def _run_evals(
@@ -344,8 +444,9 @@ def _run_evals(
     last_results: list[SequenceResult] = []
     delay_s = args.delay_s if args.delay_s is not None else (2.0 if args.init == "prompt" else 0.0)
     has_candidates = any(c is not None for c in caches.values())
-    source = f"back-end {args.backend}" if args.backend else (
-        f"in-process YOLOX + verifier {args.verifier_kind}")
+    source = (
+        f"back-end {args.backend}" if args.backend else (f"in-process YOLOX + verifier {args.verifier_kind}")
+    )
 
     def run_all(settings: EvalSettings, with_candidates: bool = True) -> list[SequenceResult]:
         results = []
@@ -356,17 +457,27 @@ def _run_evals(
                 keyframe_interval=max(1, round(args.keyframe_s * seq.fps)),
                 reverify_interval=round(args.reverify_s * seq.fps),
             )
-            results.append(evaluate_sequence(
-                seq, config.tracker, model_dir, seq_settings, caches[seq.name] if with_candidates else None,
-                progress=bar.update,
-            ))
+            results.append(
+                evaluate_sequence(
+                    seq,
+                    config.tracker,
+                    model_dir,
+                    seq_settings,
+                    caches[seq.name] if with_candidates else None,
+                    progress=bar.update,
+                )
+            )
         bar.clear()
         return results
 
     for name in trackers:
         # The baseline every configuration must beat, on the same frames and size in this same run.
-        bare = run_all(EvalSettings(tracker=name, signals=frozenset(), size=size, max_frames=args.max_frames,
-                                    occlude=args.occlude), with_candidates=False)
+        bare = run_all(
+            EvalSettings(
+                tracker=name, signals=frozenset(), size=size, max_frames=args.max_frames, occlude=args.occlude
+            ),
+            with_candidates=False,
+        )
         for threshold in thresholds:
             for policy in policies:
                 settings = EvalSettings(
@@ -382,29 +493,41 @@ def _run_evals(
                 )
                 results = run_all(settings)
                 t_c = threshold if threshold is not None else config.tracker.score_threshold.get(name, "-")
-                label = (f"tracker {name}, t_c={t_c}, policy {policy}, size {args.size or 'native'}, "
-                         f"candidates: {source if has_candidates else 'none'}, "
-                         f"keyframe every {args.keyframe_s:g} s, delay {delay_s:g} s")
+                label = (
+                    f"tracker {name}, t_c={t_c}, policy {policy}, size {args.size or 'native'}, "
+                    f"candidates: {source if has_candidates else 'none'}, "
+                    f"keyframe every {args.keyframe_s:g} s, delay {delay_s:g} s"
+                )
                 run: dict[str, Any] = {
-                    "tracker": name, "threshold": threshold, "policy": policy, "size": args.size,
-                    "init": args.init, "delay_s": delay_s, "keyframe_s": args.keyframe_s,
+                    "tracker": name,
+                    "threshold": threshold,
+                    "policy": policy,
+                    "size": args.size,
+                    "init": args.init,
+                    "delay_s": delay_s,
+                    "keyframe_s": args.keyframe_s,
                 }
                 if args.init == "prompt":
                     prompted = run_all(replace(settings, init="prompt"))
                     _print_table(f"{label}, first box from the ground truth", results, bare)
-                    total = _print_table(f"{label}, first box from the prompt (--init prompt)", prompted,
-                                         bare)
+                    total = _print_table(
+                        f"{label}, first box from the prompt (--init prompt)", prompted, bare
+                    )
                     _print_acquisition(prompted, results)
                     run["gt_init"] = {
-                        "overall": overall(results), "sequences": [result_dict(r) for r in results],
+                        "overall": overall(results),
+                        "sequences": [result_dict(r) for r in results],
                     }
                     results = prompted
                 else:
                     total = _print_table(label, results, bare)
-                run.update({
-                    "overall": total, "sequences": [result_dict(r) for r in results],
-                    "bare": {"overall": overall(bare), "sequences": [result_dict(r) for r in bare]},
-                })
+                run.update(
+                    {
+                        "overall": total,
+                        "sequences": [result_dict(r) for r in results],
+                        "bare": {"overall": overall(bare), "sequences": [result_dict(r) for r in bare]},
+                    }
+                )
                 output["runs"].append(run)
                 if sweep and threshold is not None:
                     sweep_points.setdefault(name, []).append((threshold, total["miou"], total["fps"]))
@@ -444,27 +567,35 @@ def _signal_dict(report: Any) -> dict[str, Any]:
 
 
 def _print_signal_table(report: Any) -> None:
-    print(f"\ntracker {report.tracker}: {report.frames} frames, {report.lost_frames} off target "
-          "(IoU < 0.1 or "
-          f"target hidden), {report.on_target_frames} on target (IoU >= 0.5); tracked from the first box, "
-          "never re-initialised")
+    print(
+        f"\ntracker {report.tracker}: {report.frames} frames, {report.lost_frames} off target "
+        "(IoU < 0.1 or "
+        f"target hidden), {report.on_target_frames} on target (IoU >= 0.5); tracked from the first box, "
+        "never re-initialised"
+    )
     print(f"{'signal':<28} {'fired':>6} {'off target':>10} {'on target':>9} {'precision':>9} {'recall':>7}")
     for name, c in [*report.counts.items(), *report.combos.items()]:
         precision = c.fired_lost / c.fired if c.fired else float("nan")
         recall = c.fired_lost / report.lost_frames if report.lost_frames else float("nan")
-        print(f"{name:<28} {c.fired:>6} {c.fired_lost:>10} {c.fired_on_target:>9} {_fmt(precision, 2):>9} "
-              f"{_fmt(recall, 2):>7}")
+        print(
+            f"{name:<28} {c.fired:>6} {c.fired_lost:>10} {c.fired_on_target:>9} {_fmt(precision, 2):>9} "
+            f"{_fmt(recall, 2):>7}"
+        )
     print("(off target: hits; on target: false alarms, each a frame the drone stops following a right track)")
     if report.keyframes:
-        print(f"detector on {report.keyframes} keyframes: the target detected (IoU >= 0.5) on "
-              f"{report.target_detected}")
+        print(
+            f"detector on {report.keyframes} keyframes: the target detected (IoU >= 0.5) on "
+            f"{report.target_detected}"
+        )
         extents = (("detector", report.detector_extent), ("tracker on target", report.tracker_extent))
         for label, ratios in extents:
             if ratios:
                 w = np.median([r[0] for r in ratios])
                 h = np.median([r[1] for r in ratios])
-                print(f"  {label:<18} box / ground truth, median width {w:.2f}, height {h:.2f} "
-                      f"({len(ratios)} boxes)")
+                print(
+                    f"  {label:<18} box / ground truth, median width {w:.2f}, height {h:.2f} "
+                    f"({len(ratios)} boxes)"
+                )
 
 
 def _plot_sweep(points: dict[str, list[tuple[float, float, float]]], out: Path) -> None:
@@ -498,7 +629,11 @@ def _plot_ious(results: Sequence[SequenceResult], out: Path) -> None:
     fig, ax = plt.subplots(figsize=(10, 4))
     for r in results:
         ax.plot([np.nan if v is None else v for v in r.ious], label=f"{r.sequence} ({_fmt(r.miou)})")
-    ax.set(xlabel="frame", ylabel="IoU with ground truth", title=f"{results[0].tracker if results else ''} IoU per frame")
+    ax.set(
+        xlabel="frame",
+        ylabel="IoU with ground truth",
+        title=f"{results[0].tracker if results else ''} IoU per frame",
+    )
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize="small")
     fig.tight_layout()

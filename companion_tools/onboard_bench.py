@@ -140,7 +140,9 @@ class _Receiver:
         self.sock.close()
 
 
-def load_frames(sequence: Path, size: tuple[int, int] | None, max_frames: int | None) -> tuple[list[np.ndarray], float]:
+def load_frames(
+    sequence: Path, size: tuple[int, int] | None, max_frames: int | None
+) -> tuple[list[np.ndarray], float]:
     """Decoded (and resized) frames, and the mean decode+resize time per frame in ms."""
     source = FolderSource(sequence, stop_after=max_frames)
     images: list[np.ndarray] = []
@@ -232,13 +234,17 @@ def run_bench(
                     in_record += time.perf_counter() - r0
                 if result.trusted and result.box is not None:
                     trusted += 1
-                    telemetry = Telemetry(time_s=frame.capture_time, height_agl=20.0, armed=True, offboard_active=True)
+                    telemetry = Telemetry(
+                        time_s=frame.capture_time, height_agl=20.0, armed=True, offboard_active=True
+                    )
                     setpoint, state = follow_step(
                         result.box, camera, telemetry, goal, gains, limits, state, frame.capture_time
                     )
                 else:
                     setpoint, state = Setpoint.zero(), ControlState()
-                if endpoint.send(partial(_send_setpoint, encode_velocity(AutopilotKind.ARDUPILOT, setpoint), boot)):
+                if endpoint.send(
+                    partial(_send_setpoint, encode_velocity(AutopilotKind.ARDUPILOT, setpoint), boot)
+                ):
                     sent += 1
                 latencies.append(time.perf_counter() - t0)
             loop_seconds = time.perf_counter() - started
@@ -307,4 +313,3 @@ def _check_first_message(data: bytes | None) -> None:
     message = parser.parse_char(data)
     if message is None or message.get_type() != "SET_POSITION_TARGET_LOCAL_NED":
         raise RuntimeError(f"loopback receiver got {message!r}, not SET_POSITION_TARGET_LOCAL_NED")
-

@@ -91,7 +91,9 @@ def load_recording(folder: Path) -> Recording:
     entries = read_events(folder)
     start = next((e for e in entries if e.get("kind") == "replay_start"), None)
     if start is None:
-        raise RecordError(f"{folder}: the record has no replay_start entry (recorded before a mission started?)")
+        raise RecordError(
+            f"{folder}: the record has no replay_start entry (recorded before a mission started?)"
+        )
     try:
         config = event_codec.decode_as(start["config"], MissionConfig)
         state = event_codec.decode_as(start["state"], State)

@@ -36,13 +36,23 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
         epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("record_dir", type=Path, metavar="RECORD_DIR", help="one mission folder of the flight record")
-    parser.add_argument("--config", type=Path, help="replay with this companion configuration instead of the recorded one")
     parser.add_argument(
-        "--set", action="append", default=[], metavar="SECTION.KEY=VALUE", help="override one value (implies a new configuration)"
+        "record_dir", type=Path, metavar="RECORD_DIR", help="one mission folder of the flight record"
+    )
+    parser.add_argument(
+        "--config", type=Path, help="replay with this companion configuration instead of the recorded one"
+    )
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help="override one value (implies a new configuration)",
     )
     parser.add_argument("--json", type=Path, metavar="FILE", help="also write the report as JSON")
-    parser.add_argument("--show", type=int, default=20, metavar="N", help="print at most N differences (default 20)")
+    parser.add_argument(
+        "--show", type=int, default=20, metavar="N", help="print at most N differences (default 20)"
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.set_defaults(func=_run)
 
@@ -63,7 +73,9 @@ def _run(args: argparse.Namespace) -> int:
             recording,
             args.record_dir,
             config,
-            progress=lambda steps: tqdm(steps, desc="replay", unit="step", disable=args.no_progress, file=sys.stderr),
+            progress=lambda steps: tqdm(
+                steps, desc="replay", unit="step", disable=args.no_progress, file=sys.stderr
+            ),
         )
     except (ConfigError, RecordError, ValueError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -71,7 +71,9 @@ def load_sequence(path: Path) -> SequenceData:
     """A sequence folder: frames/, groundtruth.txt (x,y,w,h or nan), referring.txt, source.json."""
     gt_file = path / "groundtruth.txt"
     if not gt_file.is_file():
-        raise FileNotFoundError(f"{path}: no groundtruth.txt (expected the layout of ../shared/data/sequences)")
+        raise FileNotFoundError(
+            f"{path}: no groundtruth.txt (expected the layout of ../shared/data/sequences)"
+        )
     lines = [line for line in gt_file.read_text().splitlines() if line.strip()]
     gt = tuple(_parse_box(line) for line in lines)
     referring = (path / "referring.txt").read_text().strip() if (path / "referring.txt").is_file() else ""
@@ -309,11 +311,16 @@ def evaluate_sequence(
         if from_prompt and not frontend.tracking:
             chosen = first_candidate(found, settings.accept_uncertain, seq.referring)
             truth = gt_at(keyframe)
-            acquisition.append(AcquisitionKeyframe(
-                keyframe, frame_id, len(found), sum(d.verdict is Verdict.YES for d in found),
-                truth is not None and any(iou(d.box, truth) >= ON_TARGET_IOU for d in found),
-                (iou(chosen.box, truth) if truth is not None else 0.0) if chosen is not None else None,
-            ))
+            acquisition.append(
+                AcquisitionKeyframe(
+                    keyframe,
+                    frame_id,
+                    len(found),
+                    sum(d.verdict is Verdict.YES for d in found),
+                    truth is not None and any(iou(d.box, truth) >= ON_TARGET_IOU for d in found),
+                    (iou(chosen.box, truth) if truth is not None else 0.0) if chosen is not None else None,
+                )
+            )
             if chosen is not None:
                 frontend.start(keyframe, chosen.box)
             return
@@ -409,7 +416,9 @@ def overall(results: Sequence[SequenceResult]) -> dict[str, Any]:
     """Pooled over sequences: mIoU frame by frame, FPS as total frames / total time."""
     frames = sum(r.frames for r in results)
     loop_time = sum(r.frames / r.fps for r in results if r.fps > 0)
-    miou = pooled_miou([MiouResult(r.miou, r.iou_sum, r.gt_frames, r.false_tracks, r.missed_frames) for r in results])
+    miou = pooled_miou(
+        [MiouResult(r.miou, r.iou_sum, r.gt_frames, r.false_tracks, r.missed_frames) for r in results]
+    )
     edge = [r for r in results if r.edge_fps > 0 and math.isfinite(r.edge_fps)]
     edge_time = sum(r.frames / r.edge_fps for r in edge)
     frames_gt = sum(r.gt_frames for r in results)
@@ -417,7 +426,9 @@ def overall(results: Sequence[SequenceResult]) -> dict[str, Any]:
         "sequences": len(results),
         "frames": frames,
         "miou": miou,
-        "miou_any_box": sum(r.miou_any_box * r.gt_frames for r in results) / frames_gt if frames_gt else float("nan"),
+        "miou_any_box": sum(r.miou_any_box * r.gt_frames for r in results) / frames_gt
+        if frames_gt
+        else float("nan"),
         "fps": frames / loop_time if loop_time > 0 else float("nan"),
         "edge_fps": sum(r.frames for r in edge) / edge_time if edge_time > 0 else float("nan"),
         "reinits": sum(r.reinits for r in results),

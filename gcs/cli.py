@@ -32,7 +32,15 @@ from cloudtrack.mavlink_connection import MavlinkEndpoint, mavlink, parse_connec
 from cloudtrack.mavlink_signing import parse_signing_key
 
 EXIT_REFUSED, EXIT_TIMEOUT = 1, 3
-RESULT_NAMES = {0: "ACCEPTED", 1: "TEMPORARILY_REJECTED", 2: "DENIED", 3: "UNSUPPORTED", 4: "FAILED", 5: "IN_PROGRESS", 6: "CANCELLED"}
+RESULT_NAMES = {
+    0: "ACCEPTED",
+    1: "TEMPORARILY_REJECTED",
+    2: "DENIED",
+    3: "UNSUPPORTED",
+    4: "FAILED",
+    5: "IN_PROGRESS",
+    6: "CANCELLED",
+}
 
 EXAMPLES = """\
 examples:
@@ -56,7 +64,9 @@ def _tunnel(mav: Any, target: tuple[int, int], payload: bytes) -> None:
     mav.tunnel_send(target[0], target[1], PROMPT_PAYLOAD_TYPE, len(payload), padded)
 
 
-def _command_long(mav: Any, target: tuple[int, int], command: int, confirmation: int, params: list[float]) -> None:
+def _command_long(
+    mav: Any, target: tuple[int, int], command: int, confirmation: int, params: list[float]
+) -> None:
     mav.command_long_send(target[0], target[1], command, confirmation, *params)
 
 
@@ -85,7 +95,9 @@ class GcsSession:
         self.endpoint.close()
 
     def heartbeat(self) -> None:
-        self.endpoint.send(lambda m: m.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0))
+        self.endpoint.send(
+            lambda m: m.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+        )
 
     def connect(self) -> None:
         """Announce ourselves until the vehicle is heard (udpin links cannot send before that)."""
@@ -114,7 +126,11 @@ class GcsSession:
         deadline = time.monotonic() + self.args.timeout
         confirmation = 0
         while time.monotonic() < deadline:
-            self.endpoint.send(partial(_command_long, target=self.target, command=command, confirmation=confirmation, params=p))
+            self.endpoint.send(
+                partial(
+                    _command_long, target=self.target, command=command, confirmation=confirmation, params=p
+                )
+            )
             resend_at = time.monotonic() + 1.0
             while time.monotonic() < min(resend_at, deadline):
                 msg = self.endpoint.receive(timeout=0.2)
@@ -206,7 +222,9 @@ def mavproxy_start_lines(args: argparse.Namespace) -> list[str]:
     ]
     length = sum(len(p) - 4 for p in payloads)
     engage = 1 if args.allow_engage else 0
-    lines.append(f"message COMMAND_LONG {system} {component} {CMD_START} 0 {args.mission_id} {len(payloads)} {engage} {length} 0 0 0")
+    lines.append(
+        f"message COMMAND_LONG {system} {component} {CMD_START} 0 {args.mission_id} {len(payloads)} {engage} {length} 0 0 0"
+    )
     return lines
 
 
@@ -261,7 +279,11 @@ def _watch(session: GcsSession, args: argparse.Namespace) -> int:
             msg = session.endpoint.receive(timeout=0.2)
             if msg is None:
                 continue
-            if msg.get_type() == "HEARTBEAT" and msg.get_srcSystem() == session.target[0] and msg.get_srcComponent() == 1:
+            if (
+                msg.get_type() == "HEARTBEAT"
+                and msg.get_srcSystem() == session.target[0]
+                and msg.get_srcComponent() == 1
+            ):
                 kind = detect_autopilot(msg.autopilot)
                 new_mode = mode_name(kind, msg.custom_mode, msg.type) if kind else str(msg.custom_mode)
                 if new_mode != mode:
@@ -281,37 +303,87 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("--connect", default="udpin:0.0.0.0:14550", metavar="URL", help="MAVLink link (default udpin:0.0.0.0:14550)")
+    parser.add_argument(
+        "--connect",
+        default="udpin:0.0.0.0:14550",
+        metavar="URL",
+        help="MAVLink link (default udpin:0.0.0.0:14550)",
+    )
     parser.add_argument("--system", type=int, default=1, help="vehicle system id (default 1)")
     parser.add_argument("--component", type=int, default=191, help="companion component id (default 191)")
     parser.add_argument("--gcs-system", type=int, default=255, help="our system id (default 255)")
-    parser.add_argument("--gcs-component", type=int, default=190, help="our component id (default 190, MAV_COMP_ID_MISSIONPLANNER)")
-    parser.add_argument("--timeout", type=float, default=5.0, metavar="S", help="wait this long for an acknowledgement (default 5)")
+    parser.add_argument(
+        "--gcs-component",
+        type=int,
+        default=190,
+        help="our component id (default 190, MAV_COMP_ID_MISSIONPLANNER)",
+    )
+    parser.add_argument(
+        "--timeout",
+        type=float,
+        default=5.0,
+        metavar="S",
+        help="wait this long for an acknowledgement (default 5)",
+    )
     parser.add_argument(
         "--signing-key", default=os.environ.get("CLOUDTRACK_GCS_SIGNING_KEY", ""), metavar="HEX",
         help="MAVLink 2 signing key, 64 hex characters (default $CLOUDTRACK_GCS_SIGNING_KEY)",
     )  # fmt: skip
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    start = sub.add_parser("start", help="start a mission with a text prompt", epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
+    start = sub.add_parser(
+        "start",
+        help="start a mission with a text prompt",
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     start.add_argument("--prompt", required=True, help='what to find, e.g. "injured man in a gray shirt"')
-    start.add_argument("--superset", default="", help="detector class, e.g. person (default: derived by the back-end)")
-    start.add_argument("--allow-engage", action="store_true", help="let the companion select GUIDED/OFFBOARD itself")
-    start.add_argument("--mission-id", type=int, default=int(time.time()) % 256, help="0-255 (default: from the clock)")
     start.add_argument(
-        "--print-mavproxy", action="store_true", help="print the MAVProxy `message` lines that send this start; send nothing"
+        "--superset", default="", help="detector class, e.g. person (default: derived by the back-end)"
+    )
+    start.add_argument(
+        "--allow-engage", action="store_true", help="let the companion select GUIDED/OFFBOARD itself"
+    )
+    start.add_argument(
+        "--mission-id", type=int, default=int(time.time()) % 256, help="0-255 (default: from the clock)"
+    )
+    start.add_argument(
+        "--print-mavproxy",
+        action="store_true",
+        help="print the MAVProxy `message` lines that send this start; send nothing",
     )
     start.set_defaults(func=_start)
     for name, command, text in (
         ("confirm", CMD_CONFIRM, "confirm the candidate awaiting the supervisor"),
         ("reject", CMD_REJECT, "reject the candidate awaiting the supervisor"),
     ):
-        p = sub.add_parser(name, help=text, description=text, epilog=f"example:\n  cloudtrack-gcs {name} --candidate 2", formatter_class=argparse.RawDescriptionHelpFormatter)
-        p.add_argument("--candidate", type=int, default=0, help="candidate number (default 0: the one awaiting the supervisor)")
+        p = sub.add_parser(
+            name,
+            help=text,
+            description=text,
+            epilog=f"example:\n  cloudtrack-gcs {name} --candidate 2",
+            formatter_class=argparse.RawDescriptionHelpFormatter,
+        )
+        p.add_argument(
+            "--candidate",
+            type=int,
+            default=0,
+            help="candidate number (default 0: the one awaiting the supervisor)",
+        )
         p.set_defaults(func=_simple(command))
-    abort = sub.add_parser("abort", help="end the mission: the companion stops and holds", epilog="example:\n  cloudtrack-gcs abort", formatter_class=argparse.RawDescriptionHelpFormatter)
+    abort = sub.add_parser(
+        "abort",
+        help="end the mission: the companion stops and holds",
+        epilog="example:\n  cloudtrack-gcs abort",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     abort.set_defaults(func=_simple(CMD_ABORT, [0.0]))
-    status = sub.add_parser("status", help="ask the companion to repeat its latest status line", epilog="example:\n  cloudtrack-gcs status", formatter_class=argparse.RawDescriptionHelpFormatter)
+    status = sub.add_parser(
+        "status",
+        help="ask the companion to repeat its latest status line",
+        epilog="example:\n  cloudtrack-gcs status",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     status.set_defaults(func=_simple(CMD_STATUS, [0.0]))
     box = sub.add_parser(
         "track-box", help="track what is inside a box (MAV_CMD_CAMERA_TRACK_RECTANGLE, normalised 0..1)",
@@ -321,8 +393,19 @@ def build_parser() -> argparse.ArgumentParser:
     for corner in ("x1", "y1", "x2", "y2"):
         box.add_argument(corner, type=float, help=f"{corner.upper()}, normalised 0..1")
     box.set_defaults(func=_track_box)
-    watch = sub.add_parser("watch", help="print status, candidates and target position as they arrive", epilog="example:\n  cloudtrack-gcs watch --duration 60", formatter_class=argparse.RawDescriptionHelpFormatter)
-    watch.add_argument("--duration", type=float, default=0.0, metavar="S", help="stop after S seconds (default: until Ctrl-C)")
+    watch = sub.add_parser(
+        "watch",
+        help="print status, candidates and target position as they arrive",
+        epilog="example:\n  cloudtrack-gcs watch --duration 60",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    watch.add_argument(
+        "--duration",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="stop after S seconds (default: until Ctrl-C)",
+    )
     watch.set_defaults(func=_watch)
     return parser
 

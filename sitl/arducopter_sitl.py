@@ -41,8 +41,17 @@ GUID_TIMEOUT_S = 1.0  # docs/operations.md: a frozen companion coasts 1 s, not t
 TELEMETRY_HZ = 10  # MAVn_POSITION / EXTRA1 / EXTRA2 on the companion's and the camera's ports
 # ArduCopter 4.5+ names its stream-rate parameters MAVn_* (n = SERIALn-1 + 1); SRn_* no longer exist.
 STREAM_GROUPS = ("POSITION", "EXTRA1", "EXTRA2", "EXTRA3")
-ARDUCOPTER_MODES = {"STABILIZE": 0, "ALT_HOLD": 2, "AUTO": 3, "GUIDED": 4, "LOITER": 5, "RTL": 6, "LAND": 9,
-                    "POSHOLD": 16, "BRAKE": 17}
+ARDUCOPTER_MODES = {
+    "STABILIZE": 0,
+    "ALT_HOLD": 2,
+    "AUTO": 3,
+    "GUIDED": 4,
+    "LOITER": 5,
+    "RTL": 6,
+    "LAND": 9,
+    "POSHOLD": 16,
+    "BRAKE": 17,
+}
 # copter.parm's flight-mode switch: FLTMODE_CH 5, FLTMODE5 = LOITER (PWM 1621-1749), FLTMODE6 = STABILIZE.
 RC_LOITER_PWM = 1685
 
@@ -115,8 +124,14 @@ class SitlPorts:
 class ArduCopterSitl:
     """One `arducopter` process in its own working directory (eeprom.bin, logs/, terrain/ go there)."""
 
-    def __init__(self, binary: Path, work_dir: Path, home: tuple[float, float, float, float],
-                 speedup: float = 1.0, extra_params: dict[str, float] | None = None) -> None:
+    def __init__(
+        self,
+        binary: Path,
+        work_dir: Path,
+        home: tuple[float, float, float, float],
+        speedup: float = 1.0,
+        extra_params: dict[str, float] | None = None,
+    ) -> None:
         self.binary = binary
         self.work_dir = work_dir
         self.home = home  # lat, lon, alt (m AMSL), heading (deg)
@@ -130,15 +145,34 @@ class ArduCopterSitl:
         self.work_dir.mkdir(parents=True, exist_ok=True)
         parm = self.work_dir / "cloudtrack.parm"
         parm.write_text("".join(f"{k} {v:g}\n" for k, v in self.params.items()))
-        defaults = f"{self.binary.parent / 'copter.parm'},{parm}" if (self.binary.parent / "copter.parm").is_file() \
+        defaults = (
+            f"{self.binary.parent / 'copter.parm'},{parm}"
+            if (self.binary.parent / "copter.parm").is_file()
             else str(parm)
+        )
         lat, lon, alt, heading = self.home
         cmd = [
-            str(self.binary), "--model", "+", "--speedup", f"{self.speedup:g}", "--slave", "0",
-            "--sim-address=127.0.0.1", "--defaults", defaults, "-I", str(self.instance),
-            "--home", f"{lat:.7f},{lon:.7f},{alt:.1f},{heading:.0f}", "--wipe",
-            "--serial0", f"tcp:{self.ports.gcs}", "--serial1", f"tcp:{self.ports.camera}",
-            "--serial2", f"tcp:{self.ports.companion}",
+            str(self.binary),
+            "--model",
+            "+",
+            "--speedup",
+            f"{self.speedup:g}",
+            "--slave",
+            "0",
+            "--sim-address=127.0.0.1",
+            "--defaults",
+            defaults,
+            "-I",
+            str(self.instance),
+            "--home",
+            f"{lat:.7f},{lon:.7f},{alt:.1f},{heading:.0f}",
+            "--wipe",
+            "--serial0",
+            f"tcp:{self.ports.gcs}",
+            "--serial1",
+            f"tcp:{self.ports.camera}",
+            "--serial2",
+            f"tcp:{self.ports.companion}",
         ]
         with open(self.work_dir / "arducopter.log", "wb") as out:
             self.process = subprocess.Popen(cmd, cwd=self.work_dir, stdout=out, stderr=subprocess.STDOUT)
@@ -146,11 +180,14 @@ class ArduCopterSitl:
         for port in (self.ports.gcs, self.ports.camera, self.ports.companion):
             while not self._listening(port):
                 if self.process.poll() is not None:
-                    raise RuntimeError(f"arducopter exited with {self.process.returncode} during start-up:\n"
-                                       + self.log_tail())
+                    raise RuntimeError(
+                        f"arducopter exited with {self.process.returncode} during start-up:\n"
+                        + self.log_tail()
+                    )
                 if time.monotonic() > deadline:
-                    raise RuntimeError(f"arducopter did not open TCP port {port} in {timeout_s:.0f} s:\n"
-                                       + self.log_tail())
+                    raise RuntimeError(
+                        f"arducopter did not open TCP port {port} in {timeout_s:.0f} s:\n" + self.log_tail()
+                    )
                 time.sleep(0.1)
         return self
 
@@ -169,7 +206,9 @@ class ArduCopterSitl:
 
     def log_tail(self, lines: int = 20) -> str:
         try:
-            return "\n".join((self.work_dir / "arducopter.log").read_text(errors="replace").splitlines()[-lines:])
+            return "\n".join(
+                (self.work_dir / "arducopter.log").read_text(errors="replace").splitlines()[-lines:]
+            )
         except OSError:
             return "(no arducopter log)"
 
@@ -222,8 +261,10 @@ class CompanionBridge:
         self.setpoints: list[BridgedSetpoint] = []
         self._down = threading.Event()
         self._stop = threading.Event()
-        self._threads = [threading.Thread(target=self._up, name="bridge-up", daemon=True),
-                         threading.Thread(target=self._downlink, name="bridge-down", daemon=True)]
+        self._threads = [
+            threading.Thread(target=self._up, name="bridge-up", daemon=True),
+            threading.Thread(target=self._downlink, name="bridge-down", daemon=True),
+        ]
 
     def start(self) -> CompanionBridge:
         for t in self._threads:
@@ -259,8 +300,19 @@ class CompanionBridge:
                 msgs = []
             for m in msgs:
                 if m.get_type() == "SET_POSITION_TARGET_LOCAL_NED":
-                    self.setpoints.append(BridgedSetpoint(now, "companion", m.coordinate_frame, m.type_mask,
-                                                          m.vx, m.vy, m.vz, m.yaw_rate, self._mode_of()))
+                    self.setpoints.append(
+                        BridgedSetpoint(
+                            now,
+                            "companion",
+                            m.coordinate_frame,
+                            m.type_mask,
+                            m.vx,
+                            m.vy,
+                            m.vz,
+                            m.yaw_rate,
+                            self._mode_of(),
+                        )
+                    )
             try:
                 self._tcp.sendall(data)
             except OSError:
@@ -325,7 +377,9 @@ class RealAutopilot:
             raise ValueError(f"only the companion's link can be cut on the real autopilot, not {name!r}")
         self.bridge.set_down(down)
 
-    def fly_up(self, height_m: float, timeout_s: float = 90.0, progress: Callable[[str], None] = print) -> float:
+    def fly_up(
+        self, height_m: float, timeout_s: float = 90.0, progress: Callable[[str], None] = print
+    ) -> float:
         """Arm and take off in GUIDED as the pilot would, then run at real time; returns the seconds taken."""
         g = self.gcs
         started = time.monotonic()
@@ -335,8 +389,10 @@ class RealAutopilot:
         last_try = 0.0
         while not (g.modes and g.modes[-1][2]):  # armed
             if time.monotonic() > deadline:
-                raise RuntimeError(f"arducopter did not arm in {timeout_s:.0f} s (statustexts: "
-                                   f"{[t for _, t in g.statustexts[-5:]]}):\n{self.sitl.log_tail()}")
+                raise RuntimeError(
+                    f"arducopter did not arm in {timeout_s:.0f} s (statustexts: "
+                    f"{[t for _, t in g.statustexts[-5:]]}):\n{self.sitl.log_tail()}"
+                )
             if time.monotonic() - last_try > 1.0:  # pre-arm checks pass once the EKF uses GPS
                 g.set_mode(ARDUCOPTER_MODES["GUIDED"])
                 g.arm()
@@ -350,12 +406,16 @@ class RealAutopilot:
             if pos is not None and -pos[2] >= height_m - 0.3:
                 break
             if time.monotonic() > deadline:
-                raise RuntimeError(f"arducopter did not reach {height_m} m (at {pos}):\n{self.sitl.log_tail()}")
+                raise RuntimeError(
+                    f"arducopter did not reach {height_m} m (at {pos}):\n{self.sitl.log_tail()}"
+                )
             if time.monotonic() - last_try > 3.0 and (pos is None or -pos[2] < 0.5):
                 g.takeoff(height_m)  # the first one may have come before GUIDED took effect
                 last_try = time.monotonic()
             time.sleep(0.1)
-        g.hold_rc(3, 1500)  # the pilot's throttle at mid-stick from here on: LOITER after a takeover holds height
+        g.hold_rc(
+            3, 1500
+        )  # the pilot's throttle at mid-stick from here on: LOITER after a takeover holds height
         if self.sitl.speedup != 1.0:
             g.params.pop("SIM_SPEEDUP", None)
             while g.params.get("SIM_SPEEDUP") != 1.0:

@@ -56,8 +56,14 @@ PERSONALITIES = ("ardupilot", "px4")
 # ArduCopter's flight-mode switch (FLTMODE_CH 5) with the shipped SITL copter.parm's FLTMODE1..6, and the
 # PWM each slot ends at (RC_Channel: <=1230, <=1360, <=1490, <=1620, <=1749, above). CIRCLE and STABILIZE are
 # not flown here; they stay unmapped.
-FLTMODE_SLOTS = (("CIRCLE", 1230), ("LAND", 1360), ("RTL", 1490), ("AUTO", 1620), ("LOITER", 1749),
-                 ("STABILIZE", 2200))
+FLTMODE_SLOTS = (
+    ("CIRCLE", 1230),
+    ("LAND", 1360),
+    ("RTL", 1490),
+    ("AUTO", 1620),
+    ("LOITER", 1749),
+    ("STABILIZE", 2200),
+)
 RC_MODE_SWITCH_PWM = {"LAND": 1295, "RTL": 1425, "LOITER": 1685}
 RC_START_PWM = 1800  # the SITL's own RC input on channel 5 (slot 6): no switch change until someone moves it
 
@@ -134,9 +140,13 @@ class _Link:
 class SimulatedAutopilot:
     """The simulator. `links` maps a name ("gcs", "companion") to a pymavlink connection string."""
 
-    def __init__(self, options: AutopilotOptions, links: dict[str, str], clock: Callable[[], float] = time.monotonic):
+    def __init__(
+        self, options: AutopilotOptions, links: dict[str, str], clock: Callable[[], float] = time.monotonic
+    ):
         if options.personality not in PERSONALITIES:
-            raise ValueError(f"unknown autopilot personality {options.personality!r}; use one of {PERSONALITIES}")
+            raise ValueError(
+                f"unknown autopilot personality {options.personality!r}; use one of {PERSONALITIES}"
+            )
         if not links:
             raise ValueError("the autopilot needs at least one link")
         self.options = options
@@ -176,9 +186,13 @@ class SimulatedAutopilot:
 
     def start(self) -> None:
         for link in self._links.values():
-            t = threading.Thread(target=self._receive_loop, args=(link,), name=f"autopilot-rx-{link.name}", daemon=True)
+            t = threading.Thread(
+                target=self._receive_loop, args=(link,), name=f"autopilot-rx-{link.name}", daemon=True
+            )
             self._threads.append(t)
-        self._threads.append(threading.Thread(target=self._physics_loop, name="autopilot-physics", daemon=True))
+        self._threads.append(
+            threading.Thread(target=self._physics_loop, name="autopilot-physics", daemon=True)
+        )
         for t in self._threads:
             t.start()
 
@@ -298,8 +312,10 @@ class SimulatedAutopilot:
         elif mtype == "RC_CHANNELS_OVERRIDE" and self.is_ardupilot:
             self._on_rc_override(link, msg)
         elif mtype == "SET_MODE":
-            name = self._mode_from_numbers(msg.custom_mode, 0) if self.is_ardupilot else self._mode_from_numbers(
-                (msg.custom_mode >> 16) & 0xFF, (msg.custom_mode >> 24) & 0xFF
+            name = (
+                self._mode_from_numbers(msg.custom_mode, 0)
+                if self.is_ardupilot
+                else self._mode_from_numbers((msg.custom_mode >> 16) & 0xFF, (msg.custom_mode >> 24) & 0xFF)
             )
             if name is not None:
                 self._try_set_mode(name, f"{link.name} {src[0]}/{src[1]}")
@@ -322,7 +338,9 @@ class SimulatedAutopilot:
         if name in ARDUCOPTER_MODES:
             self._try_set_mode(name, f"pilot rc {link.name}")
 
-    def _route(self, source: _Link, msg: mavutil.mavlink.MAVLink_message, ts: int | None, tc: int | None) -> None:
+    def _route(
+        self, source: _Link, msg: mavutil.mavlink.MAVLink_message, ts: int | None, tc: int | None
+    ) -> None:
         buf = msg.get_msgbuf()
         for other in self._links.values():
             if other is source or other.down:
@@ -335,20 +353,24 @@ class SimulatedAutopilot:
     def _ack(self, link: _Link, msg: mavutil.mavlink.MAVLink_message, result: int) -> None:
         if link.down:
             return
-        link.conn.mav.command_ack_send(
-            msg.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()
-        )
+        link.conn.mav.command_ack_send(msg.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent())
 
     def _on_command(self, link: _Link, msg: mavutil.mavlink.MAVLink_message) -> None:
         who = f"{link.name} {msg.get_srcSystem()}/{msg.get_srcComponent()}"
         cmd = msg.command
         if cmd == mavlink.MAV_CMD_DO_SET_MODE:
             name = self._mode_from_numbers(msg.param2, msg.param3)
-            if name is None:  # ArduCopter 4.7 answers FAILED to a mode number it does not have (conformance suite)
-                self._ack(link, msg, mavlink.MAV_RESULT_FAILED if self.is_ardupilot else mavlink.MAV_RESULT_DENIED)
+            if (
+                name is None
+            ):  # ArduCopter 4.7 answers FAILED to a mode number it does not have (conformance suite)
+                self._ack(
+                    link, msg, mavlink.MAV_RESULT_FAILED if self.is_ardupilot else mavlink.MAV_RESULT_DENIED
+                )
                 return
             ok = self._try_set_mode(name, who)
-            self._ack(link, msg, mavlink.MAV_RESULT_ACCEPTED if ok else mavlink.MAV_RESULT_TEMPORARILY_REJECTED)
+            self._ack(
+                link, msg, mavlink.MAV_RESULT_ACCEPTED if ok else mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+            )
         elif cmd == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
             msg_id, interval_us = int(msg.param1), msg.param2
             if interval_us < 0:
@@ -452,11 +474,15 @@ class SimulatedAutopilot:
             cmd = self._velocity_target
             if self._position_target is not None:
                 n, e, d = self._position_target
-                cmd = VelocityCommand((n - s.north) * 0.8, (e - s.east) * 0.8, (d - s.down) * 0.8, cmd.yaw_rate)
+                cmd = VelocityCommand(
+                    (n - s.north) * 0.8, (e - s.east) * 0.8, (d - s.down) * 0.8, cmd.yaw_rate
+                )
             if self._yaw_target is not None:
                 cmd = VelocityCommand(cmd.vn, cmd.ve, cmd.vd, 2.0 * wrap_pi(self._yaw_target - s.yaw))
             elif self._auto_yaw and math.hypot(cmd.vn, cmd.ve) > 0.5:
-                cmd = VelocityCommand(cmd.vn, cmd.ve, cmd.vd, 2.0 * wrap_pi(math.atan2(cmd.ve, cmd.vn) - s.yaw))
+                cmd = VelocityCommand(
+                    cmd.vn, cmd.ve, cmd.vd, 2.0 * wrap_pi(math.atan2(cmd.ve, cmd.vn) - s.yaw)
+                )
             return cmd
         if self.mode == "RTL":
             dist = math.hypot(s.north, s.east)
@@ -505,7 +531,9 @@ class SimulatedAutopilot:
                 base |= mavlink.MAV_MODE_FLAG_SAFETY_ARMED
             if self.mode in ("GUIDED", "OFFBOARD"):
                 base |= mavlink.MAV_MODE_FLAG_GUIDED_ENABLED
-            autopilot = mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA if self.is_ardupilot else mavlink.MAV_AUTOPILOT_PX4
+            autopilot = (
+                mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA if self.is_ardupilot else mavlink.MAV_AUTOPILOT_PX4
+            )
             status = mavlink.MAV_STATE_ACTIVE if self.armed else mavlink.MAV_STATE_STANDBY
             mav.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, autopilot, base, self._custom_mode(), status)
         elif msg_id == mavlink.MAVLINK_MSG_ID_ATTITUDE:

@@ -34,18 +34,34 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
         epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("--autopilot", choices=PERSONALITIES, default="ardupilot", help="personality (default ardupilot)")
-    parser.add_argument("--gcs", default="udpout:127.0.0.1:14550", metavar="URL", help="GCS link (pymavlink connection string)")
     parser.add_argument(
-        "--companion", default="udpout:127.0.0.1:14540", metavar="URL", help="companion link (pymavlink connection string)"
+        "--autopilot", choices=PERSONALITIES, default="ardupilot", help="personality (default ardupilot)"
     )
-    parser.add_argument("--guid-timeout", type=float, default=3.0, metavar="S", help="ArduCopter GUID_TIMEOUT (default 3)")
-    parser.add_argument("--offboard-loss", type=float, default=1.0, metavar="S", help="PX4 COM_OF_LOSS_T (default 1)")
+    parser.add_argument(
+        "--gcs",
+        default="udpout:127.0.0.1:14550",
+        metavar="URL",
+        help="GCS link (pymavlink connection string)",
+    )
+    parser.add_argument(
+        "--companion",
+        default="udpout:127.0.0.1:14540",
+        metavar="URL",
+        help="companion link (pymavlink connection string)",
+    )
+    parser.add_argument(
+        "--guid-timeout", type=float, default=3.0, metavar="S", help="ArduCopter GUID_TIMEOUT (default 3)"
+    )
+    parser.add_argument(
+        "--offboard-loss", type=float, default=1.0, metavar="S", help="PX4 COM_OF_LOSS_T (default 1)"
+    )
     parser.add_argument(
         "--wind", type=float, nargs=2, default=(0.0, 0.0), metavar=("N", "E"),
         help="steady wind towards north and east in m/s, 80%% rejected by the position controller (default 0 0)",
     )  # fmt: skip
-    parser.add_argument("--duration", type=float, default=0.0, metavar="S", help="stop after S seconds (0: run until Ctrl-C)")
+    parser.add_argument(
+        "--duration", type=float, default=0.0, metavar="S", help="stop after S seconds (0: run until Ctrl-C)"
+    )
     parser.set_defaults(func=run)
 
 
@@ -62,7 +78,10 @@ def run(args: argparse.Namespace) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     sim.start()
-    print(f"{args.autopilot} autopilot simulator: gcs={args.gcs} companion={args.companion} (Ctrl-C stops)", flush=True)
+    print(
+        f"{args.autopilot} autopilot simulator: gcs={args.gcs} companion={args.companion} (Ctrl-C stops)",
+        flush=True,
+    )
     try:
         stop.wait(args.duration if args.duration > 0 else None)
     except KeyboardInterrupt:

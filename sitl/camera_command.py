@@ -40,20 +40,35 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:  # type: ignore
         epilog=CAMERA_EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    cam.add_argument("--autopilot-url", required=True, metavar="URL", help="pymavlink connection to the autopilot")
+    cam.add_argument(
+        "--autopilot-url", required=True, metavar="URL", help="pymavlink connection to the autopilot"
+    )
     cam.add_argument("--host", default="127.0.0.1", help="address to serve frames on (default 127.0.0.1)")
     cam.add_argument("--port", type=int, default=5600, help="sim+tcp port (default 5600)")
     cam.add_argument("--scenario", default="follow", help="whose world to render (default follow)")
     cam.add_argument("--seed", type=int, default=1)
-    cam.add_argument("--mount-pitch", type=float, default=-40.0, metavar="DEG", help="camera pitch (default -40)")
-    cam.add_argument("--backend-port", type=int, help="also run the back-end (simulated detector) on this port")
-    cam.add_argument("--token", default="sim-camera-vehicle-token",
-                     help="bearer token the back-end accepts for the vehicle (16+ characters)")
-    cam.add_argument("--vehicle-id", default="drone-1", help="vehicle id the token is issued to (default drone-1)")
-    cam.add_argument("--world-start", choices=("mission", "now"), default="mission",
-                     help="when the people start walking: 'mission' (default) holds them at their start until the "
-                     "companion's 'MISSION n STARTED' STATUSTEXT is heard on the link, so boot and take-off do not "
-                     "lose the target; 'now' starts them with the camera")
+    cam.add_argument(
+        "--mount-pitch", type=float, default=-40.0, metavar="DEG", help="camera pitch (default -40)"
+    )
+    cam.add_argument(
+        "--backend-port", type=int, help="also run the back-end (simulated detector) on this port"
+    )
+    cam.add_argument(
+        "--token",
+        default="sim-camera-vehicle-token",
+        help="bearer token the back-end accepts for the vehicle (16+ characters)",
+    )
+    cam.add_argument(
+        "--vehicle-id", default="drone-1", help="vehicle id the token is issued to (default drone-1)"
+    )
+    cam.add_argument(
+        "--world-start",
+        choices=("mission", "now"),
+        default="mission",
+        help="when the people start walking: 'mission' (default) holds them at their start until the "
+        "companion's 'MISSION n STARTED' STATUSTEXT is heard on the link, so boot and take-off do not "
+        "lose the target; 'now' starts them with the camera",
+    )
     cam.set_defaults(func=run_camera)
     bench = subparsers.add_parser(
         "bench",
@@ -111,11 +126,14 @@ def run_camera(args: argparse.Namespace) -> int:
         from backend.serving import BackgroundServer
         from sitl.simulated_detector import SimulatedPersonDetector
 
-        config = BackendConfig(server=ServerConfig(port=args.backend_port),
-                               auth=AuthConfig(tokens={args.vehicle_id: args.token}),
-                               sessions=SessionConfig(sqlite_path=":memory:"))
-        backend = BackgroundServer(create_app(config, detector=SimulatedPersonDetector(server.truth)),
-                                   port=args.backend_port).start()
+        config = BackendConfig(
+            server=ServerConfig(port=args.backend_port),
+            auth=AuthConfig(tokens={args.vehicle_id: args.token}),
+            sessions=SessionConfig(sqlite_path=":memory:"),
+        )
+        backend = BackgroundServer(
+            create_app(config, detector=SimulatedPersonDetector(server.truth)), port=args.backend_port
+        ).start()
         print(f"back-end (simulated person detector, local verifier): {backend.url}")
     print(f"camera: {server.url} following {args.autopilot_url} (Ctrl-C stops)", flush=True)
     stop = threading.Event()
@@ -150,7 +168,13 @@ def run_bench(args: argparse.Namespace) -> int:
     for i, pose in enumerate(poses):
         encode_frame(i, i / 30.0, 0.0, renderer.render(pose, i / 30.0, i).image)
     total_s = time.perf_counter() - started
-    print(f"{args.width}x{args.height}, {args.frames} frames, {len(world.people)} people, {len(world.blocks)} blocks")
-    print(f"  render:           {args.frames / render_s:7.1f} FPS ({1000 * render_s / args.frames:.2f} ms/frame)")
-    print(f"  render + packet:  {args.frames / total_s:7.1f} FPS ({1000 * total_s / args.frames:.2f} ms/frame)")
+    print(
+        f"{args.width}x{args.height}, {args.frames} frames, {len(world.people)} people, {len(world.blocks)} blocks"
+    )
+    print(
+        f"  render:           {args.frames / render_s:7.1f} FPS ({1000 * render_s / args.frames:.2f} ms/frame)"
+    )
+    print(
+        f"  render + packet:  {args.frames / total_s:7.1f} FPS ({1000 * total_s / args.frames:.2f} ms/frame)"
+    )
     return 0

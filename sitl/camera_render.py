@@ -148,7 +148,9 @@ class Projector:
         return a, b, c
 
 
-def _clip_half_plane(poly: list[tuple[float, float]], a: float, b: float, c: float) -> list[tuple[float, float]]:
+def _clip_half_plane(
+    poly: list[tuple[float, float]], a: float, b: float, c: float
+) -> list[tuple[float, float]]:
     """Sutherland-Hodgman: the part of a polygon where a*u + b*v + c >= 0."""
     out: list[tuple[float, float]] = []
     for i, p in enumerate(poly):
@@ -162,7 +164,9 @@ def _clip_half_plane(poly: list[tuple[float, float]], a: float, b: float, c: flo
     return out
 
 
-def _person_parts(person: Person, t: float, cam_right: np.ndarray) -> list[tuple[np.ndarray, tuple[int, int, int], str]]:
+def _person_parts(
+    person: Person, t: float, cam_right: np.ndarray
+) -> list[tuple[np.ndarray, tuple[int, int, int], str]]:
     """3D polygons (NED) of a person's body parts with colours; standing/sitting are camera-facing billboards."""
     n, e, heading = person.state_at(t)
     base = np.array([n, e, 0.0])
@@ -174,8 +178,12 @@ def _person_parts(person: Person, t: float, cam_right: np.ndarray) -> list[tuple
     def quad(bottom: float, top: float, half_w: float, offset: np.ndarray | None = None) -> np.ndarray:
         o = base if offset is None else base + offset
         return np.array(
-            [o - half_w * right + bottom * up, o + half_w * right + bottom * up,
-             o + half_w * right + top * up, o - half_w * right + top * up]
+            [
+                o - half_w * right + bottom * up,
+                o + half_w * right + bottom * up,
+                o + half_w * right + top * up,
+                o - half_w * right + top * up,
+            ]
         )
 
     def head(centre_h: float, radius: float, offset: np.ndarray | None = None) -> np.ndarray:
@@ -268,15 +276,26 @@ class Renderer:
         h_img = proj.ground_homography()
         tex_to_img = h_img @ np.linalg.inv(self._ground_to_tex)
         image = cv2.warpPerspective(
-            self.texture, tex_to_img, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+            self.texture,
+            tex_to_img,
+            size,
+            flags=cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_CONSTANT,
             borderValue=(60, 110, 80),
         )
         # Sky where the ray does not meet the ground within a few hundred metres.
         a, b, c = proj.horizon_coefficients()
         far = -pose.down / 300.0  # rays flatter than this reach past the texture
         sky = _clip_half_plane(
-            [(0.0, 0.0), (float(cam.width), 0.0), (float(cam.width), float(cam.height)), (0.0, float(cam.height))],
-            -a, -b, -(c - far),
+            [
+                (0.0, 0.0),
+                (float(cam.width), 0.0),
+                (float(cam.width), float(cam.height)),
+                (0.0, float(cam.height)),
+            ],
+            -a,
+            -b,
+            -(c - far),
         )
         if len(sky) >= 3:
             cv2.fillPoly(image, [np.round(np.array(sky)).astype(np.int32)], SKY_BGR)

@@ -35,9 +35,16 @@ MSG_LOCAL_POSITION_NED = 32
 class PoseFollower:
     """The vehicle pose from the autopilot's telemetry, read on a background thread."""
 
-    def __init__(self, url: str, rate_hz: float = 30.0, source_system: int = 254, source_component: int = 100,
-                 initial: VehiclePose | None = None, origin: tuple[float, float] = (0.0, 0.0),
-                 on_text: Callable[[str], None] | None = None) -> None:
+    def __init__(
+        self,
+        url: str,
+        rate_hz: float = 30.0,
+        source_system: int = 254,
+        source_component: int = 100,
+        initial: VehiclePose | None = None,
+        origin: tuple[float, float] = (0.0, 0.0),
+        on_text: Callable[[str], None] | None = None,
+    ) -> None:
         self.url = url
         self.on_text = on_text  # every STATUSTEXT heard on the link (the companion's are broadcast)
         self.rate_hz = rate_hz
@@ -68,8 +75,17 @@ class PoseFollower:
         interval_us = int(1e6 / self.rate_hz)
         for msg_id in (MSG_ATTITUDE, MSG_LOCAL_POSITION_NED):
             self._conn.mav.command_long_send(
-                self._conn.target_system or 1, self._conn.target_component or 1,
-                mavutil.mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0, msg_id, interval_us, 0, 0, 0, 0, 0,
+                self._conn.target_system or 1,
+                self._conn.target_component or 1,
+                mavutil.mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
+                0,
+                msg_id,
+                interval_us,
+                0,
+                0,
+                0,
+                0,
+                0,
             )
 
     def _run(self) -> None:
@@ -78,15 +94,20 @@ class PoseFollower:
         while not self._stop.is_set():
             now = time.monotonic()
             if now - last_hb >= 1.0:
-                self._conn.mav.heartbeat_send(mavutil.mavlink.MAV_TYPE_GCS, mavutil.mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+                self._conn.mav.heartbeat_send(
+                    mavutil.mavlink.MAV_TYPE_GCS, mavutil.mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0
+                )
                 last_hb = now
             # Ask again while the pose is stale: the autopilot may have started after us or lost the request.
             if now - last_request >= 2.0 and self.age_s() > 1.0:
                 self._request_streams()
                 last_request = now
             try:
-                msg = self._conn.recv_match(type=["ATTITUDE", "LOCAL_POSITION_NED", "HEARTBEAT", "STATUSTEXT"],
-                                            blocking=True, timeout=0.2)
+                msg = self._conn.recv_match(
+                    type=["ATTITUDE", "LOCAL_POSITION_NED", "HEARTBEAT", "STATUSTEXT"],
+                    blocking=True,
+                    timeout=0.2,
+                )
             except (OSError, ValueError) as exc:  # garbage or a closed socket: keep the last pose
                 log.debug("pose follower: %s", exc)
                 continue
@@ -105,7 +126,9 @@ class PoseFollower:
                     self._pose = VehiclePose(p.north, p.east, p.down, msg.roll, msg.pitch, msg.yaw)
                     self._pose_time = time.monotonic()
                 elif kind == "LOCAL_POSITION_NED":
-                    self._pose = VehiclePose(msg.x + self.origin[0], msg.y + self.origin[1], msg.z, p.roll, p.pitch, p.yaw)
+                    self._pose = VehiclePose(
+                        msg.x + self.origin[0], msg.y + self.origin[1], msg.z, p.roll, p.pitch, p.yaw
+                    )
                     self._pose_time = time.monotonic()
 
     def stop(self) -> None:
@@ -215,7 +238,9 @@ class CameraServer:
             except OSError:
                 return
             conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            threading.Thread(target=self._serve_client, args=(conn,), name="camera-client", daemon=True).start()
+            threading.Thread(
+                target=self._serve_client, args=(conn,), name="camera-client", daemon=True
+            ).start()
 
     def _serve_client(self, conn: socket.socket) -> None:
         sent = 0

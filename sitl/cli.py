@@ -37,27 +37,53 @@ def _add_run(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     run.add_argument("scenario", choices=sorted(SCENARIOS), metavar="SCENARIO", help=", ".join(SCENARIOS))
-    run.add_argument("--autopilot", choices=(*PERSONALITIES, "arducopter"),
-                     help="override the scenario's autopilot: a mock personality (ardupilot, px4) or 'arducopter', "
-                     "the real ArduCopter SITL binary (see --arducopter-binary)")
-    run.add_argument("--arducopter-binary", type=Path, metavar="PATH",
-                     help="the ArduCopter SITL binary for --autopilot arducopter (default: $CLOUDTRACK_ARDUCOPTER, "
-                     "else $CLOUDTRACK_SHARED/sitl/arducopter, else ../shared/sitl/arducopter); a missing binary "
-                     "is an error, never a fall-back to the mock")
-    run.add_argument("--speedup", type=float, default=5.0, metavar="X",
-                     help="with --autopilot arducopter: SITL speed-up while it boots, arms and takes off (default 5); "
-                     "the mission itself always runs at 1, since the world, the camera and the companion run in "
-                     "wall-clock time")
+    run.add_argument(
+        "--autopilot",
+        choices=(*PERSONALITIES, "arducopter"),
+        help="override the scenario's autopilot: a mock personality (ardupilot, px4) or 'arducopter', "
+        "the real ArduCopter SITL binary (see --arducopter-binary)",
+    )
+    run.add_argument(
+        "--arducopter-binary",
+        type=Path,
+        metavar="PATH",
+        help="the ArduCopter SITL binary for --autopilot arducopter (default: $CLOUDTRACK_ARDUCOPTER, "
+        "else $CLOUDTRACK_SHARED/sitl/arducopter, else ../shared/sitl/arducopter); a missing binary "
+        "is an error, never a fall-back to the mock",
+    )
+    run.add_argument(
+        "--speedup",
+        type=float,
+        default=5.0,
+        metavar="X",
+        help="with --autopilot arducopter: SITL speed-up while it boots, arms and takes off (default 5); "
+        "the mission itself always runs at 1, since the world, the camera and the companion run in "
+        "wall-clock time",
+    )
     run.add_argument("--seed", type=int, default=1, help="world seed (default 1)")
     run.add_argument("--json", type=Path, metavar="OUT", help="write the metrics JSON here")
-    run.add_argument("--video", type=Path, metavar="OUT.mp4", help="write the first vehicle's camera view with overlays")
+    run.add_argument(
+        "--video", type=Path, metavar="OUT.mp4", help="write the first vehicle's camera view with overlays"
+    )
     run.add_argument("--plot", type=Path, metavar="OUT.png", help="write a top-down trajectory plot")
-    run.add_argument("--tracker", help="companion tracker (default: nano if its weights are installed, else csrt)")
-    run.add_argument("--model-dir", type=Path, help="weights folder (default: $CLOUDTRACK_MODEL_DIR, then the cache)")
-    run.add_argument("--verifier", choices=("local", "none"), default="local",
-                     help="back-end verifier on the rendered crops (default local colour verifier)")
-    run.add_argument("--work-dir", type=Path, help="keep companion logs, event files, flight records and the SITL's "
-                     "files here (default: a temp dir, removed after the run)")
+    run.add_argument(
+        "--tracker", help="companion tracker (default: nano if its weights are installed, else csrt)"
+    )
+    run.add_argument(
+        "--model-dir", type=Path, help="weights folder (default: $CLOUDTRACK_MODEL_DIR, then the cache)"
+    )
+    run.add_argument(
+        "--verifier",
+        choices=("local", "none"),
+        default="local",
+        help="back-end verifier on the rendered crops (default local colour verifier)",
+    )
+    run.add_argument(
+        "--work-dir",
+        type=Path,
+        help="keep companion logs, event files, flight records and the SITL's "
+        "files here (default: a temp dir, removed after the run)",
+    )
     run.set_defaults(func=_run)
 
 
@@ -65,24 +91,38 @@ def _run(args: argparse.Namespace) -> int:
     from sitl.scenario_runner import RunOptions, run_scenario
 
     options = RunOptions(
-        autopilot=args.autopilot, seed=args.seed, json_out=args.json, video_out=args.video, plot_out=args.plot,
-        tracker=args.tracker, model_dir=args.model_dir, work_dir=args.work_dir, verifier=args.verifier,
-        arducopter_binary=args.arducopter_binary, speedup=args.speedup,
+        autopilot=args.autopilot,
+        seed=args.seed,
+        json_out=args.json,
+        video_out=args.video,
+        plot_out=args.plot,
+        tracker=args.tracker,
+        model_dir=args.model_dir,
+        work_dir=args.work_dir,
+        verifier=args.verifier,
+        arducopter_binary=args.arducopter_binary,
+        speedup=args.speedup,
     )
     try:
-        results = run_scenario(SCENARIOS[args.scenario], options, progress=lambda line: print(line, flush=True))
+        results = run_scenario(
+            SCENARIOS[args.scenario], options, progress=lambda line: print(line, flush=True)
+        )
     except (RuntimeError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     print()
-    print(f"scenario {results['scenario']} ({results['autopilot']}, tracker {results['tracker']}): "
-          f"{results['outcome'].upper()}")
+    print(
+        f"scenario {results['scenario']} ({results['autopilot']}, tracker {results['tracker']}): "
+        f"{results['outcome'].upper()}"
+    )
     for vid, m in results["vehicles"].items():
-        print(f"  {vid}: confirmed {m['confirmed']}, first candidate {m['time_to_first_candidate_s']} s, "
-              f"confirmation {m['time_to_confirmation_s']} s, in view {m['target_in_view_ratio']}, "
-              f"pixel error {m['pixel_error_mean_px']}/{m['pixel_error_p95_px']} px (mean/p95), "
-              f"standoff RMSE {m['standoff_rmse_m']} m, max speed {m['max_commanded_speed_m_s']} m/s, "
-              f"setpoints {m['setpoint_rate_hz']} Hz, re-inits {m['reinits']}")
+        print(
+            f"  {vid}: confirmed {m['confirmed']}, first candidate {m['time_to_first_candidate_s']} s, "
+            f"confirmation {m['time_to_confirmation_s']} s, in view {m['target_in_view_ratio']}, "
+            f"pixel error {m['pixel_error_mean_px']}/{m['pixel_error_p95_px']} px (mean/p95), "
+            f"standoff RMSE {m['standoff_rmse_m']} m, max speed {m['max_commanded_speed_m_s']} m/s, "
+            f"setpoints {m['setpoint_rate_hz']} Hz, re-inits {m['reinits']}"
+        )
     for failure in results["failures"]:
         print(f"  FAILED: {failure}")
     for label, path in (("metrics", args.json), ("video", args.video), ("plot", args.plot)):
@@ -107,8 +147,12 @@ def build_parser() -> argparse.ArgumentParser:
         EXAMPLES,
     )
     _add_run(subparsers)
-    listing = subparsers.add_parser("list", help="list the scenarios", epilog="examples:\n  cloudtrack-sim list\n"
-                                    "  cloudtrack-sim list --json", formatter_class=argparse.RawDescriptionHelpFormatter)
+    listing = subparsers.add_parser(
+        "list",
+        help="list the scenarios",
+        epilog="examples:\n  cloudtrack-sim list\n  cloudtrack-sim list --json",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     listing.add_argument("--json", action="store_true", help="as a JSON object name -> summary")
     listing.set_defaults(func=_list)
     add_command_modules(subparsers, ("sitl.autopilot_command",))

@@ -49,7 +49,16 @@ class TimedEvent:
     detail: dict[str, Any] = field(default_factory=dict)
 
 
-SAFETY_KINDS = ("hold", "stop", "watchdog", "mode_change", "link_lost", "backend_lost", "frame_stale", "abort")
+SAFETY_KINDS = (
+    "hold",
+    "stop",
+    "watchdog",
+    "mode_change",
+    "link_lost",
+    "backend_lost",
+    "frame_stale",
+    "abort",
+)
 
 
 FOLLOW_STATES = frozenset({"following", "awaiting_supervisor", "confirmed"})
@@ -122,18 +131,22 @@ def summarise(
     in_follow = [f for f in frames if _inside(f.t, follow)]
     w, h = image_size
     seen = [
-        f for f in in_follow
-        if f.target_box is not None and f.target_visible >= min_visible
-        and 0 <= f.target_box.cx < w and 0 <= f.target_box.cy < h
+        f
+        for f in in_follow
+        if f.target_box is not None
+        and f.target_visible >= min_visible
+        and 0 <= f.target_box.cx < w
+        and 0 <= f.target_box.cy < h
     ]
-    pixel_errors = [math.hypot(f.target_box.cx - w / 2, f.target_box.cy - h / 2) for f in seen if f.target_box]
+    pixel_errors = [
+        math.hypot(f.target_box.cx - w / 2, f.target_box.cy - h / 2) for f in seen if f.target_box
+    ]
     standoff_errors = [
-        math.hypot(f.drone_north - f.target_north, f.drone_east - f.target_east) - standoff_m for f in in_follow
+        math.hypot(f.drone_north - f.target_north, f.drone_east - f.target_east) - standoff_m
+        for f in in_follow
     ]
     speeds = [s.horizontal_speed for s in setpoints]
-    safety = [
-        {"t": round(e.t, 3), "kind": e.kind, **e.detail} for e in events if e.kind in SAFETY_KINDS
-    ]
+    safety = [{"t": round(e.t, 3), "kind": e.kind, **e.detail} for e in events if e.kind in SAFETY_KINDS]
 
     def num(x: float | None, nd: int = 3) -> float | None:
         return None if x is None or not math.isfinite(x) else round(x, nd)
@@ -147,7 +160,8 @@ def summarise(
         "pixel_error_mean_px": num(sum(pixel_errors) / len(pixel_errors), 1) if pixel_errors else None,
         "pixel_error_p95_px": num(percentile(pixel_errors, 95), 1) if pixel_errors else None,
         "standoff_rmse_m": num(math.sqrt(sum(e * e for e in standoff_errors) / len(standoff_errors)))
-        if standoff_errors else None,
+        if standoff_errors
+        else None,
         "max_commanded_speed_m_s": num(max(speeds)) if speeds else 0.0,
         "reinits": sum(1 for e in events if e.kind == "reinit"),
         "setpoint_rate_hz": num(setpoint_rate(setpoints, follow), 1),
@@ -157,7 +171,10 @@ def summarise(
 
 
 def distance_coasted(
-    track: Sequence[tuple[float, float, float]], t_fault: float, still_m_s: float = 0.3, window_s: float = 10.0
+    track: Sequence[tuple[float, float, float]],
+    t_fault: float,
+    still_m_s: float = 0.3,
+    window_s: float = 10.0,
 ) -> float:
     """Ground distance (m) the vehicle travelled from `t_fault` until it came to rest.
 

@@ -136,7 +136,9 @@ def default_tracker(model_dir: Path) -> str:
         return "csrt"
 
 
-def _home(origin: tuple[float, float], lat0: float = 47.397742, lon0: float = 8.545594) -> tuple[float, float]:
+def _home(
+    origin: tuple[float, float], lat0: float = 47.397742, lon0: float = 8.545594
+) -> tuple[float, float]:
     lat = lat0 + math.degrees(origin[0] / EARTH_RADIUS)
     lon = lon0 + math.degrees(origin[1] / (EARTH_RADIUS * math.cos(math.radians(lat0))))
     return lat, lon
@@ -207,7 +209,9 @@ class ScenarioRun:
         )
         # The reject scenario needs the look-alike in the first keyframe: no random misses there.
         noise = DetectorNoise(miss_rate=self.scenario.miss_rate)
-        detector = SimulatedPersonDetector(self._truth_lookup, self.camera.width, noise, seed=self.options.seed)
+        detector = SimulatedPersonDetector(
+            self._truth_lookup, self.camera.width, noise, seed=self.options.seed
+        )
         self._backend = BackgroundServer(create_app(config, detector=detector)).start()
         return str(self._backend.url)
 
@@ -220,12 +224,25 @@ class ScenarioRun:
         else:
             autopilot, gcs, camera_url = self._start_mock(origin, udp_port)
         follower = PoseFollower(camera_url, origin=origin).start()
-        camera = CameraServer(self.world, self.camera, follower.pose, fps=30.0, frame_id_base=index << FRAME_ID_BITS)
+        camera = CameraServer(
+            self.world, self.camera, follower.pose, fps=30.0, frame_id_base=index << FRAME_ID_BITS
+        )
         camera.epoch = math.inf  # people hold their start positions until the mission starts
         host, port = backend_url.removeprefix("http://").split(":")
         proxy = FaultProxy((host, int(port))).start()
-        v = _Vehicle(index, vid, autopilot, follower, camera, proxy, gcs, self.work / f"{vid}-events.jsonl",
-                     self.work / f"{vid}-companion.log", origin=origin, companion_udp_port=udp_port)
+        v = _Vehicle(
+            index,
+            vid,
+            autopilot,
+            follower,
+            camera,
+            proxy,
+            gcs,
+            self.work / f"{vid}-events.jsonl",
+            self.work / f"{vid}-companion.log",
+            origin=origin,
+            companion_udp_port=udp_port,
+        )
         camera.add_hook(partial(self._on_frame, v))
         camera.start()
         return v
@@ -234,8 +251,13 @@ class ScenarioRun:
         from sitl.autopilot import AutopilotOptions, SimulatedAutopilot
 
         lat, lon = _home(origin)
-        options = AutopilotOptions(personality=self.personality, start_height_m=ALTITUDE_M, home_lat=lat, home_lon=lon,
-                                   guid_timeout_s=GUID_TIMEOUT_S)
+        options = AutopilotOptions(
+            personality=self.personality,
+            start_height_m=ALTITUDE_M,
+            home_lat=lat,
+            home_lon=lon,
+            guid_timeout_s=GUID_TIMEOUT_S,
+        )
         links = {name: "udpin:127.0.0.1:0" for name in ("gcs", "companion", "camera")}
         if udp_port is not None:
             links["companion"] = f"udpout:127.0.0.1:{udp_port}"  # the companion listens (udpin)
@@ -244,16 +266,23 @@ class ScenarioRun:
         gcs = ScriptedGcs(f"udpout:127.0.0.1:{autopilot.link_port('gcs')}").start()
         return autopilot, gcs, f"udpout:127.0.0.1:{autopilot.link_port('camera')}"
 
-    def _start_arducopter(self, vid: str, origin: tuple[float, float],
-                          udp_port: int | None) -> tuple[Any, ScriptedGcs, str]:
+    def _start_arducopter(
+        self, vid: str, origin: tuple[float, float], udp_port: int | None
+    ) -> tuple[Any, ScriptedGcs, str]:
         from sitl.arducopter_sitl import ArduCopterSitl, RealAutopilot
 
         assert self.arducopter is not None
         lat, lon = _home(origin)
-        sitl = ArduCopterSitl(self.arducopter, self.work / f"{vid}-arducopter", (lat, lon, HOME_ALT_M, 0.0),
-                              speedup=self.options.speedup).start()
-        self.progress(f"{vid}: ArduCopter SITL {self.arducopter} (pid {sitl.process.pid if sitl.process else '?'}, "
-                      f"instance {sitl.instance}, speed-up {self.options.speedup:g} until airborne)")
+        sitl = ArduCopterSitl(
+            self.arducopter,
+            self.work / f"{vid}-arducopter",
+            (lat, lon, HOME_ALT_M, 0.0),
+            speedup=self.options.speedup,
+        ).start()
+        self.progress(
+            f"{vid}: ArduCopter SITL {self.arducopter} (pid {sitl.process.pid if sitl.process else '?'}, "
+            f"instance {sitl.instance}, speed-up {self.options.speedup:g} until airborne)"
+        )
         try:
             gcs = ScriptedGcs(f"tcp:127.0.0.1:{sitl.ports.gcs}").start()
             autopilot = RealAutopilot(sitl, gcs, udp_port)
@@ -277,7 +306,16 @@ class ScenarioRun:
             f"recording.dir={self.work / 'records'}",
             *self.scenario.companion_settings,
         ]
-        cmd = [sys.executable, "-m", "companion.cli", "--log-level", "INFO", "run", "--events-out", str(v.events_path)]
+        cmd = [
+            sys.executable,
+            "-m",
+            "companion.cli",
+            "--log-level",
+            "INFO",
+            "run",
+            "--events-out",
+            str(v.events_path),
+        ]
         for s in settings:
             cmd += ["--set", s]
         env = dict(os.environ, CLOUDTRACK_BACKEND__TOKEN=self.tokens[v.vehicle_id], PYTHONUNBUFFERED="1")
@@ -333,14 +371,17 @@ class ScenarioRun:
     def _world_t(self, monotonic_t: float) -> float:
         return monotonic_t - (self.epoch or 0.0)
 
-    def _person_at(self, v: _Vehicle, box_xywh: list[float] | None, t_world: float, frame_id: int = -1) -> str:
+    def _person_at(
+        self, v: _Vehicle, box_xywh: list[float] | None, t_world: float, frame_id: int = -1
+    ) -> str:
         """Which person a companion box shows, judged on that frame (else the one rendered nearest in time)."""
         if not box_xywh or not v.frames:
             return "none"
         box = Box(*box_xywh)
         recent = v.frames[-300:]
         frame = next((f for f in recent if f.frame_id == frame_id), None) or min(
-            recent, key=lambda f: abs(f.time_s - t_world))
+            recent, key=lambda f: abs(f.time_s - t_world)
+        )
         best, best_iou = "none", 0.1
         for tb in frame.truth:
             overlap = iou(box, tb.box)
@@ -372,8 +413,12 @@ class ScenarioRun:
             if kind == "tracker_init":
                 self.say(f"{v.vehicle_id}: tracking candidate {e.get('candidate_id')} -> {pid}")
         elif kind == "candidate_report":
-            v.overlay = OverlayState(v.overlay.state, v.overlay.prompt, f"{e.get('verdict')}: {e.get('justification', '')[:40]}",
-                                     v.overlay.box)
+            v.overlay = OverlayState(
+                v.overlay.state,
+                v.overlay.prompt,
+                f"{e.get('verdict')}: {e.get('justification', '')[:40]}",
+                v.overlay.box,
+            )
             if e.get("status") == "awaiting" and v.pending_decision is None:
                 pid = self._person_at(v, e.get("box"), t)
                 action = "confirm" if pid == self.world.target_id else "reject"
@@ -467,7 +512,9 @@ class ScenarioRun:
         time.sleep(0.1)
         v.gcs.fly_to(there[0] - v.origin[0], there[1] - v.origin[1], pose.down)
         v.fly_to = (self.now(), here, there)
-        self.say(f"{v.vehicle_id}: GCS fly-to ({there[0]:.1f}, {there[1]:.1f}) from ({here[0]:.1f}, {here[1]:.1f})")
+        self.say(
+            f"{v.vehicle_id}: GCS fly-to ({there[0]:.1f}, {there[1]:.1f}) from ({here[0]:.1f}, {here[1]:.1f})"
+        )
 
     def _flood(self, v: _Vehicle) -> None:
         """200 one-datagram UDP senders at the companion's port; each then listens for what comes back."""
@@ -482,7 +529,9 @@ class ScenarioRun:
             s.bind(("127.0.0.1", 0))
             s.setblocking(False)
             mav = mavutil.mavlink.MAVLink(None, srcSystem=100 + i % 100, srcComponent=1)
-            hb = mav.heartbeat_encode(mavutil.mavlink.MAV_TYPE_GCS, mavutil.mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+            hb = mav.heartbeat_encode(
+                mavutil.mavlink.MAV_TYPE_GCS, mavutil.mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0
+            )
             s.sendto(hb.pack(mav) if i % 2 == 0 else os.urandom(40), ("127.0.0.1", v.companion_udp_port))
             socks.append(s)
         v.flood = {"senders": FLOOD_SENDERS, "datagrams": 0, "setpoints": 0}
@@ -505,7 +554,9 @@ class ScenarioRun:
                         msgs = parser.parse_buffer(data) or []
                     except Exception:
                         msgs = []
-                    v.flood["setpoints"] += sum(1 for m in msgs if m.get_type() == "SET_POSITION_TARGET_LOCAL_NED")
+                    v.flood["setpoints"] += sum(
+                        1 for m in msgs if m.get_type() == "SET_POSITION_TARGET_LOCAL_NED"
+                    )
             for s in socks:
                 s.close()
 
@@ -537,8 +588,10 @@ class ScenarioRun:
 
     def _run(self) -> dict[str, Any]:
         s = self.scenario
-        self.progress(f"scenario {s.name}: {s.summary} ({self.personality}, seed {self.options.seed}, "
-                      f"tracker {self.tracker}, work dir {self.work})")
+        self.progress(
+            f"scenario {s.name}: {s.summary} ({self.personality}, seed {self.options.seed}, "
+            f"tracker {self.tracker}, work dir {self.work})"
+        )
         backend_url = self._start_backend()
         self.vehicles = [self._start_vehicle(i, backend_url) for i in range(s.vehicles)]
         for v in self.vehicles:
@@ -546,7 +599,9 @@ class ScenarioRun:
         if self.real:
             for v in self.vehicles:  # the pilot arms and takes off; the companion never does
                 took = v.autopilot.fly_up(ALTITUDE_M, progress=self.progress)
-                self.progress(f"{v.vehicle_id}: airborne at {ALTITUDE_M:g} m in GUIDED after {took:.1f} s, SITL at real time")
+                self.progress(
+                    f"{v.vehicle_id}: airborne at {ALTITUDE_M:g} m in GUIDED after {took:.1f} s, SITL at real time"
+                )
         deadline = time.monotonic() + self.options.startup_timeout_s
         while not all(v.ready for v in self.vehicles):
             for v in self.vehicles:
@@ -554,9 +609,13 @@ class ScenarioRun:
                     if e.get("kind") == "health" and e.get("healthy"):
                         v.ready = True
                 if v.process is not None and v.process.poll() is not None:
-                    raise RuntimeError(f"{v.vehicle_id} companion exited during start-up:\n{self._log_tail(v)}")
+                    raise RuntimeError(
+                        f"{v.vehicle_id} companion exited during start-up:\n{self._log_tail(v)}"
+                    )
             if time.monotonic() > deadline:
-                raise RuntimeError("companions not ready in time:\n" + "\n".join(self._log_tail(v) for v in self.vehicles))
+                raise RuntimeError(
+                    "companions not ready in time:\n" + "\n".join(self._log_tail(v) for v in self.vehicles)
+                )
             time.sleep(0.1)
         if self.options.video_out is not None:
             self.video = VideoWriter(self.options.video_out, 30.0, (self.camera.width, self.camera.height))
@@ -602,7 +661,9 @@ class ScenarioRun:
             try:
                 v.process.wait(timeout=5.0)
                 v.stop_s = time.monotonic() - started
-                self.say(f"{v.vehicle_id}: companion exited {v.process.returncode} {v.stop_s:.2f} s after SIGTERM")
+                self.say(
+                    f"{v.vehicle_id}: companion exited {v.process.returncode} {v.stop_s:.2f} s after SIGTERM"
+                )
             except subprocess.TimeoutExpired:
                 v.process.kill()
                 v.process.wait()
@@ -640,13 +701,23 @@ class ScenarioRun:
         for f in v.frames:
             tb = next((x for x in f.truth if x.person_id == target), None)
             tn, te, _ = self.world.person(target).state_at(f.time_s)
-            samples.append(FrameSample(f.time_s, f.pose.north, f.pose.east, tn, te, tb.box if tb else None,
-                                       tb.visible if tb else 0.0))
+            samples.append(
+                FrameSample(
+                    f.time_s,
+                    f.pose.north,
+                    f.pose.east,
+                    tn,
+                    te,
+                    tb.box if tb else None,
+                    tb.visible if tb else 0.0,
+                )
+            )
             hidden.append((f.time_s, tb is None or tb.visible < 0.2))
         epoch = self.epoch or 0.0
         setpoints = [
             SetpointSample(sp.time - epoch, sp.vx, sp.vy, sp.vz, sp.yaw_rate)
-            for sp in list(v.autopilot.setpoints) if sp.link == "companion"
+            for sp in list(v.autopilot.setpoints)
+            if sp.link == "companion"
         ]
         events: list[TimedEvent] = []
         first_candidate = None
@@ -657,7 +728,11 @@ class ScenarioRun:
                 events.append(TimedEvent(t, "state", {"state": e.get("state")}))
                 if e.get("state") == "confirmed":
                     events.append(TimedEvent(t, "confirmed"))
-            elif kind == "answer" and first_candidate is None and any(c.get("verdict") == "yes" for c in e.get("candidates", [])):
+            elif (
+                kind == "answer"
+                and first_candidate is None
+                and any(c.get("verdict") == "yes" for c in e.get("candidates", []))
+            ):
                 first_candidate = t
                 events.append(TimedEvent(t, "candidate"))
             elif kind == "reinit":
@@ -665,18 +740,34 @@ class ScenarioRun:
             elif kind in ("hold", "release"):  # a release (stop, hold mode, silence) stops the vehicle too
                 events.append(TimedEvent(t, "hold", {"reason": e.get("reason", ""), "action": kind}))
             elif kind == "safety":
-                events.append(TimedEvent(t, "watchdog", {"reason": e.get("reason"), "action": e.get("action"),
-                                                         "detail": e.get("detail", "")}))
+                events.append(
+                    TimedEvent(
+                        t,
+                        "watchdog",
+                        {"reason": e.get("reason"), "action": e.get("action"), "detail": e.get("detail", "")},
+                    )
+                )
         for name, t in self.fault_times.items():
-            events.append(TimedEvent(t, {"takeover": "mode_change", "backend_down": "backend_lost",
-                                         "link_down": "link_lost"}.get(name, "fault"), {"fault": name}))
+            events.append(
+                TimedEvent(
+                    t,
+                    {"takeover": "mode_change", "backend_down": "backend_lost", "link_down": "link_lost"}.get(
+                        name, "fault"
+                    ),
+                    {"fault": name},
+                )
+            )
         follow = following_intervals([e for e in events if e.kind == "state"], end_t)
 
         def following_after(t0: float) -> float:
             n = 0
             for s in samples:
-                if s.t > t0 and any(a <= s.t <= b for a, b in follow) and s.target_box is not None \
-                        and s.target_visible >= 0.3:
+                if (
+                    s.t > t0
+                    and any(a <= s.t <= b for a, b in follow)
+                    and s.target_box is not None
+                    and s.target_visible >= 0.3
+                ):
                     n += 1
             return n / 30.0
 
@@ -696,7 +787,9 @@ class ScenarioRun:
         late = None
         mode_seen_after: float | None = None
         if takeover_t is not None:
-            mode_times = [t - epoch for t, _, source in v.autopilot.mode_history if source.startswith("pilot")]
+            mode_times = [
+                t - epoch for t, _, source in v.autopilot.mode_history if source.startswith("pilot")
+            ]
             takeover_t = mode_times[0] if mode_times else takeover_t
             if self.real:
                 # The real autopilot changes mode some time after the pilot's action (the RC switch is
@@ -704,27 +797,47 @@ class ScenarioRun:
                 from sitl.arducopter_sitl import ARDUCOPTER_MODES
 
                 wanted = ARDUCOPTER_MODES[TAKEOVER_MODE[self.personality]]
-                seen = [t - epoch for t, mode, _ in list(v.gcs.modes) if t - epoch >= takeover_t and mode == wanted]
+                seen = [
+                    t - epoch
+                    for t, mode, _ in list(v.gcs.modes)
+                    if t - epoch >= takeover_t and mode == wanted
+                ]
                 if seen:
                     mode_seen_after = seen[0] - takeover_t
                     takeover_t = seen[0]
             after = [sp.t for sp in setpoints if sp.t > takeover_t]
             late = (max(after) - takeover_t) if after else 0.0
-        holds = tuple(e.t for e in events if e.kind == "hold" or (e.kind == "watchdog" and e.detail.get("action") == "stop"))
-        metrics = summarise(samples, setpoints, events, STANDOFF_M, (self.camera.width, self.camera.height), end_t,
-                            outcome="pending")
+        holds = tuple(
+            e.t
+            for e in events
+            if e.kind == "hold" or (e.kind == "watchdog" and e.detail.get("action") == "stop")
+        )
+        metrics = summarise(
+            samples,
+            setpoints,
+            events,
+            STANDOFF_M,
+            (self.camera.width, self.camera.height),
+            end_t,
+            outcome="pending",
+        )
         metrics["last_setpoint_after_takeover_s"] = None if late is None else round(late, 3)
         if mode_seen_after is not None:
             metrics["takeover_mode_reported_after_action_s"] = round(mode_seen_after, 3)
-        metrics["occlusion_s"] = None if occlusion is None else [round(occlusion[0], 2), round(occlusion[1], 2)]
+        metrics["occlusion_s"] = (
+            None if occlusion is None else [round(occlusion[0], 2), round(occlusion[1], 2)]
+        )
         metrics["frames_rendered"] = len(v.frames)
         # ArduCopter flies a setpoint only in GUIDED, PX4 only in OFFBOARD: those are the accepted ones.
         active = "OFFBOARD" if self.personality == "px4" else "GUIDED"
-        metrics["setpoints_accepted"] = sum(1 for sp in list(v.autopilot.setpoints)
-                                            if sp.link == "companion" and sp.mode == active)
+        metrics["setpoints_accepted"] = sum(
+            1 for sp in list(v.autopilot.setpoints) if sp.link == "companion" and sp.mode == active
+        )
         track = [(f.time_s, f.pose.north, f.pose.east) for f in v.frames]
         metrics["coasted_m"] = {
-            kind: round(distance_coasted(track, t), 2) for kind, t in self.fault_times.items() if kind in COASTING_FAULTS
+            kind: round(distance_coasted(track, t), 2)
+            for kind, t in self.fault_times.items()
+            if kind in COASTING_FAULTS
         }
         metrics.update(self._fault_metrics(v, setpoints))
         return VehicleOutcome(
@@ -746,18 +859,36 @@ class ScenarioRun:
         if v.fly_to is not None:
             t0, here, there = v.fly_to
             start = math.dist(here, there)
-            closest = min((math.dist((f.pose.north, f.pose.east), there) for f in v.frames if t0 <= f.time_s <= t0 + 8.0),
-                          default=start)
-            out["fly_to_progress_m"] = round(start - closest, 2)  # how far it got toward the GCS target in 8 s
+            closest = min(
+                (
+                    math.dist((f.pose.north, f.pose.east), there)
+                    for f in v.frames
+                    if t0 <= f.time_s <= t0 + 8.0
+                ),
+                default=start,
+            )
+            out["fly_to_progress_m"] = round(
+                start - closest, 2
+            )  # how far it got toward the GCS target in 8 s
         if v.stall_resumed is not None:
             resumed = v.stall_resumed - (self.epoch or 0.0)
             texts = [(t - (self.epoch or 0.0), text) for t, text in v.gcs.statustexts]
             cause = [(t, text) for t, text in texts if t >= resumed - 0.5 and "stall" in text.lower()]
-            out["stall_reported"] = None if not cause else {"after_s": round(cause[0][0] - resumed, 3), "text": cause[0][1]}
-            out["statustexts_after_resume"] = [text for t, text in texts if resumed - 0.5 <= t <= resumed + 3.0][:10]
+            out["stall_reported"] = (
+                None if not cause else {"after_s": round(cause[0][0] - resumed, 3), "text": cause[0][1]}
+            )
+            out["statustexts_after_resume"] = [
+                text for t, text in texts if resumed - 0.5 <= t <= resumed + 3.0
+            ][:10]
             after = [sp for sp in setpoints if sp.t >= resumed]
-            out["first_setpoint_after_resume"] = None if not after else {
-                "after_s": round(after[0].t - resumed, 3), "speed_m_s": round(after[0].horizontal_speed, 3)}
+            out["first_setpoint_after_resume"] = (
+                None
+                if not after
+                else {
+                    "after_s": round(after[0].t - resumed, 3),
+                    "speed_m_s": round(after[0].horizontal_speed, 3),
+                }
+            )
         if v.flood:
             out["flood"] = dict(v.flood)
         return out
@@ -801,8 +932,11 @@ class ScenarioRun:
                 + [TimedEvent(t, "hold") for t in o.hold_times[:3]]
                 for v, o in zip(self.vehicles, outcomes, strict=True)
             }
-            others = {p.person_id + f" ({p.shirt})": [p.state_at(0.0)[:2]] for p in self.world.people
-                      if p.person_id != self.world.target_id}
+            others = {
+                p.person_id + f" ({p.shirt})": [p.state_at(0.0)[:2]]
+                for p in self.world.people
+                if p.person_id != self.world.target_id
+            }
             plot_trajectories(self.options.plot_out, tracks, events, f"{s.name}: {outcome}", others)
         return results
 

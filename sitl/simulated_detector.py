@@ -39,14 +39,17 @@ class SimulatedPersonDetector:
 
     name = "sitl_simulated_person"
 
-    def __init__(self, truth: TruthLookup, render_width: int = 640, noise: DetectorNoise | None = None,
-                 seed: int = 0) -> None:
+    def __init__(
+        self, truth: TruthLookup, render_width: int = 640, noise: DetectorNoise | None = None, seed: int = 0
+    ) -> None:
         self._truth = truth
         self._render_width = render_width
         self.noise = noise or DetectorNoise()
         self.seed = seed
 
-    def detect(self, image_bgr: np.ndarray, classes: Sequence[str], frame_id: int | None = None) -> list[Detection]:
+    def detect(
+        self, image_bgr: np.ndarray, classes: Sequence[str], frame_id: int | None = None
+    ) -> list[Detection]:
         """Boxes of people in `image_bgr` (a keyframe, scaled or not, or a region of one)."""
         from backend.supersets import UnknownSupersetError
 
@@ -94,7 +97,9 @@ class SimulatedPersonDetector:
             return (0.0, 0.0), 1.0
         # A region of a full-size keyframe: find it in the thumbnail (the offset is good to about 2 px).
         gray = cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY)
-        small = cv2.resize(gray, (max(1, int(w * THUMB_SCALE)), max(1, int(h * THUMB_SCALE))), interpolation=cv2.INTER_AREA)
+        small = cv2.resize(
+            gray, (max(1, int(w * THUMB_SCALE)), max(1, int(h * THUMB_SCALE))), interpolation=cv2.INTER_AREA
+        )
         thumb = record.thumbnail
         if small.shape[0] <= thumb.shape[0] and small.shape[1] <= thumb.shape[1] and min(small.shape) >= 4:
             scores = cv2.matchTemplate(thumb, small, cv2.TM_CCOEFF_NORMED)

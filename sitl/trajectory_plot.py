@@ -30,12 +30,23 @@ def plot_trajectories(
         if not samples:
             continue
         colour = ("tab:blue", "tab:purple", "tab:cyan")[i % 3]
-        ax.plot([s.drone_east for s in samples], [s.drone_north for s in samples], color=colour, lw=2,
-                label=f"drone {vehicle}")
+        ax.plot(
+            [s.drone_east for s in samples],
+            [s.drone_north for s in samples],
+            color=colour,
+            lw=2,
+            label=f"drone {vehicle}",
+        )
         ax.plot(samples[0].drone_east, samples[0].drone_north, "o", color=colour)
         if not target_drawn:
-            ax.plot([s.target_east for s in samples], [s.target_north for s in samples], color="tab:green", lw=2,
-                    ls="--", label="target (green shirt)")
+            ax.plot(
+                [s.target_east for s in samples],
+                [s.target_north for s in samples],
+                color="tab:green",
+                lw=2,
+                ls="--",
+                label="target (green shirt)",
+            )
             ax.plot(samples[-1].target_east, samples[-1].target_north, "*", color="tab:green", ms=14)
             target_drawn = True
         by_time = sorted(samples, key=lambda s: s.t)
@@ -44,8 +55,13 @@ def plot_trajectories(
                 continue
             near = min(by_time, key=lambda s: abs(s.t - ev.t))
             ax.plot(near.drone_east, near.drone_north, "x" if ev.kind != "confirmed" else "D", color="k")
-            ax.annotate(ev.kind, (near.drone_east, near.drone_north), fontsize=7, xytext=(4, 4),
-                        textcoords="offset points")
+            ax.annotate(
+                ev.kind,
+                (near.drone_east, near.drone_north),
+                fontsize=7,
+                xytext=(4, 4),
+                textcoords="offset points",
+            )
     for label, points in (others or {}).items():
         ax.plot([p[1] for p in points], [p[0] for p in points], ".", color="gray", ms=6)
         if points:

@@ -123,5 +123,15 @@ def step(
     pitch = -math.atan2(a_fwd, GRAVITY)
     roll = math.atan2(a_right, GRAVITY)
     return replace(
-        state, north=north, east=east, down=down, vn=vn, ve=ve, vd=vd, yaw=yaw, yaw_rate=yaw_rate, roll=roll, pitch=pitch
+        state,
+        north=north,
+        east=east,
+        down=down,
+        vn=vn,
+        ve=ve,
+        vd=vd,
+        yaw=yaw,
+        yaw_rate=yaw_rate,
+        roll=roll,
+        pitch=pitch,
     )

@@ -30,7 +30,11 @@ def draw_overlay(image: np.ndarray, overlay: OverlayState, t: float, vehicle: st
     out = image.copy()
     if overlay.box is not None and overlay.box.is_valid():
         b = overlay.box
-        colour = (0, 255, 0) if overlay.state in ("following", "confirmed", "awaiting_confirmation") else (0, 200, 255)
+        colour = (
+            (0, 255, 0)
+            if overlay.state in ("following", "confirmed", "awaiting_confirmation")
+            else (0, 200, 255)
+        )
         cv2.rectangle(out, (int(b.x), int(b.y)), (int(b.x2), int(b.y2)), colour, 2)
     cv2.rectangle(out, (0, 0), (out.shape[1], 44), (0, 0, 0), -1)
     top = f"{vehicle}  t={t:5.1f}s  state: {overlay.state or '-'}"
@@ -38,8 +42,16 @@ def draw_overlay(image: np.ndarray, overlay: OverlayState, t: float, vehicle: st
     second = f"prompt: {overlay.prompt or '-'}   verdict: {overlay.verdict or '-'}"
     cv2.putText(out, second[:90], (6, 37), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (200, 255, 200), 1, cv2.LINE_AA)
     if overlay.note:
-        cv2.putText(out, overlay.note[:80], (6, out.shape[0] - 14), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 255, 255), 1,
-                    cv2.LINE_AA)
+        cv2.putText(
+            out,
+            overlay.note[:80],
+            (6, out.shape[0] - 14),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.5,
+            (0, 255, 255),
+            1,
+            cv2.LINE_AA,
+        )
     return out
 
 
@@ -69,5 +81,10 @@ class VideoWriter:
     def close(self) -> None:
         self._writer.close()
         if self._writer.error is not None or self._writer.frames_dropped:
-            log.warning("video %s: %d frames written, %d dropped%s", self.path, self._writer.frames_written,
-                        self._writer.frames_dropped, f", encoder error: {self._writer.error}" if self._writer.error else "")
+            log.warning(
+                "video %s: %d frames written, %d dropped%s",
+                self.path,
+                self._writer.frames_written,
+                self._writer.frames_dropped,
+                f", encoder error: {self._writer.error}" if self._writer.error else "",
+            )

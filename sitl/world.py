@@ -103,7 +103,8 @@ class Block:
         e0, e1 = self.east - self.width / 2, self.east + self.width / 2
         d0, d1 = -self.base, -(self.base + self.height)
         return np.array(
-            [[n, e, d] for d in (d0, d1) for n, e in ((n0, e0), (n1, e0), (n1, e1), (n0, e1))], dtype=np.float64
+            [[n, e, d] for d in (d0, d1) for n, e in ((n0, e0), (n1, e0), (n1, e1), (n0, e1))],
+            dtype=np.float64,
         )
 
 
@@ -201,14 +202,29 @@ def distractor_world(
         lateral = (1 if i % 2 else -1) * float(rng.uniform(7.0, 14.0))
         colour = ((60, 60, 180), (170, 170, 170), (140, 80, 40))[i % 3]
         blocks.append(
-            Block("vehicle", n0 + along * fwd[0] + lateral * side[0], e0 + along * fwd[1] + lateral * side[1],
-                  4.5, 1.9, 1.5, colour=colour)
+            Block(
+                "vehicle",
+                n0 + along * fwd[0] + lateral * side[0],
+                e0 + along * fwd[1] + lateral * side[1],
+                4.5,
+                1.9,
+                1.5,
+                colour=colour,
+            )
         )
     if occluder_at_m is not None:
         cn, ce = n0 + occluder_at_m * fwd[0], e0 + occluder_at_m * fwd[1]
         along_n = abs(fwd[0]) > abs(fwd[1])
         blocks.append(
-            Block("occluder", cn, ce, 5.0 if along_n else 8.0, 8.0 if along_n else 5.0, 0.4, base=2.6,
-                  colour=(70, 75, 95))
+            Block(
+                "occluder",
+                cn,
+                ce,
+                5.0 if along_n else 8.0,
+                8.0 if along_n else 5.0,
+                0.4,
+                base=2.6,
+                colour=(70, 75, 95),
+            )
         )
     return World(seed, tuple(people), tuple(blocks), target_id="target")

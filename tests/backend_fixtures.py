@@ -32,7 +32,12 @@ def backend_config(models_dir: Path, *settings: str) -> BackendConfig:
     )
 
 
-def frame(sequences_dir: Path, name: str = "uav123_person12_1", index: int = 1, size: tuple[int, int] | None = (640, 360)) -> np.ndarray:
+def frame(
+    sequences_dir: Path,
+    name: str = "uav123_person12_1",
+    index: int = 1,
+    size: tuple[int, int] | None = (640, 360),
+) -> np.ndarray:
     image = cv2.imread(str(sequences_dir / name / "frames" / f"{index:06d}.jpg"))
     assert image is not None
     return cv2.resize(image, size, interpolation=cv2.INTER_AREA) if size else image
@@ -49,6 +54,10 @@ def auth(vehicle: str = "drone-1") -> dict[str, str]:
 
 
 def detect_parts(image_bytes: bytes, **meta: Any) -> dict[str, Any]:
-    fields = {"vehicle_id": "drone-1", "mission_id": "m-1", "prompt": "the man in the green-and-white striped shirt"}
+    fields = {
+        "vehicle_id": "drone-1",
+        "mission_id": "m-1",
+        "prompt": "the man in the green-and-white striped shirt",
+    }
     fields.update(meta)
     return {"files": {"image": ("k.jpg", image_bytes, "image/jpeg")}, "data": {"meta": json.dumps(fields)}}

@@ -114,12 +114,16 @@ def vehicle_link(
 
 
 @contextmanager
-def gcs(sim: SimulatedAutopilot, signing_key: bytes | None = None, system: int = 255) -> Iterator[MavlinkEndpoint]:
+def gcs(
+    sim: SimulatedAutopilot, signing_key: bytes | None = None, system: int = 255
+) -> Iterator[MavlinkEndpoint]:
     """A raw GCS endpoint on the sim's GCS link that the autopilot has already seen (so it routes to it)."""
     endpoint = MavlinkEndpoint.open(f"udpout:127.0.0.1:{sim.link_port('gcs')}", system, 190)
     if signing_key is not None:
         # The autopilot's own traffic is unsigned; accept it so the GCS can see it.
-        endpoint.conn.setup_signing(signing_key, sign_outgoing=True, allow_unsigned_callback=lambda mav, msg_id: True)
+        endpoint.conn.setup_signing(
+            signing_key, sign_outgoing=True, allow_unsigned_callback=lambda mav, msg_id: True
+        )
     try:
         endpoint.send(lambda m: m.heartbeat_send(6, 8, 0, 0, 0))
         assert wait_for(lambda: _heard_heartbeat(endpoint), 5.0), "the GCS never heard the autopilot"

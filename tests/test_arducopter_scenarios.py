@@ -90,4 +90,3 @@ def test_arducopter_udp_flood(models_dir: Path, tmp_path: Path) -> None:
     _, m = _fly("flood", models_dir, tmp_path)
     assert m["flood"]["senders"] == 200
     assert m["flood"]["setpoints"] == 0
-

@@ -34,7 +34,12 @@ VELOCITY_AND_YAW = 0b0000_1001_1100_0111  # velocity and yaw angle used, yaw rat
 REAL: dict[str, Any] = {
     "mode_numbers": {name: (0, number) for name, number in MODES.items() if name != "STABILIZE"},
     "unknown_mode_ack": 4,  # MAV_RESULT_FAILED for a custom mode ArduCopter does not have
-    "acks": {"set_message_interval": 0, "request_message": 0, "unknown_command": 3, "takeoff_while_flying": 4},
+    "acks": {
+        "set_message_interval": 0,
+        "request_message": 0,
+        "unknown_command": 3,
+        "takeoff_while_flying": 4,
+    },
     "arm": 0,  # already armed: accepted
     "guid_timeout": {"moving_at_0_7_s": True, "stopped_by_3_s": True},
     "rates_hz": {"ATTITUDE": 20, "GLOBAL_POSITION_INT": 5},
@@ -48,7 +53,7 @@ REAL: dict[str, Any] = {
 KNOWN_DIFFERENCES: dict[str, str] = {
     # name -> reason; the mock's answer is not compared for these (docs/sitl.md lists them).
     "arm": "the mock starts armed and hovering and denies every arm request, so a companion that tries to arm "
-           "fails a test; the real ArduCopter arms for whoever asks once its pre-arm checks pass",
+    "fails a test; the real ArduCopter arms for whoever asks once its pre-arm checks pass",
 }
 
 
@@ -88,8 +93,14 @@ class Vehicle:
     def set_mode(self, number: int) -> int | None:
         return self.command(mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, number)
 
-    def setpoint(self, frame: int, mask: int, pos: tuple[float, float, float] = (0, 0, 0),
-                 vel: tuple[float, float, float] = (0, 0, 0), yaw: float = 0.0) -> None:
+    def setpoint(
+        self,
+        frame: int,
+        mask: int,
+        pos: tuple[float, float, float] = (0, 0, 0),
+        vel: tuple[float, float, float] = (0, 0, 0),
+        yaw: float = 0.0,
+    ) -> None:
         self.client.mav.set_position_target_local_ned_send(0, 1, 1, frame, mask, *pos, *vel, 0, 0, 0, yaw, 0)
 
     def track(self, seconds: float, every: Any = None) -> list[tuple[float, Any]]:
@@ -115,11 +126,14 @@ class Vehicle:
 def _mock() -> Vehicle:
     from sitl.autopilot import AutopilotOptions, SimulatedAutopilot
 
-    sim = SimulatedAutopilot(AutopilotOptions(start_height_m=10.0, guid_timeout_s=1.0),
-                             {"gcs": "udpin:127.0.0.1:0", "companion": "udpin:127.0.0.1:0"})
+    sim = SimulatedAutopilot(
+        AutopilotOptions(start_height_m=10.0, guid_timeout_s=1.0),
+        {"gcs": "udpin:127.0.0.1:0", "companion": "udpin:127.0.0.1:0"},
+    )
     sim.start()
-    client = mavutil.mavlink_connection(f"udpout:127.0.0.1:{sim.link_port('companion')}", source_system=1,
-                                        source_component=191)
+    client = mavutil.mavlink_connection(
+        f"udpout:127.0.0.1:{sim.link_port('companion')}", source_system=1, source_component=191
+    )
     gcs = ScriptedGcs(f"udpout:127.0.0.1:{sim.link_port('gcs')}").start()
     return Vehicle("mock", client, gcs, lambda: (gcs.stop(), client.close(), sim.close()))
 
@@ -137,11 +151,14 @@ def _arducopter(work: Path) -> Vehicle:
         real.close()
         raise
     # The project's parameters took: GUID_TIMEOUT 1 s and the 4.5+ stream-rate names on the companion's port.
-    params = {name: gcs.read_param(name) for name in ("GUID_TIMEOUT", "MAV3_POSITION", "MAV3_EXTRA1", "SIM_SPEEDUP")}
+    params = {
+        name: gcs.read_param(name) for name in ("GUID_TIMEOUT", "MAV3_POSITION", "MAV3_EXTRA1", "SIM_SPEEDUP")
+    }
     print(f"arducopter parameters: {params}")
     assert params == {"GUID_TIMEOUT": 1.0, "MAV3_POSITION": 10.0, "MAV3_EXTRA1": 10.0, "SIM_SPEEDUP": 1.0}
-    client = mavutil.mavlink_connection(f"udpout:127.0.0.1:{real.bridge.udp_port}", source_system=1,
-                                        source_component=191)
+    client = mavutil.mavlink_connection(
+        f"udpout:127.0.0.1:{real.bridge.udp_port}", source_system=1, source_component=191
+    )
     client.mav.heartbeat_send(mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
     return Vehicle("arducopter", client, gcs, lambda: (gcs.stop(), client.close(), real.close()))
 
@@ -161,7 +178,9 @@ def _compare(v: Vehicle, name: str, answer: Any) -> None:
     print(f"{v.kind} {name}: {answer}")
     if v.kind == "mock" and name in KNOWN_DIFFERENCES:
         return
-    assert answer == REAL[name], f"{v.kind} answers {answer} to {name}; the real ArduCopter answers {REAL[name]}"
+    assert answer == REAL[name], (
+        f"{v.kind} answers {answer} to {name}; the real ArduCopter answers {REAL[name]}"
+    )
 
 
 def _drain(v: Vehicle) -> None:
@@ -211,7 +230,9 @@ def test_velocity_after_guid_timeout(vehicle: Vehicle) -> None:
     speed_07 = _course(track, 0.6, 0.8)[1]
     speed_3 = _course(track, 2.8, 3.2)[1]
     travelled = math.dist((track[0][1].x, track[0][1].y), (track[-1][1].x, track[-1][1].y))
-    print(f"{vehicle.kind}: {speed_07:.2f} m/s at 0.7 s, {speed_3:.2f} m/s at 3 s, {travelled:.2f} m travelled")
+    print(
+        f"{vehicle.kind}: {speed_07:.2f} m/s at 0.7 s, {speed_3:.2f} m/s at 3 s, {travelled:.2f} m travelled"
+    )
     _compare(vehicle, "guid_timeout", {"moving_at_0_7_s": speed_07 > 0.5, "stopped_by_3_s": speed_3 < 0.3})
 
 
@@ -230,9 +251,16 @@ def test_message_rates_after_set_message_interval(vehicle: Vehicle) -> None:
     measured = {name: counts[name] / 3.0 for name in rates}
     print(f"{vehicle.kind}: {measured}")
     # Within 20 %: both schedule on their own loop, so a period is quantised to it.
-    _compare(vehicle, "rates_hz", {name: hz for name, (_, hz) in rates.items()
-                                   if abs(measured[name] - hz) <= 0.2 * hz} | {
-        name: round(measured[name], 1) for name, (_, hz) in rates.items() if abs(measured[name] - hz) > 0.2 * hz})
+    _compare(
+        vehicle,
+        "rates_hz",
+        {name: hz for name, (_, hz) in rates.items() if abs(measured[name] - hz) <= 0.2 * hz}
+        | {
+            name: round(measured[name], 1)
+            for name, (_, hz) in rates.items()
+            if abs(measured[name] - hz) > 0.2 * hz
+        },
+    )
     for msg_id, _ in rates.values():
         assert vehicle.interval(msg_id, -1) == 0
     time.sleep(0.5)
@@ -248,10 +276,15 @@ def test_message_rates_after_set_message_interval(vehicle: Vehicle) -> None:
 def test_velocity_frames_the_companion_uses(vehicle: Vehicle) -> None:
     """2 m/s "forward" in each frame with the vehicle facing east: LOCAL_NED flies north, body frames east."""
     vehicle.settle()
-    vehicle.track(4.0, lambda _: vehicle.setpoint(mavlink.MAV_FRAME_LOCAL_NED, VELOCITY_AND_YAW, yaw=math.pi / 2))
+    vehicle.track(
+        4.0, lambda _: vehicle.setpoint(mavlink.MAV_FRAME_LOCAL_NED, VELOCITY_AND_YAW, yaw=math.pi / 2)
+    )
     courses = {}
-    for name, frame in (("LOCAL_NED", mavlink.MAV_FRAME_LOCAL_NED), ("BODY_NED", mavlink.MAV_FRAME_BODY_NED),
-                        ("BODY_OFFSET_NED", mavlink.MAV_FRAME_BODY_OFFSET_NED)):
+    for name, frame in (
+        ("LOCAL_NED", mavlink.MAV_FRAME_LOCAL_NED),
+        ("BODY_NED", mavlink.MAV_FRAME_BODY_NED),
+        ("BODY_OFFSET_NED", mavlink.MAV_FRAME_BODY_OFFSET_NED),
+    ):
         track = vehicle.track(2.0, lambda _, f=frame: vehicle.setpoint(f, VELOCITY_ONLY, vel=(2.0, 0.0, 0.0)))
         course, speed = _course(track, 1.2, 2.0)
         print(f"{vehicle.kind} {name}: course {course:.0f} deg at {speed:.2f} m/s")
@@ -264,7 +297,9 @@ def test_velocity_frames_the_companion_uses(vehicle: Vehicle) -> None:
 def test_setpoints_ignored_outside_guided(vehicle: Vehicle) -> None:
     vehicle.settle()
     assert vehicle.set_mode(MODES["LOITER"]) == 0
-    track = vehicle.track(2.0, lambda _: vehicle.setpoint(mavlink.MAV_FRAME_LOCAL_NED, VELOCITY_ONLY, vel=(2.0, 0, 0)))
+    track = vehicle.track(
+        2.0, lambda _: vehicle.setpoint(mavlink.MAV_FRAME_LOCAL_NED, VELOCITY_ONLY, vel=(2.0, 0, 0))
+    )
     _compare(vehicle, "ignored_outside_guided", _course(track, 1.0, 2.0)[1] < 0.3)
     vehicle.settle()
 
@@ -289,8 +324,19 @@ def test_heartbeat_follows_a_mode_change(vehicle: Vehicle) -> None:
     delays = []
     for name in ("LOITER", "GUIDED", "BRAKE", "GUIDED"):
         number = MODES[name]
-        vehicle.client.mav.command_long_send(1, 1, mavlink.MAV_CMD_DO_SET_MODE, 0,
-                                             mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, number, 0, 0, 0, 0, 0)
+        vehicle.client.mav.command_long_send(
+            1,
+            1,
+            mavlink.MAV_CMD_DO_SET_MODE,
+            0,
+            mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+            number,
+            0,
+            0,
+            0,
+            0,
+            0,
+        )
         sent = time.monotonic()
         while time.monotonic() - sent < 2.0:
             msg = vehicle.recv(["HEARTBEAT"], 0.05)
@@ -314,7 +360,8 @@ def test_yaw_rate_in_the_companions_frame(vehicle: Vehicle) -> None:
     while (elapsed := time.monotonic() - start) < 3.0:
         vehicle.setpoint(mavlink.MAV_FRAME_BODY_OFFSET_NED, VELOCITY_ONLY)
         vehicle.client.mav.set_position_target_local_ned_send(
-            0, 1, 1, mavlink.MAV_FRAME_BODY_OFFSET_NED, VELOCITY_ONLY, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0.3)
+            0, 1, 1, mavlink.MAV_FRAME_BODY_OFFSET_NED, VELOCITY_ONLY, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0.3
+        )
         end = time.monotonic() + 0.1
         while time.monotonic() < end:
             msg = vehicle.recv(["ATTITUDE"], 0.05)

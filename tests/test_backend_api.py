@@ -18,7 +18,9 @@ from tests.backend_fixtures import SUPERVISOR, auth, backend_config, detect_part
 
 @pytest.fixture(scope="module")
 def client(models_dir: Path) -> Iterator[TestClient]:
-    app = create_app(backend_config(models_dir, "server.max_request_bytes=300000", "server.max_image_pixels=2000000"))
+    app = create_app(
+        backend_config(models_dir, "server.max_request_bytes=300000", "server.max_image_pixels=2000000")
+    )
     with TestClient(app) as test_client:
         yield test_client
 
@@ -29,7 +31,9 @@ def keyframe(sequences_dir: Path) -> bytes:
 
 
 def test_detect_finds_and_verifies_the_person(client: TestClient, keyframe: bytes) -> None:
-    response = client.post("/v1/detect", headers=auth(), **detect_parts(keyframe, frame_id=7, capture_time=1.5))
+    response = client.post(
+        "/v1/detect", headers=auth(), **detect_parts(keyframe, frame_id=7, capture_time=1.5)
+    )
     assert response.status_code == 200, response.text
     body = response.json()
     assert body["image_size"] == [640, 360] and body["superset"] == "person" and body["frame_id"] == 7
@@ -53,7 +57,12 @@ def test_health_needs_no_token_and_models_does(client: TestClient) -> None:
 
 @pytest.mark.parametrize(
     "headers",
-    [{}, {"Authorization": "Bearer nope"}, {"Authorization": "Basic dG9rZW4tb25l"}, {"Authorization": "Bearer"}],
+    [
+        {},
+        {"Authorization": "Bearer nope"},
+        {"Authorization": "Basic dG9rZW4tb25l"},
+        {"Authorization": "Bearer"},
+    ],
 )
 def test_missing_or_wrong_token_is_401(client: TestClient, keyframe: bytes, headers: dict[str, str]) -> None:
     response = client.post("/v1/detect", headers=headers, **detect_parts(keyframe))
@@ -105,14 +114,21 @@ def test_too_many_pixels_is_413(client: TestClient) -> None:
         ({"prompt": "something shiny over there"}, "superset"),
     ],
 )
-def test_bad_fields_are_422_with_the_reason(client: TestClient, keyframe: bytes, meta: dict[str, object], where: str) -> None:
+def test_bad_fields_are_422_with_the_reason(
+    client: TestClient, keyframe: bytes, meta: dict[str, object], where: str
+) -> None:
     response = client.post("/v1/detect", headers=auth(), **detect_parts(keyframe, **meta))
     assert response.status_code == 422, response.text
     assert where in json.dumps(response.json()["detail"])
 
 
 def test_meta_that_is_not_json_or_missing_parts_is_422(client: TestClient, keyframe: bytes) -> None:
-    response = client.post("/v1/detect", headers=auth(), files={"image": ("k.jpg", keyframe, "image/jpeg")}, data={"meta": "{not json"})
+    response = client.post(
+        "/v1/detect",
+        headers=auth(),
+        files={"image": ("k.jpg", keyframe, "image/jpeg")},
+        data={"meta": "{not json"},
+    )
     assert response.status_code == 422
     response = client.post("/v1/detect", headers=auth(), data={"meta": "{}"})
     assert response.status_code == 422 and "image" in json.dumps(response.json()["detail"])
@@ -138,16 +154,28 @@ def test_truncated_jpeg_is_refused_or_answered_never_5xx(client: TestClient, key
 
 
 def test_roi_limits_the_search(client: TestClient, keyframe: bytes) -> None:
-    inside = client.post("/v1/detect", headers=auth(), **detect_parts(keyframe, roi=[200, 80, 320, 200])).json()
-    elsewhere = client.post("/v1/detect", headers=auth(), **detect_parts(keyframe, roi=[400, 200, 640, 360])).json()
-    assert inside["candidates"] and all(c["box"][0] >= 200 and c["box"][2] <= 320 for c in inside["candidates"])
+    inside = client.post(
+        "/v1/detect", headers=auth(), **detect_parts(keyframe, roi=[200, 80, 320, 200])
+    ).json()
+    elsewhere = client.post(
+        "/v1/detect", headers=auth(), **detect_parts(keyframe, roi=[400, 200, 640, 360])
+    ).json()
+    assert inside["candidates"] and all(
+        c["box"][0] >= 200 and c["box"][2] <= 320 for c in inside["candidates"]
+    )
     assert elsewhere["candidates"] == []
 
 
 def test_openapi_documents_the_api(client: TestClient) -> None:
     schema = client.get("/openapi.json").json()
-    assert {"/v1/detect", "/health", "/v1/models", "/v1/missions/{mission_id}/rejections",
-            "/v1/vehicles/{vehicle_id}/status", "/v1/vehicles/{vehicle_id}/decisions"} <= set(schema["paths"])
+    assert {
+        "/v1/detect",
+        "/health",
+        "/v1/models",
+        "/v1/missions/{mission_id}/rejections",
+        "/v1/vehicles/{vehicle_id}/status",
+        "/v1/vehicles/{vehicle_id}/decisions",
+    } <= set(schema["paths"])
     assert "DetectResponse" in schema["components"]["schemas"]
 
 
@@ -158,7 +186,9 @@ metas = st.fixed_dictionaries(
         "mission_id": st.one_of(st.just("m-1"), st.text(max_size=70), st.none()),
         "prompt": st.one_of(st.just("a man in a red jacket"), st.text(max_size=600), st.floats()),
         "superset": st.one_of(st.just("person"), st.text(max_size=70), st.none()),
-        "roi": st.one_of(st.lists(st.floats(allow_nan=True, allow_infinity=True), max_size=5), st.text(max_size=5)),
+        "roi": st.one_of(
+            st.lists(st.floats(allow_nan=True, allow_infinity=True), max_size=5), st.text(max_size=5)
+        ),
         "frame_id": st.one_of(st.integers(min_value=-(2**60), max_value=2**60), st.text(max_size=5)),
         "capture_time": st.one_of(st.floats(), st.text(max_size=5)),
         "vehicle_position": st.lists(st.floats(), max_size=3),
@@ -166,10 +196,19 @@ metas = st.fixed_dictionaries(
 )
 
 
-@settings(max_examples=60, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(meta=st.one_of(metas, st.text(max_size=50)), image=st.one_of(st.binary(max_size=200), st.just(b"VALID")))
+@settings(
+    max_examples=60,
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.function_scoped_fixture],
+)
+@given(
+    meta=st.one_of(metas, st.text(max_size=50)), image=st.one_of(st.binary(max_size=200), st.just(b"VALID"))
+)
 @pytest.mark.slow
-def test_fuzzed_requests_never_cause_a_server_error(client: TestClient, keyframe: bytes, meta: object, image: bytes) -> None:
+def test_fuzzed_requests_never_cause_a_server_error(
+    client: TestClient, keyframe: bytes, meta: object, image: bytes
+) -> None:
     payload = keyframe if image == b"VALID" else image
     text = meta if isinstance(meta, str) else json.dumps(meta)
     response = client.post(
@@ -193,27 +232,57 @@ json_values = st.recursive(
 )
 status_bodies = st.fixed_dictionaries(
     {"state": st.one_of(st.just("AWAIT_SUPERVISOR"), json_values)},
-    optional={"mission_id": json_values, "position": json_values, "altitude_m": json_values,
-              "awaiting": st.one_of(json_values, st.fixed_dictionaries({"candidate_id": st.text(max_size=70), "box": json_values},
-                                                                       optional={"crop_jpeg_b64": st.text(max_size=20)}))},
+    optional={
+        "mission_id": json_values,
+        "position": json_values,
+        "altitude_m": json_values,
+        "awaiting": st.one_of(
+            json_values,
+            st.fixed_dictionaries(
+                {"candidate_id": st.text(max_size=70), "box": json_values},
+                optional={"crop_jpeg_b64": st.text(max_size=20)},
+            ),
+        ),
+    },
 )
 
 
-@settings(max_examples=80, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(
+    max_examples=80,
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.function_scoped_fixture],
+)
 @given(
-    route=st.sampled_from(["/v1/vehicles/drone-1/status", "/v1/missions/m-1/rejections", "/v1/vehicles/drone-1/decisions"]),
+    route=st.sampled_from(
+        ["/v1/vehicles/drone-1/status", "/v1/missions/m-1/rejections", "/v1/vehicles/drone-1/decisions"]
+    ),
     body=st.one_of(json_values, status_bodies),
     as_supervisor=st.booleans(),
 )
-def test_fuzzed_session_requests_never_cause_a_server_error(client: TestClient, route: str, body: object, as_supervisor: bool) -> None:
+def test_fuzzed_session_requests_never_cause_a_server_error(
+    client: TestClient, route: str, body: object, as_supervisor: bool
+) -> None:
     headers = {"Authorization": f"Bearer {SUPERVISOR}"} if as_supervisor else auth()
     # Serialised here: NaN and Infinity literals go out as Python writes them, for the server to refuse.
-    response = client.post(route, headers={**headers, "Content-Type": "application/json"}, content=json.dumps(body))
+    response = client.post(
+        route, headers={**headers, "Content-Type": "application/json"}, content=json.dumps(body)
+    )
     assert response.status_code < 500, response.text
     assert response.status_code in (200, 201, 403, 404, 422)
 
 
-@pytest.mark.parametrize("body", [b"Infinity", b'{"state": NaN}', b'{"state": "x", "altitude_m": Infinity}', b'{"state": "x", "position": [1e999, 2]}'])
+@pytest.mark.parametrize(
+    "body",
+    [
+        b"Infinity",
+        b'{"state": NaN}',
+        b'{"state": "x", "altitude_m": Infinity}',
+        b'{"state": "x", "position": [1e999, 2]}',
+    ],
+)
 def test_non_finite_json_is_422_not_a_crash(client: TestClient, body: bytes) -> None:
-    response = client.post("/v1/vehicles/drone-1/status", headers={**auth(), "Content-Type": "application/json"}, content=body)
+    response = client.post(
+        "/v1/vehicles/drone-1/status", headers={**auth(), "Content-Type": "application/json"}, content=body
+    )
     assert response.status_code == 422 and response.json()["detail"]

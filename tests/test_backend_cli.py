@@ -23,15 +23,31 @@ def test_every_command_has_help_with_examples(command: list[str], capsys: pytest
     assert "examples:" in out and "cloudtrack-backend" in out
 
 
-def test_detect_one_image(models_dir: Path, sequences_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_detect_one_image(
+    models_dir: Path, sequences_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     out_json, out_jpg = tmp_path / "c.json", tmp_path / "c.jpg"
-    code = main(["detect", str(sequences_dir / CROSSING), "--prompt", "the person in dark clothes", "--model-dir",
-                 str(models_dir), "--json", str(out_json), "--draw", str(out_jpg)])
+    code = main(
+        [
+            "detect",
+            str(sequences_dir / CROSSING),
+            "--prompt",
+            "the person in dark clothes",
+            "--model-dir",
+            str(models_dir),
+            "--json",
+            str(out_json),
+            "--draw",
+            str(out_jpg),
+        ]
+    )
     assert code == 0
     result = json.loads(out_json.read_text())
     assert result["superset"] == "person" and result["models"]["verifier"] == "local:person"
     best = max(result["candidates"], key=lambda c: c["score"])
-    assert best["verdict"] == "yes" and 190 < (best["box"][0] + best["box"][2]) / 2 < 230  # truth: x 205, w 17
+    assert (
+        best["verdict"] == "yes" and 190 < (best["box"][0] + best["box"][2]) / 2 < 230
+    )  # truth: x 205, w 17
     assert out_jpg.stat().st_size > 1000
     assert "YES" in capsys.readouterr().out
 
@@ -51,15 +67,22 @@ def test_detect_errors_exit_2_with_the_reason(
     assert message in capsys.readouterr().err
 
 
-def test_detect_refuses_a_corrupt_image(models_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_detect_refuses_a_corrupt_image(
+    models_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     bad = tmp_path / "bad.jpg"
     bad.write_bytes(b"\xff\xd8\xff" + bytes(100))
     assert main(["detect", str(bad), "--prompt", "a man", "--model-dir", str(models_dir)]) == 2
     assert "could not be decoded" in capsys.readouterr().err
 
 
-def test_missing_weights_name_the_fix(tmp_path: Path, sequences_dir: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["detect", str(sequences_dir / CROSSING), "--prompt", "a man", "--model-dir", str(tmp_path)]) == 2
+def test_missing_weights_name_the_fix(
+    tmp_path: Path, sequences_dir: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert (
+        main(["detect", str(sequences_dir / CROSSING), "--prompt", "a man", "--model-dir", str(tmp_path)])
+        == 2
+    )
     assert "models download yolox" in capsys.readouterr().err
 
 
@@ -67,8 +90,25 @@ def test_eval_prints_the_table_and_writes_json(
     models_dir: Path, sequences_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     coco = _coco_set(sequences_dir, tmp_path / "set.json", step=40)
-    code = main(["eval", "--coco", str(coco), "--images", str(sequences_dir), "--verifier", "local", "--verifier", "none",
-                 "--model-dir", str(models_dir), "--json", str(tmp_path / "e.json"), "--markdown", str(tmp_path / "e.md")])
+    code = main(
+        [
+            "eval",
+            "--coco",
+            str(coco),
+            "--images",
+            str(sequences_dir),
+            "--verifier",
+            "local",
+            "--verifier",
+            "none",
+            "--model-dir",
+            str(models_dir),
+            "--json",
+            str(tmp_path / "e.json"),
+            "--markdown",
+            str(tmp_path / "e.md"),
+        ]
+    )
     assert code == 0
     captured = capsys.readouterr()
     assert "| local:person |" in captured.out and "| none |" in captured.out
@@ -81,8 +121,25 @@ def test_eval_prints_the_table_and_writes_json(
 
 
 @pytest.mark.slow
-def test_eval_on_tracking_sequences(models_dir: Path, sequences_dir: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["eval", "--sequences", str(sequences_dir), "--step", "50", "--verifier", "none", "--model-dir", str(models_dir)]) == 0
+def test_eval_on_tracking_sequences(
+    models_dir: Path, sequences_dir: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert (
+        main(
+            [
+                "eval",
+                "--sequences",
+                str(sequences_dir),
+                "--step",
+                "50",
+                "--verifier",
+                "none",
+                "--model-dir",
+                str(models_dir),
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     # Each sequence's description is a task named after its sequence, whatever the other sequences are.
     assert re.search(r"T\d+ \(bag\): the white plastic bag on the ground", out) and "| none |" in out
@@ -103,10 +160,32 @@ def test_serve_refuses_a_bad_configuration(capsys: pytest.CaptureFixture[str]) -
 
 
 @pytest.mark.slow
-def test_bench_runs_servers_and_emulator(models_dir: Path, shared_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_bench_runs_servers_and_emulator(
+    models_dir: Path, shared_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     out = tmp_path / "bench.json"
-    code = main(["bench", "--latency", "0.3", "--candidates", "3", "--vehicles", "1", "3", "--requests", "2",
-                 "--replica-vehicles", "2", "--model-dir", str(models_dir), "--data", str(shared_dir), "--json", str(out)])
+    code = main(
+        [
+            "bench",
+            "--latency",
+            "0.3",
+            "--candidates",
+            "3",
+            "--vehicles",
+            "1",
+            "3",
+            "--requests",
+            "2",
+            "--replica-vehicles",
+            "2",
+            "--model-dir",
+            str(models_dir),
+            "--data",
+            str(shared_dir),
+            "--json",
+            str(out),
+        ]
+    )
     captured = capsys.readouterr()
     assert code == 0, captured.err
     # Progress as it goes, on stderr: a part announces itself before it runs.

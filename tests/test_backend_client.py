@@ -30,10 +30,14 @@ def server(models_dir: Path) -> Iterator[BackgroundServer]:
 
 @pytest.fixture()
 def client(server: BackgroundServer) -> BackendClient:
-    return BackendClient(server.url, TOKENS["drone-1"], timeout_s=10, vehicle_id="drone-1", mission_id="m-client")
+    return BackendClient(
+        server.url, TOKENS["drone-1"], timeout_s=10, vehicle_id="drone-1", mission_id="m-client"
+    )
 
 
-def test_full_size_frame_boxes_come_back_in_the_callers_pixels(client: BackendClient, sequences_dir: Path) -> None:
+def test_full_size_frame_boxes_come_back_in_the_callers_pixels(
+    client: BackendClient, sequences_dir: Path
+) -> None:
     image = frame(sequences_dir, size=None)  # 1280x720, sent downscaled to 640 wide
     reply = client.detect_reply(image, PROMPT, frame_id=1, capture_time=12.5)
     truth = Box(490, 235, 34, 85)
@@ -75,26 +79,38 @@ def test_unreachable_and_silent_servers_raise_retryable_errors(sequences_dir: Pa
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]
     with pytest.raises(BackendError) as info:
-        BackendClient(f"http://127.0.0.1:{port}", "t", timeout_s=2, vehicle_id="v", mission_id="m").detect(frame(sequences_dir), PROMPT)
+        BackendClient(f"http://127.0.0.1:{port}", "t", timeout_s=2, vehicle_id="v", mission_id="m").detect(
+            frame(sequences_dir), PROMPT
+        )
     assert info.value.retryable and info.value.status is None
     with socket.socket() as silent:  # accepts the connection, never answers
         silent.bind(("127.0.0.1", 0))
         silent.listen()
         url = f"http://127.0.0.1:{silent.getsockname()[1]}"
         with pytest.raises(BackendError, match="no answer within 0.5 s") as info:
-            BackendClient(url, "t", timeout_s=0.5, vehicle_id="v", mission_id="m").detect(frame(sequences_dir), PROMPT)
+            BackendClient(url, "t", timeout_s=0.5, vehicle_id="v", mission_id="m").detect(
+                frame(sequences_dir), PROMPT
+            )
         assert info.value.retryable
 
 
-def test_status_rejection_and_decisions_round_trip(server: BackgroundServer, client: BackendClient, sequences_dir: Path) -> None:
+def test_status_rejection_and_decisions_round_trip(
+    server: BackgroundServer, client: BackendClient, sequences_dir: Path
+) -> None:
     image = frame(sequences_dir)
     first = client.detect(image, PROMPT)
     best = max(first, key=lambda d: d.score)
     x, y = int(best.box.x), int(best.box.y)
     crop = image[y : y + int(best.box.h), x : x + int(best.box.w)]
-    client.report_status("AWAIT_SUPERVISOR", awaiting={"candidate_id": best.candidate_id, "box": list(best.box.xyxy())})
-    requests.post(f"{server.url}/v1/vehicles/drone-1/decisions", json={"candidate_id": best.candidate_id, "action": "reject"},
-                  headers={"Authorization": f"Bearer {SUPERVISOR}"}, timeout=10).raise_for_status()
+    client.report_status(
+        "AWAIT_SUPERVISOR", awaiting={"candidate_id": best.candidate_id, "box": list(best.box.xyxy())}
+    )
+    requests.post(
+        f"{server.url}/v1/vehicles/drone-1/decisions",
+        json={"candidate_id": best.candidate_id, "action": "reject"},
+        headers={"Authorization": f"Bearer {SUPERVISOR}"},
+        timeout=10,
+    ).raise_for_status()
     decisions = client.decisions()
     assert [(d.candidate_id, d.action) for d in decisions] == [(best.candidate_id, "reject")]
     assert client.decisions(after=decisions[-1].decision_id) == []
@@ -114,14 +130,17 @@ def test_worst_case_keyframe_stays_under_the_byte_budget(client: BackendClient) 
     jpeg, scale = encode_keyframe(noise, 640, 80, max_bytes=90_000)
     assert len(jpeg) <= 90_000 and 0 < scale < 1
     reply = client.detect_reply(noise, PROMPT)
-    assert reply.request_bytes <= 100_000 and reply.raw is not None and reply.raw.image_size[0] == round(640 * scale)
+    assert (
+        reply.request_bytes <= 100_000
+        and reply.raw is not None
+        and reply.raw.image_size[0] == round(640 * scale)
+    )
     assert all(d.box.x2 <= 640.5 for d in reply.detections)  # boxes back in the caller's pixels
 
 
 def test_encode_keyframe_refuses_non_images() -> None:
     with pytest.raises(ValueError, match="BGR"):
         encode_keyframe(np.zeros((10, 10), np.uint8), 640, 80)
-
 
 
 @pytest.mark.slow
@@ -132,12 +151,18 @@ def test_slow_and_garbage_vlm_answers_through_the_server(models_dir: Path, seque
             (slow, ["verifier.timeout_s=0.4"], Verdict.UNCERTAIN, "timed out"),
             (garbage, ['verifier.uncertain_policy="yes"'], Verdict.YES, "quick brown fox"),
         ):
-            config = backend_config(models_dir, 'verifier.kind="vlm"', f'vlm.base_url="{vlm.base_url}"', *settings)
+            config = backend_config(
+                models_dir, 'verifier.kind="vlm"', f'vlm.base_url="{vlm.base_url}"', *settings
+            )
             with BackgroundServer(create_app(config)) as server:
-                client = BackendClient(server.url, TOKENS["drone-1"], timeout_s=10, vehicle_id="drone-1", mission_id="m-vlm")
+                client = BackendClient(
+                    server.url, TOKENS["drone-1"], timeout_s=10, vehicle_id="drone-1", mission_id="m-vlm"
+                )
                 start = time.monotonic()
                 reply = client.detect_reply(image, PROMPT)
-                assert reply.detections and all(d.verdict is expected and reason in d.justification for d in reply.detections)
+                assert reply.detections and all(
+                    d.verdict is expected and reason in d.justification for d in reply.detections
+                )
                 assert time.monotonic() - start < 1.9  # the slow VLM's 2 s answer was not awaited
 
 
@@ -146,8 +171,14 @@ def test_keyframe_sink_gets_exactly_the_bytes_sent_and_cannot_break_a_query() ->
     image[100:300, 200:260] = (30, 160, 40)
     recorded: list[tuple[bytes, int]] = []
     sent = encode_keyframe(image, 640, 80)[0]
-    client = BackendClient("http://127.0.0.1:9", "t", timeout_s=0.5, vehicle_id="v", mission_id="m",
-                           on_keyframe=lambda jpeg, fid: recorded.append((jpeg, fid)))
+    client = BackendClient(
+        "http://127.0.0.1:9",
+        "t",
+        timeout_s=0.5,
+        vehicle_id="v",
+        mission_id="m",
+        on_keyframe=lambda jpeg, fid: recorded.append((jpeg, fid)),
+    )
     with pytest.raises(BackendError):  # nothing listens on port 9: the query fails, the keyframe is recorded
         client.detect(image, "a person", frame_id=42)
     assert recorded == [(sent, 42)]
@@ -155,7 +186,9 @@ def test_keyframe_sink_gets_exactly_the_bytes_sent_and_cannot_break_a_query() ->
     def full_disk(jpeg: bytes, fid: int) -> None:
         raise OSError(28, "No space left on device")
 
-    broken = BackendClient("http://127.0.0.1:9", "t", timeout_s=0.5, vehicle_id="v", mission_id="m", on_keyframe=full_disk)
+    broken = BackendClient(
+        "http://127.0.0.1:9", "t", timeout_s=0.5, vehicle_id="v", mission_id="m", on_keyframe=full_disk
+    )
     with pytest.raises(BackendError):  # the failure is the unreachable back-end, not the recorder
         broken.detect(image, "a person", frame_id=43)
 
@@ -167,13 +200,30 @@ def test_replies_are_validated_with_the_shared_models(sequences_dir: Path) -> No
     from http.server import BaseHTTPRequestHandler, HTTPServer
 
     def reply(candidate_id: str) -> bytes:
-        candidate = {"candidate_id": candidate_id, "box": [1, 2, 30, 40], "score": 0.9, "label": "person",
-                     "verdict": "yes", "justification": "", "verifier": "none", "t_verify": 0.0}
+        candidate = {
+            "candidate_id": candidate_id,
+            "box": [1, 2, 30, 40],
+            "score": 0.9,
+            "label": "person",
+            "verdict": "yes",
+            "justification": "",
+            "verifier": "none",
+            "t_verify": 0.0,
+        }
         timings = dict.fromkeys(("t_queue", "t_decode", "t_detect", "t_verify", "t_total"), 0.0)
-        return json_module.dumps({
-            "vehicle_id": "v", "mission_id": "m", "frame_id": None, "capture_time": None, "image_size": [640, 360],
-            "superset": "person", "candidates": [candidate], "timings": timings,
-            "models": {"detector": "d", "verifier": "none"}}).encode()
+        return json_module.dumps(
+            {
+                "vehicle_id": "v",
+                "mission_id": "m",
+                "frame_id": None,
+                "capture_time": None,
+                "image_size": [640, 360],
+                "superset": "person",
+                "candidates": [candidate],
+                "timings": timings,
+                "models": {"detector": "d", "verifier": "none"},
+            }
+        ).encode()
 
     answers = [reply("c-1"), reply("../../v1/vehicles?")]
 
@@ -193,7 +243,9 @@ def test_replies_are_validated_with_the_shared_models(sequences_dir: Path) -> No
     server = HTTPServer(("127.0.0.1", 0), Handler)
     threading.Thread(target=server.serve_forever, daemon=True).start()
     try:
-        client = BackendClient(f"http://127.0.0.1:{server.server_port}", "t" * 16, vehicle_id="v", mission_id="m")
+        client = BackendClient(
+            f"http://127.0.0.1:{server.server_port}", "t" * 16, vehicle_id="v", mission_id="m"
+        )
         good = client.detect_reply(frame(sequences_dir), PROMPT)
         assert [d.candidate_id for d in good.detections] == ["c-1"] and good.raw is not None
         with pytest.raises(BackendError, match="malformed answer: candidates.0.candidate_id"):

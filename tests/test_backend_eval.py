@@ -68,8 +68,20 @@ def _coco_set(sequences_dir: Path, path: Path, step: int = 25) -> Path:
             x, y, w, h = (float(v) for v in lines[i].split(","))
             image_id = len(images) + 1
             images.append({"id": image_id, "file_name": f"{seq.name}/frames/{i + 1:06d}.jpg"})
-            annotations.append({"id": image_id, "image_id": image_id, "category_id": 1, "bbox": [x, y, w, h], "referring": referring})
-    path.write_text(json.dumps({"images": images, "annotations": annotations, "categories": [{"id": 1, "name": "person"}]}))
+            annotations.append(
+                {
+                    "id": image_id,
+                    "image_id": image_id,
+                    "category_id": 1,
+                    "bbox": [x, y, w, h],
+                    "referring": referring,
+                }
+            )
+    path.write_text(
+        json.dumps(
+            {"images": images, "annotations": annotations, "categories": [{"id": 1, "name": "person"}]}
+        )
+    )
     return path
 
 
@@ -80,7 +92,10 @@ def test_evaluate_on_real_sequences(models_dir: Path, sequences_dir: Path, tmp_p
     assert {t.prompt for t in evalset.tasks} == prompts and all(t.superset == "person" for t in evalset.tasks)
     detector = YoloxDetector(models_dir / "yolox_nano" / "yolox_nano.onnx", threads=1)
     with ThreadPoolExecutor(4) as pool:
-        pipelines = {"local:colours": Pipeline(detector, AttributeVerifier(), pool), "none": Pipeline(detector, None, pool)}
+        pipelines = {
+            "local:colours": Pipeline(detector, AttributeVerifier(), pool),
+            "none": Pipeline(detector, None, pool),
+        }
         results = evaluate(evalset, detector, pipelines)
     by_name = {r.verifier: r for r in results}
     crossing = next(t.name for t in evalset.tasks if "crossing" in t.prompt)
@@ -105,7 +120,9 @@ def test_coco_set_errors_are_named(tmp_path: Path) -> None:
     with pytest.raises(DatasetError, match="bad.json"):
         load_coco(bad, tmp_path)
     plain = tmp_path / "plain.json"
-    plain.write_text(json.dumps({"images": [], "annotations": [{"image_id": 1, "bbox": [0, 0, 1, 1]}], "categories": []}))
+    plain.write_text(
+        json.dumps({"images": [], "annotations": [{"image_id": 1, "bbox": [0, 0, 1, 1]}], "categories": []})
+    )
     with pytest.raises(DatasetError, match="referring"):
         load_coco(plain, tmp_path)
 
@@ -117,12 +134,17 @@ def test_sard_style_voc_folder(sequences_dir: Path, tmp_path: Path) -> None:
     for i, (seq, index) in enumerate([("otb_Crossing", 1), ("uav123_person12_1", 1)]):
         name = f"img{i}.jpg"
         (tmp_path / "JPEGImages" / name).symlink_to(sequences_dir / seq / "frames" / f"{index:06d}.jpg")
-        x, y, w, h = (float(v) for v in (sequences_dir / seq / "groundtruth.txt").read_text().split()[index - 1].split(","))
+        x, y, w, h = (
+            float(v)
+            for v in (sequences_dir / seq / "groundtruth.txt").read_text().split()[index - 1].split(",")
+        )
         (tmp_path / "Annotations" / f"img{i}.xml").write_text(
             f"<annotation><filename>{name}</filename><object><name>person</name><bndbox><xmin>{x}</xmin>"
             f"<ymin>{y}</ymin><xmax>{x + w}</xmax><ymax>{y + h}</ymax></bndbox></object></annotation>"
         )
-        rows.append(f"{name},{x},{y},{x + w},{y + h},{'a person in dark clothes' if i == 0 else 'a person in a striped shirt'}")
+        rows.append(
+            f"{name},{x},{y},{x + w},{y + h},{'a person in dark clothes' if i == 0 else 'a person in a striped shirt'}"
+        )
     (tmp_path / "attributes.csv").write_text("\n".join(rows) + "\n")
     evalset = load_sard_voc(tmp_path, tmp_path / "attributes.csv")
     assert [t.prompt for t in evalset.tasks] == ["a person in dark clothes", "a person in a striped shirt"]

@@ -41,7 +41,9 @@ def tiny_grounding_dino(folder: Path) -> tuple[object, object]:
         SwinConfig,
     )
 
-    (folder / "vocab.txt").write_text("\n".join(["[PAD]", "[UNK]", "[CLS]", "[SEP]", "[MASK]", ".", *WORDS]) + "\n")
+    (folder / "vocab.txt").write_text(
+        "\n".join(["[PAD]", "[UNK]", "[CLS]", "[SEP]", "[MASK]", ".", *WORDS]) + "\n"
+    )
     tokenizer = BertTokenizer(str(folder / "vocab.txt"))
     config = GroundingDinoConfig(
         backbone_config=SwinConfig(image_size=64, patch_size=4, embed_dim=16, depths=[1, 1, 1, 1], num_heads=[1, 2, 2, 4],
@@ -54,7 +56,8 @@ def tiny_grounding_dino(folder: Path) -> tuple[object, object]:
     torch.manual_seed(0)
     model = GroundingDinoForObjectDetection(config)
     processor = GroundingDinoProcessor(  # type: ignore[no-untyped-call]
-        image_processor=GroundingDinoImageProcessorPil(size={"shortest_edge": 64, "longest_edge": 96}), tokenizer=tokenizer
+        image_processor=GroundingDinoImageProcessorPil(size={"shortest_edge": 64, "longest_edge": 96}),
+        tokenizer=tokenizer,
     )
     return model, processor
 
@@ -69,11 +72,33 @@ def tiny_owlv2() -> tuple[object, object]:
         Owlv2Processor,
     )
 
-    tokens = ["!", "<|startoftext|>", "<|endoftext|>", *(w + "</w>" for w in WORDS), *"abcdefghijklmnopqrstuvwxyz"]
+    tokens = [
+        "!",
+        "<|startoftext|>",
+        "<|endoftext|>",
+        *(w + "</w>" for w in WORDS),
+        *"abcdefghijklmnopqrstuvwxyz",
+    ]
     tokenizer = CLIPTokenizer(vocab={t: i for i, t in enumerate(tokens)}, merges=[], model_max_length=16)
-    text = dict(vocab_size=len(tokens), hidden_size=32, intermediate_size=37, num_hidden_layers=1, num_attention_heads=2,
-                max_position_embeddings=16, bos_token_id=1, eos_token_id=2, pad_token_id=2)
-    vision = dict(hidden_size=32, intermediate_size=37, num_hidden_layers=1, num_attention_heads=2, image_size=64, patch_size=16)
+    text = dict(
+        vocab_size=len(tokens),
+        hidden_size=32,
+        intermediate_size=37,
+        num_hidden_layers=1,
+        num_attention_heads=2,
+        max_position_embeddings=16,
+        bos_token_id=1,
+        eos_token_id=2,
+        pad_token_id=2,
+    )
+    vision = dict(
+        hidden_size=32,
+        intermediate_size=37,
+        num_hidden_layers=1,
+        num_attention_heads=2,
+        image_size=64,
+        patch_size=16,
+    )
     torch.manual_seed(0)
     model = Owlv2ForObjectDetection(Owlv2Config(text_config=text, vision_config=vision, projection_dim=32))
     # Random box heads saturate the sigmoid into zero-size boxes; a zero last layer predicts the model's
@@ -82,7 +107,8 @@ def tiny_owlv2() -> tuple[object, object]:
         model.box_head.dense2.weight.zero_()
         model.box_head.dense2.bias.zero_()
     processor = Owlv2Processor(  # type: ignore[no-untyped-call]
-        image_processor=Owlv2ImageProcessorPil(size={"height": 64, "width": 64}), tokenizer=tokenizer)
+        image_processor=Owlv2ImageProcessorPil(size={"height": 64, "width": 64}), tokenizer=tokenizer
+    )
     return model, processor
 
 
@@ -91,13 +117,17 @@ def detectors(tmp_path_factory: pytest.TempPathFactory) -> dict[str, OpenVocabul
     gd_model, gd_processor = tiny_grounding_dino(tmp_path_factory.mktemp("gd"))
     ow_model, ow_processor = tiny_owlv2()
     return {
-        "grounding_dino": OpenVocabularyDetector("grounding_dino", gd_model, gd_processor, score_threshold=0.05, text_threshold=0.0),
+        "grounding_dino": OpenVocabularyDetector(
+            "grounding_dino", gd_model, gd_processor, score_threshold=0.05, text_threshold=0.0
+        ),
         "owlv2": OpenVocabularyDetector("owlv2", ow_model, ow_processor, score_threshold=0.05),
     }
 
 
 @pytest.mark.parametrize("kind", ["grounding_dino", "owlv2"])
-def test_detections_are_in_the_callers_pixels_with_labels(kind: str, detectors: dict[str, OpenVocabularyDetector], sequences_dir: Path) -> None:
+def test_detections_are_in_the_callers_pixels_with_labels(
+    kind: str, detectors: dict[str, OpenVocabularyDetector], sequences_dir: Path
+) -> None:
     image = frame(sequences_dir, size=(320, 180))
     found = detectors[kind].detect(image, ["person", "car"])
     assert found, "the tiny model answered nothing above the threshold"
@@ -107,7 +137,9 @@ def test_detections_are_in_the_callers_pixels_with_labels(kind: str, detectors: 
     assert found == detectors[kind].detect(image, ["person", "car"])  # deterministic
 
 
-def test_owlv2_boxes_use_the_padded_square(detectors: dict[str, OpenVocabularyDetector], sequences_dir: Path) -> None:
+def test_owlv2_boxes_use_the_padded_square(
+    detectors: dict[str, OpenVocabularyDetector], sequences_dir: Path
+) -> None:
     wide = frame(sequences_dir, size=(320, 120))
     assert all(d.box.y2 <= 120 for d in detectors["owlv2"].detect(wide, ["person"]))
 
@@ -127,12 +159,16 @@ def test_factory_loads_a_saved_model_folder(tmp_path: Path, sequences_dir: Path)
     model, processor = tiny_grounding_dino(tmp_path)
     model.save_pretrained(tmp_path / "gd-tiny")  # type: ignore[attr-defined]
     processor.save_pretrained(tmp_path / "gd-tiny")  # type: ignore[attr-defined]
-    detector = build_detector(DetectorConfig(kind="grounding_dino", hf_model=str(tmp_path / "gd-tiny"), score_threshold=0.05))
+    detector = build_detector(
+        DetectorConfig(kind="grounding_dino", hf_model=str(tmp_path / "gd-tiny"), score_threshold=0.05)
+    )
     assert detector.name == f"grounding_dino:{tmp_path / 'gd-tiny'}"
     assert all(d.label == "person" for d in detector.detect(frame(sequences_dir, size=(160, 90)), ["person"]))
 
 
-def test_serve_names_a_model_folder_that_is_not_there(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_serve_names_a_model_folder_that_is_not_there(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     missing = tmp_path / "no-such-model"
     assert main(["serve", "--set", 'detector.kind="owlv2"', "--set", f'detector.hf_model="{missing}"']) == 2
     assert "no-such-model" in capsys.readouterr().err
@@ -144,7 +180,11 @@ def test_app_takes_any_superset_text_with_an_open_vocabulary_detector(
     app = create_app(backend_config(models_dir, 'detector.kind="owlv2"'), detector=detectors["owlv2"])
     with TestClient(app) as client:
         keyframe = jpeg(frame(sequences_dir, size=(320, 180)))
-        response = client.post("/v1/detect", headers=auth(), **detect_parts(keyframe, prompt="an orange life raft", superset="life raft"))
+        response = client.post(
+            "/v1/detect",
+            headers=auth(),
+            **detect_parts(keyframe, prompt="an orange life raft", superset="life raft"),
+        )
         assert response.status_code == 200, response.text
         body = response.json()
         assert body["superset"] == "life raft" and all(c["label"] == "life raft" for c in body["candidates"])

@@ -36,13 +36,17 @@ WHOLE = Box(0, 0, 60, 120)
 
 def test_rejected_candidate_by_id_is_recognised_and_others_are_not() -> None:
     store = SessionStore()
-    store.remember_candidates("d1", "m1", [("c-red", descriptor(RED, WHOLE)), ("c-blue", descriptor(BLUE, WHOLE))])
+    store.remember_candidates(
+        "d1", "m1", [("c-red", descriptor(RED, WHOLE)), ("c-blue", descriptor(BLUE, WHOLE))]
+    )
     store.add_rejection("m1", RejectionIn(vehicle_id="d1", candidate_id="c-red", reason="wrong person"))
     check = store.rejection_check("d1", "m1", None)
     reason = check(descriptor(_person((40, 40, 200), seed=5), WHOLE))  # same look, new pixels
     assert reason is not None and "c-red" in reason
     assert check(descriptor(BLUE, WHOLE)) is None
-    assert store.rejection_check("d1", "m2", None)(descriptor(RED, WHOLE)) is None  # other missions unaffected
+    assert (
+        store.rejection_check("d1", "m2", None)(descriptor(RED, WHOLE)) is None
+    )  # other missions unaffected
     assert [r.candidate_id for r in store.rejections("d1", "m1")] == ["c-red"]
 
 
@@ -56,7 +60,9 @@ def test_rejection_needs_a_known_id_or_a_crop() -> None:
     with pytest.raises(ValueError, match="base64"):
         store.add_rejection("m1", RejectionIn(vehicle_id="d1", crop_jpeg_b64="%%%"))
     with pytest.raises(ValueError, match="JPEG or PNG"):
-        store.add_rejection("m1", RejectionIn(vehicle_id="d1", crop_jpeg_b64=base64.b64encode(b"text").decode()))
+        store.add_rejection(
+            "m1", RejectionIn(vehicle_id="d1", crop_jpeg_b64=base64.b64encode(b"text").decode())
+        )
 
 
 def test_position_limits_a_rejection_to_its_place() -> None:
@@ -161,8 +167,12 @@ def test_default_file_matches_schema_defaults() -> None:
 
 
 def test_environment_prefix_is_the_backends_own() -> None:
-    environ = {f"{ENV_PREFIX}SERVER__PORT": "9000", f"{ENV_PREFIX}AUTH__TOKENS": '{"d1": "s3cret-vehicle-token"}',
-               "CLOUDTRACK_BACKEND__TOKEN": "companion-setting", "CLOUDTRACK_SAFETY__MAX_SPEED_M_S": "2"}
+    environ = {
+        f"{ENV_PREFIX}SERVER__PORT": "9000",
+        f"{ENV_PREFIX}AUTH__TOKENS": '{"d1": "s3cret-vehicle-token"}',
+        "CLOUDTRACK_BACKEND__TOKEN": "companion-setting",
+        "CLOUDTRACK_SAFETY__MAX_SPEED_M_S": "2",
+    }
     config = load_backend_config(None, environ=environ)
     assert config.server.port == 9000 and config.auth.tokens == {"d1": "s3cret-vehicle-token"}
 
@@ -172,18 +182,32 @@ def test_bad_backend_config_is_named(tmp_path: Path) -> None:
     path.write_text('[detector]\nkind = "yolo9000"\n[verifier]\ntimeout = 3\n')
     with pytest.raises(ConfigError) as info:
         load_config(BackendConfig, path, environ={})
-    assert "detector.kind" in str(info.value) and "verifier.timeout" in str(info.value) and "timeout_s" in str(info.value)
+    assert (
+        "detector.kind" in str(info.value)
+        and "verifier.timeout" in str(info.value)
+        and "timeout_s" in str(info.value)
+    )
 
 
 def test_status_keeps_a_candidates_crop_but_never_gives_it_to_another() -> None:
     store = SessionStore()
     crop = base64.b64encode(cv2.imencode(".jpg", RED)[1].tobytes()).decode()
-    first = AwaitingCandidate(candidate_id="c1", box=[0, 0, 60, 120], crop_jpeg_b64=crop, crop_box=[5, 5, 65, 125])
+    first = AwaitingCandidate(
+        candidate_id="c1", box=[0, 0, 60, 120], crop_jpeg_b64=crop, crop_box=[5, 5, 65, 125]
+    )
     store.set_status("drone-1", VehicleStatusIn(mission_id="m1", state="AWAITING_SUPERVISOR", awaiting=first))
     later = AwaitingCandidate(candidate_id="c1", box=[2, 0, 62, 120])
-    kept = store.set_status("drone-1", VehicleStatusIn(mission_id="m1", state="AWAITING_SUPERVISOR", awaiting=later))
-    assert kept.awaiting is not None and kept.awaiting.crop_jpeg_b64 == crop and kept.awaiting.crop_box == [5, 5, 65, 125]
+    kept = store.set_status(
+        "drone-1", VehicleStatusIn(mission_id="m1", state="AWAITING_SUPERVISOR", awaiting=later)
+    )
+    assert (
+        kept.awaiting is not None
+        and kept.awaiting.crop_jpeg_b64 == crop
+        and kept.awaiting.crop_box == [5, 5, 65, 125]
+    )
     assert kept.awaiting.box == [2, 0, 62, 120]  # everything else is the new report's
     other = AwaitingCandidate(candidate_id="c2", box=[0, 0, 60, 120])
-    fresh = store.set_status("drone-1", VehicleStatusIn(mission_id="m1", state="AWAITING_SUPERVISOR", awaiting=other))
+    fresh = store.set_status(
+        "drone-1", VehicleStatusIn(mission_id="m1", state="AWAITING_SUPERVISOR", awaiting=other)
+    )
     assert fresh.awaiting is not None and fresh.awaiting.crop_jpeg_b64 is None

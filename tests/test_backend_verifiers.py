@@ -69,7 +69,11 @@ def test_prompt_sets_follow_the_strategy() -> None:
 
     system, task = render(GPT, 'an injured man in a "gray" shirt', "person")
     assert "search-and-rescue" in system and "yes" in system
-    assert "in doubt, rather say Yes" in task and "Answer: Yes" in task and "an injured man in a 'gray' shirt" in task
+    assert (
+        "in doubt, rather say Yes" in task
+        and "Answer: Yes" in task
+        and "an injured man in a 'gray' shirt" in task
+    )
 
 
 def _crop(sequences_dir: Path, name: str, index: int = 1) -> tuple[np.ndarray, Box]:
@@ -112,11 +116,18 @@ def test_retries_on_503_then_succeeds(sequences_dir: Path) -> None:
 
 def test_gives_up_after_retries_and_does_not_retry_400() -> None:
     crop = np.zeros((50, 50, 3), np.uint8)
-    with VlmEmulator(fail_first=10, fail_status=429) as vlm, pytest.raises(VerifierError, match="gave up after 2 attempts: HTTP 429"):
-        OpenAIChatVerifier(vlm.base_url, MODEL_NAME, max_retries=1, backoff_s=0.01).verify(crop, (0, 0, 50, 50), "a man", "person", 10)
+    with (
+        VlmEmulator(fail_first=10, fail_status=429) as vlm,
+        pytest.raises(VerifierError, match="gave up after 2 attempts: HTTP 429"),
+    ):
+        OpenAIChatVerifier(vlm.base_url, MODEL_NAME, max_retries=1, backoff_s=0.01).verify(
+            crop, (0, 0, 50, 50), "a man", "person", 10
+        )
     with VlmEmulator(fail_first=10, fail_status=400) as vlm:
         with pytest.raises(VerifierError, match="HTTP 400"):
-            OpenAIChatVerifier(vlm.base_url, MODEL_NAME, max_retries=3, backoff_s=0.01).verify(crop, (0, 0, 50, 50), "a man", "person", 10)
+            OpenAIChatVerifier(vlm.base_url, MODEL_NAME, max_retries=3, backoff_s=0.01).verify(
+                crop, (0, 0, 50, 50), "a man", "person", 10
+            )
         assert vlm.requests == 1
 
 
@@ -124,7 +135,9 @@ def test_slow_verifier_times_out() -> None:
     with VlmEmulator(latency_s=2.0) as vlm:
         start = time.monotonic()
         with pytest.raises(VerifierTimeout):
-            OpenAIChatVerifier(vlm.base_url, MODEL_NAME).verify(np.zeros((50, 50, 3), np.uint8), (0, 0, 50, 50), "a man", "person", 0.3)
+            OpenAIChatVerifier(vlm.base_url, MODEL_NAME).verify(
+                np.zeros((50, 50, 3), np.uint8), (0, 0, 50, 50), "a man", "person", 0.3
+            )
         assert time.monotonic() - start < 1.5
 
 
@@ -143,16 +156,27 @@ def test_pipeline_verifies_candidates_concurrently(yolox: YoloxDetector, crowd: 
     with VlmEmulator(latency_s=0.4, mode="yes") as vlm:
         verifier = OpenAIChatVerifier(vlm.base_url, MODEL_NAME)
         with ThreadPoolExecutor(8) as pool:
-            result = Pipeline(yolox, verifier, pool, max_candidates=5).run(crowd, "a man in a gray shirt", "person")
+            result = Pipeline(yolox, verifier, pool, max_candidates=5).run(
+                crowd, "a man in a gray shirt", "person"
+            )
         assert vlm.max_in_flight == 5
     assert [c.detection.verdict for c in result.candidates] == [YES] * 5
     assert result.t_verify < 5 * 0.4  # five 0.4 s answers overlapped (generous bound for a loaded machine)
 
 
-def test_pipeline_turns_timeouts_and_garbage_into_the_uncertain_policy(yolox: YoloxDetector, crowd: np.ndarray) -> None:
+def test_pipeline_turns_timeouts_and_garbage_into_the_uncertain_policy(
+    yolox: YoloxDetector, crowd: np.ndarray
+) -> None:
     image = crowd
     with VlmEmulator(latency_s=1.5, mode="yes") as slow, ThreadPoolExecutor(8) as pool:
-        pipeline = Pipeline(yolox, OpenAIChatVerifier(slow.base_url, MODEL_NAME), pool, max_candidates=2, timeout_s=0.3, deadline_s=5)
+        pipeline = Pipeline(
+            yolox,
+            OpenAIChatVerifier(slow.base_url, MODEL_NAME),
+            pool,
+            max_candidates=2,
+            timeout_s=0.3,
+            deadline_s=5,
+        )
         start = time.monotonic()
         result = pipeline.run(image, "a man", "person")
         assert time.monotonic() - start < 1.4
@@ -160,7 +184,13 @@ def test_pipeline_turns_timeouts_and_garbage_into_the_uncertain_policy(yolox: Yo
     assert all("timed out" in c.detection.justification for c in result.candidates)
     with VlmEmulator(mode="garbage") as vlm, ThreadPoolExecutor(4) as pool:
         for policy, expected in (("uncertain", UNC), ("yes", YES), ("no", NO)):
-            pipeline = Pipeline(yolox, OpenAIChatVerifier(vlm.base_url, MODEL_NAME), pool, max_candidates=1, uncertain_policy=policy)
+            pipeline = Pipeline(
+                yolox,
+                OpenAIChatVerifier(vlm.base_url, MODEL_NAME),
+                pool,
+                max_candidates=1,
+                uncertain_policy=policy,
+            )
             (candidate,) = pipeline.run(image, "a man", "person").candidates
             assert candidate.detection.verdict is expected
             assert "quick brown fox" in candidate.detection.justification
@@ -169,7 +199,14 @@ def test_pipeline_turns_timeouts_and_garbage_into_the_uncertain_policy(yolox: Yo
 @pytest.mark.slow
 def test_request_deadline_bounds_queued_verifications(yolox: YoloxDetector, crowd: np.ndarray) -> None:
     with VlmEmulator(latency_s=0.5, mode="yes") as vlm, ThreadPoolExecutor(1) as pool:
-        pipeline = Pipeline(yolox, OpenAIChatVerifier(vlm.base_url, MODEL_NAME), pool, max_candidates=5, timeout_s=5, deadline_s=1.2)
+        pipeline = Pipeline(
+            yolox,
+            OpenAIChatVerifier(vlm.base_url, MODEL_NAME),
+            pool,
+            max_candidates=5,
+            timeout_s=5,
+            deadline_s=1.2,
+        )
         start = time.monotonic()
         verdicts = [c.detection.verdict for c in pipeline.run(crowd, "a man", "person").candidates]
         assert time.monotonic() - start < 2.5
@@ -185,8 +222,15 @@ def test_margin_crop_is_clamped_to_the_image() -> None:
 
 def test_colour_claims_find_the_garment() -> None:
     claims = colour_claims("a man with a red cap in a green-and-white striped shirt and blue jeans")
-    assert [(c.colour, c.region) for c in claims] == [("red", "head"), ("green", "upper"), ("white", "upper"), ("blue", "lower")]
-    assert [(c.colour, c.region) for c in colour_claims("the white plastic bag", "bag")] == [("white", "whole")]
+    assert [(c.colour, c.region) for c in claims] == [
+        ("red", "head"),
+        ("green", "upper"),
+        ("white", "upper"),
+        ("blue", "lower"),
+    ]
+    assert [(c.colour, c.region) for c in colour_claims("the white plastic bag", "bag")] == [
+        ("white", "whole")
+    ]
 
 
 # Every (sequence, true description, false description): measured on ground-truth crops of real frames.
@@ -209,7 +253,14 @@ def test_local_verifier_accuracy_on_real_crops(sequences_dir: Path) -> None:
             crop, inner = _crop(sequences_dir, name, index)
             truths.append(verifier.verify(crop, inner.xywh(), true_prompt, superset).verdict)
             falses.append(verifier.verify(crop, inner.xywh(), false_prompt, superset).verdict)
-        rows.append((name, truths.count(YES) / len(truths), falses.count(NO) / len(falses), truths.count(NO) / len(truths)))
+        rows.append(
+            (
+                name,
+                truths.count(YES) / len(truths),
+                falses.count(NO) / len(falses),
+                truths.count(NO) / len(truths),
+            )
+        )
     for name, tp, tn, fn in rows:
         print(f"{name}: true description -> yes {tp:.0%}, wrong colour -> no {tn:.0%}, true -> no {fn:.0%}")
     assert np.mean([r[2] for r in rows]) >= 0.8  # wrong colours are ruled out
@@ -236,7 +287,11 @@ def test_posture_from_the_box_shape_on_real_and_rotated_crops(sequences_dir: Pat
     h = crop.shape[0]
     rotated = (h - inner.y - inner.h, inner.x, inner.h, inner.w)
     answer = verifier.verify(lying, rotated, "an injured man lying on the ground in dark clothes", "person")
-    assert answer.verdict is YES and "height/width 0.3" in answer.justification and "dark" in answer.justification
+    assert (
+        answer.verdict is YES
+        and "height/width 0.3" in answer.justification
+        and "dark" in answer.justification
+    )
     square = (10.0, 10.0, 30.0, 32.0)  # a person seen from straight above: cannot tell
     assert verifier.verify(crop, square, "a collapsed hiker", "person").verdict is UNC
     assert verifier.verify(crop, inner.xywh(), "a bag lying on the ground", "bag").verdict is UNC

@@ -66,8 +66,11 @@ def _runner_awaiting(image: np.ndarray, box: Box) -> tuple[MissionRunner, dict[s
     config = MissionConfig()
     none: Any = None
     runner = MissionRunner(config, none, none, none, none)
-    runner.state = replace(initial_state(config), mode=MissionState.AWAITING_SUPERVISOR,
-                           mission=StartMission("a person in a green shirt", mission_id="m1"))
+    runner.state = replace(
+        initial_state(config),
+        mode=MissionState.AWAITING_SUPERVISOR,
+        mission=StartMission("a person in a green shirt", mission_id="m1"),
+    )
     runner._latest = Frame(7, time.monotonic(), image)
     report = ReportCandidate("c7", "green shirt", Verdict.YES, None, box, "awaiting")
     return runner, runner._status(report)
@@ -97,8 +100,10 @@ def test_crop_reaches_the_back_end_store(sequence_dirs: list[Path]) -> None:
 
     image, box = _first_frame(sequence_dirs[0])
     _, status = _runner_awaiting(image, box)
-    config = BackendConfig(auth=AuthConfig(tokens={"drone-1": "drone-1-token-0001"}, supervisor_token="supervisor-token-0001"),
-                           sessions=SessionConfig(sqlite_path=":memory:"))
+    config = BackendConfig(
+        auth=AuthConfig(tokens={"drone-1": "drone-1-token-0001"}, supervisor_token="supervisor-token-0001"),
+        sessions=SessionConfig(sqlite_path=":memory:"),
+    )
     posted: list[dict[str, Any]] = []
 
     class RecordingClient(BackendClient):
@@ -107,18 +112,26 @@ def test_crop_reaches_the_back_end_store(sequence_dirs: list[Path]) -> None:
             return super().report_status(state, vehicle_id, **fields)
 
     with BackgroundServer(create_app(config, detector=SimulatedPersonDetector(lambda fid: None))) as server:
-        session = BackendSession(RecordingClient(server.url, "drone-1-token-0001", vehicle_id="drone-1"), period_s=0.05).start()
+        session = BackendSession(
+            RecordingClient(server.url, "drone-1-token-0001", vehicle_id="drone-1"), period_s=0.05
+        ).start()
         try:
             session.update(status)
             deadline = time.monotonic() + 10
             while len(posted) < 3 and time.monotonic() < deadline:
                 time.sleep(0.05)
-            stored = requests.get(f"{server.url}/v1/vehicles", headers={"Authorization": "Bearer supervisor-token-0001"}, timeout=5).json()
+            stored = requests.get(
+                f"{server.url}/v1/vehicles",
+                headers={"Authorization": "Bearer supervisor-token-0001"},
+                timeout=5,
+            ).json()
         finally:
             session.close()
     # The crop went up once; later reports about the same candidate leave it out and the store keeps it.
     assert "crop_jpeg_b64" in posted[0]["awaiting"]
-    assert all("crop_jpeg_b64" not in p["awaiting"] and p["awaiting"]["candidate_id"] == "c7" for p in posted[1:3])
+    assert all(
+        "crop_jpeg_b64" not in p["awaiting"] and p["awaiting"]["candidate_id"] == "c7" for p in posted[1:3]
+    )
     awaiting = stored[0]["awaiting"]
     assert awaiting["candidate_id"] == "c7"
     assert awaiting["crop_jpeg_b64"] == status["awaiting"]["crop_jpeg_b64"]

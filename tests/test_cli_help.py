@@ -43,13 +43,20 @@ def test_every_subcommand_help_renders_with_an_example(script: str) -> None:
     for name, sub in commands.items():
         text = sub.format_help()
         assert "usage:" in text, name
-        assert f"{script} {name}" in text.split("xample", 1)[-1], f"{script} {name} --help shows no example of itself"
+        assert f"{script} {name}" in text.split("xample", 1)[-1], (
+            f"{script} {name} --help shows no example of itself"
+        )
 
 
 WEIGHT_COMMANDS = [
-    ("cloudtrack-companion", "run"), ("cloudtrack-companion", "eval"), ("cloudtrack-companion", "bench"),
-    ("cloudtrack-backend", "serve"), ("cloudtrack-backend", "detect"), ("cloudtrack-backend", "eval"),
-    ("cloudtrack-backend", "bench"), ("cloudtrack-sim", "run"),
+    ("cloudtrack-companion", "run"),
+    ("cloudtrack-companion", "eval"),
+    ("cloudtrack-companion", "bench"),
+    ("cloudtrack-backend", "serve"),
+    ("cloudtrack-backend", "detect"),
+    ("cloudtrack-backend", "eval"),
+    ("cloudtrack-backend", "bench"),
+    ("cloudtrack-sim", "run"),
 ]
 
 

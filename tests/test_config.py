@@ -37,12 +37,17 @@ def test_wrong_type_and_range_are_named(tmp_path: Path) -> None:
 
 def test_altitude_band_must_be_ordered() -> None:
     with pytest.raises(ConfigError, match="min_altitude_m"):
-        load_config(CompanionConfig, None, environ={}, assignments=["safety.min_altitude_m=50", "safety.max_altitude_m=40"])
+        load_config(
+            CompanionConfig,
+            None,
+            environ={},
+            assignments=["safety.min_altitude_m=50", "safety.max_altitude_m=40"],
+        )
 
 
 def test_precedence_file_then_environment_then_flags(tmp_path: Path) -> None:
     path = tmp_path / "c.toml"
-    path.write_text("[safety]\nmax_speed_m_s = 2.0\nmax_yaw_rate_deg_s = 30\n[vehicle]\nid = \"file\"\n")
+    path.write_text('[safety]\nmax_speed_m_s = 2.0\nmax_yaw_rate_deg_s = 30\n[vehicle]\nid = "file"\n')
     env = {"CLOUDTRACK_SAFETY__MAX_SPEED_M_S": "2.5", "CLOUDTRACK_VEHICLE__ID": "env"}
     config = load_config(CompanionConfig, path, environ=env, assignments=["vehicle.id=flag"])
     assert config.safety.max_speed_m_s == 2.5

@@ -27,7 +27,9 @@ def _leaves(data: dict[str, Any]) -> dict[str, Any]:
     return {f"{section}.{key}": value for section, values in data.items() for key, value in values.items()}
 
 
-@pytest.mark.parametrize(("schema", "name"), [(CompanionConfig, "companion.toml"), (BackendConfig, "backend.toml")])
+@pytest.mark.parametrize(
+    ("schema", "name"), [(CompanionConfig, "companion.toml"), (BackendConfig, "backend.toml")]
+)
 def test_config_file_lists_every_schema_default_key_by_key(schema: type[BaseModel], name: str) -> None:
     on_disk = read_toml(REPO / "config" / name)
     written = _leaves(on_disk)
@@ -42,8 +44,16 @@ def test_config_file_lists_every_schema_default_key_by_key(schema: type[BaseMode
 
 def test_control_defaults_are_the_control_laws_own() -> None:
     gains, schema = ControlGains(), ControlConfig()
-    for key in ("yaw_kp", "yaw_ki", "forward_kp", "forward_ki", "lateral_kp", "distance_dead_band_m",
-                "filter_time_constant_s", "max_accel_m_s2"):
+    for key in (
+        "yaw_kp",
+        "yaw_ki",
+        "forward_kp",
+        "forward_ki",
+        "lateral_kp",
+        "distance_dead_band_m",
+        "filter_time_constant_s",
+        "max_accel_m_s2",
+    ):
         assert getattr(schema, key) == getattr(gains, key), key
     assert math.isclose(math.radians(schema.yaw_dead_band_deg), gains.yaw_dead_band)
     assert math.isclose(math.radians(schema.max_yaw_accel_deg_s2), gains.max_yaw_accel)

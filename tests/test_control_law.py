@@ -56,10 +56,14 @@ def box_with_foot(u: float, v: float, h_px: float = 40.0) -> Box:
     return Box(u - 8.0, v - h_px, 16.0, h_px)
 
 
-def run(box: Box, telemetry: Telemetry, goal: FollowGoal, gains: ControlGains, limits: MotionLimits, steps: int) -> list[Setpoint]:
+def run(
+    box: Box, telemetry: Telemetry, goal: FollowGoal, gains: ControlGains, limits: MotionLimits, steps: int
+) -> list[Setpoint]:
     state, out = ControlState(), []
     for i in range(steps):
-        sp, state = follow_step(box, CAM, replace(telemetry, time_s=i * 0.05), goal, gains, limits, state, i * 0.05)
+        sp, state = follow_step(
+            box, CAM, replace(telemetry, time_s=i * 0.05), goal, gains, limits, state, i * 0.05
+        )
         out.append(sp)
     return out
 
@@ -86,7 +90,9 @@ def test_output_always_within_limits(
     t = 0.0
     for x, y, w, h, dt in boxes:
         t += dt if math.isfinite(dt) else 0.05
-        sp, state = follow_step(Box(x, y, w, h), CAM, Telemetry(t, height_agl=height), goal, gains, limits, state, t)
+        sp, state = follow_step(
+            Box(x, y, w, h), CAM, Telemetry(t, height_agl=height), goal, gains, limits, state, t
+        )
         assert sp.is_finite()
         assert sp.horizontal_speed <= limits.max_speed + 1e-9
         assert abs(sp.yaw_rate) <= limits.max_yaw_rate + 1e-9
@@ -135,23 +141,39 @@ def test_target_far_gives_forward_motion_and_near_gives_backward(
 
 @settings(max_examples=100, deadline=None)
 @given(st.floats(6.0, 50.0), st.floats(-0.9, 0.9), st.floats(-0.9, 0.9), st.integers(1, 30), gains_st)
-def test_zero_at_the_set_point(height: float, u_frac: float, d_frac: float, steps: int, gains: ControlGains) -> None:
+def test_zero_at_the_set_point(
+    height: float, u_frac: float, d_frac: float, steps: int, gains: ControlGains
+) -> None:
     standoff = 12.0
     # Anywhere inside both dead bands counts as the set-point.
     u = CAM.cx + CAM.fx * math.tan(u_frac * gains.yaw_dead_band)
     d = standoff + d_frac * gains.distance_dead_band_m
     v = foot_v(d, height)
     assume(0.0 < v < CAM.height - 5.0)
-    for sp in run(box_with_foot(u, v), Telemetry(0.0, height_agl=height), FollowGoal(standoff), gains, LIMITS, steps):
+    for sp in run(
+        box_with_foot(u, v), Telemetry(0.0, height_agl=height), FollowGoal(standoff), gains, LIMITS, steps
+    ):
         assert sp == Setpoint.zero()
 
 
-@given(st.sampled_from([
-    Box(math.nan, 100, 10, 10), Box(100, 100, 0, 10), Box(100, 100, -5, 10), Box(100, math.inf, 10, 10),
-]), st.floats(0.1, 5.0))
+@given(
+    st.sampled_from(
+        [
+            Box(math.nan, 100, 10, 10),
+            Box(100, 100, 0, 10),
+            Box(100, 100, -5, 10),
+            Box(100, math.inf, 10, 10),
+        ]
+    ),
+    st.floats(0.1, 5.0),
+)
 def test_invalid_box_gives_zero_and_resets(box: Box, prior_speed: float) -> None:
-    warm = ControlState(time_s=1.0, yaw_integral=0.5, forward_integral=3.0, output=Setpoint(prior_speed, 0, 0, 0.3))
-    sp, state = follow_step(box, CAM, Telemetry(1.1, height_agl=20.0), FollowGoal(12.0), GAINS, LIMITS, warm, 1.1)
+    warm = ControlState(
+        time_s=1.0, yaw_integral=0.5, forward_integral=3.0, output=Setpoint(prior_speed, 0, 0, 0.3)
+    )
+    sp, state = follow_step(
+        box, CAM, Telemetry(1.1, height_agl=20.0), FollowGoal(12.0), GAINS, LIMITS, warm, 1.1
+    )
     assert sp == Setpoint.zero()
     assert state.yaw_integral == 0.0 and state.forward_integral == 0.0 and state.output == Setpoint.zero()
 
@@ -166,8 +188,13 @@ def test_invalid_telemetry_or_time_gives_zero() -> None:
     ):
         assert follow_step(box, CAM, telemetry, goal, GAINS, LIMITS, ControlState(), t)[0] == Setpoint.zero()
     # Time going backwards is a broken input too.
-    _, state = follow_step(box, CAM, Telemetry(2.0, height_agl=20.0), goal, GAINS, LIMITS, ControlState(), 2.0)
-    assert follow_step(box, CAM, Telemetry(1.0, height_agl=20.0), goal, GAINS, LIMITS, state, 1.0)[0] == Setpoint.zero()
+    _, state = follow_step(
+        box, CAM, Telemetry(2.0, height_agl=20.0), goal, GAINS, LIMITS, ControlState(), 2.0
+    )
+    assert (
+        follow_step(box, CAM, Telemetry(1.0, height_agl=20.0), goal, GAINS, LIMITS, state, 1.0)[0]
+        == Setpoint.zero()
+    )
 
 
 @settings(max_examples=100, deadline=None)
@@ -177,9 +204,14 @@ def test_slew_rate_limits_change_per_step(gains: ControlGains, offsets: list[flo
     for i, off in enumerate(offsets):
         t = i * dt
         box = box_with_foot(CAM.cx + off, foot_v(12.0 + off / 10.0, 20.0))
-        sp, state = follow_step(box, CAM, Telemetry(t, height_agl=20.0), FollowGoal(12.0), gains, LIMITS, state, t)
+        sp, state = follow_step(
+            box, CAM, Telemetry(t, height_agl=20.0), FollowGoal(12.0), gains, LIMITS, state, t
+        )
         step_dt = gains.nominal_dt_s if i == 0 else dt
-        assert math.hypot(sp.forward - prev.forward, sp.right - prev.right) <= gains.max_accel_m_s2 * step_dt + 1e-9
+        assert (
+            math.hypot(sp.forward - prev.forward, sp.right - prev.right)
+            <= gains.max_accel_m_s2 * step_dt + 1e-9
+        )
         assert abs(sp.yaw_rate - prev.yaw_rate) <= gains.max_yaw_accel * step_dt + 1e-9
         prev = sp
 
@@ -218,11 +250,15 @@ def test_climbs_back_into_the_altitude_band_but_never_descends_unconfirmed() -> 
 
 def test_orbit_adds_sideways_speed_and_lateral_term_moves_towards_the_target() -> None:
     box = box_with_foot(CAM.cx, foot_v(12.0, 20.0))
-    orbit = run(box, Telemetry(0.0, height_agl=20.0), FollowGoal(12.0, lateral_speed_m_s=1.0), GAINS, LIMITS, 40)[-1]
+    orbit = run(
+        box, Telemetry(0.0, height_agl=20.0), FollowGoal(12.0, lateral_speed_m_s=1.0), GAINS, LIMITS, 40
+    )[-1]
     assert math.isclose(orbit.right, 1.0) and orbit.forward == 0.0
     right_box = box_with_foot(CAM.cx + 150, foot_v(12.0, 20.0))
     lateral = replace(GAINS, lateral_kp=0.3)
-    assert run(right_box, Telemetry(0.0, height_agl=20.0), FollowGoal(12.0), lateral, LIMITS, 20)[-1].right > 0
+    assert (
+        run(right_box, Telemetry(0.0, height_agl=20.0), FollowGoal(12.0), lateral, LIMITS, 20)[-1].right > 0
+    )
 
 
 def test_horizontal_angle_uses_the_intrinsics() -> None:
@@ -230,7 +266,9 @@ def test_horizontal_angle_uses_the_intrinsics() -> None:
     assert math.isclose(horizontal_angle(CAM, box), math.pi / 4)
 
 
-def _image_box(cam: CameraModel, x: float, y: float, yaw: float, height: float, person: tuple[float, float]) -> Box | None:
+def _image_box(
+    cam: CameraModel, x: float, y: float, yaw: float, height: float, person: tuple[float, float]
+) -> Box | None:
     """Pinhole image of a 1.7 m, 0.5 m wide person standing at `person` (north, east), stabilised camera."""
     pts = []
     for up, side in ((0.0, -0.25), (0.0, 0.25), (1.7, -0.25), (1.7, 0.25)):
@@ -258,7 +296,9 @@ def test_closed_loop_settles_centred_at_the_standoff() -> None:
         t = i * dt
         box = _image_box(CAM, x, y, yaw, height, person)
         assert box is not None and 0 <= box.cx < CAM.width, f"target left the image at t={t:.1f}"
-        sp, state = follow_step(box, CAM, Telemetry(t, height_agl=height, yaw=yaw), FollowGoal(standoff), GAINS, LIMITS, state, t)
+        sp, state = follow_step(
+            box, CAM, Telemetry(t, height_agl=height, yaw=yaw), FollowGoal(standoff), GAINS, LIMITS, state, t
+        )
         x += (sp.forward * math.cos(yaw) - sp.right * math.sin(yaw)) * dt
         y += (sp.forward * math.sin(yaw) + sp.right * math.cos(yaw)) * dt
         yaw += sp.yaw_rate * dt
@@ -279,7 +319,9 @@ def test_closed_loop_keeps_a_walking_person_in_view_near_the_standoff() -> None:
         person = (25.0 + 0.8 * t, 5.0 + 1.0 * t)  # 1.3 m/s, across the initial view
         box = _image_box(CAM, x, y, yaw, height, person)
         assert box is not None and 0 <= box.cx < CAM.width, f"target left the image at t={t:.1f}"
-        sp, state = follow_step(box, CAM, Telemetry(t, height_agl=height, yaw=yaw), FollowGoal(standoff), GAINS, LIMITS, state, t)
+        sp, state = follow_step(
+            box, CAM, Telemetry(t, height_agl=height, yaw=yaw), FollowGoal(standoff), GAINS, LIMITS, state, t
+        )
         x += (sp.forward * math.cos(yaw) - sp.right * math.sin(yaw)) * dt
         y += (sp.forward * math.sin(yaw) + sp.right * math.cos(yaw)) * dt
         yaw += sp.yaw_rate * dt
@@ -299,9 +341,13 @@ def test_product_defaults_reach_a_person_walking_at_1_5_m_s() -> None:
     from companion.config import CompanionConfig
 
     cfg = CompanionConfig()
-    mission = MissionConfig.from_sections(behavior=cfg.behavior.model_dump(), control=cfg.control.model_dump(),
-                                          safety=cfg.safety.model_dump(), camera=cfg.camera.model_dump(),
-                                          backend=cfg.backend.model_dump())
+    mission = MissionConfig.from_sections(
+        behavior=cfg.behavior.model_dump(),
+        control=cfg.control.model_dump(),
+        safety=cfg.safety.model_dump(),
+        camera=cfg.camera.model_dump(),
+        backend=cfg.backend.model_dump(),
+    )
     assert mission.gains == GAINS  # the behaviour's own defaults are the product's
     x = y = yaw = vn = ve = 0.0
     height, dt, tau = 20.0, 1.0 / 15.0, 0.5
@@ -311,13 +357,25 @@ def test_product_defaults_reach_a_person_walking_at_1_5_m_s() -> None:
         person = (25.0 + 0.9 * t, 5.0 + 1.2 * t)  # 1.5 m/s
         box = _image_box(mission.camera, x, y, yaw, height, person)
         assert box is not None and 0 <= box.cx < mission.camera.width, f"target left the image at t={t:.1f}"
-        sp, state = follow_step(box, mission.camera, Telemetry(t, height_agl=height, yaw=yaw),
-                                FollowGoal(mission.standoff_m), mission.gains, mission.limits, state, t)
+        sp, state = follow_step(
+            box,
+            mission.camera,
+            Telemetry(t, height_agl=height, yaw=yaw),
+            FollowGoal(mission.standoff_m),
+            mission.gains,
+            mission.limits,
+            state,
+            t,
+        )
         alpha = dt / (tau + dt)
         vn += alpha * (sp.forward * math.cos(yaw) - sp.right * math.sin(yaw) - vn)
         ve += alpha * (sp.forward * math.sin(yaw) + sp.right * math.cos(yaw) - ve)
         x, y, yaw = x + vn * dt, y + ve * dt, yaw + sp.yaw_rate * dt
-        if t > 1.0 and abs(math.hypot(person[0] - x, person[1] - y) - mission.standoff_m) < mission.arrive_tolerance_m:
+        if (
+            t > 1.0
+            and abs(math.hypot(person[0] - x, person[1] - y) - mission.standoff_m)
+            < mission.arrive_tolerance_m
+        ):
             arrived = t
             break
     assert arrived is not None, "never came within arrive_tolerance_m of the standoff in 15 s"

@@ -67,7 +67,14 @@ finite = st.floats(-1e6, 1e6)
 text = st.text(max_size=20)
 boxes = st.builds(Box, floats, floats, floats, floats)
 detections = st.builds(
-    Detection, boxes, floats, text, st.sampled_from(Verdict), text, text, st.lists(finite, max_size=6).map(tuple)
+    Detection,
+    boxes,
+    floats,
+    text,
+    st.sampled_from(Verdict),
+    text,
+    text,
+    st.lists(finite, max_size=6).map(tuple),
 )
 commands = st.one_of(
     st.builds(StartMission, text, text, st.booleans(), text),
@@ -78,9 +85,38 @@ commands = st.one_of(
     st.just(StopTracking()),
 )
 events: st.SearchStrategy[Event] = st.one_of(
-    st.builds(TrackResult, st.integers(0, 10**9), finite, st.one_of(st.none(), boxes), st.one_of(st.none(), floats), st.booleans(), text),
-    st.builds(BackendAnswer, finite, st.integers(0, 10**6), st.integers(-1, 10**9), st.lists(detections, max_size=4).map(tuple)),
-    st.builds(Telemetry, finite, floats, floats, floats, floats, floats, floats, floats, floats, floats, st.booleans(), text, st.booleans()),
+    st.builds(
+        TrackResult,
+        st.integers(0, 10**9),
+        finite,
+        st.one_of(st.none(), boxes),
+        st.one_of(st.none(), floats),
+        st.booleans(),
+        text,
+    ),
+    st.builds(
+        BackendAnswer,
+        finite,
+        st.integers(0, 10**6),
+        st.integers(-1, 10**9),
+        st.lists(detections, max_size=4).map(tuple),
+    ),
+    st.builds(
+        Telemetry,
+        finite,
+        floats,
+        floats,
+        floats,
+        floats,
+        floats,
+        floats,
+        floats,
+        floats,
+        floats,
+        st.booleans(),
+        text,
+        st.booleans(),
+    ),
     st.builds(GcsCommand, finite, commands),
     st.builds(TimerTick, floats),
     st.builds(BackendUnreachable, finite, text),
@@ -94,11 +130,22 @@ actions: st.SearchStrategy[Action] = st.one_of(
     st.builds(ReleaseControl, text),
     st.builds(RequestMode, st.sampled_from(FlightMode), text),
     st.builds(GcsMessage, text, st.sampled_from(["info", "warning", "critical"])),
-    st.builds(BackendQuery, st.integers(0, 10**6), st.sampled_from(QueryPurpose), text, text, st.one_of(st.none(), boxes)),
+    st.builds(
+        BackendQuery,
+        st.integers(0, 10**6),
+        st.sampled_from(QueryPurpose),
+        text,
+        text,
+        st.one_of(st.none(), boxes),
+    ),
     st.builds(TrackerInit, boxes, st.integers(-1, 10**6), text, st.booleans()),
     st.builds(TrackerStop, text),
-    st.builds(JudgeCandidates, st.integers(0, 10**6), st.lists(detections, max_size=3).map(tuple),
-              st.lists(st.integers(0, 2), max_size=3).map(tuple)),
+    st.builds(
+        JudgeCandidates,
+        st.integers(0, 10**6),
+        st.lists(detections, max_size=3).map(tuple),
+        st.lists(st.integers(0, 2), max_size=3).map(tuple),
+    ),
     st.builds(ReportCandidate, text, text, st.sampled_from(Verdict), st.one_of(st.none(), geo), boxes, text),
     st.builds(RememberRejection, text, st.one_of(st.none(), geo), st.lists(finite, max_size=4).map(tuple)),
 )
@@ -110,7 +157,9 @@ def through_json(data: Any) -> Any:
 
 def same(a: object, b: object) -> bool:
     """Equal, with NaN equal to NaN (dataclass equality says NaN != NaN)."""
-    return json.dumps(encode(a), allow_nan=False, sort_keys=True) == json.dumps(encode(b), allow_nan=False, sort_keys=True)
+    return json.dumps(encode(a), allow_nan=False, sort_keys=True) == json.dumps(
+        encode(b), allow_nan=False, sort_keys=True
+    )
 
 
 @settings(max_examples=300, deadline=None)
@@ -143,7 +192,12 @@ def _floats(data: Any) -> list[float]:
 
 
 def test_encoding_is_readable_and_keeps_types() -> None:
-    event = BackendAnswer(2.5, 7, 120, (Detection(Box(1, 2, 3, 4), 0.8, verdict=Verdict.YES, candidate_id="c1", signature=(0.5, 0.5)),))
+    event = BackendAnswer(
+        2.5,
+        7,
+        120,
+        (Detection(Box(1, 2, 3, 4), 0.8, verdict=Verdict.YES, candidate_id="c1", signature=(0.5, 0.5)),),
+    )
     data = encode_event(event)
     assert data["type"] == "BackendAnswer" and data["candidates"][0]["verdict"] == "yes"
     assert data["candidates"][0]["box"] == {"type": "Box", "x": 1, "y": 2, "w": 3, "h": 4}
@@ -160,14 +214,43 @@ def test_encoding_is_readable_and_keeps_types() -> None:
         ({"type": "TimerTick"}, "missing field 'time_s'"),
         ({"type": "TimerTick", "time_s": "soon"}, "$.time_s: expected a number"),
         ({"type": "TimerTick", "time_s": 1.0, "extra": 1}, "unknown field(s) ['extra']"),
-        ({"type": "GcsCommand", "time_s": 1.0, "command": {"type": "StartMission"}}, "$.command: missing field 'prompt'"),
-        ({"type": "GcsCommand", "time_s": 1.0, "command": {"type": "TimerTick", "time_s": 1}}, "$.command: type 'TimerTick'"),
-        ({"type": "TrackResult", "frame_id": 1.5, "time_s": 0, "box": None, "score": None, "ok": True}, "$.frame_id: expected an integer"),
-        ({"type": "TrackResult", "frame_id": 1, "time_s": 0, "box": None, "score": None, "ok": 1}, "$.ok: expected true or false"),
-        ({"type": "BackendAnswer", "time_s": 0, "query_id": 1, "keyframe_id": 1, "candidates": {}}, "$.candidates: expected a list"),
-        ({"type": "BackendAnswer", "time_s": 0, "query_id": 1, "keyframe_id": 1,
-          "candidates": [{"type": "Detection", "box": {"type": "Box", "x": 0, "y": 0, "w": 1, "h": 1}, "score": 1, "verdict": "maybe"}]},
-         "$.candidates[0].verdict: 'maybe' is not a Verdict"),
+        (
+            {"type": "GcsCommand", "time_s": 1.0, "command": {"type": "StartMission"}},
+            "$.command: missing field 'prompt'",
+        ),
+        (
+            {"type": "GcsCommand", "time_s": 1.0, "command": {"type": "TimerTick", "time_s": 1}},
+            "$.command: type 'TimerTick'",
+        ),
+        (
+            {"type": "TrackResult", "frame_id": 1.5, "time_s": 0, "box": None, "score": None, "ok": True},
+            "$.frame_id: expected an integer",
+        ),
+        (
+            {"type": "TrackResult", "frame_id": 1, "time_s": 0, "box": None, "score": None, "ok": 1},
+            "$.ok: expected true or false",
+        ),
+        (
+            {"type": "BackendAnswer", "time_s": 0, "query_id": 1, "keyframe_id": 1, "candidates": {}},
+            "$.candidates: expected a list",
+        ),
+        (
+            {
+                "type": "BackendAnswer",
+                "time_s": 0,
+                "query_id": 1,
+                "keyframe_id": 1,
+                "candidates": [
+                    {
+                        "type": "Detection",
+                        "box": {"type": "Box", "x": 0, "y": 0, "w": 1, "h": 1},
+                        "score": 1,
+                        "verdict": "maybe",
+                    }
+                ],
+            },
+            "$.candidates[0].verdict: 'maybe' is not a Verdict",
+        ),
         ([1, 2], "fits none of"),
         (None, "null is not allowed"),
     ],
@@ -184,7 +267,9 @@ def test_malformed_action_is_an_error() -> None:
 
 
 def test_state_and_config_round_trip() -> None:
-    config = replace(MissionConfig(), lost_action=LostAction.RTL, on_confirm=ConfirmAction.ORBIT, accept_uncertain=True)
+    config = replace(
+        MissionConfig(), lost_action=LostAction.RTL, on_confirm=ConfirmAction.ORBIT, accept_uncertain=True
+    )
     assert decode_as(through_json(encode(config)), MissionConfig) == config
     state, _ = step(initial_state(config), GcsCommand(1.0, StartMission("a man in a gray shirt")), config)
     assert decode_as(through_json(encode(state)), State) == state
@@ -198,7 +283,12 @@ def _recorded_mission(config: MissionConfig) -> list[Event]:
         GcsCommand(0.1, StartMission("an injured man in a gray shirt", allow_engage=True)),
         TimerTick(0.6),
         TimerTick(1.2),
-        BackendAnswer(1.5, 1, 30, (Detection(box_far, 0.9, verdict=Verdict.YES, justification="gray shirt", candidate_id="c1"),)),
+        BackendAnswer(
+            1.5,
+            1,
+            30,
+            (Detection(box_far, 0.9, verdict=Verdict.YES, justification="gray shirt", candidate_id="c1"),),
+        ),
     ]
     t = 1.6
     for i in range(40):
@@ -226,8 +316,16 @@ def test_replaying_a_recorded_mission_gives_the_same_decisions() -> None:
     log: list[str] = []
     for event in recorded:
         state, acts = step(state, event, config)
-        log.append(json.dumps({"event": encode_event(event), "actions": [encode_action(a) for a in acts]}, allow_nan=False))
-    kinds = {json.loads(line)["actions"][i]["type"] for line in log for i in range(len(json.loads(line)["actions"]))}
+        log.append(
+            json.dumps(
+                {"event": encode_event(event), "actions": [encode_action(a) for a in acts]}, allow_nan=False
+            )
+        )
+    kinds = {
+        json.loads(line)["actions"][i]["type"]
+        for line in log
+        for i in range(len(json.loads(line)["actions"]))
+    }
     assert {"SendSetpoint", "TrackerInit", "ReportCandidate", "RememberRejection", "Hold"} <= kinds
     # Replay from the record alone.
     replay_config = decode_as(through_json(encode(config)), MissionConfig)

@@ -69,7 +69,9 @@ def test_mission_folder_holds_events_tlog_keyframes_and_video(tmp_path: Path) ->
     assert all(START < e["t"] < START + 10 for e in events)
     assert events[1]["new"] == "SEARCHING" and events[2]["candidates"][0]["verdict"] == "yes"
     assert name == "keyframes/000007.jpg" and events[3]["file"] == name
-    assert cv2.imdecode(np.frombuffer((rec.folder / name).read_bytes(), np.uint8), cv2.IMREAD_COLOR) is not None
+    assert (
+        cv2.imdecode(np.frombuffer((rec.folder / name).read_bytes(), np.uint8), cv2.IMREAD_COLOR) is not None
+    )
 
     # pymavlink reads the tlog back, timestamps included.
     log = mavutil.mavlink_connection(str(rec.folder / "mavlink-000.tlog"))
@@ -96,7 +98,9 @@ def test_video_takes_frames_at_the_camera_rate_not_faster(tmp_path: Path) -> Non
 
     import av
 
-    rec = FlightRecorder(tmp_path, "drone-1", "m", 50_000_000, video=True, video_fps=20.0, clock=fixed_clock())
+    rec = FlightRecorder(
+        tmp_path, "drone-1", "m", 50_000_000, video=True, video_fps=20.0, clock=fixed_clock()
+    )
     frame = np.full((120, 160, 3), 80, np.uint8)
     started = time.monotonic()
     while time.monotonic() - started < 1.0:  # about 200 frames a second for one second
@@ -142,7 +146,9 @@ def test_size_cap_rotates_older_missions_then_oldest_keyframes(tmp_path: Path) -
     assert kinds.count("keyframe") == 40  # the event log itself is never rotated away
 
 
-def test_disk_full_degrades_to_no_recording_with_a_warning(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+def test_disk_full_degrades_to_no_recording_with_a_warning(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
     """/dev/full answers every write with ENOSPC, exactly as a full SD card does."""
     clock = fixed_clock()
     probe = FlightRecorder(tmp_path / "probe", "drone-1", "m", 10_000_000, clock=fixed_clock())
@@ -235,7 +241,9 @@ def test_attach_tlog_records_messages_sent_and_received_over_a_real_link(tmp_pat
     rec = FlightRecorder(tmp_path, "drone-1", "link", 10_000_000)
     try:
         attach_tlog(companion, rec)
-        autopilot.mav.heartbeat_send(mavlink2.MAV_TYPE_QUADROTOR, mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 0)
+        autopilot.mav.heartbeat_send(
+            mavlink2.MAV_TYPE_QUADROTOR, mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 0
+        )
         assert companion.recv_match(type="HEARTBEAT", blocking=True, timeout=5) is not None
         companion.mav.statustext_send(mavlink2.MAV_SEVERITY_INFO, b"companion up")
     finally:

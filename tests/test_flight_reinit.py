@@ -80,7 +80,8 @@ class _Record:
 def crossing(sequences_dir: Path):  # type: ignore[no-untyped-def]
     seq = load_sequence(sequences_dir / SEQ)
     frames = [
-        Frame(i + 1, i / seq.fps, cv2.imread(str(seq.path / "frames" / f"{i + 1:06d}.jpg"))) for i in range(40)
+        Frame(i + 1, i / seq.fps, cv2.imread(str(seq.path / "frames" / f"{i + 1:06d}.jpg")))
+        for i in range(40)
     ]
     return seq, frames
 
@@ -94,7 +95,9 @@ def _following(models_dir: Path, crossing, policy: str = "verified"):  # type: i
     backend, record = _Backend(), _Record()
     none: Any = None
     # Keyframes every 50 ms so that a few seconds of footage hold many answers.
-    runner = MissionRunner(MissionConfig(query_interval_s=0.05), none, fe, _Vehicle(), backend, observers=[record])  # type: ignore[arg-type]
+    runner = MissionRunner(
+        MissionConfig(query_interval_s=0.05), none, fe, _Vehicle(), backend, observers=[record]
+    )  # type: ignore[arg-type]
     assert runner.mission.verified_reinit is (policy == "verified")
 
     def feed(frame: Frame) -> None:
@@ -123,8 +126,12 @@ def _check_query(runner: MissionRunner, t: float) -> int:
 
 def _elsewhere(truth: Box, verdict: Verdict, candidate_id: str) -> Detection:
     """Someone else in the keyframe: next to the target, not on it."""
-    return Detection(Box(truth.x + 2 * truth.w, truth.y, truth.w, truth.h), 0.95, verdict=verdict,
-                     candidate_id=candidate_id)
+    return Detection(
+        Box(truth.x + 2 * truth.w, truth.y, truth.w, truth.h),
+        0.95,
+        verdict=verdict,
+        candidate_id=candidate_id,
+    )
 
 
 def test_verified_flight_judges_every_answer_and_never_moves_on_an_unverified_candidate(
@@ -190,5 +197,3 @@ def test_c_box_flight_is_unchanged_no_answer_goes_to_the_judge(models_dir: Path,
     runner._handle(TimerTick(frames[9].capture_time))
     assert not [q for q in runner.state.queries if q[1] is QueryPurpose.TRACK_CHECK]  # no checks
     assert fe.judged == [] and len(backend.submitted) == 1
-
-

@@ -202,7 +202,9 @@ def test_stalled_camera_is_reported_and_a_new_connection_recovers(folder: Path) 
 
     thread = threading.Thread(target=serve, daemon=True)
     thread.start()
-    source = LiveSource(lambda: _SocketCapture(port), "tcp-cam", reconnect_interval_s=0.05, stall_timeout_s=0.3)
+    source = LiveSource(
+        lambda: _SocketCapture(port), "tcp-cam", reconnect_interval_s=0.05, stall_timeout_s=0.3
+    )
     try:
         assert source.read(timeout_s=2.0) is not None
         stalled_seen = False
@@ -242,10 +244,13 @@ def test_new_schemes_can_be_registered(folder: Path) -> None:
 
 
 @pytest.mark.slow
-def test_sim_stream_keeps_the_renderers_frame_ids_and_survives_a_silent_camera(sequence_dirs: list[Path]) -> None:
+def test_sim_stream_keeps_the_renderers_frame_ids_and_survives_a_silent_camera(
+    sequence_dirs: list[Path],
+) -> None:
     """sim+tcp:// goes through the same LiveSource as real cameras, but its frames keep the stream's ids
     (the simulated detector looks ground truth up by them)."""
     from tests.camera_stream import CameraStream
+
     camera = CameraStream(sequence_dirs[0] / "frames", count=5)
     camera.frame_id = 1000  # the renderer has been running a while
     source = open_source(f"sim+tcp://127.0.0.1:{camera.port}", stall_timeout_s=0.5)

@@ -30,7 +30,9 @@ def test_start_ack_status_round_trip_through_the_autopilot() -> None:
         assert result.returncode == 0, result.stderr
         assert "start: ACCEPTED" in result.stdout
         assert "[1/191] MISSION 7 STARTED: injured man in a gray shirt (person)" in result.stdout
-        assert link.commands() == [StartMission("injured man in a gray shirt", "person", allow_engage=True, mission_id="7")]
+        assert link.commands() == [
+            StartMission("injured man in a gray shirt", "person", allow_engage=True, mission_id="7")
+        ]
 
 
 @pytest.mark.slow
@@ -43,7 +45,12 @@ def test_supervisor_commands_and_track_box(capsys: pytest.CaptureFixture[str]) -
         assert wait_for(lambda: len(link._commands) >= 3)
         commands = link.commands()
         assert commands[0] == ConfirmCandidate("4") and commands[2] == AbortMission("gcs")
-        assert isinstance(commands[1], TrackRectangle) and commands[1].box.xywh() == (160.0, 240.0, 160.0, 240.0)
+        assert isinstance(commands[1], TrackRectangle) and commands[1].box.xywh() == (
+            160.0,
+            240.0,
+            160.0,
+            240.0,
+        )
 
 
 @pytest.mark.slow
@@ -90,8 +97,14 @@ def test_no_autopilot_times_out_with_a_clear_message(capsys: pytest.CaptureFixtu
 
 @pytest.mark.slow
 def test_wrong_signing_key_gets_no_acknowledgement(capsys: pytest.CaptureFixture[str]) -> None:
-    key = bytes.fromhex(KEY_HEX)  # the autopilot signs too: with signing on the companion acts on nothing unsigned
-    with autopilot("ardupilot", signing_key=key) as sim, vehicle_link(sim, signing_key=KEY_HEX) as link, MainLoop(link):
+    key = bytes.fromhex(
+        KEY_HEX
+    )  # the autopilot signs too: with signing on the companion acts on nothing unsigned
+    with (
+        autopilot("ardupilot", signing_key=key) as sim,
+        vehicle_link(sim, signing_key=KEY_HEX) as link,
+        MainLoop(link),
+    ):
         assert gcs_cli.main(_gcs_args(sim, "--signing-key", "77" * 32, "abort", timeout=1.5)) == 3
         assert "no acknowledgement for abort" in capsys.readouterr().err
         assert gcs_cli.main(_gcs_args(sim, "--signing-key", KEY_HEX, "abort")) == 0
@@ -108,7 +121,9 @@ def test_wrong_signing_key_gets_no_acknowledgement(capsys: pytest.CaptureFixture
         (["track-box", "0.5", "0.5", "0.2", "0.9", "--"], None),
     ],
 )
-def test_bad_input_is_refused_before_sending(argv: list[str], message: str | None, capsys: pytest.CaptureFixture[str]) -> None:
+def test_bad_input_is_refused_before_sending(
+    argv: list[str], message: str | None, capsys: pytest.CaptureFixture[str]
+) -> None:
     if message is None:  # box corners in the wrong order need a link first; checked without one here
         assert gcs_cli.main(["--connect", "udpin:127.0.0.1:0", "--timeout", "0.5", *argv[:-1]]) == 3
         return
@@ -128,10 +143,21 @@ def test_printed_mavproxy_lines_start_a_mission(capsys: pytest.CaptureFixture[st
     """The lines are replayed the way MAVProxy's `message` module does: split on spaces, eval, *_send."""
     from tests.mavlink_harness import gcs, receive_until
 
-    argv = ["start", "--prompt", "woman in a green jacket", "--superset", "person", "--mission-id", "7", "--print-mavproxy"]
+    argv = [
+        "start",
+        "--prompt",
+        "woman in a green jacket",
+        "--superset",
+        "person",
+        "--mission-id",
+        "7",
+        "--print-mavproxy",
+    ]
     assert gcs_cli.main(argv) == 0
     lines = capsys.readouterr().out.strip().splitlines()
-    assert lines[0].startswith("message TUNNEL 1 191 49421 ") and lines[-1].startswith("message COMMAND_LONG 1 191 31010 0 7 ")
+    assert lines[0].startswith("message TUNNEL 1 191 49421 ") and lines[-1].startswith(
+        "message COMMAND_LONG 1 191 31010 0 7 "
+    )
     with autopilot("ardupilot") as sim, vehicle_link(sim) as link, MainLoop(link), gcs(sim) as ground:
         for line in lines:
             name, *args = line.split()[1:]

@@ -33,7 +33,9 @@ def haversine_m(lat1: float, lon1: float, lat2: float, lon2: float) -> float:
     return 2 * r * math.asin(math.sqrt(a))
 
 
-def project(cam: CameraModel, roll: float, pitch: float, yaw: float, height: float, north: float, east: float) -> tuple[float, float, float]:
+def project(
+    cam: CameraModel, roll: float, pitch: float, yaw: float, height: float, north: float, east: float
+) -> tuple[float, float, float]:
     """Independent pinhole projection of a ground point (rotation matrices, not the library's ray code)."""
 
     def rx(a: float) -> np.ndarray:
@@ -57,7 +59,12 @@ def project(cam: CameraModel, roll: float, pitch: float, yaw: float, height: flo
 
 def test_known_answers_for_the_optical_axis() -> None:
     h = 30.0
-    for yaw, north, east in ((0.0, h, 0.0), (math.pi / 2, 0.0, h), (math.pi, -h, 0.0), (-math.pi / 2, 0.0, -h)):
+    for yaw, north, east in (
+        (0.0, h, 0.0),
+        (math.pi / 2, 0.0, h),
+        (math.pi, -h, 0.0),
+        (-math.pi / 2, 0.0, -h),
+    ):
         est = locate_pixel(CAM, Telemetry(0, LAT, LON, h, yaw=yaw), CAM.cx, CAM.cy)
         assert est is not None
         assert math.isclose(est.north_m, north, abs_tol=1e-9) and math.isclose(est.east_m, east, abs_tol=1e-9)
@@ -97,8 +104,15 @@ def test_stabilised_camera_ignores_vehicle_tilt_and_fixed_mount_does_not() -> No
     lat=st.floats(-70.0, 70.0),
 )
 def test_synthetic_ground_points_are_recovered(
-    height: float, yaw: float, roll: float, pitch: float, mount_deg: float, stabilised: bool,
-    bearing: float, ground: float, lat: float,
+    height: float,
+    yaw: float,
+    roll: float,
+    pitch: float,
+    mount_deg: float,
+    stabilised: bool,
+    bearing: float,
+    ground: float,
+    lat: float,
 ) -> None:
     cam = replace(CAM, mount_pitch=math.radians(mount_deg), stabilised=stabilised)
     north, east = ground * math.cos(bearing), ground * math.sin(bearing)

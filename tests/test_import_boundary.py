@@ -7,7 +7,17 @@ import sys
 from pathlib import Path
 
 BEHAVIORS = Path(__file__).resolve().parents[1] / "behaviors"
-FORBIDDEN_STDLIB = {"socket", "threading", "asyncio", "subprocess", "time", "multiprocessing", "select", "http", "urllib"}
+FORBIDDEN_STDLIB = {
+    "socket",
+    "threading",
+    "asyncio",
+    "subprocess",
+    "time",
+    "multiprocessing",
+    "select",
+    "http",
+    "urllib",
+}
 
 
 def _imports(path: Path) -> set[str]:
@@ -25,8 +35,13 @@ def test_behaviors_imports_only_stdlib_and_itself() -> None:
     assert files
     for path in files:
         for name in _imports(path):
-            assert name == "behaviors" or name == "__future__" or name in sys.stdlib_module_names, (path, name)
-            assert name not in FORBIDDEN_STDLIB, f"{path} imports {name}: no clocks, sockets or threads in behaviors"
+            assert name == "behaviors" or name == "__future__" or name in sys.stdlib_module_names, (
+                path,
+                name,
+            )
+            assert name not in FORBIDDEN_STDLIB, (
+                f"{path} imports {name}: no clocks, sockets or threads in behaviors"
+            )
 
 
 # --- The direction of imports between the packages (issue 16) -------------------------------------------
@@ -70,7 +85,9 @@ def test_import_direction_between_packages() -> None:
         for module, name in found
         if name not in MAY_IMPORT[module.split("/")[0]] and (module, name) != MAVPROXY_HOOK
     )
-    assert wrong == [], "imports against the direction cloudtrack/behaviors <- companion, backend, gcs <- tools, sitl"
+    assert wrong == [], (
+        "imports against the direction cloudtrack/behaviors <- companion, backend, gcs <- tools, sitl"
+    )
 
 
 def test_the_mavproxy_hook_is_the_only_exception_and_still_needed() -> None:

@@ -33,7 +33,9 @@ def test_ring_keeps_the_newest_frames_in_order() -> None:
         FrameRing(0)
 
 
-def test_ring_restarted_numbering_drops_old_frames_instead_of_crashing(caplog: pytest.LogCaptureFixture) -> None:
+def test_ring_restarted_numbering_drops_old_frames_instead_of_crashing(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
     ring = FrameRing(5)
     for i in range(1, 5):
         ring.push(_blank(i))
@@ -84,7 +86,9 @@ def _run(seq_dir: Path, models_dir: Path, keyframe: int, delay: int, compensate:
     return float(np.mean(ious))
 
 
-@pytest.mark.parametrize(("name", "keyframes"), [("uav123_person12_1", (20, 90, 150)), ("dtb70_Surfing06", (10, 50))])
+@pytest.mark.parametrize(
+    ("name", "keyframes"), [("uav123_person12_1", (20, 90, 150)), ("dtb70_Surfing06", (10, 50))]
+)
 @pytest.mark.slow
 def test_compensated_box_beats_the_stale_one_after_a_1s_backend_delay(
     name: str, keyframes: tuple[int, ...], models_dir: Path, sequences_dir: Path
@@ -94,4 +98,3 @@ def test_compensated_box_beats_the_stale_one_after_a_1s_backend_delay(
     compensated = [_run(seq_dir, models_dir, k, delay, True, 8) for k in keyframes]
     stale = [_run(seq_dir, models_dir, k, delay, False, 8) for k in keyframes]
     assert np.mean(compensated) > np.mean(stale), (compensated, stale)
-

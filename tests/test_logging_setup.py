@@ -14,7 +14,9 @@ def test_json_lines_carry_message_and_extras(capsys: pytest.CaptureFixture[str])
     line = capsys.readouterr().err.strip().splitlines()[-1]
     entry = json.loads(line)
     assert entry["message"] == "backend lost after 10 s"
-    assert entry["level"] == "warning" and entry["vehicle"] == "drone-1" and entry["logger"] == "cloudtrack.test"
+    assert (
+        entry["level"] == "warning" and entry["vehicle"] == "drone-1" and entry["logger"] == "cloudtrack.test"
+    )
 
 
 def test_readable_by_default_and_level_filter(capsys: pytest.CaptureFixture[str]) -> None:

@@ -67,7 +67,9 @@ def test_each_signal_fires_on_its_own_case(person, step_box, score, ok, expected
         "roof": Box(gt1.x - 1.1 * gt1.w, gt1.y, gt1.w, gt1.h),
     }
     detector = _detector(frames[0], gt0, score_threshold=0.7)
-    assert detector.check(frames[1], TrackerStep(seq.ground_truth[1], 0.9, True)) == ""  # the tracker's first box
+    assert (
+        detector.check(frames[1], TrackerStep(seq.ground_truth[1], 0.9, True)) == ""
+    )  # the tracker's first box
     reason = detector.check(frames[2], TrackerStep(boxes[step_box], score, ok))
     assert reason == expected, detector.last_signals
 

@@ -128,15 +128,32 @@ def test_after_abort_on_real_arducopter_the_gcs_flies_the_vehicle(shared_dir: Pa
                 start: Any = gcs.position
                 gcs.endpoint.send(
                     lambda m: m.set_position_target_local_ned_send(
-                        0, 1, 1, 1, POSITION_ONLY_MASK, start[0] + 10, start[1], start[2], 0, 0, 0, 0, 0, 0, 0, 0
+                        0,
+                        1,
+                        1,
+                        1,
+                        POSITION_ONLY_MASK,
+                        start[0] + 10,
+                        start[1],
+                        start[2],
+                        0,
+                        0,
+                        0,
+                        0,
+                        0,
+                        0,
+                        0,
+                        0,
                     )
                 )
                 gcs.pump(12.0)
                 moved = math.hypot(gcs.position[0] - start[0], gcs.position[1] - start[1])
                 assert moved > 8.0, f"the GCS target moved the vehicle {moved:.1f} m"
                 assert link.setpoints_sent == sent  # the companion stayed silent
-                print(f"\nreal ArduCopter: after the abort LOITER, {after_abort} setpoint(s) then silence; "
-                      f"the GCS's 10 m target moved the vehicle {moved:.1f} m")
+                print(
+                    f"\nreal ArduCopter: after the abort LOITER, {after_abort} setpoint(s) then silence; "
+                    f"the GCS's 10 m target moved the vehicle {moved:.1f} m"
+                )
         finally:
             link.close()
             gcs.endpoint.close()

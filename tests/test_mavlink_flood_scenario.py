@@ -28,7 +28,9 @@ LOITER = 5
 
 
 @pytest.mark.slow
-def test_flood_from_200_senders_while_the_companion_follows_in_the_scenario(models_dir: Path, tmp_path: Path) -> None:
+def test_flood_from_200_senders_while_the_companion_follows_in_the_scenario(
+    models_dir: Path, tmp_path: Path
+) -> None:
     lines: list[str] = []
     run = ScenarioRun(SCENARIOS["follow"], RunOptions(model_dir=models_dir, work_dir=tmp_path, tracker="nano"),
                       progress=lines.append)  # fmt: skip

@@ -65,7 +65,9 @@ def test_malformed_prompts_are_refused_with_a_reason() -> None:
 
 
 def test_long_status_is_split_into_linked_chunks() -> None:
-    chunks = statustext_chunks("CANDIDATE 2: yes, gray shirt, lying on the ground next to a bicycle; confirm?")
+    chunks = statustext_chunks(
+        "CANDIDATE 2: yes, gray shirt, lying on the ground next to a bicycle; confirm?"
+    )
     assert [seq for _, seq in chunks] == [0, 1] and all(len(c) <= 50 for c, _ in chunks)
 
 
@@ -99,16 +101,24 @@ def test_mission_commands_over_mavlink_through_the_autopilot() -> None:
         assert receive_until(ground, _is_ack(31010)).result == 4
         # a malformed prompt: DENIED and a STATUSTEXT saying why; nothing reaches the main loop
         bad = [1, 9, 0, 1] + list(b"person|man\x01in gray")
-        ground.send(lambda m: m.tunnel_send(1, 191, PROMPT_PAYLOAD_TYPE, len(bad), bad + [0] * (128 - len(bad))))
+        ground.send(
+            lambda m: m.tunnel_send(1, 191, PROMPT_PAYLOAD_TYPE, len(bad), bad + [0] * (128 - len(bad)))
+        )
         ground.send(lambda m: m.command_long_send(1, 191, 31010, 0, 9, 1, 0, len(bad) - 4, 0, 0, 0))
         assert receive_until(ground, _is_ack(31010)).result == 2
-        first = receive_until(ground, lambda m: m.get_type() == "STATUSTEXT" and m.text.startswith("START REFUSED"))
-        rest = receive_until(ground, lambda m: m.get_type() == "STATUSTEXT" and m.id == first.id and m.chunk_seq == 1)
+        first = receive_until(
+            ground, lambda m: m.get_type() == "STATUSTEXT" and m.text.startswith("START REFUSED")
+        )
+        rest = receive_until(
+            ground, lambda m: m.get_type() == "STATUSTEXT" and m.id == first.id and m.chunk_seq == 1
+        )
         assert "control characters" in first.text + rest.text  # long lines arrive as linked chunks
         assert link.commands() == []
 
 
-@pytest.mark.parametrize("component", [100, 191])  # the camera identity QGroundControl uses, and the companion's
+@pytest.mark.parametrize(
+    "component", [100, 191]
+)  # the camera identity QGroundControl uses, and the companion's
 def test_camera_tracking_protocol(component: int) -> None:
     def command(cmd: int, *params: float):  # type: ignore[no-untyped-def]
         p = list(params) + [0.0] * (7 - len(params))
@@ -118,7 +128,9 @@ def test_camera_tracking_protocol(component: int) -> None:
         return ack.result
 
     with autopilot("ardupilot") as sim, vehicle_link(sim) as link, MainLoop(link), gcs(sim) as ground:
-        camera_hb = receive_until(ground, lambda m: m.get_type() == "HEARTBEAT" and m.get_srcComponent() == 100, 3.0)
+        camera_hb = receive_until(
+            ground, lambda m: m.get_type() == "HEARTBEAT" and m.get_srcComponent() == 100, 3.0
+        )
         assert camera_hb is not None and camera_hb.type == 30  # MAV_TYPE_CAMERA: QGC finds it among 100-105
         assert command(512, 259) == 0  # REQUEST_MESSAGE(CAMERA_INFORMATION)
         info = receive_until(ground, lambda m: m.get_type() == "CAMERA_INFORMATION")
@@ -141,10 +153,17 @@ def test_camera_tracking_protocol(component: int) -> None:
         status = receive_until(ground, lambda m: m.get_type() == "CAMERA_TRACKING_IMAGE_STATUS")
         assert status is not None and status.get_srcComponent() == 100
         assert status.tracking_status == 1 and status.tracking_mode == 2
-        assert (status.rec_top_x, status.rec_top_y, status.rec_bottom_x, status.rec_bottom_y) == pytest.approx((0.5, 0.25, 0.6, 0.5))
+        assert (
+            status.rec_top_x,
+            status.rec_top_y,
+            status.rec_bottom_x,
+            status.rec_bottom_y,
+        ) == pytest.approx((0.5, 0.25, 0.6, 0.5))
         assert status.point_x == pytest.approx(0.55)
         link.report_tracking(None, (640, 480))
-        idle = receive_until(ground, lambda m: m.get_type() == "CAMERA_TRACKING_IMAGE_STATUS" and m.tracking_status == 0)
+        idle = receive_until(
+            ground, lambda m: m.get_type() == "CAMERA_TRACKING_IMAGE_STATUS" and m.tracking_status == 0
+        )
         assert idle is not None
 
 
@@ -156,12 +175,20 @@ def test_status_values_and_status_request() -> None:
         with pytest.raises(ValueError):
             link.send_value("much_too_long_name", 1.0)
         link.send_status("CANDIDATE 2: yes, gray shirt, lying on the ground next to a bicycle; confirm?")
-        parts = [receive_until(ground, lambda m: m.get_type() == "STATUSTEXT" and m.get_srcComponent() == 191) for _ in range(2)]
+        parts = [
+            receive_until(ground, lambda m: m.get_type() == "STATUSTEXT" and m.get_srcComponent() == 191)
+            for _ in range(2)
+        ]
         assert parts[0].chunk_seq == 0 and parts[1].chunk_seq == 1 and parts[0].id == parts[1].id != 0
         assert (parts[0].text + parts[1].text).endswith("confirm?")
-        ground.send(lambda m: m.command_long_send(1, 191, 31014, 0, 0, 0, 0, 0, 0, 0, 0))  # USER_5: repeat status
+        ground.send(
+            lambda m: m.command_long_send(1, 191, 31014, 0, 0, 0, 0, 0, 0, 0, 0)
+        )  # USER_5: repeat status
         assert receive_until(ground, _is_ack(31014)).result == 0
-        assert receive_until(ground, lambda m: m.get_type() == "STATUSTEXT" and m.text.startswith("CANDIDATE 2")) is not None
+        assert (
+            receive_until(ground, lambda m: m.get_type() == "STATUSTEXT" and m.text.startswith("CANDIDATE 2"))
+            is not None
+        )
 
 
 def test_well_formed_but_nonsensical_commands_are_denied_not_crashing() -> None:

@@ -41,8 +41,15 @@ def test_connection_strings() -> None:
     # pymavlink's / MAVProxy's serial form: the device, then ",BAUD"
     assert parse_connection("/dev/ttyAMA0,921600") == parse_connection("serial:/dev/ttyAMA0:921600")
     assert parse_connection("/dev/ttyUSB0").baud == 115200
-    for bad in ("", "udp:1.2.3.4", "udpin:0.0.0.0:99999", "serial:/dev/ttyUSB0", "tcp::5760", "bogus:x:1",
-                "/dev/ttyUSB0,fast"):
+    for bad in (
+        "",
+        "udp:1.2.3.4",
+        "udpin:0.0.0.0:99999",
+        "serial:/dev/ttyUSB0",
+        "tcp::5760",
+        "bogus:x:1",
+        "/dev/ttyUSB0,fast",
+    ):
         with pytest.raises(ValueError, match="MAVLink connection"):
             parse_connection(bad)
 
@@ -76,7 +83,10 @@ def test_importing_the_link_sets_no_environment_variable_or_dialect() -> None:
 def test_mode_tables_match_the_autopilots_encodings() -> None:
     assert detect_autopilot(3) is AutopilotKind.ARDUPILOT and detect_autopilot(12) is AutopilotKind.PX4
     assert detect_autopilot(8) is None
-    assert mode_name(AutopilotKind.ARDUPILOT, 4) == "GUIDED" and mode_name(AutopilotKind.ARDUPILOT, 17) == "BRAKE"
+    assert (
+        mode_name(AutopilotKind.ARDUPILOT, 4) == "GUIDED"
+        and mode_name(AutopilotKind.ARDUPILOT, 17) == "BRAKE"
+    )
     assert mode_name(AutopilotKind.PX4, (6 << 16)) == "OFFBOARD"
     assert mode_name(AutopilotKind.PX4, (4 << 16) | (3 << 24)) == "HOLD"
     assert mode_name(AutopilotKind.PX4, (4 << 16) | (5 << 24)) == "RTL"
@@ -87,7 +97,10 @@ def test_mode_tables_match_the_autopilots_encodings() -> None:
     with pytest.raises(ValueError):
         mode_for_action(AutopilotKind.ARDUPILOT, "arm")
     # pymavlink's tables: every Copter mode (FOLLOW, ZIGZAG...), and Plane/Rover numbers by vehicle type
-    assert mode_name(AutopilotKind.ARDUPILOT, 23) == "FOLLOW" and mode_name(AutopilotKind.ARDUPILOT, 24) == "ZIGZAG"
+    assert (
+        mode_name(AutopilotKind.ARDUPILOT, 23) == "FOLLOW"
+        and mode_name(AutopilotKind.ARDUPILOT, 24) == "ZIGZAG"
+    )
     assert mode_name(AutopilotKind.ARDUPILOT, 15, vehicle_type=1) == "GUIDED"  # MAV_TYPE_FIXED_WING
     assert mode_name(AutopilotKind.ARDUPILOT, 4, vehicle_type=10) == "HOLD"  # MAV_TYPE_GROUND_ROVER
     assert set_mode_params(AutopilotKind.ARDUPILOT, "GUIDED", vehicle_type=10).custom_mode == 15
@@ -98,7 +111,13 @@ def test_mode_tables_match_the_autopilots_encodings() -> None:
 
 def test_stream_requests_cover_every_decoded_message() -> None:
     ids = {msg_id for msg_id, _ in stream_intervals_us(10.0)}
-    assert ids == {0, 1, 30, 32, 33}  # HEARTBEAT, SYS_STATUS, ATTITUDE, LOCAL_POSITION_NED, GLOBAL_POSITION_INT
+    assert ids == {
+        0,
+        1,
+        30,
+        32,
+        33,
+    }  # HEARTBEAT, SYS_STATUS, ATTITUDE, LOCAL_POSITION_NED, GLOBAL_POSITION_INT
     assert dict(stream_intervals_us(10.0))[30] == 100_000
 
 
@@ -109,7 +128,9 @@ def test_telemetry_is_decoded_from_the_autopilot(personality: str) -> None:
         assert wait_for(lambda: abs(link.telemetry().yaw - math.radians(30)) < 1e-3, 3.0)
         t = link.telemetry()
         assert t.height_agl == pytest.approx(20.0, abs=0.01) and t.armed
-        assert t.lat_deg == pytest.approx(47.397742, abs=1e-6) and t.lon_deg == pytest.approx(8.545594, abs=1e-6)
+        assert t.lat_deg == pytest.approx(47.397742, abs=1e-6) and t.lon_deg == pytest.approx(
+            8.545594, abs=1e-6
+        )
         assert t.mode == ("GUIDED" if personality == "ardupilot" else "POSCTL")
         assert t.offboard_active is (personality == "ardupilot")
 
@@ -150,18 +171,30 @@ def test_signing_refuses_forged_and_unsigned_commands() -> None:
         # forged: signed with the wrong key
         with gcs(sim, signing_key=bytes(32 * [7])) as forger:
             forger.send(lambda m: m.command_long_send(1, 191, CMD_CONFIRM, 0, 0, 0, 0, 0, 0, 0, 0))
-            assert receive_until(forger, lambda m: m.get_type() == "COMMAND_ACK" and m.command == CMD_CONFIRM, 1.5) is None
+            assert (
+                receive_until(
+                    forger, lambda m: m.get_type() == "COMMAND_ACK" and m.command == CMD_CONFIRM, 1.5
+                )
+                is None
+            )
         # unsigned
         with gcs(sim, system=254) as plain:
             plain.send(lambda m: m.command_long_send(1, 191, CMD_CONFIRM, 0, 0, 0, 0, 0, 0, 0, 0))
-            assert receive_until(plain, lambda m: m.get_type() == "COMMAND_ACK" and m.command == CMD_CONFIRM, 1.5) is None
+            assert (
+                receive_until(
+                    plain, lambda m: m.get_type() == "COMMAND_ACK" and m.command == CMD_CONFIRM, 1.5
+                )
+                is None
+            )
         assert link.commands() == []
         assert link.signing.refused.count("COMMAND_LONG") >= 2
         assert any(e.reason == "signing" and e.action == "refused" for e in link.safety_events())
         # the right key is accepted, and the reply is signed
         with gcs(sim, signing_key=key, system=253) as ground:
             ground.send(lambda m: m.command_long_send(1, 191, CMD_CONFIRM, 0, 2, 0, 0, 0, 0, 0, 0))
-            ack = receive_until(ground, lambda m: m.get_type() == "COMMAND_ACK" and m.command == CMD_CONFIRM, 3.0)
+            ack = receive_until(
+                ground, lambda m: m.get_type() == "COMMAND_ACK" and m.command == CMD_CONFIRM, 3.0
+            )
             assert ack is not None and ack.result == 0 and ack._signed
         assert link.commands() == [ConfirmCandidate("2")]
 
@@ -206,7 +239,9 @@ def test_serial_link_over_a_pseudo_terminal(form: str) -> None:
         assert link.autopilot_kind is AutopilotKind.PX4
         kinds = {m.get_type() for m in received}
         assert {"HEARTBEAT", "COMMAND_LONG"} <= kinds  # ours (type 18) and SET_MESSAGE_INTERVAL requests
-        assert any(m.get_type() == "HEARTBEAT" and m.type == 18 and m.get_srcComponent() == 191 for m in received)
+        assert any(
+            m.get_type() == "HEARTBEAT" and m.type == 18 and m.get_srcComponent() == 191 for m in received
+        )
     finally:
         link.close()
         os.close(master)
@@ -218,7 +253,9 @@ def test_tcp_link_to_the_autopilot() -> None:
 
     sim = SimulatedAutopilot(AutopilotOptions(personality="px4"), {"companion": "tcpin:127.0.0.1:0"})
     sim.start()
-    link = VehicleLink(MavlinkConfig(connection=f"tcp:127.0.0.1:{sim.link_port('companion')}"), SafetyConfig())
+    link = VehicleLink(
+        MavlinkConfig(connection=f"tcp:127.0.0.1:{sim.link_port('companion')}"), SafetyConfig()
+    )
     try:
         link.start()
         with MainLoop(link):

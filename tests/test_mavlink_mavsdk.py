@@ -37,7 +37,9 @@ def test_mavsdk_offboard_is_stopped_when_the_main_loop_stalls() -> None:
             # mavsdk_server is the vehicle's onboard component: its ground-station HEARTBEAT (component 190)
             # never reaches the autopilot; only the companion's own identities do
             assert {c for s, c in sim._links["companion"].seen if s == 1} <= {191, 100}
-            assert link._relay is not None and link._relay.heartbeats_dropped > 0 and link._relay.forwarded > 0
+            assert (
+                link._relay is not None and link._relay.heartbeats_dropped > 0 and link._relay.forwarded > 0
+            )
             loop.paused.set()  # hang: MAVSDK alone would keep re-sending 1.5 m/s at 20 Hz
             assert wait_for(lambda: sim.mode == "HOLD", 3.0)
             held_at = next(t for t, mode, _ in sim.mode_history if mode == "HOLD")

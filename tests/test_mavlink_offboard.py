@@ -55,13 +55,19 @@ def test_setpoint_rate_within_20_percent_of_configured() -> None:
         received = [s for s in sim.setpoints if start <= s.time < end]
         rate = len(received) / (end - start)
         gaps = sorted(b.time - a.time for a, b in zip(received, received[1:], strict=False))
-        print(f"\nsetpoint rate {rate:.2f} Hz (configured 15), gap median {gaps[len(gaps) // 2] * 1000:.1f} ms, max {gaps[-1] * 1000:.1f} ms")
+        print(
+            f"\nsetpoint rate {rate:.2f} Hz (configured 15), gap median {gaps[len(gaps) // 2] * 1000:.1f} ms, max {gaps[-1] * 1000:.1f} ms"
+        )
         assert 12.0 <= rate <= 18.0, f"setpoint rate {rate:.1f} Hz, configured 15 Hz"
         assert all(abs(s.yaw_rate - 0.1) < 1e-6 for s in received)
 
 
 def test_limits_are_applied_before_sending() -> None:
-    with autopilot("ardupilot") as sim, vehicle_link(sim, safety={"max_speed_m_s": 2.0}) as link, MainLoop(link):
+    with (
+        autopilot("ardupilot") as sim,
+        vehicle_link(sim, safety={"max_speed_m_s": 2.0}) as link,
+        MainLoop(link),
+    ):
         link.request_offboard()
         link.set_velocity(Setpoint(6.0, 8.0, 2.0, 3.0))  # 10 m/s, descending, spinning fast
         assert wait_for(lambda: len(sim.setpoints) >= 3)
@@ -91,7 +97,9 @@ def test_mode_change_by_gcs_stops_setpoints_within_200_ms(
         late = [s for s in sim.setpoints if s.time > changed_at + 0.2]
         assert late == [], f"{len(late)} setpoints more than 200 ms after the mode change"
         last = max((s.time for s in sim.setpoints if s.time > changed_at), default=changed_at)
-        print(f"\n{personality}: last setpoint {(last - changed_at) * 1000:.0f} ms after the mode change to {theirs}")
+        print(
+            f"\n{personality}: last setpoint {(last - changed_at) * 1000:.0f} ms after the mode change to {theirs}"
+        )
         events = link.safety_events()
         assert any(e.reason == "mode_change" and f"{ours} -> {theirs}" in e.detail for e in events), events
         # a takeover is a flag, not a wording: the main loop turns exactly that into PilotTakeover(theirs)
@@ -99,7 +107,9 @@ def test_mode_change_by_gcs_stops_setpoints_within_200_ms(
         assert [e.mode for e in takeovers] == [theirs]
         assert [behavior_event(e) for e in takeovers] == [PilotTakeover(takeovers[0].time_s, theirs)]
         # the GCS is told why, in words
-        text = receive_until(ground, lambda m: m.get_type() == "STATUSTEXT" and "OFFBOARD ENDED" in m.text, 3.0)
+        text = receive_until(
+            ground, lambda m: m.get_type() == "STATUSTEXT" and "OFFBOARD ENDED" in m.text, 3.0
+        )
         assert text is not None
         # and the companion does not take the vehicle back on its own
         set_mode_from_gcs(ground, *back)
@@ -114,7 +124,9 @@ def test_companion_waits_for_the_pilot_when_engagement_not_allowed() -> None:
         link.enable_offboard()
         link.set_velocity(Setpoint(1.0, 0.0, 0.0, 0.0))
         time.sleep(1.0)
-        assert sim.mode == "LOITER" and sim.setpoints == []  # never selects GUIDED itself, never streams outside it
+        assert (
+            sim.mode == "LOITER" and sim.setpoints == []
+        )  # never selects GUIDED itself, never streams outside it
         assert sim.set_mode("GUIDED", "pilot")
         assert wait_for(lambda: len(sim.setpoints) >= 3, 3.0)
         assert all(s.mode == "GUIDED" for s in sim.setpoints)
@@ -147,7 +159,9 @@ def test_hold_sends_explicit_zero_then_configured_brake() -> None:
         assert zero, "no explicit zero-velocity setpoint before the hold"
         assert wait_for(lambda: abs(sim.snapshot().vn) < 0.05, 3.0)
         events = link.safety_events()
-        assert any(e.reason == "mode_change" and "(requested)" in e.detail for e in events)  # ours, not a takeover
+        assert any(
+            e.reason == "mode_change" and "(requested)" in e.detail for e in events
+        )  # ours, not a takeover
         assert not any(e.by_other_party for e in events)
         # resuming: the main loop commands again and, engagement allowed, GUIDED is requested again
         link.set_velocity(Setpoint(1.0, 0.0, 0.0, 0.0))
@@ -184,4 +198,6 @@ def test_release_stops_streaming_after_an_explicit_zero() -> None:
         assert after and after[-1].vx == 0.0  # the explicit stop is the last thing the autopilot heard
         assert not [s for s in sim.setpoints if s.time > released + 0.2]
         assert wait_for(lambda: abs(sim.snapshot().vn) < 0.05, 3.0)  # stopped now, not after GUID_TIMEOUT
-        assert sim.mode == "LOITER"  # let go: the hold mode (LOITER for ardupilot_hold = guided_zero), then silence
+        assert (
+            sim.mode == "LOITER"
+        )  # let go: the hold mode (LOITER for ardupilot_hold = guided_zero), then silence

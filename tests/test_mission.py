@@ -72,8 +72,12 @@ def telemetry(t: float, offboard: bool = True) -> Telemetry:
     return Telemetry(t, lat_deg=47.0, lon_deg=8.0, height_agl=HEIGHT, offboard_active=offboard, mode="GUIDED")
 
 
-def candidate(box: Box, cid: str = "c1", verdict: Verdict = Verdict.YES, score: float = 0.9, sig: tuple[float, ...] = ()) -> Detection:
-    return Detection(box, score, verdict=verdict, justification="gray shirt, lying", candidate_id=cid, signature=sig)
+def candidate(
+    box: Box, cid: str = "c1", verdict: Verdict = Verdict.YES, score: float = 0.9, sig: tuple[float, ...] = ()
+) -> Detection:
+    return Detection(
+        box, score, verdict=verdict, justification="gray shirt, lying", candidate_id=cid, signature=sig
+    )
 
 
 def tracked(t: float, box: Box | None, ok: bool = True, reason: str = "") -> TrackResult:
@@ -88,7 +92,9 @@ def kinds(actions: Sequence[Action]) -> list[str]:
     return [type(a).__name__ for a in actions]
 
 
-def run(state: State, events: Sequence[Event], config: MissionConfig = CFG) -> tuple[State, tuple[Action, ...]]:
+def run(
+    state: State, events: Sequence[Event], config: MissionConfig = CFG
+) -> tuple[State, tuple[Action, ...]]:
     actions: tuple[Action, ...] = ()
     for event in events:
         state, actions = step(state, event, config)
@@ -138,10 +144,22 @@ def test_every_state_is_reachable(mode: MissionState) -> None:
 
 # (name, start, event, expected mode, expected action kinds in order)
 TRANSITIONS: list[tuple[str, MissionState, Event, MissionState, list[str]]] = [
-    ("idle start", S.IDLE, cmd(1, StartMission(PROMPT)), S.SEARCHING, ["GcsMessage", "SendSetpoint", "BackendQuery"]),
+    (
+        "idle start",
+        S.IDLE,
+        cmd(1, StartMission(PROMPT)),
+        S.SEARCHING,
+        ["GcsMessage", "SendSetpoint", "BackendQuery"],
+    ),
     ("idle empty prompt", S.IDLE, cmd(1, StartMission("  ")), S.IDLE, ["GcsMessage"]),
     # a GCS track rectangle is followed like a candidate: only the supervisor's confirm allows descent
-    ("idle operator rectangle", S.IDLE, cmd(1, TrackRectangle(FAR)), S.FOLLOWING, ["TrackerInit", "GcsMessage"]),
+    (
+        "idle operator rectangle",
+        S.IDLE,
+        cmd(1, TrackRectangle(FAR)),
+        S.FOLLOWING,
+        ["TrackerInit", "GcsMessage"],
+    ),
     ("idle bad rectangle", S.IDLE, cmd(1, TrackRectangle(Box(0, 0, 0, 5))), S.IDLE, ["GcsMessage"]),
     ("idle tick", S.IDLE, TimerTick(5), S.IDLE, []),
     ("idle tracker result", S.IDLE, tracked(1, FAR), S.IDLE, []),
@@ -149,55 +167,168 @@ TRANSITIONS: list[tuple[str, MissionState, Event, MissionState, list[str]]] = [
     ("idle stop", S.IDLE, cmd(1, StopTracking()), S.IDLE, []),
     ("searching tick early", S.SEARCHING, TimerTick(0.5), S.SEARCHING, ["SendSetpoint"]),
     ("searching tick due", S.SEARCHING, TimerTick(1.2), S.SEARCHING, ["SendSetpoint", "BackendQuery"]),
-    ("searching answer yes", S.SEARCHING, BackendAnswer(1, 1, 30, (candidate(FAR),)), S.ACQUIRING,
-     ["SendSetpoint", "TrackerInit", "GcsMessage"]),
-    ("searching answer no", S.SEARCHING, BackendAnswer(1, 1, 30, (candidate(FAR, verdict=Verdict.NO),)), S.SEARCHING, []),
-    ("searching answer uncertain", S.SEARCHING, BackendAnswer(1, 1, 30, (candidate(FAR, verdict=Verdict.UNCERTAIN),)),
-     S.SEARCHING, []),
+    (
+        "searching answer yes",
+        S.SEARCHING,
+        BackendAnswer(1, 1, 30, (candidate(FAR),)),
+        S.ACQUIRING,
+        ["SendSetpoint", "TrackerInit", "GcsMessage"],
+    ),
+    (
+        "searching answer no",
+        S.SEARCHING,
+        BackendAnswer(1, 1, 30, (candidate(FAR, verdict=Verdict.NO),)),
+        S.SEARCHING,
+        [],
+    ),
+    (
+        "searching answer uncertain",
+        S.SEARCHING,
+        BackendAnswer(1, 1, 30, (candidate(FAR, verdict=Verdict.UNCERTAIN),)),
+        S.SEARCHING,
+        [],
+    ),
     ("searching answer empty", S.SEARCHING, BackendAnswer(1, 1, 30, ()), S.SEARCHING, []),
     ("searching unknown query", S.SEARCHING, BackendAnswer(1, 99, 30, (candidate(FAR),)), S.SEARCHING, []),
     ("searching stop", S.SEARCHING, cmd(1, StopTracking()), S.IDLE, ["ReleaseControl", "GcsMessage"]),
-    ("searching reject unknown id", S.SEARCHING, cmd(1, RejectCandidate("c7")), S.SEARCHING, ["RememberRejection"]),
+    (
+        "searching reject unknown id",
+        S.SEARCHING,
+        cmd(1, RejectCandidate("c7")),
+        S.SEARCHING,
+        ["RememberRejection"],
+    ),
     ("searching reject nothing", S.SEARCHING, cmd(1, RejectCandidate()), S.SEARCHING, ["GcsMessage"]),
     ("acquiring locked", S.ACQUIRING, tracked(1.1, FAR), S.FOLLOWING, ["GcsMessage", "SendSetpoint"]),
     ("acquiring not yet", S.ACQUIRING, tracked(1.5, None, ok=False), S.ACQUIRING, []),
-    ("acquiring timeout", S.ACQUIRING, TimerTick(4.5), S.SEARCHING,
-     ["TrackerStop", "GcsMessage", "SendSetpoint", "BackendQuery"]),
-    ("acquiring stop", S.ACQUIRING, cmd(1.1, StopTracking()), S.IDLE, ["ReleaseControl", "TrackerStop", "GcsMessage"]),
+    (
+        "acquiring timeout",
+        S.ACQUIRING,
+        TimerTick(4.5),
+        S.SEARCHING,
+        ["TrackerStop", "GcsMessage", "SendSetpoint", "BackendQuery"],
+    ),
+    (
+        "acquiring stop",
+        S.ACQUIRING,
+        cmd(1.1, StopTracking()),
+        S.IDLE,
+        ["ReleaseControl", "TrackerStop", "GcsMessage"],
+    ),
     ("following far", S.FOLLOWING, tracked(1.2, FAR), S.FOLLOWING, ["SendSetpoint"]),
-    ("following arrived", S.FOLLOWING, tracked(1.2, AT_STANDOFF), S.AWAITING_SUPERVISOR,
-     ["SendSetpoint", "ReportCandidate", "GcsMessage"]),
-    ("following tracker lost", S.FOLLOWING, tracked(1.2, None, ok=False, reason="score"), S.LOST,
-     ["SendSetpoint", "GcsMessage", "BackendQuery"]),
-    ("following stale frames", S.FOLLOWING, TimerTick(1.7), S.LOST, ["SendSetpoint", "GcsMessage", "BackendQuery"]),
+    (
+        "following arrived",
+        S.FOLLOWING,
+        tracked(1.2, AT_STANDOFF),
+        S.AWAITING_SUPERVISOR,
+        ["SendSetpoint", "ReportCandidate", "GcsMessage"],
+    ),
+    (
+        "following tracker lost",
+        S.FOLLOWING,
+        tracked(1.2, None, ok=False, reason="score"),
+        S.LOST,
+        ["SendSetpoint", "GcsMessage", "BackendQuery"],
+    ),
+    (
+        "following stale frames",
+        S.FOLLOWING,
+        TimerTick(1.7),
+        S.LOST,
+        ["SendSetpoint", "GcsMessage", "BackendQuery"],
+    ),
     ("following fresh tick", S.FOLLOWING, TimerTick(1.3), S.FOLLOWING, []),
-    ("following confirm", S.FOLLOWING, cmd(1.2, ConfirmCandidate()), S.CONFIRMED, ["ReportCandidate", "GcsMessage"]),
-    ("following reject", S.FOLLOWING, cmd(1.2, RejectCandidate("c1")), S.REJECTED,
-     ["SendSetpoint", "TrackerStop", "RememberRejection", "GcsMessage"]),
-    ("awaiting tracking", S.AWAITING_SUPERVISOR, tracked(1.25, AT_STANDOFF), S.AWAITING_SUPERVISOR, ["SendSetpoint"]),
-    ("awaiting confirm", S.AWAITING_SUPERVISOR, cmd(1.3, ConfirmCandidate("c1")), S.CONFIRMED,
-     ["ReportCandidate", "GcsMessage"]),
-    ("awaiting confirm wrong id", S.AWAITING_SUPERVISOR, cmd(1.3, ConfirmCandidate("c9")), S.AWAITING_SUPERVISOR,
-     ["GcsMessage"]),
-    ("awaiting reject", S.AWAITING_SUPERVISOR, cmd(1.3, RejectCandidate()), S.REJECTED,
-     ["SendSetpoint", "TrackerStop", "RememberRejection", "GcsMessage"]),
-    ("awaiting tracker lost", S.AWAITING_SUPERVISOR, tracked(1.3, None, ok=False), S.LOST,
-     ["SendSetpoint", "GcsMessage", "BackendQuery"]),
+    (
+        "following confirm",
+        S.FOLLOWING,
+        cmd(1.2, ConfirmCandidate()),
+        S.CONFIRMED,
+        ["ReportCandidate", "GcsMessage"],
+    ),
+    (
+        "following reject",
+        S.FOLLOWING,
+        cmd(1.2, RejectCandidate("c1")),
+        S.REJECTED,
+        ["SendSetpoint", "TrackerStop", "RememberRejection", "GcsMessage"],
+    ),
+    (
+        "awaiting tracking",
+        S.AWAITING_SUPERVISOR,
+        tracked(1.25, AT_STANDOFF),
+        S.AWAITING_SUPERVISOR,
+        ["SendSetpoint"],
+    ),
+    (
+        "awaiting confirm",
+        S.AWAITING_SUPERVISOR,
+        cmd(1.3, ConfirmCandidate("c1")),
+        S.CONFIRMED,
+        ["ReportCandidate", "GcsMessage"],
+    ),
+    (
+        "awaiting confirm wrong id",
+        S.AWAITING_SUPERVISOR,
+        cmd(1.3, ConfirmCandidate("c9")),
+        S.AWAITING_SUPERVISOR,
+        ["GcsMessage"],
+    ),
+    (
+        "awaiting reject",
+        S.AWAITING_SUPERVISOR,
+        cmd(1.3, RejectCandidate()),
+        S.REJECTED,
+        ["SendSetpoint", "TrackerStop", "RememberRejection", "GcsMessage"],
+    ),
+    (
+        "awaiting tracker lost",
+        S.AWAITING_SUPERVISOR,
+        tracked(1.3, None, ok=False),
+        S.LOST,
+        ["SendSetpoint", "GcsMessage", "BackendQuery"],
+    ),
     ("confirmed tracking", S.CONFIRMED, tracked(1.35, AT_STANDOFF), S.CONFIRMED, ["SendSetpoint"]),
     ("confirmed again", S.CONFIRMED, cmd(1.35, ConfirmCandidate()), S.CONFIRMED, []),
-    ("confirmed tracker lost", S.CONFIRMED, tracked(1.35, None, ok=False), S.LOST,
-     ["SendSetpoint", "GcsMessage", "BackendQuery"]),
-    ("confirmed supervisor changes mind", S.CONFIRMED, cmd(1.35, RejectCandidate()), S.REJECTED,
-     ["SendSetpoint", "TrackerStop", "RememberRejection", "GcsMessage"]),
-    ("rejected tick", S.REJECTED, TimerTick(1.4), S.SEARCHING, ["GcsMessage", "SendSetpoint", "BackendQuery"]),
+    (
+        "confirmed tracker lost",
+        S.CONFIRMED,
+        tracked(1.35, None, ok=False),
+        S.LOST,
+        ["SendSetpoint", "GcsMessage", "BackendQuery"],
+    ),
+    (
+        "confirmed supervisor changes mind",
+        S.CONFIRMED,
+        cmd(1.35, RejectCandidate()),
+        S.REJECTED,
+        ["SendSetpoint", "TrackerStop", "RememberRejection", "GcsMessage"],
+    ),
+    (
+        "rejected tick",
+        S.REJECTED,
+        TimerTick(1.4),
+        S.SEARCHING,
+        ["GcsMessage", "SendSetpoint", "BackendQuery"],
+    ),
     ("rejected tracker result", S.REJECTED, tracked(1.4, FAR), S.REJECTED, []),
     ("lost untrusted", S.LOST, tracked(1.3, None, ok=False), S.LOST, []),
     ("lost recovered", S.LOST, tracked(1.3, FAR), S.FOLLOWING, ["GcsMessage", "SendSetpoint"]),
     ("lost hold", S.LOST, TimerTick(2.25), S.LOST, ["Hold", "BackendQuery"]),
     ("lost confirm", S.LOST, cmd(1.3, ConfirmCandidate()), S.LOST, ["ReportCandidate", "GcsMessage"]),
-    ("lost reject", S.LOST, cmd(1.3, RejectCandidate()), S.REJECTED,
-     ["SendSetpoint", "TrackerStop", "RememberRejection", "GcsMessage"]),
-    ("aborted restart", S.ABORTED, cmd(1, StartMission(PROMPT)), S.SEARCHING, ["GcsMessage", "SendSetpoint", "BackendQuery"]),
+    (
+        "lost reject",
+        S.LOST,
+        cmd(1.3, RejectCandidate()),
+        S.REJECTED,
+        ["SendSetpoint", "TrackerStop", "RememberRejection", "GcsMessage"],
+    ),
+    (
+        "aborted restart",
+        S.ABORTED,
+        cmd(1, StartMission(PROMPT)),
+        S.SEARCHING,
+        ["GcsMessage", "SendSetpoint", "BackendQuery"],
+    ),
     ("aborted tick", S.ABORTED, TimerTick(9), S.ABORTED, []),
     ("aborted tracker result", S.ABORTED, tracked(1, FAR), S.ABORTED, []),
     ("aborted confirm", S.ABORTED, cmd(1, ConfirmCandidate()), S.ABORTED, ["GcsMessage"]),
@@ -205,7 +336,9 @@ TRANSITIONS: list[tuple[str, MissionState, Event, MissionState, list[str]]] = [
 ]
 
 
-@pytest.mark.parametrize(("name", "start", "event", "expected", "expected_kinds"), TRANSITIONS, ids=[t[0] for t in TRANSITIONS])
+@pytest.mark.parametrize(
+    ("name", "start", "event", "expected", "expected_kinds"), TRANSITIONS, ids=[t[0] for t in TRANSITIONS]
+)
 def test_transition_table(
     name: str, start: MissionState, event: Event, expected: MissionState, expected_kinds: list[str]
 ) -> None:
@@ -253,9 +386,15 @@ def test_abort_and_takeover_from_every_state(
         assert actions == ()
         return
     commanding = mode not in (S.IDLE,)
-    expected = ([stop.__name__] if commanding else []) + (
-        ["TrackerStop"] if mode in (S.ACQUIRING, S.FOLLOWING, S.AWAITING_SUPERVISOR, S.CONFIRMED, S.LOST) else []
-    ) + ["GcsMessage"]
+    expected = (
+        ([stop.__name__] if commanding else [])
+        + (
+            ["TrackerStop"]
+            if mode in (S.ACQUIRING, S.FOLLOWING, S.AWAITING_SUPERVISOR, S.CONFIRMED, S.LOST)
+            else []
+        )
+        + ["GcsMessage"]
+    )
     assert kinds(actions) == expected
     assert isinstance(actions[-1], GcsMessage) and actions[-1].severity == "critical"
     # Nothing moves the vehicle afterwards, whatever arrives.
@@ -299,11 +438,16 @@ def test_searching_queries_at_the_configured_rate_and_scans() -> None:
 
 def test_acquiring_prefers_yes_then_uncertain_by_policy() -> None:
     state = reach(S.SEARCHING)
-    answer = BackendAnswer(1.0, 1, 30, (
-        candidate(box_at(30, u=200), "u", Verdict.UNCERTAIN, 0.99),
-        candidate(box_at(30, u=500), "y", Verdict.YES, 0.5),
-        candidate(box_at(30, u=400), "y2", Verdict.YES, 0.7),
-    ))
+    answer = BackendAnswer(
+        1.0,
+        1,
+        30,
+        (
+            candidate(box_at(30, u=200), "u", Verdict.UNCERTAIN, 0.99),
+            candidate(box_at(30, u=500), "y", Verdict.YES, 0.5),
+            candidate(box_at(30, u=400), "y2", Verdict.YES, 0.7),
+        ),
+    )
     new, actions = step(state, answer, CFG)
     init = [a for a in actions if isinstance(a, TrackerInit)][0]
     assert init.candidate_id == "y2" and init.keyframe_id == 30 and not init.reinit
@@ -329,7 +473,9 @@ def test_awaiting_reports_once_then_reverifies_periodically() -> None:
     reports = [a for a in actions if isinstance(a, ReportCandidate)]
     assert len(reports) == 1 and reports[0].status == "awaiting" and reports[0].candidate_id == "c1"
     assert reports[0].justification == "gray shirt, lying"
-    assert reports[0].position is not None and math.isclose(reports[0].position.ground_range_m, CFG.standoff_m, rel_tol=0.01)
+    assert reports[0].position is not None and math.isclose(
+        reports[0].position.ground_range_m, CFG.standoff_m, rel_tol=0.01
+    )
     reverify: list[BackendQuery] = []
     t = 1.2
     while t < 1.2 + 2.5 * CFG.reverify_interval_s:
@@ -338,11 +484,17 @@ def test_awaiting_reports_once_then_reverifies_periodically() -> None:
         assert not any(isinstance(a, ReportCandidate) for a in actions)
         state, actions = step(state, TimerTick(t), CFG)
         reverify += [a for a in actions if isinstance(a, BackendQuery)]
-    assert len(reverify) == 2 and all(q.purpose is QueryPurpose.REVERIFY and q.roi is not None for q in reverify)
+    assert len(reverify) == 2 and all(
+        q.purpose is QueryPurpose.REVERIFY and q.roi is not None for q in reverify
+    )
     answer = BackendAnswer(t, reverify[-1].query_id, 40, (candidate(AT_STANDOFF, "c1-b", Verdict.YES),))
     state, actions = step(state, answer, CFG)
     assert kinds(actions) == ["ReportCandidate"]
-    assert isinstance(actions[0], ReportCandidate) and actions[0].status == "reverified" and actions[0].candidate_id == "c1"
+    assert (
+        isinstance(actions[0], ReportCandidate)
+        and actions[0].status == "reverified"
+        and actions[0].candidate_id == "c1"
+    )
     missing = BackendAnswer(t, reverify[0].query_id, 41, (candidate(box_at(30, u=50), "other"),))
     _, actions = step(state, missing, CFG)
     assert kinds(actions) == ["GcsMessage"]
@@ -377,9 +529,16 @@ def test_lost_redetects_near_last_position_and_reinitialises_by_c_box() -> None:
     assert query.roi.x <= FAR.x and query.roi.x2 >= FAR.x2 and query.roi.w < CAM.width
     near = Box(FAR.x + 6, FAR.y + 3, FAR.w, FAR.h)
     far_away = Box(5, 5, 60, 120)
-    answer = BackendAnswer(1.5, query.query_id, 45, (
-        candidate(far_away, "z"), candidate(near, "n", Verdict.UNCERTAIN), candidate(FAR, "no", Verdict.NO),
-    ))
+    answer = BackendAnswer(
+        1.5,
+        query.query_id,
+        45,
+        (
+            candidate(far_away, "z"),
+            candidate(near, "n", Verdict.UNCERTAIN),
+            candidate(FAR, "no", Verdict.NO),
+        ),
+    )
     state, actions = step(state, answer, CFG)
     assert actions == (TrackerInit(near, 45, "c1", reinit=True),)
     assert state.mode is S.LOST
@@ -472,7 +631,9 @@ def test_rejected_target_is_not_proposed_again_by_position() -> None:
     qid = state.queries[-1][0]
     same_place = BackendAnswer(2.0, qid, 60, (candidate(AT_STANDOFF, "new-id"),))
     assert step(state, same_place, CFG)[0].mode is S.SEARCHING
-    elsewhere = BackendAnswer(2.0, qid, 60, (candidate(AT_STANDOFF, "new-id"), candidate(box_at(30.0, u=100), "p2", score=0.1)))
+    elsewhere = BackendAnswer(
+        2.0, qid, 60, (candidate(AT_STANDOFF, "new-id"), candidate(box_at(30.0, u=100), "p2", score=0.1))
+    )
     new, actions = step(state, elsewhere, CFG)
     assert new.mode is S.ACQUIRING
     assert [a for a in actions if isinstance(a, TrackerInit)][0].candidate_id == "p2"
@@ -534,14 +695,24 @@ def test_config_from_the_companion_sections() -> None:
     from companion.config import CompanionConfig
 
     companion = CompanionConfig()
-    sections = {name: getattr(companion, name).model_dump() for name in ("behavior", "control", "safety", "camera", "backend")}
+    sections = {
+        name: getattr(companion, name).model_dump()
+        for name in ("behavior", "control", "safety", "camera", "backend")
+    }
     config = MissionConfig.from_sections(**sections)
     assert config == MissionConfig()  # the schema's defaults and these defaults agree
-    sections["behavior"] = {**sections["behavior"], "lost_action": "rtl", "accept_uncertain": True, "search_yaw_rate_deg_s": 10.0}
+    sections["behavior"] = {
+        **sections["behavior"],
+        "lost_action": "rtl",
+        "accept_uncertain": True,
+        "search_yaw_rate_deg_s": 10.0,
+    }
     sections["safety"] = {**sections["safety"], "max_yaw_rate_deg_s": 30.0}
     tuned = MissionConfig.from_sections(**sections)
     assert tuned.lost_action is LostAction.RTL and tuned.accept_uncertain
-    assert math.isclose(tuned.search_yaw_rate, math.radians(10.0)) and math.isclose(tuned.limits.max_yaw_rate, math.radians(30.0))
+    assert math.isclose(tuned.search_yaw_rate, math.radians(10.0)) and math.isclose(
+        tuned.limits.max_yaw_rate, math.radians(30.0)
+    )
     with pytest.raises(ValueError, match="standoff_m: expected a finite number"):
         MissionConfig.from_sections(**{**sections, "behavior": {"standoff_m": "far"}})
     with pytest.raises(ValueError, match="'sideways' is not a valid ConfirmAction"):
@@ -587,7 +758,9 @@ def test_operator_target_is_re_found_whatever_the_verdict() -> None:
     assert actions == (TrackerInit(FAR, 50, "operator", reinit=True),)
     # A prompt-verified target is not re-found from a "no".
     lost = reach(S.LOST)
-    _, actions = step(lost, BackendAnswer(1.5, lost.queries[-1][0], 50, (candidate(FAR, "n", Verdict.NO),)), CFG)
+    _, actions = step(
+        lost, BackendAnswer(1.5, lost.queries[-1][0], 50, (candidate(FAR, "n", Verdict.NO),)), CFG
+    )
     assert actions == ()
 
 
@@ -614,7 +787,10 @@ def test_redetect_region_grows_with_time_lost(lost_for_s: float, expected: objec
 
 
 def test_redetect_region_is_monotonic_and_configurable() -> None:
-    widths = [r.w * r.h if (r := redetect_roi(FAR, t / 10, CFG)) is not None else CAM.width * CAM.height for t in range(50)]
+    widths = [
+        r.w * r.h if (r := redetect_roi(FAR, t / 10, CFG)) is not None else CAM.width * CAM.height
+        for t in range(50)
+    ]
     assert widths == sorted(widths) and widths[0] < widths[-1]
     wide = replace(CFG, redetect_roi_scale=5.0, redetect_full_frame_s=10.0)
     assert redetect_roi(FAR, 0.0, wide) == Box.from_center(FAR.cx, FAR.cy, 80.0, 200.0)
@@ -658,11 +834,18 @@ def test_away_from_the_last_box_only_a_yes_refinds_the_target(
 
 
 def test_redetect_settings_come_from_the_behavior_section() -> None:
-    config = MissionConfig.from_sections(behavior={"redetect_roi_scale": 6.0, "redetect_full_frame_s": 8.0},
-                                         control={}, safety={}, camera={}, backend={})
+    config = MissionConfig.from_sections(
+        behavior={"redetect_roi_scale": 6.0, "redetect_full_frame_s": 8.0},
+        control={},
+        safety={},
+        camera={},
+        backend={},
+    )
     assert (config.redetect_roi_scale, config.redetect_full_frame_s) == (6.0, 8.0)
     with pytest.raises(ValueError, match="redetect_roi_scale"):
-        MissionConfig.from_sections(behavior={"redetect_roi_scale": "big"}, control={}, safety={}, camera={}, backend={})
+        MissionConfig.from_sections(
+            behavior={"redetect_roi_scale": "big"}, control={}, safety={}, camera={}, backend={}
+        )
 
 
 # --- "verified" re-initialisation policy: the mission hands answers to the front-end --------------------
@@ -706,12 +889,17 @@ def test_verified_following_checks_the_track_and_judges_the_answer() -> None:
 @pytest.mark.parametrize("mode", [S.FOLLOWING, S.LOST])
 def test_paper_policy_sends_no_track_checks_and_judges_nothing(mode: MissionState) -> None:
     state = reach(mode)
-    _, actions = run(state, [tracked(1.9, FAR if mode is S.FOLLOWING else None, ok=mode is S.FOLLOWING),
-                             TimerTick(2.05)], CFG)
+    _, actions = run(
+        state,
+        [tracked(1.9, FAR if mode is S.FOLLOWING else None, ok=mode is S.FOLLOWING), TimerTick(2.05)],
+        CFG,
+    )
     assert all(q.purpose is not QueryPurpose.TRACK_CHECK for q in actions if isinstance(q, BackendQuery))
     query = state.queries[-1][0] if state.queries else None
     if query is not None:
-        _, actions = step(state, BackendAnswer(1.5, query, 45, (candidate(FAR, "n", Verdict.UNCERTAIN),)), CFG)
+        _, actions = step(
+            state, BackendAnswer(1.5, query, 45, (candidate(FAR, "n", Verdict.UNCERTAIN),)), CFG
+        )
         assert not [a for a in actions if isinstance(a, JudgeCandidates)]
 
 
@@ -720,7 +908,9 @@ def test_verified_judges_nothing_before_a_track_is_locked(mode: MissionState) ->
     state = reach(mode, VERIFIED)
     state, actions = step(state, TimerTick(1.05), VERIFIED)
     for qid, _ in state.queries:
-        _, actions = step(state, BackendAnswer(1.06, qid, 31, (candidate(FAR, "x", Verdict.UNCERTAIN),)), VERIFIED)
+        _, actions = step(
+            state, BackendAnswer(1.06, qid, 31, (candidate(FAR, "x", Verdict.UNCERTAIN),)), VERIFIED
+        )
         assert not [a for a in actions if isinstance(a, JudgeCandidates)]
 
 
@@ -728,7 +918,11 @@ def test_verified_lost_that_gave_up_judges_nothing() -> None:
     config = replace(VERIFIED, lost_action=LostAction.LOITER)
     state = reach(S.LOST, config)
     query = state.queries[-1][0]
-    state, _ = run(state, [TimerTick(1.2 + config.lost_hold_after_s), TimerTick(1.3 + config.lost_action_after_s)], config)
+    state, _ = run(
+        state,
+        [TimerTick(1.2 + config.lost_hold_after_s), TimerTick(1.3 + config.lost_action_after_s)],
+        config,
+    )
     assert state.lost_stage == 2
     _, actions = step(state, BackendAnswer(40.0, query, 45, (candidate(FAR),)), config)
     assert actions == ()

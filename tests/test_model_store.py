@@ -68,7 +68,9 @@ def test_models_list_cli(models_dir: Path, tmp_path: Path) -> None:
     assert ok.returncode == 0, ok.stderr
     for name in ("nano", "vit", "yolox"):
         assert any(
-            line.split()[:3] == [name, "downloadable", "present+verified"] for line in ok.stdout.splitlines() if line.strip()
+            line.split()[:3] == [name, "downloadable", "present+verified"]
+            for line in ok.stdout.splitlines()
+            if line.strip()
         )
     for name in ("dasiamrpn", "goturn"):
         assert any(line.split()[:2] == [name, "user-supplied"] for line in ok.stdout.splitlines()), name
@@ -118,7 +120,9 @@ class _QuietHandler(http.server.SimpleHTTPRequestHandler):
         pass
 
 
-def test_models_download_shows_progress_over_http(models_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_models_download_shows_progress_over_http(
+    models_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     from cloudtrack.model_store import _http_fetch
 
     server = _FileServer(models_dir / "yolox_nano")
@@ -126,7 +130,9 @@ def test_models_download_shows_progress_over_http(models_dir: Path, tmp_path: Pa
         _http_fetch(f"{server.url}/yolox_nano.onnx", tmp_path / "yolox_nano.onnx")
     finally:
         server.close()
-    assert (tmp_path / "yolox_nano.onnx").read_bytes() == (models_dir / "yolox_nano" / "yolox_nano.onnx").read_bytes()
+    assert (tmp_path / "yolox_nano.onnx").read_bytes() == (
+        models_dir / "yolox_nano" / "yolox_nano.onnx"
+    ).read_bytes()
     err = capsys.readouterr().err
     assert "yolox_nano.onnx" in err and "100%" in err  # tqdm's bar, sized from Content-Length
 
@@ -140,10 +146,16 @@ def test_models_download_offline_says_so_in_a_sentence(
 
     # .invalid never resolves (RFC 2606): the same failure a machine without network gives.
     spec = REGISTRY["vit"]
-    offline = replace(spec, files=tuple(replace(mf, url="https://weights.cloudtrack.invalid/vit.onnx") for mf in spec.files))
+    offline = replace(
+        spec, files=tuple(replace(mf, url="https://weights.cloudtrack.invalid/vit.onnx") for mf in spec.files)
+    )
     monkeypatch.setitem(REGISTRY, "vit", offline)  # type: ignore[arg-type]
     assert main(["models", "download", "vit", "--model-dir", str(tmp_path)]) == 1
     err = capsys.readouterr().err
-    assert "cannot reach weights.cloudtrack.invalid" in err and "offline" in err and "name resolution failed" in err
+    assert (
+        "cannot reach weights.cloudtrack.invalid" in err
+        and "offline" in err
+        and "name resolution failed" in err
+    )
     assert "NameResolutionError" not in err and "Traceback" not in err
     assert not any(tmp_path.rglob("*.part"))

@@ -7,7 +7,18 @@ from importlib import metadata
 
 from packaging.requirements import Requirement
 
-HEAVY = {"fastapi", "starlette", "uvicorn", "torch", "transformers", "flask", "django", "tensorflow", "grpcio", "mavsdk"}
+HEAVY = {
+    "fastapi",
+    "starlette",
+    "uvicorn",
+    "torch",
+    "transformers",
+    "flask",
+    "django",
+    "tensorflow",
+    "grpcio",
+    "mavsdk",
+}
 
 
 def _canonical(name: str) -> str:

@@ -54,7 +54,9 @@ def _first(crops: list[LabelledCrop], upper: set[str], sequence: str = GROUP) ->
     return [c for c in crops if c.sequence == sequence and set(c.upper) == upper]
 
 
-def test_verifier_crop_set_is_labelled_and_points_into_real_frames(crops: list[LabelledCrop], sequences_dir: Path) -> None:
+def test_verifier_crop_set_is_labelled_and_points_into_real_frames(
+    crops: list[LabelledCrop], sequences_dir: Path
+) -> None:
     people = [c for c in crops if c.posture]
     assert len(people) >= 200
     assert {c.sequence for c in people} >= {GROUP, "uav123_person12_1", "otb_Crossing", "dtb70_Surfing06"}
@@ -68,11 +70,16 @@ def test_verifier_crop_set_is_labelled_and_points_into_real_frames(crops: list[L
         assert 0 <= x + w / 2 <= width and 0 <= y + h / 2 <= height
 
 
-def test_verifier_pose_model_finds_the_body_on_a_real_aerial_crop(crops: list[LabelledCrop], sequences_dir: Path) -> None:
+def test_verifier_pose_model_finds_the_body_on_a_real_aerial_crop(
+    crops: list[LabelledCrop], sequences_dir: Path
+) -> None:
     image, box = _margin(sequences_dir, _first(crops, {"gray", "blue", "white"})[0])
     pose = PersonModel().estimate(image, box)
     assert pose.presence > 0.9 and pose.rotation == 0
-    shoulders, hips = pose.keypoints[[L_SHOULDER, R_SHOULDER], 1].mean(), pose.keypoints[[L_HIP, R_HIP], 1].mean()
+    shoulders, hips = (
+        pose.keypoints[[L_SHOULDER, R_SHOULDER], 1].mean(),
+        pose.keypoints[[L_HIP, R_HIP], 1].mean(),
+    )
     assert box[1] < shoulders < hips < box[1] + box[3]  # head up, inside the box
     x, y, w, h = (int(v) for v in box)
     inside = pose.mask[y : y + h, x : x + w].mean()
@@ -85,16 +92,25 @@ def test_verifier_group_dev_case_grey_blue_yes_red_and_green_white_not(
     """The first four labelled crops of each of the three men (frames 1-17 and 1-73)."""
     prompt = (sequences_dir / GROUP / "referring.txt").read_text().strip()
     answers = {}
-    for who, upper in (("grey-blue", {"gray", "blue", "white"}), ("red", {"red"}), ("green-white", {"green", "white"})):
-        answers[who] = [verifier.verify(*_margin(sequences_dir, c), prompt, "person", 5) for c in _first(crops, upper)[:4]]
-    assert [a.verdict for a in answers["grey-blue"]].count(YES) >= 3, [a.justification for a in answers["grey-blue"]]
+    for who, upper in (
+        ("grey-blue", {"gray", "blue", "white"}),
+        ("red", {"red"}),
+        ("green-white", {"green", "white"}),
+    ):
+        answers[who] = [
+            verifier.verify(*_margin(sequences_dir, c), prompt, "person", 5) for c in _first(crops, upper)[:4]
+        ]
+    assert [a.verdict for a in answers["grey-blue"]].count(YES) >= 3, [
+        a.justification for a in answers["grey-blue"]
+    ]
     assert all(a.verdict is NO for a in answers["red"] + answers["green-white"])
     assert not any(re.search(r"\bred \d", a.justification) for a in answers["red"])  # the other men's shirts
     assert all("blue-gray" in a.justification and "dark" in a.justification for a in answers["grey-blue"])
 
 
-def test_verifier_is_deterministic_and_names_what_it_saw(crops: list[LabelledCrop], sequences_dir: Path,
-                                                         verifier: PersonVerifier) -> None:
+def test_verifier_is_deterministic_and_names_what_it_saw(
+    crops: list[LabelledCrop], sequences_dir: Path, verifier: PersonVerifier
+) -> None:
     image, box = _margin(sequences_dir, _first(crops, {"red"})[0])
     first = verifier.verify(image, box, "a man in a red shirt", "person")
     again = PersonVerifier().verify(image.copy(), box, "a man in a red shirt", "person")
@@ -102,8 +118,9 @@ def test_verifier_is_deterministic_and_names_what_it_saw(crops: list[LabelledCro
     assert verifier.verify(image, box, "a man in a green shirt", "person").verdict is NO
 
 
-def test_verifier_says_uncertain_when_it_cannot_see_the_person(crops: list[LabelledCrop], sequences_dir: Path,
-                                                               verifier: PersonVerifier) -> None:
+def test_verifier_says_uncertain_when_it_cannot_see_the_person(
+    crops: list[LabelledCrop], sequences_dir: Path, verifier: PersonVerifier
+) -> None:
     image, box = _margin(sequences_dir, _first(crops, {"red"})[0])
     tiny = cv2.resize(image, None, fx=0.1, fy=0.1, interpolation=cv2.INTER_AREA)  # a 12 px person
     answer = verifier.verify(tiny, tuple(v * 0.1 for v in box), "a man in a green shirt", "person")  # type: ignore[arg-type]
@@ -114,8 +131,9 @@ def test_verifier_says_uncertain_when_it_cannot_see_the_person(crops: list[Label
     assert verifier.verify(image, box, "the injured man", "person").verdict is UNC  # nothing visible named
 
 
-def test_verifier_posture_from_keypoints_on_a_turned_crop(crops: list[LabelledCrop], sequences_dir: Path,
-                                                          verifier: PersonVerifier) -> None:
+def test_verifier_posture_from_keypoints_on_a_turned_crop(
+    crops: list[LabelledCrop], sequences_dir: Path, verifier: PersonVerifier
+) -> None:
     image, box = _margin(sequences_dir, _first(crops, {"green", "white"}, "uav123_person12_1")[0])
     assert verifier.verify(image, box, "a man walking", "person").verdict is YES
     assert verifier.verify(image, box, "a man lying on the ground", "person").verdict is NO
@@ -143,22 +161,27 @@ def test_verifier_colour_names_in_lab() -> None:
     teal = srgb_to_lab(np.full((10, 3), (110, 120, 100), np.uint8))  # a green stripe gone grey in the haze
     assert namer.shares(teal)["gray"] == 1.0
     assert ColourNamer(calibrate([(("green",), teal)])).shares(teal)["green"] == 1.0
-    assert calibrate([(("red",), srgb_to_lab(np.full((10, 3), (128, 128, 128), np.uint8)))]) == {}  # keeps its hue
+    assert (
+        calibrate([(("red",), srgb_to_lab(np.full((10, 3), (128, 128, 128), np.uint8)))]) == {}
+    )  # keeps its hue
     # A striped garment gives each of its colours the pixels nearest to it.
     stripes = np.concatenate([teal, srgb_to_lab(np.full((10, 3), (235, 235, 235), np.uint8))])
     table = calibrate([(("green", "white"), stripes)])
     assert set(table) == {"green", "white"} and table["white"][0][0] > 90 > 60 > table["green"][0][0]
 
 
-def test_verifier_objects_other_than_people_use_the_box(sequences_dir: Path, verifier: PersonVerifier) -> None:
+def test_verifier_objects_other_than_people_use_the_box(
+    sequences_dir: Path, verifier: PersonVerifier
+) -> None:
     crop = LabelledCrop("vot2015_bag", 1, (292, 125, 150, 140), "target")
     image, box = _margin(sequences_dir, crop)
     assert verifier.verify(image, box, "the white plastic bag", "bag").verdict is YES
     assert verifier.verify(image, box, "a red bag", "bag").verdict is NO
 
 
-def test_verifier_factory_local_is_the_person_model_and_hsv_stays(tmp_path: Path,
-                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+def test_verifier_factory_local_is_the_person_model_and_hsv_stays(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     local = build_verifier(VerifierConfig(kind="local"), VlmConfig())
     assert isinstance(local, PersonVerifier)
     assert isinstance(build_verifier(VerifierConfig(kind="local-hsv"), VlmConfig()), AttributeVerifier)
@@ -168,7 +191,9 @@ def test_verifier_factory_local_is_the_person_model_and_hsv_stays(tmp_path: Path
 
 
 @pytest.mark.slow
-def test_verifier_table_new_ahead_of_hsv_on_every_attribute(crops: list[LabelledCrop], sequences_dir: Path) -> None:
+def test_verifier_table_new_ahead_of_hsv_on_every_attribute(
+    crops: list[LabelledCrop], sequences_dir: Path
+) -> None:
     result = evaluate(crops, sequences_dir)
     print(report(result))
     attributes = result["attributes"]

@@ -51,7 +51,9 @@ def fly_scripted_mission(root: Path, mission_id: str = "m-1") -> list[Path]:
     feed(TimerTick(0.05))  # before the mission: not recorded, but part of the state replay starts from
     actions = feed(GcsCommand(0.1, StartMission("a man in a red shirt", mission_id=mission_id)))
     query = next(a for a in actions if isinstance(a, BackendQuery))
-    found = Detection(Box(300, 200, 40, 100), 0.9, verdict=Verdict.YES, justification="red shirt", candidate_id="c1")
+    found = Detection(
+        Box(300, 200, 40, 100), 0.9, verdict=Verdict.YES, justification="red shirt", candidate_id="c1"
+    )
     feed(BackendAnswer(1.0, query.query_id, 5, (found,)))
     observer.on_health(1.0, True, ())
     for i in range(30):
@@ -100,7 +102,9 @@ def test_recorded_mission_replays_with_no_decision_differences(tmp_path: Path) -
 def test_a_different_configuration_shows_which_decisions_change(tmp_path: Path) -> None:
     (folder,) = fly_scripted_mission(tmp_path)
     out = tmp_path / "replay.json"
-    result = run_replay(str(folder), "--set", "behavior.standoff_m=30", "--json", str(out), "--show", "2", "--no-progress")
+    result = run_replay(
+        str(folder), "--set", "behavior.standoff_m=30", "--json", str(out), "--show", "2", "--no-progress"
+    )
     assert result.returncode == 1, result.stderr
     assert "steps differ with the given configuration" in result.stdout
     assert "SendSetpoint" in result.stdout and "more (see --json)" in result.stdout
@@ -173,13 +177,17 @@ def test_each_mission_gets_its_own_folder(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-def test_a_recorded_sitl_mission_replays_with_no_decision_differences(tmp_path: Path, models_dir: Path) -> None:
+def test_a_recorded_sitl_mission_replays_with_no_decision_differences(
+    tmp_path: Path, models_dir: Path
+) -> None:
     """The closed-loop SITL scenario (real companion process, mock autopilot, rendered camera, real
     back-end, scripted supervisor) records the flight; replaying it makes every decision the same way."""
     from sitl.scenario_runner import RunOptions, run_scenario
     from sitl.scenarios import SCENARIOS
 
-    run_scenario(SCENARIOS["reject"], RunOptions(work_dir=tmp_path, model_dir=models_dir), progress=lambda _: None)
+    run_scenario(
+        SCENARIOS["reject"], RunOptions(work_dir=tmp_path, model_dir=models_dir), progress=lambda _: None
+    )
     (folder,) = list((tmp_path / "records").iterdir())
     entries = read_events(folder)
     assert any(e["kind"] == "supervisor_decision" for e in entries), "the supervisor never decided"

@@ -13,7 +13,9 @@ values = st.floats(allow_nan=True, allow_infinity=True, width=64)
 
 
 @given(values, values, values, values, st.one_of(st.none(), st.floats(-10, 200)), st.booleans())
-def test_output_always_within_limits(f: float, r: float, d: float, y: float, h: float | None, descent: bool) -> None:
+def test_output_always_within_limits(
+    f: float, r: float, d: float, y: float, h: float | None, descent: bool
+) -> None:
     out = apply_limits(Setpoint(f, r, d, y), LIMITS, h, descent)
     assert out.is_finite()
     assert out.horizontal_speed <= LIMITS.max_speed + 1e-9

@@ -42,7 +42,9 @@ def test_watchdog_trips_once_clears_once_and_disarms() -> None:
     clock = FakeClock()
     trips: list[str] = []
     clears: list[str] = []
-    dog = SafetyWatchdog(SafetyConfig(target_lost_s=1.0), lambda r, t: trips.append(r), lambda r, t: clears.append(r), clock)
+    dog = SafetyWatchdog(
+        SafetyConfig(target_lost_s=1.0), lambda r, t: trips.append(r), lambda r, t: clears.append(r), clock
+    )
     dog.seen(TARGET_LOST)
     clock.now += 0.9
     dog.check()
@@ -119,17 +121,25 @@ def test_stalled_main_loop_stops_the_vehicle_and_its_heartbeat() -> None:
         # explicit stop: zero-velocity setpoints reach the autopilot, not silence
         assert wait_for(lambda: sim.setpoints[-1].vx == 0.0 and sim.setpoints[-1].time > event.time_s, 2.0)
         zero_at = next(s.time for s in sim.setpoints if s.time >= event.time_s and s.vx == 0.0)
-        print(f"\nstalled loop (limit 0.3 s): tripped {event.time_s - stalled_at:.3f} s after the loop stopped, "
-              f"zero setpoint at the autopilot {zero_at - stalled_at:.3f} s")
+        print(
+            f"\nstalled loop (limit 0.3 s): tripped {event.time_s - stalled_at:.3f} s after the loop stopped, "
+            f"zero setpoint at the autopilot {zero_at - stalled_at:.3f} s"
+        )
         assert wait_for(lambda: abs(sim.snapshot().vn) < 0.05, 3.0)
         assert _companion_heartbeats(ground, 2.0) == 0  # the HEARTBEAT stops with the loop
         loop.paused.clear()
-        assert wait_for(lambda: any(e.reason == LOOP_STALLED and e.action == "cleared" for e in link.safety_events()), 3.0)
+        assert wait_for(
+            lambda: any(e.reason == LOOP_STALLED and e.action == "cleared" for e in link.safety_events()), 3.0
+        )
 
 
 @pytest.mark.slow
 def test_stalled_main_loop_on_px4_switches_to_hold() -> None:
-    with autopilot("px4") as sim, vehicle_link(sim, safety={"loop_stall_s": 0.3}) as link, MainLoop(link) as loop:
+    with (
+        autopilot("px4") as sim,
+        vehicle_link(sim, safety={"loop_stall_s": 0.3}) as link,
+        MainLoop(link) as loop,
+    ):
         _flying(sim, link)
         loop.paused.set()
         assert wait_for(lambda: sim.mode == "HOLD", 3.0)
@@ -148,12 +158,19 @@ def test_autopilot_heartbeat_loss_leads_to_hold() -> None:
         assert wait_for(lambda: sim.mode == "HOLD", 2.0)  # the explicit stop and hold got through
         assert any(s.vx == 0.0 and s.time >= event.time_s for s in sim.setpoints)
         sim.set_link_down("companion", False)
-        assert wait_for(lambda: any(e.reason == HEARTBEAT_LOST and e.action == "cleared" for e in link.safety_events()), 3.0)
+        assert wait_for(
+            lambda: any(e.reason == HEARTBEAT_LOST and e.action == "cleared" for e in link.safety_events()),
+            3.0,
+        )
 
 
 @pytest.mark.slow
 def test_stale_frames_stop_motion_and_recover_when_frames_return() -> None:
-    with autopilot("ardupilot") as sim, vehicle_link(sim, safety={"frame_stale_s": 0.3}) as link, MainLoop(link, frames=True) as loop:
+    with (
+        autopilot("ardupilot") as sim,
+        vehicle_link(sim, safety={"frame_stale_s": 0.3}) as link,
+        MainLoop(link, frames=True) as loop,
+    ):
         _flying(sim, link)
         loop.frames = False  # camera stalls, the loop itself keeps running
         assert _reason_at(link, STALE_FRAMES, 3.0) is not None

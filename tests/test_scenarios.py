@@ -49,8 +49,14 @@ def _follow_checks(m: dict[str, Any]) -> None:
 @pytest.mark.slow
 def test_follow(models_dir: Path, tmp_path: Path) -> None:
     out = tmp_path / "out"
-    results = _run("follow", models_dir, tmp_path, json_out=out / "m.json", plot_out=out / "p.png",
-                   video_out=out / "v.mp4")
+    results = _run(
+        "follow",
+        models_dir,
+        tmp_path,
+        json_out=out / "m.json",
+        plot_out=out / "p.png",
+        video_out=out / "v.mp4",
+    )
     _follow_checks(results["vehicles"]["drone-1"])
     assert (out / "m.json").stat().st_size > 0 and (out / "p.png").stat().st_size > 0
     assert (out / "v.mp4").stat().st_size > 10_000
@@ -184,8 +190,20 @@ def test_flood(models_dir: Path, tmp_path: Path) -> None:
 def test_sim_cli_lists_scenarios_and_has_help(capsys: pytest.CaptureFixture[str]) -> None:
     assert sim_main(["list"]) == 0
     listed = capsys.readouterr().out
-    for name in ("follow", "reject", "occlusion", "takeover", "backend-outage", "link-drop", "follow-px4", "two-vehicles",
-                 "takeover-rc", "abort-flyto", "stall", "flood"):
+    for name in (
+        "follow",
+        "reject",
+        "occlusion",
+        "takeover",
+        "backend-outage",
+        "link-drop",
+        "follow-px4",
+        "two-vehicles",
+        "takeover-rc",
+        "abort-flyto",
+        "stall",
+        "flood",
+    ):
         assert name in listed
     with pytest.raises(SystemExit) as exc:
         sim_main(["run", "--help"])
@@ -205,7 +223,9 @@ def test_sim_cli_lists_scenarios_and_has_help(capsys: pytest.CaptureFixture[str]
         (["tracker.name=nano", "tracker.model_dir=/no/such/models"], "missing"),
     ],
 )
-def test_companion_run_refuses_bad_start_up_with_a_clear_error(settings: list[str], message: str, tmp_path: Path) -> None:
+def test_companion_run_refuses_bad_start_up_with_a_clear_error(
+    settings: list[str], message: str, tmp_path: Path
+) -> None:
     cmd = [sys.executable, "-m", "companion.cli", "run", "--set", "recording.enabled=false"]
     if not any(s.startswith("tracker.") for s in settings):
         cmd += ["--set", "tracker.name=kcf"]
@@ -231,23 +251,36 @@ def test_backend_session_reports_status_and_delivers_supervisor_decisions(tmp_pa
     from companion.cloud.backend_session import BackendSession
     from sitl.simulated_detector import SimulatedPersonDetector
 
-    config = BackendConfig(auth=AuthConfig(tokens={"drone-1": "drone-1-token-0001"}, supervisor_token="supervisor-token-0001"),
-                           sessions=SessionConfig(sqlite_path=":memory:"))
+    config = BackendConfig(
+        auth=AuthConfig(tokens={"drone-1": "drone-1-token-0001"}, supervisor_token="supervisor-token-0001"),
+        sessions=SessionConfig(sqlite_path=":memory:"),
+    )
     with BackgroundServer(create_app(config, detector=SimulatedPersonDetector(lambda fid: None))) as server:
-        session = BackendSession(BackendClient(server.url, "drone-1-token-0001", vehicle_id="drone-1"), period_s=0.05).start()
+        session = BackendSession(
+            BackendClient(server.url, "drone-1-token-0001", vehicle_id="drone-1"), period_s=0.05
+        ).start()
         try:
-            session.update({"state": "AWAITING_SUPERVISOR", "mission_id": "m1", "prompt": "a person in a green shirt"})
+            session.update(
+                {"state": "AWAITING_SUPERVISOR", "mission_id": "m1", "prompt": "a person in a green shirt"}
+            )
             deadline = time.monotonic() + 10
             while session.last_success() is None and time.monotonic() < deadline:
                 time.sleep(0.05)
             assert session.last_success() is not None
             sup = {"Authorization": "Bearer supervisor-token-0001"}
-            status = requests.get(f"{server.url}/v1/vehicles/drone-1/status", headers={"Authorization": "Bearer drone-1-token-0001"},
-                                  timeout=5).json()
+            status = requests.get(
+                f"{server.url}/v1/vehicles/drone-1/status",
+                headers={"Authorization": "Bearer drone-1-token-0001"},
+                timeout=5,
+            ).json()
             assert status["state"] == "AWAITING_SUPERVISOR" and status["mission_id"] == "m1"
             for action in ("confirm", "reject"):
-                r = requests.post(f"{server.url}/v1/vehicles/drone-1/decisions", headers=sup, timeout=5,
-                                  json={"candidate_id": "c7", "action": action})
+                r = requests.post(
+                    f"{server.url}/v1/vehicles/drone-1/decisions",
+                    headers=sup,
+                    timeout=5,
+                    json={"candidate_id": "c7", "action": action},
+                )
                 assert r.status_code == 201, r.text
             commands: list[Any] = []
             while len(commands) < 2 and time.monotonic() < deadline:
@@ -264,16 +297,21 @@ def test_backend_session_reports_status_and_delivers_supervisor_decisions(tmp_pa
             session.close()
 
 
-def test_arducopter_missing_binary_says_where_to_put_it(tmp_path: Path, capsys: pytest.CaptureFixture[str],
-                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+def test_arducopter_missing_binary_says_where_to_put_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
     """`--autopilot arducopter` without the binary: exit 2 and where to put it; never the mock instead."""
     import tempfile
 
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))  # where a run would make its work dir
-    code = sim_main(["run", "follow", "--autopilot", "arducopter", "--arducopter-binary", str(tmp_path / "nope")])
+    code = sim_main(
+        ["run", "follow", "--autopilot", "arducopter", "--arducopter-binary", str(tmp_path / "nope")]
+    )
     err = capsys.readouterr().err
     assert code == 2
-    assert "../shared/sitl/arducopter" in err and "--arducopter-binary" in err and "CLOUDTRACK_ARDUCOPTER" in err
+    assert (
+        "../shared/sitl/arducopter" in err and "--arducopter-binary" in err and "CLOUDTRACK_ARDUCOPTER" in err
+    )
     assert not list(tmp_path.glob("cloudtrack-sim-*"))  # nothing left behind
 
 
@@ -292,7 +330,9 @@ def test_sim_run_removes_its_temp_work_dir(tmp_path: Path, monkeypatch: pytest.M
 def test_sim_run_keeps_a_given_work_dir(tmp_path: Path) -> None:
     from sitl.scenario_runner import ScenarioRun
 
-    run = ScenarioRun(SCENARIOS["follow"], RunOptions(tracker="csrt", work_dir=tmp_path / "w"), progress=lambda _: None)
+    run = ScenarioRun(
+        SCENARIOS["follow"], RunOptions(tracker="csrt", work_dir=tmp_path / "w"), progress=lambda _: None
+    )
     run._teardown()
     assert (tmp_path / "w").is_dir()
 
@@ -308,7 +348,9 @@ def test_world_holds_still_until_the_mission_starts() -> None:
     from sitl.camera_server import CameraServer
 
     world = SCENARIOS["follow"].build_world(1)
-    server = CameraServer(world, CameraModel.from_hfov(64, 48, 70.0, -40.0), lambda: VehiclePose(0, 0, -10)).start()
+    server = CameraServer(
+        world, CameraModel.from_hfov(64, 48, 70.0, -40.0), lambda: VehiclePose(0, 0, -10)
+    ).start()
     try:
         server.epoch = math.inf
         assert server.world_time() == 0.0
@@ -319,13 +361,17 @@ def test_world_holds_still_until_the_mission_starts() -> None:
     finally:
         server.stop()
     assert is_mission_start("MISSION 1 STARTED: a person in a green shirt")
-    assert not is_mission_start("MISSION 1 ABORTED") and not is_mission_start("PreArm: Need Position Estimate")
+    assert not is_mission_start("MISSION 1 ABORTED") and not is_mission_start(
+        "PreArm: Need Position Estimate"
+    )
 
 
 def test_sim_help_describes_every_flag(capsys: pytest.CaptureFixture[str]) -> None:
-    for argv, expected in ((["bench", "--help"], ("frames to render", "image width", "image height")),
-                           (["camera", "--help"], ("--world-start", "MISSION n STARTED")),
-                           (["run", "--help"], ("--arducopter-binary", "--speedup", "arducopter"))):
+    for argv, expected in (
+        (["bench", "--help"], ("frames to render", "image width", "image height")),
+        (["camera", "--help"], ("--world-start", "MISSION n STARTED")),
+        (["run", "--help"], ("--arducopter-binary", "--speedup", "arducopter")),
+    ):
         with pytest.raises(SystemExit):
             sim_main(argv)
         out = capsys.readouterr().out

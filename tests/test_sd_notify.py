@@ -93,7 +93,9 @@ def test_abstract_namespace_socket() -> None:
         sock.close()
 
 
-def test_watchdog_pings_are_rate_limited_to_a_quarter_period(notify_socket: tuple[socket.socket, str]) -> None:
+def test_watchdog_pings_are_rate_limited_to_a_quarter_period(
+    notify_socket: tuple[socket.socket, str],
+) -> None:
     sock, path = notify_socket
     now = [100.0]
     notifier = ServiceNotifier(path, watchdog_period_s=2.0, clock=lambda: now[0])
@@ -136,7 +138,9 @@ def test_event_loop_pinger_stops_when_unhealthy(notify_socket: tuple[socket.sock
     assert drain(sock) == []
 
 
-def test_a_child_process_inherits_the_socket_from_the_environment(notify_socket: tuple[socket.socket, str]) -> None:
+def test_a_child_process_inherits_the_socket_from_the_environment(
+    notify_socket: tuple[socket.socket, str],
+) -> None:
     """The way systemd hands the socket over: an environment variable read by a separate process."""
     sock, path = notify_socket
     code = "from cloudtrack.service_notify import ServiceNotifier as N; n = N.from_environment(); n.ready(); n.watchdog()"
@@ -247,7 +251,9 @@ def test_companion_speaks_sd_notify_and_stops_setpoints_on_sigterm(
             resumed = time.monotonic()
             gap = longest_gap(listener.times("WATCHDOG=1"), silent, resumed)
             assert gap >= 2.0, f"watchdog kept pinging without frames (longest gap {gap:.2f} s)"
-            assert wait_for(lambda: listener.times("WATCHDOG=1", resumed), 15.0), "no pings after frames returned"
+            assert wait_for(lambda: listener.times("WATCHDOG=1", resumed), 15.0), (
+                "no pings after frames returned"
+            )
             assert proc.poll() is None, "the companion must survive a camera outage"
 
             # The GCS starts a mission; searching, the companion turns the vehicle with yaw-rate setpoints.
@@ -255,10 +261,16 @@ def test_companion_speaks_sd_notify_and_stops_setpoints_on_sigterm(
             for payload in prompt:
                 ground.send(partial(_tunnel, target=(1, 191), payload=payload))
             length = sum(len(p) - 4 for p in prompt)
-            ground.send(lambda m: m.command_long_send(1, 191, CMD_START, 0, 7, len(prompt), 0, length, 0, 0, 0))
-            ack = receive_until(ground, lambda m: m.get_type() == "COMMAND_ACK" and m.command == CMD_START, 10.0)
+            ground.send(
+                lambda m: m.command_long_send(1, 191, CMD_START, 0, 7, len(prompt), 0, length, 0, 0, 0)
+            )
+            ack = receive_until(
+                ground, lambda m: m.get_type() == "COMMAND_ACK" and m.command == CMD_START, 10.0
+            )
             assert ack is not None and ack.result == 0, ack
-            turning = wait_for(lambda: [s for s in sim.setpoints if s.src_component == 191 and s.yaw_rate > 0.1], 15.0)
+            turning = wait_for(
+                lambda: [s for s in sim.setpoints if s.src_component == 191 and s.yaw_rate > 0.1], 15.0
+            )
             assert turning, "no yaw-rate setpoints while searching"
             proc.send_signal(signal.SIGTERM)
             sent = time.monotonic()

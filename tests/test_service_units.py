@@ -76,7 +76,16 @@ def test_companion_unit_watchdog_outlasts_the_loop_stall_watchdog() -> None:
 
 def test_install_print_writes_nothing_and_names_installed_program(tmp_path: Path) -> None:
     result = subprocess.run(
-        [*CLI, "service", "install", "--print", "--unit-dir", str(tmp_path / "u"), "--config-dir", str(tmp_path / "c")],
+        [
+            *CLI,
+            "service",
+            "install",
+            "--print",
+            "--unit-dir",
+            str(tmp_path / "u"),
+            "--config-dir",
+            str(tmp_path / "c"),
+        ],
         capture_output=True,
         text=True,
         check=True,
@@ -140,7 +149,16 @@ def test_install_into_unwritable_place_is_a_clear_error(tmp_path: Path) -> None:
 def test_backend_install_names_the_backend_program_and_its_config(tmp_path: Path) -> None:
     unit_dir, config_dir = tmp_path / "units", tmp_path / "etc"
     result = subprocess.run(
-        [*CLI, "service", "install", "--backend", "--unit-dir", str(unit_dir), "--config-dir", str(config_dir)],
+        [
+            *CLI,
+            "service",
+            "install",
+            "--backend",
+            "--unit-dir",
+            str(unit_dir),
+            "--config-dir",
+            str(config_dir),
+        ],
         capture_output=True,
         text=True,
     )
@@ -148,13 +166,23 @@ def test_backend_install_names_the_backend_program_and_its_config(tmp_path: Path
     from backend.cli import build_parser as backend_parser
     from backend.config import BackendConfig
 
-    exec_start = value(parse_unit((unit_dir / "cloudtrack-backend.service").read_text())["Service"], "ExecStart").split()
+    exec_start = value(
+        parse_unit((unit_dir / "cloudtrack-backend.service").read_text())["Service"], "ExecStart"
+    ).split()
     assert Path(exec_start[0]).name == "cloudtrack-backend" and Path(exec_start[0]).is_file()
     parsed = backend_parser().parse_args(exec_start[1:])
     assert parsed.command == "serve" and Path(parsed.config) == config_dir / "backend.toml"
-    assert load_config(BackendConfig, config_dir / "backend.toml", env_prefix="CLOUDTRACK_BACKEND_", environ={}) == BackendConfig()
+    assert (
+        load_config(BackendConfig, config_dir / "backend.toml", env_prefix="CLOUDTRACK_BACKEND_", environ={})
+        == BackendConfig()
+    )
     verify = subprocess.run(
-        [shutil.which("systemd-analyze") or "systemd-analyze", "verify", "--man=no", str(unit_dir / "cloudtrack-backend.service")],
+        [
+            shutil.which("systemd-analyze") or "systemd-analyze",
+            "verify",
+            "--man=no",
+            str(unit_dir / "cloudtrack-backend.service"),
+        ],
         capture_output=True,
         text=True,
     )
@@ -164,5 +192,10 @@ def test_backend_install_names_the_backend_program_and_its_config(tmp_path: Path
 def test_the_package_ships_the_units_and_configs_of_the_source_tree() -> None:
     """`cloudtrack/systemd/` links to config/ (wheels copy the content), so an installed package has them."""
     shipped = REPO / "cloudtrack" / "systemd"
-    for name in ("cloudtrack-companion.service", "cloudtrack-backend.service", "companion.toml", "backend.toml"):
+    for name in (
+        "cloudtrack-companion.service",
+        "cloudtrack-backend.service",
+        "companion.toml",
+        "backend.toml",
+    ):
         assert (shipped / name).read_text() == (REPO / "config" / name).read_text(), name

@@ -34,7 +34,11 @@ def companion(sim) -> Iterator[MavlinkEndpoint]:  # type: ignore[no-untyped-def]
 
 def velocity(endpoint: MavlinkEndpoint, vx: float, vy: float = 0.0, yaw_rate: float = 0.0,
              frame: int = BODY_OFFSET_NED, mask: int = VELOCITY_YAW_RATE_MASK) -> None:  # fmt: skip
-    endpoint.send(lambda m: m.set_position_target_local_ned_send(0, 1, 1, frame, mask, 0, 0, 0, vx, vy, 0, 0, 0, 0, 0, yaw_rate))
+    endpoint.send(
+        lambda m: m.set_position_target_local_ned_send(
+            0, 1, 1, frame, mask, 0, 0, 0, vx, vy, 0, 0, 0, 0, 0, yaw_rate
+        )
+    )
 
 
 def command(endpoint: MavlinkEndpoint, cmd: int, *params: float):  # type: ignore[no-untyped-def]
@@ -47,7 +51,9 @@ def command(endpoint: MavlinkEndpoint, cmd: int, *params: float):  # type: ignor
     ("personality", "autopilot_id", "custom_mode"),
     [("ardupilot", 3, 4), ("px4", 12, 3 << 16)],  # GUIDED = 4; PX4 POSCTL main mode 3 in byte 2
 )
-def test_heartbeat_identifies_autopilot_type_and_mode(personality: str, autopilot_id: int, custom_mode: int) -> None:
+def test_heartbeat_identifies_autopilot_type_and_mode(
+    personality: str, autopilot_id: int, custom_mode: int
+) -> None:
     with autopilot(personality) as sim, companion(sim) as link:
         hb = receive_until(link, lambda m: m.get_type() == "HEARTBEAT" and m.get_srcComponent() == 1)
         assert (hb.autopilot, hb.type, hb.custom_mode) == (autopilot_id, 2, custom_mode)
@@ -119,7 +125,9 @@ def test_setpoint_frame_and_type_mask_are_honoured() -> None:
         velocity(link, 2.0, frame=LOCAL_NED)  # north in the local frame, whatever the heading
         assert wait_for(lambda: sim.snapshot().vn > 1.9 and abs(sim.snapshot().ve) < 0.05, 3.0)
         velocity(link, 0.0, 2.0, frame=LOCAL_NED, mask=VELOCITY_ONLY_MASK)  # both yaw fields ignored:
-        assert wait_for(lambda: abs(sim.snapshot().yaw - math.radians(90)) < 0.05, 3.0)  # autopilot turns to travel
+        assert wait_for(
+            lambda: abs(sim.snapshot().yaw - math.radians(90)) < 0.05, 3.0
+        )  # autopilot turns to travel
         velocity(link, 0.0, 0.0, yaw_rate=0.5, mask=VELOCITY_YAW_RATE_MASK | 0b111000)  # velocity ignored
         assert wait_for(lambda: sim.snapshot().yaw_rate > 0.45, 3.0)
 
@@ -158,8 +166,14 @@ def test_routing_between_gcs_and_companion_links() -> None:
         # the reply addressed to the GCS goes back to it; broadcasts reach it too
         comp.send(lambda m: m.command_ack_send(31014, 0, 0, 0, 255, 190))
         comp.send(lambda m: m.statustext_send(6, b"hello from the companion"))
-        assert receive_until(ground, lambda m: m.get_type() == "COMMAND_ACK" and m.command == 31014, 3.0) is not None
-        assert receive_until(ground, lambda m: m.get_type() == "STATUSTEXT" and "companion" in m.text, 3.0) is not None
+        assert (
+            receive_until(ground, lambda m: m.get_type() == "COMMAND_ACK" and m.command == 31014, 3.0)
+            is not None
+        )
+        assert (
+            receive_until(ground, lambda m: m.get_type() == "STATUSTEXT" and "companion" in m.text, 3.0)
+            is not None
+        )
         # a command for the autopilot itself is not forwarded to the companion
         set_mode_from_gcs(ground, 5)
         assert receive_until(comp, lambda m: m.get_type() == "COMMAND_LONG", 1.0) is None
@@ -167,7 +181,10 @@ def test_routing_between_gcs_and_companion_links() -> None:
 
 @pytest.mark.slow
 def test_rtl_flies_home_then_lands_and_disarms() -> None:
-    with autopilot("ardupilot", start_height_m=1.5, land_speed_m_s=1.5, rtl_speed_m_s=3.0) as sim, companion(sim) as link:
+    with (
+        autopilot("ardupilot", start_height_m=1.5, land_speed_m_s=1.5, rtl_speed_m_s=3.0) as sim,
+        companion(sim) as link,
+    ):
         velocity(link, 3.0)
         assert wait_for(lambda: sim.snapshot().north > 2.5, 3.0)
         assert command(link, 20).result == 0  # MAV_CMD_NAV_RETURN_TO_LAUNCH
@@ -215,8 +232,20 @@ def test_autopilot_subcommand_parses_and_runs(capsys: pytest.CaptureFixture[str]
     parser = argparse.ArgumentParser(prog="cloudtrack-sim")
     autopilot_command.add_parser(parser.add_subparsers(dest="command"))
     args = parser.parse_args(
-        ["autopilot", "--autopilot", "px4", "--gcs", "udpin:127.0.0.1:0", "--companion", "udpin:127.0.0.1:0",
-         "--wind", "0", "3", "--duration", "0.3"]
+        [
+            "autopilot",
+            "--autopilot",
+            "px4",
+            "--gcs",
+            "udpin:127.0.0.1:0",
+            "--companion",
+            "udpin:127.0.0.1:0",
+            "--wind",
+            "0",
+            "3",
+            "--duration",
+            "0.3",
+        ]
     )
     assert args.func(args) == 0
     assert "px4 autopilot simulator" in capsys.readouterr().out

@@ -67,7 +67,11 @@ def test_render_draws_every_person_with_a_box_and_the_shirt_colour_in_it(world_a
     assert ids == {p.person_id for p in world.people}
     for tb in frame.truth:
         assert tb.visible > 0.8
-        crop = frame.image[int(tb.box.y) : int(tb.box.y2), int(tb.box.x) : int(tb.box.x2)].reshape(-1, 3).astype(int)
+        crop = (
+            frame.image[int(tb.box.y) : int(tb.box.y2), int(tb.box.x) : int(tb.box.x2)]
+            .reshape(-1, 3)
+            .astype(int)
+        )
         shirt = np.array(CLOTHING[tb.shirt])
         # The torso is painted in the shirt colour: many pixels of the box are that colour.
         close = np.count_nonzero(np.abs(crop - shirt).sum(axis=1) < 40)
@@ -119,8 +123,10 @@ def test_simulated_detector_finds_people_scales_boxes_and_refuses_other_classes(
     _, renderer = world_and_renderer
     frame = renderer.render(BEHIND, 0.0, 9)
     record = frame.record()
-    exact = SimulatedPersonDetector(lambda fid: record if fid == 9 else None,
-                                    noise=DetectorNoise(miss_rate=0.0, jitter_px=0.0, false_positives=0.0))
+    exact = SimulatedPersonDetector(
+        lambda fid: record if fid == 9 else None,
+        noise=DetectorNoise(miss_rate=0.0, jitter_px=0.0, false_positives=0.0),
+    )
     found = exact.detect(frame.image, ["person"])  # no frame id: read from the timecode
     assert len(found) == len(frame.truth)
     assert len(exact.detect(frame.image, ["person"], frame_id=9)) == len(frame.truth)
@@ -132,8 +138,12 @@ def test_simulated_detector_finds_people_scales_boxes_and_refuses_other_classes(
         exact.detect(frame.image, ["boat"])
     # An unknown frame (no truth) gives no boxes rather than an error.
     assert SimulatedPersonDetector(lambda fid: None).detect(frame.image, ["person"]) == []
-    noisy = SimulatedPersonDetector(lambda fid: record, noise=DetectorNoise(miss_rate=1.0, false_positives=3.0), seed=1)
-    assert noisy.detect(frame.image, ["person"]) == noisy.detect(frame.image, ["person"])  # seeded, repeatable
+    noisy = SimulatedPersonDetector(
+        lambda fid: record, noise=DetectorNoise(miss_rate=1.0, false_positives=3.0), seed=1
+    )
+    assert noisy.detect(frame.image, ["person"]) == noisy.detect(
+        frame.image, ["person"]
+    )  # seeded, repeatable
 
 
 def test_simulated_detector_places_a_region_of_the_keyframe(world_and_renderer) -> None:
@@ -141,8 +151,10 @@ def test_simulated_detector_places_a_region_of_the_keyframe(world_and_renderer) 
     _, renderer = world_and_renderer
     frame = renderer.render(BEHIND, 0.0, 11)
     record = frame.record()
-    detector = SimulatedPersonDetector(lambda fid: record if fid == 11 else None,
-                                       noise=DetectorNoise(miss_rate=0.0, jitter_px=0.0, false_positives=0.0))
+    detector = SimulatedPersonDetector(
+        lambda fid: record if fid == 11 else None,
+        noise=DetectorNoise(miss_rate=0.0, jitter_px=0.0, false_positives=0.0),
+    )
     target = next(tb for tb in frame.truth if tb.person_id == "target")
     x1, y1 = int(target.box.cx - 80), int(target.box.cy - 100)
     region = np.ascontiguousarray(frame.image[y1 : y1 + 200, x1 : x1 + 160])

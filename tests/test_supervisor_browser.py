@@ -46,7 +46,7 @@ PROMPT = "a man in a green-and-white striped shirt"
 # The person's feet in the first frames put them about 23 m away from the vehicle 20 m up, so with this
 # stand-off the companion has arrived at once and asks the supervisor (the recorded frames cannot move).
 STANDOFF_M = 23.0
-HOSTILE = '<img src=x onerror="document.title=\'pwned\'">'
+HOSTILE = "<img src=x onerror=\"document.title='pwned'\">"
 SCREENSHOT = REPO / "out" / "test-artifacts" / "supervisor-confirmed.png"
 
 
@@ -155,7 +155,9 @@ def test_supervisor_confirms_a_running_companions_candidate_in_a_real_browser(
             expect(other.locator(".verdict")).to_have_text("uncertain")
             expect(other.locator(".position")).to_contain_text("47.398010, 8.546120")
             page.wait_for_function(
-                "el => el.complete && el.naturalWidth > 0", arg=other.locator(".crop").element_handle(), timeout=10_000
+                "el => el.complete && el.naturalWidth > 0",
+                arg=other.locator(".crop").element_handle(),
+                timeout=10_000,
             )
             width = other.locator(".crop").evaluate("el => el.naturalWidth")
             decoded = cv2.imdecode(np.frombuffer(crop, np.uint8), cv2.IMREAD_COLOR)
@@ -170,7 +172,9 @@ def test_supervisor_confirms_a_running_companions_candidate_in_a_real_browser(
             try:
                 expect(candidate).to_have_count(1, timeout=60_000)
             except AssertionError:
-                raise AssertionError("no candidate from the companion:\n" + log_path.read_text()[-4000:]) from None
+                raise AssertionError(
+                    "no candidate from the companion:\n" + log_path.read_text()[-4000:]
+                ) from None
             expect(mine.locator(".state")).to_have_text("AWAITING_SUPERVISOR")
             expect(mine.locator(".mission")).to_contain_text(PROMPT)
             expect(candidate.locator(".verdict")).to_have_text("yes")
@@ -180,7 +184,9 @@ def test_supervisor_confirms_a_running_companions_candidate_in_a_real_browser(
             # The companion's status carries its candidate's crop: the page shows it (a real, decoded image).
             expect(candidate.locator(".no-crop")).to_be_hidden()
             page.wait_for_function(
-                "el => el.complete && el.naturalWidth > 0", arg=candidate.locator(".crop").element_handle(), timeout=10_000
+                "el => el.complete && el.naturalWidth > 0",
+                arg=candidate.locator(".crop").element_handle(),
+                timeout=10_000,
             )
             assert 0 < candidate.locator(".crop").evaluate("el => el.naturalWidth") <= 192
 

@@ -45,10 +45,20 @@ def crop_b64(sequences_dir: Path) -> str:
     return base64.b64encode(data.tobytes()).decode()
 
 
-def report(client: httpx.Client, state: str, awaiting: dict[str, Any] | None, vehicle: str = "drone-1") -> None:
-    body = {"mission_id": "m-1", "state": state, "prompt": "a man in a red shirt", "position": [47.3977, 8.5456], "awaiting": awaiting}
+def report(
+    client: httpx.Client, state: str, awaiting: dict[str, Any] | None, vehicle: str = "drone-1"
+) -> None:
+    body = {
+        "mission_id": "m-1",
+        "state": state,
+        "prompt": "a man in a red shirt",
+        "position": [47.3977, 8.5456],
+        "awaiting": awaiting,
+    }
     response = client.post(
-        f"/v1/vehicles/{vehicle}/status", json=body, headers={"Authorization": f"Bearer {VEHICLE_TOKENS[vehicle]}"}
+        f"/v1/vehicles/{vehicle}/status",
+        json=body,
+        headers={"Authorization": f"Bearer {VEHICLE_TOKENS[vehicle]}"},
     )
     assert response.status_code == 200, response.text
 
@@ -119,11 +129,15 @@ def test_snapshot_crop_and_decision_reach_the_vehicle(backend: LiveBackend, crop
         url = "/v1/vehicles/drone-1/decisions?require_awaiting=true"
         c21 = {"candidate_id": "c-21"}
         assert client.post(url, json={**c21, "action": "maybe"}, headers=SUPERVISOR).status_code == 422
-        assert client.post(url, json={**c21, "action": "confirm", "x": 1}, headers=SUPERVISOR).status_code == 422
+        assert (
+            client.post(url, json={**c21, "action": "confirm", "x": 1}, headers=SUPERVISOR).status_code == 422
+        )
         stale = client.post(url, json={"candidate_id": "c-20", "action": "confirm"}, headers=SUPERVISOR)
         assert stale.status_code == 409 and "no longer waiting" in stale.json()["detail"]
         unknown = client.post(
-            "/v1/vehicles/drone-9/decisions?require_awaiting=true", json={**c21, "action": "reject"}, headers=SUPERVISOR
+            "/v1/vehicles/drone-9/decisions?require_awaiting=true",
+            json={**c21, "action": "reject"},
+            headers=SUPERVISOR,
         )
         assert unknown.status_code == 404
         # The page's own decision path is gone: the API's endpoint above is the only one.
@@ -136,7 +150,10 @@ def test_snapshot_crop_and_decision_reach_the_vehicle(backend: LiveBackend, crop
         polled = client.get("/v1/vehicles/drone-1/decisions", params={"after": 0}, headers=DRONE).json()
         assert [(d["candidate_id"], d["action"]) for d in polled][-1] == ("c-21", "confirm")
         after = client.get("/supervisor/api/state", headers=SUPERVISOR).json()
-        assert next(v for v in after["vehicles"] if v["id"] == "drone-1")["candidates"][0]["status"] == "confirmed"
+        assert (
+            next(v for v in after["vehicles"] if v["id"] == "drone-1")["candidates"][0]["status"]
+            == "confirmed"
+        )
 
 
 def read_events(lines: Iterator[str], count: int, timeout_s: float = 15.0) -> list[dict[str, Any]]:
@@ -177,9 +194,16 @@ def test_live_updates_arrive_as_server_sent_events(backend: LiveBackend, crop_b6
 def test_a_crop_that_is_not_a_jpeg_is_refused_when_reported(backend: LiveBackend) -> None:
     """Only real JPEG bytes are ever served as image/jpeg: anything else is refused on the way in."""
     with httpx.Client(base_url=backend.url, timeout=10) as client:
-        for bad in ("***not base64***", base64.b64encode(b"<script>alert(1)</script>").decode(),
-                    base64.b64encode(b"\xff\xd8\xff\xe0" + bytes(64)).decode()):
-            body = {"mission_id": "m-1", "state": "AWAITING_SUPERVISOR", "awaiting": {**candidate("", "c-40"), "crop_jpeg_b64": bad}}
+        for bad in (
+            "***not base64***",
+            base64.b64encode(b"<script>alert(1)</script>").decode(),
+            base64.b64encode(b"\xff\xd8\xff\xe0" + bytes(64)).decode(),
+        ):
+            body = {
+                "mission_id": "m-1",
+                "state": "AWAITING_SUPERVISOR",
+                "awaiting": {**candidate("", "c-40"), "crop_jpeg_b64": bad},
+            }
             response = client.post("/v1/vehicles/drone-1/status", json=body, headers=DRONE)
             assert response.status_code == 422, (bad, response.text)
         missing = client.get("/supervisor/api/vehicles/drone-1/candidates/c-39/crop.jpg", headers=SUPERVISOR)
@@ -207,7 +231,9 @@ def test_an_event_stream_ends_after_its_lifetime_so_shutdowns_are_never_held() -
     assert 1.0 <= took < 10.0, took
 
 
-def test_reject_reaches_the_vehicle_and_the_missions_rejection_memory(backend: LiveBackend, crop_b64: str) -> None:
+def test_reject_reaches_the_vehicle_and_the_missions_rejection_memory(
+    backend: LiveBackend, crop_b64: str
+) -> None:
     with httpx.Client(base_url=backend.url, timeout=10) as client:
         report(client, "AWAITING_SUPERVISOR", candidate(crop_b64, "c-50"))
         url = "/v1/vehicles/drone-1/decisions?require_awaiting=true"
@@ -216,11 +242,22 @@ def test_reject_reaches_the_vehicle_and_the_missions_rejection_memory(backend: L
         )
         assert posted.status_code == 201, posted.text
         polled = client.get("/v1/vehicles/drone-1/decisions", headers=DRONE).json()
-        assert (polled[-1]["candidate_id"], polled[-1]["action"], polled[-1]["note"]) == ("c-50", "reject", "wrong shirt")
+        assert (polled[-1]["candidate_id"], polled[-1]["action"], polled[-1]["note"]) == (
+            "c-50",
+            "reject",
+            "wrong shirt",
+        )
         # The back-end remembers it (with the crop the vehicle sent) so look-alikes are answered "no".
         rejections = client.get("/v1/missions/m-1/rejections", headers=DRONE).json()
-        assert client.get("/v1/missions/m-1/rejections", headers=SUPERVISOR).status_code == 422  # name the vehicle
-        assert client.get("/v1/missions/m-1/rejections", params={"vehicle_id": "drone-1"}, headers=SUPERVISOR).json() == rejections
+        assert (
+            client.get("/v1/missions/m-1/rejections", headers=SUPERVISOR).status_code == 422
+        )  # name the vehicle
+        assert (
+            client.get(
+                "/v1/missions/m-1/rejections", params={"vehicle_id": "drone-1"}, headers=SUPERVISOR
+            ).json()
+            == rejections
+        )
         assert any(r["candidate_id"] == "c-50" and r["reason"] == "wrong shirt" for r in rejections)
         state = client.get("/supervisor/api/state", headers=SUPERVISOR).json()
         cand = next(v for v in state["vehicles"] if v["id"] == "drone-1")["candidates"][0]

@@ -23,7 +23,10 @@ WEIGHTLESS = ("csrt", "kcf", "mil")
 
 def _frames(sequences_dir: Path, count: int) -> tuple[list, list[Box]]:
     seq = sequences_dir / SEQUENCE
-    gt = [Box(*map(float, line.split(","))) for line in (seq / "groundtruth.txt").read_text().splitlines()[:count]]
+    gt = [
+        Box(*map(float, line.split(",")))
+        for line in (seq / "groundtruth.txt").read_text().splitlines()[:count]
+    ]
     frames = [cv2.imread(str(seq / "frames" / f"{i:06d}.jpg")) for i in range(1, count + 1)]
     return frames, gt
 
@@ -37,7 +40,9 @@ def test_available_trackers_match_this_opencv_build() -> None:
 
 
 @pytest.mark.parametrize("name", ["nano", "vit", *WEIGHTLESS])
-def test_tracker_follows_the_target_on_a_real_sequence(name: str, models_dir: Path, sequences_dir: Path) -> None:
+def test_tracker_follows_the_target_on_a_real_sequence(
+    name: str, models_dir: Path, sequences_dir: Path
+) -> None:
     frames, gt = _frames(sequences_dir, 16)
     tracker = create_tracker(name, models_dir)
     assert tracker.name == name

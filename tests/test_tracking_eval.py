@@ -83,7 +83,9 @@ def test_evaluate_sequence_tracks_and_reinitialises(models_dir: Path, sequences_
 
     cache = DetectionCache(oracle)
     plain = evaluate_sequence(seq, TrackerConfig(), models_dir, EvalSettings(tracker="kcf", max_frames=60))
-    helped = evaluate_sequence(seq, TrackerConfig(), models_dir, EvalSettings(tracker="kcf", max_frames=60), cache)
+    helped = evaluate_sequence(
+        seq, TrackerConfig(), models_dir, EvalSettings(tracker="kcf", max_frames=60), cache
+    )
     assert plain.loss_events >= 1 and helped.reinits >= 1 and cache.calls >= 1
     assert helped.miou > plain.miou
 
@@ -95,17 +97,35 @@ def test_occlusion_hides_the_target_and_marks_frames_nan(models_dir: Path, seque
     assert result.gt_frames == result.frames - 15  # 1.5 s at 10 fps excluded from the mean
     report = signal_table([seq], TrackerConfig(), models_dir, "nano", occlude=True)
     assert report.lost_frames >= 15  # at least the hidden frames are off target
-    assert report.combos["+ geometry + appearance"].fired_lost >= report.combos["paper (score + ok flag)"].fired_lost
+    assert (
+        report.combos["+ geometry + appearance"].fired_lost
+        >= report.combos["paper (score + ok flag)"].fired_lost
+    )
 
 
-def test_eval_command_writes_json_and_a_plot(models_dir: Path, sequences_dir: Path, tmp_path: Path,
-                                             capsys: pytest.CaptureFixture[str]) -> None:
+def test_eval_command_writes_json_and_a_plot(
+    models_dir: Path, sequences_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     out, plot = tmp_path / "eval.json", tmp_path / "ious.png"
-    code = main([
-        "eval", str(sequences_dir / "otb_Crossing"), "--tracker", "nano,csrt", "--max-frames", "15",
-        "--model-dir", str(models_dir), "--detector", "none", "--json", str(out), "--plot", str(plot),
-        "--no-progress",
-    ])
+    code = main(
+        [
+            "eval",
+            str(sequences_dir / "otb_Crossing"),
+            "--tracker",
+            "nano,csrt",
+            "--max-frames",
+            "15",
+            "--model-dir",
+            str(models_dir),
+            "--detector",
+            "none",
+            "--json",
+            str(out),
+            "--plot",
+            str(plot),
+            "--no-progress",
+        ]
+    )
     assert code == 0
     data = json.loads(out.read_text())
     assert [run["tracker"] for run in data["runs"]] == ["nano", "csrt"]
@@ -116,11 +136,25 @@ def test_eval_command_writes_json_and_a_plot(models_dir: Path, sequences_dir: Pa
 
 def test_eval_sweep_plot(models_dir: Path, sequences_dir: Path, tmp_path: Path) -> None:
     plot = tmp_path / "sweep.png"
-    code = main([
-        "eval", str(sequences_dir / "otb_Crossing"), "--tracker", "nano,kcf", "--max-frames", "10",
-        "--model-dir", str(models_dir), "--detector", "none", "--sweep", "0.5:0.7:0.2", "--plot", str(plot),
-        "--no-progress",
-    ])
+    code = main(
+        [
+            "eval",
+            str(sequences_dir / "otb_Crossing"),
+            "--tracker",
+            "nano,kcf",
+            "--max-frames",
+            "10",
+            "--model-dir",
+            str(models_dir),
+            "--detector",
+            "none",
+            "--sweep",
+            "0.5:0.7:0.2",
+            "--plot",
+            str(plot),
+            "--no-progress",
+        ]
+    )
     assert code == 0 and plot.read_bytes()[:4] == b"\x89PNG"
 
 
@@ -138,8 +172,9 @@ GOTURN_ERROR = "goturn.prototxt" if "goturn" in available_trackers() else "not p
         (["--size", "big"], "WIDTHxHEIGHT"),
     ],
 )
-def test_eval_command_bad_input(extra: list[str], message: str, sequences_dir: Path, models_dir: Path,
-                                capsys: pytest.CaptureFixture[str]) -> None:
+def test_eval_command_bad_input(
+    extra: list[str], message: str, sequences_dir: Path, models_dir: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     code = main(["eval", str(sequences_dir / "otb_Crossing"), "--model-dir", str(models_dir), *extra])
     assert code == 2 and message in capsys.readouterr().err
 
@@ -153,19 +188,36 @@ def test_bench_runs_the_whole_loop_and_mavlink_reaches_loopback(
     models_dir: Path, sequences_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     out = tmp_path / "bench.json"
-    code = main([
-        "bench", "--tracker", "nano", "--sequence", str(sequences_dir / "uav123_person12_1"), "--frames", "20",
-        "--passes", "1", "--model-dir", str(models_dir), "--json", str(out),
-    ])
+    code = main(
+        [
+            "bench",
+            "--tracker",
+            "nano",
+            "--sequence",
+            str(sequences_dir / "uav123_person12_1"),
+            "--frames",
+            "20",
+            "--passes",
+            "1",
+            "--model-dir",
+            str(models_dir),
+            "--json",
+            str(out),
+        ]
+    )
     assert code == 0
     data = json.loads(out.read_text())
     assert data["size"] == [640, 480] and data["frames"] == 19
-    assert data["setpoints_sent"] == 19 and data["setpoints_received"] == 19  # decoded as SET_POSITION_TARGET_LOCAL_NED
+    assert (
+        data["setpoints_sent"] == 19 and data["setpoints_received"] == 19
+    )  # decoded as SET_POSITION_TARGET_LOCAL_NED
     assert data["trusted_frames"] == 19
     assert data["bare_fps"] > 0 and data["loop_fps"] > 0 and data["latency_p95_ms"] >= data["latency_p50_ms"]
     printed = capsys.readouterr().out
     assert "GOAL ratio (in-loop)" in printed and "goal >= 0.9" in printed and "peak memory" in printed
-    assert "ratio of pass rates" in printed and "for reference" in printed  # the other ratio says it is not the goal
+    assert (
+        "ratio of pass rates" in printed and "for reference" in printed
+    )  # the other ratio says it is not the goal
 
 
 def test_bench_bad_input(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
@@ -181,12 +233,33 @@ def test_eval_against_a_live_backend(models_dir: Path, sequences_dir: Path, tmp_
 
     out = tmp_path / "eval.json"
     with live_backend(models_dir) as backend:
-        code = main([
-            "eval", str(sequences_dir / "uav123_person12_1"), "--tracker", "nano", "--max-frames", "12",
-            "--model-dir", str(models_dir), "--backend", backend.url, "--json", str(out), "--no-progress",
-            "--init", "prompt", "--delay-s", "0", "--set", "behavior.accept_uncertain=true",
-            "--set", f"backend.token={VEHICLE_TOKENS['drone-1']}", "--set", "vehicle.id=drone-1",
-        ])
+        code = main(
+            [
+                "eval",
+                str(sequences_dir / "uav123_person12_1"),
+                "--tracker",
+                "nano",
+                "--max-frames",
+                "12",
+                "--model-dir",
+                str(models_dir),
+                "--backend",
+                backend.url,
+                "--json",
+                str(out),
+                "--no-progress",
+                "--init",
+                "prompt",
+                "--delay-s",
+                "0",
+                "--set",
+                "behavior.accept_uncertain=true",
+                "--set",
+                f"backend.token={VEHICLE_TOKENS['drone-1']}",
+                "--set",
+                "vehicle.id=drone-1",
+            ]
+        )
     assert code == 0
     result = json.loads(out.read_text())["runs"][0]["sequences"][0]
     assert result["detector_calls"] >= 1  # the first box came from the back-end, not the ground truth
@@ -199,12 +272,29 @@ def test_eval_with_an_unreachable_backend_tracks_nothing_and_does_not_crash(
     from tests.live_backend import free_port
 
     out = tmp_path / "eval.json"
-    code = main([
-        "eval", str(sequences_dir / "otb_Crossing"), "--tracker", "kcf", "--max-frames", "5",
-        "--model-dir", str(models_dir), "--backend", f"http://127.0.0.1:{free_port()}", "--json", str(out),
-        "--init", "prompt", "--delay-s", "0",
-        "--no-progress", "--set", "backend.timeout_s=1",
-    ])
+    code = main(
+        [
+            "eval",
+            str(sequences_dir / "otb_Crossing"),
+            "--tracker",
+            "kcf",
+            "--max-frames",
+            "5",
+            "--model-dir",
+            str(models_dir),
+            "--backend",
+            f"http://127.0.0.1:{free_port()}",
+            "--json",
+            str(out),
+            "--init",
+            "prompt",
+            "--delay-s",
+            "0",
+            "--no-progress",
+            "--set",
+            "backend.timeout_s=1",
+        ]
+    )
     assert code == 0
     result = json.loads(out.read_text())["runs"][0]["sequences"][0]
     assert result["miou"] == 0.0 and result["detector_calls"] == 1
@@ -214,14 +304,32 @@ def test_eval_prints_bare_beside_the_product_from_the_same_run(
     models_dir: Path, sequences_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     out = tmp_path / "eval.json"
-    code = main([
-        "eval", str(sequences_dir / "uav123_wakeboard7"), str(sequences_dir / "otb_Crossing"), "--tracker", "nano",
-        "--max-frames", "25", "--model-dir", str(models_dir), "--verifier", "none", "--json", str(out),
-        "--no-progress",
-    ])
+    code = main(
+        [
+            "eval",
+            str(sequences_dir / "uav123_wakeboard7"),
+            str(sequences_dir / "otb_Crossing"),
+            "--tracker",
+            "nano",
+            "--max-frames",
+            "25",
+            "--model-dir",
+            str(models_dir),
+            "--verifier",
+            "none",
+            "--json",
+            str(out),
+            "--no-progress",
+        ]
+    )
     assert code == 0
     printed = capsys.readouterr().out
-    assert "bare" in printed and "diff" in printed and "overall (frames)" in printed and "mean (sequences)" in printed
+    assert (
+        "bare" in printed
+        and "diff" in printed
+        and "overall (frames)" in printed
+        and "mean (sequences)" in printed
+    )
     run = json.loads(out.read_text())["runs"][0]
     assert run["policy"] == "verified"  # the configuration's default
     bare, product = run["bare"]["sequences"], run["sequences"]
@@ -231,7 +339,11 @@ def test_eval_prints_bare_beside_the_product_from_the_same_run(
     assert all(p["detector_calls"] >= 1 for p in product)  # the product asked for keyframes while tracking
     for b, p in zip(bare, product, strict=True):
         line = next(line for line in printed.splitlines() if line.startswith(p["sequence"]))
-        assert f"{b['miou']:.3f}" in line and f"{p['miou']:.3f}" in line and f"{p['miou'] - b['miou']:+.3f}" in line
+        assert (
+            f"{b['miou']:.3f}" in line
+            and f"{p['miou']:.3f}" in line
+            and f"{p['miou'] - b['miou']:+.3f}" in line
+        )
 
 
 def test_eval_init_prompt_acquires_the_described_target_while_the_clock_runs(
@@ -240,11 +352,27 @@ def test_eval_init_prompt_acquires_the_described_target_while_the_clock_runs(
     """--init prompt: the in-process pipeline (YOLOX + the local verifier) answers referring.txt 0.5 s
     late; the first box comes only after an answer and the first chosen candidate is the described man."""
     out = tmp_path / "eval.json"
-    code = main([
-        "eval", str(sequences_dir / "uav123_person12_1"), "--tracker", "nano", "--max-frames", "30",
-        "--model-dir", str(models_dir), "--init", "prompt", "--verifier", "local", "--delay-s", "0.5",
-        "--json", str(out), "--no-progress",
-    ])
+    code = main(
+        [
+            "eval",
+            str(sequences_dir / "uav123_person12_1"),
+            "--tracker",
+            "nano",
+            "--max-frames",
+            "30",
+            "--model-dir",
+            str(models_dir),
+            "--init",
+            "prompt",
+            "--verifier",
+            "local",
+            "--delay-s",
+            "0.5",
+            "--json",
+            str(out),
+            "--no-progress",
+        ]
+    )
     assert code == 0
     run = json.loads(out.read_text())["runs"][0]
     assert run["init"] == "prompt" and run["delay_s"] == 0.5
@@ -255,17 +383,24 @@ def test_eval_init_prompt_acquires_the_described_target_while_the_clock_runs(
     chosen = [a for a in result["acquisition"] if a["chosen_iou"] is not None]
     assert chosen and chosen[0]["chosen_iou"] >= 0.5
     assert result["first_box_s"] is not None and result["first_box_s"] >= 0.5  # no box before the answer
-    assert run["gt_init"]["sequences"][0]["miou"] > 0 and "first boxes on the described target: 1 of 1" in capsys.readouterr().out
+    assert (
+        run["gt_init"]["sequences"][0]["miou"] > 0
+        and "first boxes on the described target: 1 of 1" in capsys.readouterr().out
+    )
 
 
-def test_signal_table_counts_false_alarms_on_target_and_detector_extent(models_dir: Path, sequences_dir: Path) -> None:
+def test_signal_table_counts_false_alarms_on_target_and_detector_extent(
+    models_dir: Path, sequences_dir: Path
+) -> None:
     from backend.detectors.yolox import YoloxDetector
     from cloudtrack.model_store import require
 
     seq = load_sequence(sequences_dir / "uav123_wakeboard7")
     yolox = YoloxDetector(require("yolox", models_dir)["yolox_nano.onnx"])
     cache = DetectionCache(lambda image, frame_id: list(yolox.detect(image, ["person"], frame_id=frame_id)))
-    report = signal_table([seq], TrackerConfig(), models_dir, "nano", detections={seq.name: cache}, keyframe_s=1.0)
+    report = signal_table(
+        [seq], TrackerConfig(), models_dir, "nano", detections={seq.name: cache}, keyframe_s=1.0
+    )
     assert report.on_target_frames > 0 and report.frames == 66
     fired = report.combos["+ geometry + appearance"]
     assert fired.fired_on_target + fired.fired_lost <= fired.fired
@@ -283,8 +418,19 @@ def test_redetection_never_moves_the_box_off_the_target_on_the_dev_sequences(
     takes the box off the target, and the product is not below the bare tracker overall."""
     out = tmp_path / "eval.json"
     sequences = sorted(p for p in sequences_dir.iterdir() if (p / "groundtruth.txt").is_file())
-    code = main(["eval", *map(str, sequences), "--tracker", "nano", "--model-dir", str(models_dir),
-                 "--json", str(out), "--no-progress"])
+    code = main(
+        [
+            "eval",
+            *map(str, sequences),
+            "--tracker",
+            "nano",
+            "--model-dir",
+            str(models_dir),
+            "--json",
+            str(out),
+            "--no-progress",
+        ]
+    )
     assert code == 0
     run = json.loads(out.read_text())["runs"][0]
     assert run["policy"] == "verified"

@@ -22,7 +22,8 @@ SEQ = "otb_Crossing"
 def crossing(sequences_dir: Path):  # type: ignore[no-untyped-def]
     seq = load_sequence(sequences_dir / SEQ)
     frames = [
-        Frame(i + 1, i / seq.fps, cv2.imread(str(seq.path / "frames" / f"{i + 1:06d}.jpg"))) for i in range(30)
+        Frame(i + 1, i / seq.fps, cv2.imread(str(seq.path / "frames" / f"{i + 1:06d}.jpg")))
+        for i in range(30)
     ]
     return seq, frames
 
@@ -98,7 +99,7 @@ def test_loss_is_latched_until_reinitialised(models_dir: Path, crossing) -> None
     fe.loss.settings = fe.loss.settings.__class__(**{**fe.loss.settings.__dict__, "max_jump_box_sizes": 0.01})
     later = [fe.feed(f) for f in frames[8:14]]
     lost = [r for r in later if r.lost_reason]
-    assert lost and all(r.lost_reason == lost[0].lost_reason for r in later[later.index(lost[0]):])
+    assert lost and all(r.lost_reason == lost[0].lost_reason for r in later[later.index(lost[0]) :])
     assert fe.stats.loss_events == 1
     assert fe.start(14, seq.ground_truth[13])
     assert fe.feed(frames[14]).lost_reason == ""
@@ -141,18 +142,23 @@ def test_verified_policy_never_reinits_onto_an_unverified_candidate(models_dir: 
     assert sum(fe.stats.decisions.values()) == 10 and fe.stats.decisions.get("reinit", 0) == 0
 
 
-def test_verified_policy_withdraws_a_loss_a_candidate_on_the_track_confirms(models_dir: Path, crossing) -> None:  # type: ignore[no-untyped-def]
+def test_verified_policy_withdraws_a_loss_a_candidate_on_the_track_confirms(
+    models_dir: Path, crossing
+) -> None:  # type: ignore[no-untyped-def]
     seq, frames = crossing
     # An appearance threshold of 0 makes the appearance signal fire on every frame: a false alarm.
-    fe = TrackingFrontend.from_config(TrackerConfig(appearance_drift_threshold=0.0), models_dir,
-                                      tracker_name="nano", policy="verified")
+    fe = TrackingFrontend.from_config(
+        TrackerConfig(appearance_drift_threshold=0.0), models_dir, tracker_name="nano", policy="verified"
+    )
     fe.feed(frames[0])
     fe.start(1, seq.ground_truth[0])
     results = [fe.feed(frame) for frame in frames[1:10]]
     assert results[-1].lost_reason == "appearance" and not results[-1].trusted
     on_track = fe.box_at(10)
     assert on_track is not None
-    detector_box = Box(on_track.x - 2, on_track.y - 3, on_track.w + 4, on_track.h + 5)  # wider, as detectors frame
+    detector_box = Box(
+        on_track.x - 2, on_track.y - 3, on_track.w + 4, on_track.h + 5
+    )  # wider, as detectors frame
     assert fe.apply_candidates(10, [Detection(detector_box, 0.8)]) is None  # confirmed, not re-initialised
     assert fe.stats.confirmations == 1 and fe.stats.decisions == {"confirm": 1}
     after = fe.feed(frames[10])

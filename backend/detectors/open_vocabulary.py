@@ -45,7 +45,9 @@ class OpenVocabularyDetector:
         name: str | None = None,
     ) -> None:
         if kind not in DEFAULT_MODELS:
-            raise ValueError(f"open-vocabulary detector kind must be one of {sorted(DEFAULT_MODELS)}, not {kind!r}")
+            raise ValueError(
+                f"open-vocabulary detector kind must be one of {sorted(DEFAULT_MODELS)}, not {kind!r}"
+            )
         self.kind = kind
         self.model = model.to(device).eval()
         self.processor = processor
@@ -56,18 +58,24 @@ class OpenVocabularyDetector:
         self.name = name or kind
 
     @classmethod
-    def from_pretrained(cls, kind: str, model_id: str = "", device: str = "cpu", score_threshold: float = 0.3) -> OpenVocabularyDetector:
+    def from_pretrained(
+        cls, kind: str, model_id: str = "", device: str = "cpu", score_threshold: float = 0.3
+    ) -> OpenVocabularyDetector:
         """Load weights and processor from the Hugging Face hub id or a local folder (save_pretrained)."""
         from transformers import AutoModelForZeroShotObjectDetection, AutoProcessor
 
         if kind not in DEFAULT_MODELS:
-            raise ValueError(f"open-vocabulary detector kind must be one of {sorted(DEFAULT_MODELS)}, not {kind!r}")
+            raise ValueError(
+                f"open-vocabulary detector kind must be one of {sorted(DEFAULT_MODELS)}, not {kind!r}"
+            )
         source = model_id or DEFAULT_MODELS[kind]
         model = AutoModelForZeroShotObjectDetection.from_pretrained(source)
         processor = AutoProcessor.from_pretrained(source)  # type: ignore[no-untyped-call]
         return cls(kind, model, processor, device, score_threshold, name=f"{kind}:{source}")
 
-    def detect(self, image_bgr: np.ndarray, classes: Sequence[str], frame_id: int | None = None) -> list[Detection]:
+    def detect(
+        self, image_bgr: np.ndarray, classes: Sequence[str], frame_id: int | None = None
+    ) -> list[Detection]:
         import torch
         from PIL import Image
 
@@ -80,16 +88,23 @@ class OpenVocabularyDetector:
         image = Image.fromarray(cv2.cvtColor(image_bgr, cv2.COLOR_BGR2RGB))
         with torch.inference_mode():
             if self.kind == "grounding_dino":
-                inputs = self.processor(images=image, text=" . ".join(names) + " .", return_tensors="pt").to(self.device)
+                inputs = self.processor(images=image, text=" . ".join(names) + " .", return_tensors="pt").to(
+                    self.device
+                )
                 outputs = self.model(**inputs)
                 result = self.processor.post_process_grounded_object_detection(
-                    outputs, inputs["input_ids"], threshold=self.score_threshold, text_threshold=self.text_threshold,
+                    outputs,
+                    inputs["input_ids"],
+                    threshold=self.score_threshold,
+                    text_threshold=self.text_threshold,
                     target_sizes=[(height, width)],
                 )[0]
                 labels = [_label_for(str(text), names) for text in result["text_labels"]]
             else:
                 queries = [[f"a photo of a {name}" for name in names]]
-                inputs = self.processor(text=queries, images=image, padding=True, truncation=True, return_tensors="pt").to(self.device)
+                inputs = self.processor(
+                    text=queries, images=image, padding=True, truncation=True, return_tensors="pt"
+                ).to(self.device)
                 outputs = self.model(**inputs)
                 side = max(height, width)  # OWLv2 pads to a square at the bottom/right
                 result = self.processor.post_process_grounded_object_detection(

@@ -96,5 +96,7 @@ class YoloxDetector:
         for i in keep:
             box = Box.from_xyxy(*(float(v) for v in xyxy[i]))
             if box.w >= 1 and box.h >= 1:
-                detections.append(Detection(box=box, score=float(scores[i]), label=COCO_CLASSES[int(labels[i])]))
+                detections.append(
+                    Detection(box=box, score=float(scores[i]), label=COCO_CLASSES[int(labels[i])])
+                )
         return detections

@@ -71,16 +71,22 @@ async def detect(
             detections = await run_in_threadpool(pipeline.detect, frame, superset, roi, fields.frame_id)
             t_detect = time.perf_counter() - t_detect
     except QueueFullError as exc:
-        raise HTTPException(429, f"too many requests waiting for this vehicle: {exc}", headers={"Retry-After": "1"}) from None
+        raise HTTPException(
+            429, f"too many requests waiting for this vehicle: {exc}", headers={"Retry-After": "1"}
+        ) from None
     except UnknownSupersetError as exc:
         raise HTTPException(422, str(exc)) from None
     # Verification runs outside the detector slot: a slow VLM must not hold the detector, and the
     # verifier pool already bounds how many verifications run at once.
     t_verify = time.perf_counter()
-    candidates = await pipeline.verify_async(frame, detections, fields.prompt, superset, check, t_received + pipeline.deadline_s)
+    candidates = await pipeline.verify_async(
+        frame, detections, fields.prompt, superset, check, t_received + pipeline.deadline_s
+    )
     t_verify = time.perf_counter() - t_verify
     await run_in_threadpool(
-        sessions.remember_candidates, fields.vehicle_id, fields.mission_id,
+        sessions.remember_candidates,
+        fields.vehicle_id,
+        fields.mission_id,
         [(c.detection.candidate_id, c.appearance) for c in candidates],
     )
     return DetectResponse(

@@ -21,7 +21,11 @@ router = APIRouter(prefix="/v1/missions/{mission_id}", tags=["sessions"])
 
 @router.post("/rejections", response_model=Rejection, status_code=201, responses=ERROR_RESPONSES)
 async def add_rejection(
-    mission_id: MissionId, body: RejectionIn, principal: Caller, settings: Settings, sessions: Sessions,
+    mission_id: MissionId,
+    body: RejectionIn,
+    principal: Caller,
+    settings: Settings,
+    sessions: Sessions,
     scheduler: Scheduler,
 ) -> Rejection:
     """Remember a rejected candidate: later look-alikes in this vehicle's mission are answered "no".
@@ -35,7 +39,9 @@ async def add_rejection(
         async with scheduler.slot(body.vehicle_id):
             return await run_in_threadpool(sessions.add_rejection, mission_id, body)
     except QueueFullError as exc:
-        raise HTTPException(429, f"too many requests waiting for this vehicle: {exc}", headers={"Retry-After": "1"}) from None
+        raise HTTPException(
+            429, f"too many requests waiting for this vehicle: {exc}", headers={"Retry-After": "1"}
+        ) from None
     except UnknownCandidateError as exc:
         raise HTTPException(404, str(exc)) from None
 

@@ -57,7 +57,9 @@ router = APIRouter(prefix="/supervisor", tags=["supervisor"])
 
 @router.get("", include_in_schema=False)
 def page() -> FileResponse:
-    return FileResponse(STATIC_DIR / "supervisor.html", media_type="text/html; charset=utf-8", headers=_NO_STORE)
+    return FileResponse(
+        STATIC_DIR / "supervisor.html", media_type="text/html; charset=utf-8", headers=_NO_STORE
+    )
 
 
 @router.get("/static/{name}", include_in_schema=False)
@@ -110,7 +112,9 @@ def crop(vehicle_id: VehicleId, candidate_id: CandidateId, sessions: Sessions) -
     current = sessions.status(vehicle_id)
     awaiting = current.awaiting if current else None
     if awaiting is None or awaiting.candidate_id != candidate_id or not awaiting.crop_jpeg_b64:
-        raise HTTPException(status.HTTP_404_NOT_FOUND, f"no crop for candidate {candidate_id!r} of {vehicle_id!r}")
+        raise HTTPException(
+            status.HTTP_404_NOT_FOUND, f"no crop for candidate {candidate_id!r} of {vehicle_id!r}"
+        )
     try:
         data = b64_image_bytes(awaiting.crop_jpeg_b64)
     except ImageError as exc:

@@ -64,8 +64,10 @@ def decide(
     sessions: Sessions,
     require_awaiting: Annotated[
         bool,
-        Query(description="only if the vehicle awaits a decision on this very candidate now: 404 when it has "
-              "not reported, 409 when it waits on another or none (the supervisor page sets it)"),
+        Query(
+            description="only if the vehicle awaits a decision on this very candidate now: 404 when it has "
+            "not reported, 409 when it waits on another or none (the supervisor page sets it)"
+        ),
     ] = False,
 ) -> Decision:
     """The supervisor confirms or rejects a candidate; a reject also enters the rejection memory.

@@ -32,21 +32,56 @@ COLOUR_WORDS = {
     "blue": "blue", "navy": "blue", "turquoise": "blue", "cyan": "blue", "purple": "purple", "violet": "purple",
     "pink": "pink", "brown": "brown",
 }  # fmt: skip
-UPPER = {"shirt", "tshirt", "t", "top", "jacket", "coat", "sweater", "hoodie", "jumper", "vest", "blouse",
-         "jersey", "sweatshirt", "anorak", "fleece", "raincoat", "parka", "tank"}
+UPPER = {
+    "shirt",
+    "tshirt",
+    "t",
+    "top",
+    "jacket",
+    "coat",
+    "sweater",
+    "hoodie",
+    "jumper",
+    "vest",
+    "blouse",
+    "jersey",
+    "sweatshirt",
+    "anorak",
+    "fleece",
+    "raincoat",
+    "parka",
+    "tank",
+}
 LOWER = {"pants", "trousers", "jeans", "shorts", "skirt", "leggings"}
 HEAD = {"cap", "hat", "helmet", "beanie", "hood", "hair"}
 # Region of the box per garment, as fractions (top, bottom, left, right); the head and feet are left out.
-REGIONS = {"head": (0.0, 0.18, 0.25, 0.75), "upper": (0.18, 0.5, 0.2, 0.8), "lower": (0.55, 0.9, 0.25, 0.75), "whole": (0.1, 0.9, 0.15, 0.85)}
+REGIONS = {
+    "head": (0.0, 0.18, 0.25, 0.75),
+    "upper": (0.18, 0.5, 0.2, 0.8),
+    "lower": (0.55, 0.9, 0.25, 0.75),
+    "whole": (0.1, 0.9, 0.15, 0.85),
+}
 
 
 # Hue ranges (OpenCV units, 0-179) of the chromatic colours; red wraps around 0.
-HUES = {"red": (-15, 8), "orange": (8, 20), "brown": (5, 22), "yellow": (20, 34), "green": (34, 85),
-        "blue": (85, 130), "purple": (130, 150), "pink": (150, 170)}
+HUES = {
+    "red": (-15, 8),
+    "orange": (8, 20),
+    "brown": (5, 22),
+    "yellow": (20, 34),
+    "green": (34, 85),
+    "blue": (85, 130),
+    "purple": (130, 150),
+    "pink": (150, 170),
+}
 
 
 def _hue_in(h: np.ndarray, low: float, high: float) -> np.ndarray:
-    return ((h >= low) & (h < high)) | ((h >= low + 180) & (h < high + 180)) | ((h >= low - 180) & (h < high - 180))
+    return (
+        ((h >= low) & (h < high))
+        | ((h >= low + 180) & (h < high + 180))
+        | ((h >= low - 180) & (h < high - 180))
+    )
 
 
 def colour_masks(hsv: np.ndarray, hue_slack: float = 0.0) -> dict[str, np.ndarray]:
@@ -79,7 +114,7 @@ UPRIGHT_MIN_RATIO = 1.6
 
 
 def posture_claim(prompt: str, superset: str = "person") -> str | None:
-    """"lying", "sitting" or "upright" when the description of a person says so, else None."""
+    """ "lying", "sitting" or "upright" when the description of a person says so, else None."""
     if superset != "person":
         return None
     words = set(re.findall(r"[a-z]+", prompt.lower()))
@@ -97,9 +132,21 @@ def posture_verdict(claim: str, target_box: tuple[float, float, float, float]) -
     if claim == "sitting":
         return Verdict.UNCERTAIN, f"box height/width {ratio:.1f} cannot tell sitting"
     if claim == "lying":
-        verdict = Verdict.YES if ratio <= LYING_MAX_RATIO else Verdict.NO if ratio >= UPRIGHT_MIN_RATIO else Verdict.UNCERTAIN
+        verdict = (
+            Verdict.YES
+            if ratio <= LYING_MAX_RATIO
+            else Verdict.NO
+            if ratio >= UPRIGHT_MIN_RATIO
+            else Verdict.UNCERTAIN
+        )
     else:
-        verdict = Verdict.YES if ratio >= UPRIGHT_MIN_RATIO else Verdict.NO if ratio <= LYING_MAX_RATIO else Verdict.UNCERTAIN
+        verdict = (
+            Verdict.YES
+            if ratio >= UPRIGHT_MIN_RATIO
+            else Verdict.NO
+            if ratio <= LYING_MAX_RATIO
+            else Verdict.UNCERTAIN
+        )
     return verdict, f"box height/width {ratio:.1f} for {claim}"
 
 
@@ -152,26 +199,41 @@ def region_fractions(
 class AttributeVerifier:
     name = "local:colours"
 
-    def __init__(self, present_fraction: float = 0.12, absent_fraction: float = 0.03, hue_slack: float = 8.0) -> None:
+    def __init__(
+        self, present_fraction: float = 0.12, absent_fraction: float = 0.03, hue_slack: float = 8.0
+    ) -> None:
         self.present_fraction = present_fraction
         self.absent_fraction = absent_fraction
         self.hue_slack = hue_slack
 
-    def verify(self, crop_bgr: np.ndarray, target_box: tuple[float, float, float, float], prompt: str,
-               superset: str, timeout_s: float = 1.0) -> VerifierAnswer:
+    def verify(
+        self,
+        crop_bgr: np.ndarray,
+        target_box: tuple[float, float, float, float],
+        prompt: str,
+        superset: str,
+        timeout_s: float = 1.0,
+    ) -> VerifierAnswer:
         claims = colour_claims(prompt, superset)
         posture = posture_claim(prompt, superset)
         if not claims and posture is None:
-            return VerifierAnswer(Verdict.UNCERTAIN, "no colour or posture named that can be judged from pixels", self.name)
+            return VerifierAnswer(
+                Verdict.UNCERTAIN, "no colour or posture named that can be judged from pixels", self.name
+            )
         notes, verdicts = [], []
         if posture is not None:
             verdict, note = posture_verdict(posture, target_box)
             verdicts.append(verdict)
             notes.append(note)
         for claim in claims:
-            share = region_fractions(crop_bgr, target_box, claim.region, self.hue_slack).get(claim.colour, 0.0)
-            notes.append(f"{claim.colour} {share:.0%} of {claim.region} body" if superset == "person"
-                         else f"{claim.colour} {share:.0%} of the box")
+            share = region_fractions(crop_bgr, target_box, claim.region, self.hue_slack).get(
+                claim.colour, 0.0
+            )
+            notes.append(
+                f"{claim.colour} {share:.0%} of {claim.region} body"
+                if superset == "person"
+                else f"{claim.colour} {share:.0%} of the box"
+            )
             if share >= self.present_fraction:
                 verdicts.append(Verdict.YES)
             elif share < self.absent_fraction:

@@ -21,12 +21,20 @@ class CascadeVerifier:
         self.slow = slow
         self.name = f"cascade:{fast.name}+{slow.name}"
 
-    def verify(self, crop_bgr: np.ndarray, target_box: tuple[float, float, float, float], prompt: str,
-               superset: str, timeout_s: float) -> VerifierAnswer:
+    def verify(
+        self,
+        crop_bgr: np.ndarray,
+        target_box: tuple[float, float, float, float],
+        prompt: str,
+        superset: str,
+        timeout_s: float,
+    ) -> VerifierAnswer:
         start = time.monotonic()
         first = self.fast.verify(crop_bgr, target_box, prompt, superset, timeout_s)
         if first.verdict is Verdict.NO:
             return first
-        second = self.slow.verify(crop_bgr, target_box, prompt, superset, max(0.001, timeout_s - (time.monotonic() - start)))
+        second = self.slow.verify(
+            crop_bgr, target_box, prompt, superset, max(0.001, timeout_s - (time.monotonic() - start))
+        )
         justification = f"{second.justification} [fast check: {first.justification}]".strip()
         return VerifierAnswer(second.verdict, justification, second.verifier)

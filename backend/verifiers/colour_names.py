@@ -40,7 +40,9 @@ def white_gains(crop_bgr: np.ndarray) -> np.ndarray:
     around the person (pavement, foam, road marking) are the reference. The same gain on every channel
     keeps hues: balancing each channel on its own turns a green shirt yellow on grass.
     """
-    linear = np.asarray(colour.cctf_decoding(crop_bgr.reshape(-1, 3)[:, ::-1].astype(np.float64) / 255.0, function="sRGB"))
+    linear = np.asarray(
+        colour.cctf_decoding(crop_bgr.reshape(-1, 3)[:, ::-1].astype(np.float64) / 255.0, function="sRGB")
+    )
     white = float(np.percentile(linear.max(axis=1), WHITE_PERCENTILE))
     return np.full(3, np.clip(WHITE_LEVEL / max(white, 1e-6), 1.0 / MAX_GAIN, MAX_GAIN))
 
@@ -128,7 +130,11 @@ def _prototypes(per_name: dict[str, list[np.ndarray]]) -> dict[str, list[list[fl
     table = {}
     for name, rows in sorted(per_name.items()):
         ordered = sorted(rows, key=lambda v: float(v[0]))
-        groups = [np.median(g, axis=0) for g in np.array_split(np.array(ordered), min(LEVELS, len(ordered))) if len(g)]
+        groups = [
+            np.median(g, axis=0)
+            for g in np.array_split(np.array(ordered), min(LEVELS, len(ordered)))
+            if len(g)
+        ]
         kept = [[round(float(v), 2) for v in g] for g in groups if _keeps_its_hue(name, g)]
         if kept:
             table[name] = kept

@@ -20,7 +20,19 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-COLOUR_NAMES = ("black", "white", "gray", "red", "orange", "yellow", "green", "blue", "purple", "pink", "brown")
+COLOUR_NAMES = (
+    "black",
+    "white",
+    "gray",
+    "red",
+    "orange",
+    "yellow",
+    "green",
+    "blue",
+    "purple",
+    "pink",
+    "brown",
+)
 POSTURES = ("standing", "sitting", "lying")
 
 
@@ -42,8 +54,19 @@ class LabelledCrop:
 
 def load_crops(path: Path) -> list[LabelledCrop]:
     rows = json.loads(path.read_text())
-    return [LabelledCrop(r["sequence"], r["frame"], tuple(r["box"]), r["source"], tuple(r.get("upper", ())),
-                         tuple(r.get("lower", ())), r.get("posture", ""), r.get("note", "")) for r in rows]
+    return [
+        LabelledCrop(
+            r["sequence"],
+            r["frame"],
+            tuple(r["box"]),
+            r["source"],
+            tuple(r.get("upper", ())),
+            tuple(r.get("lower", ())),
+            r.get("posture", ""),
+            r.get("note", ""),
+        )
+        for r in rows
+    ]
 
 
 def save_crops(crops: list[LabelledCrop], path: Path) -> None:
@@ -76,7 +99,9 @@ def propose(sequences_dir: Path, models_dir: Path, step: int, min_height: int = 
     detector = YoloxDetector(models_dir / "yolox_nano" / "yolox_nano.onnx", threads=1)
     crops: list[LabelledCrop] = []
     for seq in sorted(p for p in sequences_dir.iterdir() if (p / "groundtruth.txt").exists()):
-        gt = [tuple(float(v) for v in line.split(",")) for line in (seq / "groundtruth.txt").read_text().split()]
+        gt = [
+            tuple(float(v) for v in line.split(",")) for line in (seq / "groundtruth.txt").read_text().split()
+        ]
         frames = sorted((seq / "frames").glob("*.jpg"))
         for index in range(1, len(frames) + 1, step):
             image = np.asarray(cv2.imread(str(frames[index - 1])))
@@ -86,17 +111,22 @@ def propose(sequences_dir: Path, models_dir: Path, step: int, min_height: int = 
             is_person_target = any(_iou(target, (b.x, b.y, b.w, b.h)) >= 0.3 for b in found)
             if not is_person_target:
                 boxes = []  # the target is no person (the bag) or YOLOX cannot see one here
-            others: list[tuple[float, ...]] = [(b.x, b.y, b.w, b.h) for b in found if _iou(target, (b.x, b.y, b.w, b.h)) < 0.3]
+            others: list[tuple[float, ...]] = [
+                (b.x, b.y, b.w, b.h) for b in found if _iou(target, (b.x, b.y, b.w, b.h)) < 0.3
+            ]
             for n, box in enumerate(boxes + others):
                 if box[3] < min_height:
                     continue
                 rounded = tuple(int(round(v)) for v in box)
-                crops.append(LabelledCrop(seq.name, index, rounded, "target" if (boxes and n == 0) else "yolox"))  # type: ignore[arg-type]
+                crops.append(
+                    LabelledCrop(seq.name, index, rounded, "target" if (boxes and n == 0) else "yolox")
+                )  # type: ignore[arg-type]
     return crops
 
 
-def contact_sheet(crops: list[LabelledCrop], sequences_dir: Path, first_number: int, cell: int = 160,
-                  columns: int = 8) -> np.ndarray:
+def contact_sheet(
+    crops: list[LabelledCrop], sequences_dir: Path, first_number: int, cell: int = 160, columns: int = 8
+) -> np.ndarray:
     """A grid of numbered crops (the box outlined, with some context), numbers from `first_number`."""
     rows = (len(crops) + columns - 1) // columns
     sheet = np.full((rows * (cell + 18), columns * cell, 3), 255, np.uint8)
@@ -113,17 +143,29 @@ def contact_sheet(crops: list[LabelledCrop], sequences_dir: Path, first_number: 
         cv2.rectangle(view, p1, p2, (0, 255, 255), 1)
         r, c = divmod(i, columns)
         sheet[r * (cell + 18) + 18 : r * (cell + 18) + 18 + cell, c * cell : (c + 1) * cell] = view
-        cv2.putText(sheet, f"{first_number + i} {crop.sequence[:10]} {h}px", (c * cell + 2, r * (cell + 18) + 13),
-                    cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1)
+        cv2.putText(
+            sheet,
+            f"{first_number + i} {crop.sequence[:10]} {h}px",
+            (c * cell + 2, r * (cell + 18) + 13),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.4,
+            (0, 0, 0),
+            1,
+        )
     return sheet
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m backend.verifiers.crop_set", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="python -m backend.verifiers.crop_set",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     sub = parser.add_subparsers(dest="command", required=True)
     prop = sub.add_parser("propose", help="list target and YOLOX person boxes (unlabelled) as JSON")
-    prop.add_argument("--sequences", type=Path, required=True, help="folder of sequences (frames/, groundtruth.txt)")
+    prop.add_argument(
+        "--sequences", type=Path, required=True, help="folder of sequences (frames/, groundtruth.txt)"
+    )
     prop.add_argument("--models", type=Path, required=True, help="folder with yolox_nano/yolox_nano.onnx")
     prop.add_argument("--step", type=int, default=10, help="every STEP-th frame (default 10)")
     prop.add_argument("--out", type=Path, required=True)

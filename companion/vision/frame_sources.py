@@ -193,7 +193,9 @@ class LiveSource:
             self.stats.failures += 1
             self.stats.connected = False
             self.stats.last_error = message
-        log.warning("camera %s: %s; retrying every %.1f s", self.description, message, self._reconnect_interval_s)
+        log.warning(
+            "camera %s: %s; retrying every %.1f s", self.description, message, self._reconnect_interval_s
+        )
 
     def _run(self, generation: int) -> None:
         while not self._stop.is_set() and generation == self._generation:

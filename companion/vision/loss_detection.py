@@ -115,7 +115,9 @@ class LossDetector:
         self._reference: Box | None = None  # the tracker's first box since the last reset
         self._hist: np.ndarray | None = None
 
-    def reset(self, frame: np.ndarray, box: Box, keep_template: bool = False, current: Box | None = None) -> None:
+    def reset(
+        self, frame: np.ndarray, box: Box, keep_template: bool = False, current: Box | None = None
+    ) -> None:
         """Start a track on `box` in `frame`; `keep_template` keeps the appearance model (re-initialisation).
         `current` is where a fast-forwarded tracker now is (the jump check starts from there)."""
         if not keep_template or self._template is None:

@@ -125,7 +125,9 @@ class OpenCVTracker:
         self._cv = self._make()
         clamped = box.clamped(frame.shape[1], frame.shape[0])
         if not clamped.is_valid():
-            raise ValueError(f"{self.name}: box {box} lies outside the {frame.shape[1]}x{frame.shape[0]} frame")
+            raise ValueError(
+                f"{self.name}: box {box} lies outside the {frame.shape[1]}x{frame.shape[0]} frame"
+            )
         rect = tuple(int(round(v)) for v in clamped.xywh())
         try:
             result = self._cv.init(frame, rect)

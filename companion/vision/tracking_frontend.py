@@ -217,15 +217,21 @@ class TrackingFrontend:
             prev = self.last_trusted_box
             chosen = select_by_c_box(prev, detections)
             keyframe = self.ring.get(keyframe_id)
-            lost_for = max(0.0, keyframe.capture_time - self.last_trusted_time) if keyframe is not None else 0.0
+            lost_for = (
+                max(0.0, keyframe.capture_time - self.last_trusted_time) if keyframe is not None else 0.0
+            )
             # The longer the target has been lost, the farther it may have gone: the gate grows by its
             # base size every second since the last trusted box.
             gate = self.max_c_box_sizes * (1.0 + lost_for) * (prev.w + prev.h)
             if chosen is not None and c_box(prev, chosen.box) > gate:
                 # Nothing near where the target was: re-initialising on it would follow whoever else
                 # is in view (a detector's "person" is not the described person); stay lost instead.
-                log.info("%snearest candidate is %.0f px (C_box) from the last trusted box, gate %.0f: "
-                         "not used", self.label, c_box(prev, chosen.box), gate)
+                log.info(
+                    "%snearest candidate is %.0f px (C_box) from the last trusted box, gate %.0f: not used",
+                    self.label,
+                    c_box(prev, chosen.box),
+                    gate,
+                )
                 self.stats.rejected_candidates += 1
                 return None
         if chosen is None:
@@ -267,8 +273,12 @@ class TrackingFrontend:
                 self._verdicts_used = on_track[0] is not Verdict.NO
                 if not self._verdicts_used:
                     self.stats.verdicts_ignored += 1
-                    log.info("%sthe verifier said no to the tracked target at frame %d: its verdicts are not "
-                             "used for this track", self.label, keyframe_id)
+                    log.info(
+                        "%sthe verifier said no to the tracked target at frame %d: its verdicts are not "
+                        "used for this track",
+                        self.label,
+                        keyframe_id,
+                    )
         if not self._verdicts_used:
             verdicts = [Verdict.UNCERTAIN] * len(detections)
         verdicts = [Verdict.NO if i in refused else v for i, v in enumerate(verdicts)]
@@ -293,8 +303,13 @@ class TrackingFrontend:
             if lost or self._lost_reason:
                 self._withdraw_loss()
         elif decision.action is ReinitAction.REINIT and decision.index is not None:
-            log.info("%sre-initialising on candidate %d at frame %d: %s",
-                     self.label, decision.index, keyframe_id, decision.reason)
+            log.info(
+                "%sre-initialising on candidate %d at frame %d: %s",
+                self.label,
+                decision.index,
+                keyframe_id,
+                decision.reason,
+            )
             if not self._begin(keyframe_id, boxes[decision.index], keep_template=False):
                 return None
         return decision
@@ -457,7 +472,9 @@ class TrackingFrontend:
             self.stats.loss_events += 1
             return TrackResult(frame.frame_id, frame.capture_time, None, step.score, False, self._lost_reason)
         if keyframe is not None:
-            self.loss.reset(keyframe.image, catch_up.keyframe_box, self._catch_up_keeps_template, current=step.box)
+            self.loss.reset(
+                keyframe.image, catch_up.keyframe_box, self._catch_up_keeps_template, current=step.box
+            )
         else:
             self.loss.reset(frame.image, step.box, self._catch_up_keeps_template)
         # Judge the caught-up box like any other step (score, left frame, appearance ...).
