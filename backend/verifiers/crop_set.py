@@ -117,10 +117,9 @@ def propose(sequences_dir: Path, models_dir: Path, step: int, min_height: int = 
             for n, box in enumerate(boxes + others):
                 if box[3] < min_height:
                     continue
-                rounded = tuple(int(round(v)) for v in box)
-                crops.append(
-                    LabelledCrop(seq.name, index, rounded, "target" if (boxes and n == 0) else "yolox")
-                )  # type: ignore[arg-type]
+                x, y, w, h = (int(round(v)) for v in box)
+                role = "target" if (boxes and n == 0) else "yolox"
+                crops.append(LabelledCrop(seq.name, index, (x, y, w, h), role))
     return crops
 
 
