@@ -33,8 +33,11 @@ def add_command_modules(subparsers: SubParsers, module_names: Iterable[str], plu
     for module_name in module_names:
         importlib.import_module(module_name).add_parser(subparsers)
     if plugin_group:
-        for entry in sorted(importlib.metadata.entry_points(group=plugin_group), key=lambda e: e.name):
-            entry.load().add_parser(subparsers)
+        # One module per name: a package seen twice on the path (an editable install beside a copy) declares
+        # the same entry points twice.
+        modules = {entry.name: entry.value for entry in importlib.metadata.entry_points(group=plugin_group)}
+        for name in sorted(modules):
+            importlib.import_module(modules[name]).add_parser(subparsers)
 
 
 def run(build_parser: Callable[[], argparse.ArgumentParser], argv: Sequence[str] | None) -> int:
