@@ -155,7 +155,9 @@ def test_garbage_on_the_link_crashes_nothing() -> None:
         assert len(sim.setpoints) - before >= 8  # still streaming
         stamp = link.telemetry().time_s
         assert wait_for(lambda: link.telemetry().time_s > stamp, 2.0)  # still decoding telemetry
-        assert link.endpoint.conn.refused_datagrams >= 1000  # not the autopilot: dropped before parsing
+        # Not the autopilot: dropped before parsing. Fewer than the 1000 sent may arrive: the kernel drops what
+        # overflows the socket's buffer while the reader is busy, and that is no datagram the link parsed either.
+        assert link.endpoint.conn.refused_datagrams >= 1
         assert sim._links["companion"].bad_data > 0  # the autopilot parsed the junk and went on too
         assert all(t.is_alive() for t in link._threads)
 
