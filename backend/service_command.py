@@ -9,7 +9,6 @@ $STATE_DIRECTORY (/var/lib/cloudtrack).
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 from cloudtrack import service_install
 
@@ -27,32 +26,11 @@ then:
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    parser = subparsers.add_parser(
-        "service",
+    install = service_install.add_install_parser(
+        subparsers,
         help="install the back-end's systemd unit and an example configuration",
         description="Run the back-end under systemd (Type=notify, watchdog, restart on failure).",
-        epilog=EXAMPLES,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        examples=EXAMPLES,
+        config_name="backend.toml",
     )
-    actions = parser.add_subparsers(dest="action", required=True, metavar="ACTION")
-    install = actions.add_parser(
-        "install",
-        help="write the unit and an example configuration (or print them with --print)",
-        epilog=EXAMPLES,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    install.add_argument("--print", dest="print_only", action="store_true", help="print, write nothing")
-    install.add_argument(
-        "--unit-dir",
-        type=Path,
-        default=Path("/etc/systemd/system"),
-        help="where the unit goes (default /etc/systemd/system)",
-    )
-    install.add_argument(
-        "--config-dir",
-        type=Path,
-        default=Path("/etc/cloudtrack"),
-        help="where backend.toml goes (default /etc/cloudtrack)",
-    )
-    install.add_argument("--force", action="store_true", help="overwrite an existing configuration file")
-    install.set_defaults(func=service_install.install, backend=True)  # one installer for both units
+    install.set_defaults(backend=True)  # one installer for both units

@@ -105,3 +105,49 @@ def install(args: argparse.Namespace) -> int:
     unit = files.unit_path.stem
     print(f"next: systemctl daemon-reload && systemctl enable --now {unit}  (see docs/operations.md)")
     return 0
+
+
+def add_install_parser(
+    subparsers: argparse._SubParsersAction,  # type: ignore[type-arg]
+    *,
+    help: str,
+    description: str,
+    examples: str,
+    config_name: str,
+) -> argparse.ArgumentParser:
+    """`service install` for one process's command line: the flags both processes share; the caller
+    adds its own and sets defaults on the returned parser."""
+    parser = subparsers.add_parser(
+        "service",
+        help=help,
+        description=description,
+        epilog=examples,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    actions = parser.add_subparsers(dest="action", required=True, metavar="ACTION")
+    parser_install: argparse.ArgumentParser = actions.add_parser(
+        "install",
+        help="write the unit and an example configuration (or print them with --print)",
+        epilog=examples,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser_install.add_argument(
+        "--print", dest="print_only", action="store_true", help="print, write nothing"
+    )
+    parser_install.add_argument(
+        "--unit-dir",
+        type=Path,
+        default=Path("/etc/systemd/system"),
+        help="where the unit goes (default /etc/systemd/system)",
+    )
+    parser_install.add_argument(
+        "--config-dir",
+        type=Path,
+        default=Path("/etc/cloudtrack"),
+        help=f"where {config_name} goes (default /etc/cloudtrack)",
+    )
+    parser_install.add_argument(
+        "--force", action="store_true", help="overwrite an existing configuration file"
+    )
+    parser_install.set_defaults(func=install)
+    return parser_install
