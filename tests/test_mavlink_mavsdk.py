@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import os
 import time
+from pathlib import Path
+from typing import Any
 
 import pytest
+from pymavlink.dialects.v20 import common as mavlink
 
 from behaviors.setpoint import Setpoint
 from companion.config import MavlinkConfig, SafetyConfig
@@ -14,14 +18,13 @@ from sitl.autopilot import AutopilotOptions, SimulatedAutopilot
 from tests.mavlink_harness import MainLoop, wait_for
 
 
-def _px4_with_mavsdk() -> tuple[SimulatedAutopilot, VehicleLink]:
+def _px4_with_mavsdk(use_mavsdk: bool = True) -> tuple[SimulatedAutopilot, VehicleLink]:
     sim = SimulatedAutopilot(AutopilotOptions(personality="px4"), {"companion": "udpin:127.0.0.1:0"})
     sim.start()
-    config = MavlinkConfig(connection=f"udpout:127.0.0.1:{sim.link_port('companion')}", use_mavsdk=True)
+    config = MavlinkConfig(connection=f"udpout:127.0.0.1:{sim.link_port('companion')}", use_mavsdk=use_mavsdk)
     return sim, VehicleLink(config, SafetyConfig(loop_stall_s=0.3))
 
 
-@pytest.mark.filterwarnings("ignore::DeprecationWarning")  # inside mavsdk's own server start-up
 @pytest.mark.slow
 def test_mavsdk_offboard_is_stopped_when_the_main_loop_stalls() -> None:
     sim, link = _px4_with_mavsdk()
@@ -34,8 +37,8 @@ def test_mavsdk_offboard_is_stopped_when_the_main_loop_stalls() -> None:
             assert wait_for(lambda: sim.mode == "OFFBOARD", 10.0)
             assert wait_for(lambda: sim.snapshot().vn > 1.0, 5.0)
             assert sim.setpoints[-1].frame == 8 and sim.setpoints[-1].vx == 1.5
-            # mavsdk_server is the vehicle's onboard component: its ground-station HEARTBEAT (component 190)
-            # never reaches the autopilot; only the companion's own identities do
+            # MAVSDK is the vehicle's onboard component and its own HEARTBEATs never reach the autopilot;
+            # only the companion's own identities do
             assert {c for s, c in sim._links["companion"].seen if s == 1} <= {191, 100}
             assert (
                 link._relay is not None and link._relay.heartbeats_dropped > 0 and link._relay.forwarded > 0
@@ -52,7 +55,6 @@ def test_mavsdk_offboard_is_stopped_when_the_main_loop_stalls() -> None:
         sim.close()
 
 
-@pytest.mark.filterwarnings("ignore::DeprecationWarning")
 def test_mavsdk_stop_reaches_hold_when_the_pilot_selected_offboard() -> None:
     sim, link = _px4_with_mavsdk()
     try:
@@ -68,3 +70,68 @@ def test_mavsdk_stop_reaches_hold_when_the_pilot_selected_offboard() -> None:
     finally:
         link.close()
         sim.close()
+
+
+def _tcp_listeners() -> set[str]:
+    """Inodes of TCP sockets in LISTEN state (on any address), machine-wide."""
+    inodes = set()
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        for line in Path(table).read_text().splitlines()[1:]:
+            fields = line.split()
+            if fields[3] == "0A":  # TCP_LISTEN
+                inodes.add(fields[9])
+    return inodes
+
+
+def _own_sockets() -> set[str]:
+    inodes = set()
+    for fd in os.listdir("/proc/self/fd"):
+        try:
+            target = os.readlink(f"/proc/self/fd/{fd}")
+        except OSError:
+            continue
+        if target.startswith("socket:["):
+            inodes.add(target[8:-1])
+    return inodes
+
+
+def _children() -> set[str]:
+    pids: set[str] = set()
+    for task in os.listdir("/proc/self/task"):
+        pids |= set(Path(f"/proc/self/task/{task}/children").read_text().split())
+    return pids
+
+
+def test_mavsdk_listens_on_nothing_and_is_the_vehicles_onboard_component() -> None:
+    """The issue asked for mavsdk_server's gRPC API on loopback only; MAVSDK 4 in-process has no server at all."""
+    sim, link = _px4_with_mavsdk()
+    plain_sim, plain_link = _px4_with_mavsdk(use_mavsdk=False)
+    heartbeats: list[Any] = []
+    try:
+        before = _own_sockets()
+        plain_link.start()
+        opened_without_mavsdk = len(_own_sockets() - before)
+        before = _own_sockets()
+        children_before = _children()
+        link.start()  # returns once MAVSDK has found the autopilot through the companion's link
+        assert link._mavsdk is not None and link._relay is not None
+        opened_with_mavsdk = _own_sockets() - before
+        assert len(opened_with_mavsdk) == opened_without_mavsdk  # the companion's link socket, nothing more
+        assert not opened_with_mavsdk & _tcp_listeners()
+        assert _children() == children_before  # no mavsdk_server process
+
+        parser = mavlink.MAVLink(None)
+        link._mavsdk._mavsdk.subscribe_raw_bytes_to_be_sent(
+            lambda data: heartbeats.extend(
+                m for m in parser.parse_buffer(data) or [] if m.get_type() == "HEARTBEAT"
+            )
+        )
+        assert wait_for(lambda: len(heartbeats) >= 1 and link._relay.heartbeats_dropped >= 1, 3.0)
+        own = heartbeats[0]
+        assert (own.get_srcSystem(), own.get_srcComponent()) == (1, 191)
+        assert own.type == mavlink.MAV_TYPE_ONBOARD_CONTROLLER != mavlink.MAV_TYPE_GCS
+        # and the autopilot never hears it: the only heartbeats from system 1 are the companion's
+        assert {c for s, c in sim._links["companion"].seen if s == 1} <= {191, 100}
+    finally:
+        for closing in (link, sim, plain_link, plain_sim):
+            closing.close()

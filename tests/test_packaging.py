@@ -56,4 +56,5 @@ def test_excluded_opencv_release_is_excluded() -> None:
     opencv = next(r for r in requires if r.name == "opencv-contrib-python-headless")
     assert "4.12.0.88" not in opencv.specifier and "4.11.0.86" in opencv.specifier
     mavsdk = next(r for r in requires if r.name == "mavsdk")
-    assert "3.17.4" in mavsdk.specifier and "4.1.0" not in mavsdk.specifier
+    # 4.x is the in-process native binding; 3.x started mavsdk_server, a gRPC API on 0.0.0.0
+    assert "4.1.0" in mavsdk.specifier and "3.17.4" not in mavsdk.specifier

@@ -4,70 +4,55 @@ MAVSDK's offboard plugin re-sends the last setpoint at 20 Hz by itself, even whe
 set it has hung: a known fly-away cause. So this adapter is never the one deciding to keep flying:
 `VehicleLink` keeps the mode policy and the watchdogs, and when a watchdog trips (the stalled main loop
 above all) it calls `stop()` from the watchdog thread, which sets zero velocity and then stops offboard
-(MAVSDK switches PX4 to HOLD). MAVSDK runs in its own asyncio thread, so none of this waits for the main
-loop. The wheel ships `mavsdk_server`; `System.connect` starts it on a free gRPC port, as the vehicle's
-system id and component 191, with its MAVLink carried over the companion's link by `MavsdkRelay` (which
-keeps its ground-station HEARTBEAT away from the autopilot). Its gRPC API listens on every interface: the
-3.x binary has no option to bind it to loopback (docs/safety.md, threat model). Install with
-`pip install 'cloudtrack[mavsdk]'`.
+(MAVSDK switches PX4 to HOLD).
+
+MAVSDK 4 is the native library in this process (no `mavsdk_server`, no gRPC API, no port of its own). It
+runs as the vehicle's onboard component (the vehicle's system id, component 191, MAV_TYPE_ONBOARD_CONTROLLER)
+on a `raw://` connection: its bytes go through `MavsdkRelay` and the companion's own link, so it opens no
+socket and nothing but the autopilot can reach it. Install with `pip install 'cloudtrack[mavsdk]'`.
 """
 
 from __future__ import annotations
 
-import asyncio
 import logging
-import socket
 import threading
-import warnings
-from collections.abc import Coroutine
-from concurrent.futures import Future
 from typing import Any
 
 from behaviors.setpoint import Setpoint
+from companion.mavlink.mavsdk_relay import MavsdkRelay
 
 log = logging.getLogger(__name__)
 
 CONNECT_TIMEOUT_S = 15.0
-CALL_TIMEOUT_S = 3.0
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 class MavsdkOffboard:
-    """Thread-safe wrapper: blocking calls that run MAVSDK coroutines on a private event loop."""
+    """Thread-safe wrapper around MAVSDK's blocking offboard calls."""
 
-    def __init__(self, address: str, system_id: int = 1, component_id: int = 191):
-        self._address = address  # MAVSDK's URL form (the relay's udpout://127.0.0.1:PORT)
+    def __init__(self, relay: MavsdkRelay, system_id: int = 1, component_id: int = 191):
+        self._relay = relay
         self._ids = (system_id, component_id)
-        self._loop = asyncio.new_event_loop()
-        self._thread = threading.Thread(target=self._loop.run_forever, name="mavsdk", daemon=True)
-        self._drone: Any = None
+        self._mavsdk: Any = None
+        self._offboard: Any = None
         self._active = False
         self._lock = threading.Lock()
 
     def start(self) -> None:
-        """Start mavsdk_server and wait until it sees the autopilot; TimeoutError if it does not."""
-        self._thread.start()
-        self._call(self._connect(), CONNECT_TIMEOUT_S)
+        """Start MAVSDK on the relay and wait until it sees the autopilot; TimeoutError if it does not."""
+        from mavsdk import ComponentType, Configuration, Mavsdk
+        from mavsdk.plugins.offboard import Offboard
 
-    async def _connect(self) -> None:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", FutureWarning)  # the 3.x gRPC wrapper announces its rename
-            from mavsdk import System
-
-        self._drone = System(port=_free_port(), sysid=self._ids[0], compid=self._ids[1])
-        await self._drone.connect(system_address=self._address)
-        async for state in self._drone.core.connection_state():
-            if state.is_connected:
-                return
-
-    def _call(self, coro: Coroutine[Any, Any, Any], timeout: float = CALL_TIMEOUT_S) -> Any:
-        future: Future[Any] = asyncio.run_coroutine_threadsafe(coro, self._loop)
-        return future.result(timeout)
+        config = Configuration.create_with_component_type(ComponentType.COMPANION_COMPUTER)
+        config.system_id, config.component_id = self._ids
+        self._mavsdk = Mavsdk(config)
+        result = self._mavsdk.add_any_connection("raw://")
+        if int(result) != 0:
+            raise RuntimeError(f"MAVSDK refused its raw connection: {result!r}")
+        self._relay.attach(self._mavsdk)
+        system = self._mavsdk.first_autopilot(CONNECT_TIMEOUT_S)
+        if system is None:
+            raise TimeoutError(f"MAVSDK saw no autopilot in {CONNECT_TIMEOUT_S:.0f} s")
+        self._offboard = Offboard(system)
 
     @property
     def active(self) -> bool:
@@ -75,7 +60,7 @@ class MavsdkOffboard:
 
     def set_velocity(self, setpoint: Setpoint) -> None:
         """The body-frame velocity MAVSDK keeps sending (already limited by the caller)."""
-        from mavsdk.offboard import VelocityBodyYawspeed
+        from mavsdk.plugins.offboard import VelocityBodyYawspeed
 
         velocity = VelocityBodyYawspeed(
             setpoint.forward,
@@ -83,14 +68,14 @@ class MavsdkOffboard:
             setpoint.down,
             float(setpoint.yaw_rate * 180.0 / 3.141592653589793),
         )
-        self._call(self._drone.offboard.set_velocity_body(velocity))
+        self._offboard.set_velocity_body(velocity)
 
     def start_offboard(self) -> bool:
         """Ask PX4 for OFFBOARD (MAVSDK has been streaming since the first set_velocity); False if refused."""
-        from mavsdk.offboard import OffboardError
+        from mavsdk.plugins.offboard import OffboardError
 
         try:
-            self._call(self._drone.offboard.start())
+            self._offboard.start()
         except OffboardError as exc:
             log.warning("MAVSDK offboard start refused: %s", exc)
             return False
@@ -108,14 +93,14 @@ class MavsdkOffboard:
             self._active = False
         try:
             self.set_velocity(Setpoint.zero())
-            self._call(self._drone.offboard.stop())
+            self._offboard.stop()
             log.warning("MAVSDK offboard stopped: %s", reason)
         except Exception as exc:  # the watchdog calls this; it must report, not die
             log.error("MAVSDK offboard stop failed (%s): %s", reason, exc)
 
     def close(self) -> None:
-        if self._drone is not None:
-            self._drone._stop_mavsdk_server()
-            self._drone = None  # collected now, not at interpreter exit where its __del__ fails
-        self._loop.call_soon_threadsafe(self._loop.stop)
-        self._thread.join(timeout=2.0)
+        self._relay.detach()
+        if self._mavsdk is not None:
+            self._mavsdk.destroy()  # stops its threads now, not at interpreter exit
+            self._mavsdk = None
+            self._offboard = None

@@ -1,19 +1,16 @@
-"""mavsdk_server's MAVLink, carried over the companion's own link (only with `mavlink.use_mavsdk`).
+"""MAVSDK's MAVLink, carried over the companion's own link (only with `mavlink.use_mavsdk`).
 
-mavsdk_server 3.x always announces itself as a ground station (a MAV_TYPE_GCS HEARTBEAT from component
-190, besides its own id), and PX4 counts GCS heartbeats when it decides whether the data link is lost
-(`NAV_DLL_ACT`): a companion-side GCS would hide a real GCS loss. So mavsdk_server never talks to the
-autopilot directly. It sends to a loopback UDP socket owned by this relay; the relay forwards everything
-but its HEARTBEATs to the autopilot through the companion's link (re-encoded as the companion, signed when
-signing is on), and forwards the autopilot's messages to it. The only HEARTBEAT the autopilot sees from
-the companion is the companion's own MAV_TYPE_ONBOARD_CONTROLLER one (same system id, component 191).
+MAVSDK runs in this process on a `raw://` connection: it sends and receives bytes, never a socket, so it
+has no port anyone else could reach. The relay forwards what MAVSDK sends to the autopilot through the
+companion's link (re-encoded as the companion, signed when signing is on) and hands it the autopilot's
+messages. MAVSDK's own HEARTBEATs stay here: PX4 counts heartbeats when it decides whether links are
+alive, and the only HEARTBEAT the autopilot should see from this computer is the companion's own
+MAV_TYPE_ONBOARD_CONTROLLER one (same system id, component 191).
 """
 
 from __future__ import annotations
 
-import contextlib
 import logging
-import socket
 import threading
 from collections.abc import Callable
 from typing import Any
@@ -26,13 +23,10 @@ log = logging.getLogger(__name__)
 class MavsdkRelay:
     def __init__(self, endpoint: MavlinkEndpoint):
         self._endpoint = endpoint
-        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self._sock.bind(("127.0.0.1", 0))
-        self._sock.settimeout(0.1)
-        self._server: tuple[str, int] | None = None  # mavsdk_server's address, from its first datagram
+        self._mavsdk: Any = None
+        self._subscription: Any = None
         self._parser = self._new_parser()
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="mavsdk-relay", daemon=True)
+        self._lock = threading.Lock()  # MAVSDK calls back from its own threads
         self.heartbeats_dropped = 0
         self.forwarded = 0
 
@@ -42,46 +36,43 @@ class MavsdkRelay:
         parser.robust_parsing = True
         return parser
 
-    @property
-    def url(self) -> str:
-        """Where mavsdk_server sends (MAVSDK's connection URL)."""
-        return f"udpout://127.0.0.1:{self._sock.getsockname()[1]}"
+    def attach(self, mavsdk: Any) -> None:
+        """Start carrying bytes for `mavsdk` (a `mavsdk.Mavsdk` with a `raw://` connection)."""
+        self._subscription = mavsdk.subscribe_raw_bytes_to_be_sent(self.from_mavsdk)
+        self._mavsdk = mavsdk
 
-    def start(self) -> None:
-        self._thread.start()
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=1.0)
-        self._sock.close()
+    def detach(self) -> None:
+        mavsdk, self._mavsdk = self._mavsdk, None
+        if mavsdk is not None and self._subscription is not None:
+            mavsdk.unsubscribe_raw_bytes_to_be_sent(self._subscription)
+        self._subscription = None
 
     def to_mavsdk(self, msg: Any) -> None:
         """A message from the autopilot (called by the link's reader)."""
-        server = self._server
-        if server is not None:
-            with contextlib.suppress(OSError):  # mavsdk_server gone: nothing to tell it
-                self._sock.sendto(msg.get_msgbuf(), server)
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
+        mavsdk = self._mavsdk
+        if mavsdk is not None:
             try:
-                data, addr = self._sock.recvfrom(65535)
-            except (TimeoutError, OSError):
-                continue
-            if addr[0] != "127.0.0.1" or (self._server is not None and addr != self._server):
-                continue  # only the mavsdk_server we started talks to us
-            self._server = addr
-            messages = self._parser.parse_buffer(data) or []
-            if self._parser.buf_len() > 0:
-                self._parser = self._new_parser()
+                mavsdk.pass_received_raw_bytes(bytes(msg.get_msgbuf()))
+            except Exception as exc:  # the link's reader must never die of it
+                log.error("MAVSDK relay dropped a message from the autopilot: %s", exc)
+
+    def from_mavsdk(self, data: bytes) -> None:
+        """Bytes MAVSDK wants sent: everything but its HEARTBEATs goes to the autopilot as the companion."""
+        try:
+            with self._lock:
+                messages = self._parser.parse_buffer(data) or []
+                if self._parser.buf_len() > 0:
+                    self._parser = self._new_parser()  # a partial frame never joins the next send
             for msg in messages:
                 if msg.get_type() == "BAD_DATA":
                     continue
                 if msg.get_type() == "HEARTBEAT":
-                    self.heartbeats_dropped += 1  # its GCS (and generic) identities stay on this computer
+                    self.heartbeats_dropped += 1
                     continue
                 if self._endpoint.send(_resend(msg)):
                     self.forwarded += 1
+        except Exception as exc:  # a C callback must never raise into MAVSDK
+            log.error("MAVSDK relay dropped a send: %s", exc)
 
 
 def _resend(msg: Any) -> Callable[[Any], None]:

@@ -126,7 +126,7 @@ class VehicleLink:
         self._threads: list[threading.Thread] = []
         self._endpoint: MavlinkEndpoint | None = None
         self._mavsdk: MavsdkOffboard | None = None  # PX4 offboard through MAVSDK (mavlink.use_mavsdk)
-        self._relay: MavsdkRelay | None = None  # mavsdk_server's MAVLink over our link
+        self._relay: MavsdkRelay | None = None  # MAVSDK's MAVLink over our link
         self.signing = SigningGuard(
             on_refused=lambda text: self._record(SafetyEvent(self._clock(), "signing", "refused", text))
         )
@@ -172,9 +172,8 @@ class VehicleLink:
             self._endpoint.add_identity(self._camera_component)
         if self._cfg.use_mavsdk:
             self._relay = MavsdkRelay(self._endpoint)
-            self._relay.start()
             ids = (self._cfg.target_system, self._cfg.source_component)
-            self._mavsdk = MavsdkOffboard(self._relay.url, *ids)
+            self._mavsdk = MavsdkOffboard(self._relay, *ids)
         self._watchdog.seen(LOOP_STALLED)
         self._send_heartbeat(self._clock())  # opens udpout/tcp links so the autopilot learns where we are
         for target, name in ((self._reader, "mavlink-reader"), (self._streamer, "mavlink-streamer")):
@@ -195,8 +194,6 @@ class VehicleLink:
             thread.join(timeout=2.0)
         if self._mavsdk is not None:
             self._mavsdk.close()
-        if self._relay is not None:
-            self._relay.close()
         if self._endpoint is not None:
             self._endpoint.close()
 
