@@ -17,7 +17,9 @@ log = logging.getLogger(__name__)
 
 
 class ChangeFeed:
-    def __init__(self, store: StateStore, max_wait_s: float = 5.0) -> None:
+    # One wait on the store lasts at most max_wait_s: stop() (at every shutdown) waits for it to end, and a
+    # change wakes the watcher at once whatever its length, so short waits cost only an idle version read.
+    def __init__(self, store: StateStore, max_wait_s: float = 0.25) -> None:
         self._store = store
         self._max_wait_s = max_wait_s
         self._lock = threading.Lock()
