@@ -353,6 +353,7 @@ def test_supersets_closed_set_server_answers_422_naming_the_nearest_classes(
         assert response.status_code == 200 and response.json()["superset"] == "boat"
 
 
+@pytest.mark.slow  # torch and transformers (about 9 s to import), like test_backend_open_vocabulary
 def test_supersets_unmapped_prompt_goes_to_the_open_vocabulary_detector(
     models_dir: Path, sequences_dir: Path
 ) -> None:
@@ -383,6 +384,7 @@ def test_supersets_unmapped_prompt_goes_to_the_open_vocabulary_detector(
         assert all(c["label"] == "person" for c in body["candidates"])
 
 
+@pytest.mark.slow  # torch and transformers (about 9 s to import), like test_backend_open_vocabulary
 def test_supersets_factory_pairs_yolox_with_the_open_vocabulary_detector(
     models_dir: Path, tmp_path: Path
 ) -> None:
