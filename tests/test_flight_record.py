@@ -102,14 +102,16 @@ def test_video_takes_frames_at_the_camera_rate_not_faster(tmp_path: Path) -> Non
         tmp_path, "drone-1", "m", 50_000_000, video=True, video_fps=20.0, clock=fixed_clock()
     )
     frame = np.full((120, 160, 3), 80, np.uint8)
-    started = time.monotonic()
-    while time.monotonic() - started < 1.0:  # about 200 frames a second for one second
+    started, offered = time.monotonic(), 0
+    while time.monotonic() - started < 1.0:  # up to 200 frames a second for one second
         rec.video_frame(frame, None, "TRACKING")
+        offered += 1
         time.sleep(0.005)
     rec.close()
     encoded, dropped = rec.video_frames
     assert 15 <= encoded + dropped <= 23, (encoded, dropped)  # 20 FPS of the loop's frames
-    assert rec.video_frames_skipped > 100
+    # How many the loop offered depends on the machine's load; every one beyond the camera rate is skipped.
+    assert offered > 60 and rec.video_frames_skipped == offered - encoded - dropped, offered
     with av.open(str(rec.folder / "video-000.mp4")) as container:
         assert sum(1 for _ in container.decode(video=0)) == encoded
 

@@ -182,20 +182,21 @@ def test_stale_setpoint_never_reaches_the_autopilot_after_the_streamer_freezes()
     with autopilot("ardupilot") as sim, vehicle_link(sim, safety=safety) as link, MainLoop(link) as loop:
         _fly(sim, link)
         send = link.endpoint.send
-        frozen = threading.Event()
+        frozen, froze_at = threading.Event(), [0.0]
 
         def freezable(build: Any, component: int | None = None) -> bool:
             if threading.current_thread().name == "mavlink-streamer" and frozen.is_set():
+                frozen.clear()  # once, on the streamer's next send (one setpoint period away, 67 ms at 15 Hz)
+                froze_at[0] = time.monotonic()
                 time.sleep(1.0)  # the streamer thread stops between deciding a setpoint and sending it
             return send(build, component)
 
         link.endpoint.send = freezable  # type: ignore[method-assign]
         loop.paused.set()  # the whole companion freezes: no fresh command either
         frozen.set()
-        time.sleep(0.05)
-        frozen.clear()
-        resumed = time.monotonic() + 1.0
-        time.sleep(1.5)
+        assert wait_for(lambda: not frozen.is_set(), 5.0), "the streamer never sent"
+        resumed = froze_at[0] + 1.0
+        time.sleep(max(0.0, froze_at[0] + 1.5 - time.monotonic()))
         loop.paused.clear()
         time.sleep(0.5)
         ages = [((int(s.time * 1000) - s.time_boot_ms) % 2**32) / 1000.0 for s in _ours(sim)]
