@@ -83,10 +83,17 @@ test: lint format-check types pytest
 
 # The developer's inner loop: lint, types and every test without the slow mark (closed-loop scenarios,
 # browser, real-time MAVLink and SITL flights); under 2 minutes on a 2-core machine. `make test` runs all.
+# The fast tests mostly wait on sockets and timers, so pytest-xdist runs them in CHECK_WORKERS processes
+# (4 measured best on 2 cores, docs/benchmarks.md); mypy runs beside them (its cache makes it about a
+# second; a cold cache, 40 s, then overlaps the tests) and its output is printed after theirs.
+CHECK_WORKERS ?= 4
+
 check: install
 	$(BIN)/ruff check .
-	$(BIN)/mypy
-	$(BIN)/python -m pytest -q -m "not slow"
+	@mkdir -p .mypy_cache; $(BIN)/mypy > .mypy_cache/check.out 2>&1 & types=$$!; \
+	$(BIN)/python -m pytest -q -m "not slow" -n $(CHECK_WORKERS); tests=$$?; \
+	wait $$types; typed=$$?; echo "mypy:"; cat .mypy_cache/check.out; \
+	test $$tests -eq 0 && test $$typed -eq 0
 
 demo: $(BIN)/.installed-demo
 	$(BIN)/cloudtrack-sim run follow --video out/demo.mp4 --plot out/demo.png --json out/demo.json
