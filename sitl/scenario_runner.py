@@ -109,6 +109,7 @@ class _Vehicle:
     overlay: OverlayState = field(default_factory=OverlayState)
     decided: set[str] = field(default_factory=set)
     pending_decision: tuple[float, str, str] | None = None  # (due time, action, person id)
+    decision_sent: tuple[float, str] | None = None  # (when, action) of a decision the companion has not taken
     confirmations: list[tuple[float, str]] = field(default_factory=list)
     rejections: list[tuple[float, str]] = field(default_factory=list)
     proposals: list[tuple[float, str]] = field(default_factory=list)
@@ -402,6 +403,8 @@ class ScenarioRun:
             self.say(f"{v.vehicle_id}: {v.state} ({e.get('reason', '')})")
             if v.state == "confirmed" and "supervisor" in str(e.get("reason", "")):
                 v.confirmations.append((t, v.judged))
+            if v.state != "awaiting_supervisor":
+                v.decision_sent = None  # taken (or overtaken): nothing to repeat
         elif kind == "track":
             box = Box(*e["box"]) if e.get("box") and e.get("trusted") else None
             v.track_boxes[int(e.get("frame_id", 0))] = box
@@ -420,7 +423,10 @@ class ScenarioRun:
                 v.overlay.box,
             )
             if e.get("status") == "awaiting" and v.pending_decision is None:
-                pid = self._person_at(v, e.get("box"), t)
+                # The box is the tracker's on one frame; judge that frame (its track event came first in
+                # the log), not the one rendered at the report's time: a companion lagging under load reports
+                # boxes of frames rendered well before.
+                pid = self._person_at(v, e.get("box"), t, self._frame_of(v, e.get("box")))
                 action = "confirm" if pid == self.world.target_id else "reject"
                 v.pending_decision = (self.now() + self.scenario.supervisor_delay_s, action, pid)
                 self.say(f"{v.vehicle_id}: supervisor sees {pid} ({e.get('verdict')}), will {action}")
@@ -428,6 +434,14 @@ class ScenarioRun:
             self.say(f"{v.vehicle_id}: HOLD ({e.get('reason')})")
         elif kind == "safety" and e.get("action") == "stop":
             self.say(f"{v.vehicle_id}: watchdog {e.get('reason')}: stop")
+
+    @staticmethod
+    def _frame_of(v: _Vehicle, box_xywh: list[float] | None) -> int:
+        """The newest frame whose logged track box is `box_xywh` (both rounded alike by the companion); -1."""
+        if not box_xywh:
+            return -1
+        box = Box(*box_xywh)
+        return next((fid for fid, b in reversed(v.track_boxes.items()) if b == box), -1)
 
     def _send_start(self, v: _Vehicle, mission_id: int) -> None:
         v.start_sent = (self.now(), mission_id)
@@ -440,6 +454,16 @@ class ScenarioRun:
             self._send_start(v, v.start_sent[1])
 
     def _supervise(self, v: _Vehicle) -> None:
+        if v.decision_sent is not None and self.now() - v.decision_sent[0] > 2.0:
+            # Still awaiting 2 s after the decision: the command was lost on the way (one COMMAND_LONG
+            # through the autopilot's routing); a GCS operator presses the button again.
+            action = v.decision_sent[1]
+            self.say(f"{v.vehicle_id}: no answer to the supervisor's {action}, sending it again")
+            if action == "confirm":
+                v.gcs.confirm()
+            else:
+                v.gcs.reject()
+            v.decision_sent = (self.now(), action)
         if v.pending_decision is None or self.now() < v.pending_decision[0]:
             return
         _, action, pid = v.pending_decision
@@ -452,6 +476,8 @@ class ScenarioRun:
         else:
             v.gcs.reject()
             v.rejections.append((self.now(), pid))
+        if v.state == "awaiting_supervisor":
+            v.decision_sent = (self.now(), action)
         self.say(f"{v.vehicle_id}: supervisor {action}s {pid}")
 
     def _faults(self) -> None:
