@@ -81,10 +81,23 @@ def test_readme_offline_block_runs_as_written(index: int) -> None:
     )
     block = _blocks("offline")[index]
     env = {k: v for k, v in os.environ.items() if not k.startswith("CLOUDTRACK_") or k == "CLOUDTRACK_SHARED"}
-    script = f"set -euo pipefail\n{_setup_script()}\n{block}\n"
+    # xtrace puts each command of the block on stderr before its own output (PS4 marks those lines), and the
+    # ERR trap names the one that failed with its exit status, so a failure says which command and why.
+    script = f"set -euo pipefail\n{_setup_script()}\n{_TRACE}\n{block}\n"
     result = subprocess.run(
         ["bash", "-c", script], cwd=REPO, env=env, capture_output=True, text=True, timeout=1700
     )
-    assert result.returncode == 0, (
-        f"README block {index} failed:\n{block}\n--- stdout\n{result.stdout[-3000:]}\n--- stderr\n{result.stderr[-3000:]}"
-    )
+    if result.returncode != 0:
+        last = result.stderr.rfind("\n" + _PS4)  # the failing command, then everything it wrote to stderr
+        pytest.fail(
+            f"README block {index} failed with exit status {result.returncode}:\n{block}\n"
+            f"--- stdout (end)\n{result.stdout[-3000:]}\n"
+            f"--- the failing command and its stderr\n{result.stderr[last + 1 :][-6000:]}",
+            pytrace=False,
+        )
+
+
+_PS4 = "+README: "
+_TRACE = f"""trap 'status=$?; echo "README command failed, exit status $status: $BASH_COMMAND" >&2' ERR
+PS4={shlex.quote(_PS4)}
+set -x"""
