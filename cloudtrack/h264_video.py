@@ -60,6 +60,7 @@ class H264Writer:
         self._process = process
         self._queue: queue.Queue[Any] = queue.Queue(maxsize=max(1, queue_frames))
         self._closed = False
+        self._ready = threading.Event()  # the encoder can take frames (or failed to start: see `error`)
         self._thread = threading.Thread(target=self._run, name=f"h264-{self.path.name}", daemon=True)
         self._thread.start()
 
@@ -93,6 +94,12 @@ class H264Writer:
                 "video %s: encoder still busy after %.0f s; the file may be cut short", self.path, timeout_s
             )
 
+    def wait_ready(self, timeout_s: float) -> bool:
+        """True once the encoder is up (with `process=True`: its process started and FFmpeg loaded, about a
+        second of CPU on a small board), or has failed to start (`error` says why); False after `timeout_s`.
+        Nothing needs to wait: frames written before are queued (or dropped when the queue is full)."""
+        return self._ready.wait(timeout_s)
+
     @property
     def size_bytes(self) -> int:
         try:
@@ -113,8 +120,10 @@ class H264Writer:
         except Exception as exc:
             self.error = f"cannot open {self.path}: {type(exc).__name__}: {exc}"
             log.warning("video stopped: %s", self.error)
+            self._ready.set()
             self._drain()
             return
+        self._ready.set()
         try:
             while (item := self._queue.get()) is not _STOP:
                 if self.error is None:
@@ -154,6 +163,7 @@ class H264Writer:
         except Exception as exc:
             self.error = f"cannot start the encoder process: {type(exc).__name__}: {exc}"
             log.warning("video %s stopped: %s", self.path, self.error)
+            self._ready.set()
             self._drain()
             return
         frames_out.close()
@@ -183,13 +193,21 @@ class H264Writer:
             self._drain()
 
     def _read_events(self, events: Any) -> None:
+        try:
+            self._read_events_until_done(events)
+        finally:
+            self._ready.set()  # whatever happened, nobody waits for an encoder that is gone
+
+    def _read_events_until_done(self, events: Any) -> None:
         while True:
             try:
                 kind, *values = events.recv()
             except (EOFError, OSError):
                 self.error = self.error or "the encoder process ended before finishing the file"
                 return
-            if kind == "written":
+            if kind == "ready":
+                self._ready.set()
+            elif kind == "written":
                 self.frames_written, self.encode_cpu_s = values
                 if self._on_frame_written is not None:
                     self._on_frame_written(self)
@@ -265,11 +283,10 @@ def _encoder_process(
     terminated: list[int] = []
     signal.signal(signal.SIGTERM, lambda signum, _frame: terminated.append(signum))
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:
-        encoder = _Encoder(Path(path), rate, options, threads)
-    except Exception as exc:
-        events.send(("error", f"cannot open {path}: {type(exc).__name__}: {exc}"))
-        return
+    import av  # noqa: F401 - loaded before "ready"; the file itself is opened on the first frame
+
+    events.send(("ready",))
+    encoder: _Encoder | None = None  # none until a frame comes: a writer closed unused leaves no file
     cpu_s = 0.0
     try:
         while True:
@@ -285,16 +302,24 @@ def _encoder_process(
                 break
             shape, dtype, draw = header
             image = np.frombuffer(frames.recv_bytes(), np.dtype(dtype)).reshape(shape)
+            if encoder is None:
+                try:
+                    encoder = _Encoder(Path(path), rate, options, threads)
+                except Exception as exc:
+                    events.send(("error", f"cannot open {path}: {type(exc).__name__}: {exc}"))
+                    return
             started = time.process_time()
             encoder.encode(image, draw)
             cpu_s += time.process_time() - started
             events.send(("written", encoder.frames, cpu_s))
-        encoder.flush()
+        if encoder is not None:
+            encoder.flush()
     except Exception as exc:
         events.send(("error", f"{type(exc).__name__}: {exc}"))
     finally:
         try:
-            encoder.close()
+            if encoder is not None:
+                encoder.close()
         except Exception as exc:
             events.send(("error", f"{type(exc).__name__}: {exc}"))
         with contextlib.suppress(OSError):

@@ -156,6 +156,11 @@ class FlightRecorder:
             self._stop(f"cannot create {self.folder}: {exc}")
             return
         self._write_event({"kind": "recording_started", "vehicle": vehicle_id, "mission": mission_id})
+        if video and self._active:
+            # The encoder process starts with the mission, not on its first frame: its start-up (a Python
+            # loading FFmpeg, about a second of CPU) then overlaps the search, not the first followed frames.
+            with self._lock:
+                self._next_video_segment()
 
     @property
     def active(self) -> bool:
@@ -234,6 +239,12 @@ class FlightRecorder:
                 self._video.write(image, partial(_draw_record_overlay, box=box, label=f"{stamp} {state}"))
             except Exception as exc:  # FFmpeg cannot open the file, ...: the flight goes on without video
                 self._stop(f"video write failed: {exc}")
+
+    def wait_video_ready(self, timeout_s: float) -> bool:
+        """True once the video encoder takes frames (at once without video). Nothing in flight waits for
+        it; the bench does, so that its timed passes measure recording, not the encoder's start-up."""
+        video = self._video
+        return video is None or video.wait_ready(timeout_s)
 
     @property
     def video_encode_cpu_s(self) -> float:
