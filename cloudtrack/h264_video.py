@@ -257,7 +257,8 @@ class _Encoder:
                 f"frame size {width}x{height} differs from the video's {self._stream.width}x{self._stream.height}"
             )
         # OpenCV's BGR -> I420 is about 0.25 ms a 640x480 frame cheaper than FFmpeg's swscale from bgr24.
-        yuv = cv2.cvtColor(np.ascontiguousarray(image[:height, :width]), cv2.COLOR_BGR2YUV_I420)
+        bgr = np.ascontiguousarray(image[:height, :width])
+        yuv = np.asarray(cv2.cvtColor(bgr, cv2.COLOR_BGR2YUV_I420), np.uint8)
         frame = self._av.VideoFrame.from_ndarray(yuv, format="yuv420p")
         frame.pts = self.frames
         frame.time_base = 1 / self._rate
