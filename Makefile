@@ -84,8 +84,8 @@ test: lint format-check types pytest
 # The developer's inner loop: lint, types and every test without the slow mark (closed-loop scenarios,
 # browser, real-time MAVLink and SITL flights); under 2 minutes on a 2-core machine. `make test` runs all.
 # The fast tests mostly wait on sockets and timers, so pytest-xdist runs them in CHECK_WORKERS processes
-# (4 measured best on 2 cores, docs/benchmarks.md); mypy runs beside them (its cache makes it about a
-# second; a cold cache, 40 s, then overlaps the tests) and its output is printed after theirs.
+# (2, 4 and 6 compared in docs/benchmarks.md; 0: one process); mypy runs beside them (about a second with
+# its cache; a cold cache, 40 s of CPU, then overlaps the tests) and its output is printed after theirs.
 CHECK_WORKERS ?= 4
 
 check: install
