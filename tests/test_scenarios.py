@@ -377,3 +377,39 @@ def test_sim_help_describes_every_flag(capsys: pytest.CaptureFixture[str]) -> No
         out = capsys.readouterr().out
         for text in expected:
             assert text in out, (argv, text)
+
+
+def test_scenario_supervisor_repeats_a_decision_the_companion_did_not_take(tmp_path: Path) -> None:
+    """A confirm lost on the way (one COMMAND_LONG through the autopilot) is sent again while the companion
+    still awaits; once its state moves on, never again. The awaited box is judged on its own frame."""
+    from types import SimpleNamespace
+    from typing import cast
+
+    from behaviors.geometry import Box
+    from sitl.scenario_runner import ScenarioRun, _Vehicle
+
+    run = ScenarioRun(
+        SCENARIOS["follow"], RunOptions(tracker="csrt", work_dir=tmp_path / "w"), progress=lambda _: None
+    )
+    sent: list[str] = []
+    gcs = SimpleNamespace(confirm=lambda: sent.append("confirm"), reject=lambda: sent.append("reject"))
+    nothing = cast(Any, None)
+    v = _Vehicle(0, "drone-1", nothing, nothing, nothing, nothing, cast(Any, gcs), tmp_path, tmp_path)
+    run.epoch = 0.0  # now() = time.monotonic(): the mission has long started
+    v.track_boxes = {7: Box(10.0, 20.0, 30.0, 60.0), 8: Box(11.0, 20.0, 30.0, 60.0), 9: None}
+    assert run._frame_of(v, [10.0, 20.0, 30.0, 60.0]) == 7 and run._frame_of(v, [1.0, 2.0, 3.0, 4.0]) == -1
+
+    run._handle_event(v, {"kind": "state", "t": 0.0, "state": "awaiting_supervisor"})
+    v.pending_decision = (run.now() - 0.1, "confirm", "target")
+    run._supervise(v)
+    run._supervise(v)
+    assert sent == ["confirm"]  # not again at once
+    assert v.decision_sent is not None
+    v.decision_sent = (run.now() - 2.5, "confirm")  # 2.5 s later the companion still awaits
+    run._supervise(v)
+    assert sent == ["confirm", "confirm"]
+    run._handle_event(v, {"kind": "state", "t": 0.0, "state": "confirmed", "reason": "supervisor confirmed"})
+    assert v.decision_sent is None  # taken: nothing left to repeat
+    run._supervise(v)
+    assert sent == ["confirm", "confirm"] and v.decision_sent is None
+    run._teardown()
