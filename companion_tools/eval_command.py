@@ -50,6 +50,7 @@ examples:
   cloudtrack-companion eval ../shared/data/sequences/* --tracker nano,vit --sweep 0.3:0.95:0.05 --plot out/sweep.png
   cloudtrack-companion eval ../shared/data/sequences/* --policy all --occlude --delay-s 1
   cloudtrack-companion eval ../shared/data/sequences/* --init prompt --model-dir ../shared/models
+  cloudtrack-companion eval ../shared/data/sequences/* --init prompt --delay-s 0.3 --tracker nano
   cloudtrack-companion eval ../shared/data/sequences/* --signal-table --tracker nano,vit,csrt
   CLOUDTRACK_BACKEND__TOKEN=... cloudtrack-companion eval ../shared/data/sequences/uav123_person12_1 \
       --backend http://127.0.0.1:8080 --init prompt
@@ -71,8 +72,11 @@ the back-end's [verifier] kind). --detector none: no candidates, no re-initialis
 first box is the back-end's answer to the sequence's referring.txt, asked every [backend]
 keyframe_interval_s of sequence time and applied --delay-s later (default 2 s, a hosted VLM) while the
 sequence runs on, latency-compensated as in flight; a start needs a "yes" (or "uncertain" with [behavior]
-accept_uncertain). FPS counts the whole onboard loop except the detector (it runs on the back-end); edge
-FPS counts the tracker's update() alone.
+accept_uncertain). Its table prints the ratio to the ground-truth-initialised run and the "ceiling": that
+run's IoU from the frame the first answer can arrive over all frames, the most a perfect acquirer reaches
+with this delay; and the measured time of the back-end's answers (in-process: the local verifier's real
+latency, to try as --delay-s). FPS counts the whole onboard loop except the detector (it runs on the
+back-end); edge FPS counts the tracker's update() alone.
 """
 
 
