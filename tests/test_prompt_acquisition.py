@@ -49,24 +49,32 @@ GROUP_PROMPT = (
 )
 
 
+def _up(colour: str) -> ColourClaim:
+    return ColourClaim(colour, "upper")
+
+
+def _low(colour: str) -> ColourClaim:
+    return ColourClaim(colour, "lower")
+
+
 @pytest.mark.parametrize(
     ("prompt", "claims", "compounds"),
     [
         # The relation's people are not the target: their shirts are not judged; "striped" is a pattern.
+        (GROUP_PROMPT, [_up("gray"), _up("blue"), _low("dark")], [{"gray", "blue"}]),
+        ("the man in the green-and-white striped shirt", [_up("green"), _up("white")], []),
         (
-            GROUP_PROMPT,
-            [ColourClaim("gray", "upper"), ColourClaim("blue", "upper"), ColourClaim("dark", "lower")],
-            [{"gray", "blue"}],
+            "a woman in a blue-green jacket next to a red car",
+            [_up("green"), _up("blue")],
+            [{"green", "blue"}],
         ),
-        ("the man in the green-and-white striped shirt", [ColourClaim("green", "upper"), ColourClaim("white", "upper")], []),
-        ("a woman in a blue-green jacket next to a red car", [ColourClaim("green", "upper"), ColourClaim("blue", "upper")], [{"green", "blue"}]),
-        ("a man in a navy hoodie with the dog in a brown coat", [ColourClaim("blue", "upper")], []),
+        ("a man in a navy hoodie with the dog in a brown coat", [_up("blue")], []),
         ("a person in a checked shirt behind the white van", [], []),
-        ("a hiker in a grey jacket and black trousers", [ColourClaim("gray", "upper"), ColourClaim("black", "lower")], []),
+        ("a hiker in a grey jacket and black trousers", [_up("gray"), _low("black")], []),
         ("the surfer in a black wetsuit riding the wave", [ColourClaim("black", "whole")], []),
         ("someone in dark clothes", [ColourClaim("dark", "whole")], []),
     ],
-)  # fmt: skip
+)
 def test_prompt_words_table(prompt: str, claims: list[ColourClaim], compounds: list[set[str]]) -> None:
     own = own_description(prompt)
     assert sorted(colour_claims(own), key=repr) == sorted(claims, key=repr)
