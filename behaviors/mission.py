@@ -53,6 +53,7 @@ from behaviors.mission_config import ConfirmAction, LostAction, MissionConfig
 from behaviors.rejection_memory import RejectedTarget, RejectionMemory
 from behaviors.safety_limits import apply_limits
 from behaviors.setpoint import Setpoint
+from behaviors.spatial_relations import narrow_by_relation, parse_relation
 from behaviors.telemetry import Telemetry
 from behaviors.track_result import TrackResult
 
@@ -708,14 +709,19 @@ def _rejected(state: State, det: Detection, config: MissionConfig) -> bool:
 def _choose(
     state: State, candidates: Sequence[Detection], config: MissionConfig
 ) -> tuple[Detection, GeoEstimate | None] | None:
-    """A verified candidate not rejected before: "yes" first, then "uncertain" if allowed; best score wins."""
+    """A verified candidate not rejected before: "yes" first, then "uncertain" if allowed; among them the
+    ones that stand as the prompt relates the target to others ("between the man in red and ..."; every
+    candidate in view counts as one of the others), then the best score."""
     accepted = [Verdict.YES, Verdict.UNCERTAIN] if config.accept_uncertain else [Verdict.YES]
+    relation = parse_relation(state.mission.prompt) if state.mission is not None else None
+    boxes = [d.box for d in candidates]
     for verdict in accepted:
-        pool = [
-            d
-            for d in candidates
+        indices = [
+            i
+            for i, d in enumerate(candidates)
             if d.verdict is verdict and d.box.is_valid() and not _rejected(state, d, config)
         ]
+        pool = [candidates[i] for i in narrow_by_relation(relation, indices, boxes)]
         if pool:
             best = max(pool, key=lambda d: d.score)
             position = locate_box(config.camera, state.telemetry, best.box) if state.telemetry else None

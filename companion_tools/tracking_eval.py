@@ -164,13 +164,26 @@ class DetectionCache:
         self._detect = detect
         self._cache: dict[tuple[str, int, tuple[int, int]], list[Detection]] = {}
         self.calls = 0
+        self.seconds: list[float] = []  # wall time of each real call: the back-end's answer time here
 
     def get(self, sequence: str, image: np.ndarray, frame_id: int) -> list[Detection]:
         key = (sequence, frame_id, (image.shape[1], image.shape[0]))
         if key not in self._cache:
             self.calls += 1
+            started = time.perf_counter()
             self._cache[key] = self._detect(image, frame_id)
+            self.seconds.append(time.perf_counter() - started)
         return self._cache[key]
+
+
+def acquisition_ceiling(reference: SequenceResult, delay_frames: int) -> MiouResult:
+    """What a perfect acquirer could score with answers `delay_frames` late: the ground-truth-initialised
+    run's IoU from the frame the first answer (on the first frame) can arrive, over all frames with
+    ground truth; the frames before it count 0, as they do for --init prompt."""
+    ious = reference.ious
+    gt_frames = sum(v is not None for v in ious)
+    kept = sum(v for v in ious[max(0, delay_frames) :] if v is not None)
+    return MiouResult(kept / gt_frames if gt_frames else float("nan"), kept, gt_frames, 0, 0)
 
 
 def _scaled(box: Box | None, sx: float, sy: float) -> Box | None:
