@@ -4,6 +4,11 @@ Every candidate is verified at once on a shared, bounded thread pool (`verify_po
 timeout and all within the request's deadline, so k candidates cost about one verification instead of
 k (the reference code verifies one after another). A verification that fails or runs out of time
 becomes the configured `uncertain_policy` verdict with the reason in its justification.
+
+A verifier that measured the object's extent (the local verifier's person mask) gives the box reported
+for the candidate: the detector's box often takes in the person's shadow or a neighbour, and a tracker
+started on such a box follows them too. The detector's box stays when the extent's centre falls outside it
+(the verifier saw someone else in the margin).
 """
 
 from __future__ import annotations
@@ -19,7 +24,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from backend.appearance import descriptor
-from backend.crops import margin_crop
+from backend.crops import crop_box, margin_crop
 from backend.detectors.interface import SupersetDetector
 from backend.verifiers.interface import Verifier, VerifierAnswer, VerifierError, VerifierTimeout
 from behaviors.detection import Detection, Verdict
@@ -36,6 +41,7 @@ class VerifiedCandidate:
     t_verify: float
     appearance: list[float] = field(repr=False, default_factory=list)
     previously_rejected: bool = False
+    crop_origin: tuple[int, int] = (0, 0)  # the margin crop's top-left corner in the request image
 
 
 @dataclass(frozen=True)
@@ -51,6 +57,18 @@ class PipelineResult:
 
 def _policy_verdict(policy: str) -> Verdict:
     return {"yes": Verdict.YES, "no": Verdict.NO}.get(policy, Verdict.UNCERTAIN)
+
+
+def refined_box(
+    detected: Box, extent: tuple[float, float, float, float] | None, crop_origin: tuple[int, int]
+) -> Box | None:
+    """The verifier's extent (crop pixels) in the image's pixels when it is the detected object's: its
+    centre inside the detector's box; else None (keep the detector's box)."""
+    if extent is None:
+        return None
+    box = Box(extent[0] + crop_origin[0], extent[1] + crop_origin[1], extent[2], extent[3])
+    inside = detected.x <= box.cx <= detected.x2 and detected.y <= box.cy <= detected.y2
+    return box if inside and box.is_valid() else None
 
 
 class Pipeline:
@@ -134,7 +152,11 @@ class Pipeline:
                 candidates.append(VerifiedCandidate(det, "none", 0.0, appearance))
             else:
                 crop, inner = margin_crop(image, det.box, self.margin_px)
-                candidates.append(VerifiedCandidate(det, self.verifier.name, 0.0, appearance))
+                height, width = image.shape[:2]
+                origin = crop_box(det.box, self.margin_px, width, height)[:2]
+                candidates.append(
+                    VerifiedCandidate(det, self.verifier.name, 0.0, appearance, crop_origin=origin)
+                )
                 future = self.verify_pool.submit(
                     self._verify_one, crop, inner, prompt, superset, self.timeout_s
                 )
@@ -151,6 +173,9 @@ class Pipeline:
     @staticmethod
     def _settle(base: VerifiedCandidate, answer: VerifierAnswer, t_verify: float) -> VerifiedCandidate:
         detection = replace(base.detection, verdict=answer.verdict, justification=answer.justification)
+        extent = refined_box(detection.box, answer.box, base.crop_origin)
+        if extent is not None:
+            detection = replace(detection, box=extent)
         return replace(base, detection=detection, verifier=answer.verifier, t_verify=t_verify)
 
     def verify(

@@ -1,11 +1,31 @@
-"""Choosing which back-end candidate re-initialises the tracker (CloudTrack paper, eq. C_box)."""
+"""Choosing a back-end candidate: the first acquisition, and which one re-initialises the tracker
+(CloudTrack paper, eq. C_box)."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
-from behaviors.detection import Detection
+from behaviors.detection import Detection, Verdict
 from behaviors.geometry import Box
+from behaviors.spatial_relations import Relation, narrow_by_relation
+
+
+def select_first_acquisition(
+    candidates: Sequence[Detection],
+    accept_uncertain: bool,
+    relation: Relation | None,
+    eligible: Callable[[Detection], bool] = lambda d: d.box.is_valid(),
+) -> Detection | None:
+    """The candidate a search starts tracking: "yes" first, then "uncertain" if allowed, never a "no";
+    among them the ones that stand as the prompt relates the target to others ("between the man in red
+    and ..."; every candidate in view counts as one of the others), then the best detector score."""
+    boxes = [d.box for d in candidates]
+    for verdict in (Verdict.YES, Verdict.UNCERTAIN) if accept_uncertain else (Verdict.YES,):
+        indices = [i for i, d in enumerate(candidates) if d.verdict is verdict and eligible(d)]
+        pool = [candidates[i] for i in narrow_by_relation(relation, indices, boxes)]
+        if pool:
+            return max(pool, key=lambda d: d.score)
+    return None
 
 
 def c_box(prev: Box, cand: Box) -> float:

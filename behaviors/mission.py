@@ -28,7 +28,7 @@ from behaviors.actions import (
     TrackerInit,
     TrackerStop,
 )
-from behaviors.candidate_selection import c_box, select_by_c_box
+from behaviors.candidate_selection import c_box, select_by_c_box, select_first_acquisition
 from behaviors.control_law import ControlState, FollowGoal, estimate_distance, follow_step
 from behaviors.detection import Detection, Verdict
 from behaviors.events import (
@@ -53,6 +53,7 @@ from behaviors.mission_config import ConfirmAction, LostAction, MissionConfig
 from behaviors.rejection_memory import RejectedTarget, RejectionMemory
 from behaviors.safety_limits import apply_limits
 from behaviors.setpoint import Setpoint
+from behaviors.spatial_relations import parse_relation
 from behaviors.telemetry import Telemetry
 from behaviors.track_result import TrackResult
 
@@ -708,19 +709,18 @@ def _rejected(state: State, det: Detection, config: MissionConfig) -> bool:
 def _choose(
     state: State, candidates: Sequence[Detection], config: MissionConfig
 ) -> tuple[Detection, GeoEstimate | None] | None:
-    """A verified candidate not rejected before: "yes" first, then "uncertain" if allowed; best score wins."""
-    accepted = [Verdict.YES, Verdict.UNCERTAIN] if config.accept_uncertain else [Verdict.YES]
-    for verdict in accepted:
-        pool = [
-            d
-            for d in candidates
-            if d.verdict is verdict and d.box.is_valid() and not _rejected(state, d, config)
-        ]
-        if pool:
-            best = max(pool, key=lambda d: d.score)
-            position = locate_box(config.camera, state.telemetry, best.box) if state.telemetry else None
-            return best, position
-    return None
+    """A verified candidate not rejected before (`select_first_acquisition`), and where it stands."""
+    relation = parse_relation(state.mission.prompt) if state.mission is not None else None
+    best = select_first_acquisition(
+        candidates,
+        config.accept_uncertain,
+        relation,
+        lambda d: d.box.is_valid() and not _rejected(state, d, config),
+    )
+    if best is None:
+        return None
+    position = locate_box(config.camera, state.telemetry, best.box) if state.telemetry else None
+    return best, position
 
 
 def _report(target: Target, status: str) -> ReportCandidate:

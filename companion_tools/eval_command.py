@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from behaviors.detection import Detection
+from behaviors.tracking_metrics import pooled_miou
 from cloudtrack.config_files import ConfigError
 from cloudtrack.model_store import ModelError, require, resolve_model_dir
 from companion.config_command import add_config_flags, load_from_args
@@ -29,6 +30,7 @@ from companion_tools.tracking_eval import (
     EvalSettings,
     SequenceData,
     SequenceResult,
+    acquisition_ceiling,
     evaluate_sequence,
     load_sequence,
     overall,
@@ -48,6 +50,7 @@ examples:
   cloudtrack-companion eval ../shared/data/sequences/* --tracker nano,vit --sweep 0.3:0.95:0.05 --plot out/sweep.png
   cloudtrack-companion eval ../shared/data/sequences/* --policy all --occlude --delay-s 1
   cloudtrack-companion eval ../shared/data/sequences/* --init prompt --model-dir ../shared/models
+  cloudtrack-companion eval ../shared/data/sequences/* --init prompt --delay-s 0.3 --tracker nano
   cloudtrack-companion eval ../shared/data/sequences/* --signal-table --tracker nano,vit,csrt
   CLOUDTRACK_BACKEND__TOKEN=... cloudtrack-companion eval ../shared/data/sequences/uav123_person12_1 \
       --backend http://127.0.0.1:8080 --init prompt
@@ -69,8 +72,11 @@ the back-end's [verifier] kind). --detector none: no candidates, no re-initialis
 first box is the back-end's answer to the sequence's referring.txt, asked every [backend]
 keyframe_interval_s of sequence time and applied --delay-s later (default 2 s, a hosted VLM) while the
 sequence runs on, latency-compensated as in flight; a start needs a "yes" (or "uncertain" with [behavior]
-accept_uncertain). FPS counts the whole onboard loop except the detector (it runs on the back-end); edge
-FPS counts the tracker's update() alone.
+accept_uncertain). Its table prints the ratio to the ground-truth-initialised run and the "ceiling": that
+run's IoU from the frame the first answer can arrive over all frames, the most a perfect acquirer reaches
+with this delay; and the measured time of the back-end's answers (in-process: the local verifier's real
+latency, to try as --delay-s). FPS counts the whole onboard loop except the detector (it runs on the
+back-end); edge FPS counts the tracker's update() alone.
 """
 
 
@@ -286,13 +292,21 @@ def _signed(value: float) -> str:
     return "nan" if not math.isfinite(value) else f"{value:+.3f}"
 
 
-def _print_acquisition(results: Sequence[SequenceResult], reference: Sequence[SequenceResult]) -> None:
-    """--init prompt: time to the first box, mIoU beside the ground-truth start, and every answer while
-    looking (was the chosen candidate the described target?)."""
+def _print_acquisition(
+    results: Sequence[SequenceResult],
+    reference: Sequence[SequenceResult],
+    delays: dict[str, int],
+    delay_s: float,
+) -> dict[str, Any]:
+    """--init prompt: time to the first box, mIoU beside the ground-truth start and beside the ceiling a
+    perfect acquirer reaches with answers `delay_s` late, and every answer while looking (was the chosen
+    candidate the described target?)."""
     print(
-        f"\n{'sequence':<22} {'first box s':>11} {'prompt mIoU':>11} {'gt-init mIoU':>12} {'ratio':>6}  "
+        f"\n{'sequence':<22} {'first box s':>11} {'first chosen':>12} {'prompt mIoU':>11} "
+        f"{'gt-init mIoU':>12} {'ratio':>6} {'ceiling':>7} {'ceil ratio':>10}  "
         "answers while acquiring (keyframe:candidates/yes, T target among them, =target/=OTHER chosen)"
     )
+    ceilings = []
     for r, g in zip(results, reference, strict=True):
         answers = (
             " ".join(
@@ -303,20 +317,53 @@ def _print_acquisition(results: Sequence[SequenceResult], reference: Sequence[Se
             or "-"
         )
         first = "never" if r.first_box_s is None else f"{r.first_box_s:.1f}"
+        chosen = next((a.chosen_iou for a in r.acquisition if a.chosen_iou is not None), None)
+        verdict = "-" if chosen is None else ("target" if chosen >= 0.5 else "OTHER")
         ratio = r.miou / g.miou if g.miou > 0 else float("nan")
+        ceiling = acquisition_ceiling(g, delays[r.sequence])
+        ceilings.append(ceiling)
         print(
-            f"{r.sequence:<22} {first:>11} {_fmt(r.miou):>11} {_fmt(g.miou):>12} {_fmt(ratio, 2):>6}  "
-            f"{answers}"
+            f"{r.sequence:<22} {first:>11} {verdict:>12} {_fmt(r.miou):>11} {_fmt(g.miou):>12} "
+            f"{_fmt(ratio, 2):>6} {_fmt(ceiling.miou):>7} "
+            f"{_fmt(ceiling.miou / g.miou if g.miou > 0 else float('nan'), 2):>10}  {answers}"
         )
     total, ref = overall(results), overall(reference)
     ratio = total["miou"] / ref["miou"] if ref["miou"] > 0 else float("nan")
+    ceiling_miou = pooled_miou(ceilings)
+    ceiling_ratio = ceiling_miou / ref["miou"] if ref["miou"] > 0 else float("nan")
     print(
-        f"{'overall (frames)':<22} {'':>11} {_fmt(total['miou']):>11} {_fmt(ref['miou']):>12} "
-        f"{_fmt(ratio, 2):>6}"
+        f"{'overall (frames)':<22} {'':>11} {'':>12} {_fmt(total['miou']):>11} {_fmt(ref['miou']):>12} "
+        f"{_fmt(ratio, 2):>6} {_fmt(ceiling_miou):>7} {_fmt(ceiling_ratio, 2):>10}"
     )
-    chosen = [a for r in results for a in r.acquisition if a.chosen_iou is not None]
-    right = sum(a.chosen_iou is not None and a.chosen_iou >= 0.5 for a in chosen)
-    print(f"first boxes on the described target: {right} of {len(chosen)}")
+    chosen_all = [a for r in results for a in r.acquisition if a.chosen_iou is not None]
+    right = sum(a.chosen_iou is not None and a.chosen_iou >= 0.5 for a in chosen_all)
+    print(f"first boxes on the described target: {right} of {len(chosen_all)}")
+    print(
+        f"ceiling: the ground-truth-initialised run's IoU from the frame the first answer can arrive "
+        f"({delay_s:g} s after the first frame) over all frames: what a perfect acquirer could reach "
+        f"with this delay; ceil ratio = ceiling / gt-init (the most the ratio can be)"
+    )
+    return {"ratio": ratio, "ceiling_miou": ceiling_miou, "ceiling_ratio": ceiling_ratio}
+
+
+def _print_answer_time(caches: dict[str, DetectionCache | None], source: str) -> dict[str, float] | None:
+    """The measured time of the back-end's answers in this run (each keyframe's detection and
+    verification, wall clock): the delay to try with --delay-s for an in-process (local) verifier."""
+    seconds = sorted(t for c in caches.values() if c is not None for t in c.seconds)
+    if not seconds:
+        return None
+    figures = {
+        "answers": float(len(seconds)),
+        "median_s": float(np.median(seconds)),
+        "p90_s": float(np.percentile(seconds, 90)),
+        "max_s": seconds[-1],
+    }
+    print(
+        f"answer time of {source} in this run: {len(seconds)} keyframes, median "
+        f"{figures['median_s']:.2f} s, p90 {figures['p90_s']:.2f} s, max {figures['max_s']:.2f} s "
+        "(wall clock per keyframe, detection + verification)"
+    )
+    return figures
 
 
 def run(args: argparse.Namespace) -> int:
@@ -513,7 +560,12 @@ def _run_evals(
                     total = _print_table(
                         f"{label}, first box from the prompt (--init prompt)", prompted, bare
                     )
-                    _print_acquisition(prompted, results)
+                    run["acquisition"] = _print_acquisition(
+                        prompted,
+                        results,
+                        {q.name: round(delay_s * q.fps) for q in seqs},
+                        delay_s,
+                    )
                     run["gt_init"] = {
                         "overall": overall(results),
                         "sequences": [result_dict(r) for r in results],
@@ -533,6 +585,8 @@ def _run_evals(
                     sweep_points.setdefault(name, []).append((threshold, total["miou"], total["fps"]))
                 last_results = results
     bar.close()
+    if args.init == "prompt":
+        output["answer_time"] = _print_answer_time(caches, source)
     _write_json(args.json, output)
     if args.plot:
         if sweep:

@@ -31,9 +31,10 @@ from typing import Any, Literal
 import cv2
 import numpy as np
 
+from behaviors.candidate_selection import select_first_acquisition
 from behaviors.detection import Detection, Verdict
 from behaviors.geometry import Box, iou
-from behaviors.spatial_relations import narrow_by_relation, parse_relation
+from behaviors.spatial_relations import parse_relation
 from behaviors.tracking_metrics import MiouResult, mean_iou, pooled_miou
 from companion.config import TrackerConfig
 from companion.vision.frame_sources import FolderSource, Frame
@@ -164,13 +165,26 @@ class DetectionCache:
         self._detect = detect
         self._cache: dict[tuple[str, int, tuple[int, int]], list[Detection]] = {}
         self.calls = 0
+        self.seconds: list[float] = []  # wall time of each real call: the back-end's answer time here
 
     def get(self, sequence: str, image: np.ndarray, frame_id: int) -> list[Detection]:
         key = (sequence, frame_id, (image.shape[1], image.shape[0]))
         if key not in self._cache:
             self.calls += 1
+            started = time.perf_counter()
             self._cache[key] = self._detect(image, frame_id)
+            self.seconds.append(time.perf_counter() - started)
         return self._cache[key]
+
+
+def acquisition_ceiling(reference: SequenceResult, delay_frames: int) -> MiouResult:
+    """What a perfect acquirer could score with answers `delay_frames` late: the ground-truth-initialised
+    run's IoU from the frame the first answer (on the first frame) can arrive, over all frames with
+    ground truth; the frames before it count 0, as they do for --init prompt."""
+    ious = reference.ious
+    gt_frames = sum(v is not None for v in ious)
+    kept = sum(v for v in ious[max(0, delay_frames) :] if v is not None)
+    return MiouResult(kept / gt_frames if gt_frames else float("nan"), kept, gt_frames, 0, 0)
 
 
 def _scaled(box: Box | None, sx: float, sy: float) -> Box | None:
@@ -254,15 +268,9 @@ def make_frontend(
 def first_candidate(
     detections: Sequence[Detection], accept_uncertain: bool = False, prompt: str = ""
 ) -> Detection | None:
-    """First acquisition: the best-scored candidate the verifier said yes to; with `accept_uncertain`
-    (the flight's [behavior] accept_uncertain) an uncertain one when nobody got a yes. Never a "no".
-    A relation the prompt states between people ("between the man in red and ...") narrows the choice
-    to the candidates that stand so among everyone in view (`behaviors.spatial_relations`)."""
-    pool = [i for i, d in enumerate(detections) if d.verdict is Verdict.YES]
-    if not pool and accept_uncertain:
-        pool = [i for i, d in enumerate(detections) if d.verdict is Verdict.UNCERTAIN]
-    pool = narrow_by_relation(parse_relation(prompt), pool, [d.box for d in detections])
-    return max((detections[i] for i in pool), key=lambda d: d.score) if pool else None
+    """First acquisition as in flight (`behaviors.candidate_selection.select_first_acquisition`, the
+    mission's choice without its rejection memory)."""
+    return select_first_acquisition(detections, accept_uncertain, parse_relation(prompt))
 
 
 def _outcome(before: float, after: float) -> str:

@@ -926,3 +926,25 @@ def test_verified_lost_that_gave_up_judges_nothing() -> None:
     assert state.lost_stage == 2
     _, actions = step(state, BackendAnswer(40.0, query, 45, (candidate(FAR),)), config)
     assert actions == ()
+
+
+def test_prompt_relation_chooses_the_candidate_between_the_others() -> None:
+    """Acquisition from a prompt that places the target between two others: of several "yes", the one
+    standing between two other people in view is taken, even over a higher detector score."""
+    start = StartMission("the man in the grey shirt walking between the man in red and the man in green")
+    state, actions = step(reach(S.IDLE), cmd(0.1, start), CFG)
+    left, middle, right = box_at(30, u=200), box_at(30, u=320), box_at(30, u=440)
+    answer = BackendAnswer(
+        1.0,
+        last_query(actions).query_id,
+        30,
+        (
+            candidate(left, "left", Verdict.YES, 0.9),
+            candidate(middle, "middle", Verdict.YES, 0.5),
+            candidate(right, "right", Verdict.NO, 0.8),
+        ),
+    )
+    init = [a for a in step(state, answer, CFG)[1] if isinstance(a, TrackerInit)][0]
+    assert init.candidate_id == "middle"
+    plain = step(reach(S.SEARCHING), replace(answer, query_id=1), CFG)[1]  # no relation in the prompt
+    assert [a for a in plain if isinstance(a, TrackerInit)][0].candidate_id == "left"

@@ -15,6 +15,10 @@ class VerifierAnswer:
     verdict: Verdict
     justification: str
     verifier: str  # which verifier decided (a cascade names the stage)
+    # The object's extent (x, y, w, h in the crop's pixels) as the verifier saw it, e.g. a body model's
+    # person mask; None when it measured none. The pipeline reports it instead of the detector's box,
+    # which often takes in a shadow or a neighbour.
+    box: tuple[float, float, float, float] | None = None
 
 
 class VerifierError(Exception):

@@ -34,6 +34,7 @@ WHEEL = "mediapipe==0.10.14"
 WHEEL_MEMBER = "mediapipe/modules/pose_landmark/pose_landmark_full.tflite"
 INPUT = 256
 ROI_SCALE = 1.5  # square side / longer box side: the whole body and some context, as the model was trained
+MASK_LOGIT = 0.0  # segmentation logit above which a pixel is the person (probability 0.5)
 # Landmark indices (BlazePose topology).
 NOSE, L_SHOULDER, R_SHOULDER, L_HIP, R_HIP, L_KNEE, R_KNEE, L_ANKLE, R_ANKLE = (
     0,
@@ -165,7 +166,7 @@ class PersonModel:
         back = cv2.invertAffineTransform(forward)
         points = landmarks[:, :2] @ back[:, :2].T + back[:, 2]
         mask = cv2.warpAffine(
-            (logits > 0).astype(np.uint8),
+            (logits > MASK_LOGIT).astype(np.uint8),
             back,
             (image_bgr.shape[1], image_bgr.shape[0]),
             flags=cv2.INTER_NEAREST,

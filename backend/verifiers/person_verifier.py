@@ -25,7 +25,14 @@ import cv2
 import numpy as np
 
 from backend.verifiers import person_model as body
-from backend.verifiers.attributes import COLOUR_WORDS, REGIONS, colour_claims, posture_claim
+from backend.verifiers.attributes import (
+    COLOUR_WORDS,
+    LOWER,
+    REGIONS,
+    UPPER,
+    colour_claims,
+    posture_claim,
+)
 from backend.verifiers.colour_names import ColourNamer, srgb_to_lab, subsample, white_gains
 from backend.verifiers.interface import VerifierAnswer
 from backend.verifiers.person_model import PersonModel
@@ -38,6 +45,8 @@ SITTING_MAX_KNEE_DEG = 105.0
 DARK_PRESENT_SHARE = 0.5  # "dark": at least half the garment below L* 35
 DARK_ABSENT_SHARE = 0.2
 OTHER_COLOUR_SHARE = 0.4  # another colour this much of the garment, the named one under present: no
+BODY_MARGIN = 0.5  # the person's extent: mask within this many torso lengths of a visible keypoint
+OUTWEIGHED_RATIO = 0.5  # ...or the named colours together under half of that other colour: no
 
 
 @dataclass
@@ -49,6 +58,7 @@ class Observation:
     regions: dict[str, np.ndarray] = field(default_factory=dict)  # "upper"/"lower" -> N x 3 Lab
     posture: str | None = None  # "standing", "sitting", "lying" or None (cannot tell)
     posture_note: str = ""
+    extent: tuple[float, float, float, float] | None = None  # the person mask's box (x, y, w, h)
 
 
 # Words that bring in another person or thing ("between the man in the red shirt", "next to the car"):
@@ -75,6 +85,28 @@ def compound_colours(prompt: str) -> list[set[str]]:
         if first in COLOUR_WORDS and second in COLOUR_WORDS:
             groups.append({COLOUR_WORDS[first], COLOUR_WORDS[second]})
     return groups
+
+
+# Pattern words: the garment has colours the description does not name (a grey-blue striped shirt has
+# stripes of another colour, often most of it). The verifier cannot judge a pattern on a 15-40 px person;
+# it only stops expecting the named colour to be the garment's main one.
+PATTERNS = {
+    "striped", "stripes", "stripy", "stripey", "checked", "checkered", "chequered", "plaid", "tartan",
+    "patterned", "pattern", "spotted", "dotted", "polka", "floral", "flowered", "camouflage", "camo",
+    "print", "printed", "hooped",
+}  # fmt: skip
+
+
+def patterned_regions(prompt: str) -> set[str]:
+    """Garments ("upper", "lower", "whole") the description calls patterned: a pattern word followed
+    within three words by the garment's noun (or by none: the whole body)."""
+    tokens = re.findall(r"[a-z]+", prompt.lower())
+    regions = set()
+    for i, token in enumerate(tokens):
+        if token in PATTERNS:
+            following = tokens[i + 1 : i + 4]
+            regions.add("upper" if UPPER & set(following) else "lower" if LOWER & set(following) else "whole")
+    return regions
 
 
 def _angle(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> float:
@@ -175,7 +207,25 @@ class PersonVerifier:
             if len(px) >= self.min_region_px
         }
         posture, note = posture_from_keypoints(p, pose.visibility, self.min_visibility)
-        return Observation("", pose.presence, regions, posture, note)
+        joints = p[pose.visibility >= self.min_visibility]
+        reach = BODY_MARGIN * torso_len  # the head's top above the nose, hands and feet past the joints
+        near = np.zeros_like(pose.mask)
+        x1, y1 = np.floor(joints.min(axis=0) - reach).astype(int).clip(0)
+        x2, y2 = np.ceil(joints.max(axis=0) + reach).astype(int)
+        near[y1 : max(y2 + 1, y1), x1 : max(x2 + 1, x1)] = True
+        extent = self.mask_extent(pose.mask & near)
+        return Observation("", pose.presence, regions, posture, note, extent)
+
+    def mask_extent(self, mask: np.ndarray) -> tuple[float, float, float, float] | None:
+        """The box of the person mask (1st to 99th percentile of its pixels: a stray speck does not widen
+        it); None for a mask too small to trust. The caller keeps the mask near the body's keypoints: the
+        segmentation also takes in a neighbour the person touches."""
+        ys, xs = np.nonzero(mask)
+        if len(xs) < self.min_region_px:
+            return None
+        x1, x2 = np.percentile(xs, [1, 99])
+        y1, y2 = np.percentile(ys, [1, 99])
+        return float(x1), float(y1), float(x2 - x1 + 1), float(y2 - y1 + 1)
 
     def judge(
         self,
@@ -204,6 +254,7 @@ class PersonVerifier:
             )
             notes.append(f"posture {seen or 'unclear'} ({observation.posture_note})")
         compounds = compound_colours(prompt)
+        patterned = patterned_regions(prompt)
         judged: list[tuple[str, set[str]]] = []  # (region, colours that together make the claim)
         for claim in claims:
             group = next((g for g in compounds if claim.colour in g), {claim.colour})
@@ -240,14 +291,25 @@ class PersonVerifier:
                     default=("", 0.0),
                 )
                 elsewhere = share < present and other_share >= OTHER_COLOUR_SHARE
+                # Or a garment mostly of one unnamed colour, the named ones together a fraction of it: a
+                # red shirt is not "blue" for the bluish shade in its folds. Not for a garment the
+                # description calls patterned: its unnamed stripes may well be most of it.
+                hues = sum(shares.get(c, 0.0) for c in named - {"dark"})
+                outweighed = (
+                    group != {"dark"}
+                    and region not in patterned
+                    and other_share >= OTHER_COLOUR_SHARE
+                    and hues < OUTWEIGHED_RATIO * other_share
+                )
                 notes.append(
-                    f"{name} {share:.0%} of {part} garment" + (f" (mostly {other})" if elsewhere else "")
+                    f"{name} {share:.0%} of {part} garment"
+                    + (f" (mostly {other}: {other_share:.0%})" if elsewhere or outweighed else "")
                 )
                 verdicts.append(
-                    Verdict.YES
+                    Verdict.NO
+                    if share < absent or elsewhere or outweighed
+                    else Verdict.YES
                     if share >= present
-                    else Verdict.NO
-                    if share < absent or elsewhere
                     else Verdict.UNCERTAIN
                 )
         if Verdict.NO in verdicts:
@@ -256,7 +318,7 @@ class PersonVerifier:
             verdict = Verdict.YES
         else:
             verdict = Verdict.UNCERTAIN
-        return VerifierAnswer(verdict, "; ".join(notes), self.name)
+        return VerifierAnswer(verdict, "; ".join(notes), self.name, observation.extent)
 
     def observe_object(
         self, crop_bgr: np.ndarray, target_box: tuple[float, float, float, float]
