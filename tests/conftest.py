@@ -13,6 +13,20 @@ import pytest
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
+def _import_anyio_now() -> None:
+    """anyio imports its API on first use, and as a pytest plugin its modules go through pytest's assertion
+    rewriter. A first use from a server thread then compiles there while pytest compiles in the main
+    thread, which CPython 3.11.7's AST validator does not survive ("SystemError: AST constructor recursion
+    depth mismatch", a 500 on a static file). Resolve the lazy names once, here, in the main thread."""
+    import anyio
+
+    for name in dir(anyio):
+        getattr(anyio, name)
+
+
+_import_anyio_now()
+
+
 def _shared_dir() -> Path:
     return Path(os.environ.get("CLOUDTRACK_SHARED") or REPO_ROOT.parent / "shared").resolve()
 
