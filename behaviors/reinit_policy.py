@@ -154,7 +154,9 @@ def decide(
     own: set[int] = set()  # candidates that are the tracked object
     if track.box is not None:
         overlaps = [
-            (iou(c.box, track.box), i, c) for i, c in usable if same_object(c.box, track.box, settings.agree_iou)
+            (iou(c.box, track.box), i, c)
+            for i, c in usable
+            if same_object(c.box, track.box, settings.agree_iou)
         ]
         own = {i for _, i, _ in overlaps}
         best = max(overlaps, key=lambda t: (t[0], -t[1]), default=None)
@@ -199,11 +201,17 @@ def decide(
             action, index, ReinitState(streak, winner.box), f"candidate beat the track {streak}x"
         )
     if agreeing is not None and agreeing[1].verdict is not Verdict.NO:
-        if track.lost and track.degraded and track.box is not None and (
-            iou(agreeing[1].box, track.box) < settings.agree_iou
+        if (
+            track.lost
+            and track.degraded
+            and track.box is not None
+            and (iou(agreeing[1].box, track.box) < settings.agree_iou)
         ):
             return ReinitDecision(
-                ReinitAction.REINIT, agreeing[0], ReinitState(), "re-framed on the candidate on the lost track"
+                ReinitAction.REINIT,
+                agreeing[0],
+                ReinitState(),
+                "re-framed on the candidate on the lost track",
             )
         return ReinitDecision(
             ReinitAction.CONFIRM, agreeing[0], ReinitState(), "a candidate on the track supports it"

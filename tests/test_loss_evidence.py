@@ -40,7 +40,12 @@ Q: tuple[str, ...] = ()
         ("recovery needs 1 s quiet", [L] + [Q] * 11, 10.0, "l" * 10 + ".."),
         # Lost at 1.0 s of evidence; 5 quiet frames leave 0.5 s, 3 alarms bring it to 0.8 s, 8 quiet frames
         # empty it.
-        ("a weak alarm while lost keeps it lost", [L] + [Q] * 5 + [A] * 3 + [Q] * 12, 10.0, "l" * 6 + "a" * 10 + "." * 5),
+        (
+            "a weak alarm while lost keeps it lost",
+            [L] + [Q] * 5 + [A] * 3 + [Q] * 12,
+            10.0,
+            "l" * 6 + "a" * 10 + "." * 5,
+        ),
     ],
 )
 def test_loss_evidence_table(name: str, frames: list[tuple[str, ...]], fps: float, expected: str) -> None:

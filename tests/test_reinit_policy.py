@@ -166,7 +166,9 @@ SHIFTED_NEIGHBOUR = Box(118, 100, 20, 50)  # a neighbour shoulder to shoulder: b
         ("a neighbour apart", TRACK, NEAR, False),
     ],
 )
-def test_reinit_policy_same_object_by_overlap_or_mutual_centres(name: str, a: Box, b: Box, same: bool) -> None:
+def test_reinit_policy_same_object_by_overlap_or_mutual_centres(
+    name: str, a: Box, b: Box, same: bool
+) -> None:
     assert same_object(a, b, 0.5) is same and same_object(b, a, 0.5) is same, name
 
 

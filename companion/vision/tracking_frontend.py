@@ -92,7 +92,9 @@ def loss_settings(config: TrackerConfig, tracker_name: str | None = None) -> Los
 def loss_evidence_settings(config: TrackerConfig) -> LossEvidenceSettings:
     unknown = set(config.weak_loss_signals) - set(SIGNALS)
     if unknown:
-        raise ValueError(f"weak_loss_signals: unknown signal(s) {sorted(unknown)}; known: {', '.join(SIGNALS)}")
+        raise ValueError(
+            f"weak_loss_signals: unknown signal(s) {sorted(unknown)}; known: {', '.join(SIGNALS)}"
+        )
     return LossEvidenceSettings(
         persistence_s=config.loss_persistence_s, weak_signals=frozenset(config.weak_loss_signals)
     )
@@ -292,9 +294,7 @@ class TrackingFrontend:
             agree = self.reinit.agree_iou
             on_track = [
                 v
-                for box, v in sorted(
-                    zip(boxes, verdicts, strict=True), key=lambda bv: -iou(bv[0], track_box)
-                )
+                for box, v in sorted(zip(boxes, verdicts, strict=True), key=lambda bv: -iou(bv[0], track_box))
                 if same_object(box, track_box, agree)
             ]
             if on_track:
@@ -493,7 +493,7 @@ class TrackingFrontend:
         return TrackResult(frame.frame_id, frame.capture_time, step.box, step.score, step.ok, reason)
 
     def _weigh(self, time_s: float) -> str:
-        """"verified": the loss detector's signals on this frame weighed over time (persistence for a
+        """With "verified": the loss detector's signals on this frame weighed over time (persistence for a
         weak signal alone, hysteresis before trusting again); "" while trusted."""
         enabled = self.loss.settings.enabled
         fired = [name for name in SIGNALS if name in enabled and self.loss.last_signals.get(name)]
