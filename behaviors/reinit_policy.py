@@ -70,7 +70,7 @@ class TrackEvidence:
     appearance: float | None = None  # distance of the tracker box's content to the target model
     reference: Box | None = None  # the last trusted box (the gate's centre)
     gate_px: float = math.inf  # farther than this (C_box) from the reference, a candidate needs a "yes"
-    degraded: bool = False  # lost on a geometric signal: the box, not the object, is wrong
+    degraded: bool = False  # a geometric signal fired (or lost on one): the box, not the object, is wrong
 
 
 @dataclass(frozen=True)
@@ -202,8 +202,7 @@ def decide(
         )
     if agreeing is not None and agreeing[1].verdict is not Verdict.NO:
         if (
-            track.lost
-            and track.degraded
+            track.degraded
             and track.box is not None
             and (iou(agreeing[1].box, track.box) < settings.agree_iou)
         ):
@@ -211,7 +210,7 @@ def decide(
                 ReinitAction.REINIT,
                 agreeing[0],
                 ReinitState(),
-                "re-framed on the candidate on the lost track",
+                "re-framed on the candidate on the track (geometric alarm)",
             )
         return ReinitDecision(
             ReinitAction.CONFIRM, agreeing[0], ReinitState(), "a candidate on the track supports it"

@@ -305,6 +305,7 @@ def evaluate_sequence(
     pending: list[tuple[int, int, list[Detection]]] = []
     last_request = -(10**9)
     was_trusted = False
+    had_alarm = False
     calls = 0
     started = time.perf_counter()
     detector_seconds = 0.0
@@ -362,8 +363,10 @@ def evaluate_sequence(
         needs_candidates = (needs_candidates and index > 0) or (from_prompt and not frontend.tracking)
         # As in flight, where losing the target sends a re-detection query at once (behaviors.mission).
         flagged = bool(result.lost_reason) and result.lost_reason not in ("idle", "acquiring")
-        newly_lost = flagged and was_trusted
-        was_trusted = result.trusted
+        # With "verified" a signal that starts firing on a trusted track asks for evidence at once too.
+        alarm = bool(frontend.alarm) and settings.policy == "verified"
+        newly_lost = (flagged and was_trusted) or (alarm and not had_alarm)
+        was_trusted, had_alarm = result.trusted, alarm
         reverify_now = settings.policy != "verified" and settings.reverify_interval > 0 and result.trusted
         interval = settings.reverify_interval if reverify_now else settings.keyframe_interval
         if (

@@ -197,6 +197,13 @@ def test_reinit_policy_same_object_by_overlap_or_mutual_centres(
             0,
         ),
         (
+            "trusted, a geometric alarm firing, candidate frames it otherwise: re-frame (two signals)",
+            TrackEvidence(TRACK, False, 0.3, TRACK, 300.0, degraded=True),
+            [cand(WIDE_ON_TRACK)],
+            ReinitAction.REINIT,
+            0,
+        ),
+        (
             "lost on a geometric signal, candidate frames it alike: the alarm was false, confirm",
             TrackEvidence(TRACK, True, 0.3, TRACK, 300.0, degraded=True),
             [cand(ON_TRACK)],

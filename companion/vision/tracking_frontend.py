@@ -58,6 +58,7 @@ from companion.vision.loss_detection import (
     LossSettings,
     appearance_distance,
     appearance_histogram,
+    first_reason,
 )
 from companion.vision.trackers import Tracker, create_tracker
 
@@ -165,7 +166,8 @@ class TrackingFrontend:
         # The target as the answers that confirmed the track saw it (a running mean of the confirming
         # candidates' histograms): a person's look drifts with scale and pose over a long track.
         self._confirmed_look: np.ndarray | None = None
-        self._boxes: dict[int, tuple[Box | None, str]] = {}  # recent frame id -> tracker box, lost reason
+        # Recent frame id -> tracker box, lost reason, whether a geometric signal fired on it.
+        self._boxes: dict[int, tuple[Box | None, str, bool]] = {}
         self._last_box: Box | None = None
         # Tracker box size over detector box size (log, per axis), learnt from candidates that confirmed
         # the track: detector boxes frame a person differently (wider, feet included) than the tracker.
@@ -211,6 +213,14 @@ class TrackingFrontend:
     @property
     def lost_reason(self) -> str:
         return self._lost_reason
+
+    @property
+    def alarm(self) -> str:
+        """The first enabled loss signal that fired on the last frame, trusted or not ("" when none): with
+        "verified" a weak alarm does not untrust the track at once, but it is a reason to ask for evidence."""
+        if self._tracker is None:
+            return ""
+        return first_reason(self.loss.last_signals, self.loss.settings.enabled)
 
     def start(self, keyframe_id: int, box: Box) -> bool:
         """Track `box` as seen in frame `keyframe_id` (a new target: the appearance model restarts)."""
@@ -273,7 +283,7 @@ class TrackingFrontend:
 
     def box_at(self, frame_id: int) -> Box | None:
         """The tracker's box on a recent frame (None when it had none or the frame is too old)."""
-        return self._boxes.get(frame_id, (None, "idle"))[0]
+        return self._boxes.get(frame_id, (None, "idle", False))[0]
 
     def judge_candidates(
         self, keyframe_id: int, detections: Sequence[Detection], refused: Collection[int] = ()
@@ -286,7 +296,7 @@ class TrackingFrontend:
         keyframe = self.ring.get(keyframe_id)
         if keyframe is None or self._tracker is None or self._catch_up is not None:
             return None
-        track_box, lost_reason = self._boxes.get(keyframe_id, (None, "idle"))
+        track_box, lost_reason, geometric = self._boxes.get(keyframe_id, (None, "idle", False))
         lost = bool(lost_reason)
         boxes = [self.to_tracker_convention(d.box) for d in detections]
         verdicts = [d.verdict for d in detections]
@@ -317,7 +327,7 @@ class TrackingFrontend:
             appearance=self._distance(keyframe.image, track_box),
             reference=self.last_trusted_box,
             gate_px=self._gate(keyframe),
-            degraded=lost_reason in GEOMETRIC_SIGNALS,
+            degraded=geometric or lost_reason in GEOMETRIC_SIGNALS,
         )
         evidence = [
             CandidateEvidence(box, verdict, self._distance(keyframe.image, box))
@@ -447,7 +457,10 @@ class TrackingFrontend:
     def feed(self, frame: Frame) -> TrackResult:
         result = self._feed(frame)
         self._last_box = result.box
-        self._boxes[frame.frame_id] = (result.box, result.lost_reason)
+        geometric = result.box is not None and any(
+            self.loss.last_signals.get(name) for name in GEOMETRIC_SIGNALS & self.loss.settings.enabled
+        )
+        self._boxes[frame.frame_id] = (result.box, result.lost_reason, geometric)
         oldest = frame.frame_id - self.ring.capacity
         for stale in [k for k in self._boxes if k <= oldest]:
             del self._boxes[stale]
