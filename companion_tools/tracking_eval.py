@@ -363,8 +363,9 @@ def evaluate_sequence(
         needs_candidates = (needs_candidates and index > 0) or (from_prompt and not frontend.tracking)
         # As in flight, where losing the target sends a re-detection query at once (behaviors.mission).
         flagged = bool(result.lost_reason) and result.lost_reason not in ("idle", "acquiring")
-        # With "verified" a signal that starts firing on a trusted track asks for evidence at once too.
-        alarm = bool(frontend.alarm) and settings.policy == "verified"
+        # With "verified" a signal that starts firing on a trusted track asks for evidence at once too (as
+        # the mission's track check does in flight).
+        alarm = bool(result.alarm)
         newly_lost = (flagged and was_trusted) or (alarm and not had_alarm)
         was_trusted, had_alarm = result.trusted, alarm
         reverify_now = settings.policy != "verified" and settings.reverify_interval > 0 and result.trusted

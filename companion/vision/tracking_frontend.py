@@ -503,7 +503,8 @@ class TrackingFrontend:
             self.last_trusted_box = step.box
             self.last_trusted_frame_id = frame.frame_id
             self.last_trusted_time = frame.capture_time
-        return TrackResult(frame.frame_id, frame.capture_time, step.box, step.score, step.ok, reason)
+        alarm = self.alarm if self.policy == "verified" and not reason else ""
+        return TrackResult(frame.frame_id, frame.capture_time, step.box, step.score, step.ok, reason, alarm)
 
     def _weigh(self, time_s: float) -> str:
         """With "verified": the loss detector's signals on this frame weighed over time (persistence for a
