@@ -8,14 +8,15 @@ neighbour can be undone):
 
 - The track's own evidence is the candidate that is the tracked object (`same_object`: IoU at least
   `agree_iou` with the tracker's box on the keyframe, or each box holding the other's centre: a detector
-  frames a person wider than a tracker, IoU 0.3-0.5 on the same person): its verdict, and its appearance distance to the target model (the target as the
-  track first saw it; 0 same, 1 nothing in common). A lost track with no candidate on it is as good as a
-  "no"; a trusted one the detector missed is as good as "uncertain".
-- A candidate elsewhere (not the tracked object) *beats* the track when the verifier ranks it higher (yes > uncertain > no), it
-  has evidence of its own (a "yes", or it looks like the target: distance below `appearance_threshold`)
-  and the appearance model does not contradict the verifier (the candidate is not clearly, by
-  `appearance_margin`, less like the target than the track); or when the verdicts tie and it looks
-  clearly more like the target (by `appearance_margin` or more).
+  frames a person wider than a tracker, IoU 0.3-0.5 on the same person): its verdict, and its appearance
+  distance to the target model (the target as the track first saw it; 0 same, 1 nothing in common). A
+  lost track with no candidate on it is as good as a "no"; a trusted one the detector missed is as good
+  as "uncertain".
+- A candidate elsewhere (not the tracked object) *beats* the track when the verifier ranks it higher
+  (yes > uncertain > no), it has evidence of its own (a "yes", or it looks like the target: distance
+  below `appearance_threshold`) and the appearance model does not contradict the verifier (the candidate
+  is not clearly, by `appearance_margin`, less like the target than the track); or when the verdicts tie
+  and it looks clearly more like the target (by `appearance_margin` or more).
   A "no" never wins; a candidate beyond the gate around the last trusted box needs a "yes".
 - Only a candidate that beats the track on `confirmations` keyframes in a row, at a consistent place,
   re-initialises the tracker. One answer is not enough: a single keyframe's verdict or histogram is noisy.
@@ -23,10 +24,10 @@ neighbour can be undone):
   the detector finds an object of the described class where the tracker is, and nothing in view has
   better evidence of being the target; a loss flagged on that keyframe is withdrawn. (Not the appearance
   model here: the target's own look drifts with scale and pose over a long track, measured up to a
-  distance of 0.85 on a wakeboarder the tracker followed correctly.) When the loss was geometric
-  (`TrackEvidence.degraded`: the box collapsed, jumped or left the image) and the candidate holds the
-  track's centre but frames it differently (IoU below `agree_iou`), the tracker's box is what is wrong,
-  not its object: the track is *re-framed* (re-initialised) on that candidate at once. A candidate that
+  distance of 0.85 on a wakeboarder the tracker followed correctly.) When a geometric signal fired
+  (`TrackEvidence.degraded`: the box collapsed, jumped or left the image; lost or not yet) and the
+  candidate holds the track's centre but frames it differently (IoU below `agree_iou`), the tracker's box
+  is what is wrong, not its object: the track is *re-framed* (re-initialised) on that candidate at once. A candidate that
   frames it alike (IoU at least `agree_iou`) says the geometric alarm was false: it confirms.
 - Otherwise a lost track waits (it never jumps to whoever is nearest) and a trusted one is kept.
 """

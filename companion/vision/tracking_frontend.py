@@ -13,13 +13,14 @@ any) keeps reporting; the new one takes over once it reaches the live frame.
 With the paper's policies a loss is latched: once a signal fires, every result carries that `lost_reason`
 until the next `start`/`apply_candidates` completes, because a tracker that jumped to a distractor usually
 follows it smoothly afterwards and the per-frame signals would stop firing. With "verified" the signals
-are weighed over time and not latched (`behaviors.loss_evidence`): a geometric signal, or the score and
-the colour model together, untrust the track at once; the score or the colour model alone only after
-`[tracker] loss_persistence_s` of alarm (measured: most of their alarms on real footage were a few frames
-while the tracker was on target); a lost track is trusted again after as long without an alarm, or at
-once when a back-end candidate on the track confirms it. A silent switch to a distractor is what the
-keyframe evidence is for (the policy judges every answer, trusted or not). Results while nothing is tracked carry
-`lost_reason` "idle"; while the first acquisition is still catching up, "acquiring".
+are weighed over time and not latched (`behaviors.loss_evidence`): no box, a box out of the image or a
+jump, or two signals together, untrust the track at once; one of `[tracker] weak_loss_signals` (score,
+shape, colour model) alone only after `loss_persistence_s` of alarm (measured: most of their alarms on
+real footage were a few frames while the tracker was on target); a lost track is trusted again after as
+long without an alarm, or at once when a back-end candidate on the track confirms it. A silent switch to
+a distractor is what the keyframe evidence is for (the policy judges every answer, trusted or not).
+Results while nothing is tracked carry `lost_reason` "idle"; while the first acquisition is still
+catching up, "acquiring".
 """
 
 from __future__ import annotations
