@@ -135,6 +135,7 @@ class State:
     control: ControlState = ControlState()
     rejections: RejectionMemory = RejectionMemory()
     reason: str = ""  # why the current mode was entered
+    alarm: bool = False  # a loss signal fires on the trusted track (a track check went out when it began)
 
 
 Result = tuple[State, tuple[Action, ...]]
@@ -389,6 +390,14 @@ def _track(state: State, result: TrackResult, config: MissionConfig) -> Result:
 
     if state.mode is MissionState.CONFIRMED and config.on_confirm is ConfirmAction.HOLD:
         return state, tuple(actions)
+    if config.verified_reinit and state.mode is MissionState.FOLLOWING:
+        starting = bool(result.alarm) and not state.alarm
+        state = replace(state, alarm=bool(result.alarm))
+        if starting:
+            # Evidence before a loss: a signal began to fire on the trusted track, ask now rather than at
+            # the next periodic check (the answer can confirm the track, re-frame it or show a rival).
+            state, query = _query(state, QueryPurpose.TRACK_CHECK, _roi(result.box, config))
+            actions.extend(query)
     state, setpoint = _follow(state, result.box, result.time_s, config)
     actions.extend(setpoint)
 

@@ -6,15 +6,17 @@ tracker is on target, and the nearest detector box is often someone else. This p
 only on evidence, judged on every keyframe answer (while trusted too, so a silent identity switch to a
 neighbour can be undone):
 
-- The track's own evidence is the candidate that overlaps the tracker's box on the keyframe (IoU at
-  least `agree_iou`): its verdict, and its appearance distance to the target model (the target as the
-  track first saw it; 0 same, 1 nothing in common). A lost track with no candidate on it is as good as a
-  "no"; a trusted one the detector missed is as good as "uncertain".
-- A candidate elsewhere *beats* the track when the verifier ranks it higher (yes > uncertain > no), it
-  has evidence of its own (a "yes", or it looks like the target: distance below `appearance_threshold`)
-  and the appearance model does not contradict the verifier (the candidate is not clearly, by
-  `appearance_margin`, less like the target than the track); or when the verdicts tie and it looks
-  clearly more like the target (by `appearance_margin` or more).
+- The track's own evidence is the candidate that is the tracked object (`same_object`: IoU at least
+  `agree_iou` with the tracker's box on the keyframe, or each box holding the other's centre: a detector
+  frames a person wider than a tracker, IoU 0.3-0.5 on the same person): its verdict, and its appearance
+  distance to the target model (the target as the track first saw it; 0 same, 1 nothing in common). A
+  lost track with no candidate on it is as good as a "no"; a trusted one the detector missed is as good
+  as "uncertain".
+- A candidate elsewhere (not the tracked object) *beats* the track when the verifier ranks it higher
+  (yes > uncertain > no), it has evidence of its own (a "yes", or it looks like the target: distance
+  below `appearance_threshold`) and the appearance model does not contradict the verifier (the candidate
+  is not clearly, by `appearance_margin`, less like the target than the track); or when the verdicts tie
+  and it looks clearly more like the target (by `appearance_margin` or more).
   A "no" never wins; a candidate beyond the gate around the last trusted box needs a "yes".
 - Only a candidate that beats the track on `confirmations` keyframes in a row, at a consistent place,
   re-initialises the tracker. One answer is not enough: a single keyframe's verdict or histogram is noisy.
@@ -22,7 +24,11 @@ neighbour can be undone):
   the detector finds an object of the described class where the tracker is, and nothing in view has
   better evidence of being the target; a loss flagged on that keyframe is withdrawn. (Not the appearance
   model here: the target's own look drifts with scale and pose over a long track, measured up to a
-  distance of 0.85 on a wakeboarder the tracker followed correctly.)
+  distance of 0.85 on a wakeboarder the tracker followed correctly.) When a geometric signal fired
+  (`TrackEvidence.degraded`: the box collapsed, jumped or left the image; lost or not yet) and the
+  candidate holds the track's centre but frames it differently (IoU below `agree_iou`), the tracker's box
+  is what is wrong, not its object: the track is *re-framed* (re-initialised) on that candidate at once. A candidate that
+  frames it alike (IoU at least `agree_iou`) says the geometric alarm was false: it confirms.
 - Otherwise a lost track waits (it never jumps to whoever is nearest) and a trusted one is kept.
 """
 
@@ -65,6 +71,7 @@ class TrackEvidence:
     appearance: float | None = None  # distance of the tracker box's content to the target model
     reference: Box | None = None  # the last trusted box (the gate's centre)
     gate_px: float = math.inf  # farther than this (C_box) from the reference, a candidate needs a "yes"
+    degraded: bool = False  # a geometric signal fired (or lost on one): the box, not the object, is wrong
 
 
 @dataclass(frozen=True)
@@ -93,6 +100,17 @@ class ReinitDecision:
     index: int | None  # the candidate confirmed or taken (or leading the streak); None when none
     state: ReinitState
     reason: str
+
+
+def same_object(a: Box, b: Box, agree_iou: float) -> bool:
+    """Two boxes frame the same object: IoU at least `agree_iou`, or each holds the other's centre.
+    (Measured on the dev sequences' answers: the centre test adds the detector's wider boxes on the
+    tracked person, IoU 0.3-0.5, and matched no box of another person.)"""
+    return iou(a, b) >= agree_iou or (_holds(a, b.cx, b.cy) and _holds(b, a.cx, a.cy))
+
+
+def _holds(box: Box, x: float, y: float) -> bool:
+    return box.is_valid() and box.x <= x <= box.x2 and box.y <= y <= box.y2
 
 
 def _looks_like_target(c: CandidateEvidence, settings: ReinitSettings) -> bool:
@@ -134,10 +152,16 @@ def decide(
     """What one keyframe answer does to the track (see the module docstring)."""
     usable = [(i, c) for i, c in enumerate(candidates) if c.box.is_valid()]
     agreeing: tuple[int, CandidateEvidence] | None = None
+    own: set[int] = set()  # candidates that are the tracked object
     if track.box is not None:
-        overlaps = [(iou(c.box, track.box), i, c) for i, c in usable]
+        overlaps = [
+            (iou(c.box, track.box), i, c)
+            for i, c in usable
+            if same_object(c.box, track.box, settings.agree_iou)
+        ]
+        own = {i for _, i, _ in overlaps}
         best = max(overlaps, key=lambda t: (t[0], -t[1]), default=None)
-        if best is not None and best[0] >= settings.agree_iou:
+        if best is not None:
             agreeing = (best[1], best[2])
     if agreeing is not None:
         track_rank = _RANK[agreeing[1].verdict]
@@ -148,8 +172,7 @@ def decide(
     contenders = [
         (i, c)
         for i, c in usable
-        if (agreeing is None or i != agreeing[0])
-        and (track.box is None or iou(c.box, track.box) < settings.agree_iou)
+        if i not in own
         and (
             c.verdict is Verdict.YES
             or track.reference is None
@@ -179,6 +202,17 @@ def decide(
             action, index, ReinitState(streak, winner.box), f"candidate beat the track {streak}x"
         )
     if agreeing is not None and agreeing[1].verdict is not Verdict.NO:
+        if (
+            track.degraded
+            and track.box is not None
+            and (iou(agreeing[1].box, track.box) < settings.agree_iou)
+        ):
+            return ReinitDecision(
+                ReinitAction.REINIT,
+                agreeing[0],
+                ReinitState(),
+                "re-framed on the candidate on the track (geometric alarm)",
+            )
         return ReinitDecision(
             ReinitAction.CONFIRM, agreeing[0], ReinitState(), "a candidate on the track supports it"
         )

@@ -22,6 +22,9 @@ class TrackResult:
     score: float | None
     ok: bool
     lost_reason: str = ""
+    # A loss signal that fired on this frame while the track stays trusted (the "verified" policy weighs
+    # a lone model-based signal over time): a reason to ask the back-end for evidence now.
+    alarm: str = ""
 
     @property
     def trusted(self) -> bool:

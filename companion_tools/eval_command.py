@@ -434,7 +434,7 @@ def run(args: argparse.Namespace) -> int:
                 caches,
                 keyframe_s=args.keyframe_s,
             )
-            _print_signal_table(report)
+            _print_signal_table(report, config.tracker.loss_persistence_s)
             output["runs"].append({"signal_table": _signal_dict(report)})
         _write_json(args.json, output)
         return 0
@@ -617,10 +617,13 @@ def _signal_dict(report: Any) -> dict[str, Any]:
         "target_detected": report.target_detected,
         "detector_extent": report.detector_extent,
         "tracker_extent": report.tracker_extent,
+        "decided": vars(report.decided),
+        "detection_delays_s": report.detection_delays_s,
+        "episodes_missed": report.episodes_missed,
     }
 
 
-def _print_signal_table(report: Any) -> None:
+def _print_signal_table(report: Any, persistence_s: float) -> None:
     print(
         f"\ntracker {report.tracker}: {report.frames} frames, {report.lost_frames} off target "
         "(IoU < 0.1 or "
@@ -635,7 +638,24 @@ def _print_signal_table(report: Any) -> None:
             f"{name:<28} {c.fired:>6} {c.fired_lost:>10} {c.fired_on_target:>9} {_fmt(precision, 2):>9} "
             f"{_fmt(recall, 2):>7}"
         )
+    d = report.decided
+    precision = d.fired_lost / d.fired if d.fired else float("nan")
+    recall = d.fired_lost / report.lost_frames if report.lost_frames else float("nan")
+    label = f"untrusted (persistence {persistence_s:g} s)"
+    print(
+        f"{label:<28} {d.fired:>6} {d.fired_lost:>10} {d.fired_on_target:>9} {_fmt(precision, 2):>9} "
+        f"{_fmt(recall, 2):>7}"
+    )
     print("(off target: hits; on target: false alarms, each a frame the drone stops following a right track)")
+    delays = report.detection_delays_s
+    episodes = len(delays) + report.episodes_missed
+    if episodes:
+        median = f"{float(np.median(delays)):.2f} s" if delays else "-"
+        worst = f"{max(delays):.2f} s" if delays else "-"
+        print(
+            f"runs off target: {episodes}; untrusted in {len(delays)} (delay median {median}, max {worst}), "
+            f"never in {report.episodes_missed}"
+        )
     if report.keyframes:
         print(
             f"detector on {report.keyframes} keyframes: the target detected (IoU >= 0.5) on "

@@ -34,13 +34,20 @@ import numpy as np
 from behaviors.candidate_selection import select_first_acquisition
 from behaviors.detection import Detection, Verdict
 from behaviors.geometry import Box, iou
+from behaviors.loss_evidence import LossEvidence, judge_frame
 from behaviors.spatial_relations import parse_relation
 from behaviors.tracking_metrics import MiouResult, mean_iou, pooled_miou
 from companion.config import TrackerConfig
 from companion.vision.frame_sources import FolderSource, Frame
 from companion.vision.loss_detection import SIGNALS, LossDetector
 from companion.vision.trackers import create_tracker
-from companion.vision.tracking_frontend import Policy, TrackingFrontend, loss_settings, reinit_settings
+from companion.vision.tracking_frontend import (
+    Policy,
+    TrackingFrontend,
+    loss_evidence_settings,
+    loss_settings,
+    reinit_settings,
+)
 
 LOST_IOU = 0.1  # a tracker box overlapping the ground truth less than this is off target
 ON_TARGET_IOU = 0.5  # a box overlapping the ground truth this much is on the target
@@ -262,6 +269,7 @@ def make_frontend(
         max_c_box_sizes=cfg.max_c_box_sizes,
         reinit=reinit_settings(cfg),
         name=name,
+        evidence=loss_evidence_settings(cfg),
     )
 
 
@@ -305,6 +313,7 @@ def evaluate_sequence(
     pending: list[tuple[int, int, list[Detection]]] = []
     last_request = -(10**9)
     was_trusted = False
+    had_alarm = False
     calls = 0
     started = time.perf_counter()
     detector_seconds = 0.0
@@ -362,8 +371,11 @@ def evaluate_sequence(
         needs_candidates = (needs_candidates and index > 0) or (from_prompt and not frontend.tracking)
         # As in flight, where losing the target sends a re-detection query at once (behaviors.mission).
         flagged = bool(result.lost_reason) and result.lost_reason not in ("idle", "acquiring")
-        newly_lost = flagged and was_trusted
-        was_trusted = result.trusted
+        # With "verified" a signal that starts firing on a trusted track asks for evidence at once too (as
+        # the mission's track check does in flight).
+        alarm = bool(result.alarm)
+        newly_lost = (flagged and was_trusted) or (alarm and not had_alarm)
+        was_trusted, had_alarm = result.trusted, alarm
         reverify_now = settings.policy != "verified" and settings.reverify_interval > 0 and result.trusted
         interval = settings.reverify_interval if reverify_now else settings.keyframe_interval
         if (
@@ -476,6 +488,12 @@ class SignalReport:
     tracker_extent: list[tuple[float, float]] = field(default_factory=list)
     keyframes: int = 0
     target_detected: int = 0  # keyframes where some detector box is the target (IoU >= ON_TARGET_IOU)
+    # The configured signals as the "verified" policy weighs them over time (behaviors.loss_evidence):
+    # what untrusts the track, and for each run of off-target frames how long until it did (seconds; a
+    # run never flagged is counted in `episodes_missed`).
+    decided: SignalCounts = field(default_factory=SignalCounts)
+    detection_delays_s: list[float] = field(default_factory=list)
+    episodes_missed: int = 0
 
 
 def _combos(has_score: bool) -> dict[str, frozenset[str]]:
@@ -512,9 +530,14 @@ def signal_table(
     tracker = create_tracker(tracker_name, model_dir)
     combos = _combos(tracker.has_score)
     report.combos = {name: SignalCounts() for name in combos}
+    evidence_settings = loss_evidence_settings(config)
+    enabled = frozenset(config.loss_signals)
     for seq in seqs:
         detector = LossDetector(loss_settings(config, tracker_name))
         native_gt = ground_truth_for(seq, settings)
+        evidence = LossEvidence()
+        episode_start: float | None = None  # time of the first frame of the current off-target run
+        episode_flagged = False
         for frame, sx, sy in _frames(seq, settings):
             index = frame.frame_id - 1
             gt = _scaled(native_gt[index], sx, sy)
@@ -523,6 +546,7 @@ def signal_table(
                     raise ValueError(f"{seq.name}: the first frame needs a ground-truth box")
                 tracker.init(frame.image, gt)
                 detector.reset(frame.image, gt)
+                evidence = LossEvidence(time_s=frame.capture_time)
                 continue
             step = tracker.update(frame.image)
             detector.check(frame.image, step)
@@ -544,6 +568,21 @@ def signal_table(
                     report.combos[combo].fired += 1
                     report.combos[combo].fired_lost += int(lost)
                     report.combos[combo].fired_on_target += int(on_target)
+            names = [name for name in SIGNALS if name in enabled and fired[name]]
+            evidence = judge_frame(evidence, frame.capture_time, names, evidence_settings)
+            flagged = not evidence.trusted
+            if flagged:
+                report.decided.fired += 1
+                report.decided.fired_lost += int(lost)
+                report.decided.fired_on_target += int(on_target)
+            if lost and episode_start is None:
+                episode_start, episode_flagged = frame.capture_time, False
+            if lost and flagged and not episode_flagged and episode_start is not None:
+                episode_flagged = True
+                report.detection_delays_s.append(frame.capture_time - episode_start)
+            if not lost and episode_start is not None:
+                report.episodes_missed += int(not episode_flagged)
+                episode_start = None
             cache = detections.get(seq.name) if detections is not None else None
             if cache is not None and gt is not None and index % max(1, round(keyframe_s * seq.fps)) == 0:
                 report.keyframes += 1
@@ -554,4 +593,6 @@ def signal_table(
                     report.detector_extent.append((best.w / gt.w, best.h / gt.h))
                     if on_target and step.box is not None:
                         report.tracker_extent.append((step.box.w / gt.w, step.box.h / gt.h))
+        if episode_start is not None:
+            report.episodes_missed += int(not episode_flagged)
     return report

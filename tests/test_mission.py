@@ -886,6 +886,24 @@ def test_verified_following_checks_the_track_and_judges_the_answer() -> None:
     assert actions == (JudgeCandidates(62, answer.candidates, (0,)),) and state.mode is S.FOLLOWING
 
 
+def test_verified_following_asks_for_evidence_when_a_loss_signal_starts() -> None:
+    """A lone loss signal does not untrust the track at once ("verified"): its start sends one track check
+    at once, not one per frame; a new alarm after a quiet frame sends another."""
+    state = reach(S.FOLLOWING, VERIFIED)
+    state, _ = step(state, tracked(2.0, FAR), VERIFIED)
+    sent = []
+    for t, alarm in [(2.03, "appearance"), (2.06, "appearance"), (2.1, ""), (2.13, "score")]:
+        result = TrackResult(int(t * 30), t, FAR, 0.9, True, "", alarm)
+        state, actions = step(state, result, VERIFIED)
+        sent.append([a.purpose for a in actions if isinstance(a, BackendQuery)])
+        assert state.mode is S.FOLLOWING and any(isinstance(a, SendSetpoint) for a in actions)
+    assert sent == [[QueryPurpose.TRACK_CHECK], [], [], [QueryPurpose.TRACK_CHECK]]
+    # The paper's policy asks for nothing while trusted.
+    state = reach(S.FOLLOWING)
+    _, actions = step(state, TrackResult(61, 2.03, FAR, 0.9, True, "", "appearance"), CFG)
+    assert not [a for a in actions if isinstance(a, BackendQuery)]
+
+
 @pytest.mark.parametrize("mode", [S.FOLLOWING, S.LOST])
 def test_paper_policy_sends_no_track_checks_and_judges_nothing(mode: MissionState) -> None:
     state = reach(mode)

@@ -13,6 +13,7 @@ from behaviors.reinit_policy import (
     ReinitState,
     TrackEvidence,
     decide,
+    same_object,
 )
 
 TRACK = Box(100, 100, 20, 50)
@@ -149,3 +150,81 @@ def test_reinit_settings_confirmations_one_moves_at_once_and_bad_settings_fail()
         ReinitSettings(confirmations=0)
     with pytest.raises(ValueError, match="agree_iou"):
         ReinitSettings(agree_iou=0.0)
+
+
+# A detector frames a person wider (feet, arms) than a tracker: IoU about 0.4 with the track, same centre.
+WIDE_ON_TRACK = Box(92, 95, 36, 60)
+SHIFTED_NEIGHBOUR = Box(118, 100, 20, 50)  # a neighbour shoulder to shoulder: boxes overlap, centres do not
+
+
+@pytest.mark.parametrize(
+    ("name", "a", "b", "same"),
+    [
+        ("tight overlap", TRACK, ON_TRACK, True),
+        ("wider detector box on the same person", TRACK, WIDE_ON_TRACK, True),
+        ("a neighbour whose box overlaps", TRACK, SHIFTED_NEIGHBOUR, False),
+        ("a neighbour apart", TRACK, NEAR, False),
+    ],
+)
+def test_reinit_policy_same_object_by_overlap_or_mutual_centres(
+    name: str, a: Box, b: Box, same: bool
+) -> None:
+    assert same_object(a, b, 0.5) is same and same_object(b, a, 0.5) is same, name
+
+
+@pytest.mark.parametrize(
+    ("name", "track_view", "candidates", "action", "index"),
+    [
+        (
+            "a wider detector box on the track confirms it (never a contender)",
+            track(),
+            [cand(WIDE_ON_TRACK, YES)],
+            ReinitAction.CONFIRM,
+            0,
+        ),
+        (
+            "lost on a weak signal, candidate on the track: confirm, keep the tracker",
+            track(lost=True),
+            [cand(WIDE_ON_TRACK)],
+            ReinitAction.CONFIRM,
+            0,
+        ),
+        (
+            "lost on a geometric signal, candidate holds the track but frames it otherwise: re-frame",
+            TrackEvidence(TRACK, True, 0.3, TRACK, 300.0, degraded=True),
+            [cand(WIDE_ON_TRACK)],
+            ReinitAction.REINIT,
+            0,
+        ),
+        (
+            "trusted, a geometric alarm firing, candidate frames it otherwise: re-frame (two signals)",
+            TrackEvidence(TRACK, False, 0.3, TRACK, 300.0, degraded=True),
+            [cand(WIDE_ON_TRACK)],
+            ReinitAction.REINIT,
+            0,
+        ),
+        (
+            "lost on a geometric signal, candidate frames it alike: the alarm was false, confirm",
+            TrackEvidence(TRACK, True, 0.3, TRACK, 300.0, degraded=True),
+            [cand(ON_TRACK)],
+            ReinitAction.CONFIRM,
+            0,
+        ),
+        (
+            "lost on a geometric signal, a 'no' on the track never re-frames",
+            TrackEvidence(TRACK, True, 0.3, TRACK, 300.0, degraded=True),
+            [cand(WIDE_ON_TRACK, NO)],
+            ReinitAction.WAIT,
+            None,
+        ),
+    ],
+)
+def test_reinit_policy_reframe_and_wide_boxes(
+    name: str,
+    track_view: TrackEvidence,
+    candidates: list[CandidateEvidence],
+    action: ReinitAction,
+    index: int | None,
+) -> None:
+    decision = decide(ReinitState(), track_view, candidates)
+    assert (decision.action, decision.index) == (action, index), name

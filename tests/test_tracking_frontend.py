@@ -146,22 +146,28 @@ def test_verified_policy_withdraws_a_loss_a_candidate_on_the_track_confirms(
     models_dir: Path, crossing
 ) -> None:  # type: ignore[no-untyped-def]
     seq, frames = crossing
-    # An appearance threshold of 0 makes the appearance signal fire on every frame: a false alarm.
+    # An appearance threshold of 0 makes the appearance signal fire on every frame: a false alarm. Alone it
+    # untrusts the track only once it has lasted loss_persistence_s (0.5 s: 15 frames at 30 fps).
     fe = TrackingFrontend.from_config(
-        TrackerConfig(appearance_drift_threshold=0.0), models_dir, tracker_name="nano", policy="verified"
+        TrackerConfig(appearance_drift_threshold=0.0, loss_persistence_s=0.5),
+        models_dir,
+        tracker_name="nano",
+        policy="verified",
     )
     fe.feed(frames[0])
     fe.start(1, seq.ground_truth[0])
-    results = [fe.feed(frame) for frame in frames[1:10]]
+    results = [fe.feed(frame) for frame in frames[1:25]]
+    assert all(r.trusted for r in results[:12]), [r.lost_reason for r in results]
     assert results[-1].lost_reason == "appearance" and not results[-1].trusted
-    on_track = fe.box_at(10)
+    assert fe.stats.loss_events == 1  # one loss, no flicker
+    on_track = fe.box_at(25)
     assert on_track is not None
     detector_box = Box(
         on_track.x - 2, on_track.y - 3, on_track.w + 4, on_track.h + 5
     )  # wider, as detectors frame
-    assert fe.apply_candidates(10, [Detection(detector_box, 0.8)]) is None  # confirmed, not re-initialised
+    assert fe.apply_candidates(25, [Detection(detector_box, 0.8)]) is None  # confirmed, not re-initialised
     assert fe.stats.confirmations == 1 and fe.stats.decisions == {"confirm": 1}
-    after = fe.feed(frames[10])
+    after = fe.feed(frames[25])
     assert after.trusted, after  # the answer's evidence outweighs the appearance alarm until the next answer
     assert fe.stats.reinits == 1
     # The detector's extent is learnt from the confirmation: a later detector box is converted to the tracker's.

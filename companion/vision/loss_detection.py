@@ -127,6 +127,17 @@ class LossDetector:
         # 17x50 pedestrian as 23x31 on its first update and keeps that shape while on target.
         self._reference = None
 
+    def refresh(self, frame: np.ndarray, box: Box) -> None:
+        """A back-end answer confirmed that `box` in `frame` is the target: the shape reference restarts
+        from the tracker's next box and the appearance model moves halfway to this view of the target."""
+        hist = appearance_histogram(frame, box)
+        if self._template is None or hist is None:
+            self._template = hist if hist is not None else self._template
+        else:
+            self._template = 0.5 * self._template + 0.5 * hist
+        self._prev = box
+        self._reference = None
+
     def check(self, frame: np.ndarray, step: TrackerStep) -> str:
         """The first enabled signal that fired ("" while the target is trusted); every signal is kept in
         `last_signals`. A trusted step updates the appearance model."""

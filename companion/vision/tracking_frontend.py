@@ -13,11 +13,14 @@ any) keeps reporting; the new one takes over once it reaches the live frame.
 With the paper's policies a loss is latched: once a signal fires, every result carries that `lost_reason`
 until the next `start`/`apply_candidates` completes, because a tracker that jumped to a distractor usually
 follows it smoothly afterwards and the per-frame signals would stop firing. With "verified" the signals
-judge each frame and are not latched: a signal's false alarm (measured: most of the appearance and
-collapsed alarms fire while the tracker is on target) then costs the frames it fires on, not every frame
-until a detector happens to find the target again; a silent switch to a distractor is what the keyframe
-evidence is for (the policy judges every answer, trusted or not). Results while nothing is tracked carry
-`lost_reason` "idle"; while the first acquisition is still catching up, "acquiring".
+are weighed over time and not latched (`behaviors.loss_evidence`): no box, a box out of the image or a
+jump, or two signals together, untrust the track at once; one of `[tracker] weak_loss_signals` (score,
+shape, colour model) alone only after `loss_persistence_s` of alarm (measured: most of their alarms on
+real footage were a few frames while the tracker was on target); a lost track is trusted again after as
+long without an alarm, or at once when a back-end candidate on the track confirms it. A silent switch to
+a distractor is what the keyframe evidence is for (the policy judges every answer, trusted or not).
+Results while nothing is tracked carry `lost_reason` "idle"; while the first acquisition is still
+catching up, "acquiring".
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ import numpy as np
 from behaviors.candidate_selection import c_box, select_by_c_box, select_by_score
 from behaviors.detection import Detection, Verdict
 from behaviors.geometry import Box, iou
+from behaviors.loss_evidence import LossEvidence, LossEvidenceSettings, judge_frame
 from behaviors.reinit_policy import (
     CandidateEvidence,
     ReinitAction,
@@ -43,16 +47,19 @@ from behaviors.reinit_policy import (
     ReinitState,
     TrackEvidence,
     decide,
+    same_object,
 )
 from behaviors.track_result import TrackResult
 from companion.config import TrackerConfig
 from companion.vision.frame_sources import Frame
 from companion.vision.latency_compensation import CatchUp, FrameRing, KeyframeGoneError
 from companion.vision.loss_detection import (
+    SIGNALS,
     LossDetector,
     LossSettings,
     appearance_distance,
     appearance_histogram,
+    first_reason,
 )
 from companion.vision.trackers import Tracker, create_tracker
 
@@ -61,6 +68,9 @@ log = logging.getLogger(__name__)
 # Signals that compare the target with a model of its look (or the tracker's own confidence in it). A
 # detector box on the track, with nothing in view more like the target, outweighs them until the next answer.
 APPEARANCE_SIGNALS = frozenset({"score", "appearance"})
+# Signals that say the box itself is wrong (not who is in it): a candidate on a track lost on one of these
+# re-frames it instead of only confirming it.
+GEOMETRIC_SIGNALS = frozenset({"left_frame", "collapsed", "jump"})
 
 Policy = Literal["verified", "c_box", "score"]
 POLICIES: tuple[Policy, ...] = ("verified", "c_box", "score")
@@ -78,6 +88,17 @@ def loss_settings(config: TrackerConfig, tracker_name: str | None = None) -> Los
         appearance_drift_threshold=config.appearance_drift_threshold,
         max_aspect_change=config.max_aspect_change,
         enabled=frozenset(config.loss_signals),
+    )
+
+
+def loss_evidence_settings(config: TrackerConfig) -> LossEvidenceSettings:
+    unknown = set(config.weak_loss_signals) - set(SIGNALS)
+    if unknown:
+        raise ValueError(
+            f"weak_loss_signals: unknown signal(s) {sorted(unknown)}; known: {', '.join(SIGNALS)}"
+        )
+    return LossEvidenceSettings(
+        persistence_s=config.loss_persistence_s, weak_signals=frozenset(config.weak_loss_signals)
     )
 
 
@@ -118,6 +139,7 @@ class TrackingFrontend:
         max_c_box_sizes: float = 3.0,
         reinit: ReinitSettings | None = None,
         name: str = "",
+        evidence: LossEvidenceSettings | None = None,
     ) -> None:
         self._make_tracker = make_tracker
         self.loss = LossDetector(settings)
@@ -136,13 +158,17 @@ class TrackingFrontend:
         self._catch_up_keeps_template = False
         self._lost_reason = ""
         self.reinit = reinit or ReinitSettings()
+        # "verified": the loss signals are weighed over time (behaviors.loss_evidence), not latched.
+        self.evidence = evidence or LossEvidenceSettings()
+        self._evidence = LossEvidence()
         self.label = f"{name}: " if name else ""  # log lines name the sequence or camera
         self._reinit_state = ReinitState()
         self._anchor: np.ndarray | None = None  # the target as the track first saw it (appearance)
         # The target as the answers that confirmed the track saw it (a running mean of the confirming
         # candidates' histograms): a person's look drifts with scale and pose over a long track.
         self._confirmed_look: np.ndarray | None = None
-        self._boxes: dict[int, tuple[Box | None, bool]] = {}  # recent frame id -> tracker box, flagged lost
+        # Recent frame id -> tracker box, lost reason, whether a geometric signal fired on it.
+        self._boxes: dict[int, tuple[Box | None, str, bool]] = {}
         self._last_box: Box | None = None
         # Tracker box size over detector box size (log, per axis), learnt from candidates that confirmed
         # the track: detector boxes frame a person differently (wider, feet included) than the tracker.
@@ -171,6 +197,7 @@ class TrackingFrontend:
             catch_up_per_frame=config.catch_up_per_frame,
             max_c_box_sizes=config.max_c_box_sizes,
             reinit=reinit_settings(config),
+            evidence=loss_evidence_settings(config),
             **kwargs,  # type: ignore[arg-type]
         )
 
@@ -187,6 +214,14 @@ class TrackingFrontend:
     @property
     def lost_reason(self) -> str:
         return self._lost_reason
+
+    @property
+    def alarm(self) -> str:
+        """The first enabled loss signal that fired on the last frame, trusted or not ("" when none): with
+        "verified" a weak alarm does not untrust the track at once, but it is a reason to ask for evidence."""
+        if self._tracker is None:
+            return ""
+        return first_reason(self.loss.last_signals, self.loss.settings.enabled)
 
     def start(self, keyframe_id: int, box: Box) -> bool:
         """Track `box` as seen in frame `keyframe_id` (a new target: the appearance model restarts)."""
@@ -249,7 +284,7 @@ class TrackingFrontend:
 
     def box_at(self, frame_id: int) -> Box | None:
         """The tracker's box on a recent frame (None when it had none or the frame is too old)."""
-        return self._boxes.get(frame_id, (None, True))[0]
+        return self._boxes.get(frame_id, (None, "idle", False))[0]
 
     def judge_candidates(
         self, keyframe_id: int, detections: Sequence[Detection], refused: Collection[int] = ()
@@ -262,12 +297,17 @@ class TrackingFrontend:
         keyframe = self.ring.get(keyframe_id)
         if keyframe is None or self._tracker is None or self._catch_up is not None:
             return None
-        track_box, lost = self._boxes.get(keyframe_id, (None, True))
+        track_box, lost_reason, geometric = self._boxes.get(keyframe_id, (None, "idle", False))
+        lost = bool(lost_reason)
         boxes = [self.to_tracker_convention(d.box) for d in detections]
         verdicts = [d.verdict for d in detections]
         if not self._verdicts_checked and track_box is not None and not lost:
             agree = self.reinit.agree_iou
-            on_track = [v for box, v in zip(boxes, verdicts, strict=True) if iou(box, track_box) >= agree]
+            on_track = [
+                v
+                for box, v in sorted(zip(boxes, verdicts, strict=True), key=lambda bv: -iou(bv[0], track_box))
+                if same_object(box, track_box, agree)
+            ]
             if on_track:
                 self._verdicts_checked = True
                 self._verdicts_used = on_track[0] is not Verdict.NO
@@ -288,6 +328,7 @@ class TrackingFrontend:
             appearance=self._distance(keyframe.image, track_box),
             reference=self.last_trusted_box,
             gate_px=self._gate(keyframe),
+            degraded=geometric or lost_reason in GEOMETRIC_SIGNALS,
         )
         evidence = [
             CandidateEvidence(box, verdict, self._distance(keyframe.image, box))
@@ -302,6 +343,8 @@ class TrackingFrontend:
             self._learn_look(keyframe.image, boxes[decision.index])
             if lost or self._lost_reason:
                 self._withdraw_loss()
+            elif self.policy == "verified":
+                self._refresh_references()
         elif decision.action is ReinitAction.REINIT and decision.index is not None:
             log.info(
                 "%sre-initialising on candidate %d at frame %d: %s",
@@ -341,10 +384,6 @@ class TrackingFrontend:
             (1.0 - rate) * old + rate * new for old, new in zip(self._extent, sample, strict=True)
         )
 
-    def _hard_signal(self) -> bool:
-        fired = self.loss.last_signals
-        return any(fired.get(name) for name in self.loss.settings.enabled if name not in APPEARANCE_SIGNALS)
-
     def _learn_look(self, image: np.ndarray, box: Box) -> None:
         hist = appearance_histogram(image, box)
         if hist is None:
@@ -352,12 +391,22 @@ class TrackingFrontend:
         old = self._confirmed_look
         self._confirmed_look = hist if old is None else 0.5 * old + 0.5 * hist  # the last few confirmations
 
+    def _refresh_references(self) -> None:
+        """A trusted track confirmed: the loss detector's shape and appearance references follow the
+        confirmed target (a pose or scale change since the start is not a loss), and any alarm time
+        accumulated so far is cleared."""
+        newest = self.ring.newest
+        if newest is not None and self._last_box is not None:
+            self.loss.refresh(newest.image, self._last_box)
+            self._evidence = LossEvidence(time_s=newest.capture_time)
+
     def _withdraw_loss(self) -> None:
         """A candidate on the track supports it: trust it again from the newest frame, with the appearance
         and shape references restarted there (the old ones are what fired)."""
         newest = self.ring.newest
         self._lost_reason = ""
         self.stats.confirmations += 1
+        self._evidence = LossEvidence(time_s=newest.capture_time if newest is not None else None)
         if newest is not None and self._last_box is not None:
             self.loss.reset(newest.image, self._last_box)
             self.last_trusted_box = self._last_box
@@ -374,6 +423,7 @@ class TrackingFrontend:
         self._confirmed_look = None
         self._reinit_state = ReinitState()
         self._confirmed = False
+        self._evidence = LossEvidence()
 
     def _begin(self, keyframe_id: int, box: Box, keep_template: bool) -> bool:
         if not box.is_valid():
@@ -408,7 +458,10 @@ class TrackingFrontend:
     def feed(self, frame: Frame) -> TrackResult:
         result = self._feed(frame)
         self._last_box = result.box
-        self._boxes[frame.frame_id] = (result.box, bool(result.lost_reason))
+        geometric = result.box is not None and any(
+            self.loss.last_signals.get(name) for name in GEOMETRIC_SIGNALS & self.loss.settings.enabled
+        )
+        self._boxes[frame.frame_id] = (result.box, result.lost_reason, geometric)
         oldest = frame.frame_id - self.ring.capacity
         for stale in [k for k in self._boxes if k <= oldest]:
             del self._boxes[stale]
@@ -436,8 +489,8 @@ class TrackingFrontend:
         self.stats.tracker_seconds += time.perf_counter() - started
         self.stats.tracker_updates += 1
         reason = self.loss.check(image, step)
-        if reason and self._confirmed and not self._hard_signal():
-            reason = ""  # the last answer's evidence outweighs a score or appearance alarm
+        if self.policy == "verified":
+            reason = self._weigh(frame.capture_time)
         if self._lost_reason and self.policy != "verified":
             reason = self._lost_reason
         elif reason:
@@ -451,7 +504,19 @@ class TrackingFrontend:
             self.last_trusted_box = step.box
             self.last_trusted_frame_id = frame.frame_id
             self.last_trusted_time = frame.capture_time
-        return TrackResult(frame.frame_id, frame.capture_time, step.box, step.score, step.ok, reason)
+        alarm = self.alarm if self.policy == "verified" and not reason else ""
+        return TrackResult(frame.frame_id, frame.capture_time, step.box, step.score, step.ok, reason, alarm)
+
+    def _weigh(self, time_s: float) -> str:
+        """With "verified": the loss detector's signals on this frame weighed over time (persistence for a
+        weak signal alone, hysteresis before trusting again); "" while trusted."""
+        enabled = self.loss.settings.enabled
+        fired = [name for name in SIGNALS if name in enabled and self.loss.last_signals.get(name)]
+        if self._confirmed:
+            # The last answer's candidate on the track outweighs a score or appearance alarm.
+            fired = [name for name in fired if name not in APPEARANCE_SIGNALS]
+        self._evidence = judge_frame(self._evidence, time_s, fired, self.evidence)
+        return self._evidence.reason
 
     def _take_over(self, frame: Frame) -> TrackResult:
         """The caught-up tracker replaces the current one; its box refers to this frame."""
@@ -479,6 +544,9 @@ class TrackingFrontend:
             self.loss.reset(frame.image, step.box, self._catch_up_keeps_template)
         # Judge the caught-up box like any other step (score, left frame, appearance ...).
         reason = self.loss.check(frame.image, step)
+        if self.policy == "verified":
+            self._evidence = LossEvidence(time_s=frame.capture_time)  # a new track's account
+            reason = self._weigh(frame.capture_time)
         if reason:
             self._lost_reason = reason
             self.stats.loss_events += 1
