@@ -7,10 +7,11 @@ makes a flight stop and start following (every LOST entry sends a zero setpoint 
 So the signals are weighed as evidence over time, in seconds of the sequence or flight clock:
 
 - *Strong* evidence untrusts the track at once: a geometric or tracker signal (`tracker_failed`,
-  `left_frame`, `collapsed`, `jump`: the box itself is wrong) or two independent weak signals on the
-  same frame (the tracker's own score and the colour model agree that it is not the target).
-- A *weak* signal alone (`score`, `appearance`: a model of the target's look, or the tracker's own
-  confidence) must persist: each frame it fires adds its time to an evidence account, each quiet frame
+  `left_frame`, `jump`: the box itself is wrong) or two independent weak signals on the same frame
+  (the tracker's own score and the colour model agree that it is not the target).
+- A *weak* signal alone (`score`, `collapsed`, `appearance`: the tracker's own confidence, or a model
+  of the target's shape since the start or of its colours; 25 of nano's 42 `collapsed` frames were on
+  a crouching target) must persist: each frame it fires adds its time to an evidence account, each quiet frame
   takes its time away, and the track is untrusted once the account holds `persistence_s` seconds.
 - Recovery has the same hysteresis: strong evidence fills the account; a lost track is trusted again
   only once quiet frames have emptied it (`persistence_s` seconds without an alarm), unless a back-end
@@ -24,7 +25,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-WEAK_SIGNALS = frozenset({"score", "appearance"})
+WEAK_SIGNALS = frozenset({"score", "collapsed", "appearance"})  # [tracker] weak_loss_signals
 _EPS = 1e-9
 
 

@@ -81,8 +81,9 @@ class TrackerConfig(ConfigSection):
     reinit_confirmations: int = Field(2, ge=1, le=10)
     reinit_agree_iou: float = Field(0.5, gt=0, le=1)  # a candidate overlapping the track this much is its own
     reinit_appearance_margin: float = Field(0.1, ge=0, le=1)  # tie in verdicts: closer to the target by this
-    # "verified": seconds a score or appearance alarm alone must persist before the track is untrusted, and
-    # seconds without any alarm before a lost track is trusted again (behaviors.loss_evidence). 0: per frame.
+    # "verified": seconds one weak alarm alone (weak_loss_signals) must persist before the track is
+    # untrusted, and seconds without any alarm before a lost track is trusted again
+    # (behaviors.loss_evidence). 0: per frame.
     loss_persistence_s: float = Field(1.0, ge=0, le=10)
     # The signals that untrust a track alone only after loss_persistence_s (or with a second signal): models
     # of the target (its colour, its shape since the start, the tracker's own score), which a pose or light
