@@ -173,9 +173,9 @@ class Pipeline:
     @staticmethod
     def _settle(base: VerifiedCandidate, answer: VerifierAnswer, t_verify: float) -> VerifiedCandidate:
         detection = replace(base.detection, verdict=answer.verdict, justification=answer.justification)
-        extent = refined_box(detection.box, answer.box, base.crop_origin)
-        if extent is not None:
-            detection = replace(detection, box=extent)
+        body = refined_box(detection.box, answer.box, base.crop_origin)
+        if body is not None:
+            detection = replace(detection, body_box=body)
         return replace(base, detection=detection, verifier=answer.verifier, t_verify=t_verify)
 
     def verify(

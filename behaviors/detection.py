@@ -27,3 +27,11 @@ class Detection:
     # Optional appearance signature (e.g. a normalised colour histogram of the crop), plain numbers so
     # the rejection memory can recognise a rejected person again; empty when the back-end sends none.
     signature: tuple[float, ...] = ()
+    # The verifier's measure of the person's extent (their body, without the shadow or a neighbour the
+    # detector's box may hold), when it found one. A new track starts on it (`start_box`); re-detection
+    # judges the detector's box, the one every answer has, so the track's boxes stay comparable.
+    body_box: Box | None = None
+
+    @property
+    def start_box(self) -> Box:
+        return self.body_box if self.body_box is not None else self.box

@@ -425,7 +425,7 @@ def _answer(state: State, answer: BackendAnswer, config: MissionConfig) -> Resul
             det.candidate_id,
             det.justification,
             det.verdict,
-            det.box,
+            det.start_box,
             answer.keyframe_id,
             answer.time_s,
             position,

@@ -192,6 +192,7 @@ class BackendClient:
             detections = [
                 Detection(
                     box=Box.from_xyxy(*(v / scale for v in c.box)),
+                    body_box=Box.from_xyxy(*(v / scale for v in c.body_box)) if c.body_box else None,
                     score=c.score,
                     label=c.label,
                     verdict=Verdict(c.verdict),

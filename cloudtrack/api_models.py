@@ -95,6 +95,13 @@ class DetectMeta(ApiModel):
 class Candidate(ApiModel):
     candidate_id: str = CANDIDATE_ID
     box: list[float] = Field(description="[x1, y1, x2, y2] in the sent image's pixels")
+    body_box: list[float] | None = Field(
+        None,
+        min_length=4,
+        max_length=4,
+        description="[x1, y1, x2, y2]: the person's extent as the verifier measured it (null: not measured); "
+        "a new track starts on it",
+    )
     score: float = Field(description="detector confidence 0-1")
     label: str = Field(description="detector class")
     verdict: Literal["yes", "no", "uncertain"]

@@ -334,12 +334,14 @@ def evaluate_sequence(
                     frame_id,
                     len(found),
                     sum(d.verdict is Verdict.YES for d in found),
-                    truth is not None and any(iou(d.box, truth) >= ON_TARGET_IOU for d in found),
-                    (iou(chosen.box, truth) if truth is not None else 0.0) if chosen is not None else None,
+                    truth is not None and any(iou(d.start_box, truth) >= ON_TARGET_IOU for d in found),
+                    (iou(chosen.start_box, truth) if truth is not None else 0.0)
+                    if chosen is not None
+                    else None,
                 )
             )
             if chosen is not None:
-                frontend.start(keyframe, chosen.box)
+                frontend.start(keyframe, chosen.start_box)
             return
         before = frontend.box_at(keyframe)
         chosen = frontend.apply_candidates(keyframe, found)

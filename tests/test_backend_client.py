@@ -203,6 +203,7 @@ def test_replies_are_validated_with_the_shared_models(sequences_dir: Path) -> No
         candidate = {
             "candidate_id": candidate_id,
             "box": [1, 2, 30, 40],
+            "body_box": [4, 6, 24, 40],
             "score": 0.9,
             "label": "person",
             "verdict": "yes",
@@ -248,6 +249,10 @@ def test_replies_are_validated_with_the_shared_models(sequences_dir: Path) -> No
         )
         good = client.detect_reply(frame(sequences_dir), PROMPT)
         assert [d.candidate_id for d in good.detections] == ["c-1"] and good.raw is not None
+        scale = frame(sequences_dir).shape[1] / good.raw.image_size[0]
+        body = good.detections[0].body_box  # a new track starts on the verifier's measure of the body
+        assert body is not None and good.detections[0].start_box == body
+        assert body.xyxy() == pytest.approx(tuple(v * scale for v in (4, 6, 24, 40)))
         with pytest.raises(BackendError, match="malformed answer: candidates.0.candidate_id"):
             client.detect(frame(sequences_dir), PROMPT)
     finally:

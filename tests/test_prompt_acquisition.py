@@ -198,9 +198,10 @@ def test_prompt_first_keyframe_of_group_chooses_the_described_man_by_his_body(
     yes = [d for d in candidates if d.verdict is YES]
     assert len(yes) == 1, [d.justification for d in candidates]
     chosen = first_candidate(candidates, accept_uncertain=False, prompt=prompt)
-    assert chosen is yes[0] and iou(chosen.box, truth) >= 0.5
+    assert chosen is yes[0] and iou(chosen.start_box, truth) >= 0.5
     raw = max(detected, key=lambda d: iou(d.box, truth))
-    assert iou(chosen.box, truth) > iou(raw.box, truth)
+    assert chosen.box == raw.box  # re-detection keeps judging the detector's box
+    assert iou(chosen.start_box, truth) > iou(raw.box, truth)
     assert "blue-gray" in chosen.justification and "dark" in chosen.justification
 
 
@@ -215,8 +216,8 @@ def test_prompt_group_keyframes_choose_the_described_man(pipeline: Pipeline, seq
         candidates = [c.detection for c in pipeline.run(image, prompt, "person").candidates]
         chosen = first_candidate(candidates, accept_uncertain=False, prompt=prompt)
         if chosen is not None:
-            right += iou(chosen.box, truth) >= 0.5
-            wrong += iou(chosen.box, truth) < 0.5
+            right += iou(chosen.start_box, truth) >= 0.5
+            wrong += iou(chosen.start_box, truth) < 0.5
     assert right >= 3 * wrong and right >= 20, (right, wrong)
 
 
@@ -256,7 +257,7 @@ def test_prompt_table_prints_ratio_ceiling_and_first_choice(capsys: pytest.Captu
 
 
 def test_prompt_detection_keeps_the_detector_box_without_a_verifier_extent() -> None:
-    """A verifier that measures no extent (VLM, HSV rules) leaves the detector's box as it was."""
+    """A verifier that measures no extent (VLM, HSV rules) gives no body box: a track starts on the detector's."""
     from backend.verifiers.attributes import AttributeVerifier
 
     image = np.full((240, 320, 3), 120, np.uint8)
@@ -267,7 +268,7 @@ def test_prompt_detection_keeps_the_detector_box_without_a_verifier_extent() -> 
         )
     finally:
         pool.shutdown()
-    assert found[0].detection.box == Box(100, 60, 40, 100)
+    assert found[0].detection.box == Box(100, 60, 40, 100) and found[0].detection.body_box is None
 
 
 def test_prompt_red_shirt_is_not_grey_blue_on_real_crops(sequences_dir: Path) -> None:

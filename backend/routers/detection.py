@@ -100,6 +100,11 @@ async def detect(
             Candidate(
                 candidate_id=c.detection.candidate_id,
                 box=[round(v, 2) for v in c.detection.box.xyxy()],
+                body_box=(
+                    [round(v, 2) for v in c.detection.body_box.xyxy()]
+                    if c.detection.body_box is not None
+                    else None
+                ),
                 score=round(c.detection.score, 4),
                 label=c.detection.label,
                 verdict=c.detection.verdict.value,
