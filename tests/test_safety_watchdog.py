@@ -191,4 +191,7 @@ def test_lost_target_and_unreachable_backend_each_stop_and_report() -> None:
         link.clear_target()
         link.report_backend_ok()
         assert _reason_at(link, BACKEND_UNREACHABLE, 3.0) is not None
-        assert sim.setpoints[-1].vx == 0.0
+        # The trip is recorded before its zero is sent: wait for the zero to cross the socket, as above.
+        assert wait_for(lambda: sim.setpoints[-1].vx == 0.0, 2.0)
+        time.sleep(0.3)
+        assert sim.setpoints[-1].vx == 0.0  # and it stays stopped
