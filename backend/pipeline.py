@@ -5,10 +5,11 @@ timeout and all within the request's deadline, so k candidates cost about one ve
 k (the reference code verifies one after another). A verification that fails or runs out of time
 becomes the configured `uncertain_policy` verdict with the reason in its justification.
 
-A verifier that measured the object's extent (the local verifier's person mask) gives the box reported
-for the candidate: the detector's box often takes in the person's shadow or a neighbour, and a tracker
-started on such a box follows them too. The detector's box stays when the extent's centre falls outside it
-(the verifier saw someone else in the margin).
+A verifier that measured the object's extent (the local verifier's person mask) gives the candidate's
+`body_box`, sent beside the detector's box: the detector's box often takes in the person's shadow or a
+neighbour, and a tracker started on such a box follows them too, so a new track starts on the body box.
+None when the extent's centre falls outside the detector's box (the verifier saw someone else in the
+margin).
 """
 
 from __future__ import annotations
@@ -63,7 +64,7 @@ def refined_box(
     detected: Box, extent: tuple[float, float, float, float] | None, crop_origin: tuple[int, int]
 ) -> Box | None:
     """The verifier's extent (crop pixels) in the image's pixels when it is the detected object's: its
-    centre inside the detector's box; else None (keep the detector's box)."""
+    centre inside the detector's box; else None (no body box)."""
     if extent is None:
         return None
     box = Box(extent[0] + crop_origin[0], extent[1] + crop_origin[1], extent[2], extent[3])
