@@ -65,3 +65,14 @@ def test_loss_evidence_rejects_negative_persistence_and_irregular_frames_count_t
     assert state.trusted
     state = judge_frame(state, 1.2, ["score"], ONE_S)
     assert state.reason == "score"
+
+
+def test_unknown_weak_loss_signal_is_refused_by_name() -> None:
+    from companion.config import TrackerConfig
+    from companion.vision.tracking_frontend import loss_evidence_settings
+
+    with pytest.raises(ValueError, match=r"weak_loss_signals: unknown signal\(s\) \['apperance'\]"):
+        loss_evidence_settings(TrackerConfig(weak_loss_signals=["score", "apperance"]))
+    assert loss_evidence_settings(TrackerConfig()).weak_signals == frozenset(
+        {"score", "collapsed", "appearance"}
+    )
