@@ -3,7 +3,7 @@
 Pre-processing follows the upstream release: BGR 0-255 float, letterboxed into the top-left corner of a
 416x416 canvas filled with 114, no normalisation. The 2022 export outputs raw grid predictions
 (1, 3549, 85) that are decoded here: strides 8/16/32, centre = (grid + offset) * stride,
-size = exp(log-size) * stride, score = objectness * class probability, then per-class NMS.
+size = exp(log-size) * stride, then per superset: score = objectness x P(any of its classes), NMS.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 import onnxruntime as ort
 
-from backend.detectors.nms import class_aware_nms
+from backend.detectors.nms import nms
 from backend.supersets import COCO_CLASSES, coco_classes_for
 from behaviors.detection import Detection
 from behaviors.geometry import Box
@@ -71,30 +71,40 @@ class YoloxDetector:
     ) -> list[Detection]:
         if image_bgr.ndim != 3 or image_bgr.shape[2] != 3:
             raise ValueError(f"expected a BGR image H x W x 3, got shape {image_bgr.shape}")
-        wanted = sorted({COCO_CLASSES.index(c) for name in classes for c in coco_classes_for(name)})
+        groups = {name: [COCO_CLASSES.index(c) for c in coco_classes_for(name)] for name in classes}
         blob, ratio = self.preprocess(image_bgr)
         raw = self._session.run(None, {self.input_name: blob})[0][0]
-        # score = objectness x class probability <= objectness: drop weak rows before any other work.
+        # score <= objectness: drop weak rows before any other work.
         rows = np.flatnonzero(raw[:, 4] >= self.score_threshold)
         if rows.size == 0:
             return []
         raw = raw[rows]
-        class_scores = raw[:, 4:5] * raw[:, 5:][:, wanted]
-        best = class_scores.argmax(axis=1)
-        scores = class_scores[np.arange(len(best)), best]
-        mask = scores >= self.score_threshold
-        if not mask.any():
-            return []
-        raw, rows, scores, labels = raw[mask], rows[mask], scores[mask], np.asarray(wanted)[best[mask]]
         centres = (raw[:, :2] + self._grid[rows]) * self._stride[rows]
         sizes = np.exp(np.clip(raw[:, 2:4], -10, 10)) * self._stride[rows]
         xyxy = np.concatenate((centres - sizes / 2, centres + sizes / 2), axis=1) / ratio
         h, w = image_bgr.shape[:2]
         xyxy = np.clip(xyxy, 0, [w, h, w, h])
-        keep = class_aware_nms(xyxy, scores, labels, self.nms_threshold)
+        detections: list[Detection] = []
+        for wanted in dict.fromkeys(tuple(g) for g in groups.values()):
+            detections += self._superset(xyxy, raw, list(wanted))
+        return sorted(detections, key=lambda d: -d.score)
+
+    def _superset(self, xyxy: np.ndarray, raw: np.ndarray, wanted: list[int]) -> list[Detection]:
+        """One superset's boxes: score = objectness x the chance that the object is any of its classes
+        (YOLOX's class outputs are independent sigmoids, and a thing between two of them, a pick-up between
+        car and truck or a plastic bag between frisbee and ball, splits its probability among them), one
+        NMS over the superset (the same object under two of its classes is one candidate), labelled with
+        its likeliest class."""
+        probabilities = raw[:, 5:][:, wanted]
+        scores = raw[:, 4] * (1.0 - np.prod(1.0 - probabilities, axis=1))
+        mask = scores >= self.score_threshold
+        if not mask.any():
+            return []
+        boxes, scores = xyxy[mask], scores[mask]
+        labels = np.asarray(wanted)[probabilities[mask].argmax(axis=1)]
         detections = []
-        for i in keep:
-            box = Box.from_xyxy(*(float(v) for v in xyxy[i]))
+        for i in nms(boxes, scores, self.nms_threshold):
+            box = Box.from_xyxy(*(float(v) for v in boxes[i]))
             if box.w >= 1 and box.h >= 1:
                 detections.append(
                     Detection(box=box, score=float(scores[i]), label=COCO_CLASSES[int(labels[i])])
