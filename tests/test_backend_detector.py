@@ -98,7 +98,9 @@ def test_a_bag_coco_has_no_class_for_is_found_among_its_things(
         as_bag += any(iou(box, d.box) >= 0.5 for d in found)
         three = detector.detect(image, ["backpack", "handbag", "suitcase"])
         as_its_three_classes += any(iou(box, d.box) >= 0.5 for d in three)
-    print(f"vot2015_bag: found as a bag on {as_bag} of {frames} frames, as backpack/handbag/suitcase {as_its_three_classes}")
+    print(
+        f"vot2015_bag: found as a bag on {as_bag} of {frames} frames, as backpack/handbag/suitcase {as_its_three_classes}"
+    )
     assert as_its_three_classes == 0
     assert as_bag >= frames // 4
 
