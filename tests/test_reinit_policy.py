@@ -7,12 +7,14 @@ import pytest
 from behaviors.detection import Verdict
 from behaviors.geometry import Box
 from behaviors.reinit_policy import (
+    MAX_FRAMING_RATIO,
     CandidateEvidence,
     ReinitAction,
     ReinitSettings,
     ReinitState,
     TrackEvidence,
     decide,
+    overgrown,
     same_object,
 )
 
@@ -228,3 +230,62 @@ def test_reinit_policy_reframe_and_wide_boxes(
 ) -> None:
     decision = decide(ReinitState(), track_view, candidates)
     assert (decision.action, decision.index) == (action, index), name
+
+
+GROWN = Box(80, 80, 60, 110)  # a tracker box that drifted in scale over its object and the background
+OBJECT_IN_GROWN = Box(100, 110, 22, 50)  # the detector's box on the object: holds the grown box's centre
+
+
+@pytest.mark.parametrize(
+    ("name", "candidate", "action", "index"),
+    [
+        (
+            "trusted, no alarm, the tracker's box over twice its object's width: re-frame on the object",
+            cand(OBJECT_IN_GROWN, YES),
+            ReinitAction.REINIT,
+            0,
+        ),
+        (
+            "an 'uncertain' object on the track re-frames it too",
+            cand(OBJECT_IN_GROWN),
+            ReinitAction.REINIT,
+            0,
+        ),
+        ("a 'no' on the track never re-frames", cand(OBJECT_IN_GROWN, NO), ReinitAction.KEEP, None),
+        (
+            "the detector's own box is what is compared: a conversion that grew with the track hides nothing",
+            CandidateEvidence(Box(85, 85, 50, 100), YES, 0.3, detected=OBJECT_IN_GROWN),
+            ReinitAction.REINIT,
+            0,
+        ),
+        (
+            "a detected object of the track's size is no growth, whatever the conversion made of it",
+            CandidateEvidence(Box(105, 115, 12, 40), YES, 0.3, detected=Box(82, 82, 56, 106)),
+            ReinitAction.CONFIRM,
+            0,
+        ),
+    ],
+)
+def test_reinit_policy_reframes_a_track_that_outgrew_its_object(
+    name: str, candidate: CandidateEvidence, action: ReinitAction, index: int | None
+) -> None:
+    decision = decide(ReinitState(), track(box=GROWN), [candidate])
+    assert (decision.action, decision.index) == (action, index), name
+    if action is ReinitAction.REINIT:
+        assert "outgrew" in decision.reason
+
+
+@pytest.mark.parametrize(
+    ("track_box", "detected", "expected"),
+    [
+        (Box(0, 0, 41, 100), Box(0, 0, 20, 100), True),  # just over twice as wide
+        (Box(0, 0, 40, 100), Box(0, 0, 20, 100), False),  # exactly twice: still a framing convention
+        (Box(0, 0, 20, 201), Box(0, 0, 20, 100), True),  # over twice as tall
+        (Box(0, 0, 20, 50), Box(0, 0, 60, 150), False),  # the detector's box larger (a group, a shadow)
+    ],
+)
+def test_overgrown_is_a_tracker_box_over_twice_its_object(
+    track_box: Box, detected: Box, expected: bool
+) -> None:
+    assert MAX_FRAMING_RATIO == 2.0
+    assert overgrown(track_box, detected) is expected

@@ -331,8 +331,8 @@ class TrackingFrontend:
             degraded=geometric or lost_reason in GEOMETRIC_SIGNALS,
         )
         evidence = [
-            CandidateEvidence(box, verdict, self._distance(keyframe.image, box))
-            for box, verdict in zip(boxes, verdicts, strict=True)
+            CandidateEvidence(box, verdict, self._distance(keyframe.image, box), detected=d.box)
+            for box, verdict, d in zip(boxes, verdicts, detections, strict=True)
         ]
         decision = decide(self._reinit_state, track, evidence, self.reinit)
         self._reinit_state = decision.state
