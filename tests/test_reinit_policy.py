@@ -240,7 +240,7 @@ OBJECT_IN_GROWN = Box(100, 110, 22, 50)  # the detector's box on the object: hol
     ("name", "candidate", "action", "index"),
     [
         (
-            "trusted, no alarm, the tracker's box over twice its object's width: re-frame on the object",
+            "trusted, no alarm, the tracker's box over 1.5x its object's width: re-frame on the object",
             cand(OBJECT_IN_GROWN, YES),
             ReinitAction.REINIT,
             0,
@@ -278,14 +278,14 @@ def test_reinit_policy_reframes_a_track_that_outgrew_its_object(
 @pytest.mark.parametrize(
     ("track_box", "detected", "expected"),
     [
-        (Box(0, 0, 41, 100), Box(0, 0, 20, 100), True),  # just over twice as wide
-        (Box(0, 0, 40, 100), Box(0, 0, 20, 100), False),  # exactly twice: still a framing convention
-        (Box(0, 0, 20, 201), Box(0, 0, 20, 100), True),  # over twice as tall
+        (Box(0, 0, 31, 100), Box(0, 0, 20, 100), True),  # just over 1.5x as wide
+        (Box(0, 0, 30, 100), Box(0, 0, 20, 100), False),  # exactly 1.5x: still a framing convention
+        (Box(0, 0, 20, 151), Box(0, 0, 20, 100), True),  # over 1.5x as tall
         (Box(0, 0, 20, 50), Box(0, 0, 60, 150), False),  # the detector's box larger (a group, a shadow)
     ],
 )
-def test_overgrown_is_a_tracker_box_over_twice_its_object(
+def test_overgrown_is_a_tracker_box_over_one_and_a_half_times_its_object(
     track_box: Box, detected: Box, expected: bool
 ) -> None:
-    assert MAX_FRAMING_RATIO == 2.0
+    assert MAX_FRAMING_RATIO == 1.5
     assert overgrown(track_box, detected) is expected
