@@ -29,7 +29,8 @@ neighbour can be undone):
   candidate holds the track's centre but frames it differently (IoU below `agree_iou`), the tracker's box
   is what is wrong, not its object: the track is *re-framed* (re-initialised) on that candidate at once. A candidate that
   frames it alike (IoU at least `agree_iou`) says the geometric alarm was false: it confirms.
-  A tracker's box more than 1.5x as wide or tall as the object the detector found on it (`overgrown`)
+  A tracker's box more than `max_framing_ratio` (1.5) times as wide or tall as the object the detector
+  found on it (`overgrown`)
   is re-framed the same way, alarm or not: a Siamese tracker's scale can drift over a group of people a
   little per frame, which no signal sees, while its own candidate keeps "confirming" it.
 - Otherwise a lost track waits (it never jumps to whoever is nearest) and a trusted one is kept.
@@ -47,13 +48,6 @@ from behaviors.detection import Verdict
 from behaviors.geometry import Box, iou
 
 _RANK = {Verdict.YES: 2, Verdict.UNCERTAIN: 1, Verdict.NO: 0}
-
-# The most a tracker's box may exceed the detected object it tracks, in width or height, and still be a
-# framing convention. Measured over the 150 answers that confirmed a track on its target (IoU >= 0.5 with
-# the ground truth; nano, vit and csrt on the dev sequences, this rule off): tracker / detector median
-# 1.03, 95th percentile 1.37, one above 1.5; on 34 tracks off their target (IoU < 0.3) median 1.67.
-# Re-framing a right track on its own object costs little; keeping a grown one loses the target.
-MAX_FRAMING_RATIO = 1.5
 
 
 class ReinitAction(str, Enum):
@@ -91,12 +85,17 @@ class ReinitSettings:
     confirmations: int = 2  # keyframes in a row a candidate must beat the track on
     appearance_threshold: float = 0.6  # below: "looks like the target" (the loss signal's own threshold)
     appearance_margin: float = 0.1  # a tie in verdicts is broken only by a margin this clear
+    # The most a tracker's box may exceed the object detected on it (width or height) and still be a framing
+    # convention: on target, tracker / detector was at most 1.37 in 95 % of the dev runs' confirmations.
+    max_framing_ratio: float = 1.5
 
     def __post_init__(self) -> None:
         if self.confirmations < 1:
             raise ValueError("confirmations must be at least 1")
         if not 0 < self.agree_iou <= 1:
             raise ValueError("agree_iou must be in (0, 1]")
+        if self.max_framing_ratio <= 1:
+            raise ValueError("max_framing_ratio must be above 1")
 
 
 @dataclass(frozen=True)
@@ -149,12 +148,12 @@ def _beats(
     return False
 
 
-def overgrown(track: Box, detected: Box) -> bool:
-    """The tracker's box is more than `MAX_FRAMING_RATIO` times the width or height of the object the
+def overgrown(track: Box, detected: Box, max_ratio: float) -> bool:
+    """The tracker's box is more than `max_ratio` times the width or height of the object the
     detector found on it: the tracker's scale drifting over neighbours and background, not a framing
     convention. (Against the detector's own box: the learnt conversion follows the confirmed track, so a
     growing track would grow it too.)"""
-    return track.w > MAX_FRAMING_RATIO * detected.w or track.h > MAX_FRAMING_RATIO * detected.h
+    return track.w > max_ratio * detected.w or track.h > max_ratio * detected.h
 
 
 def _consistent(a: Box, b: Box) -> bool:
@@ -228,7 +227,7 @@ def decide(
                 ReinitState(),
                 "re-framed on the candidate on the track (geometric alarm)",
             )
-        if overgrown(track.box, agreeing[1].detected or agreeing[1].box):
+        if overgrown(track.box, agreeing[1].detected or agreeing[1].box, settings.max_framing_ratio):
             return ReinitDecision(
                 ReinitAction.REINIT,
                 agreeing[0],

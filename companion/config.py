@@ -81,6 +81,9 @@ class TrackerConfig(ConfigSection):
     reinit_confirmations: int = Field(2, ge=1, le=10)
     reinit_agree_iou: float = Field(0.5, gt=0, le=1)  # a candidate overlapping the track this much is its own
     reinit_appearance_margin: float = Field(0.1, ge=0, le=1)  # tie in verdicts: closer to the target by this
+    # "verified": a track whose box is more than this many times the width or height of the object the
+    # detector found on it is re-framed on that object (its scale drifted), alarm or not.
+    reinit_max_framing_ratio: float = Field(1.5, gt=1, le=10)
     # "verified": seconds one weak alarm alone (weak_loss_signals) must persist before the track is
     # untrusted, and seconds without any alarm before a lost track is trusted again
     # (behaviors.loss_evidence). 0: per frame.

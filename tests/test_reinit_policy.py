@@ -7,7 +7,6 @@ import pytest
 from behaviors.detection import Verdict
 from behaviors.geometry import Box
 from behaviors.reinit_policy import (
-    MAX_FRAMING_RATIO,
     CandidateEvidence,
     ReinitAction,
     ReinitSettings,
@@ -152,6 +151,8 @@ def test_reinit_settings_confirmations_one_moves_at_once_and_bad_settings_fail()
         ReinitSettings(confirmations=0)
     with pytest.raises(ValueError, match="agree_iou"):
         ReinitSettings(agree_iou=0.0)
+    with pytest.raises(ValueError, match="max_framing_ratio"):
+        ReinitSettings(max_framing_ratio=1.0)  # every track would be re-framed on every answer
 
 
 # A detector frames a person wider (feet, arms) than a tracker: IoU about 0.4 with the track, same centre.
@@ -287,5 +288,11 @@ def test_reinit_policy_reframes_a_track_that_outgrew_its_object(
 def test_overgrown_is_a_tracker_box_over_one_and_a_half_times_its_object(
     track_box: Box, detected: Box, expected: bool
 ) -> None:
-    assert MAX_FRAMING_RATIO == 1.5
-    assert overgrown(track_box, detected) is expected
+    assert ReinitSettings().max_framing_ratio == 1.5
+    assert overgrown(track_box, detected, 1.5) is expected
+
+
+def test_the_framing_bound_is_a_setting() -> None:
+    loose = ReinitSettings(max_framing_ratio=3.0)  # GROWN is 2.7x its object's width
+    decision = decide(ReinitState(), track(box=GROWN), [cand(OBJECT_IN_GROWN, YES)], loose)
+    assert decision.action is ReinitAction.CONFIRM

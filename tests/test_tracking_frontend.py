@@ -195,7 +195,7 @@ def test_a_track_outgrowing_its_detected_object_is_reframed_on_it(models_dir: Pa
     assert track is not None
     # Now the detector finds the object at 0.6 of the tracker's width and height. In the learnt convention
     # that is 0.8 x 0.75 of the track, no growth; against the detector's own box the tracker's box is 1.67x
-    # its object (over MAX_FRAMING_RATIO): re-framed on the object at once, no second answer needed.
+    # its object (over reinit_max_framing_ratio, 1.5): re-framed on the object at once, no second answer needed.
     object_box = Box.from_center(track.cx, track.cy, track.w * 0.6, track.h * 0.6)
     chosen = fe.apply_candidates(20, [Detection(object_box, 0.8)])
     assert chosen is not None and chosen.box == object_box

@@ -108,6 +108,7 @@ def reinit_settings(config: TrackerConfig) -> ReinitSettings:
         confirmations=config.reinit_confirmations,
         appearance_threshold=config.appearance_drift_threshold,
         appearance_margin=config.reinit_appearance_margin,
+        max_framing_ratio=config.reinit_max_framing_ratio,
     )
 
 
