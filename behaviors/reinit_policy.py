@@ -30,9 +30,9 @@ neighbour can be undone):
   is what is wrong, not its object: the track is *re-framed* (re-initialised) on that candidate at once. A candidate that
   frames it alike (IoU at least `agree_iou`) says the geometric alarm was false: it confirms.
   A tracker's box more than `max_framing_ratio` (1.5) times as wide or tall as the object the detector
-  found on it (`overgrown`)
-  is re-framed the same way, alarm or not: a Siamese tracker's scale can drift over a group of people a
-  little per frame, which no signal sees, while its own candidate keeps "confirming" it.
+  found on it (`overgrown`) is re-framed the same way, alarm or not: a Siamese tracker's scale can drift
+  over a group of people a little per frame, which no signal sees, while its own candidate keeps
+  "confirming" it.
 - Otherwise a lost track waits (it never jumps to whoever is nearest) and a trusted one is kept.
 """
 
@@ -220,22 +220,22 @@ def decide(
             action, index, ReinitState(streak, winner.box), f"candidate beat the track {streak}x"
         )
     if agreeing is not None and agreeing[1].verdict is not Verdict.NO and track.box is not None:
-        if track.degraded and iou(agreeing[1].box, track.box) < settings.agree_iou:
+        index, on_track = agreeing
+        if track.degraded and iou(on_track.box, track.box) < settings.agree_iou:
+            cause = "geometric alarm"
+        elif overgrown(track.box, on_track.detected or on_track.box, settings.max_framing_ratio):
+            cause = "the tracker's box outgrew it"
+        else:
+            cause = ""
+        if cause:
             return ReinitDecision(
                 ReinitAction.REINIT,
-                agreeing[0],
+                index,
                 ReinitState(),
-                "re-framed on the candidate on the track (geometric alarm)",
-            )
-        if overgrown(track.box, agreeing[1].detected or agreeing[1].box, settings.max_framing_ratio):
-            return ReinitDecision(
-                ReinitAction.REINIT,
-                agreeing[0],
-                ReinitState(),
-                "re-framed on the candidate on the track (the tracker's box outgrew it)",
+                f"re-framed on the candidate on the track ({cause})",
             )
         return ReinitDecision(
-            ReinitAction.CONFIRM, agreeing[0], ReinitState(), "a candidate on the track supports it"
+            ReinitAction.CONFIRM, index, ReinitState(), "a candidate on the track supports it"
         )
     if track.lost:
         return ReinitDecision(ReinitAction.WAIT, None, ReinitState(), "lost; no candidate with evidence")
