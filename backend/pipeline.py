@@ -150,7 +150,7 @@ class Pipeline:
                 det = replace(det, verdict=Verdict.NO, justification=reason)
                 candidates.append(VerifiedCandidate(det, "rejection-memory", 0.0, appearance, True))
             elif self.verifier is None:
-                candidates.append(VerifiedCandidate(det, "none", 0.0, appearance))
+                candidates.append(VerifiedCandidate(replace(det, judged=False), "none", 0.0, appearance))
             else:
                 crop, inner = margin_crop(image, det.box, self.margin_px)
                 height, width = image.shape[:2]
@@ -173,7 +173,9 @@ class Pipeline:
 
     @staticmethod
     def _settle(base: VerifiedCandidate, answer: VerifierAnswer, t_verify: float) -> VerifiedCandidate:
-        detection = replace(base.detection, verdict=answer.verdict, justification=answer.justification)
+        detection = replace(
+            base.detection, verdict=answer.verdict, justification=answer.justification, judged=answer.judged
+        )
         body = refined_box(detection.box, answer.box, base.crop_origin)
         if body is not None:
             detection = replace(detection, body_box=body)

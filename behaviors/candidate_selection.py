@@ -18,10 +18,20 @@ def select_first_acquisition(
 ) -> Detection | None:
     """The candidate a search starts tracking: "yes" first, then "uncertain" if allowed, never a "no";
     among them the ones that stand as the prompt relates the target to others ("between the man in red
-    and ..."; every candidate in view counts as one of the others), then the best detector score."""
+    and ..."; every candidate in view counts as one of the others), then the best detector score.
+
+    An "uncertain" that nothing judged past the detector's class (`Detection.judged` false: the
+    description names nothing the verifier can check) starts a search even when uncertain ones may not:
+    no answer will ever say more, and in search and rescue an unconfirmed find, held for the supervisor,
+    beats none. An "uncertain" the verifier did judge (too small to see, a colour half there) waits for
+    a "yes"."""
     boxes = [d.box for d in candidates]
-    for verdict in (Verdict.YES, Verdict.UNCERTAIN) if accept_uncertain else (Verdict.YES,):
-        indices = [i for i, d in enumerate(candidates) if d.verdict is verdict and eligible(d)]
+    tiers: tuple[Callable[[Detection], bool], ...] = (
+        lambda d: d.verdict is Verdict.YES,
+        lambda d: d.verdict is Verdict.UNCERTAIN and (accept_uncertain or not d.judged),
+    )
+    for admitted in tiers:
+        indices = [i for i, d in enumerate(candidates) if admitted(d) and eligible(d)]
         pool = [candidates[i] for i in narrow_by_relation(relation, indices, boxes)]
         if pool:
             return max(pool, key=lambda d: d.score)

@@ -31,6 +31,10 @@ class Detection:
     # detector's box may hold), when it found one. A new track starts on it (`start_box`); re-detection
     # judges the detector's box, the one every answer has, so the track's boxes stay comparable.
     body_box: Box | None = None
+    # False when nothing judged the description past the detector's class: no verifier, or one that can
+    # check nothing it names ("the wakeboarder being towed", "a dog"). Its "uncertain" is then the
+    # whole check there will ever be, and a search may start on it (`select_first_acquisition`).
+    judged: bool = True
 
     @property
     def start_box(self) -> Box:

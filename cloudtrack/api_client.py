@@ -198,6 +198,7 @@ class BackendClient:
                     verdict=Verdict(c.verdict),
                     justification=c.justification,
                     candidate_id=c.candidate_id,
+                    judged=c.judged,
                 )
                 for c in answer.candidates
             ]

@@ -106,6 +106,11 @@ class Candidate(ApiModel):
     label: str = Field(description="detector class")
     verdict: Literal["yes", "no", "uncertain"]
     justification: str
+    judged: bool = Field(
+        True,
+        description="false: nothing judged the description past the detector's class (no verifier, or it "
+        'can check nothing the prompt names); the verdict is then "uncertain" and a search may start on it',
+    )
     verifier: str = Field(description='who decided: a verifier name, "none" or "rejection-memory"')
     t_verify: float
     previously_rejected: bool = Field(

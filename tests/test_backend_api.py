@@ -44,6 +44,12 @@ def test_detect_finds_and_verifies_the_person(client: TestClient, keyframe: byte
     x1, y1, x2, y2 = best["box"]
     assert 235 < (x1 + x2) / 2 < 275 and 120 < (y1 + y2) / 2 < 160
     assert {c["verdict"] for c in body["candidates"]} <= {"yes", "no", "uncertain"}
+    assert all(c["judged"] for c in body["candidates"])  # the shirt is a colour the verifier checks
+    plain = client.post("/v1/detect", headers=auth(), **detect_parts(keyframe, prompt="the injured person"))
+    assert plain.status_code == 200, plain.text
+    assert plain.json()["candidates"] and all(
+        c["verdict"] == "uncertain" and not c["judged"] for c in plain.json()["candidates"]
+    )  # nothing it names is visible to the local verifier: a search may start on the detector's word
     assert all(c["justification"] for c in body["candidates"])
     assert set(body["timings"]) == {"t_queue", "t_decode", "t_detect", "t_verify", "t_total"}
 

@@ -1,8 +1,37 @@
 from __future__ import annotations
 
-from behaviors.candidate_selection import c_box, select_by_c_box, select_by_score
-from behaviors.detection import Detection
+import pytest
+
+from behaviors.candidate_selection import c_box, select_by_c_box, select_by_score, select_first_acquisition
+from behaviors.detection import Detection, Verdict
 from behaviors.geometry import Box, iou
+
+YES = Detection(Box(0, 0, 10, 20), 0.4, verdict=Verdict.YES)
+NO = Detection(Box(40, 0, 10, 20), 0.99, verdict=Verdict.NO)
+UNSURE = Detection(Box(80, 0, 10, 20), 0.8, verdict=Verdict.UNCERTAIN)  # judged: too small, half a colour
+UNJUDGED = Detection(Box(120, 0, 10, 20), 0.7, verdict=Verdict.UNCERTAIN, judged=False)
+UNJUDGED_BEST = Detection(Box(160, 0, 10, 20), 0.9, verdict=Verdict.UNCERTAIN, judged=False)
+NO_UNJUDGED = Detection(Box(200, 0, 10, 20), 0.95, verdict=Verdict.NO, judged=False)  # rejected before
+
+
+@pytest.mark.parametrize(
+    ("candidates", "accept_uncertain", "chosen"),
+    [
+        ([UNSURE, YES, UNJUDGED], False, YES),  # a "yes" first, whatever the scores
+        ([UNSURE, YES, UNJUDGED], True, YES),
+        ([UNSURE, NO], False, None),  # a judged "uncertain" waits for a "yes"
+        ([UNSURE, NO], True, UNSURE),  # ...unless the mission accepts it
+        ([UNJUDGED, UNSURE], False, UNJUDGED),  # nothing judged past the class: no answer will say more
+        ([UNJUDGED, UNJUDGED_BEST], False, UNJUDGED_BEST),  # then the detector's best
+        ([UNJUDGED, UNSURE], True, UNSURE),  # both admitted: the better score
+        ([NO_UNJUDGED, NO], False, None),  # a "no" never starts
+        ([], False, None),
+    ],
+)
+def test_first_acquisition_admits_an_uncertain_only_when_nothing_could_judge_it(
+    candidates: list[Detection], accept_uncertain: bool, chosen: Detection | None
+) -> None:
+    assert select_first_acquisition(candidates, accept_uncertain, None) is chosen
 
 
 def test_c_box_is_l1_of_centres_and_sizes() -> None:

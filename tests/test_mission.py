@@ -455,6 +455,12 @@ def test_acquiring_prefers_yes_then_uncertain_by_policy() -> None:
     assert step(state, only_uncertain, CFG)[0].mode is S.SEARCHING
     lenient = replace(CFG, accept_uncertain=True)
     assert step(state, only_uncertain, lenient)[0].mode is S.ACQUIRING
+    # A description the verifier can check nothing of ("a dog"): its "uncertain" is all there will be.
+    unjudged = replace(only_uncertain.candidates[0], judged=False)
+    new, actions = step(state, replace(only_uncertain, candidates=(unjudged,)), CFG)
+    assert new.mode is S.ACQUIRING and [a.candidate_id for a in actions if isinstance(a, TrackerInit)] == [
+        "u"
+    ]
 
 
 def test_following_setpoints_approach_and_turn_towards_the_target() -> None:

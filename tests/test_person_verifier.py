@@ -128,7 +128,9 @@ def test_verifier_says_uncertain_when_it_cannot_see_the_person(
     ground = np.full((200, 200, 3), (120, 130, 140), np.uint8)  # nobody there
     blank = verifier.verify(ground, (80, 50, 40, 100), "a man in a green shirt lying on the ground", "person")
     assert blank.verdict is UNC and "no body found" in blank.justification
-    assert verifier.verify(image, box, "the injured man", "person").verdict is UNC  # nothing visible named
+    assert answer.judged and blank.judged  # it could judge the description, not these pixels
+    unnamed = verifier.verify(image, box, "the injured man", "person")  # nothing visible named
+    assert unnamed.verdict is UNC and not unnamed.judged
 
 
 def test_verifier_posture_from_keypoints_on_a_turned_crop(

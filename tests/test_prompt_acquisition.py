@@ -271,6 +271,42 @@ def test_prompt_detection_keeps_the_detector_box_without_a_verifier_extent() -> 
     assert found[0].detection.box == Box(100, 60, 40, 100) and found[0].detection.body_box is None
 
 
+@pytest.mark.parametrize(
+    ("verifier", "prompt", "judged"),
+    [
+        ("none", "a man in a red shirt", False),  # no verifier: the detector's class is the whole check
+        ("hsv", "the wakeboarder being towed", False),  # names nothing the verifier can check
+        ("hsv", "a dog", False),
+        ("hsv", "a man in a red shirt", True),  # judged, even where it cannot tell ("uncertain")
+        ("cascade", "a dog", False),  # the final stage says what was judged
+    ],
+)
+def test_pipeline_says_whether_anything_judged_the_description(
+    verifier: str, prompt: str, judged: bool
+) -> None:
+    """`judged` false lets a search start on "uncertain" (behaviors.candidate_selection): only when no
+    answer could ever say more than the detector's class."""
+    from backend.verifiers.attributes import AttributeVerifier
+    from backend.verifiers.cascade import CascadeVerifier
+
+    chosen = {
+        "none": None,
+        "hsv": AttributeVerifier(),
+        "cascade": CascadeVerifier(AttributeVerifier(), AttributeVerifier()),
+    }[verifier]
+    image = np.full((240, 320, 3), 120, np.uint8)
+    pool = ThreadPoolExecutor(max_workers=1)
+    try:
+        found = Pipeline(None, chosen, pool).verify(  # type: ignore[arg-type]
+            image, [Detection(Box(100, 60, 40, 100), 0.9)], prompt, "person"
+        )
+    finally:
+        pool.shutdown()
+    assert found[0].detection.judged is judged
+    if not judged:
+        assert found[0].detection.verdict is UNC
+
+
 def test_prompt_red_shirt_is_not_grey_blue_on_real_crops(sequences_dir: Path) -> None:
     """Labelled crops of uav123_group1_1 (every 4th of each man): the red shirt's shade reads partly grey or
     blue, but a red shirt is never "grey-blue"; the grey-blue striped shirt is, with or without the

@@ -109,6 +109,7 @@ async def detect(
                 label=c.detection.label,
                 verdict=c.detection.verdict.value,
                 justification=c.detection.justification,
+                judged=c.detection.judged,
                 verifier=c.verifier,
                 t_verify=round(c.t_verify, 4),
                 previously_rejected=c.previously_rejected,

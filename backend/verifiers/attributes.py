@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from backend.verifiers.interface import VerifierAnswer
+from backend.verifiers.interface import VerifierAnswer, nothing_to_judge
 from behaviors.detection import Verdict
 
 COLOUR_WORDS = {
@@ -217,9 +217,7 @@ class AttributeVerifier:
         claims = colour_claims(prompt, superset)
         posture = posture_claim(prompt, superset)
         if not claims and posture is None:
-            return VerifierAnswer(
-                Verdict.UNCERTAIN, "no colour or posture named that can be judged from pixels", self.name
-            )
+            return nothing_to_judge(self.name)
         notes, verdicts = [], []
         if posture is not None:
             verdict, note = posture_verdict(posture, target_box)

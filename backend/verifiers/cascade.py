@@ -37,4 +37,6 @@ class CascadeVerifier:
             crop_bgr, target_box, prompt, superset, max(0.001, timeout_s - (time.monotonic() - start))
         )
         justification = f"{second.justification} [fast check: {first.justification}]".strip()
-        return VerifierAnswer(second.verdict, justification, second.verifier, second.box or first.box)
+        return VerifierAnswer(
+            second.verdict, justification, second.verifier, second.box or first.box, second.judged
+        )

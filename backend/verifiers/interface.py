@@ -19,6 +19,16 @@ class VerifierAnswer:
     # person mask; None when it measured none. The pipeline reports it instead of the detector's box,
     # which often takes in a shadow or a neighbour.
     box: tuple[float, float, float, float] | None = None
+    # False when the verifier can check nothing the description names past its class: its answer is
+    # then "uncertain" for every candidate, whatever they look like.
+    judged: bool = True
+
+
+def nothing_to_judge(verifier: str) -> VerifierAnswer:
+    """The answer of a verifier that can check nothing the description names past the detector's class."""
+    return VerifierAnswer(
+        Verdict.UNCERTAIN, "no colour or posture named that can be judged from pixels", verifier, judged=False
+    )
 
 
 class VerifierError(Exception):

@@ -34,7 +34,7 @@ from backend.verifiers.attributes import (
     posture_claim,
 )
 from backend.verifiers.colour_names import ColourNamer, srgb_to_lab, subsample, white_gains
-from backend.verifiers.interface import VerifierAnswer
+from backend.verifiers.interface import VerifierAnswer, nothing_to_judge
 from backend.verifiers.person_model import PersonModel
 from behaviors.detection import Verdict
 
@@ -240,9 +240,7 @@ class PersonVerifier:
         claims = colour_claims(prompt, superset)
         posture = posture_claim(prompt, superset)
         if not claims and posture is None:
-            return VerifierAnswer(
-                Verdict.UNCERTAIN, "no colour or posture named that can be judged from pixels", self.name
-            )
+            return nothing_to_judge(self.name)
         if observation.reason:
             return VerifierAnswer(Verdict.UNCERTAIN, observation.reason, self.name)
         verdicts, notes = [], []
@@ -345,9 +343,7 @@ class PersonVerifier:
     ) -> VerifierAnswer:
         prompt = own_description(prompt)
         if not colour_claims(prompt, superset) and posture_claim(prompt, superset) is None:
-            return VerifierAnswer(
-                Verdict.UNCERTAIN, "no colour or posture named that can be judged from pixels", self.name
-            )
+            return nothing_to_judge(self.name)
         if superset == "person":
             return self.judge(self.observe(crop_bgr, target_box), prompt, superset)
         return self.judge(self.observe_object(crop_bgr, target_box), prompt, superset)
