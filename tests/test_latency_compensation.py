@@ -59,6 +59,13 @@ def test_catch_up_work_is_bounded_per_frame_and_in_total(models_dir: Path, seque
         assert catch_up.updates <= 3 * steps  # never more than per_step updates per live frame
     assert catch_up.last.frame_id == 40  # ends on the newest frame
     assert catch_up.updates <= 10  # 39 frames of backlog subsampled to the budget
+    # The track's box on every frame it covers: the start box on the keyframe, a skipped frame the box of
+    # the last frame passed before it, nothing before the keyframe.
+    assert catch_up.box_at(1) == box and catch_up.box_at(0) is None
+    passed = sorted(catch_up.boxes)
+    assert len(passed) == catch_up.updates + 1 and passed[-1] == 40
+    skipped = next(f for f in range(1, 41) if f not in catch_up.boxes)
+    assert catch_up.box_at(skipped) == catch_up.boxes[max(f for f in passed if f < skipped)]
     with pytest.raises(KeyframeGoneError):
         CatchUp(create_tracker("kcf", models_dir), FrameRing(5), 1, box, 10, 3)
 

@@ -7,8 +7,9 @@ from pathlib import Path
 import cv2
 import pytest
 
-from behaviors.detection import Detection
+from behaviors.detection import Detection, Verdict
 from behaviors.geometry import Box, iou
+from behaviors.reinit_policy import ReinitAction
 from cloudtrack.model_store import ModelError
 from companion.config import TrackerConfig
 from companion.vision.frame_sources import Frame
@@ -203,3 +204,26 @@ def test_a_track_outgrowing_its_detected_object_is_reframed_on_it(models_dir: Pa
     reframed = fe.feed(frames[20]).box
     assert reframed is not None and reframed.w < 0.9 * track.w and reframed.h < 0.9 * track.h
     assert iou(reframed, fe.to_tracker_convention(object_box)) > 0.5
+
+
+def test_an_answer_about_a_keyframe_the_catch_up_passed_judges_the_new_track(
+    models_dir: Path, crossing
+) -> None:  # type: ignore[no-untyped-def]
+    """A search's answers keep arriving after the track started (a hosted VLM answers 2 s late): one about
+    a keyframe between the start and the take-over is evidence about the new track there. Judged against
+    "no track" instead, any "yes" beat it and two re-initialised it on a raw detector box (person12_1)."""
+    seq, frames = crossing
+    fe = _frontend(models_dir, policy="verified")
+    for frame in frames[:12]:
+        fe.feed(frame)  # searching: nothing tracked while the answer is on its way
+    assert fe.box_at(6) is None
+    assert fe.start(2, seq.ground_truth[1])  # the answer about keyframe 2 arrives at frame 12
+    while fe.catching_up:
+        fe.feed(frames[fe.ring.newest.frame_id])  # type: ignore[union-attr]
+    on_track = fe.box_at(6)
+    assert on_track is not None and iou(on_track, seq.ground_truth[5]) > 0.5  # the new track's box there
+    truth = seq.ground_truth[5]
+    same_person = Detection(Box(truth.x - 2, truth.y - 2, truth.w + 4, truth.h + 4), 0.8, verdict=Verdict.YES)
+    decision = fe.judge_candidates(6, [same_person])
+    assert decision is not None and decision.action is ReinitAction.CONFIRM, decision
+    assert fe.stats.reinits == 1

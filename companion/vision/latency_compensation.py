@@ -92,9 +92,18 @@ class CatchUp:
         self.updates = 0
         tracker.init(keyframe.image, box)
         self.last = CatchUpResult(keyframe_id, TrackerStep(box, None, True))
+        # The new track's box on each frame it was brought through (the keyframe's is the start box):
+        # answers about those keyframes that arrive after the take-over are judged against it.
+        self.boxes: dict[int, Box | None] = {keyframe_id: box}
         backlog = len(ring.since(keyframe_id))
         # Stride so the backlog at the start fits in max_frames; frames arriving later extend it.
         self._stride = max(1, math.ceil(backlog / max_frames)) if max_frames > 0 else 1
+
+    def box_at(self, frame_id: int) -> Box | None:
+        """The new track's box on `frame_id`: from the last frame it was brought through up to it (a
+        stride skips frames); None before the keyframe."""
+        passed = [f for f in self.boxes if f <= frame_id]
+        return self.boxes[max(passed)] if passed else None
 
     @property
     def done(self) -> bool:
@@ -112,5 +121,6 @@ class CatchUp:
             else:
                 chosen = pending[min(self._stride, len(pending)) - 1]
             self.last = CatchUpResult(chosen.frame_id, self.tracker.update(chosen.image))
+            self.boxes[chosen.frame_id] = self.last.step.box
             self.updates += 1
         return self.done

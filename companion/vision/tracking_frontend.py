@@ -527,6 +527,11 @@ class TrackingFrontend:
         self._tracker = catch_up.tracker
         self._lost_reason = ""
         self.stats.reinits += 1
+        # From its keyframe on, the track is the new one: an answer about a keyframe the catch-up passed
+        # through, arriving now, judges the new track's box there (not the replaced track's, nor "no
+        # track" after a first start, which let any "yes" beat it).
+        for frame_id in [f for f in self._boxes if catch_up.keyframe_id <= f < frame.frame_id]:
+            self._boxes[frame_id] = (catch_up.box_at(frame_id), "", False)
         keyframe = self.ring.get(catch_up.keyframe_id)
         if keyframe is not None and (self.last_trusted_frame_id or 0) < catch_up.keyframe_id:
             # The box we were told to start on is trusted as of its keyframe, whatever the tracker makes of it.
