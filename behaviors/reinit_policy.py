@@ -148,12 +148,18 @@ def _beats(
     return False
 
 
+def framing_ratio(track: Box, detected: Box) -> float:
+    """How much larger the tracker's box is than the object the detector found on it: the larger of the
+    width and height ratios (1 or less when the detector's box is as large or larger)."""
+    return max(track.w / detected.w, track.h / detected.h) if detected.is_valid() else math.inf
+
+
 def overgrown(track: Box, detected: Box, max_ratio: float) -> bool:
     """The tracker's box is more than `max_ratio` times the width or height of the object the
     detector found on it: the tracker's scale drifting over neighbours and background, not a framing
     convention. (Against the detector's own box: the learnt conversion follows the confirmed track, so a
     growing track would grow it too.)"""
-    return track.w > max_ratio * detected.w or track.h > max_ratio * detected.h
+    return framing_ratio(track, detected) > max_ratio
 
 
 def _consistent(a: Box, b: Box) -> bool:

@@ -25,6 +25,8 @@ from companion.vision.loss_detection import parse_signals
 from companion.vision.trackers import TrackerUnavailableError, available_trackers
 from companion.vision.tracking_frontend import POLICIES
 from companion_tools.tracking_eval import (
+    OFF_TARGET_IOU,
+    ON_TARGET_IOU,
     DetectFn,
     DetectionCache,
     EvalSettings,
@@ -248,7 +250,7 @@ def _fmt(value: float, digits: int = 3) -> str:
 
 
 def _print_table(
-    label: str, results: Sequence[SequenceResult], bare: Sequence[SequenceResult]
+    label: str, results: Sequence[SequenceResult], bare: Sequence[SequenceResult], framing_bound: float
 ) -> dict[str, Any]:
     """The configuration beside the bare tracker, sequence by sequence, from the same run."""
     print(f"\n{label}")
@@ -281,11 +283,28 @@ def _print_table(
     )
     outcomes = ", ".join(f"{k}:{v}" for k, v in sorted(total["reinit_outcomes"].items())) or "none"
     print(f"re-initialisations by where the box was -> went (IoU >= 0.5 with ground truth): {outcomes}")
+    _print_framing(total["framing"], results, framing_bound)
     print(
         "bare: first ground-truth box, no loss signals, no re-initialisation; mIoU: trusted boxes only; "
         "any box: every tracker box, trusted or flagged lost"
     )
     return total
+
+
+def _print_framing(
+    summary: dict[str, dict[str, float]], results: Sequence[SequenceResult], bound: float
+) -> None:
+    """How tracks framed the object the detector found on them, on target and off it ("verified" only)."""
+    on, off = summary["on_target"], summary["off_target"]
+    if not on["n"] and not off["n"]:
+        return
+    above = sum(ratio > bound for r in results for overlap, ratio in r.framing if overlap >= ON_TARGET_IOU)
+    print(
+        f"framing (track / the detector's box on it, larger of w and h) when the track's own candidate "
+        f"decided an answer: on target (IoU >= {ON_TARGET_IOU}) n={on['n']:.0f} median {_fmt(on['median'], 2)} "
+        f"p95 {_fmt(on['p95'], 2)} max {_fmt(on['max'], 2)}, {above} above the re-framing bound {bound:g}; "
+        f"off target (IoU < {OFF_TARGET_IOU}) n={off['n']:.0f} median {_fmt(off['median'], 2)}"
+    )
 
 
 def _signed(value: float) -> str:
@@ -517,6 +536,7 @@ def _run_evals(
         bar.clear()
         return results
 
+    bound = config.tracker.reinit_max_framing_ratio
     for name in trackers:
         # The baseline every configuration must beat, on the same frames and size in this same run.
         bare = run_all(
@@ -556,9 +576,9 @@ def _run_evals(
                 }
                 if args.init == "prompt":
                     prompted = run_all(replace(settings, init="prompt"))
-                    _print_table(f"{label}, first box from the ground truth", results, bare)
+                    _print_table(f"{label}, first box from the ground truth", results, bare, bound)
                     total = _print_table(
-                        f"{label}, first box from the prompt (--init prompt)", prompted, bare
+                        f"{label}, first box from the prompt (--init prompt)", prompted, bare, bound
                     )
                     run["acquisition"] = _print_acquisition(
                         prompted,
@@ -572,7 +592,7 @@ def _run_evals(
                     }
                     results = prompted
                 else:
-                    total = _print_table(label, results, bare)
+                    total = _print_table(label, results, bare, bound)
                 run.update(
                     {
                         "overall": total,

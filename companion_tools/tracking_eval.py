@@ -51,6 +51,7 @@ from companion.vision.tracking_frontend import (
 
 LOST_IOU = 0.1  # a tracker box overlapping the ground truth less than this is off target
 ON_TARGET_IOU = 0.5  # a box overlapping the ground truth this much is on the target
+OFF_TARGET_IOU = 0.3  # ...and under this much, on something else
 
 InitMode = Literal["gt", "prompt"]
 
@@ -163,6 +164,9 @@ class SequenceResult:
     decisions: dict[str, int] = field(default_factory=dict)  # "verified": answers per action
     first_box_s: float | None = None  # sequence seconds until the first reported box (prompt init)
     acquisition: list[AcquisitionKeyframe] = field(default_factory=list)
+    # (track's IoU with ground truth, framing ratio) on every answer the track's own candidate decided
+    # (`FrontendStats.framing`): what the re-framing bound `reinit_max_framing_ratio` rests on.
+    framing: list[tuple[float, float]] = field(default_factory=list)
 
 
 class DetectionCache:
@@ -431,6 +435,11 @@ def evaluate_sequence(
         decisions=dict(stats.decisions),
         first_box_s=first / seq.fps if first is not None else None,
         acquisition=acquisition,
+        framing=[
+            (iou(box, truth), ratio)
+            for keyframe, box, ratio in stats.framing
+            if (truth := gt_at(keyframe)) is not None
+        ],
     )
 
 
@@ -459,7 +468,30 @@ def overall(results: Sequence[SequenceResult]) -> dict[str, Any]:
         "mean_miou": float(np.mean([r.miou for r in results])) if results else float("nan"),
         "reinit_outcomes": dict(sum((Counter(r.reinit_outcomes) for r in results), Counter())),
         "confirmations": sum(r.confirmations for r in results),
+        "framing": framing_summary(results),
     }
+
+
+def framing_summary(results: Sequence[SequenceResult]) -> dict[str, dict[str, float]]:
+    """The framing ratios of tracks on target (IoU >= ON_TARGET_IOU) and off it (< OFF_TARGET_IOU):
+    count, median, 95th percentile and largest."""
+    samples = [s for r in results for s in r.framing]
+    summary = {}
+    for name, on_target in (("on_target", True), ("off_target", False)):
+        ratios = np.array(
+            [
+                ratio
+                for overlap, ratio in samples
+                if (overlap >= ON_TARGET_IOU if on_target else overlap < OFF_TARGET_IOU)
+            ]
+        )
+        summary[name] = {
+            "n": len(ratios),
+            "median": float(np.median(ratios)) if len(ratios) else float("nan"),
+            "p95": float(np.percentile(ratios, 95)) if len(ratios) else float("nan"),
+            "max": float(ratios.max()) if len(ratios) else float("nan"),
+        }
+    return summary
 
 
 def result_dict(result: SequenceResult) -> dict[str, Any]:

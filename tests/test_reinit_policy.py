@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 
 from behaviors.detection import Verdict
@@ -13,6 +15,7 @@ from behaviors.reinit_policy import (
     ReinitState,
     TrackEvidence,
     decide,
+    framing_ratio,
     overgrown,
     same_object,
 )
@@ -274,6 +277,19 @@ def test_reinit_policy_reframes_a_track_that_outgrew_its_object(
     assert (decision.action, decision.index) == (action, index), name
     if action is ReinitAction.REINIT:
         assert "outgrew" in decision.reason
+
+
+@pytest.mark.parametrize(
+    ("track_box", "detected", "ratio"),
+    [
+        (Box(0, 0, 30, 100), Box(0, 0, 20, 100), 1.5),  # the larger of the two ratios
+        (Box(0, 0, 20, 150), Box(0, 0, 20, 60), 2.5),
+        (Box(0, 0, 20, 50), Box(0, 0, 40, 200), 0.5),  # the detector's box larger on both sides
+        (Box(0, 0, 20, 50), Box(0, 0, 0, 50), math.inf),  # no object to compare with
+    ],
+)
+def test_framing_ratio_is_the_larger_of_width_and_height(track_box: Box, detected: Box, ratio: float) -> None:
+    assert framing_ratio(track_box, detected) == ratio
 
 
 @pytest.mark.parametrize(

@@ -6,6 +6,7 @@ import json
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from behaviors.geometry import Box
@@ -16,7 +17,9 @@ from companion.vision.trackers import available_trackers
 from companion_tools.tracking_eval import (
     DetectionCache,
     EvalSettings,
+    SequenceResult,
     evaluate_sequence,
+    framing_summary,
     load_sequence,
     parse_size,
     parse_sweep,
@@ -344,6 +347,12 @@ def test_eval_prints_bare_beside_the_product_from_the_same_run(
             and f"{p['miou']:.3f}" in line
             and f"{p['miou'] - b['miou']:+.3f}" in line
         )
+    # How the tracks framed the objects the detector found on them: the figure the re-framing bound rests on.
+    framing = run["overall"]["framing"]["on_target"]
+    samples = [ratio for p in product for overlap, ratio in p["framing"] if overlap >= 0.5]
+    assert framing["n"] == len(samples) >= 1 and framing["median"] == pytest.approx(float(np.median(samples)))
+    line = next(line for line in printed.splitlines() if line.startswith("framing"))
+    assert f"n={len(samples)} median {framing['median']:.2f}" in line and "bound 1.5" in line
 
 
 def test_eval_init_prompt_acquires_the_described_target_while_the_clock_runs(
@@ -468,3 +477,19 @@ def test_verified_loss_flags_never_cost_the_bare_tracker_where_the_detector_rare
     assert product.frames == bare.frames
     assert product.miou >= bare.miou - 0.01, (product.miou, bare.miou, product.loss_reasons)
     assert product.loss_events <= 1, product.loss_reasons
+
+
+def test_framing_summary_splits_on_and_off_target_and_pools_sequences() -> None:
+    def result(framing: list[tuple[float, float]]) -> SequenceResult:
+        return SequenceResult("s", "nano", 1, 0.0, 0.0, 1.0, 1.0, 0, 0, 0, 0, 0, framing=framing)
+
+    pooled = framing_summary(
+        [
+            result([(0.9, 1.0), (0.5, 1.2), (0.4, 3.0)]),  # IoU 0.4: neither on nor off target
+            result([(0.7, 1.1), (0.1, 2.0), (0.0, 1.6)]),
+        ]
+    )
+    assert pooled["on_target"] == {"n": 3, "median": 1.1, "p95": pytest.approx(1.19), "max": 1.2}
+    assert pooled["off_target"]["n"] == 2 and pooled["off_target"]["median"] == pytest.approx(1.8)
+    empty = framing_summary([result([])])["on_target"]
+    assert empty["n"] == 0 and math.isnan(empty["median"])

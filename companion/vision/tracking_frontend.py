@@ -28,6 +28,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections import deque
 from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -47,6 +48,7 @@ from behaviors.reinit_policy import (
     ReinitState,
     TrackEvidence,
     decide,
+    framing_ratio,
     same_object,
 )
 from behaviors.track_result import TrackResult
@@ -112,6 +114,9 @@ def reinit_settings(config: TrackerConfig) -> ReinitSettings:
     )
 
 
+FRAMING_KEPT = 3600  # framing samples kept: an hour of answers at one a second
+
+
 @dataclass
 class FrontendStats:
     tracker_updates: int = 0  # live-frame updates
@@ -125,6 +130,9 @@ class FrontendStats:
     confirmations: int = 0  # "verified": answers whose candidate on the track withdrew a latched loss
     decisions: dict[str, int] = field(default_factory=dict)  # "verified": answers per ReinitAction
     verdicts_ignored: int = 0  # tracks whose verifier said "no" to the target it started on
+    # "verified": (keyframe, track box, framing_ratio) whenever the track's own candidate decided an
+    # answer (confirmed or re-framed it): how the tracker frames the object the detector found.
+    framing: deque[tuple[int, Box, float]] = field(default_factory=lambda: deque(maxlen=FRAMING_KEPT))
 
 
 class TrackingFrontend:
@@ -339,6 +347,14 @@ class TrackingFrontend:
         self._reinit_state = decision.state
         self._confirmed = decision.action is ReinitAction.CONFIRM
         self.stats.decisions[decision.action.value] = self.stats.decisions.get(decision.action.value, 0) + 1
+        if (
+            decision.action in (ReinitAction.CONFIRM, ReinitAction.REINIT)
+            and decision.index is not None
+            and track_box is not None
+            and same_object(boxes[decision.index], track_box, self.reinit.agree_iou)
+        ):
+            detected = detections[decision.index].box
+            self.stats.framing.append((keyframe_id, track_box, framing_ratio(track_box, detected)))
         if decision.action is ReinitAction.CONFIRM and decision.index is not None:
             self._learn_extent(track_box, detections[decision.index].box)
             self._learn_look(keyframe.image, boxes[decision.index])
