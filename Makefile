@@ -76,8 +76,11 @@ $(WORDNET):
 	$$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq wordnet-base >/dev/null 2>&1 || \
 	{ $$SUDO apt-get update -qq >/dev/null && $$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq wordnet-base >/dev/null; }
 
+# The fast tests run in CHECK_WORKERS processes as in `make check`; the slow ones (real-time flights,
+# SITL, browser) one at a time, as their timings were measured.
 pytest: install $(CHROMIUM) $(REDIS_SERVER) $(NGINX) $(WORDNET)
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -m "not slow" -n $(CHECK_WORKERS)
+	$(BIN)/python -m pytest -m slow
 
 test: lint format-check types pytest
 
