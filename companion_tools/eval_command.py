@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from behaviors.detection import Detection
+from behaviors.geometry import Box
 from behaviors.tracking_metrics import pooled_miou
 from cloudtrack.config_files import ConfigError
 from cloudtrack.model_store import ModelError, require, resolve_model_dir
@@ -70,7 +71,10 @@ a candidate on the track supported it (policy verified).
 
 Candidates come from the back-end with --backend URL, else from the back-end pipeline in-process: the
 YOLOX-nano detector and the verifier named by --verifier (the factory's names: none, local, ... ; default
-the back-end's [verifier] kind). --detector none: no candidates, no re-initialisation. --init prompt: the
+the back-end's [verifier] kind). A query looks where flight's does (behaviors.query_region): the whole frame
+while the track is trusted or nothing is tracked; after a loss the last trusted box grown [behavior]
+redetect_roi_scale times, to the whole frame by redetect_full_frame_s (a tiny value: always the whole
+frame). --detector none: no candidates, no re-initialisation. --init prompt: the
 first box is the back-end's answer to the sequence's referring.txt, asked every [backend]
 keyframe_interval_s of sequence time and applied --delay-s later (default 2 s, a hosted VLM) while the
 sequence runs on, latency-compensated as in flight; a start needs a "yes" (or "uncertain" with [behavior]
@@ -205,9 +209,9 @@ def _detector(args: argparse.Namespace, model_dir: Path, seq: SequenceData) -> D
             mission_id=f"eval-{seq.name}",
         )
 
-        def ask_backend(image: np.ndarray, frame_id: int) -> list[Detection]:
+        def ask_backend(image: np.ndarray, frame_id: int, region: Box | None) -> list[Detection]:
             try:
-                return client.detect(image, prompt, frame_id=frame_id)
+                return client.detect(image, prompt, frame_id=frame_id, roi=region)
             except BackendError as exc:  # a failed request is an empty answer, as in flight
                 log.warning("%s frame %d: back-end request failed: %s", seq.name, frame_id, exc)
                 return []
@@ -225,9 +229,10 @@ def _detector(args: argparse.Namespace, model_dir: Path, seq: SequenceData) -> D
         return None
     pipeline = _pipeline(require("yolox", model_dir)["yolox_nano.onnx"], args.verifier_kind)
 
-    def detect(image: np.ndarray, frame_id: int) -> list[Detection]:
+    def detect(image: np.ndarray, frame_id: int, region: Box | None) -> list[Detection]:
         # The back-end's own path: detection, margin crops, the configured verifier's verdicts.
-        return [c.detection for c in pipeline.run(image, prompt, superset, frame_id=frame_id).candidates]
+        found = pipeline.run(image, prompt, superset, roi=region, frame_id=frame_id)
+        return [c.detection for c in found.candidates]
 
     return detect
 
@@ -557,6 +562,8 @@ def _run_evals(
                     max_frames=args.max_frames,
                     occlude=args.occlude,
                     accept_uncertain=config.behavior.accept_uncertain,
+                    region_scale=config.behavior.redetect_roi_scale,
+                    region_full_frame_s=config.behavior.redetect_full_frame_s,
                 )
                 results = run_all(settings)
                 t_c = threshold if threshold is not None else config.tracker.score_threshold.get(name, "-")

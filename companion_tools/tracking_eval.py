@@ -35,7 +35,9 @@ from behaviors.candidate_selection import select_first_acquisition
 from behaviors.detection import Detection, Verdict
 from behaviors.geometry import Box, iou
 from behaviors.loss_evidence import LossEvidence, judge_frame
+from behaviors.query_region import redetect_region
 from behaviors.spatial_relations import parse_relation
+from behaviors.track_result import TrackResult
 from behaviors.tracking_metrics import MiouResult, mean_iou, pooled_miou
 from companion.config import TrackerConfig
 from companion.vision.frame_sources import FolderSource, Frame
@@ -56,7 +58,8 @@ OFF_TARGET_IOU = 0.3  # ...and under this much, on something else
 InitMode = Literal["gt", "prompt"]
 
 # Detector: image (already resized) and frame id -> candidates in that image's pixels.
-DetectFn = Callable[[np.ndarray, int], list[Detection]]
+# (keyframe image, frame id, region to look in or None for the whole frame) -> the back-end's answer.
+DetectFn = Callable[[np.ndarray, int, Box | None], list[Detection]]
 
 
 @dataclass(frozen=True)
@@ -126,6 +129,10 @@ class EvalSettings:
     reverify_interval: int = 0  # c_box/score: also re-initialise from candidates every N frames while trusted
     init: InitMode = "gt"  # first box: ground truth, or the back-end's answer to referring.txt
     accept_uncertain: bool = False  # prompt init: may an "uncertain" candidate start the track
+    # A re-detection after a loss looks where flight's does (`behaviors.query_region`): the last trusted box
+    # grown this much, growing to the whole frame over `region_full_frame_s`; None: always the whole frame.
+    region_scale: float | None = None
+    region_full_frame_s: float = 4.0
 
 
 @dataclass(frozen=True)
@@ -170,20 +177,23 @@ class SequenceResult:
 
 
 class DetectionCache:
-    """Detector answers per (sequence, frame, size), so policy comparisons and sweeps share them."""
+    """Detector answers per (sequence, frame, size, region), so policy comparisons and sweeps share them."""
 
     def __init__(self, detect: DetectFn) -> None:
         self._detect = detect
-        self._cache: dict[tuple[str, int, tuple[int, int]], list[Detection]] = {}
+        self._cache: dict[tuple[str, int, tuple[int, int], tuple[int, ...]], list[Detection]] = {}
         self.calls = 0
         self.seconds: list[float] = []  # wall time of each real call: the back-end's answer time here
 
-    def get(self, sequence: str, image: np.ndarray, frame_id: int) -> list[Detection]:
-        key = (sequence, frame_id, (image.shape[1], image.shape[0]))
+    def get(
+        self, sequence: str, image: np.ndarray, frame_id: int, region: Box | None = None
+    ) -> list[Detection]:
+        where = tuple(round(v) for v in region.xyxy()) if region is not None else ()
+        key = (sequence, frame_id, (image.shape[1], image.shape[0]), where)
         if key not in self._cache:
             self.calls += 1
             started = time.perf_counter()
-            self._cache[key] = self._detect(image, frame_id)
+            self._cache[key] = self._detect(image, frame_id, Box.from_xyxy(*where) if where else None)
             self.seconds.append(time.perf_counter() - started)
         return self._cache[key]
 
@@ -325,6 +335,18 @@ def evaluate_sequence(
     if from_prompt and detections is None:
         raise ValueError("--init prompt needs a detector (the back-end pipeline)")
 
+    def query_region(frontend: TrackingFrontend, result: TrackResult, frame: Frame) -> Box | None:
+        # As in flight (behaviors.mission): a search or a check of a trusted track looks at the whole
+        # frame, a re-detection after a loss at the region around the last trusted box.
+        last = frontend.last_trusted_box
+        if settings.region_scale is None or not frontend.tracking or result.trusted or last is None:
+            return None
+        height, width = frame.image.shape[:2]
+        lost_for = frame.capture_time - frontend.last_trusted_time
+        return redetect_region(
+            last, lost_for, settings.region_scale, settings.region_full_frame_s, width, height
+        )
+
     def gt_at(frame_id: int) -> Box | None:
         return gt_used[frame_id - 1] if 0 < frame_id <= len(gt_used) else None
 
@@ -391,7 +413,9 @@ def evaluate_sequence(
             and not frontend.catching_up
         ):
             t0 = time.perf_counter()
-            found = detections.get(seq.name, frame.image, frame.frame_id)
+            found = detections.get(
+                seq.name, frame.image, frame.frame_id, query_region(frontend, result, frame)
+            )
             detector_seconds += time.perf_counter() - t0
             calls += 1
             last_request = frame.frame_id

@@ -884,8 +884,8 @@ def test_verified_following_checks_the_track_and_judges_the_answer() -> None:
     state = reach(S.FOLLOWING, VERIFIED)
     state, actions = run(state, [tracked(2.0, FAR), TimerTick(2.05)], VERIFIED)
     query = last_query(actions)
-    assert query.purpose is QueryPurpose.TRACK_CHECK and query.roi is not None
-    assert query.roi.x <= FAR.x and query.roi.x2 >= FAR.x2
+    # The whole frame: after a switch to a neighbour the target is often outside the track's region.
+    assert query.purpose is QueryPurpose.TRACK_CHECK and query.roi is None
     state, actions = step(state, tracked(2.06, FAR), VERIFIED)
     answer = BackendAnswer(2.1, query.query_id, 62, (candidate(FAR, "c1", Verdict.NO),))
     state, actions = step(state, answer, VERIFIED)

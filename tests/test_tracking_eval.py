@@ -79,10 +79,15 @@ def test_evaluate_sequence_tracks_and_reinitialises(models_dir: Path, sequences_
     assert result.reinits == 0
 
     # KCF loses this pedestrian; candidates at the ground-truth position bring it back.
-    def oracle(image, frame_id):  # type: ignore[no-untyped-def]
+    regions: list[Box | None] = []
+
+    def oracle(image, frame_id, region):  # type: ignore[no-untyped-def]
         from behaviors.detection import Detection
 
-        return [Detection(seq.ground_truth[frame_id - 1], 0.9)]
+        regions.append(region)
+        truth = seq.ground_truth[frame_id - 1]
+        inside = region is None or (region.x <= truth.cx <= region.x2 and region.y <= truth.cy <= region.y2)
+        return [Detection(truth, 0.9)] if inside else []  # a detector given the region sees nothing else
 
     cache = DetectionCache(oracle)
     plain = evaluate_sequence(seq, TrackerConfig(), models_dir, EvalSettings(tracker="kcf", max_frames=60))
@@ -91,6 +96,21 @@ def test_evaluate_sequence_tracks_and_reinitialises(models_dir: Path, sequences_
     )
     assert plain.loss_events >= 1 and helped.reinits >= 1 and cache.calls >= 1
     assert helped.miou > plain.miou
+    assert set(regions) == {None}  # no region_scale: every query is about the whole frame
+
+    # As in flight (behaviors.mission): checks of a trusted track look at the whole frame, a re-detection
+    # after a loss at the region around the last trusted box; the cache keeps the two apart.
+    regions.clear()
+    in_regions = evaluate_sequence(
+        seq,
+        TrackerConfig(),
+        models_dir,
+        EvalSettings(tracker="kcf", max_frames=60, region_scale=3.0),
+        DetectionCache(oracle),
+    )
+    looked = [r for r in regions if r is not None]
+    assert None in regions and looked and in_regions.reinits >= 1
+    assert all(r.w * r.h < 360 * 240 for r in looked)  # smaller than the 360x240 frame
 
 
 @pytest.mark.slow
@@ -410,7 +430,9 @@ def test_signal_table_counts_false_alarms_on_target_and_detector_extent(
 
     seq = load_sequence(sequences_dir / "uav123_wakeboard7")
     yolox = YoloxDetector(require("yolox", models_dir)["yolox_nano.onnx"])
-    cache = DetectionCache(lambda image, frame_id: list(yolox.detect(image, ["person"], frame_id=frame_id)))
+    cache = DetectionCache(
+        lambda image, frame_id, region: list(yolox.detect(image, ["person"], frame_id=frame_id))
+    )
     report = signal_table(
         [seq], TrackerConfig(), models_dir, "nano", detections={seq.name: cache}, keyframe_s=1.0
     )
@@ -466,7 +488,9 @@ def test_verified_loss_flags_never_cost_the_bare_tracker_where_the_detector_rare
 
     seq = load_sequence(sequences_dir / name)
     yolox = YoloxDetector(require("yolox", models_dir)["yolox_nano.onnx"])
-    cache = DetectionCache(lambda image, frame_id: list(yolox.detect(image, ["person"], frame_id=frame_id)))
+    cache = DetectionCache(
+        lambda image, frame_id, region: list(yolox.detect(image, ["person"], frame_id=frame_id))
+    )
     every_second = max(1, round(seq.fps))
     product = evaluate_sequence(
         seq, TrackerConfig(), models_dir, EvalSettings(tracker="nano", keyframe_interval=every_second), cache
