@@ -32,7 +32,8 @@ neighbour can be undone):
   is what is wrong, not its object: the track is *re-framed* (re-initialised) on that candidate at once. A candidate that
   frames it alike (IoU at least `agree_iou`) says the geometric alarm was false: it confirms.
   A tracker's box more than `max_framing_ratio` (1.5) times as wide or tall as the object the detector
-  found on it (`overgrown`) is re-framed the same way, alarm or not: a Siamese tracker's scale can drift
+  found on it (`overgrown`) on `confirmations` answers in a row (one box may be partial: the upper body
+  alone) is re-framed the same way, alarm or not: a Siamese tracker's scale can drift
   over a group of people a little per frame, which no signal sees, while its own candidate keeps
   "confirming" it.
 - Otherwise a lost track waits (it never jumps to whoever is nearest) and a trusted one is kept.
@@ -104,6 +105,7 @@ class ReinitSettings:
 class ReinitState:
     streak: int = 0  # keyframes in a row some candidate beat the track
     pending: Box | None = None  # where the last winner was
+    outgrown: int = 0  # keyframes in a row the track's own candidate showed the tracker's box outgrew it
 
 
 @dataclass(frozen=True)
@@ -247,6 +249,16 @@ def decide(
         if track.degraded and iou(on_track.box, track.box) < settings.agree_iou:
             cause = "geometric alarm"
         elif overgrown(track.box, on_track.detected or on_track.box, settings.max_framing_ratio):
+            # One detector box is no proof: a partial one (upper body, a person half behind another)
+            # looks like an overgrown track. Like any move, it needs the same answer again.
+            outgrown = state.outgrown + 1
+            if outgrown < settings.confirmations:
+                return ReinitDecision(
+                    ReinitAction.CONFIRM,
+                    index,
+                    ReinitState(outgrown=outgrown),
+                    f"a candidate on the track supports it; the tracker's box outgrew it {outgrown}x",
+                )
             cause = "the tracker's box outgrew it"
         else:
             cause = ""

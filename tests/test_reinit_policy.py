@@ -301,10 +301,28 @@ OBJECT_IN_GROWN = Box(100, 110, 22, 50)  # the detector's box on the object: hol
 def test_reinit_policy_reframes_a_track_that_outgrew_its_object(
     name: str, candidate: CandidateEvidence, action: ReinitAction, index: int | None
 ) -> None:
-    decision = decide(ReinitState(), track(box=GROWN), [candidate])
+    first = decide(ReinitState(), track(box=GROWN), [candidate])
+    decision = decide(first.state, track(box=GROWN), [candidate])
     assert (decision.action, decision.index) == (action, index), name
     if action is ReinitAction.REINIT:
-        assert "outgrew" in decision.reason
+        # One answer only doubts the track: it confirms it and counts; the same answer again re-frames.
+        assert (first.action, first.index, first.state.outgrown) == (ReinitAction.CONFIRM, 0, 1), name
+        assert "outgrew" in decision.reason and decision.state == ReinitState()
+
+
+def test_an_outgrown_track_is_reframed_only_on_answers_in_a_row() -> None:
+    """A partial detector box (an upper body) on one keyframe looks like an overgrown track; an answer
+    that frames the track within the convention in between starts the count again."""
+    outgrown = [cand(OBJECT_IN_GROWN, YES)]
+    framed_alike = [cand(GROWN, YES)]
+    first = decide(ReinitState(), track(box=GROWN), outgrown)
+    between = decide(first.state, track(box=GROWN), framed_alike)
+    assert between.action is ReinitAction.CONFIRM and between.state.outgrown == 0
+    again = decide(between.state, track(box=GROWN), outgrown)
+    assert again.action is ReinitAction.CONFIRM and again.state.outgrown == 1
+    assert decide(again.state, track(box=GROWN), outgrown).action is ReinitAction.REINIT
+    once = ReinitSettings(confirmations=1)
+    assert decide(ReinitState(), track(box=GROWN), outgrown, once).action is ReinitAction.REINIT
 
 
 @pytest.mark.parametrize(

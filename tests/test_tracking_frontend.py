@@ -196,12 +196,22 @@ def test_a_track_outgrowing_its_detected_object_is_reframed_on_it(models_dir: Pa
     assert track is not None
     # Now the detector finds the object at 0.6 of the tracker's width and height. In the learnt convention
     # that is 0.8 x 0.75 of the track, no growth; against the detector's own box the tracker's box is 1.67x
-    # its object (over reinit_max_framing_ratio, 1.5): re-framed on the object at once, no second answer needed.
+    # its object (over reinit_max_framing_ratio, 1.5). One such answer could be a partial box: the track
+    # stays, and that box teaches the conversion nothing; the same on the next keyframe re-frames it.
     object_box = Box.from_center(track.cx, track.cy, track.w * 0.6, track.h * 0.6)
-    chosen = fe.apply_candidates(20, [Detection(object_box, 0.8)])
+    assert fe.apply_candidates(20, [Detection(object_box, 0.8)]) is None
+    assert fe.stats.decisions == {"confirm": 2}
+    converted = fe.to_tracker_convention(tight)
+    assert converted.w == pytest.approx(first.w) and converted.h == pytest.approx(first.h)  # as learnt at 10
+    for frame in frames[20:25]:
+        fe.feed(frame)
+    track = fe.box_at(25)
+    assert track is not None
+    object_box = Box.from_center(track.cx, track.cy, track.w * 0.6, track.h * 0.6)
+    chosen = fe.apply_candidates(25, [Detection(object_box, 0.8)])
     assert chosen is not None and chosen.box == object_box
-    assert fe.stats.decisions == {"confirm": 1, "reinit": 1}
-    reframed = fe.feed(frames[20]).box
+    assert fe.stats.decisions == {"confirm": 2, "reinit": 1}
+    reframed = fe.feed(frames[25]).box
     assert reframed is not None and reframed.w < 0.9 * track.w and reframed.h < 0.9 * track.h
     assert iou(reframed, fe.to_tracker_convention(object_box)) > 0.5
 

@@ -356,7 +356,8 @@ class TrackingFrontend:
             detected = detections[decision.index].box
             self.stats.framing.append((keyframe_id, track_box, framing_ratio(track_box, detected)))
         if decision.action is ReinitAction.CONFIRM and decision.index is not None:
-            self._learn_extent(track_box, detections[decision.index].box)
+            if not decision.state.outgrown:  # a box the policy doubts is no sample of the framing
+                self._learn_extent(track_box, detections[decision.index].box)
             self._learn_look(keyframe.image, boxes[decision.index])
             if lost or self._lost_reason:
                 self._withdraw_loss()
