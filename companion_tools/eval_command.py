@@ -13,13 +13,15 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from behaviors.detection import Detection
 from behaviors.geometry import Box
 from behaviors.tracking_metrics import pooled_miou
+from cloudtrack.api_client import encode_keyframe
 from cloudtrack.config_files import ConfigError
-from cloudtrack.model_store import ModelError, require, resolve_model_dir
+from cloudtrack.model_store import ModelError, resolve_model_dir
 from companion.config_command import add_config_flags, load_from_args
 from companion.models_command import add_model_dir_flag
 from companion.vision.loss_detection import parse_signals
@@ -69,9 +71,10 @@ the tracker alone). "moved off" counts re-initialisations that moved the box fro
 with ground truth on the keyframe) to something else; "confirms" counts latched losses withdrawn because
 a candidate on the track supported it (policy verified).
 
-Candidates come from the back-end with --backend URL, else from the back-end pipeline in-process: the
-YOLOX-nano detector and the verifier named by --verifier (the factory's names: none, local, ... ; default
-the back-end's [verifier] kind). A query looks where flight's does (behaviors.query_region): the whole frame
+Candidates come from the back-end with --backend URL, else from the back-end pipeline in-process on what
+flight sends: the keyframe downscaled to [backend] max_keyframe_width and JPEG-encoded as the companion's
+client does, the back-end's configured detector (`[detector]`: YOLOX-nano, tiled) and the verifier named
+by --verifier (the factory's names: none, local, ... ; default the back-end's [verifier] kind). A query looks where flight's does (behaviors.query_region): the whole frame
 while the track is trusted or nothing is tracked; after a loss the last trusted box grown [behavior]
 redetect_roi_scale times, to the whole frame by redetect_full_frame_s (a tiny value: always the whole
 frame). --detector none: no candidates, no re-initialisation. --init prompt: the
@@ -186,13 +189,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
     parser.set_defaults(func=run)
 
 
-@functools.lru_cache(maxsize=2)
-def _yolox(path: Path) -> Any:
-    from backend.detectors.yolox import YoloxDetector
-
-    return YoloxDetector(path)
-
-
 def _detector(args: argparse.Namespace, model_dir: Path, seq: SequenceData) -> DetectFn | None:
     prompt = seq.referring or "a person"
     if args.backend:
@@ -227,27 +223,44 @@ def _detector(args: argparse.Namespace, model_dir: Path, seq: SequenceData) -> D
     except UnknownSupersetError:
         log.warning("%s: no detector class for %r; no re-initialisation on this sequence", seq.name, superset)
         return None
-    pipeline = _pipeline(require("yolox", model_dir)["yolox_nano.onnx"], args.verifier_kind)
+    pipeline = _pipeline(model_dir, args.verifier_kind)
+    keyframes = args.backend_config
 
     def detect(image: np.ndarray, frame_id: int, region: Box | None) -> list[Detection]:
-        # The back-end's own path: detection, margin crops, the configured verifier's verdicts.
-        found = pipeline.run(image, prompt, superset, roi=region, frame_id=frame_id)
-        return [c.detection for c in found.candidates]
+        # What flight sends (the keyframe downscaled and JPEG-encoded as the companion's client does), then
+        # the back-end's own path: its configured detector, margin crops, the verifier's verdicts.
+        jpeg, scale = encode_keyframe(image, keyframes.max_keyframe_width, keyframes.jpeg_quality)
+        sent = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+        roi = Box(region.x * scale, region.y * scale, region.w * scale, region.h * scale) if region else None
+        found = pipeline.run(sent, prompt, superset, roi=roi, frame_id=frame_id)
+        return [_unscaled(c.detection, scale) for c in found.candidates]
 
     return detect
 
 
+def _unscaled(detection: Detection, scale: float) -> Detection:
+    def back(box: Box) -> Box:
+        return Box(box.x / scale, box.y / scale, box.w / scale, box.h / scale)
+
+    body = detection.body_box
+    return replace(detection, box=back(detection.box), body_box=back(body) if body is not None else None)
+
+
 @functools.lru_cache(maxsize=4)
-def _pipeline(weights: Path, verifier_kind: str) -> Any:
+def _pipeline(model_dir: Path, verifier_kind: str) -> Any:
+    """The back-end's pipeline as its configuration builds it (`[detector]`: YOLOX-nano with the
+    configured tiles), on the weights in `model_dir`, with the verifier named `verifier_kind`."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from backend.config import VerifierConfig, VlmConfig
+    from backend.config import VerifierConfig, VlmConfig, load_backend_config
+    from backend.detectors.factory import build_detector
     from backend.pipeline import Pipeline
     from backend.verifiers.factory import build_verifier
 
+    detector_config = load_backend_config().detector.model_copy(update={"model_dir": str(model_dir)})
     verifier = build_verifier(VerifierConfig(kind=verifier_kind), VlmConfig())
     pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="eval-verify")
-    return Pipeline(_yolox(weights), verifier, pool)
+    return Pipeline(build_detector(detector_config), verifier, pool)
 
 
 def _fmt(value: float, digits: int = 3) -> str:
@@ -434,7 +447,7 @@ def run(args: argparse.Namespace) -> int:
 
         args.verifier_kind = args.verifier or load_backend_config().verifier.kind
         if not args.backend and args.detector != "none":
-            _pipeline(require("yolox", model_dir)["yolox_nano.onnx"], args.verifier_kind)
+            _pipeline(model_dir, args.verifier_kind)
         detectors = {s.name: _detector(args, model_dir, s) for s in seqs}
     except (ModelError, ConfigError, ValueError) as exc:  # pydantic's ValidationError is a ValueError
         print(f"error: {exc}", file=sys.stderr)

@@ -289,6 +289,36 @@ def test_eval_against_a_live_backend(models_dir: Path, sequences_dir: Path, tmp_
     assert result["frames"] == 12 and result["miou"] > 0.3
 
 
+def test_eval_in_process_answers_as_the_live_backend_does(
+    models_dir: Path, sequences_dir: Path, tmp_path: Path
+) -> None:
+    """The in-process pipeline is the back-end's own path on what flight sends (the keyframe downscaled to
+    [backend] max_keyframe_width and JPEG-encoded, the configured tiled detector): the same run against a
+    real back-end over HTTP gives the same answers and the same figures."""
+    from tests.live_backend import VEHICLE_TOKENS, live_backend
+
+    def run(*source: str) -> dict:  # type: ignore[type-arg]
+        out = tmp_path / "eval.json"
+        args = [str(sequences_dir / "uav123_person12_1"), "--tracker", "nano", "--max-frames", "25"]
+        args += ["--model-dir", str(models_dir), "--init", "prompt", "--delay-s", "0", "--keyframe-s", "0.5"]
+        assert main(["eval", *args, *source, "--json", str(out), "--no-progress"]) == 0
+        return json.loads(out.read_text())["runs"][0]["sequences"][0]  # type: ignore[no-any-return]
+
+    in_process = run("--verifier", "none")
+    with live_backend(models_dir, "none") as backend:
+        token = VEHICLE_TOKENS["drone-1"]
+        over_http = run(
+            "--backend", backend.url, "--set", f"backend.token={token}", "--set", "vehicle.id=drone-1"
+        )
+    assert in_process["detector_calls"] == over_http["detector_calls"] >= 3
+    # Equal up to the API's rounding of boxes to hundredths of a pixel.
+    for here, there in zip(in_process["acquisition"], over_http["acquisition"], strict=True):
+        assert here.pop("chosen_iou") == pytest.approx(there.pop("chosen_iou"), abs=0.01)
+        assert here == there
+    assert in_process["acquisition"]
+    assert in_process["miou"] == pytest.approx(over_http["miou"], abs=0.01) and in_process["miou"] > 0.3
+
+
 def test_eval_with_an_unreachable_backend_tracks_nothing_and_does_not_crash(
     models_dir: Path, sequences_dir: Path, tmp_path: Path
 ) -> None:
