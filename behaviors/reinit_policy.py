@@ -20,8 +20,6 @@ neighbour can be undone):
   A "no" never wins; a candidate beyond the gate around the last trusted box needs a "yes".
 - Only a candidate that beats the track on `confirmations` keyframes in a row, at a consistent place,
   re-initialises the tracker. One answer is not enough: a single keyframe's verdict or histogram is noisy.
-  Except when one answer holds evidence both ways: the track is lost with nothing better than a "no" on
-  it, and the winner is a "yes" inside the gate around the last trusted box; it re-initialises at once.
 - With nothing beating the track, a candidate on it with a verdict other than "no" *confirms* the track:
   the detector finds an object of the described class where the tracker is, and nothing in view has
   better evidence of being the target; a loss flagged on that keyframe is withdrawn. (Not the appearance
@@ -171,21 +169,6 @@ def _consistent(a: Box, b: Box) -> bool:
     return math.hypot(a.cx - b.cx, a.cy - b.cy) <= max(a.w + a.h, b.w + b.h)
 
 
-def _evidence_both_ways(track: TrackEvidence, track_rank: int, winner: CandidateEvidence) -> bool:
-    """One answer is enough when it carries both halves of the evidence: the track is wrong (the loss
-    signals untrusted it and nothing on it is better than a "no") and the candidate is right (a "yes",
-    near where the target was last trusted). The second answer the streak waits for protects a trusted
-    track from one noisy verdict; a lost one has nothing to protect, and waiting costs a keyframe interval
-    of tracking nobody."""
-    return (
-        track.lost
-        and track_rank == 0
-        and winner.verdict is Verdict.YES
-        and track.reference is not None
-        and c_box(track.reference, winner.box) <= track.gate_px
-    )
-
-
 def decide(
     state: ReinitState,
     track: TrackEvidence,
@@ -236,7 +219,7 @@ def decide(
         streak = (
             state.streak + 1 if state.pending is not None and _consistent(state.pending, winner.box) else 1
         )
-        if streak >= settings.confirmations or _evidence_both_ways(track, track_rank, winner):
+        if streak >= settings.confirmations:
             return ReinitDecision(
                 ReinitAction.REINIT, index, ReinitState(), f"candidate beat the track {streak}x"
             )
