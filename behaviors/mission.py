@@ -523,7 +523,7 @@ def _tick(state: State, config: MissionConfig) -> Result:
         return _start_search(state, "searching again", config)
     if mode is MissionState.SEARCHING:
         actions: tuple[Action, ...] = ()
-        if _query_due(state, config.query_interval_s):
+        if _query_due(state, config.search_interval_s):
             state, actions = _query(state, QueryPurpose.SEARCH, None)
         state, scan = _scan(state, config)
         return state, (*scan, *actions)

@@ -42,7 +42,10 @@ class MissionConfig:
     gains: ControlGains = field(default_factory=ControlGains)
     standoff_m: float = 12.0
     search_yaw_rate: float = 0.0  # rad/s, 0: no scan
-    query_interval_s: float = 1.0  # keyframes to the back-end while searching or re-detecting
+    query_interval_s: float = 1.0  # keyframes to the back-end while re-detecting or checking a track
+    search_interval_s: float = (
+        0.5  # ... while searching: nothing tracked, a keyframe is the only way to find it
+    )
     reverify_interval_s: float = 10.0
     lost_hold_after_s: float = 1.0
     lost_action_after_s: float = 30.0
@@ -115,6 +118,7 @@ class MissionConfig:
             standoff_m=_float(behavior, "standoff_m", d.standoff_m),
             search_yaw_rate=math.radians(_float(behavior, "search_yaw_rate_deg_s", 0.0)),
             query_interval_s=_float(backend, "keyframe_interval_s", d.query_interval_s),
+            search_interval_s=_float(backend, "search_interval_s", d.search_interval_s),
             reverify_interval_s=_float(behavior, "reverify_interval_s", d.reverify_interval_s),
             lost_hold_after_s=_float(behavior, "lost_hold_after_s", d.lost_hold_after_s),
             lost_action_after_s=_float(behavior, "lost_action_after_s", d.lost_action_after_s),

@@ -103,6 +103,7 @@ class BackendConfig(ConfigSection):
     url: str = "http://127.0.0.1:8080"
     token: str = ""  # prefer the environment variable CLOUDTRACK_BACKEND__TOKEN
     keyframe_interval_s: float = Field(1.0, gt=0, le=60)
+    search_interval_s: float = Field(0.5, gt=0, le=60)  # queries while nothing is tracked
     jpeg_quality: int = Field(80, ge=10, le=100)
     max_keyframe_width: int = Field(640, ge=64, le=4096)
     timeout_s: float = Field(5.0, gt=0, le=120)

@@ -78,9 +78,10 @@ by --verifier (the factory's names: none, local, ... ; default the back-end's [v
 while the track is trusted or nothing is tracked; after a loss the last trusted box grown [behavior]
 redetect_roi_scale times, to the whole frame by redetect_full_frame_s (a tiny value: always the whole
 frame). --detector none: no candidates, no re-initialisation. --init prompt: the
-first box is the back-end's answer to the sequence's referring.txt, asked every [backend]
-keyframe_interval_s of sequence time and applied --delay-s later (default 2 s, a hosted VLM) while the
-sequence runs on, latency-compensated as in flight; a start needs a "yes" (or "uncertain" with [behavior]
+first box is the back-end's answer to the sequence's referring.txt, asked every --search-s ([backend]
+search_interval_s) of sequence time and applied --delay-s later (default 2 s, a hosted VLM) while the
+sequence runs on, latency-compensated as in flight; as the companion's back-end worker, one request is
+in flight at a time and a keyframe asked for meanwhile waits for its answer (a newer one replaces it); a start needs a "yes" (or "uncertain" with [behavior]
 accept_uncertain). Its table prints the ratio to the ground-truth-initialised run and the "ceiling": that
 run's IoU from the frame the first answer can arrive over all frames, the most a perfect acquirer reaches
 with this delay; and the measured time of the back-end's answers (in-process: the local verifier's real
@@ -132,6 +133,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
         type=float,
         default=None,
         help="seconds of sequence time between back-end requests (default: [backend] keyframe_interval_s)",
+    )
+    parser.add_argument(
+        "--search-s",
+        type=float,
+        default=None,
+        help="... while nothing is tracked, as the mission's search (default: [backend] search_interval_s)",
     )
     parser.add_argument(
         "--signals",
@@ -427,8 +434,10 @@ def run(args: argparse.Namespace) -> int:
         seqs = [load_sequence(p) for p in args.sequences]
         if args.keyframe_s is None:
             args.keyframe_s = config.backend.keyframe_interval_s
-        if args.keyframe_s <= 0:
-            raise ValueError("--keyframe-s must be positive")
+        if args.search_s is None:
+            args.search_s = config.backend.search_interval_s
+        if args.keyframe_s <= 0 or args.search_s <= 0:
+            raise ValueError("--keyframe-s and --search-s must be positive")
         args.backend_config = config.backend
         args.vehicle_id = config.vehicle.id
     except (ConfigError, ModelError, TrackerUnavailableError, ValueError, FileNotFoundError) as exc:
@@ -539,6 +548,7 @@ def _run_evals(
                 settings,
                 delay_frames=round(delay_s * seq.fps),
                 keyframe_interval=max(1, round(args.keyframe_s * seq.fps)),
+                search_interval=max(1, round(args.search_s * seq.fps)),
                 reverify_interval=round(args.reverify_s * seq.fps),
             )
             results.append(
@@ -583,7 +593,8 @@ def _run_evals(
                 label = (
                     f"tracker {name}, t_c={t_c}, policy {policy}, size {args.size or 'native'}, "
                     f"candidates: {source if has_candidates else 'none'}, "
-                    f"keyframe every {args.keyframe_s:g} s, delay {delay_s:g} s"
+                    f"keyframe every {args.keyframe_s:g} s (searching every {args.search_s:g} s), "
+                    f"delay {delay_s:g} s"
                 )
                 run: dict[str, Any] = {
                     "tracker": name,
@@ -593,6 +604,7 @@ def _run_evals(
                     "init": args.init,
                     "delay_s": delay_s,
                     "keyframe_s": args.keyframe_s,
+                    "search_s": args.search_s,
                 }
                 if args.init == "prompt":
                     prompted = run_all(replace(settings, init="prompt"))

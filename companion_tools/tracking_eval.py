@@ -123,6 +123,9 @@ class EvalSettings:
     size: tuple[int, int] | None = None  # resize frames (and boxes) to WIDTHxHEIGHT
     delay_frames: int = 0  # back-end latency in frames
     keyframe_interval: int = 5  # frames between detector requests
+    search_interval: int = (
+        0  # ... while nothing is tracked ([backend] search_interval_s); 0: keyframe_interval
+    )
     compensate: bool = True
     max_frames: int | None = None
     occlude: bool = False  # hide the target for 1.5 s from a third of the way in (see occlusion_span)
@@ -322,9 +325,11 @@ def evaluate_sequence(
     reasons: Counter[str] = Counter()
     outcomes: Counter[str] = Counter()
     acquisition: list[AcquisitionKeyframe] = []
-    # Answers in flight, oldest first: (apply at frame, keyframe, detections). As in flight, a request goes
-    # out every keyframe interval whether or not the previous answer is back.
-    pending: list[tuple[int, int, list[Detection]]] = []
+    # As the companion's back-end worker (companion.cloud.backend_worker) sends them: one request in flight
+    # (lands at frame, keyframe, detections); a keyframe asked for meanwhile waits (keyframe, image, region),
+    # replaced by any newer one, and goes out when the answer is back.
+    in_flight: tuple[int, int, list[Detection]] | None = None
+    waiting: tuple[int, np.ndarray, Box | None] | None = None
     last_request = -(10**9)
     was_trusted = False
     had_alarm = False
@@ -387,8 +392,18 @@ def evaluate_sequence(
                 box = init  # the initialisation frame reports the box it started on
         if result.lost_reason and result.lost_reason not in ("idle", "acquiring"):
             reasons[result.lost_reason] += 1
-        while pending and pending[0][0] <= frame.frame_id:
-            _, keyframe, found = pending.pop(0)
+        if in_flight is not None and in_flight[0] <= frame.frame_id:
+            _, keyframe, found = in_flight
+            in_flight = None
+            if waiting is not None:
+                sent_id, sent_image, sent_region = waiting
+                waiting = None
+                assert detections is not None  # only queued when there is a back-end to ask
+                t0 = time.perf_counter()
+                sent = detections.get(seq.name, sent_image, sent_id, sent_region)
+                detector_seconds += time.perf_counter() - t0
+                calls += 1
+                in_flight = (frame.frame_id + settings.delay_frames, sent_id, sent)
             answer(keyframe, found, frame.frame_id)
         if settings.policy == "verified":
             # Every answer is evidence for or against the track, so keyframes go out while trusted too.
@@ -406,23 +421,27 @@ def evaluate_sequence(
         was_trusted, had_alarm = result.trusted, alarm
         reverify_now = settings.policy != "verified" and settings.reverify_interval > 0 and result.trusted
         interval = settings.reverify_interval if reverify_now else settings.keyframe_interval
+        if not frontend.tracking and settings.search_interval:
+            interval = settings.search_interval  # nothing tracked: a keyframe is the only way to find it
         if (
             detections is not None
             and needs_candidates
             and (frame.frame_id - last_request >= interval or (newly_lost and frame.frame_id > last_request))
             and not frontend.catching_up
         ):
-            t0 = time.perf_counter()
-            found = detections.get(
-                seq.name, frame.image, frame.frame_id, query_region(frontend, result, frame)
-            )
-            detector_seconds += time.perf_counter() - t0
-            calls += 1
+            region = query_region(frontend, result, frame)
             last_request = frame.frame_id
-            if settings.delay_frames == 0:
-                answer(frame.frame_id, found, frame.frame_id)
+            if settings.delay_frames > 0 and in_flight is not None:
+                waiting = (frame.frame_id, frame.image, region)
             else:
-                pending.append((frame.frame_id + settings.delay_frames, frame.frame_id, found))
+                t0 = time.perf_counter()
+                found = detections.get(seq.name, frame.image, frame.frame_id, region)
+                detector_seconds += time.perf_counter() - t0
+                calls += 1
+                if settings.delay_frames == 0:
+                    answer(frame.frame_id, found, frame.frame_id)
+                else:
+                    in_flight = (frame.frame_id + settings.delay_frames, frame.frame_id, found)
         predicted.append(box)
         predicted_any.append(box if box is not None else result.box)
         if progress is not None:

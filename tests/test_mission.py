@@ -423,7 +423,8 @@ def test_offboard_requested_only_when_mission_allows_engage() -> None:
 
 
 def test_searching_queries_at_the_configured_rate_and_scans() -> None:
-    config = replace(CFG, query_interval_s=2.0, search_yaw_rate=math.radians(10.0))
+    # The search's own rate ([backend] search_interval_s), not the re-detection's and track checks'.
+    config = replace(CFG, search_interval_s=2.0, query_interval_s=7.0, search_yaw_rate=math.radians(10.0))
     state = reach(S.SEARCHING, config)
     queries: list[float] = []
     for i in range(1, 27):

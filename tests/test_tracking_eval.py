@@ -113,6 +113,33 @@ def test_evaluate_sequence_tracks_and_reinitialises(models_dir: Path, sequences_
     assert all(r.w * r.h < 360 * 240 for r in looked)  # smaller than the 360x240 frame
 
 
+def test_eval_sends_keyframes_as_the_backend_worker_does(models_dir: Path, sequences_dir: Path) -> None:
+    """As companion.cloud.backend_worker: one request in flight; keyframes asked for meanwhile wait, the
+    newest replacing older ones, and go out when the answer lands. While nothing is tracked the search asks
+    every `search_interval` frames, not every `keyframe_interval`."""
+    seq = load_sequence(sequences_dir / "otb_Crossing")
+    asked: list[int] = []
+
+    def oracle(image, frame_id, region):  # type: ignore[no-untyped-def]
+        from behaviors.detection import Detection, Verdict
+
+        asked.append(frame_id)
+        truth = seq.ground_truth[frame_id - 1]
+        return [Detection(truth, 0.9, verdict=Verdict.YES)] if frame_id >= 20 else []  # found from frame 20
+
+    settings = EvalSettings(
+        tracker="nano", max_frames=60, init="prompt", delay_frames=12, keyframe_interval=30, search_interval=5
+    )
+    result = evaluate_sequence(seq, TrackerConfig(), models_dir, settings, DetectionCache(oracle))
+    # Asked at 1, 6, 11, 16, 21, 26, 31, 36: frame 1 is in flight until 13, when 11 (newest) goes out;
+    # 21 goes at 25, 36 at 37. Frames 6, 16, 26 and 31 were replaced before they were sent.
+    assert asked[:4] == [1, 11, 21, 36]
+    answers = [(a.frame_id, a.answered_frame_id) for a in result.acquisition]
+    assert answers[:3] == [(1, 13), (11, 25), (21, 37)]
+    # The first "yes" (frame 21) lands at 37 (with overlapping requests it landed at 33): no box before.
+    assert result.first_box_s is not None and result.first_box_s * seq.fps >= 36
+
+
 @pytest.mark.slow
 def test_occlusion_hides_the_target_and_marks_frames_nan(models_dir: Path, sequences_dir: Path) -> None:
     seq = load_sequence(sequences_dir / "uav123_wakeboard7")
