@@ -152,7 +152,7 @@ def run(args: argparse.Namespace) -> int:
         on_keyframe=record.keyframe if record is not None else None,
     )
     session = BackendSession(client, period_s=config.backend.status_interval_s)
-    worker = BackendWorker(_QueryService(client))
+    worker = BackendWorker(_QueryService(client), max_in_flight=config.backend.max_requests_in_flight)
     settings = LoopSettings(
         frame_stale_s=config.safety.frame_stale_s, loop_stall_s=config.safety.loop_stall_s
     )

@@ -80,8 +80,9 @@ redetect_roi_scale times, to the whole frame by redetect_full_frame_s (a tiny va
 frame). --detector none: no candidates, no re-initialisation. --init prompt: the
 first box is the back-end's answer to the sequence's referring.txt, asked every --search-s ([backend]
 search_interval_s) of sequence time and applied --delay-s later (default 2 s, a hosted VLM) while the
-sequence runs on, latency-compensated as in flight; as the companion's back-end worker, one request is
-in flight at a time and a keyframe asked for meanwhile waits for its answer (a newer one replaces it); a start needs a "yes" (or "uncertain" with [behavior]
+sequence runs on, latency-compensated as in flight; as the companion's back-end worker, at most [backend]
+max_requests_in_flight requests are out at once and a keyframe asked for meanwhile waits for an answer (a
+newer one replaces it); a start needs a "yes" (or "uncertain" with [behavior]
 accept_uncertain). Its table prints the ratio to the ground-truth-initialised run and the "ceiling": that
 run's IoU from the frame the first answer can arrive over all frames, the most a perfect acquirer reaches
 with this delay; and the measured time of the back-end's answers (in-process: the local verifier's real
@@ -549,6 +550,7 @@ def _run_evals(
                 delay_frames=round(delay_s * seq.fps),
                 keyframe_interval=max(1, round(args.keyframe_s * seq.fps)),
                 search_interval=max(1, round(args.search_s * seq.fps)),
+                max_in_flight=args.backend_config.max_requests_in_flight,
                 reverify_interval=round(args.reverify_s * seq.fps),
             )
             results.append(

@@ -123,9 +123,8 @@ class EvalSettings:
     size: tuple[int, int] | None = None  # resize frames (and boxes) to WIDTHxHEIGHT
     delay_frames: int = 0  # back-end latency in frames
     keyframe_interval: int = 5  # frames between detector requests
-    search_interval: int = (
-        0  # ... while nothing is tracked ([backend] search_interval_s); 0: keyframe_interval
-    )
+    search_interval: int = 0  # ... while nothing is tracked ([backend] search_interval_s); 0: the above
+    max_in_flight: int = 1  # requests out at once ([backend] max_requests_in_flight)
     compensate: bool = True
     max_frames: int | None = None
     occlude: bool = False  # hide the target for 1.5 s from a third of the way in (see occlusion_span)
@@ -325,10 +324,10 @@ def evaluate_sequence(
     reasons: Counter[str] = Counter()
     outcomes: Counter[str] = Counter()
     acquisition: list[AcquisitionKeyframe] = []
-    # As the companion's back-end worker (companion.cloud.backend_worker) sends them: one request in flight
-    # (lands at frame, keyframe, detections); a keyframe asked for meanwhile waits (keyframe, image, region),
-    # replaced by any newer one, and goes out when the answer is back.
-    in_flight: tuple[int, int, list[Detection]] | None = None
+    # As the companion's back-end worker (companion.cloud.backend_worker) sends them: up to `max_in_flight`
+    # requests out (lands at frame, keyframe, detections); a keyframe asked for while all are out waits
+    # (keyframe, image, region), replaced by any newer one, and goes out when an answer is back.
+    in_flight: list[tuple[int, int, list[Detection]]] = []
     waiting: tuple[int, np.ndarray, Box | None] | None = None
     last_request = -(10**9)
     was_trusted = False
@@ -392,9 +391,8 @@ def evaluate_sequence(
                 box = init  # the initialisation frame reports the box it started on
         if result.lost_reason and result.lost_reason not in ("idle", "acquiring"):
             reasons[result.lost_reason] += 1
-        if in_flight is not None and in_flight[0] <= frame.frame_id:
-            _, keyframe, found = in_flight
-            in_flight = None
+        while in_flight and in_flight[0][0] <= frame.frame_id:
+            _, keyframe, found = in_flight.pop(0)
             if waiting is not None:
                 sent_id, sent_image, sent_region = waiting
                 waiting = None
@@ -403,7 +401,7 @@ def evaluate_sequence(
                 sent = detections.get(seq.name, sent_image, sent_id, sent_region)
                 detector_seconds += time.perf_counter() - t0
                 calls += 1
-                in_flight = (frame.frame_id + settings.delay_frames, sent_id, sent)
+                in_flight.append((frame.frame_id + settings.delay_frames, sent_id, sent))
             answer(keyframe, found, frame.frame_id)
         if settings.policy == "verified":
             # Every answer is evidence for or against the track, so keyframes go out while trusted too.
@@ -431,7 +429,7 @@ def evaluate_sequence(
         ):
             region = query_region(frontend, result, frame)
             last_request = frame.frame_id
-            if settings.delay_frames > 0 and in_flight is not None:
+            if settings.delay_frames > 0 and len(in_flight) >= settings.max_in_flight:
                 waiting = (frame.frame_id, frame.image, region)
             else:
                 t0 = time.perf_counter()
@@ -441,7 +439,7 @@ def evaluate_sequence(
                 if settings.delay_frames == 0:
                     answer(frame.frame_id, found, frame.frame_id)
                 else:
-                    in_flight = (frame.frame_id + settings.delay_frames, frame.frame_id, found)
+                    in_flight.append((frame.frame_id + settings.delay_frames, frame.frame_id, found))
         predicted.append(box)
         predicted_any.append(box if box is not None else result.box)
         if progress is not None:

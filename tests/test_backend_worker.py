@@ -132,3 +132,37 @@ def test_any_exception_from_the_service_is_reported(error: Exception) -> None:
     assert worker.wait_idle(5)
     assert type(error).__name__ in worker.health().last_error
     worker.close()
+
+
+def test_two_requests_in_flight_then_the_newest_keyframe_waits() -> None:
+    """A hosted VLM answers in about 2 s: with two requests out, a 1 s keyframe rate is kept."""
+    service = GatedService()
+    worker = BackendWorker(service, max_in_flight=2)
+    assert worker.submit(1, _image(), 0.0) is True
+    assert worker.submit(2, _image(), 0.1) is True  # a second slot is free: 1 is not replaced
+    deadline = time.monotonic() + 5
+    while len(service.calls) < 2 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert sorted(c["frame_id"] for c in service.calls) == [1, 2]
+    assert worker.submit(3, _image(), 0.2) is False
+    assert worker.submit(4, _image(), 0.3) is False  # both slots busy: 4 replaces 3
+    service.gate.release()
+    first = _poll(worker)
+    service.gate.release()
+    second = _poll(worker)
+    assert {first.frame_id, second.frame_id} <= {1, 2, 4}
+    service.gate.release()
+    assert worker.wait_idle(5)
+    answered = {first.frame_id, second.frame_id}
+    leftover = worker.poll()
+    if leftover is not None:
+        answered.add(leftover.frame_id)
+    assert answered == {1, 2, 4} and worker.poll() is None  # every answer kept, oldest first, none lost
+    assert sorted(c["frame_id"] for c in service.calls) == [1, 2, 4]
+    assert worker.health().replaced == 1 and worker.health().answered == 3
+    worker.close()
+
+
+def test_max_in_flight_must_be_positive() -> None:
+    with pytest.raises(ValueError, match="at least 1"):
+        BackendWorker(GatedService(), max_in_flight=0)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -138,6 +139,16 @@ def test_eval_sends_keyframes_as_the_backend_worker_does(models_dir: Path, seque
     assert answers[:3] == [(1, 13), (11, 25), (21, 37)]
     # The first "yes" (frame 21) lands at 37 (with overlapping requests it landed at 33): no box before.
     assert result.first_box_s is not None and result.first_box_s * seq.fps >= 36
+
+    # Two out at once ([backend] max_requests_in_flight = 2): twice the answers, a keyframe waits only
+    # while both are out (21 waits for 11's answer at 25).
+    asked.clear()
+    two = evaluate_sequence(
+        seq, TrackerConfig(), models_dir, replace(settings, max_in_flight=2), DetectionCache(oracle)
+    )
+    answers = [(a.frame_id, a.answered_frame_id) for a in two.acquisition]
+    assert asked[:5] == [1, 6, 11, 16, 21]
+    assert answers[:5] == [(1, 13), (6, 18), (11, 25), (16, 30), (21, 37)]
 
 
 @pytest.mark.slow

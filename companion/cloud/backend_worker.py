@@ -1,9 +1,12 @@
 """Back-end requests off the frame loop: the loop submits keyframes and polls for answers, never waits.
 
-One request is in flight at a time. `submit` never blocks: while a request is running the new keyframe
-replaces any keyframe still waiting (the newest one is the useful one) and `submit` returns False.
-Answers come back through `poll()`, tagged with the keyframe they refer to so the tracking front-end can
-fast-forward from it. `health()` gives what the "lost back-end" watchdog needs: time of the last success,
+At most `max_in_flight` requests are out at a time ([backend] max_requests_in_flight), each on its own
+thread (the client keeps one HTTP session per thread). A hosted VLM answers in about 2 s; with one request
+out, a keyframe every second would be answered every 2 s, halving the evidence the re-initialisation
+policy waits for. `submit` never blocks: while every slot is busy the new keyframe replaces any keyframe
+still waiting (the newest one is the useful one) and `submit` returns False. Answers come back through
+`poll()`, oldest first, tagged with the keyframe they refer to so the tracking front-end can fast-forward
+from it. `health()` gives what the "lost back-end" watchdog needs: time of the last success,
 consecutive failures and the last error.
 """
 
@@ -12,6 +15,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -64,43 +68,56 @@ class _Request:
 
 
 class BackendWorker:
-    """A background thread that sends keyframes to a DetectionService one at a time."""
+    """Background threads that send keyframes to a DetectionService, at most `max_in_flight` at a time."""
 
-    def __init__(self, service: DetectionService, clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self,
+        service: DetectionService,
+        clock: Callable[[], float] = time.monotonic,
+        max_in_flight: int = 1,
+    ) -> None:
+        if max_in_flight < 1:
+            raise ValueError("max_in_flight must be at least 1")
         self._service = service
         self._clock = clock
         self._cond = threading.Condition()
-        self._pending: _Request | None = None
-        self._answer: BackendAnswer | None = None
-        self._busy = False
+        self._pending: deque[_Request] = deque()  # keyframes not yet taken by a thread, oldest first
+        self._answers: deque[BackendAnswer] = deque(maxlen=4 * max_in_flight)  # bounded: oldest dropped
+        self._in_flight = 0
+        self.max_in_flight = max_in_flight
         self._stopping = False
         self._last_success: float | None = None
         self._failures = 0
         self._last_error = ""
         self._submitted = self._replaced = self._answered = 0
-        self._thread = threading.Thread(target=self._run, name="backend-worker", daemon=True)
-        self._thread.start()
+        self._threads = [
+            threading.Thread(target=self._run, name=f"backend-worker-{i}", daemon=True)
+            for i in range(max_in_flight)
+        ]
+        for thread in self._threads:
+            thread.start()
 
     def submit(self, frame_id: int, image: np.ndarray, capture_time: float, **fields: Any) -> bool:
-        """Queue a keyframe; True if it goes out next, False if a request is still running (it will
-        still be sent afterwards unless replaced by a newer keyframe)."""
+        """Queue a keyframe; True if it goes out now, False if every slot is busy (it will still be sent
+        when one frees unless replaced by a newer keyframe)."""
         request = _Request(frame_id, image, capture_time, dict(fields), self._clock())
         with self._cond:
             if self._stopping:
                 return False
             self._submitted += 1
-            if self._pending is not None:
+            self._pending.append(request)
+            # As many wait as there are free slots, at least the newest one; older ones are replaced.
+            while len(self._pending) > max(1, self.max_in_flight - self._in_flight):
+                self._pending.popleft()
                 self._replaced += 1
-            self._pending = request
-            idle = not self._busy
+            idle = self._in_flight < self.max_in_flight
             self._cond.notify_all()
         return idle
 
     def poll(self) -> BackendAnswer | None:
-        """The newest answer not yet taken, or None."""
+        """The oldest answer not yet taken, or None."""
         with self._cond:
-            answer, self._answer = self._answer, None
-        return answer
+            return self._answers.popleft() if self._answers else None
 
     def health(self) -> WorkerHealth:
         with self._cond:
@@ -108,7 +125,7 @@ class BackendWorker:
                 self._last_success,
                 self._failures,
                 self._last_error,
-                self._busy or self._pending is not None,
+                self._in_flight > 0 or bool(self._pending),
                 self._submitted,
                 self._replaced,
                 self._answered,
@@ -118,7 +135,7 @@ class BackendWorker:
         """Block until nothing is pending or running (for tools and tests, never the frame loop)."""
         deadline = time.monotonic() + timeout_s
         with self._cond:
-            while self._busy or self._pending is not None:
+            while self._in_flight > 0 or self._pending:
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     return False
@@ -126,30 +143,31 @@ class BackendWorker:
         return True
 
     def close(self, timeout_s: float = 1.0) -> None:
-        """Stop taking work; a request in flight finishes in the background (its thread is a daemon)."""
+        """Stop taking work; requests in flight finish in the background (their threads are daemons)."""
         with self._cond:
             self._stopping = True
-            self._pending = None
+            self._pending.clear()
             self._cond.notify_all()
-        self._thread.join(timeout_s)
+        deadline = time.monotonic() + timeout_s
+        for thread in self._threads:
+            thread.join(max(0.0, deadline - time.monotonic()))
 
     def _run(self) -> None:
         while True:
             with self._cond:
-                while self._pending is None and not self._stopping:
+                while not self._pending and not self._stopping:
                     self._cond.wait()
                 if self._stopping:
                     return
-                request, self._pending = self._pending, None
-                self._busy = True
-            assert request is not None
+                request = self._pending.popleft()
+                self._in_flight += 1
             try:
                 detections = self._service.detect(request.image, frame_id=request.frame_id, **request.fields)
             except Exception as exc:  # any back-end failure is reported, never raised into the loop
                 with self._cond:
                     self._failures += 1
                     self._last_error = f"{type(exc).__name__}: {exc}"
-                    self._busy = False
+                    self._in_flight -= 1
                     self._cond.notify_all()
                 log.warning("back-end request for frame %d failed: %s", request.frame_id, exc)
                 continue
@@ -162,10 +180,10 @@ class BackendWorker:
                 request.fields,
             )
             with self._cond:
-                self._answer = answer
+                self._answers.append(answer)
                 self._answered += 1
                 self._last_success = now
                 self._failures = 0
                 self._last_error = ""
-                self._busy = False
+                self._in_flight -= 1
                 self._cond.notify_all()
