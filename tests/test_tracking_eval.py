@@ -231,6 +231,7 @@ GOTURN_ERROR = "goturn.prototxt" if "goturn" in available_trackers() else "not p
         (["--sweep", "0.9:0.1:0.1"], "STOP >= START"),
         (["--signals", "score,vibes"], "unknown loss signal"),
         (["--size", "big"], "WIDTHxHEIGHT"),
+        (["--search-s", "0"], "--search-s must be positive"),
     ],
 )
 def test_eval_command_bad_input(
