@@ -43,9 +43,8 @@ class MissionConfig:
     standoff_m: float = 12.0
     search_yaw_rate: float = 0.0  # rad/s, 0: no scan
     query_interval_s: float = 1.0  # keyframes to the back-end while re-detecting or checking a track
-    search_interval_s: float = (
-        0.5  # ... while searching: nothing tracked, a keyframe is the only way to find it
-    )
+    # ... while searching: with nothing tracked, a keyframe is the only way to find the target
+    search_interval_s: float = 0.5
     reverify_interval_s: float = 10.0
     lost_hold_after_s: float = 1.0
     lost_action_after_s: float = 30.0

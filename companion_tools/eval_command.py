@@ -74,11 +74,11 @@ a candidate on the track supported it (policy verified).
 Candidates come from the back-end with --backend URL, else from the back-end pipeline in-process on what
 flight sends: the keyframe downscaled to [backend] max_keyframe_width and JPEG-encoded as the companion's
 client does, the back-end's configured detector (`[detector]`: YOLOX-nano, tiled) and the verifier named
-by --verifier (the factory's names: none, local, ... ; default the back-end's [verifier] kind). A query looks where flight's does (behaviors.query_region): the whole frame
-while the track is trusted or nothing is tracked; after a loss the last trusted box grown [behavior]
-redetect_roi_scale times, to the whole frame by redetect_full_frame_s (a tiny value: always the whole
-frame). --detector none: no candidates, no re-initialisation. --init prompt: the
-first box is the back-end's answer to the sequence's referring.txt, asked every --search-s ([backend]
+by --verifier (the factory's names: none, local, ... ; default the back-end's [verifier] kind). A query
+looks where flight's does (behaviors.query_region): the whole frame while the track is trusted or nothing
+is tracked; after a loss the last trusted box grown [behavior] redetect_roi_scale times, to the whole
+frame by redetect_full_frame_s (a tiny value: always the whole frame). --detector none: no candidates, no
+re-initialisation. --init prompt: the first box is the back-end's answer to the sequence's referring.txt, asked every --search-s ([backend]
 search_interval_s) of sequence time and applied --delay-s later (default 2 s, a hosted VLM) while the
 sequence runs on, latency-compensated as in flight; as the companion's back-end worker, at most [backend]
 max_requests_in_flight requests are out at once and a keyframe asked for meanwhile waits for an answer (a
@@ -239,7 +239,7 @@ def _detector(args: argparse.Namespace, model_dir: Path, seq: SequenceData) -> D
         # the back-end's own path: its configured detector, margin crops, the verifier's verdicts.
         jpeg, scale = encode_keyframe(image, keyframes.max_keyframe_width, keyframes.jpeg_quality)
         sent = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
-        roi = Box(region.x * scale, region.y * scale, region.w * scale, region.h * scale) if region else None
+        roi = region.scaled(scale, scale) if region is not None else None
         found = pipeline.run(sent, prompt, superset, roi=roi, frame_id=frame_id)
         return [_unscaled(c.detection, scale) for c in found.candidates]
 
@@ -247,11 +247,12 @@ def _detector(args: argparse.Namespace, model_dir: Path, seq: SequenceData) -> D
 
 
 def _unscaled(detection: Detection, scale: float) -> Detection:
-    def back(box: Box) -> Box:
-        return Box(box.x / scale, box.y / scale, box.w / scale, box.h / scale)
-
     body = detection.body_box
-    return replace(detection, box=back(detection.box), body_box=back(body) if body is not None else None)
+    return replace(
+        detection,
+        box=detection.box.scaled(1 / scale, 1 / scale),
+        body_box=body.scaled(1 / scale, 1 / scale) if body is not None else None,
+    )
 
 
 @functools.lru_cache(maxsize=4)
