@@ -581,7 +581,8 @@ def _lost_tick(state: State, target: Target, config: MissionConfig) -> Result:
                 )
             )
             return state, tuple(actions)
-    if _query_due(state, config.query_interval_s):
+    # Nothing is followed while lost: re-detect at the search's rate, not the track check's.
+    if _query_due(state, config.search_interval_s):
         state, query = _redetect(state, target.box, config)
         actions.extend(query)
     return state, tuple(actions)

@@ -42,8 +42,8 @@ class MissionConfig:
     gains: ControlGains = field(default_factory=ControlGains)
     standoff_m: float = 12.0
     search_yaw_rate: float = 0.0  # rad/s, 0: no scan
-    query_interval_s: float = 1.0  # keyframes to the back-end while re-detecting or checking a track
-    # ... while searching: with nothing tracked, a keyframe is the only way to find the target
+    query_interval_s: float = 1.0  # keyframes to the back-end while checking a followed track
+    # ... while searching or lost: with nothing trusted, a keyframe is the only way to find the target
     search_interval_s: float = 0.5
     reverify_interval_s: float = 10.0
     lost_hold_after_s: float = 1.0

@@ -103,7 +103,7 @@ class BackendConfig(ConfigSection):
     url: str = "http://127.0.0.1:8080"
     token: str = ""  # prefer the environment variable CLOUDTRACK_BACKEND__TOKEN
     keyframe_interval_s: float = Field(1.0, gt=0, le=60)
-    search_interval_s: float = Field(0.5, gt=0, le=60)  # queries while nothing is tracked
+    search_interval_s: float = Field(0.5, gt=0, le=60)  # queries while searching or lost
     # Keyframes out at once (companion.cloud.backend_worker): a 2 s VLM with one out answers every 2 s.
     max_requests_in_flight: int = Field(2, ge=1, le=8)
     jpeg_quality: int = Field(80, ge=10, le=100)

@@ -139,7 +139,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
         "--search-s",
         type=float,
         default=None,
-        help="... while nothing is tracked, as the mission's search (default: [backend] search_interval_s)",
+        help="... while nothing is tracked or the track is lost, as the mission's search and re-detection "
+        "(default: [backend] search_interval_s)",
     )
     parser.add_argument(
         "--signals",

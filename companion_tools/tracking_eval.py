@@ -419,8 +419,10 @@ def evaluate_sequence(
         was_trusted, had_alarm = result.trusted, alarm
         reverify_now = settings.policy != "verified" and settings.reverify_interval > 0 and result.trusted
         interval = settings.reverify_interval if reverify_now else settings.keyframe_interval
-        if not frontend.tracking and settings.search_interval:
-            interval = settings.search_interval  # nothing tracked: a keyframe is the only way to find it
+        if not result.trusted and settings.search_interval:
+            # Nothing tracked, or the track is lost: a keyframe is the only way to find it (as the mission's
+            # SEARCHING and LOST ask).
+            interval = settings.search_interval
         if (
             detections is not None
             and needs_candidates

@@ -560,6 +560,20 @@ def test_lost_ignores_candidates_beyond_the_gate() -> None:
     assert actions == ()
 
 
+def test_lost_redetects_at_the_search_rate() -> None:
+    # Nothing is followed while lost: re-detection asks as often as the search, not as the track checks.
+    config = replace(CFG, search_interval_s=2.0, query_interval_s=7.0)
+    state = reach(S.LOST, config)  # entered at t=1.2 with a re-detection query
+    queries: list[float] = []
+    for i in range(1, 27):
+        t = 1.25 + 0.25 * i
+        state, actions = step(state, TimerTick(t), config)
+        queries += [t for a in actions if isinstance(a, BackendQuery)]
+    assert queries == [3.25, 5.25, 7.25]
+    assert state.mode is S.LOST
+    assert last_query(step(state, TimerTick(99.0), config)[1]).purpose is QueryPurpose.REDETECT
+
+
 @pytest.mark.parametrize("lost_action", list(LostAction))
 def test_lost_holds_then_requests_the_configured_action(lost_action: LostAction) -> None:
     config = replace(CFG, lost_action=lost_action, lost_hold_after_s=1.0, lost_action_after_s=5.0)

@@ -151,6 +151,23 @@ def test_eval_sends_keyframes_as_the_backend_worker_does(models_dir: Path, seque
     assert answers[:5] == [(1, 13), (6, 18), (11, 25), (16, 30), (21, 37)]
 
 
+def test_a_lost_track_is_redetected_at_the_search_rate(models_dir: Path, sequences_dir: Path) -> None:
+    """As the mission's LOST: with nothing trusted, keyframes go out every `search_interval` frames."""
+    seq = load_sequence(sequences_dir / "otb_Crossing")
+    asked: list[int] = []
+
+    def nothing_found(image, frame_id, region):  # type: ignore[no-untyped-def]
+        asked.append(frame_id)
+        return []
+
+    settings = EvalSettings(tracker="kcf", max_frames=60, keyframe_interval=30, search_interval=5)
+    result = evaluate_sequence(seq, TrackerConfig(), models_dir, settings, DetectionCache(nothing_found))
+    assert result.loss_events == 1 and result.loss_reasons == {"tracker_failed": result.missed_frames}
+    lost_at = asked[1]  # KCF fails on this pedestrian early; the loss asks at once
+    assert asked[0] < lost_at < 20
+    assert asked[1:] == list(range(lost_at, 61, 5))
+
+
 @pytest.mark.slow
 def test_occlusion_hides_the_target_and_marks_frames_nan(models_dir: Path, sequences_dir: Path) -> None:
     seq = load_sequence(sequences_dir / "uav123_wakeboard7")
