@@ -27,6 +27,7 @@ import numpy as np
 from backend.appearance import descriptor
 from backend.crops import crop_box, margin_crop
 from backend.detectors.interface import SupersetDetector
+from backend.placement import named_vehicles, placement_ok
 from backend.verifiers.interface import Verifier, VerifierAnswer, VerifierError, VerifierTimeout
 from behaviors.detection import Detection, Verdict
 from behaviors.geometry import Box
@@ -98,16 +99,16 @@ class Pipeline:
         return self.verifier.name if self.verifier is not None else "none"
 
     def _detect(
-        self, image: np.ndarray, superset: str, roi: Box | None, frame_id: int | None
+        self, image: np.ndarray, classes: list[str], roi: Box | None, frame_id: int | None
     ) -> list[Detection]:
         if roi is None:
-            return self.detector.detect(image, [superset], frame_id=frame_id)
+            return self.detector.detect(image, classes, frame_id=frame_id)
         height, width = image.shape[:2]
         area = roi.clamped(width, height)
         x1, y1, x2, y2 = int(area.x), int(area.y), int(np.ceil(area.x2)), int(np.ceil(area.y2))
         if x2 - x1 < 2 or y2 - y1 < 2:
             return []
-        found = self.detector.detect(np.ascontiguousarray(image[y1:y2, x1:x2]), [superset], frame_id=frame_id)
+        found = self.detector.detect(np.ascontiguousarray(image[y1:y2, x1:x2]), classes, frame_id=frame_id)
         return [replace(d, box=Box(d.box.x + x1, d.box.y + y1, d.box.w, d.box.h)) for d in found]
 
     def _verify_one(
@@ -227,11 +228,25 @@ class Pipeline:
         return candidates
 
     def detect(
-        self, image: np.ndarray, superset: str, roi: Box | None = None, frame_id: int | None = None
+        self,
+        image: np.ndarray,
+        superset: str,
+        roi: Box | None = None,
+        frame_id: int | None = None,
+        prompt: str = "",
     ) -> list[Detection]:
-        """The best `max_candidates` detections of the superset, highest score first."""
-        found = sorted(self._detect(image, superset, roi, frame_id), key=lambda d: -d.score)
-        return found[: self.max_candidates]
+        """The best `max_candidates` detections of the superset, highest score first; with the prompt,
+        each marked with whether it stands where the description places the target relative to a
+        vehicle it names (`backend.placement`: the same inference finds the vehicles)."""
+        vehicles = named_vehicles(prompt, superset) if prompt else ()
+        extra = [v.coco_class for v in vehicles]
+        found = self._detect(image, [superset, *extra], roi, frame_id)
+        seen = [(d.label, d.box) for d in found if d.label in extra]
+        found = [d for d in found if d.label not in extra]  # a named vehicle is context, not a candidate
+        found = sorted(found, key=lambda d: -d.score)[: self.max_candidates]
+        if not vehicles:
+            return found
+        return [replace(d, placement_ok=placement_ok(d.box, vehicles, seen)) for d in found]
 
     def run(
         self,
@@ -245,7 +260,7 @@ class Pipeline:
     ) -> PipelineResult:
         """Detect, crop and verify; `started` (perf_counter) lets the deadline include queueing time."""
         t0 = started if started is not None else time.perf_counter()
-        detections = self.detect(image, superset, roi, frame_id)
+        detections = self.detect(image, superset, roi, frame_id, prompt)
         t_detected = time.perf_counter()
         candidates = self.verify(image, detections, prompt, superset, rejected, deadline=t0 + self.deadline_s)
         t_end = time.perf_counter()

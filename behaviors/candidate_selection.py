@@ -17,8 +17,10 @@ def select_first_acquisition(
     eligible: Callable[[Detection], bool] = lambda d: d.box.is_valid(),
 ) -> Detection | None:
     """The candidate a search starts tracking: "yes" first, then "uncertain" if allowed, never a "no";
-    among them the ones that stand as the prompt relates the target to others ("between the man in red
-    and ..."; every candidate in view counts as one of the others), then the best detector score.
+    among them the ones not placed against the description (`Detection.placement_ok` false: in the
+    boat a wakeboarder is towed behind), then the ones that stand as the prompt relates the target to
+    others ("between the man in red and ..."; every candidate in view counts as one of the others), then
+    the best detector score. Each narrowing applies only when some candidate passes it.
 
     An "uncertain" that nothing judged past the detector's class (`Detection.judged` false: the
     description names nothing the verifier can check) starts a search even when uncertain ones may not:
@@ -32,6 +34,8 @@ def select_first_acquisition(
     )
     for admitted in tiers:
         indices = [i for i, d in enumerate(candidates) if admitted(d) and eligible(d)]
+        placed = [i for i in indices if candidates[i].placement_ok is not False]
+        indices = placed or indices
         pool = [candidates[i] for i in narrow_by_relation(relation, indices, boxes)]
         if pool:
             return max(pool, key=lambda d: d.score)

@@ -35,6 +35,10 @@ class Detection:
     # check nothing it names ("the wakeboarder being towed", "a dog"). Its "uncertain" is then the
     # whole check there will ever be, and a search may start on it (`select_first_acquisition`).
     judged: bool = True
+    # Whether the candidate stands where the description places the target relative to a vehicle it
+    # names: outside "the boat" a wakeboarder is towed behind, inside "the red car" someone sits in
+    # (`backend.placement`). None: no such vehicle named, or none in view. Ranks, never rejects.
+    placement_ok: bool | None = None
 
     @property
     def start_box(self) -> Box:

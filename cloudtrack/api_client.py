@@ -199,6 +199,7 @@ class BackendClient:
                     justification=c.justification,
                     candidate_id=c.candidate_id,
                     judged=c.judged,
+                    placement_ok=c.placement_ok,
                 )
                 for c in answer.candidates
             ]

@@ -111,6 +111,12 @@ class Candidate(ApiModel):
         description="false: nothing judged the description past the detector's class (no verifier, or it "
         'can check nothing the prompt names); the verdict is then "uncertain" and a search may start on it',
     )
+    placement_ok: bool | None = Field(
+        None,
+        description="whether the candidate stands where the description places the target relative to a "
+        'vehicle it names (outside "the boat" a wakeboarder is towed behind, inside "the car" someone sits '
+        "in); null: no such vehicle named or none in view. A search prefers candidates that are not false",
+    )
     verifier: str = Field(description='who decided: a verifier name, "none" or "rejection-memory"')
     t_verify: float
     previously_rejected: bool = Field(

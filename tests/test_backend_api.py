@@ -30,6 +30,20 @@ def keyframe(sequences_dir: Path) -> bytes:
     return jpeg(frame(sequences_dir))
 
 
+def test_detect_places_candidates_against_the_vehicle_the_prompt_names(
+    client: TestClient, sequences_dir: Path
+) -> None:
+    """uav123_wakeboard7, frame 1: the boat the description names apart from the wakeboarder holds two of
+    the three people YOLOX finds (backend.placement); the boat itself is not a candidate."""
+    image = jpeg(frame(sequences_dir, "uav123_wakeboard7"))
+    prompt = "the wakeboarder being towed to the left of the boat's wake"
+    response = client.post("/v1/detect", headers=auth(), **detect_parts(image, prompt=prompt))
+    assert response.status_code == 200, response.text
+    candidates = response.json()["candidates"]
+    assert [c["label"] for c in candidates] == ["person"] * len(candidates)
+    assert sorted(c["placement_ok"] for c in candidates) == [False, False, True]
+
+
 def test_detect_finds_and_verifies_the_person(client: TestClient, keyframe: bytes) -> None:
     response = client.post(
         "/v1/detect", headers=auth(), **detect_parts(keyframe, frame_id=7, capture_time=1.5)
@@ -51,6 +65,7 @@ def test_detect_finds_and_verifies_the_person(client: TestClient, keyframe: byte
         c["verdict"] == "uncertain" and not c["judged"] for c in plain.json()["candidates"]
     )  # nothing it names is visible to the local verifier: a search may start on the detector's word
     assert all(c["justification"] for c in body["candidates"])
+    assert {c["placement_ok"] for c in body["candidates"]} == {None}  # the prompt names no vehicle
     assert set(body["timings"]) == {"t_queue", "t_decode", "t_detect", "t_verify", "t_total"}
 
 

@@ -209,6 +209,7 @@ def test_replies_are_validated_with_the_shared_models(sequences_dir: Path) -> No
             "verdict": "yes",
             "justification": "",
             "judged": False,
+            "placement_ok": False,
             "verifier": "none",
             "t_verify": 0.0,
         }
@@ -251,6 +252,7 @@ def test_replies_are_validated_with_the_shared_models(sequences_dir: Path) -> No
         good = client.detect_reply(frame(sequences_dir), PROMPT)
         assert [d.candidate_id for d in good.detections] == ["c-1"] and good.raw is not None
         assert not good.detections[0].judged  # nothing judged past the class: a search may start on it
+        assert good.detections[0].placement_ok is False
         scale = frame(sequences_dir).shape[1] / good.raw.image_size[0]
         body = good.detections[0].body_box  # a new track starts on the verifier's measure of the body
         assert body is not None and good.detections[0].start_box == body

@@ -68,7 +68,9 @@ async def detect(
             frame = await run_in_threadpool(decode_image, data, settings.server.max_image_pixels)
             t_decode = time.perf_counter() - t_decode
             t_detect = time.perf_counter()
-            detections = await run_in_threadpool(pipeline.detect, frame, superset, roi, fields.frame_id)
+            detections = await run_in_threadpool(
+                pipeline.detect, frame, superset, roi, fields.frame_id, fields.prompt
+            )
             t_detect = time.perf_counter() - t_detect
     except QueueFullError as exc:
         raise HTTPException(
@@ -110,6 +112,7 @@ async def detect(
                 verdict=c.detection.verdict.value,
                 justification=c.detection.justification,
                 judged=c.detection.judged,
+                placement_ok=c.detection.placement_ok,
                 verifier=c.verifier,
                 t_verify=round(c.t_verify, 4),
                 previously_rejected=c.previously_rejected,
