@@ -12,11 +12,10 @@ person a "no".
 
 from __future__ import annotations
 
-import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from backend.supersets import COCO_VEHICLES, UnknownSupersetError, coco_classes_for, vocabulary
+from backend.supersets import COCO_VEHICLES, UnknownSupersetError, coco_classes_for, vocabulary, words
 from behaviors.geometry import Box
 
 # The nearest preposition before a vehicle's name (within `_LOOKBACK` words) says whether it holds the
@@ -46,21 +45,13 @@ def named_vehicles(prompt: str, superset: str) -> tuple[NamedVehicle, ...]:
         target_classes = set(coco_classes_for(superset))
     except UnknownSupersetError:
         target_classes = set()  # an open-vocabulary target: no vehicle is its own class
-    tokens: list[str] = re.findall(r"[a-z]+(?:-[a-z]+)*", prompt.lower())
-    vocab = vocabulary()
+    tokens = words(prompt)
     found: dict[str, bool] = {}
-    i = 0
-    while i < len(tokens):
-        match = vocab.match_at(tokens, i)
-        if match is None:
-            i += 1
-            continue
-        end, target = match
+    for start, _, target in vocabulary().mentions(tokens):
         if target in CARRIERS and target not in target_classes and target not in found:
-            holds = _holds(tokens[max(0, i - _LOOKBACK) : i])
+            holds = _holds(tokens[max(0, start - _LOOKBACK) : start])
             if holds is not None:
                 found[target] = holds
-        i = end
     return tuple(NamedVehicle(name, holds) for name, holds in found.items())
 
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import difflib
 import re
+from collections.abc import Iterator
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -106,6 +107,17 @@ class Vocabulary:
                 return target
         return None
 
+    def mentions(self, tokens: list[str]) -> Iterator[tuple[int, int, str]]:
+        """Each entry in `tokens`, left to right, the longest at each place: (start, end, its target)."""
+        i = 0
+        while i < len(tokens):
+            match = self.match_at(tokens, i)
+            if match is None:
+                i += 1
+                continue
+            yield i, *match
+            i = match[0]
+
     def match_at(self, tokens: list[str], i: int) -> tuple[int, str] | None:
         """The longest entry starting at tokens[i]: (its end index, its target), or None."""
         for n in range(min(self.longest, len(tokens) - i), 0, -1):
@@ -156,7 +168,7 @@ def nearest_known(name: str, limit: int = 5) -> list[str]:
 
 def coco_classes_for(name: str) -> tuple[str, ...]:
     """The COCO classes a superset, a COCO class name or any word for one stands for ("kayaks" -> boat)."""
-    key = " ".join(re.findall(r"[a-z]+(?:-[a-z]+)*", name.lower()))
+    key = " ".join(words(name))
     target = key if key in SUPERSET_TO_COCO or key in COCO_CLASSES else vocabulary().lookup(key)
     if target in SUPERSET_TO_COCO:
         return SUPERSET_TO_COCO[target]
@@ -174,24 +186,27 @@ def coco_classes_for(name: str) -> tuple[str, ...]:
     )
 
 
+def words(text: str) -> list[str]:
+    """Lower-case words, hyphenated ones whole ("green-and-white")."""
+    return re.findall(r"[a-z]+(?:-[a-z]+)*", text.lower())
+
+
 def _first_target(tokens: list[str]) -> str | None:
     """The first table word in `tokens`, taking the last of a run of nouns as the head ("horse rider")."""
     vocab = vocabulary()
-    i = 0
-    while i < len(tokens):
-        match = vocab.match_at(tokens, i)
-        if match is None:
-            i += 1
-            continue
-        end, target = match
-        while end < len(tokens) and (following := vocab.match_at(tokens, end)) is not None:
-            end, target = following  # a compound's head is its last noun: "dog walker", "orange kayak"
-        word = " ".join(tokens[i:end])
+    found = list(vocab.mentions(tokens))
+    k = 0
+    while k < len(found):
+        start, end, target = found[k]
+        k += 1
+        while k < len(found) and found[k][0] == end:
+            _, end, target = found[k]  # a compound's head is its last noun: "dog walker", "orange kayak"
+            k += 1
+        word = " ".join(tokens[start:end])
         next_word = tokens[end] if end < len(tokens) else ""
         modifies = bool(next_word) and next_word not in _FUNCTION_WORDS and not next_word.endswith("ing")
         if word in vocab.adjectives and modifies:
-            i = end  # "a young man", "an orange buoy": the adjective names nothing
-            continue
+            continue  # "a young man", "an orange buoy": the adjective names nothing
         return target
     return None
 
@@ -210,7 +225,7 @@ def superset_from_prompt(prompt: str) -> str | None:
     open-vocabulary detector takes that text as it is, a closed-set one answers with the nearest classes.
     Only a head with no word of its own ("the one in the red kayak") lets the rest decide.
     """
-    tokens: list[str] = re.findall(r"[a-z]+(?:-[a-z]+)*", prompt.lower())
+    tokens = words(prompt)
     end = next((i for i, t in enumerate(tokens) if i > 0 and _ends_head(t, tokens[:i])), len(tokens))
     head = tokens[:end]
     target = _first_target(head)
