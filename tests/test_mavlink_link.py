@@ -125,9 +125,15 @@ def test_stream_requests_cover_every_decoded_message() -> None:
 def test_telemetry_is_decoded_from_the_autopilot(personality: str) -> None:
     with autopilot(personality, start_yaw_deg=30.0) as sim, vehicle_link(sim) as link, MainLoop(link):
         assert link.autopilot_kind is AutopilotKind(personality)
-        assert wait_for(lambda: abs(link.telemetry().yaw - math.radians(30)) < 1e-3, 3.0)
+
+        def decoded() -> bool:
+            # ATTITUDE and GLOBAL_POSITION_INT arrive as separate messages: wait for both, not the first.
+            t = link.telemetry()
+            return abs(t.yaw - math.radians(30)) < 1e-3 and abs(t.height_agl - 20.0) < 0.01
+
+        assert wait_for(decoded, 3.0)
         t = link.telemetry()
-        assert t.height_agl == pytest.approx(20.0, abs=0.01) and t.armed
+        assert t.armed
         assert t.lat_deg == pytest.approx(47.397742, abs=1e-6) and t.lon_deg == pytest.approx(
             8.545594, abs=1e-6
         )
