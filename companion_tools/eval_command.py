@@ -78,12 +78,12 @@ by --verifier (the factory's names: none, local, ... ; default the back-end's [v
 looks where flight's does (behaviors.query_region): the whole frame while the track is trusted or nothing
 is tracked; after a loss the last trusted box grown [behavior] redetect_roi_scale times, to the whole
 frame by redetect_full_frame_s (a tiny value: always the whole frame). --detector none: no candidates, no
-re-initialisation. --init prompt: the first box is the back-end's answer to the sequence's referring.txt, asked every --search-s ([backend]
-search_interval_s) of sequence time and applied --delay-s later (default 2 s, a hosted VLM) while the
-sequence runs on, latency-compensated as in flight; as the companion's back-end worker, at most [backend]
-max_requests_in_flight requests are out at once and a keyframe asked for meanwhile waits for an answer (a
-newer one replaces it); a start needs a "yes" (or "uncertain" with [behavior]
-accept_uncertain). Its table prints the ratio to the ground-truth-initialised run and the "ceiling": that
+re-initialisation. --init prompt: the first box is the back-end's answer to the sequence's referring.txt,
+asked every --search-s ([backend] search_interval_s) of sequence time and applied --delay-s later
+(default 2 s, a hosted VLM) while the sequence runs on, latency-compensated as in flight; as the
+companion's back-end worker, at most [backend] max_requests_in_flight requests are out at once and a
+keyframe asked for meanwhile waits for an answer (a newer one replaces it); a start needs a "yes" (or
+"uncertain" with [behavior] accept_uncertain). Its table prints the ratio to the ground-truth-initialised run and the "ceiling": that
 run's IoU from the frame the first answer can arrive over all frames, the most a perfect acquirer reaches
 with this delay; and the measured time of the back-end's answers (in-process: the local verifier's real
 latency, to try as --delay-s). FPS counts the whole onboard loop except the detector (it runs on the

@@ -123,7 +123,8 @@ class EvalSettings:
     size: tuple[int, int] | None = None  # resize frames (and boxes) to WIDTHxHEIGHT
     delay_frames: int = 0  # back-end latency in frames
     keyframe_interval: int = 5  # frames between detector requests
-    search_interval: int = 0  # ... while nothing is tracked ([backend] search_interval_s); 0: the above
+    # ... while nothing is tracked or the track is lost ([backend] search_interval_s); 0: the above
+    search_interval: int = 0
     max_in_flight: int = 1  # requests out at once ([backend] max_requests_in_flight)
     compensate: bool = True
     max_frames: int | None = None
@@ -332,9 +333,8 @@ def evaluate_sequence(
     last_request = -(10**9)
     was_trusted = False
     had_alarm = False
-    calls = 0
+    asked: list[float] = []  # seconds of each back-end request
     started = time.perf_counter()
-    detector_seconds = 0.0
     native_gt = ground_truth_for(seq, settings)
     if from_prompt and detections is None:
         raise ValueError("--init prompt needs a detector (the back-end pipeline)")
@@ -350,6 +350,13 @@ def evaluate_sequence(
         return redetect_region(
             last, lost_for, settings.region_scale, settings.region_full_frame_s, width, height
         )
+
+    def ask(frame_id: int, image: np.ndarray, region: Box | None) -> list[Detection]:
+        assert detections is not None  # only asked when there is a back-end to ask
+        t0 = time.perf_counter()
+        found = detections.get(seq.name, image, frame_id, region)
+        asked.append(time.perf_counter() - t0)
+        return found
 
     def gt_at(frame_id: int) -> Box | None:
         return gt_used[frame_id - 1] if 0 < frame_id <= len(gt_used) else None
@@ -396,11 +403,7 @@ def evaluate_sequence(
             if waiting is not None:
                 sent_id, sent_image, sent_region = waiting
                 waiting = None
-                assert detections is not None  # only queued when there is a back-end to ask
-                t0 = time.perf_counter()
-                sent = detections.get(seq.name, sent_image, sent_id, sent_region)
-                detector_seconds += time.perf_counter() - t0
-                calls += 1
+                sent = ask(sent_id, sent_image, sent_region)
                 in_flight.append((frame.frame_id + settings.delay_frames, sent_id, sent))
             answer(keyframe, found, frame.frame_id)
         if settings.policy == "verified":
@@ -434,10 +437,7 @@ def evaluate_sequence(
             if settings.delay_frames > 0 and len(in_flight) >= settings.max_in_flight:
                 waiting = (frame.frame_id, frame.image, region)
             else:
-                t0 = time.perf_counter()
-                found = detections.get(seq.name, frame.image, frame.frame_id, region)
-                detector_seconds += time.perf_counter() - t0
-                calls += 1
+                found = ask(frame.frame_id, frame.image, region)
                 if settings.delay_frames == 0:
                     answer(frame.frame_id, found, frame.frame_id)
                 else:
@@ -446,7 +446,7 @@ def evaluate_sequence(
         predicted_any.append(box if box is not None else result.box)
         if progress is not None:
             progress(1)
-    loop_seconds = time.perf_counter() - started - detector_seconds
+    loop_seconds = time.perf_counter() - started - sum(asked)
     metric: MiouResult = mean_iou(predicted, gt_used)
     metric_any = mean_iou(predicted_any, gt_used)
     ious = [
@@ -468,7 +468,7 @@ def evaluate_sequence(
         loss_events=stats.loss_events,
         false_tracks=metric.false_tracks,
         missed_frames=metric.missed_frames,
-        detector_calls=calls,
+        detector_calls=len(asked),
         loss_reasons=dict(reasons),
         ious=ious,
         gt_frames=metric.gt_frames,
