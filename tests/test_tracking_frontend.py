@@ -237,3 +237,24 @@ def test_an_answer_about_a_keyframe_the_catch_up_passed_judges_the_new_track(
     decision = fe.judge_candidates(6, [same_person])
     assert decision is not None and decision.action is ReinitAction.CONFIRM, decision
     assert fe.stats.reinits == 1
+
+
+@pytest.mark.parametrize("policy", ["verified", "c_box"])
+def test_an_answer_about_a_keyframe_before_the_target_was_started_is_ignored(
+    models_dir: Path,
+    crossing,  # type: ignore[no-untyped-def]
+    policy: str,
+) -> None:
+    """A search answer still in flight when a track starts (four requests out, a 2 s VLM) refers to a
+    keyframe the track never saw: it moves nothing, whatever it says."""
+    seq, frames = crossing
+    fe = _frontend(models_dir, policy=policy)
+    for frame in frames[:12]:
+        fe.feed(frame)
+    assert fe.start(10, seq.ground_truth[9])
+    fe.feed(frames[12])
+    truth = seq.ground_truth[5]
+    elsewhere = Detection(Box(truth.x + 3 * truth.w, truth.y, truth.w, truth.h), 0.99, verdict=Verdict.YES)
+    assert fe.apply_candidates(6, [elsewhere]) is None
+    assert fe.judge_candidates(6, [elsewhere]) is None
+    assert fe.stats.reinits == 1 and sum(fe.stats.decisions.values()) == 0

@@ -173,6 +173,9 @@ class TrackingFrontend:
         self.label = f"{name}: " if name else ""  # log lines name the sequence or camera
         self._reinit_state = ReinitState()
         self._anchor: np.ndarray | None = None  # the target as the track first saw it (appearance)
+        # The keyframe this target was first tracked from: an answer about an older keyframe (a search
+        # answer still in flight when the track started) says nothing about this track.
+        self._target_since = 0
         # The target as the answers that confirmed the track saw it (a running mean of the confirming
         # candidates' histograms): a person's look drifts with scale and pose over a long track.
         self._confirmed_look: np.ndarray | None = None
@@ -241,13 +244,16 @@ class TrackingFrontend:
         self._extent, self._extent_samples = (0.0, 0.0), 0
         self._verdicts_checked = False
         self._verdicts_used = True
+        self._target_since = keyframe_id
         return self._begin(keyframe_id, box, keep_template=False)
 
     def apply_candidates(self, keyframe_id: int, detections: Sequence[Detection]) -> Detection | None:
         """Re-initialise on the candidate closest to the last trusted box (C_box), or with policy "score"
         the highest detector score (the reference code's choice, ungated). With C_box, a candidate
         farther than `max_c_box_sizes` x (1 + seconds lost) x (w + h) of the last trusted box is not used.
-        None when nothing was usable."""
+        None when nothing was usable (or the keyframe is older than this target's track)."""
+        if keyframe_id < self._target_since:
+            return None
         if self.policy == "verified":
             decision = self.judge_candidates(keyframe_id, detections)
             if decision is None or decision.action is not ReinitAction.REINIT or decision.index is None:
@@ -301,10 +307,15 @@ class TrackingFrontend:
         """The "verified" policy on one answer (`behaviors.reinit_policy`), carried out: a confirmation
         withdraws a latched loss, a re-initialisation starts on the winner in the tracker's convention.
         Candidates at indices in `refused` (the mission's: not acceptable as the described target) count
-        as a "no": evidence about the track, never a winner. None when there is no track to judge or the
-        keyframe has left the ring."""
+        as a "no": evidence about the track, never a winner. None when there is no track to judge, the
+        keyframe has left the ring, or it is older than this target's track."""
         keyframe = self.ring.get(keyframe_id)
-        if keyframe is None or self._tracker is None or self._catch_up is not None:
+        if (
+            keyframe is None
+            or self._tracker is None
+            or self._catch_up is not None
+            or keyframe_id < self._target_since
+        ):
             return None
         track_box, lost_reason, geometric = self._boxes.get(keyframe_id, (None, "idle", False))
         lost = bool(lost_reason)
