@@ -15,6 +15,7 @@ margin).
 from __future__ import annotations
 
 import asyncio
+import copy
 import time
 import uuid
 from collections.abc import Callable
@@ -28,6 +29,7 @@ from backend.appearance import descriptor
 from backend.crops import crop_box, margin_crop
 from backend.detectors.interface import SupersetDetector
 from backend.placement import named_vehicles, placement_ok
+from backend.verifiers.cascade import fast_stage
 from backend.verifiers.interface import Verifier, VerifierAnswer, VerifierError, VerifierTimeout
 from behaviors.detection import Detection, Verdict
 from behaviors.geometry import Box
@@ -97,6 +99,16 @@ class Pipeline:
     @property
     def verifier_name(self) -> str:
         return self.verifier.name if self.verifier is not None else "none"
+
+    def early_stage(self) -> Pipeline | None:
+        """This pipeline verifying with its verifier's fast stage only (the cascade's local verifier), or
+        None when the verifier has no slower stage (its answers are already final)."""
+        fast = fast_stage(self.verifier)
+        if fast is None:
+            return None
+        early = copy.copy(self)
+        early.verifier = fast
+        return early
 
     def _detect(
         self, image: np.ndarray, classes: list[str], roi: Box | None, frame_id: int | None

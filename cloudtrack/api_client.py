@@ -54,6 +54,7 @@ class DetectReply:
     request_bytes: int  # the whole multipart body
     jpeg_bytes: int
     raw: DetectResponse | None = None  # the validated answer
+    final: bool = True  # false: the fast stage's verdicts (asked with stage "early")
 
 
 def encode_keyframe(
@@ -158,8 +159,10 @@ class BackendClient:
         capture_time: float | None = None,
         roi: Box | None = None,
         vehicle_position: Sequence[float] | None = None,
+        stage: str = "final",
     ) -> DetectReply:
-        """Send one keyframe; the full answer with timings and sizes."""
+        """Send one keyframe; the full answer with timings and sizes. `stage` "early" asks for the fast
+        stage's verdicts (see `DetectMeta.stage`)."""
         vehicle = vehicle_id or self.vehicle_id
         mission = mission_id or self.mission_id
         if not vehicle or not mission:
@@ -181,6 +184,8 @@ class BackendClient:
             meta["roi"] = [round(v * scale, 2) for v in roi.xyxy()]
         if vehicle_position is not None:
             meta["vehicle_position"] = [float(v) for v in vehicle_position]
+        if stage != "final":
+            meta["stage"] = stage
         body, content_type = _multipart(jpeg, json.dumps(meta))
         headers = {
             "Content-Type": content_type,
@@ -206,7 +211,13 @@ class BackendClient:
         except (TypeError, ValueError) as exc:  # e.g. a box that is not 4 numbers
             raise BackendError(f"back-end /v1/detect: malformed answer: {exc}") from exc
         reply = DetectReply(
-            detections, answer.timings.model_dump(), answer.models.model_dump(), len(body), len(jpeg), answer
+            detections,
+            answer.timings.model_dump(),
+            answer.models.model_dump(),
+            len(body),
+            len(jpeg),
+            answer,
+            answer.final,
         )
         self.last_reply = reply
         return reply
@@ -227,6 +238,12 @@ class BackendClient:
         return self.detect_reply(
             image, prompt, superset, vehicle_id, mission_id, frame_id, capture_time, roi, vehicle_position
         ).detections
+
+    def detect_early(self, image: np.ndarray, **fields: Any) -> tuple[list[Detection], bool]:
+        """The fast stage's candidates for one keyframe and whether they are final (the back-end has no
+        slower stage); as `detect` otherwise."""
+        reply = self.detect_reply(image, stage="early", **fields)
+        return reply.detections, reply.final
 
     def health(self) -> HealthResponse:
         return self._call("GET", "/health", _HEALTH)

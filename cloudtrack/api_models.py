@@ -59,6 +59,12 @@ class DetectMeta(ApiModel):
         max_length=2,
         description="[lat, lon] degrees, lets rejections be matched by place",
     )
+    stage: Literal["final", "early"] = Field(
+        "final",
+        description='"early": verify with the back-end\'s fast stage only (its local verifier, before a '
+        "hosted VLM) so a search can start moving while the final verdicts are on their way; the answer's "
+        "`final` says whether it was the whole verifier",
+    )
 
     @field_validator("prompt")
     @classmethod
@@ -145,6 +151,11 @@ class DetectResponse(ApiModel):
     image_size: list[int] = Field(description="[width, height] of the sent image")
     superset: str
     candidates: list[Candidate]
+    final: bool = Field(
+        True,
+        description='false: the verdicts are the fast stage\'s (asked with stage "early"); the final verifier '
+        "may still judge the same keyframe otherwise",
+    )
     timings: Timings
     models: ModelNames
 

@@ -261,3 +261,31 @@ def test_replies_are_validated_with_the_shared_models(sequences_dir: Path) -> No
             client.detect(frame(sequences_dir), PROMPT)
     finally:
         server.shutdown()
+
+
+def test_early_stage_answers_before_the_vlm_and_the_final_answer_is_the_vlms(
+    models_dir: Path, sequences_dir: Path, client: BackendClient
+) -> None:
+    """A cascade back-end (local verifier, then a VLM that takes 0.8 s and says "no"): stage "early" is
+    answered by the local verifier alone, marked not final; the full request carries the VLM's verdicts.
+    A back-end without a slower stage answers an early request in full."""
+    image = frame(sequences_dir)
+    with VlmEmulator(latency_s=0.8, mode="no") as vlm:
+        config = backend_config(models_dir, 'verifier.kind="cascade"', f'vlm.base_url="{vlm.base_url}"')
+        with BackgroundServer(create_app(config)) as server:
+            cascade = BackendClient(
+                server.url, TOKENS["drone-1"], timeout_s=10, vehicle_id="drone-1", mission_id="m-early"
+            )
+            start = time.monotonic()
+            early = cascade.detect_reply(image, PROMPT, frame_id=5, stage="early")
+            early_s = time.monotonic() - start
+            assert not early.final and early.raw is not None and early.raw.candidates
+            assert {c.verifier for c in early.raw.candidates} <= {"local:person", "rejection-memory"}
+            assert vlm.requests == 0
+            full = cascade.detect_reply(image, PROMPT, frame_id=5)
+            assert full.final and vlm.requests > 0
+            judged_by_vlm = [d for d in full.detections if "fast check" in d.justification]
+            assert judged_by_vlm and all(d.verdict is Verdict.NO for d in judged_by_vlm)
+            print(f"early answer {early_s:.2f} s; VLM latency 0.8 s")
+    found, final = client.detect_early(image, prompt=PROMPT)
+    assert final and found

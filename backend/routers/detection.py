@@ -80,8 +80,9 @@ async def detect(
         raise HTTPException(422, str(exc)) from None
     # Verification runs outside the detector slot: a slow VLM must not hold the detector, and the
     # verifier pool already bounds how many verifications run at once.
+    early = pipeline.early_stage() if fields.stage == "early" else None
     t_verify = time.perf_counter()
-    candidates = await pipeline.verify_async(
+    candidates = await (early or pipeline).verify_async(
         frame, detections, fields.prompt, superset, check, t_received + pipeline.deadline_s
     )
     t_verify = time.perf_counter() - t_verify
@@ -119,6 +120,7 @@ async def detect(
             )
             for c in candidates
         ],
+        final=early is None,
         timings=Timings(
             t_queue=t_queue,
             t_decode=t_decode,

@@ -40,3 +40,9 @@ class CascadeVerifier:
         return VerifierAnswer(
             second.verdict, justification, second.verifier, second.box or first.box, second.judged
         )
+
+
+def fast_stage(verifier: Verifier | None) -> Verifier | None:
+    """The stage that answers before a slower one (a cascade's local verifier); None when `verifier` has
+    no slower stage."""
+    return verifier.fast if isinstance(verifier, CascadeVerifier) else None
