@@ -78,6 +78,7 @@ class BackendQuery:
     prompt: str
     superset: str = ""
     roi: Box | None = None  # camera pixels; None for the whole frame
+    early_answer: bool = False  # ask the fast stage first (answered with `final` False), then in full
 
 
 @dataclass(frozen=True)

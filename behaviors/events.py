@@ -26,6 +26,7 @@ class BackendAnswer:
     query_id: int
     keyframe_id: int
     candidates: tuple[Detection, ...] = ()
+    final: bool = True  # false: the back-end's fast stage; the final verdicts on the keyframe follow
 
 
 @dataclass(frozen=True)

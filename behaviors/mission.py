@@ -99,6 +99,16 @@ _JUDGED = frozenset(
 )
 _MAX_QUERIES_IN_FLIGHT = 8  # answers to older queries are dropped as stale
 _REVERIFY_MIN_IOU = 0.2
+SAME_CANDIDATE_IOU = 0.5  # two answers about one keyframe name the same person when their boxes overlap this
+
+
+@dataclass(frozen=True)
+class EarlyStart:
+    """A track started on the back-end's fast stage: search query `query_id`'s final verdicts are still to
+    come, and `box` (in the keyframe) is what the fast stage chose."""
+
+    query_id: int
+    box: Box
 
 
 @dataclass(frozen=True)
@@ -114,6 +124,7 @@ class Target:
     position: GeoEstimate | None = None
     signature: tuple[float, ...] = ()
     operator_selected: bool = False
+    early: EarlyStart | None = None  # started before the final verdicts (never reported to the supervisor)
 
 
 @dataclass(frozen=True)
@@ -137,6 +148,9 @@ class State:
     rejections: RejectionMemory = RejectionMemory()
     reason: str = ""  # why the current mode was entered
     alarm: bool = False  # a loss signal fires on the trusted track (a track check went out when it began)
+    # The final verdicts refused a track the fast stage started: searches wait for final verdicts until a
+    # track is verified or the mission restarts (the fast stage would pick the same person again).
+    early_refused: bool = False
 
 
 Result = tuple[State, tuple[Action, ...]]
@@ -202,7 +216,7 @@ def _start_search(state: State, reason: str, config: MissionConfig) -> Result:
         MissionState.SEARCHING,
         reason,
     )
-    new, query = _query(new, QueryPurpose.SEARCH, None)
+    new, query = _search_query(new, config)
     new, scan = _scan(new, config)
     return new, (*msg, *scan, *query)
 
@@ -279,7 +293,13 @@ def _command(state: State, event: GcsCommand, config: MissionConfig) -> Result:
         )
         stop: tuple[Action, ...] = (TrackerStop("new mission"),) if state.mode in TRACKING else ()
         new = replace(
-            state, mission=cmd, rejections=rejections, backend_down=False, mode_requested=None, holding=False
+            state,
+            mission=cmd,
+            rejections=rejections,
+            backend_down=False,
+            mode_requested=None,
+            holding=False,
+            early_refused=False,
         )
         new, engage = _engage(new, "mission start")
         new, actions = _start_search(new, "mission started", config)
@@ -402,7 +422,7 @@ def _track(state: State, result: TrackResult, config: MissionConfig) -> Result:
     state, setpoint = _follow(state, result.box, result.time_s, config)
     actions.extend(setpoint)
 
-    if state.mode is MissionState.FOLLOWING and _arrived(state, result.box, config):
+    if state.mode is MissionState.FOLLOWING and target.early is None and _arrived(state, result.box, config):
         state, msg = _enter(
             replace(state, last_report_s=state.now_s), MissionState.AWAITING_SUPERVISOR, "awaiting supervisor"
         )
@@ -412,39 +432,22 @@ def _track(state: State, result: TrackResult, config: MissionConfig) -> Result:
 
 def _answer(state: State, answer: BackendAnswer, config: MissionConfig) -> Result:
     purpose = dict(state.queries).get(answer.query_id)
-    state = replace(
-        state, queries=tuple(q for q in state.queries if q[0] != answer.query_id), backend_down=False
-    )
+    if answer.final:  # an early answer leaves its query open for the final one
+        state = replace(state, queries=tuple(q for q in state.queries if q[0] != answer.query_id))
+    state = replace(state, backend_down=False)
     if purpose is None:
         return state, ()
+    target = state.target
+    early = target.early if target is not None and state.mode in TRACKING else None
+    if answer.final and early is not None and early.query_id == answer.query_id:
+        assert target is not None
+        return _settle_early_start(state, target, early, answer, config)
     if purpose is QueryPurpose.SEARCH and state.mode is MissionState.SEARCHING:
         chosen = _choose(state, answer.candidates, config)
         if chosen is None:
             return state, ()
-        det, position = chosen
-        picked = Target(
-            det.candidate_id,
-            det.justification,
-            det.verdict,
-            det.start_box,
-            answer.keyframe_id,
-            answer.time_s,
-            position,
-            det.signature,
-        )
-        new, msg = _enter(
-            replace(state, target=picked, control=ControlState()),
-            MissionState.ACQUIRING,
-            f"candidate {det.candidate_id}",
-        )
-        # Stop any search scan while the tracker locks on; the link repeats the last setpoint.
-        return new, (
-            SendSetpoint(Setpoint.zero()),
-            TrackerInit(det.box, answer.keyframe_id, det.candidate_id),
-            *msg,
-        )
-    target = state.target
-    if target is None:
+        return _acquire(state, *chosen, answer)
+    if target is None or not answer.final:  # a fast stage's verdicts only ever start a search's track
         return state, ()
     state, actions = _answer_for_target(state, target, purpose, answer, config)
     if config.verified_reinit and _judging(state, config) and answer.candidates:
@@ -452,6 +455,64 @@ def _answer(state: State, answer: BackendAnswer, config: MissionConfig) -> Resul
         refused = tuple(i for i, d in enumerate(answer.candidates) if _refused(state, target, d, config))
         actions = (*actions, JudgeCandidates(answer.keyframe_id, answer.candidates, refused))
     return state, actions
+
+
+def _acquire(state: State, det: Detection, position: GeoEstimate | None, answer: BackendAnswer) -> Result:
+    """Start tracking `det` from the answer's keyframe; on an early answer, provisionally."""
+    early = None if answer.final else EarlyStart(answer.query_id, det.box)
+    picked = Target(
+        det.candidate_id,
+        det.justification,
+        det.verdict,
+        det.start_box,
+        answer.keyframe_id,
+        answer.time_s,
+        position,
+        det.signature,
+        early=early,
+    )
+    new, msg = _enter(
+        replace(state, target=picked, control=ControlState()),
+        MissionState.ACQUIRING,
+        f"candidate {det.candidate_id}" + (" (early)" if early is not None else ""),
+    )
+    # Stop any search scan while the tracker locks on; the link repeats the last setpoint.
+    return new, (
+        SendSetpoint(Setpoint.zero()),
+        TrackerInit(det.box, answer.keyframe_id, det.candidate_id),
+        *msg,
+    )
+
+
+def _settle_early_start(
+    state: State, target: Target, early: EarlyStart, answer: BackendAnswer, config: MissionConfig
+) -> Result:
+    """The final verdicts on the keyframe an early track started from: while they accept the early choice
+    the track stays (with the final verdict and candidate id; another candidate they also accept is no
+    reason to switch); when they refuse it the track moves to their own choice, or ends and the search
+    goes on when they accept no one."""
+    same = [d for d in answer.candidates if iou(d.box, early.box) >= SAME_CANDIDATE_IOU]
+    kept = _choose(state, [max(same, key=lambda d: iou(d.box, early.box))], config) if same else None
+    if kept is None:
+        chosen = _choose(state, answer.candidates, config)
+        if chosen is not None:
+            return _acquire(state, *chosen, answer)
+        new, actions = _start_search(
+            replace(state, early_refused=True), f"not verified: {target.candidate_id}", config
+        )
+        return new, (TrackerStop("early candidate not verified"), *actions)
+    det = kept[0]
+    verified = replace(
+        target,
+        candidate_id=det.candidate_id,
+        justification=det.justification,
+        verdict=det.verdict,
+        signature=det.signature or target.signature,
+        early=None,
+    )
+    return replace(state, target=verified, early_refused=False), (
+        GcsMessage(f"verified {det.candidate_id}"[:50]),
+    )
 
 
 def _answer_for_target(
@@ -524,7 +585,7 @@ def _tick(state: State, config: MissionConfig) -> Result:
     if mode is MissionState.SEARCHING:
         actions: tuple[Action, ...] = ()
         if _query_due(state, config.search_interval_s):
-            state, actions = _query(state, QueryPurpose.SEARCH, None)
+            state, actions = _search_query(state, config)
         state, scan = _scan(state, config)
         return state, (*scan, *actions)
     if mode is MissionState.ACQUIRING:
@@ -607,14 +668,18 @@ def _acquire_timeout(state: State, config: MissionConfig) -> Result:
     return new, (TrackerStop("acquire timeout"), *actions)
 
 
-def _query(state: State, purpose: QueryPurpose, roi: Box | None) -> Result:
+def _query(state: State, purpose: QueryPurpose, roi: Box | None, early_answer: bool = False) -> Result:
     mission = state.mission
     if mission is None:
         return state, ()
     qid = state.next_query_id
     queries = (*state.queries, (qid, purpose))[-_MAX_QUERIES_IN_FLIGHT:]
     new = replace(state, next_query_id=qid + 1, queries=queries, last_query_s=state.now_s)
-    return new, (BackendQuery(qid, purpose, mission.prompt, mission.superset, roi),)
+    return new, (BackendQuery(qid, purpose, mission.prompt, mission.superset, roi, early_answer),)
+
+
+def _search_query(state: State, config: MissionConfig) -> Result:
+    return _query(state, QueryPurpose.SEARCH, None, config.early_answer and not state.early_refused)
 
 
 def _query_due(state: State, interval_s: float) -> bool:

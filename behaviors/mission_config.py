@@ -45,6 +45,9 @@ class MissionConfig:
     query_interval_s: float = 1.0  # keyframes to the back-end while checking a followed track
     # ... while searching or lost: with nothing trusted, a keyframe is the only way to find the target
     search_interval_s: float = 0.5
+    # A search asks the back-end's fast stage first and starts a provisional track on its choice; the final
+    # verdicts on the same keyframe then confirm it, move it or end it (see behaviors.mission).
+    early_answer: bool = True
     reverify_interval_s: float = 10.0
     lost_hold_after_s: float = 1.0
     lost_action_after_s: float = 30.0
@@ -118,6 +121,7 @@ class MissionConfig:
             search_yaw_rate=math.radians(_float(behavior, "search_yaw_rate_deg_s", 0.0)),
             query_interval_s=_float(backend, "keyframe_interval_s", d.query_interval_s),
             search_interval_s=_float(backend, "search_interval_s", d.search_interval_s),
+            early_answer=_bool(backend, "early_answer", d.early_answer),
             reverify_interval_s=_float(behavior, "reverify_interval_s", d.reverify_interval_s),
             lost_hold_after_s=_float(behavior, "lost_hold_after_s", d.lost_hold_after_s),
             lost_action_after_s=_float(behavior, "lost_action_after_s", d.lost_action_after_s),

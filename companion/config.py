@@ -104,6 +104,8 @@ class BackendConfig(ConfigSection):
     token: str = ""  # prefer the environment variable CLOUDTRACK_BACKEND__TOKEN
     keyframe_interval_s: float = Field(1.0, gt=0, le=60)
     search_interval_s: float = Field(0.5, gt=0, le=60)  # queries while searching or lost
+    # A search moves on the back-end's fast stage and the final verdicts confirm, move or end that track.
+    early_answer: bool = True
     # Keyframes out at once (companion.cloud.backend_worker): a 2 s VLM keeps the 0.5 s search rate with 4.
     max_requests_in_flight: int = Field(4, ge=1, le=8)
     jpeg_quality: int = Field(80, ge=10, le=100)

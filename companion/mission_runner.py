@@ -254,7 +254,7 @@ class MissionRunner:
         if answer is not None:
             self._pending_since = None
             query_id = int(answer.fields.get("query_id", PROBE_QUERY_ID))
-            events.append(BackendAnswer(now, query_id, answer.frame_id, answer.detections))
+            events.append(BackendAnswer(now, query_id, answer.frame_id, answer.detections, answer.final))
         if now - self._last_tick >= self.settings.tick_s:
             self._last_tick = now
             events.append(TimerTick(now))
@@ -331,6 +331,8 @@ class MissionRunner:
             fields["superset"] = query.superset
         if query.roi is not None:
             fields["roi"] = query.roi
+        if query.early_answer:
+            fields["early_answer"] = True
         if self.state.mission is not None and self.state.mission.mission_id:
             fields["mission_id"] = self.state.mission.mission_id
         self.backend.submit(frame.frame_id, frame.image, frame.capture_time, **fields)
@@ -538,6 +540,7 @@ def describe_event(event: Event) -> dict[str, Any] | None:
             "t": event.time_s,
             "query_id": event.query_id,
             "keyframe_id": event.keyframe_id,
+            "final": event.final,
             "candidates": [
                 {
                     "id": c.candidate_id,

@@ -68,6 +68,10 @@ class _QueryService:
         fields.pop("query_id", None)
         return self._client.detect(image, **fields)
 
+    def detect_early(self, image: Any, **fields: Any) -> Any:
+        fields.pop("query_id", None)
+        return self._client.detect_early(image, **fields)
+
 
 def mission_config(config: CompanionConfig) -> MissionConfig:
     from companion.vision.camera_calibration import camera_model

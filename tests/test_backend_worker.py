@@ -166,3 +166,43 @@ def test_two_requests_in_flight_then_the_newest_keyframe_waits() -> None:
 def test_max_in_flight_must_be_positive() -> None:
     with pytest.raises(ValueError, match="at least 1"):
         BackendWorker(GatedService(), max_in_flight=0)
+
+
+class StagedService:
+    """A back-end with (or without) a slower stage behind its fast one; records which stage was asked."""
+
+    def __init__(self, has_slow_stage: bool) -> None:
+        self.has_slow_stage = has_slow_stage
+        self.calls: list[tuple[str, dict[str, Any]]] = []
+
+    def detect(self, image: np.ndarray, **fields: Any) -> list[Detection]:
+        self.calls.append(("final", fields))
+        return [Detection(Box(1, 2, 3, 4), 0.8, candidate_id="slow")]
+
+    def detect_early(self, image: np.ndarray, **fields: Any) -> tuple[list[Detection], bool]:
+        self.calls.append(("early", fields))
+        return [Detection(Box(1, 2, 3, 4), 0.8, candidate_id="fast")], not self.has_slow_stage
+
+
+def test_an_early_request_is_answered_by_the_fast_stage_then_in_full() -> None:
+    service = StagedService(has_slow_stage=True)
+    worker = BackendWorker(service)
+    worker.submit(7, _image(), 1.0, prompt="p", query_id=3, early_answer=True)
+    first, second = _poll(worker), _poll(worker)
+    assert (first.frame_id, first.final, first.detections[0].candidate_id) == (7, False, "fast")
+    assert (second.frame_id, second.final, second.detections[0].candidate_id) == (7, True, "slow")
+    assert first.fields["query_id"] == second.fields["query_id"] == 3
+    assert [stage for stage, _ in service.calls] == ["early", "final"]
+    assert all("early_answer" not in fields for _, fields in service.calls)  # never sent on the wire
+    worker.close()
+
+
+def test_a_back_end_without_a_slower_stage_answers_an_early_request_once() -> None:
+    service = StagedService(has_slow_stage=False)
+    worker = BackendWorker(service)
+    worker.submit(7, _image(), 1.0, prompt="p", early_answer=True)
+    assert worker.wait_idle(5)
+    answer = _poll(worker)
+    assert answer.final and answer.detections[0].candidate_id == "fast" and worker.poll() is None
+    assert [stage for stage, _ in service.calls] == ["early"]
+    worker.close()

@@ -6,7 +6,9 @@ out, a keyframe every second would be answered every 2 s, halving the evidence t
 policy waits for. `submit` never blocks: while every slot is busy the new keyframe replaces any keyframe
 still waiting (the newest one is the useful one) and `submit` returns False. Answers come back through
 `poll()`, oldest first, tagged with the keyframe they refer to so the tracking front-end can fast-forward
-from it. `health()` gives what the "lost back-end" watchdog needs: time of the last success,
+from it. A request with `early_answer=True` is asked twice in its slot: first for the back-end's fast
+stage (its local verifier, answered while a hosted VLM still thinks), posted with `final=False`, then in
+full; a back-end without a slower stage answers the first in full and the second is not sent. `health()` gives what the "lost back-end" watchdog needs: time of the last success,
 consecutive failures and the last error.
 """
 
@@ -37,6 +39,11 @@ class DetectionService(Protocol):
 
     def detect(self, image: np.ndarray, **fields: Any) -> list[Detection]: ...
 
+    def detect_early(self, image: np.ndarray, **fields: Any) -> tuple[list[Detection], bool]:
+        """As `detect` with the back-end's fast stage only; also whether the answer is final (no slower
+        stage exists)."""
+        ...
+
 
 @dataclass(frozen=True)
 class BackendAnswer:
@@ -45,6 +52,7 @@ class BackendAnswer:
     detections: tuple[Detection, ...]
     latency_s: float  # submit to answer
     fields: dict[str, Any] = field(default_factory=dict)
+    final: bool = True  # false: the fast stage's verdicts; the final answer to the same keyframe follows
 
 
 @dataclass(frozen=True)
@@ -161,8 +169,20 @@ class BackendWorker:
                     return
                 request = self._pending.popleft()
                 self._in_flight += 1
+            early = bool(request.fields.get("early_answer"))
+            fields = {k: v for k, v in request.fields.items() if k != "early_answer"}
+            final = not early
             try:
-                detections = self._service.detect(request.image, frame_id=request.frame_id, **request.fields)
+                if early:
+                    detections, final = self._service.detect_early(
+                        request.image, frame_id=request.frame_id, **fields
+                    )
+                    if not final:
+                        self._post(request, detections, final=False)
+                        detections = self._service.detect(request.image, frame_id=request.frame_id, **fields)
+                        final = True
+                else:
+                    detections = self._service.detect(request.image, frame_id=request.frame_id, **fields)
             except Exception as exc:  # any back-end failure is reported, never raised into the loop
                 with self._cond:
                     self._failures += 1
@@ -171,19 +191,24 @@ class BackendWorker:
                     self._cond.notify_all()
                 log.warning("back-end request for frame %d failed: %s", request.frame_id, exc)
                 continue
-            now = self._clock()
-            answer = BackendAnswer(
-                request.frame_id,
-                request.capture_time,
-                tuple(detections),
-                now - request.submitted_at,
-                request.fields,
-            )
-            with self._cond:
-                self._answers.append(answer)
-                self._answered += 1
-                self._last_success = now
-                self._failures = 0
-                self._last_error = ""
+            self._post(request, detections, final=final, done=True)
+
+    def _post(self, request: _Request, detections: list[Detection], final: bool, done: bool = False) -> None:
+        now = self._clock()
+        answer = BackendAnswer(
+            request.frame_id,
+            request.capture_time,
+            tuple(detections),
+            now - request.submitted_at,
+            request.fields,
+            final,
+        )
+        with self._cond:
+            self._answers.append(answer)
+            self._answered += 1
+            self._last_success = now
+            self._failures = 0
+            self._last_error = ""
+            if done:
                 self._in_flight -= 1
-                self._cond.notify_all()
+            self._cond.notify_all()
