@@ -165,6 +165,19 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
         "(default 0 with --init gt, 2 with --init prompt)",
     )
     parser.add_argument(
+        "--early-s",
+        type=float,
+        default=0.3,
+        help="--init prompt with [backend] early_answer: seconds until a search's fast-stage answer "
+        "(the local verifier's), which starts a provisional track the --delay-s answer confirms, moves or "
+        "ends (default 0.3, the local stage's p90 answer time measured here)",
+    )
+    parser.add_argument(
+        "--no-early",
+        action="store_true",
+        help="searches wait for the --delay-s answer (as with [backend] early_answer = false)",
+    )
+    parser.add_argument(
         "--no-compensation", action="store_true", help="apply late answers without fast-forwarding"
     )
     parser.add_argument(
@@ -198,7 +211,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
     parser.set_defaults(func=run)
 
 
-def _detector(args: argparse.Namespace, model_dir: Path, seq: SequenceData) -> DetectFn | None:
+def _detector(
+    args: argparse.Namespace, model_dir: Path, seq: SequenceData, stage: str = "final"
+) -> DetectFn | None:
+    """The back-end's answers for `seq`; with `stage` "early" its fast stage's (in-process: None when the
+    verifier has no slower stage, its answers being final already)."""
     prompt = seq.referring or "a person"
     if args.backend:
         from cloudtrack.api_client import BackendClient, BackendError
@@ -216,7 +233,9 @@ def _detector(args: argparse.Namespace, model_dir: Path, seq: SequenceData) -> D
 
         def ask_backend(image: np.ndarray, frame_id: int, region: Box | None) -> list[Detection]:
             try:
-                return client.detect(image, prompt, frame_id=frame_id, roi=region)
+                return client.detect_reply(
+                    image, prompt, frame_id=frame_id, roi=region, stage=stage
+                ).detections
             except BackendError as exc:  # a failed request is an empty answer, as in flight
                 log.warning("%s frame %d: back-end request failed: %s", seq.name, frame_id, exc)
                 return []
@@ -233,6 +252,10 @@ def _detector(args: argparse.Namespace, model_dir: Path, seq: SequenceData) -> D
         log.warning("%s: no detector class for %r; no re-initialisation on this sequence", seq.name, superset)
         return None
     pipeline = _pipeline(model_dir, args.verifier_kind)
+    if stage == "early":
+        pipeline = pipeline.early_stage()
+        if pipeline is None:
+            return None
     keyframes = args.backend_config
 
     def detect(image: np.ndarray, frame_id: int, region: Box | None) -> list[Detection]:
@@ -349,22 +372,24 @@ def _print_acquisition(
     perfect acquirer reaches with answers `delay_s` late, and every answer while looking (was the chosen
     candidate the described target?)."""
     print(
-        f"\n{'sequence':<22} {'first box s':>11} {'first chosen':>12} {'prompt mIoU':>11} "
+        f"\n{'sequence':<22} {'first box s':>11} {'1st verified':>12} {'prompt mIoU':>11} "
         f"{'gt-init mIoU':>12} {'ratio':>6} {'ceiling':>7} {'ceil ratio':>10}  "
-        "answers while acquiring (keyframe:candidates/yes, T target among them, =target/=OTHER chosen)"
+        "answers while acquiring (keyframe:candidates/yes, T target among them, =target/=OTHER chosen; "
+        "e: the fast stage's early answer)"
     )
     ceilings = []
     for r, g in zip(results, reference, strict=True):
         answers = (
             " ".join(
-                f"{a.frame_id}:{a.candidates}/{a.confirmed}{'T' if a.target_found else '-'}"
+                f"{'' if a.final else 'e'}{a.frame_id}:{a.candidates}/{a.confirmed}"
+                f"{'T' if a.target_found else '-'}"
                 f"{'' if a.chosen_iou is None else ('=target' if a.chosen_iou >= 0.5 else '=OTHER')}"
                 for a in r.acquisition
             )
             or "-"
         )
         first = "never" if r.first_box_s is None else f"{r.first_box_s:.1f}"
-        chosen = next((a.chosen_iou for a in r.acquisition if a.chosen_iou is not None), None)
+        chosen = next((a.chosen_iou for a in r.acquisition if a.chosen_iou is not None and a.final), None)
         verdict = "-" if chosen is None else ("target" if chosen >= 0.5 else "OTHER")
         ratio = r.miou / g.miou if g.miou > 0 else float("nan")
         ceiling = acquisition_ceiling(g, delays[r.sequence])
@@ -382,9 +407,13 @@ def _print_acquisition(
         f"{'overall (frames)':<22} {'':>11} {'':>12} {_fmt(total['miou']):>11} {_fmt(ref['miou']):>12} "
         f"{_fmt(ratio, 2):>6} {_fmt(ceiling_miou):>7} {_fmt(ceiling_ratio, 2):>10}"
     )
-    chosen_all = [a for r in results for a in r.acquisition if a.chosen_iou is not None]
-    right = sum(a.chosen_iou is not None and a.chosen_iou >= 0.5 for a in chosen_all)
-    print(f"first boxes on the described target: {right} of {len(chosen_all)}")
+    for final, what in ((True, "verified boxes"), (False, "early starts")):
+        chosen_all = [
+            a for r in results for a in r.acquisition if a.chosen_iou is not None and a.final is final
+        ]
+        right = sum(a.chosen_iou is not None and a.chosen_iou >= 0.5 for a in chosen_all)
+        if final or chosen_all:
+            print(f"first {what} on the described target: {right} of {len(chosen_all)}")
     print(
         f"ceiling: the ground-truth-initialised run's IoU from the frame the first answer can arrive "
         f"({delay_s:g} s after the first frame) over all frames: what a perfect acquirer could reach "
@@ -443,6 +472,9 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError("--keyframe-s and --search-s must be positive")
         args.backend_config = config.backend
         args.vehicle_id = config.vehicle.id
+        args.early = config.backend.early_answer and not args.no_early
+        if args.early and args.early_s < 0:
+            raise ValueError("--early-s must not be negative")
     except (ConfigError, ModelError, TrackerUnavailableError, ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -468,6 +500,11 @@ def run(args: argparse.Namespace) -> int:
         print("error: --init prompt needs candidates (the in-process pipeline or --backend)", file=sys.stderr)
         return 2
     caches = {name: DetectionCache(fn) if fn is not None else None for name, fn in detectors.items()}
+    early_caches: dict[str, DetectionCache | None] = {name: None for name in caches}
+    if args.init == "prompt" and args.early:
+        for seq in seqs:
+            fn = _detector(args, model_dir, seq, "early") if caches[seq.name] is not None else None
+            early_caches[seq.name] = DetectionCache(fn) if fn is not None else None
     output: dict[str, Any] = {"command": sys.argv[1:], "runs": []}
 
     if args.signal_table:
@@ -513,6 +550,7 @@ def run(args: argparse.Namespace) -> int:
             signals,
             size,
             caches,
+            early_caches,
             output,
             total_frames,
         )
@@ -530,6 +568,7 @@ def _run_evals(
     signals: frozenset[str],
     size: tuple[int, int] | None,
     caches: dict[str, DetectionCache | None],
+    early_caches: dict[str, DetectionCache | None],
     output: dict[str, Any],
     total_frames: int,
 ) -> int:
@@ -540,6 +579,7 @@ def _run_evals(
     last_results: list[SequenceResult] = []
     delay_s = args.delay_s if args.delay_s is not None else (2.0 if args.init == "prompt" else 0.0)
     has_candidates = any(c is not None for c in caches.values())
+    early = args.early and args.init == "prompt"
     source = (
         f"back-end {args.backend}" if args.backend else (f"in-process YOLOX + verifier {args.verifier_kind}")
     )
@@ -554,6 +594,7 @@ def _run_evals(
                 search_interval=max(1, round(args.search_s * seq.fps)),
                 max_in_flight=args.backend_config.max_requests_in_flight,
                 reverify_interval=round(args.reverify_s * seq.fps),
+                early_frames=round(args.early_s * seq.fps) if args.early else None,
             )
             results.append(
                 evaluate_sequence(
@@ -563,6 +604,7 @@ def _run_evals(
                     seq_settings,
                     caches[seq.name] if with_candidates else None,
                     progress=bar.update,
+                    early_detections=early_caches[seq.name] if with_candidates else None,
                 )
             )
         bar.clear()
@@ -599,6 +641,7 @@ def _run_evals(
                     f"candidates: {source if has_candidates else 'none'}, "
                     f"keyframe every {args.keyframe_s:g} s (searching every {args.search_s:g} s), "
                     f"delay {delay_s:g} s"
+                    + (f", searches start on the fast stage's answer at {args.early_s:g} s" if early else "")
                 )
                 run: dict[str, Any] = {
                     "tracker": name,
@@ -607,6 +650,7 @@ def _run_evals(
                     "size": args.size,
                     "init": args.init,
                     "delay_s": delay_s,
+                    "early_s": args.early_s if early else None,
                     "keyframe_s": args.keyframe_s,
                     "search_s": args.search_s,
                 }
@@ -616,11 +660,12 @@ def _run_evals(
                     total = _print_table(
                         f"{label}, first box from the prompt (--init prompt)", prompted, bare, bound
                     )
+                    first_answer_s = args.early_s if early else delay_s
                     run["acquisition"] = _print_acquisition(
                         prompted,
                         results,
-                        {q.name: round(delay_s * q.fps) for q in seqs},
-                        delay_s,
+                        {q.name: round(first_answer_s * q.fps) for q in seqs},
+                        first_answer_s,
                     )
                     run["gt_init"] = {
                         "overall": overall(results),

@@ -35,6 +35,7 @@ from behaviors.candidate_selection import select_first_acquisition
 from behaviors.detection import Detection, Verdict
 from behaviors.geometry import Box, iou
 from behaviors.loss_evidence import LossEvidence, judge_frame
+from behaviors.mission import SAME_CANDIDATE_IOU
 from behaviors.query_region import redetect_region
 from behaviors.spatial_relations import parse_relation
 from behaviors.track_result import TrackResult
@@ -122,6 +123,10 @@ class EvalSettings:
     policy: Policy = "verified"
     size: tuple[int, int] | None = None  # resize frames (and boxes) to WIDTHxHEIGHT
     delay_frames: int = 0  # back-end latency in frames
+    # Prompt init: a search's fast-stage answer arrives this many frames after its keyframe and starts a
+    # provisional track that the final answer (`delay_frames`) confirms, moves or ends, as the mission
+    # does with [backend] early_answer; None: searches wait for the final answer.
+    early_frames: int | None = None
     keyframe_interval: int = 5  # frames between detector requests
     # ... while nothing is tracked or the track is lost ([backend] search_interval_s); 0: the above
     search_interval: int = 0
@@ -148,6 +153,7 @@ class AcquisitionKeyframe:
     confirmed: int  # candidates the verifier said yes to
     target_found: bool  # some candidate is the described target (IoU >= ON_TARGET_IOU with ground truth)
     chosen_iou: float | None  # the chosen candidate's IoU with ground truth; None when none was chosen
+    final: bool = True  # false: the fast stage's answer (see EvalSettings.early_frames)
 
 
 @dataclass
@@ -312,11 +318,14 @@ def evaluate_sequence(
     detections: DetectionCache | None = None,
     init_from_detector: bool = False,
     progress: Callable[[int], None] | None = None,
+    early_detections: DetectionCache | None = None,
 ) -> SequenceResult:
     """One run over `seq`. The track starts on the first ground-truth box, or with `settings.init`
     "prompt" (or `init_from_detector`) on the back-end's answer to the sequence's description: answers
     are asked for every `keyframe_interval` frames and arrive `delay_frames` later while the sequence
-    keeps running (the live frames are not held back for the back-end, as in flight)."""
+    keeps running (the live frames are not held back for the back-end, as in flight). With
+    `settings.early_frames` a search's fast-stage answer (`early_detections`, else the same answer)
+    arrives first and may start a provisional track."""
     from_prompt = settings.init == "prompt" or init_from_detector
     frontend = make_frontend(config, model_dir, settings, seq.name)
     predicted: list[Box | None] = []
@@ -328,7 +337,10 @@ def evaluate_sequence(
     # As the companion's back-end worker (companion.cloud.backend_worker) sends them: up to `max_in_flight`
     # requests out (lands at frame, keyframe, detections); a keyframe asked for while all are out waits
     # (keyframe, image, region), replaced by any newer one, and goes out when an answer is back.
-    in_flight: list[tuple[int, int, list[Detection]]] = []
+    # Entries are (lands at frame, keyframe, detections, final); an early answer shares its final one's slot.
+    in_flight: list[tuple[int, int, list[Detection], bool]] = []
+    provisional: tuple[int, Box] | None = None  # (keyframe, box chosen) of a track started early
+    early_refused = False  # the final answer refused an early start: searches wait for final answers
     waiting: tuple[int, np.ndarray, Box | None] | None = None
     last_request = -(10**9)
     was_trusted = False
@@ -358,27 +370,68 @@ def evaluate_sequence(
         asked.append(time.perf_counter() - t0)
         return found
 
+    def schedule(lands: int, keyframe: int, found: list[Detection], final: bool) -> None:
+        at = next((i for i, entry in enumerate(in_flight) if entry[0] > lands), len(in_flight))
+        in_flight.insert(at, (lands, keyframe, found, final))
+
+    def send(keyframe: int, image: np.ndarray, region: Box | None, now: int) -> None:
+        found = ask(keyframe, image, region)
+        if settings.early_frames is not None and from_prompt and not frontend.tracking and not early_refused:
+            if early_detections is not None:
+                t0 = time.perf_counter()
+                early = early_detections.get(seq.name, image, keyframe, region)
+                asked.append(time.perf_counter() - t0)
+            else:
+                early = found  # the configured verifier stands in for the fast stage too
+            schedule(now + settings.early_frames, keyframe, early, False)
+        schedule(now + settings.delay_frames, keyframe, found, True)
+
     def gt_at(frame_id: int) -> Box | None:
         return gt_used[frame_id - 1] if 0 < frame_id <= len(gt_used) else None
 
-    def answer(keyframe: int, found: list[Detection], frame_id: int) -> None:
+    def looked(
+        keyframe: int, found: list[Detection], frame_id: int, final: bool, picked: Detection | None
+    ) -> None:
+        """Records an answer while looking and the candidate it starts (or keeps) the track on."""
+        truth = gt_at(keyframe)
+        acquisition.append(
+            AcquisitionKeyframe(
+                keyframe,
+                frame_id,
+                len(found),
+                sum(d.verdict is Verdict.YES for d in found),
+                truth is not None and any(iou(d.start_box, truth) >= ON_TARGET_IOU for d in found),
+                (iou(picked.start_box, truth) if truth is not None else 0.0) if picked is not None else None,
+                final,
+            )
+        )
+
+    def answer(keyframe: int, found: list[Detection], frame_id: int, final: bool = True) -> None:
+        nonlocal provisional, early_refused
+        if final and provisional is not None and provisional[0] == keyframe:
+            # As the mission settles an early start: kept while the final verdicts accept it, else moved to
+            # their choice, or ended when they accept no one.
+            early_box, provisional = provisional[1], None
+            same = [d for d in found if iou(d.box, early_box) >= SAME_CANDIDATE_IOU]
+            closest = [max(same, key=lambda d: iou(d.box, early_box))] if same else []
+            kept = first_candidate(closest, settings.accept_uncertain, seq.referring)
+            chosen = kept or first_candidate(found, settings.accept_uncertain, seq.referring)
+            looked(keyframe, found, frame_id, final, chosen)
+            if kept is not None:
+                early_refused = False
+            elif chosen is None:
+                frontend.stop()
+                early_refused = True
+            else:
+                frontend.start(keyframe, chosen.start_box)
+            return
         if from_prompt and not frontend.tracking:
             chosen = first_candidate(found, settings.accept_uncertain, seq.referring)
-            truth = gt_at(keyframe)
-            acquisition.append(
-                AcquisitionKeyframe(
-                    keyframe,
-                    frame_id,
-                    len(found),
-                    sum(d.verdict is Verdict.YES for d in found),
-                    truth is not None and any(iou(d.start_box, truth) >= ON_TARGET_IOU for d in found),
-                    (iou(chosen.start_box, truth) if truth is not None else 0.0)
-                    if chosen is not None
-                    else None,
-                )
-            )
-            if chosen is not None:
-                frontend.start(keyframe, chosen.start_box)
+            looked(keyframe, found, frame_id, final, chosen)
+            if chosen is not None and frontend.start(keyframe, chosen.start_box) and not final:
+                provisional = (keyframe, chosen.box)
+            return
+        if not final:  # a fast stage's verdicts only ever start a search's track
             return
         before = frontend.box_at(keyframe)
         chosen = frontend.apply_candidates(keyframe, found)
@@ -399,13 +452,12 @@ def evaluate_sequence(
         if result.lost_reason and result.lost_reason not in ("idle", "acquiring"):
             reasons[result.lost_reason] += 1
         while in_flight and in_flight[0][0] <= frame.frame_id:
-            _, keyframe, found = in_flight.pop(0)
-            if waiting is not None:
+            _, keyframe, found, final = in_flight.pop(0)
+            if final and waiting is not None:
                 sent_id, sent_image, sent_region = waiting
                 waiting = None
-                sent = ask(sent_id, sent_image, sent_region)
-                in_flight.append((frame.frame_id + settings.delay_frames, sent_id, sent))
-            answer(keyframe, found, frame.frame_id)
+                send(sent_id, sent_image, sent_region, frame.frame_id)
+            answer(keyframe, found, frame.frame_id, final)
         if settings.policy == "verified":
             # Every answer is evidence for or against the track, so keyframes go out while trusted too.
             needs_candidates = frontend.tracking
@@ -434,14 +486,12 @@ def evaluate_sequence(
         ):
             region = query_region(frontend, result, frame)
             last_request = frame.frame_id
-            if settings.delay_frames > 0 and len(in_flight) >= settings.max_in_flight:
+            if settings.delay_frames > 0 and sum(e[3] for e in in_flight) >= settings.max_in_flight:
                 waiting = (frame.frame_id, frame.image, region)
+            elif settings.delay_frames == 0:
+                answer(frame.frame_id, ask(frame.frame_id, frame.image, region), frame.frame_id)
             else:
-                found = ask(frame.frame_id, frame.image, region)
-                if settings.delay_frames == 0:
-                    answer(frame.frame_id, found, frame.frame_id)
-                else:
-                    in_flight.append((frame.frame_id + settings.delay_frames, frame.frame_id, found))
+                send(frame.frame_id, frame.image, region, frame.frame_id)
         predicted.append(box)
         predicted_any.append(box if box is not None else result.box)
         if progress is not None:

@@ -244,16 +244,21 @@ def test_prompt_table_prints_ratio_ceiling_and_first_choice(capsys: pytest.Captu
     reference = [_result("seq_a", [0.8] * 10), _result("seq_b", [0.6] * 30)]
     prompted = [_result("seq_a", [0.0] * 4 + [0.8] * 6, 0.4), _result("seq_b", [0.0] * 30)]
     prompted[0].acquisition = [AcquisitionKeyframe(1, 3, 2, 1, True, 0.7)]
-    prompted[1].acquisition = [AcquisitionKeyframe(1, 3, 3, 1, True, 0.1)]
+    # seq_b: the fast stage's early answer chose the target, the final verdicts someone else.
+    prompted[1].acquisition = [
+        AcquisitionKeyframe(1, 2, 3, 1, True, 0.9, final=False),
+        AcquisitionKeyframe(1, 3, 3, 1, True, 0.1),
+    ]
     figures = _print_acquisition(prompted, reference, {"seq_a": 2, "seq_b": 2}, 0.2)
     out = capsys.readouterr().out
     line_a = next(line for line in out.splitlines() if line.startswith("seq_a"))
     line_b = next(line for line in out.splitlines() if line.startswith("seq_b"))
     assert " target " in line_a and "0.640" in line_a  # ceiling: 8 x 0.8 / 10
-    assert " OTHER " in line_b and "0.560" in line_b  # 28 x 0.6 / 30
+    assert " OTHER " in line_b and "0.560" in line_b and "e1:3/1T=target" in line_b  # 28 x 0.6 / 30
     assert figures["ceiling_miou"] == pytest.approx((6.4 + 16.8) / 40)
     assert figures["ratio"] == pytest.approx((4.8 / 40) / (26.0 / 40))
-    assert "first boxes on the described target: 1 of 2" in out
+    assert "first verified boxes on the described target: 1 of 2" in out
+    assert "first early starts on the described target: 1 of 1" in out
 
 
 def test_prompt_detection_keeps_the_detector_box_without_a_verifier_extent() -> None:

@@ -464,8 +464,9 @@ def test_eval_prints_bare_beside_the_product_from_the_same_run(
 def test_eval_init_prompt_acquires_the_described_target_while_the_clock_runs(
     models_dir: Path, sequences_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """--init prompt: the in-process pipeline (YOLOX + the local verifier) answers referring.txt 0.5 s
-    late; the first box comes only after an answer and the first chosen candidate is the described man."""
+    """--init prompt: the in-process pipeline (YOLOX + the local verifier) answers referring.txt, the
+    fast stage 0.3 s late (the default --early-s) and in full 0.5 s late; the first box comes only after
+    an answer and the first chosen candidate is the described man."""
     out = tmp_path / "eval.json"
     code = main(
         [
@@ -496,15 +497,15 @@ def test_eval_init_prompt_acquires_the_described_target_while_the_clock_runs(
     assert 0 < run["acquisition"]["ceiling_ratio"] < 1
     assert written["answer_time"]["answers"] >= 1 and written["answer_time"]["median_s"] > 0
     result = run["sequences"][0]
-    first = result["acquisition"][0]
-    assert first["frame_id"] == 1 and first["answered_frame_id"] == 6  # 0.5 s at 10 fps
+    first = [(a["frame_id"], a["answered_frame_id"], a["final"]) for a in result["acquisition"][:2]]
+    assert first == [(1, 4, False), (1, 6, True)]  # 0.3 s and 0.5 s at 10 fps
     # The first candidate the verifier accepts is the described man (the first answer may hold no "yes").
     chosen = [a for a in result["acquisition"] if a["chosen_iou"] is not None]
     assert chosen and chosen[0]["chosen_iou"] >= 0.5
-    assert result["first_box_s"] is not None and result["first_box_s"] >= 0.5  # no box before the answer
+    assert result["first_box_s"] is not None and result["first_box_s"] >= 0.3  # no box before an answer
     assert (
         run["gt_init"]["sequences"][0]["miou"] > 0
-        and "first boxes on the described target: 1 of 1" in capsys.readouterr().out
+        and "first verified boxes on the described target: 1 of 1" in capsys.readouterr().out
     )
 
 
@@ -603,3 +604,58 @@ def test_framing_summary_splits_on_and_off_target_and_pools_sequences() -> None:
     assert pooled["off_target"]["n"] == 2 and pooled["off_target"]["median"] == pytest.approx(1.8)
     empty = framing_summary([result([])])["on_target"]
     assert empty["n"] == 0 and math.isnan(empty["median"])
+
+
+def test_a_search_starts_on_the_fast_stage_and_the_final_answer_decides(
+    models_dir: Path, sequences_dir: Path
+) -> None:
+    """As the mission with [backend] early_answer: the fast stage's answer (3 frames) starts a provisional
+    track; the final answer on the same keyframe (12 frames) keeps it, moves it to its own choice, or ends
+    it, after which searches wait for final answers."""
+    from behaviors.detection import Detection, Verdict
+
+    seq = load_sequence(sequences_dir / "otb_Crossing")
+    wrong = Box(20, 20, 20, 50)
+
+    def answers(choice: str):  # type: ignore[no-untyped-def]
+        def detect(image, frame_id, region):  # type: ignore[no-untyped-def]
+            if choice == "nothing":
+                return []
+            box = seq.ground_truth[frame_id - 1] if choice == "target" else wrong
+            return [Detection(box, 0.9, verdict=Verdict.YES)]
+
+        return DetectionCache(detect)
+
+    settings = EvalSettings(
+        tracker="nano", max_frames=40, init="prompt", delay_frames=12, early_frames=3, search_interval=5
+    )
+
+    def run(early: str, final: str) -> SequenceResult:
+        return evaluate_sequence(
+            seq, TrackerConfig(), models_dir, settings, answers(final), early_detections=answers(early)
+        )
+
+    same = run("target", "target")
+    # Answers land after the frame they arrive on is tracked: the first box is frame 5 (index 4), not 14.
+    assert same.first_box_s is not None and round(same.first_box_s * seq.fps) == 4
+    assert [(a.frame_id, a.answered_frame_id, a.final) for a in same.acquisition] == [
+        (1, 4, False),
+        (1, 13, True),
+    ]
+    assert same.reinits == 0 and min(v for v in same.ious[4:] if v is not None) >= 0.5
+
+    moved = run("wrong", "target")
+    assert moved.reinits == 1  # restarted on the final choice from keyframe 1
+    assert (
+        all(v is not None and v < 0.1 for v in moved.ious[4:13])
+        and min(v for v in moved.ious[20:] if v is not None) >= 0.5
+    )
+
+    refused = run("target", "nothing")
+    assert refused.ious[12] > 0.5 and refused.ious[13] == 0.0  # the track ended when the final answer came
+    later = [a for a in refused.acquisition if a.frame_id > 1]
+    assert later and all(a.final for a in later)  # no more early starts after a refusal
+    without = evaluate_sequence(
+        seq, TrackerConfig(), models_dir, replace(settings, early_frames=None), answers("target")
+    )
+    assert without.first_box_s is not None and round(without.first_box_s * seq.fps) >= 13
