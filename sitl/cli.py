@@ -74,9 +74,16 @@ def _add_run(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     )
     run.add_argument(
         "--verifier",
-        choices=("local", "none"),
+        choices=("local", "none", "cascade"),
         default="local",
-        help="back-end verifier on the rendered crops (default local colour verifier)",
+        help="back-end verifier on the rendered crops (default local person verifier; cascade: the local "
+        "one, then a VLM emulator on loopback answering --vlm-latency-s late)",
+    )
+    run.add_argument(
+        "--vlm-latency-s",
+        type=float,
+        default=2.0,
+        help="with --verifier cascade: the emulated hosted VLM's answer time (default 2)",
     )
     run.add_argument(
         "--work-dir",
@@ -100,6 +107,7 @@ def _run(args: argparse.Namespace) -> int:
         model_dir=args.model_dir,
         work_dir=args.work_dir,
         verifier=args.verifier,
+        vlm_latency_s=args.vlm_latency_s,
         arducopter_binary=args.arducopter_binary,
         speedup=args.speedup,
     )
@@ -117,7 +125,8 @@ def _run(args: argparse.Namespace) -> int:
     )
     for vid, m in results["vehicles"].items():
         print(
-            f"  {vid}: confirmed {m['confirmed']}, first candidate {m['time_to_first_candidate_s']} s, "
+            f"  {vid}: confirmed {m['confirmed']}, first candidate {m['time_to_first_candidate_s']} s "
+            f"(verified {m['time_to_verified_candidate_s']} s), "
             f"confirmation {m['time_to_confirmation_s']} s, in view {m['target_in_view_ratio']}, "
             f"pixel error {m['pixel_error_mean_px']}/{m['pixel_error_p95_px']} px (mean/p95), "
             f"standoff RMSE {m['standoff_rmse_m']} m, max speed {m['max_commanded_speed_m_s']} m/s, "

@@ -154,6 +154,7 @@ def summarise(
     return {
         "outcome": outcome,
         "time_to_first_candidate_s": num(first_time(events, "candidate")),
+        "time_to_verified_candidate_s": num(first_time(events, "verified")),
         "time_to_confirmation_s": num(first_time(events, "confirmed")),
         "follow_time_s": num(sum(b - a for a, b in follow)),
         "target_in_view_ratio": num(len(seen) / len(in_follow)) if in_follow else None,

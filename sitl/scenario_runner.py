@@ -75,6 +75,9 @@ class RunOptions:
     model_dir: Path | None = None
     work_dir: Path | None = None
     verifier: str = "local"
+    # With verifier "vlm" or "cascade": an OpenAI-protocol emulator on loopback stands in for the hosted
+    # VLM and answers this many seconds after each request.
+    vlm_latency_s: float = 2.0
     startup_timeout_s: float = 90.0
     arducopter_binary: Path | None = None  # None: sitl.arducopter_sitl.default_binary()
     speedup: float = 5.0  # the real SITL's speed-up while it boots and takes off (the mission runs at 1)
@@ -175,6 +178,7 @@ class ScenarioRun:
         self.video: VideoWriter | None = None
         self.tokens = {f"drone-{i + 1}": secrets.token_hex(16) for i in range(scenario.vehicles)}
         self._backend: Any = None
+        self._vlm: Any = None
         self._t_mission: float | None = None
         self._flood_threads: list[Any] = []
         self._stopping = False
@@ -200,12 +204,18 @@ class ScenarioRun:
     # ------------------------------------------------------------------------------------------- setup
     def _start_backend(self) -> str:
         from backend.app import create_app
-        from backend.config import AuthConfig, BackendConfig, SessionConfig, VerifierConfig
+        from backend.config import AuthConfig, BackendConfig, SessionConfig, VerifierConfig, VlmConfig
         from backend.serving import BackgroundServer
+        from backend.vlm_emulator import VlmEmulator
 
+        vlm = VlmConfig()
+        if self.options.verifier in ("vlm", "cascade"):
+            self._vlm = VlmEmulator(latency_s=self.options.vlm_latency_s).start()
+            vlm = VlmConfig(base_url=self._vlm.base_url)
         config = BackendConfig(
             auth=AuthConfig(tokens=self.tokens, supervisor_token=secrets.token_hex(16)),
             verifier=VerifierConfig(kind=self.options.verifier),
+            vlm=vlm,
             sessions=SessionConfig(sqlite_path=":memory:"),  # each run starts with nothing remembered
         )
         # The reject scenario needs the look-alike in the first keyframe: no random misses there.
@@ -716,6 +726,8 @@ class ScenarioRun:
                     self.progress(f"teardown: {exc}")
         if self._backend is not None:
             self._backend.stop()
+        if self._vlm is not None:
+            self._vlm.stop()
         if self._own_work:
             shutil.rmtree(self.work, ignore_errors=True)
 
@@ -746,7 +758,6 @@ class ScenarioRun:
             if sp.link == "companion"
         ]
         events: list[TimedEvent] = []
-        first_candidate = None
         for e in v.events:
             t = self._world_t(float(e.get("t", 0.0)))
             kind = e.get("kind")
@@ -754,13 +765,11 @@ class ScenarioRun:
                 events.append(TimedEvent(t, "state", {"state": e.get("state")}))
                 if e.get("state") == "confirmed":
                     events.append(TimedEvent(t, "confirmed"))
-            elif (
-                kind == "answer"
-                and first_candidate is None
-                and any(c.get("verdict") == "yes" for c in e.get("candidates", []))
-            ):
-                first_candidate = t
-                events.append(TimedEvent(t, "candidate"))
+            elif kind == "answer" and any(c.get("verdict") == "yes" for c in e.get("candidates", [])):
+                if not any(x.kind == "candidate" for x in events):
+                    events.append(TimedEvent(t, "candidate"))  # the first "yes", early or final
+                if e.get("final", True) and not any(x.kind == "verified" for x in events):
+                    events.append(TimedEvent(t, "verified"))  # the final verifier's first "yes"
             elif kind == "reinit":
                 events.append(TimedEvent(t, "reinit"))
             elif kind in ("hold", "release"):  # a release (stop, hold mode, silence) stops the vehicle too

@@ -413,3 +413,15 @@ def test_scenario_supervisor_repeats_a_decision_the_companion_did_not_take(tmp_p
     run._supervise(v)
     assert sent == ["confirm", "confirm"] and v.decision_sent is None
     run._teardown()
+
+
+@pytest.mark.slow
+def test_follow_with_a_slow_hosted_vlm(models_dir: Path, tmp_path: Path) -> None:
+    """A cascade back-end whose VLM (the emulator, on loopback) answers 2 s late: the search moves on the
+    local stage's early answer, the VLM's verdicts confirm that track, and the flight is as good as with
+    the local verifier alone."""
+    results = _run("follow", models_dir, tmp_path, verifier="cascade", vlm_latency_s=2.0)
+    m = results["vehicles"]["drone-1"]
+    _follow_checks(m)
+    assert m["time_to_first_candidate_s"] is not None and m["time_to_verified_candidate_s"] is not None
+    assert m["time_to_verified_candidate_s"] - m["time_to_first_candidate_s"] >= 1.5  # moved before the VLM
