@@ -425,3 +425,6 @@ def test_follow_with_a_slow_hosted_vlm(models_dir: Path, tmp_path: Path) -> None
     _follow_checks(m)
     assert m["time_to_first_candidate_s"] is not None and m["time_to_verified_candidate_s"] is not None
     assert m["time_to_verified_candidate_s"] - m["time_to_first_candidate_s"] >= 1.5  # moved before the VLM
+    # The emulated VLM says "yes" to bystanders too ("if in doubt"): the early track on the target stays,
+    # and the supervisor is never shown anyone else.
+    assert m["rejected"] == [], m["rejected"]
