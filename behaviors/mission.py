@@ -109,6 +109,7 @@ class EarlyStart:
 
     query_id: int
     box: Box
+    since_s: float  # when the early answer came
 
 
 @dataclass(frozen=True)
@@ -459,7 +460,7 @@ def _answer(state: State, answer: BackendAnswer, config: MissionConfig) -> Resul
 
 def _acquire(state: State, det: Detection, position: GeoEstimate | None, answer: BackendAnswer) -> Result:
     """Start tracking `det` from the answer's keyframe; on an early answer, provisionally."""
-    early = None if answer.final else EarlyStart(answer.query_id, det.box)
+    early = None if answer.final else EarlyStart(answer.query_id, det.box, state.now_s)
     picked = Target(
         det.candidate_id,
         det.justification,
@@ -588,6 +589,12 @@ def _tick(state: State, config: MissionConfig) -> Result:
             state, actions = _search_query(state, config)
         state, scan = _scan(state, config)
         return state, (*scan, *actions)
+    early = state.target.early if state.target is not None and mode in TRACKING else None
+    if early is not None and now - early.since_s > config.final_answer_timeout_s:
+        new, actions = _start_search(
+            replace(state, early_refused=True), "early candidate not verified", config
+        )
+        return new, (TrackerStop("no final verdicts on the early candidate"), *actions)
     if mode is MissionState.ACQUIRING:
         if now - state.since_s > config.acquire_timeout_s:
             return _acquire_timeout(state, config)

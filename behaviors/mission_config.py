@@ -48,6 +48,10 @@ class MissionConfig:
     # A search asks the back-end's fast stage first and starts a provisional track on its choice; the final
     # verdicts on the same keyframe then confirm it, move it or end it (see behaviors.mission).
     early_answer: bool = True
+    # ... and when those final verdicts have not come this long after the early start (the worker sends
+    # the early and the full request one after the other, each bounded by [backend] timeout_s), the
+    # provisional track ends: a failed verification is not a verified target.
+    final_answer_timeout_s: float = 10.0
     reverify_interval_s: float = 10.0
     lost_hold_after_s: float = 1.0
     lost_action_after_s: float = 30.0
@@ -122,6 +126,7 @@ class MissionConfig:
             query_interval_s=_float(backend, "keyframe_interval_s", d.query_interval_s),
             search_interval_s=_float(backend, "search_interval_s", d.search_interval_s),
             early_answer=_bool(backend, "early_answer", d.early_answer),
+            final_answer_timeout_s=2.0 * _float(backend, "timeout_s", d.final_answer_timeout_s / 2.0),
             reverify_interval_s=_float(behavior, "reverify_interval_s", d.reverify_interval_s),
             lost_hold_after_s=_float(behavior, "lost_hold_after_s", d.lost_hold_after_s),
             lost_action_after_s=_float(behavior, "lost_action_after_s", d.lost_action_after_s),

@@ -122,3 +122,22 @@ def test_early_answers_only_start_a_search(verdict: Verdict) -> None:
     new, actions = step(state, late, CFG)
     assert actions == () and new.target == state.target and new.mode is S.FOLLOWING
     assert second.query_id in dict(new.queries)  # its final answer is still to come
+
+
+def test_a_provisional_track_whose_final_verdicts_never_come_ends() -> None:
+    """The full request failed (the VLM is down, a timeout): a failed verification is not a verified
+    target. After [backend] timeout_s twice the track ends and searches wait for final answers."""
+    config = MissionConfig.from_sections(
+        behavior={}, control={}, safety={}, camera={}, backend={"timeout_s": 4.0}
+    )
+    assert config.final_answer_timeout_s == 8.0
+    state, query = searching(config)
+    state, _ = step(state, early(query, candidate(FAR, "fast1")), config)
+    for i in range(40):
+        state, actions = step(state, tracked(0.5 + 0.25 * i, FAR), config)
+        state, actions = step(state, TimerTick(0.5 + 0.25 * i), config)
+        if state.mode is S.SEARCHING:
+            break
+    assert state.mode is S.SEARCHING and 0.4 + 8.0 < state.now_s <= 0.4 + 8.25
+    assert any(isinstance(a, TrackerStop) for a in actions)
+    assert not [a for a in actions if isinstance(a, BackendQuery)][-1].early_answer
