@@ -130,6 +130,7 @@ def test_too_many_pixels_is_413(client: TestClient) -> None:
         ({"roi": [10, 10, 5, 50]}, "roi"),
         ({"roi": [1, 2, 3]}, "roi"),
         ({"frame_id": -1}, "frame_id"),
+        ({"stage": "fastest"}, "stage"),
         ({"unexpected": 1}, "unexpected"),
         ({"superset": "unicorn"}, "unicorn"),
         ({"prompt": "something shiny over there"}, "superset"),
