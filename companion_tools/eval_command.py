@@ -80,7 +80,10 @@ is tracked; after a loss the last trusted box grown [behavior] redetect_roi_scal
 frame by redetect_full_frame_s (a tiny value: always the whole frame). --detector none: no candidates, no
 re-initialisation. --init prompt: the first box is the back-end's answer to the sequence's referring.txt,
 asked every --search-s ([backend] search_interval_s) of sequence time and applied --delay-s later
-(default 2 s, a hosted VLM) while the sequence runs on, latency-compensated as in flight; as the
+(default 2 s, a hosted VLM) while the sequence runs on, latency-compensated as in flight. As the mission
+with [backend] early_answer, a search's fast-stage answer comes first, --early-s (0.3 s) after its
+keyframe, and starts a provisional track the --delay-s answer keeps, moves or ends (--no-early: searches
+wait for the --delay-s answer; in-process the configured verifier stands in for both stages). As the
 companion's back-end worker, at most [backend] max_requests_in_flight requests are out at once and a
 keyframe asked for meanwhile waits for an answer (a newer one replaces it); a start needs a "yes" (or
 "uncertain" with [behavior] accept_uncertain). Its table prints the ratio to the ground-truth-initialised run and the "ceiling": that

@@ -8,8 +8,9 @@ still waiting (the newest one is the useful one) and `submit` returns False. Ans
 `poll()`, oldest first, tagged with the keyframe they refer to so the tracking front-end can fast-forward
 from it. A request with `early_answer=True` is asked twice in its slot: first for the back-end's fast
 stage (its local verifier, answered while a hosted VLM still thinks), posted with `final=False`, then in
-full; a back-end without a slower stage answers the first in full and the second is not sent. `health()` gives what the "lost back-end" watchdog needs: time of the last success,
-consecutive failures and the last error.
+full; a back-end without a slower stage answers the first in full and the second is not sent.
+`health()` gives what the "lost back-end" watchdog needs: time of the last success, consecutive failures
+and the last error.
 """
 
 from __future__ import annotations
