@@ -6,7 +6,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 
 from behaviors.detection import Detection, Verdict
-from behaviors.geometry import Box
+from behaviors.geometry import Box, iou
 from behaviors.spatial_relations import Relation, narrow_by_relation
 
 
@@ -40,6 +40,26 @@ def select_first_acquisition(
         if pool:
             return max(pool, key=lambda d: d.score)
     return None
+
+
+SAME_CANDIDATE_IOU = 0.5  # two answers about one keyframe name the same person when their boxes overlap this
+
+
+def settle_early_choice(
+    candidates: Sequence[Detection],
+    early_box: Box,
+    choose: Callable[[Sequence[Detection]], Detection | None],
+) -> tuple[Detection | None, bool]:
+    """The final verdicts on the keyframe a track started on early (on `early_box`): (the candidate to
+    track, whether it is the early choice kept). The early choice is kept while `choose` accepts its
+    candidate in the final answer; another candidate also accepted is no reason to switch (a lenient VLM
+    accepts bystanders too). Otherwise `choose` picks among all; None: it accepts no one."""
+    same = [d for d in candidates if iou(d.box, early_box) >= SAME_CANDIDATE_IOU]
+    if same:
+        kept = choose([max(same, key=lambda d: iou(d.box, early_box))])
+        if kept is not None:
+            return kept, True
+    return choose(candidates), False
 
 
 def c_box(prev: Box, cand: Box) -> float:

@@ -28,7 +28,12 @@ from behaviors.actions import (
     TrackerInit,
     TrackerStop,
 )
-from behaviors.candidate_selection import c_box, select_by_c_box, select_first_acquisition
+from behaviors.candidate_selection import (
+    c_box,
+    select_by_c_box,
+    select_first_acquisition,
+    settle_early_choice,
+)
 from behaviors.control_law import ControlState, FollowGoal, estimate_distance, follow_step
 from behaviors.detection import Detection, Verdict
 from behaviors.events import (
@@ -99,7 +104,6 @@ _JUDGED = frozenset(
 )
 _MAX_QUERIES_IN_FLIGHT = 8  # answers to older queries are dropped as stale
 _REVERIFY_MIN_IOU = 0.2
-SAME_CANDIDATE_IOU = 0.5  # two answers about one keyframe name the same person when their boxes overlap this
 
 
 @dataclass(frozen=True)
@@ -492,17 +496,19 @@ def _settle_early_start(
     the track stays (with the final verdict and candidate id; another candidate they also accept is no
     reason to switch); when they refuse it the track moves to their own choice, or ends and the search
     goes on when they accept no one."""
-    same = [d for d in answer.candidates if iou(d.box, early.box) >= SAME_CANDIDATE_IOU]
-    kept = _choose(state, [max(same, key=lambda d: iou(d.box, early.box))], config) if same else None
-    if kept is None:
-        chosen = _choose(state, answer.candidates, config)
-        if chosen is not None:
-            return _acquire(state, *chosen, answer)
+
+    def acceptable(candidates: Sequence[Detection]) -> Detection | None:
+        chosen = _choose(state, candidates, config)
+        return chosen[0] if chosen is not None else None
+
+    det, kept = settle_early_choice(answer.candidates, early.box, acceptable)
+    if det is None:
         new, actions = _start_search(
             replace(state, early_refused=True), f"not verified: {target.candidate_id}", config
         )
         return new, (TrackerStop("early candidate not verified"), *actions)
-    det = kept[0]
+    if not kept:
+        return _acquire(state, det, _position(state, det, config), answer)
     verified = replace(
         target,
         candidate_id=det.candidate_id,
@@ -795,8 +801,11 @@ def _choose(
     )
     if best is None:
         return None
-    position = locate_box(config.camera, state.telemetry, best.box) if state.telemetry else None
-    return best, position
+    return best, _position(state, best, config)
+
+
+def _position(state: State, det: Detection, config: MissionConfig) -> GeoEstimate | None:
+    return locate_box(config.camera, state.telemetry, det.box) if state.telemetry else None
 
 
 def _report(target: Target, status: str) -> ReportCandidate:

@@ -31,11 +31,10 @@ from typing import Any, Literal
 import cv2
 import numpy as np
 
-from behaviors.candidate_selection import select_first_acquisition
+from behaviors.candidate_selection import select_first_acquisition, settle_early_choice
 from behaviors.detection import Detection, Verdict
 from behaviors.geometry import Box, iou
 from behaviors.loss_evidence import LossEvidence, judge_frame
-from behaviors.mission import SAME_CANDIDATE_IOU
 from behaviors.query_region import redetect_region
 from behaviors.spatial_relations import parse_relation
 from behaviors.track_result import TrackResult
@@ -412,12 +411,11 @@ def evaluate_sequence(
             # As the mission settles an early start: kept while the final verdicts accept it, else moved to
             # their choice, or ended when they accept no one.
             early_box, provisional = provisional[1], None
-            same = [d for d in found if iou(d.box, early_box) >= SAME_CANDIDATE_IOU]
-            closest = [max(same, key=lambda d: iou(d.box, early_box))] if same else []
-            kept = first_candidate(closest, settings.accept_uncertain, seq.referring)
-            chosen = kept or first_candidate(found, settings.accept_uncertain, seq.referring)
+            chosen, kept = settle_early_choice(
+                found, early_box, lambda ds: first_candidate(ds, settings.accept_uncertain, seq.referring)
+            )
             looked(keyframe, found, frame_id, final, chosen)
-            if kept is not None:
+            if kept:
                 early_refused = False
             elif chosen is None:
                 frontend.stop()

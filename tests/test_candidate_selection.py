@@ -2,7 +2,13 @@ from __future__ import annotations
 
 import pytest
 
-from behaviors.candidate_selection import c_box, select_by_c_box, select_by_score, select_first_acquisition
+from behaviors.candidate_selection import (
+    c_box,
+    select_by_c_box,
+    select_by_score,
+    select_first_acquisition,
+    settle_early_choice,
+)
 from behaviors.detection import Detection, Verdict
 from behaviors.geometry import Box, iou
 
@@ -62,3 +68,29 @@ def test_iou() -> None:
     assert iou(a, Box(5, 0, 10, 10)) == 50 / 150
     assert iou(a, Box(20, 20, 5, 5)) == 0.0
     assert iou(a, Box(0, 0, float("nan"), 10)) == 0.0
+
+
+EARLY = Box(100, 100, 20, 50)
+MOVED = Box(102, 101, 20, 50)  # the same person in the final answer's detection
+BYSTANDER = Box(300, 100, 20, 50)
+
+
+@pytest.mark.parametrize(
+    ("final", "expected", "kept"),
+    [
+        ([(MOVED, Verdict.YES, 0.5), (BYSTANDER, Verdict.YES, 0.99)], MOVED, True),  # no reason to switch
+        ([(MOVED, Verdict.NO, 0.9), (BYSTANDER, Verdict.YES, 0.5)], BYSTANDER, False),  # refused: moves
+        ([(MOVED, Verdict.UNCERTAIN, 0.9), (BYSTANDER, Verdict.YES, 0.5)], BYSTANDER, False),
+        ([(MOVED, Verdict.NO, 0.9), (BYSTANDER, Verdict.NO, 0.5)], None, False),  # accepts no one: ends
+        ([(BYSTANDER, Verdict.YES, 0.5)], BYSTANDER, False),  # the early choice is not in the answer
+        ([], None, False),
+    ],
+)
+def test_settle_early_choice(
+    final: list[tuple[Box, Verdict, float]], expected: Box | None, kept: bool
+) -> None:
+    candidates = [Detection(box, score, verdict=verdict) for box, verdict, score in final]
+    chosen, was_kept = settle_early_choice(
+        candidates, EARLY, lambda ds: select_first_acquisition(ds, accept_uncertain=False, relation=None)
+    )
+    assert (chosen.box if chosen is not None else None, was_kept) == (expected, kept)
