@@ -17,6 +17,7 @@ from pydantic import Field, field_validator, model_validator
 from cloudtrack.config_files import ConfigSection, default_config_files, load_config
 
 ENV_PREFIX = "CLOUDTRACK_BACKEND_"
+CONFIG_FILE_NAME = "backend.toml"  # looked up in /etc/cloudtrack/ and $XDG_CONFIG_HOME/cloudtrack/
 
 DetectorKind = Literal["yolox", "grounding_dino", "owlv2", "simulated"]
 VerifierKind = Literal["none", "local", "local-hsv", "vlm", "cascade"]
@@ -189,5 +190,5 @@ def load_backend_config(
         env_prefix=ENV_PREFIX,
         environ=backend_environment(full),
         assignments=assignments,
-        default_files=default_config_files("backend.toml", full),
+        default_files=default_config_files(CONFIG_FILE_NAME, full),
     )
