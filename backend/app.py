@@ -16,6 +16,7 @@ from collections.abc import AsyncIterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
 from pathlib import Path
+from urllib.parse import urlsplit
 
 from fastapi import FastAPI, Request
 from fastapi.encoders import jsonable_encoder
@@ -118,12 +119,15 @@ def create_app(
     app.state.sessions = store
     app.state.feed = feed
     app.state.scheduler = FairScheduler(s.detector_concurrency, s.max_queued_per_vehicle)
-    app.state.supervisor_view = SupervisorView(store)
+    app.state.supervisor_view = SupervisorView(store, map_tiles=config.supervisor.map_tiles)
     app.state.started = time.time()
     app.add_middleware(
         BodyLimits, max_bytes=config.server.max_request_bytes, timeout_s=config.server.body_timeout_s
     )
-    app.add_middleware(SecurityHeaders)
+    tiles = urlsplit(config.supervisor.map_tiles)
+    app.add_middleware(
+        SecurityHeaders, tile_origin=f"{tiles.scheme}://{tiles.netloc}" if tiles.netloc else ""
+    )
 
     @app.exception_handler(QuotaExceededError)
     async def _quota(_: Request, exc: QuotaExceededError) -> JSONResponse:
