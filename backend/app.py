@@ -30,10 +30,11 @@ from backend.config import BackendConfig, SessionConfig
 from backend.detectors.factory import build_detector
 from backend.detectors.interface import SupersetDetector
 from backend.fair_queue import FairScheduler
+from backend.find_export import find_report
 from backend.images import ImageError
 from backend.pipeline import Pipeline
 from backend.request_limits import BodyLimits
-from backend.routers import detection, health, missions, supervisor, vehicles
+from backend.routers import detection, finds, health, missions, supervisor, vehicles
 from backend.security_headers import SecurityHeaders
 from backend.service_lifecycle import lifecycle_router
 from backend.sessions import SessionStore
@@ -41,6 +42,7 @@ from backend.state_store import QuotaExceededError, SqliteStore, StateStore
 from backend.supervisor_view import SupervisorView
 from backend.verifiers.factory import build_verifier
 from backend.verifiers.interface import Verifier
+from cloudtrack.cursor_on_target import CotSender, find_event
 
 _UNSET = object()
 
@@ -96,12 +98,21 @@ def create_app(
         config.server.max_crop_pixels,
     )
     feed = ChangeFeed(store.state)
+    tak = config.tak
+    sender = CotSender(tak.url, tak.tls_cert, tak.tls_key, tak.tls_ca) if tak.url else None
+    if sender is not None:
+        # Each find stored (or refined by the vehicle's own geolocation) goes to the TAK map, off the request.
+        store.on_find = lambda find: sender.send(find_event(find_report(find), tak.callsign, tak.stale_s))
 
     @asynccontextmanager
     async def lifespan(_: FastAPI) -> AsyncIterator[None]:
         feed.start()
+        if sender is not None:
+            sender.start()
         yield
         feed.stop()
+        if sender is not None:
+            sender.close()
         pool.shutdown(wait=False, cancel_futures=True)
 
     app = FastAPI(
@@ -147,7 +158,14 @@ def create_app(
         errors = [{"type": e["type"], "loc": list(e["loc"]), "msg": e["msg"]} for e in exc.errors()]
         return JSONResponse(status_code=422, content={"detail": jsonable_encoder(errors)})
 
-    for router in (health.router, detection.router, missions.router, vehicles.router, supervisor.router):
+    for router in (
+        health.router,
+        detection.router,
+        missions.router,
+        finds.router,
+        vehicles.router,
+        supervisor.router,
+    ):
         app.include_router(router)
     app.include_router(lifecycle_router())  # sd_notify READY/WATCHDOG/STOPPING under systemd
     add_offline_docs(app)
