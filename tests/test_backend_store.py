@@ -14,7 +14,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from backend.fleet_services import RedisServer
 from backend.redis_store import RedisStore
 from backend.schemas import KeyframeCandidate, KeyframeRecord, MissionMap, StoredFind
 from backend.sessions import SessionStore
@@ -26,6 +25,7 @@ from backend.state_store import (
     vector_bytes,
     vector_from,
 )
+from backend_tools.fleet_services import RedisServer
 from cloudtrack.api_models import DecisionIn, Rejection, RejectionIn, VehicleStatus
 
 

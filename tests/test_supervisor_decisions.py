@@ -17,7 +17,7 @@ import pytest
 
 from backend.app import create_app
 from backend.config import AuthConfig, BackendConfig, DetectorConfig, SessionConfig, VerifierConfig
-from backend.fleet_services import RedisServer
+from backend_tools.fleet_services import RedisServer
 from behaviors.mission_commands import ConfirmCandidate, RejectCandidate
 from cloudtrack.api_client import BackendClient
 from companion.cloud.backend_session import BackendSession
