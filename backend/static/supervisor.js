@@ -201,17 +201,19 @@ function renderKeyframe(card, vehicle) {
     loadImage(img, keyframe.url, { replaces: true });
   }
   overlay.setAttribute("viewBox", `0 0 ${keyframe.width} ${keyframe.height}`);
+  overlay.setAttribute("font-size", Math.max(12, keyframe.width / 55)); // labels readable at any frame size
+  $(".frame", card).style.aspectRatio = `${keyframe.width} / ${keyframe.height}`;
   for (const candidate of keyframe.candidates) {
     const [x1, y1, x2, y2] = candidate.box;
     svg("rect", { x: x1, y: y1, width: x2 - x1, height: y2 - y1, class: candidate.verdict }, overlay);
-    const label = svg("text", { x: x1, y: Math.max(12, y1 - 3) }, overlay);
+    const label = svg("text", { x: x1, y: Math.max(keyframe.width / 55, y1 - 4) }, overlay);
     label.textContent = `${candidate.verdict} ${candidate.id.slice(0, 6)}`;
   }
   const track = keyframe.track_box;
   if (track) {
     const [x1, y1, x2, y2] = track;
     svg("rect", { x: x1, y: y1, width: x2 - x1, height: y2 - y1, class: "track" }, overlay);
-    const label = svg("text", { x: x1, y: Math.min(keyframe.height - 4, y2 + 14) }, overlay);
+    const label = svg("text", { x: x1, y: Math.min(keyframe.height - 4, y2 + keyframe.width / 50) }, overlay);
     label.textContent = "tracked";
   }
   $(".keyframe-info", card).dataset.frame = keyframe.frame_id ?? "";
