@@ -324,7 +324,7 @@ class GcsProtocol:
         if cmd in (CMD_CONFIRM, CMD_REJECT):
             number = _whole(p[0], 0, 1_000_000)
             candidate = str(number) if number else ""
-            return ConfirmCandidate(candidate) if cmd == CMD_CONFIRM else RejectCandidate(candidate)
+            return ConfirmCandidate(candidate, by="gcs") if cmd == CMD_CONFIRM else RejectCandidate(candidate)
         if cmd == CMD_CAMERA_TRACK_RECTANGLE:
             return TrackRectangle(self._rectangle(*p))
         if cmd == CMD_CAMERA_TRACK_POINT:

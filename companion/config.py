@@ -126,7 +126,10 @@ class BehaviorConfig(ConfigSection):
     lost_hold_after_s: float = Field(1.0, ge=0, le=60)
     lost_action_after_s: float = Field(30.0, gt=0, le=3600)
     lost_action: Literal["hold", "loiter", "rtl", "land"] = "hold"
-    on_confirm: Literal["follow", "hold", "orbit"] = "follow"
+    on_confirm: Literal["follow", "hold", "orbit", "survey"] = "follow"  # survey: report, search on
+    # Along the autopilot's mission (auto: when it flies one at the start) or on the spot (docs/behavior.md)
+    search: Literal["auto", "mission", "spot"] = "auto"
+    lost_resume_after_s: float = Field(10.0, gt=0, le=600)  # along the mission: lost this long, fly on
     orbit_speed_m_s: float = Field(1.0, gt=0, le=10)
     accept_uncertain: bool = False  # may an "uncertain" verdict start tracking (after every "yes")
     acquire_timeout_s: float = Field(3.0, gt=0, le=60)  # tracker must lock on this soon after init

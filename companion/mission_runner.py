@@ -15,9 +15,11 @@ within a fraction of a second.
 
 from __future__ import annotations
 
+import bisect
 import logging
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass, replace
 from typing import Any, Protocol
@@ -33,6 +35,7 @@ from behaviors.actions import (
     RememberRejection,
     ReportCandidate,
     RequestMode,
+    ResumeMission,
     SendSetpoint,
     TrackerInit,
     TrackerStop,
@@ -48,7 +51,7 @@ from behaviors.events import (
     TimerTick,
 )
 from behaviors.geometry import Box
-from behaviors.mission import ACTIVE, MissionState, State, initial_state, step
+from behaviors.mission import ACTIVE, MissionState, State, commanding, initial_state, step
 from behaviors.mission_commands import MissionCommand, StartMission, TrackRectangle
 from behaviors.mission_config import MissionConfig
 from behaviors.reinit_policy import ReinitAction, ReinitDecision
@@ -87,6 +90,8 @@ class VehicleLink(Protocol):
     def release_offboard(self, reason: str) -> None: ...
 
     def request_mode(self, action: str) -> None: ...
+
+    def resume_mission(self, item: int | None, reason: str = "") -> None: ...
 
     def kick(self) -> None: ...
 
@@ -154,6 +159,7 @@ class LoopSettings:
 
 
 SEVERITY = {"info": 6, "warning": 4, "critical": 2}  # MAV_SEVERITY for the GCS
+POSE_HISTORY = 400  # telemetry snapshots kept to locate a keyframe's candidates (40 s at 10 Hz)
 FOLLOWING_STATES = frozenset(
     {MissionState.FOLLOWING, MissionState.AWAITING_SUPERVISOR, MissionState.CONFIRMED}
 )
@@ -208,6 +214,7 @@ class MissionRunner:
         self._ready = False
         self._pending_since: float | None = None  # oldest back-end request not answered yet
         self._crop: tuple[str, dict[str, Any]] | None = None  # (candidate id, its crop fields), encoded once
+        self._poses: deque[Telemetry] = deque(maxlen=POSE_HISTORY)  # newest last
 
     # ------------------------------------------------------------------------------------------ control
     def request_stop(self) -> None:
@@ -241,6 +248,7 @@ class MissionRunner:
             self.state.telemetry is None or telemetry.time_s > self.state.telemetry.time_s
         ):
             events.append(telemetry)
+            self._poses.append(telemetry)
         commands = self.vehicle.commands() + (self.session.commands() if self.session is not None else [])
         events.extend(GcsCommand(now, cmd) for cmd in commands)
         events.extend(self._safety_events())
@@ -254,7 +262,10 @@ class MissionRunner:
         if answer is not None:
             self._pending_since = None
             query_id = int(answer.fields.get("query_id", PROBE_QUERY_ID))
-            events.append(BackendAnswer(now, query_id, answer.frame_id, answer.detections, answer.final))
+            pose = self._pose_at(answer.capture_time)
+            events.append(
+                BackendAnswer(now, query_id, answer.frame_id, answer.detections, answer.final, pose)
+            )
         if now - self._last_tick >= self.settings.tick_s:
             self._last_tick = now
             events.append(TimerTick(now))
@@ -265,16 +276,25 @@ class MissionRunner:
         self._feed_watchdogs(now)
         self._report_health(started)
 
+    def _pose_at(self, when: float) -> Telemetry | None:
+        """The newest telemetry received at or before `when` (a keyframe's capture time); None if none is
+        that old (the behaviour then uses the latest)."""
+        times = [t.time_s for t in self._poses]
+        i = bisect.bisect_right(times, when)
+        return self._poses[i - 1] if i > 0 else None
+
     def _handle(self, event: Event) -> None:
         self.stats.events += 1
         for obs in self.observers:
             obs.on_event(event)
         before = self.state
         self.state, actions = step(self.state, event, self.mission)
-        if _operator_started(event, self.state):
+        if _operator_started(event, self.state) and commanding(self.state):
             # A mission or an operator's track box the behaviour accepted may fly the vehicle once the
             # pilot or GCS selects GUIDED/OFFBOARD; asking for that mode itself is the behaviour's
-            # RequestMode, emitted only when the running mission allowed engagement. Never arms.
+            # RequestMode, emitted only when the running mission allowed engagement. Never arms. A search
+            # along the autopilot's mission commands nothing: the link streams nothing (not even PX4's
+            # pre-stream) until the behaviour takes the vehicle for a candidate.
             self.vehicle.enable_offboard()
         if self.state.mode is not before.mode:
             log.info("state %s -> %s (%s)", before.mode.value, self.state.mode.value, self.state.reason)
@@ -302,6 +322,8 @@ class MissionRunner:
                 self.vehicle.request_offboard()
             else:
                 self.vehicle.request_mode(action.mode.value)
+        elif isinstance(action, ResumeMission):
+            self.vehicle.resume_mission(action.item, action.reason)
         elif isinstance(action, GcsMessage):
             self.vehicle.send_status(action.text, SEVERITY.get(action.severity, 6))
         elif isinstance(action, BackendQuery):
@@ -619,6 +641,8 @@ def describe_action(action: Action, t: float) -> dict[str, Any]:
         }
     if isinstance(action, RequestMode):
         return {"kind": "request_mode", "t": t, "mode": action.mode.value, "reason": action.reason}
+    if isinstance(action, ResumeMission):
+        return {"kind": "resume_mission", "t": t, "item": action.item, "reason": action.reason}
     if isinstance(action, GcsMessage):
         return {"kind": "gcs_message", "t": t, "text": action.text, "severity": action.severity}
     return {"kind": type(action).__name__, "t": t, "candidate_id": getattr(action, "candidate_id", "")}

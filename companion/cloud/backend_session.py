@@ -136,7 +136,9 @@ class BackendSession:
                     continue
                 cid = d.candidate_id
                 self._commands.append(
-                    ConfirmCandidate(cid) if d.action == "confirm" else RejectCandidate(cid)
+                    ConfirmCandidate(cid, by="supervisor page")
+                    if d.action == "confirm"
+                    else RejectCandidate(cid)
                 )
             self._primed = True
             self._last_success = self._clock()

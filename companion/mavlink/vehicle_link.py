@@ -47,6 +47,7 @@ from behaviors.telemetry import Telemetry
 from cloudtrack.autopilot_modes import (
     QUADROTOR,
     AutopilotKind,
+    mission_mode,
     mode_for_action,
     offboard_mode,
     set_mode_params,
@@ -141,7 +142,8 @@ class VehicleLink:
 
         self._setpoint = Setpoint.zero()
         self._setpoint_time = -math.inf  # when the main loop computed `_setpoint`
-        self._release: tuple[str, float] | None = None  # letting go: (hold mode requested, since)
+        # Letting go (the hold mode) or handing back to the mission: (mode requested, since, what it is).
+        self._release: tuple[str, float, str] | None = None
         self._telemetry_missing = False
         self._descent_allowed = False
         self._held_reason = ""  # a hold the main loop asked for, until its next set_velocity
@@ -289,9 +291,53 @@ class VehicleLink:
                 return
             mode = self._release_mode(kind)
             with self._lock:
-                self._release = (mode, self._clock())
+                self._release = (mode, self._clock(), "HOLD MODE")
             self._send_zero()
             self._request_mode(mode)
+
+    def resume_mission(self, item: int | None, reason: str = "") -> None:
+        """Hand the vehicle back to the autopilot's own mission (ArduPilot AUTO, PX4 MISSION) at mission item
+        `item`, the one it broke off at: the current item is set first only when the autopilot has moved on
+        from it (both resume the current item when their mission mode is selected again). Like letting go:
+        an explicit zero, the mode requested (repeated while GUIDED/OFFBOARD remains, at most
+        RELEASE_TIMEOUT_S), then silence; nothing is requested if the mode is no longer ours (the pilot chose
+        one meanwhile) or the autopilot never left its mission."""
+        with self._offboard_lock:
+            kind = self.autopilot_kind
+            with self._lock:
+                ours = kind is not None and self._mode == offboard_mode(kind)
+                self._enabled = self._engage = False
+                self._held_reason = ""
+                self._setpoint = Setpoint.zero()
+                self._stream_since = None
+            if kind is None or not ours:
+                log.info(
+                    "mission not requested (%s): the autopilot is in %s", reason, self._mode or "no mode"
+                )
+                return
+            mode = mission_mode(kind)
+            current = self._decoder.mission_item()
+            log.info("handing back to the mission at item %s (%s; current %s)", item, reason, current)
+            mavsdk = self._mavsdk is not None and kind is AutopilotKind.PX4
+            if self._mavsdk is not None and mavsdk:
+                self._mavsdk.stop(reason)  # MAVSDK would keep re-sending the last setpoint otherwise
+            else:
+                self._send_zero()
+            if item is not None and current is not None and item != current:
+                self._set_mission_current(item)
+            if not mavsdk:  # MAVSDK gets no more setpoints: the request goes once
+                with self._lock:
+                    self._release = (mode, self._clock(), "MISSION MODE")
+            self._request_mode(mode)
+
+    def _set_mission_current(self, item: int) -> None:
+        """MAV_CMD_DO_SET_MISSION_CURRENT (ArduPilot 4.3+, PX4 1.14+): the item the mission resumes at."""
+        target = self._cfg.target_system
+        self.endpoint.send(
+            lambda m: m.command_long_send(
+                target, 1, mavlink.MAV_CMD_DO_SET_MISSION_CURRENT, 0, item, 0, 0, 0, 0, 0, 0
+            )
+        )
 
     def _release_mode(self, kind: AutopilotKind) -> str:
         if kind is AutopilotKind.PX4:
@@ -694,13 +740,13 @@ class VehicleLink:
         """While letting go (lock held): zeros and the hold-mode request until the mode leaves GUIDED/OFFBOARD
         or RELEASE_TIMEOUT_S passes; then nothing more. Returns (setpoint, mode to request, notice)."""
         assert self._release is not None
-        mode, since = self._release
+        mode, since, what = self._release
         if not in_offboard:
             self._release = None  # the autopilot holds (or the pilot chose a mode): silence
             return None, None, ""
         if now - since > RELEASE_TIMEOUT_S:
             self._release = None
-            return None, None, f"HOLD MODE {mode} NOT SET: companion silent in {self._mode}"
+            return None, None, f"{what} {mode} NOT SET: companion silent in {self._mode}"
         recently = self._mode_request is not None and now - self._mode_request[1] < MODE_REQUEST_RETRY_S
         return Setpoint.zero(), (None if recently else mode), ""
 
