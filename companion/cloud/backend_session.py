@@ -147,7 +147,7 @@ class BackendSession:
                     continue  # history, or this vehicle's own decision (from its GCS) recorded by the back-end
                 cid = d.candidate_id
                 self._commands.append(
-                    ConfirmCandidate(cid, by="supervisor page")
+                    ConfirmCandidate(cid, by=d.operator or "supervisor")
                     if d.action == "confirm"
                     else RejectCandidate(cid)
                 )
