@@ -32,9 +32,12 @@ def link_args(sim: SimulatedAutopilot, *rest: str) -> list[str]:
 
 
 def run_survey(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, str]:
+    """Exit code, stdout, and the tool's own stderr lines (the mock autopilot's log records, which another
+    test's logging set-up may route to this stream, are not the tool's)."""
     code = gcs_cli.main(list(args))
     out, err = capsys.readouterr()
-    return code, out, err
+    ours = "".join(line for line in err.splitlines(keepends=True) if line.startswith("error: "))
+    return code, out, ours
 
 
 # ----------------------------------------------------------------------------------- planning only
