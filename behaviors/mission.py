@@ -59,7 +59,6 @@ from behaviors.query_region import around, redetect_region
 from behaviors.rejection_memory import RejectedTarget, RejectionMemory
 from behaviors.safety_limits import apply_limits
 from behaviors.setpoint import Setpoint
-from behaviors.spatial_relations import parse_relation
 from behaviors.telemetry import Telemetry
 from behaviors.track_result import TrackResult
 
@@ -792,11 +791,9 @@ def _choose(
     state: State, candidates: Sequence[Detection], config: MissionConfig
 ) -> tuple[Detection, GeoEstimate | None] | None:
     """A verified candidate not rejected before (`select_first_acquisition`), and where it stands."""
-    relation = parse_relation(state.mission.prompt) if state.mission is not None else None
     best = select_first_acquisition(
         candidates,
         config.accept_uncertain,
-        relation,
         lambda d: d.box.is_valid() and not _rejected(state, d, config),
     )
     if best is None:
