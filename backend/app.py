@@ -34,7 +34,7 @@ from backend.find_export import find_report
 from backend.images import ImageError
 from backend.pipeline import Pipeline
 from backend.request_limits import BodyLimits
-from backend.routers import detection, finds, health, missions, supervisor, vehicles
+from backend.routers import detection, finds, health, missions, prompt_check, supervisor, vehicles
 from backend.security_headers import SecurityHeaders
 from backend.service_lifecycle import lifecycle_router
 from backend.sessions import SessionStore
@@ -161,6 +161,7 @@ def create_app(
     for router in (
         health.router,
         detection.router,
+        prompt_check.router,
         missions.router,
         finds.router,
         vehicles.router,

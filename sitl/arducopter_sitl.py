@@ -131,12 +131,14 @@ class ArduCopterSitl:
         home: tuple[float, float, float, float],
         speedup: float = 1.0,
         extra_params: dict[str, float] | None = None,
+        extra_args: tuple[str, ...] = (),
     ) -> None:
         self.binary = binary
         self.work_dir = work_dir
         self.home = home  # lat, lon, alt (m AMSL), heading (deg)
         self.speedup = speedup
         self.params = {**project_parameters(), **(extra_params or {})}
+        self.extra_args = extra_args  # e.g. another serial port: ("--serial3", "tcp:PORT")
         self.ports = SitlPorts(free_tcp_port(), free_tcp_port(), free_tcp_port())
         self.instance = _free_instance()
         self.process: subprocess.Popen[bytes] | None = None
@@ -173,6 +175,7 @@ class ArduCopterSitl:
             f"tcp:{self.ports.camera}",
             "--serial2",
             f"tcp:{self.ports.companion}",
+            *self.extra_args,
         ]
         with open(self.work_dir / "arducopter.log", "wb") as out:
             self.process = subprocess.Popen(cmd, cwd=self.work_dir, stdout=out, stderr=subprocess.STDOUT)
