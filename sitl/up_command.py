@@ -267,6 +267,8 @@ class LocalStack:
 
     def instructions(self) -> str:
         connect = f"--connect udpout:127.0.0.1:{self.args.gcs_port}"
+        # PX4 hovers in POSCTL: the companion may only fly once OFFBOARD is selected, which the start allows.
+        engage = " --allow-engage" if self.args.autopilot == "px4" else ""
         return "\n".join(
             [
                 "CloudTrack is up on this machine (Ctrl-C stops everything):",
@@ -277,7 +279,7 @@ class LocalStack:
                 f"  companion        {self.vehicle_id}, log {self.companion_log}",
                 "",
                 "In another shell (source .venv/bin/activate), as the ground station:",
-                f'  cloudtrack-gcs {connect} start --prompt "{self.scenario.prompt}" --superset person',
+                f'  cloudtrack-gcs {connect} start --prompt "{self.scenario.prompt}" --superset person{engage}',
                 f"  cloudtrack-gcs {connect} watch --duration 30",
                 f"  cloudtrack-gcs {connect} status",
                 f"  cloudtrack-gcs {connect} confirm        # the candidate awaiting the supervisor",

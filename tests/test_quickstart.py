@@ -56,7 +56,9 @@ def _shell(script: str, **popen: object) -> subprocess.Popen[str]:
 
 
 def _port_free(port: int) -> bool:
+    """Nothing listens on the port (connections of a stopped server waiting out TIME_WAIT do not count)."""
     with socket.socket() as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             probe.bind(("127.0.0.1", port))
         except OSError:
