@@ -380,26 +380,37 @@ def first_choices(
     `step_s` of sequence time where the detector finds the target, how often the search's first choice is
     the target, someone else, or nobody; before issue 30 (box-middle colours, "between" and vehicles only)
     and now. -> {sequence: {"old"|"new": [target, other, none, keyframes]}}."""
-    from backend_tools.crop_set import _iou
-    from companion_tools.eval_command import _pipeline
-    from companion_tools.tracking_eval import load_sequence
+    from concurrent.futures import ThreadPoolExecutor
 
-    pipeline = _pipeline(models_dir.resolve(), "local")
+    from backend.config import load_backend_config
+    from backend.detectors.factory import build_detector
+    from backend.pipeline import Pipeline
+    from backend_tools.crop_set import _iou
+    from backend_tools.detector_recall import _groundtruth
+
+    # The back-end's pipeline as its configuration builds it (tiled YOLOX), on the weights in `models_dir`.
+    detector = build_detector(
+        load_backend_config().detector.model_copy(update={"model_dir": str(models_dir)})
+    )
+    pipeline = Pipeline(detector, PersonVerifier(), ThreadPoolExecutor(max_workers=2))
     old = copy.copy(pipeline)
     old.verifier = BoxMiddleVerifier()
     result: dict[str, dict[str, list[int]]] = {}
     for path in sorted(p for p in sequences_dir.iterdir() if (p / "referring.txt").is_file()):
-        seq = load_sequence(path)
-        superset = superset_from_prompt(seq.referring) or "person"
+        referring = (path / "referring.txt").read_text().strip()
+        superset = superset_from_prompt(referring) or "person"
+        source = json.loads((path / "source.json").read_text()) if (path / "source.json").is_file() else {}
+        fps = 10.0 if "10fps" in str(source.get("dataset", "")).lower() else 30.0  # as eval reads them
+        ground_truth = _groundtruth(path)
         counts = {"old": [0, 0, 0, 0], "new": [0, 0, 0, 0]}
         crowded = False  # two or more of its kind seen on some keyframe
-        for index in range(0, len(seq.ground_truth), max(1, round(step_s * seq.fps))):
-            truth = seq.ground_truth[index]
+        for index in range(0, len(ground_truth), max(1, round(step_s * fps))):
+            truth = ground_truth[index]
             if truth is None:
                 continue
-            sent, scale = keyframe(sequences_dir, seq.name, index + 1)
+            sent, scale = keyframe(sequences_dir, path.name, index + 1)
             truth = truth.scaled(scale, scale)
-            sighting = pipeline.look(sent, superset, prompt=seq.referring)
+            sighting = pipeline.look(sent, superset, prompt=referring)
             crowded = crowded or len(sighting.context) >= 2
             if not any(_iou(d.box.xywh(), truth.xywh()) >= 0.5 for d in sighting.candidates):
                 continue
@@ -411,7 +422,7 @@ def first_choices(
                 seen = replace(sighting, query=query)
                 found = [
                     c.detection
-                    for c in runner.verify(sent, sighting.candidates, seq.referring, superset, sighting=seen)
+                    for c in runner.verify(sent, sighting.candidates, referring, superset, sighting=seen)
                 ]
                 if name == "old":
                     found = [replace(d, singled_out=False) for d in found]
@@ -420,7 +431,7 @@ def first_choices(
                 counts[name][slot] += 1
                 counts[name][3] += 1
         if crowded and counts["new"][3]:
-            result[seq.name] = counts
+            result[path.name] = counts
     return result
 
 
