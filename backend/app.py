@@ -18,7 +18,6 @@ from contextlib import asynccontextmanager
 from pathlib import Path
 
 from fastapi import FastAPI, Request
-from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
@@ -31,13 +30,14 @@ from backend.detectors.interface import SupersetDetector
 from backend.fair_queue import FairScheduler
 from backend.images import ImageError
 from backend.pipeline import Pipeline
-from backend.request_limits import BodyLimits
+from backend.request_limits import RequestLimits
 from backend.routers import detection, health, missions, supervisor, vehicles
 from backend.security_headers import SecurityHeaders
 from backend.service_lifecycle import lifecycle_router
 from backend.sessions import SessionStore
 from backend.state_store import QuotaExceededError, SqliteStore, StateStore
 from backend.supervisor_view import SupervisorView
+from backend.validation_errors import summary
 from backend.verifiers.factory import build_verifier
 from backend.verifiers.interface import Verifier
 
@@ -121,7 +121,11 @@ def create_app(
     app.state.supervisor_view = SupervisorView(store)
     app.state.started = time.time()
     app.add_middleware(
-        BodyLimits, max_bytes=config.server.max_request_bytes, timeout_s=config.server.body_timeout_s
+        RequestLimits,
+        server=config.server,
+        auth=config.auth,
+        sessions=config.sessions,
+        rate_hit=store.state.rate_hit,
     )
     app.add_middleware(SecurityHeaders)
 
@@ -139,9 +143,7 @@ def create_app(
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(_: Request, exc: RequestValidationError) -> JSONResponse:
-        # FastAPI's default echoes the input back, and JSON cannot encode a NaN or Infinity it was sent.
-        errors = [{"type": e["type"], "loc": list(e["loc"]), "msg": e["msg"]} for e in exc.errors()]
-        return JSONResponse(status_code=422, content={"detail": jsonable_encoder(errors)})
+        return JSONResponse(status_code=422, content=summary(exc.errors()))
 
     for router in (health.router, detection.router, missions.router, vehicles.router, supervisor.router):
         app.include_router(router)

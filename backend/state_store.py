@@ -25,8 +25,10 @@ from typing import Any
 import numpy as np
 
 from cloudtrack.api_models import Decision, DecisionIn, Rejection, VehicleStatus
+from cloudtrack.private_files import private_dir, private_file
 
 CANDIDATES_PER_MISSION = 500
+
 DECISIONS_KEPT_PER_VEHICLE = 1000
 
 
@@ -137,7 +139,15 @@ class SqliteStore(StateStore):
     def __init__(self, path: str | Path = ":memory:") -> None:
         self.path = str(path)
         if self.path != ":memory:":
-            Path(self.path).parent.mkdir(parents=True, exist_ok=True)
+            # Decisions, rejections and positions are the operator's alone, whatever the umask: the file
+            # is created 0600 in a 0700 folder, and SQLite gives its -wal and -shm the file's mode.
+            db = Path(self.path)
+            private_dir(db.parent)
+            private_file(db)
+            for suffix in ("-wal", "-shm", "-journal"):  # left by an earlier run, maybe wider
+                side = db.with_name(db.name + suffix)
+                if side.exists():
+                    private_file(side)
         # One connection, used under a lock: handlers run on a thread pool.
         self._db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None, timeout=10)
         self._lock = threading.Lock()
@@ -146,7 +156,9 @@ class SqliteStore(StateStore):
                 self._db.execute("PRAGMA journal_mode=WAL")
             self._db.execute("PRAGMA synchronous=FULL")  # a commit is on disk before the API answers
             self._db.executescript(_SCHEMA)
-        self._windows: dict[str, tuple[float, int]] = {}  # rate windows: one server, so in memory
+        # Rate windows: one server, so in memory, under their own lock (never waiting on a commit's fsync).
+        self._windows: dict[str, tuple[float, int]] = {}
+        self._windows_lock = threading.Lock()
 
     def _write(self, sql_and_params: list[tuple[str, tuple[object, ...]]]) -> list[sqlite3.Cursor]:
         with self._lock:
@@ -327,7 +339,7 @@ class SqliteStore(StateStore):
         return [Decision.model_validate_json(str(r)) for (r,) in rows]
 
     def rate_hit(self, vehicle: str, now: float, limit: int, window_s: float) -> float | None:
-        with self._lock:
+        with self._windows_lock:
             start = math.floor(now / window_s) * window_s
             opened, count = self._windows.get(vehicle, (start, 0))
             if opened != start:
