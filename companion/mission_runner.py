@@ -62,6 +62,7 @@ from cloudtrack.service_notify import Notifier
 from companion.cloud.backend_worker import BackendWorker
 from companion.cloud.candidate_crop import candidate_crop
 from companion.safety_watchdog import BACKEND_UNREACHABLE, HEARTBEAT_LOST, SafetyEvent
+from companion.status_report import StatusReport
 from companion.vision.frame_sources import Frame, FrameSource
 
 log = logging.getLogger(__name__)
@@ -104,6 +105,12 @@ class VehicleLink(Protocol):
     def clear_target(self) -> None: ...
 
     def send_status(self, text: str, severity: int = 6) -> None: ...
+
+    def announce_find(
+        self, lat: float, lon: float, sigma_m: float, slant_range_m: float, prompt: str, confirmed_by: str
+    ) -> None: ...
+
+    def send_find_position(self, lat: float, lon: float, sigma_m: float, slant_range_m: float) -> None: ...
 
     def report_tracking(self, box: Box | None, image_size: tuple[int, int]) -> None: ...
 
@@ -192,6 +199,7 @@ class MissionRunner:
         notifier: Notifier | None = None,
         clock: Callable[[], float] = time.monotonic,
         video_sinks: Sequence[Callable[[Any, Box | None, str], None]] = (),
+        wall_clock: Callable[[], float] = time.time,
     ) -> None:
         # One policy for flight and eval: with the front-end's "verified" policy ([tracker] reinit_policy)
         # the mission hands it every answer for the track instead of choosing a re-init box itself.
@@ -215,6 +223,9 @@ class MissionRunner:
         self._pending_since: float | None = None  # oldest back-end request not answered yet
         self._crop: tuple[str, dict[str, Any]] | None = None  # (candidate id, its crop fields), encoded once
         self._poses: deque[Telemetry] = deque(maxlen=POSE_HISTORY)  # newest last
+        self._result: TrackResult | None = None  # the tracker's result on the newest frame
+        # Progress, finds and the tracked keyframe box for the status report.
+        self.report = StatusReport((mission.camera.width, mission.camera.height), wall_clock)
 
     # ------------------------------------------------------------------------------------------ control
     def request_stop(self) -> None:
@@ -257,11 +268,14 @@ class MissionRunner:
             self.stats.frames += 1
             self.vehicle.report_frame(frame.capture_time)
             result = self.frontend.feed(frame)
+            self._result = result
             events.append(result)
         answer = self.backend.poll()
         if answer is not None:
             self._pending_since = None
             query_id = int(answer.fields.get("query_id", PROBE_QUERY_ID))
+            if query_id != PROBE_QUERY_ID and answer.final:
+                self.report.on_answer(answer.detections)
             pose = self._pose_at(answer.capture_time)
             events.append(
                 BackendAnswer(now, query_id, answer.frame_id, answer.detections, answer.final, pose)
@@ -289,6 +303,8 @@ class MissionRunner:
             obs.on_event(event)
         before = self.state
         self.state, actions = step(self.state, event, self.mission)
+        if isinstance(event, GcsCommand) and isinstance(event.command, StartMission) and self.state.mission:
+            self.report.start(self.state.mission.mission_id or self.state.mission.prompt)
         if _operator_started(event, self.state) and commanding(self.state):
             # A mission or an operator's track box the behaviour accepted may fly the vehicle once the
             # pilot or GCS selects GUIDED/OFFBOARD; asking for that mode itself is the behaviour's
@@ -337,6 +353,7 @@ class MissionRunner:
         elif isinstance(action, ReportCandidate):
             self._report_candidate(action)
         elif isinstance(action, RememberRejection):
+            self.report.on_rejection()
             position = (
                 (action.position.lat_deg, action.position.lon_deg) if action.position is not None else None
             )
@@ -358,6 +375,9 @@ class MissionRunner:
         if self.state.mission is not None and self.state.mission.mission_id:
             fields["mission_id"] = self.state.mission.mission_id
         self.backend.submit(frame.frame_id, frame.image, frame.capture_time, **fields)
+        result = self._result
+        tracked = result is not None and result.frame_id == frame.frame_id and result.trusted
+        self.report.on_keyframe(frame.frame_id, result.box if tracked and result is not None else None)
         if self._pending_since is None:
             self._pending_since = self.clock()
 
@@ -387,18 +407,44 @@ class MissionRunner:
                     on_reinit(reinit, self.state.now_s)
 
     def _report_candidate(self, report: ReportCandidate) -> None:
-        where = ""
-        if report.position is not None:
-            where = f" at {report.position.lat_deg:.6f},{report.position.lon_deg:.6f}"
-        self.vehicle.send_status(
-            f"CANDIDATE {report.status.upper()} {report.candidate_id}{where}", SEVERITY["info"]
-        )
+        if report.status == "confirmed":
+            self._report_find(report)
+        else:
+            where = ""
+            if report.position is not None:
+                where = f" at {report.position.lat_deg:.6f},{report.position.lon_deg:.6f}"
+            self.vehicle.send_status(
+                f"CANDIDATE {report.status.upper()} {report.candidate_id}{where}", SEVERITY["info"]
+            )
         if self.session is not None:
             self.session.update(self._status(report))
 
+    def _report_find(self, report: ReportCandidate) -> None:
+        """A confirmed candidate is a find: announced to the GCS once (QGC pops it up), its position sent
+        again with every later confirmed report, and carried by every status report (`find`)."""
+        new = self.report.find_of(report.candidate_id) is None
+        crop = self._candidate_crop(report.candidate_id or "tracked", report.box).get("crop_jpeg_b64")
+        prompt = self.state.mission.prompt if self.state.mission is not None else ""
+        find = self.report.record_find(report, prompt, crop)
+        if find is None:
+            self.vehicle.send_status(
+                f"FOUND {report.candidate_id}: position unknown (no telemetry)", SEVERITY["critical"]
+            )
+            return
+        if new:
+            log.warning(
+                "FOUND %s at %.7f,%.7f +-%.1f m (confirmed by %s)",
+                find.candidate_id, find.lat, find.lon, find.sigma_m, find.confirmed_by,
+            )  # fmt: skip
+            self.vehicle.announce_find(
+                find.lat, find.lon, find.sigma_m, find.slant_range_m, find.prompt, find.confirmed_by
+            )
+        else:
+            self.vehicle.send_find_position(find.lat, find.lon, find.sigma_m, find.slant_range_m)
+
     def _status(self, report: ReportCandidate | None = None) -> dict[str, Any]:
         state = self.state
-        status: dict[str, Any] = {"state": state.mode.value}
+        status: dict[str, Any] = {"state": state.mode.value, **self.report.fields(state, self._search())}
         if state.mission is not None:
             status["prompt"] = state.mission.prompt
             if state.mission.mission_id:
@@ -418,6 +464,18 @@ class MissionRunner:
             awaiting.update(self._candidate_crop(awaiting["candidate_id"], report.box))
             status["awaiting"] = awaiting
         return status
+
+    def _search(self) -> dict[str, Any] | None:
+        """The status report's `search`: where the autopilot's mission stands (mode, item, item count)."""
+        t = self.state.telemetry
+        if self.state.mission is None or t is None:
+            return None
+        search: dict[str, Any] = {"mode": t.mode[:32]}
+        if t.mission_item is not None and 0 <= t.mission_item <= 65535:
+            search["mission_item"] = t.mission_item
+        if t.mission_items is not None:
+            search["mission_items"] = t.mission_items
+        return search
 
     def _video(self, frame: Frame, result: TrackResult) -> None:
         box = result.box if result.trusted else None

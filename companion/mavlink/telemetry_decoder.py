@@ -71,6 +71,7 @@ class TelemetryDecoder:
         self.battery_remaining: int | None = None
         self.local_position: tuple[float, float, float] | None = None
         self._mission: tuple[int, int | None] | None = None  # MISSION_CURRENT: (seq, total or None)
+        self._home_amsl: float | None = None  # the ground under a hovering vehicle, flat-ground assumption
 
     def feed(self, msg: Any, now: float) -> AutopilotHeartbeat | None:
         """Take one message; returns the decoded HEARTBEAT when `msg` is the autopilot's heartbeat."""
@@ -85,6 +86,7 @@ class TelemetryDecoder:
             elif mtype == "GLOBAL_POSITION_INT":
                 if math.isfinite(msg.relative_alt):
                     self._height = (msg.relative_alt / 1000.0, now)
+                    self._home_amsl = (msg.alt - msg.relative_alt) / 1000.0
                 self._update(
                     now, lat_deg=msg.lat / 1e7, lon_deg=msg.lon / 1e7, height_agl=msg.relative_alt / 1000.0,
                     vn=msg.vx / 100.0, ve=msg.vy / 100.0, vd=msg.vz / 100.0,
@@ -99,6 +101,11 @@ class TelemetryDecoder:
                 total = int(getattr(msg, "total", 0) or 0)
                 self._mission = (int(msg.seq), total if 0 < total < 0xFFFF else None)
         return None
+
+    def ground_amsl(self) -> float | None:
+        """The ground's altitude above mean sea level (m): home's, from GLOBAL_POSITION_INT (alt - relative)."""
+        with self._lock:
+            return self._home_amsl
 
     def mission_item(self) -> int | None:
         """MISSION_CURRENT's sequence number: the item the mission is on, or resumes at; None before one."""

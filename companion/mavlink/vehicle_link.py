@@ -55,6 +55,7 @@ from cloudtrack.autopilot_modes import (
 from cloudtrack.gcs_protocol import (
     CAMERA_CAP_FLAGS_HAS_TRACKING_POINT,
     CAMERA_CAP_FLAGS_HAS_TRACKING_RECTANGLE,
+    MAV_SEVERITY_CRITICAL,
     MAV_SEVERITY_INFO,
     MAV_SEVERITY_WARNING,
     GcsProtocol,
@@ -331,13 +332,10 @@ class VehicleLink:
             self._request_mode(mode)
 
     def _set_mission_current(self, item: int) -> None:
-        """MAV_CMD_DO_SET_MISSION_CURRENT (ArduPilot 4.3+, PX4 1.14+): the item the mission resumes at."""
+        """MISSION_SET_CURRENT (ArduPilot and PX4 alike, as `cloudtrack.mission_protocol` sets it): the item
+        the mission resumes at."""
         target = self._cfg.target_system
-        self.endpoint.send(
-            lambda m: m.command_long_send(
-                target, 1, mavlink.MAV_CMD_DO_SET_MISSION_CURRENT, 0, item, 0, 0, 0, 0, 0, 0
-            )
-        )
+        self.endpoint.send(lambda m: m.mission_set_current_send(target, 1, item))
 
     def _release_mode(self, kind: AutopilotKind) -> str:
         if kind is AutopilotKind.PX4:
@@ -390,6 +388,31 @@ class VehicleLink:
         encoded = value_name(name)
         boot_ms = self._boot_ms()
         self.endpoint.send(lambda m: m.named_value_float_send(boot_ms, encoded, float(value)))
+
+    def announce_find(
+        self, lat: float, lon: float, sigma_m: float, slant_range_m: float, prompt: str, confirmed_by: str
+    ) -> None:
+        """A confirmed find: STATUSTEXT at CRITICAL, which QGroundControl pops up (`FOUND <lat>,<lon>
+        +-<sigma>m`, at most 50 bytes), a second line with the prompt and who confirmed, and the position as
+        CAMERA_TRACKING_GEO_STATUS."""
+        self.send_status(f"FOUND {lat:.6f},{lon:.6f} +-{min(sigma_m, 9999.0):.1f}m", MAV_SEVERITY_CRITICAL)
+        self.status(f"FOUND: {prompt} (confirmed by {confirmed_by or 'supervisor'})", MAV_SEVERITY_INFO)
+        self.send_find_position(lat, lon, sigma_m, slant_range_m)
+
+    def send_find_position(self, lat: float, lon: float, sigma_m: float, slant_range_m: float) -> None:
+        """CAMERA_TRACKING_GEO_STATUS (from the camera identity) with the find's position: ground altitude
+        AMSL from the autopilot's home, horizontal accuracy the geolocation's sigma, unknowns NaN."""
+        ground = self._decoder.ground_amsl()
+        alt = ground if ground is not None else math.nan
+        nan = math.nan
+        lat_e7, lon_e7 = int(round(lat * 1e7)), int(round(lon * 1e7))
+        status = mavlink.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE
+        self.endpoint.send(
+            lambda m: m.camera_tracking_geo_status_send(
+                status, lat_e7, lon_e7, alt, sigma_m, nan, nan, nan, nan, nan, slant_range_m, nan, nan
+            ),
+            self._camera_component or None,
+        )
 
     def report_tracking(self, box: Box | None, image_size: tuple[int, int]) -> None:
         """CAMERA_TRACKING_IMAGE_STATUS at up to 10 Hz while tracking; one IDLE status when it stops."""
