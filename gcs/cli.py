@@ -109,10 +109,11 @@ class GcsSession:
         self.args = args
         self.target = (args.system, args.component)
         self.endpoint = MavlinkEndpoint.open(args.connect, args.gcs_system, args.gcs_component, args.system)
-        if args.key is not None:
+        key = signing_key(args)
+        if key is not None:
             # The autopilot's telemetry may be unsigned; an acknowledgement must carry the companion's signature.
             self.endpoint.conn.setup_signing(
-                args.key, sign_outgoing=True,
+                key, sign_outgoing=True,
                 allow_unsigned_callback=lambda _mav, msg_id: msg_id != mavlink.MAVLINK_MSG_ID_COMMAND_ACK,
             )  # fmt: skip
         self._statustexts: dict[int, list[bytes]] = {}
@@ -445,7 +446,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         parse_connection(args.connect)
-        args.key = signing_key(args)
+        signing_key(args)  # a key that cannot be read or parsed stops here, before any link opens
         if args.command == "start":
             encode_prompt(args.mission_id, args.superset, args.prompt)
     except ValueError as exc:
