@@ -284,13 +284,16 @@ class Find(ApiModel):
 
     candidate_id: str = CANDIDATE_ID
     position: LatLonPoint = Field(description="[lat, lon] of the person found")
-    sigma_m: float = Field(ge=0.0, le=100_000.0, description="1-sigma horizontal uncertainty (m)")
+    sigma_m: float | None = Field(
+        ge=0.0, le=100_000.0, description="1-sigma horizontal uncertainty (m); null: not known"
+    )
     time: float = Field(ge=0.0, le=2**34, description="Unix time of the confirmation (s)")
     prompt: str = Field("", max_length=500)
     confirmed_by: str = Field(max_length=64, description='"supervisor page", "gcs" or the operator\'s name')
     crop_jpeg_b64: str | None = Field(
         None, max_length=CROP_B64_MAX_CHARS, description="the candidate's crop (JPEG)"
     )
+    crop_box: PixelBox | None = Field(None, description="[x1, y1, x2, y2] of the person inside the crop")
 
 
 class VehicleStatusIn(ApiModel):
@@ -345,10 +348,16 @@ class VehicleStatus(VehicleStatusIn):
     updated_at: float
 
 
+OPERATOR_MAX = 64
+
+
 class DecisionIn(ApiModel):
     candidate_id: str = CANDIDATE_ID
     action: Literal["confirm", "reject"]
     note: str = Field("", max_length=NOTE_MAX)
+    operator: str = Field(
+        "", max_length=OPERATOR_MAX, description='who decides, e.g. "supervisor page" (default: "supervisor")'
+    )
 
 
 class Decision(DecisionIn):
@@ -356,3 +365,8 @@ class Decision(DecisionIn):
     vehicle_id: str
     mission_id: str | None
     created_at: float
+    source: Literal["supervisor", "vehicle"] = Field(
+        "supervisor",
+        description='"vehicle": the vehicle reported it (a GCS decision over MAVLink, a find it confirmed); it '
+        "already acted on it and only the standing decision is recorded",
+    )

@@ -77,6 +77,12 @@ def config_search_path(name: str, environ: Mapping[str, str] | None = None) -> l
     return [SYSTEM_CONFIG_DIR / name, user_base / "cloudtrack" / name]
 
 
+def config_search_help(name: str) -> str:
+    """--config's help: the files read without it, as `config_search_path` looks them up."""
+    system, _ = config_search_path(name, {})
+    return f"TOML file (default: {system}, then $XDG_CONFIG_HOME/cloudtrack/{name}, where they exist)"
+
+
 def default_config_files(name: str, environ: Mapping[str, str] | None = None) -> list[Path]:
     """The files of `config_search_path` that exist."""
     return [p for p in config_search_path(name, environ) if p.is_file()]

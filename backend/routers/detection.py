@@ -19,7 +19,7 @@ from backend.dependencies import Caller, CurrentPipeline, LoadedModels, Schedule
 from backend.fair_queue import QueueFullError
 from backend.images import check_size, decode_image
 from backend.request_limits import DETECT_META, json_shape_problem
-from backend.schemas import ERROR_RESPONSES, Candidate, DetectMeta, DetectResponse, Timings
+from backend.schemas import ERROR_RESPONSES, Candidate, DetectMeta, DetectResponse, KeyframeCandidate, Timings
 from backend.supersets import UnknownSupersetError, superset_from_prompt
 from behaviors.geometry import Box
 
@@ -91,6 +91,23 @@ async def detect(
         fields.vehicle_id,
         fields.mission_id,
         [(c.detection.candidate_id, c.appearance) for c in candidates],
+    )
+    # The newest keyframe and its boxes, for the supervisor's live view.
+    await run_in_threadpool(
+        sessions.set_keyframe,
+        fields.vehicle_id,
+        fields.mission_id,
+        fields.frame_id,
+        data,
+        (int(frame.shape[1]), int(frame.shape[0])),
+        [
+            KeyframeCandidate(
+                id=c.detection.candidate_id,
+                box=[round(v, 1) for v in c.detection.box.xyxy()],
+                verdict=c.detection.verdict.value,
+            )
+            for c in candidates
+        ],
     )
     return DetectResponse(
         vehicle_id=fields.vehicle_id,

@@ -35,13 +35,19 @@ async def add_rejection(
     try:
         # A crop is decoded in the vehicle's slot, like a keyframe (its size checked from its header first).
         async with scheduler.slot(body.vehicle_id):
-            return await run_in_threadpool(sessions.add_rejection, mission_id, body)
+            rejection = await run_in_threadpool(sessions.add_rejection, mission_id, body)
     except QueueFullError as exc:
         raise HTTPException(
             429, f"too many requests waiting for this vehicle: {exc}", headers={"Retry-After": "1"}
         ) from None
     except UnknownCandidateError as exc:
         raise HTTPException(404, str(exc)) from None
+    if principal.vehicle_id is not None and body.candidate_id:
+        # The vehicle's own reject (from its GCS): it stands, so the supervisor cannot contradict it later.
+        await run_in_threadpool(
+            sessions.record_vehicle_reject, body.vehicle_id, mission_id, body.candidate_id
+        )
+    return rejection
 
 
 @router.get("/rejections", response_model=list[Rejection], responses=ERROR_RESPONSES)
