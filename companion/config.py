@@ -13,7 +13,7 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from behaviors.control_law import ControlGains
 from cloudtrack.config_files import ConfigSection, default_config_files, load_config
@@ -122,6 +122,16 @@ class MavlinkConfig(ConfigSection):
         if any(not 1 <= sysid <= 255 for sysid in self.gcs_system_ids):
             raise ValueError("gcs_system_ids must be MAVLink system ids 1-255")
         return self
+
+    @field_validator("signing_key")
+    @classmethod
+    def _signing_key(cls, value: str) -> str:
+        """Empty (no signing) or 64 hex digits, checked by `config check`, not first in flight."""
+        if value:
+            from cloudtrack.mavlink_signing import parse_signing_key
+
+            parse_signing_key(value)  # its error says what is expected, never the value
+        return value
 
 
 class BehaviorConfig(ConfigSection):
