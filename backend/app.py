@@ -19,7 +19,6 @@ from pathlib import Path
 from urllib.parse import urlsplit
 
 from fastapi import FastAPI, Request
-from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
@@ -33,13 +32,14 @@ from backend.fair_queue import FairScheduler
 from backend.find_export import find_report
 from backend.images import ImageError
 from backend.pipeline import Pipeline
-from backend.request_limits import BodyLimits
+from backend.request_limits import RequestLimits
 from backend.routers import detection, finds, health, missions, prompt_check, supervisor, vehicles
 from backend.security_headers import SecurityHeaders
 from backend.service_lifecycle import lifecycle_router
 from backend.sessions import SessionStore
 from backend.state_store import QuotaExceededError, SqliteStore, StateStore
 from backend.supervisor_view import SupervisorView
+from backend.validation_errors import summary
 from backend.verifiers.factory import build_verifier
 from backend.verifiers.interface import Verifier
 from cloudtrack.cursor_on_target import CotSender, find_event
@@ -133,7 +133,11 @@ def create_app(
     app.state.supervisor_view = SupervisorView(store, map_tiles=config.supervisor.map_tiles)
     app.state.started = time.time()
     app.add_middleware(
-        BodyLimits, max_bytes=config.server.max_request_bytes, timeout_s=config.server.body_timeout_s
+        RequestLimits,
+        server=config.server,
+        auth=config.auth,
+        sessions=config.sessions,
+        rate_hit=store.state.rate_hit,
     )
     tiles = urlsplit(config.supervisor.map_tiles)
     app.add_middleware(
@@ -154,9 +158,7 @@ def create_app(
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(_: Request, exc: RequestValidationError) -> JSONResponse:
-        # FastAPI's default echoes the input back, and JSON cannot encode a NaN or Infinity it was sent.
-        errors = [{"type": e["type"], "loc": list(e["loc"]), "msg": e["msg"]} for e in exc.errors()]
-        return JSONResponse(status_code=422, content={"detail": jsonable_encoder(errors)})
+        return JSONResponse(status_code=422, content=summary(exc.errors()))
 
     for router in (
         health.router,

@@ -33,6 +33,9 @@ class ServerConfig(ConfigSection):
     max_crop_pixels: int = Field(4_000_000, ge=10_000, le=100_000_000)
     # A request body must arrive within this time (a body that never completes is cut off with 408).
     body_timeout_s: float = Field(15.0, gt=0, le=600)
+    # The request line and headers must arrive within this time of the connection (or of the previous
+    # answer on a kept-alive one); a client trickling header lines is answered 408 and disconnected.
+    header_timeout_s: float = Field(10.0, gt=0, le=600)
 
 
 MIN_TOKEN_CHARS = 16

@@ -10,7 +10,6 @@ schema declares the bearer scheme and /docs has an Authorize button; the 401 ans
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 from typing import Annotated, cast
 
@@ -24,7 +23,6 @@ from backend.config import BackendConfig
 from backend.fair_queue import FairScheduler
 from backend.pipeline import Pipeline
 from backend.sessions import SessionStore
-from backend.state_store import QuotaExceededError
 from backend.supervisor_view import SupervisorView
 from cloudtrack.api_models import IDENTIFIER, ModelNames
 
@@ -126,19 +124,3 @@ def require_supervisor(principal: Caller) -> Principal:
 
 
 SupervisorCaller = Annotated[Principal, Depends(require_supervisor)]
-
-
-def admit(settings: BackendConfig, sessions: SessionStore, principal: Principal) -> None:
-    """A vehicle's request-rate quota (the supervisor has none): QuotaExceededError -> 429 + Retry-After."""
-    if principal.vehicle_id is None:
-        return
-    s = settings.sessions
-    wait = sessions.state.rate_hit(
-        principal.vehicle_id, time.time(), s.rate_limit_requests, s.rate_limit_window_s
-    )
-    if wait is not None:
-        raise QuotaExceededError(
-            f"vehicle {principal.vehicle_id!r} sent more than {s.rate_limit_requests} requests in "
-            f"{s.rate_limit_window_s:g} s",
-            wait,
-        )

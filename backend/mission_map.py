@@ -19,10 +19,13 @@ EARTH_RADIUS_M = 6_371_000.0
 
 
 def distance_m(a: list[float], b: list[float]) -> float:
-    """Great-circle distance between two [lat, lon] points in metres (haversine)."""
+    """Great-circle distance between two [lat, lon] points in metres (haversine).
+
+    The API refuses positions off the globe; one stored before it did (lat 135) makes h negative, which
+    is clamped rather than raised on (a math domain error was a 500 on every later detect)."""
     lat1, lon1, lat2, lon2 = map(math.radians, (a[0], a[1], b[0], b[1]))
     h = math.sin((lat2 - lat1) / 2) ** 2 + math.cos(lat1) * math.cos(lat2) * math.sin((lon2 - lon1) / 2) ** 2
-    return 2 * EARTH_RADIUS_M * math.asin(min(1.0, math.sqrt(h)))
+    return 2 * EARTH_RADIUS_M * math.asin(math.sqrt(min(1.0, max(0.0, h))))
 
 
 def extend_track(

@@ -26,6 +26,7 @@ import numpy as np
 
 from backend.schemas import KeyframeRecord, MissionMap, StoredFind
 from cloudtrack.api_models import Decision, DecisionIn, Rejection, VehicleStatus
+from cloudtrack.private_files import private_dir, private_file
 
 CANDIDATES_PER_MISSION = 500
 DECISIONS_KEPT_PER_VEHICLE = 1000
@@ -182,7 +183,15 @@ class SqliteStore(StateStore):
     def __init__(self, path: str | Path = ":memory:") -> None:
         self.path = str(path)
         if self.path != ":memory:":
-            Path(self.path).parent.mkdir(parents=True, exist_ok=True)
+            # Decisions, rejections and positions are the operator's alone, whatever the umask: the file
+            # is created 0600 in a 0700 folder, and SQLite gives its -wal and -shm the file's mode.
+            db = Path(self.path)
+            private_dir(db.parent)
+            private_file(db)
+            for suffix in ("-wal", "-shm", "-journal"):  # left by an earlier run, maybe wider
+                side = db.with_name(db.name + suffix)
+                if side.exists():
+                    private_file(side)
         # One connection, used under a lock: handlers run on a thread pool.
         self._db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None, timeout=10)
         self._lock = threading.Lock()
@@ -191,7 +200,9 @@ class SqliteStore(StateStore):
                 self._db.execute("PRAGMA journal_mode=WAL")
             self._db.execute("PRAGMA synchronous=FULL")  # a commit is on disk before the API answers
             self._db.executescript(_SCHEMA)
-        self._windows: dict[str, tuple[float, int]] = {}  # rate windows: one server, so in memory
+        # Rate windows: one server, so in memory, under their own lock (never waiting on a commit's fsync).
+        self._windows: dict[str, tuple[float, int]] = {}
+        self._windows_lock = threading.Lock()
         # The newest keyframe per vehicle: one server, and nothing lost in a restart, so in memory too.
         self._keyframes: dict[str, tuple[KeyframeRecord, bytes]] = {}
         self._memory_changes = 0
@@ -472,7 +483,7 @@ class SqliteStore(StateStore):
             return self._keyframes.get(vehicle)
 
     def rate_hit(self, vehicle: str, now: float, limit: int, window_s: float) -> float | None:
-        with self._lock:
+        with self._windows_lock:
             start = math.floor(now / window_s) * window_s
             opened, count = self._windows.get(vehicle, (start, 0))
             if opened != start:

@@ -37,6 +37,7 @@ from cloudtrack.api_models import (
     Rejection,
     VehicleStatus,
 )
+from cloudtrack.config_files import hide_url_secrets
 from cloudtrack.connection_errors import connection_cause
 
 T = TypeVar("T")
@@ -141,11 +142,15 @@ class BackendClient:
             response = self._session().request(method, self.url + path, timeout=self.timeout_s, **kwargs)
         except requests.Timeout as exc:
             raise BackendError(
-                f"back-end {self.url}: no answer within {self.timeout_s:.1f} s", retryable=True
+                f"back-end {hide_url_secrets(self.url)}: no answer within {self.timeout_s:.1f} s",
+                retryable=True,
+                detail=f"no answer within {self.timeout_s:.1f} s",
             ) from exc
         except requests.RequestException as exc:
+            # The message may reach the GCS and the flight record: never a password of the URL.
+            cause = connection_cause(exc)
             raise BackendError(
-                f"back-end {self.url} unreachable: {connection_cause(exc)}", retryable=True
+                hide_url_secrets(f"back-end {self.url} unreachable: {cause}"), retryable=True, detail=cause
             ) from exc
         if response.status_code >= 400:
             try:

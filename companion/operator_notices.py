@@ -31,7 +31,7 @@ def backend_problem(error: BaseException, url: str, request: str = "search") -> 
         if request == "search" and status == 422:
             return "search", f"the back-end cannot search for this mission: {detail}"
         return "search", f"the back-end refused the {request} request (HTTP {status}: {detail})"
-    return "backend", f"waiting for the back-end at {url}: {detail.removeprefix(f'back-end {url} ')}"
+    return "backend", f"waiting for the back-end at {url}: {detail}"
 
 
 class OperatorNotices:

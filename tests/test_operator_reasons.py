@@ -173,7 +173,7 @@ class _Client:
             "refused this vehicle's token (HTTP 401",
         ),
         (
-            BackendError(f"back-end {URL} unreachable: connection refused", None, True),
+            BackendError(f"back-end {URL} unreachable: connection refused", None, True, "connection refused"),
             True,
             "waiting for the back-end at",
         ),
@@ -184,7 +184,7 @@ def test_reasons_start_check_verdicts(error: Exception | None, accepted: bool, w
     verdict = verdict_for(error, URL)
     assert verdict.accepted is accepted and words in verdict.reason
     heard: list[StartVerdict] = []
-    check = StartCheck(_Client(error), on_verdict=heard.append)
+    check = StartCheck(_Client(error, delay_s=0.3), on_verdict=heard.append)  # still asking at the 2nd call
     done = threading.Event()
     start = StartMission("an orange life buoy")
     assert check(start, done.set) is None and check(start, lambda: None) is None  # asked once
@@ -196,10 +196,12 @@ def test_reasons_notices_say_each_change_once_most_pressing_first() -> None:
     notices = OperatorNotices("udpin:0.0.0.0:14550", URL)
     notices.autopilot_heard(False)
     notices.autopilot_heard(False)
-    notices.backend_failed(BackendError(f"back-end {URL} unreachable: connection refused", None, True))
+    notices.backend_failed(
+        BackendError(f"back-end {URL} unreachable: connection refused", None, True, "connection refused")
+    )
     assert notices.current() == "waiting for the autopilot's HEARTBEAT on udpin:0.0.0.0:14550"
     notices.autopilot_heard(True)
-    assert notices.current() == f"waiting for the back-end at {URL}: unreachable: connection refused"
+    assert notices.current() == f"waiting for the back-end at {URL}: connection refused"
     notices.backend_failed(BackendError("HTTP 401", 401, detail="invalid bearer token"), "status")
     assert notices.current().startswith("the back-end refused this vehicle's token (HTTP 401: invalid bearer")
     notices.backend_answered()

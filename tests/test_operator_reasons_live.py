@@ -185,7 +185,7 @@ def test_reasons_a_back_end_down_at_start_up_is_waited_for_by_name(
         ) as (_, log),  # fmt: skip
     ):
         down = gcs(sim, "watch", "--duration", "8")
-        assert f"waiting for the back-end at {url}: unreachable: connection refused" in down.stdout, (
+        assert f"waiting for the back-end at {url}: connection refused" in down.stdout, (
             down.stdout + log.read_text()[-2000:]
         )
         config = BackendConfig(

@@ -15,7 +15,7 @@ import numpy as np
 from fastapi import APIRouter, HTTPException
 from fastapi.concurrency import run_in_threadpool
 
-from backend.dependencies import Caller, CurrentPipeline, Sessions, Settings, admit
+from backend.dependencies import Caller, CurrentPipeline
 from backend.routers.detection import resolve_superset
 from backend.schemas import ERROR_RESPONSES
 from backend.supersets import UnknownSupersetError
@@ -26,11 +26,8 @@ _BLANK = np.zeros((32, 32, 3), np.uint8)
 
 
 @router.post("/v1/prompts/check", response_model=PromptCheckAnswer, responses=ERROR_RESPONSES)
-async def check_prompt(
-    body: PromptCheck, principal: Caller, settings: Settings, sessions: Sessions, pipeline: CurrentPipeline
-) -> PromptCheckAnswer:
+async def check_prompt(body: PromptCheck, _: Caller, pipeline: CurrentPipeline) -> PromptCheckAnswer:
     """Whether `/v1/detect` would search for this prompt; 422 naming why not (and the nearest classes)."""
-    admit(settings, sessions, principal)
     superset = resolve_superset(body.prompt, body.superset)
     try:
         await run_in_threadpool(pipeline.detector.detect, _BLANK, [superset], None)
