@@ -28,7 +28,7 @@ from cloudtrack.gcs_protocol import (
 )
 from companion.cloud.start_check import StartCheck, verdict_for
 from companion.operator_notices import OperatorNotices
-from tests.backend_fixtures import auth, backend_config
+from tests.backend_fixtures import SUPERVISOR, auth, backend_config
 from tests.live_backend import serve
 
 URL = "http://127.0.0.1:8080"
@@ -254,3 +254,23 @@ def test_reasons_prompt_check_endpoint(models_dir: Path) -> None:
             "/v1/prompts/check", json={"prompt": "an orange thing", "superset": "boat"}, headers=auth()
         )
         assert forced.status_code == 200 and forced.json()["superset"] == "boat"
+
+
+def test_reasons_a_refused_vehicle_token_shows_on_the_page(models_dir: Path) -> None:
+    with TestClient(create_app(backend_config(models_dir))) as client:
+        wrong = {"Authorization": "Bearer not-the-token-of-drone-1"}
+        assert (
+            client.post("/v1/vehicles/drone-1/status", json={"state": "IDLE"}, headers=wrong).status_code
+            == 401
+        )
+        # An unknown vehicle's name is not shown: anyone can make up one.
+        assert (
+            client.post("/v1/vehicles/drone-9/status", json={"state": "IDLE"}, headers=wrong).status_code
+            == 401
+        )
+        supervisor = {"Authorization": f"Bearer {SUPERVISOR}"}
+        (vehicle,) = client.get("/supervisor/api/state", headers=supervisor).json()["vehicles"]
+        assert vehicle["id"] == "drone-1" and vehicle["state"] == "UNKNOWN"
+        assert (
+            vehicle["auth_error"] == "the back-end refused this vehicle's token (401: invalid bearer token)"
+        )
