@@ -319,7 +319,7 @@ def _status(session: GcsSession, args: argparse.Namespace) -> int:
         summary.feed(msg, text)
     companion = f"{session.target[0]}/{session.target[1]}"
     print(f"companion {companion}: {line if line is not None else '(no status line heard)'}", flush=True)
-    print(summary.tick()[0].replace("[summary]", "link:", 1), flush=True)
+    print(summary.line().replace("[summary]", "link:", 1), flush=True)
     return 0 if line is not None else EXIT_TIMEOUT
 
 

@@ -5,7 +5,8 @@ Events are printed as they happen: the companion's status lines (a repeat of the
 each find (`FOUND <lat>,<lon> +-<sigma>m`, its description, CAMERA_TRACKING_GEO_STATUS). Every `--every`
 seconds one summary line says what goes on (tracking for how long and where, the autopilot's mode, the
 last status line); the 10 Hz tracking status and the numbers are never printed one by one (`--verbose`
-prints every message, as before). With `--cot-url`, each find heard is forwarded as a Cursor-on-Target
+prints every message, as before). `--until-candidate` stops once a candidate awaits the supervisor (the
+next thing to do is to decide). With `--cot-url`, each find heard is forwarded as a Cursor-on-Target
 event (`cloudtrack/cursor_on_target.py`) to ATAK devices on the ground station's own network or a TAK
 server: a site with no internet still gets the find on its map.
 """
@@ -28,6 +29,7 @@ REPEAT_S = 10.0
 SAME_FIND_M = 5.0
 _FOUND = re.compile(r"^FOUND (-?\d+(?:\.\d+)?),(-?\d+(?:\.\d+)?) \+-(\d+(?:\.\d+)?)m$")
 _FOUND_TEXT = re.compile(r"^FOUND: (.*) \(confirmed by (.*)\)$")
+_AWAITING = re.compile(r"^CANDIDATE (?:AWAITING|REVERIFIED) (\S+)")
 
 
 @dataclass(frozen=True)
@@ -69,6 +71,7 @@ class WatchSummary:
         self._target: tuple[float, float] | None = None
         self._values: dict[str, float] = {}
         self.finds: list[HeardFind] = []
+        self.awaiting: str | None = None  # the candidate the companion last said awaits the supervisor
         self.changed_finds: list[HeardFind] = []  # new or updated since the caller last took them
 
     def feed(self, msg: Any, text: str | None = None) -> list[str]:
@@ -102,6 +105,9 @@ class WatchSummary:
 
     def _status(self, src: str, text: str) -> list[str]:
         now = self._clock()
+        awaiting = _AWAITING.match(text)
+        if awaiting:
+            self.awaiting = awaiting.group(1)
         if self._last_text is not None and self._last_text[0] == text and now - self._last_text[1] < REPEAT_S:
             self._repeats += 1
             return []
@@ -157,6 +163,11 @@ class WatchSummary:
         if now < self._next_summary:
             return []
         self._next_summary = now + self.every_s
+        return [self.line()]
+
+    def line(self) -> str:
+        """The summary line now: tracking for how long and where, the mode, the finds, the last line."""
+        now = self._clock()
         parts = []
         if self._tracking_since is not None and self._target is not None:
             parts.append(
@@ -173,7 +184,7 @@ class WatchSummary:
         if self._last_text is not None:
             repeated = f" (x{self._repeats + 1})" if self._repeats else ""
             parts.append(f"last: {self._last_text[0]}{repeated}")
-        return [f"[summary] {'; '.join(parts)}"]
+        return f"[summary] {'; '.join(parts)}"
 
 
 def add_arguments(watch: argparse.ArgumentParser) -> None:
@@ -186,6 +197,11 @@ def add_arguments(watch: argparse.ArgumentParser) -> None:
     )
     watch.add_argument(
         "--every", type=float, default=10.0, metavar="S", help="a summary line every S seconds (default 10)"
+    )
+    watch.add_argument(
+        "--until-candidate",
+        action="store_true",
+        help="stop once a candidate awaits the supervisor (exit 0), or exit 1 if none did within --duration",
     )
     watch.add_argument("--verbose", action="store_true", help="print every message, the 10 Hz tracking too")
     watch.add_argument(
@@ -225,11 +241,17 @@ def run_watch(session: Any, args: argparse.Namespace) -> int:
                 if sender is not None:
                     sender.send(find_event(_report(find, session.target[0]), args.callsign))
                     print(f"[cot] find {find.number} sent to {args.cot_url}", flush=True)
+            if args.until_candidate and summary.awaiting is not None:
+                print(summary.line(), flush=True)
+                return 0
     except KeyboardInterrupt:
         pass
     finally:
         if sender is not None:
             sender.close()
+    if args.until_candidate:
+        print(f"{summary.line()}; no candidate awaits the supervisor", flush=True)
+        return 1
     return 0
 
 

@@ -30,7 +30,9 @@ def _free_udp_port() -> int:
 
 
 @contextmanager
-def fake_vehicle(port: int, seconds: float) -> Iterator[dict[str, int]]:
+def fake_vehicle(
+    port: int, seconds: float, texts: dict[float, str] | None = None
+) -> Iterator[dict[str, int]]:
     """System 1 talking to a GCS on udp `port`: the autopilot's HEARTBEAT (1/1), the companion's status
     lines (1/191) and its camera's tracking and find messages (1/100), as the companion sends them."""
     endpoint = MavlinkEndpoint.open(f"udpout:127.0.0.1:{port}", 1, 1)
@@ -55,22 +57,26 @@ def fake_vehicle(port: int, seconds: float) -> Iterator[dict[str, int]]:
             if endpoint.receive(timeout=0.5) is not None:
                 break
         start = time.monotonic()
-        texts = {
-            0.5: "SEARCHING: mission started",
-            1.0: "CANDIDATE AWAITING c17 at 47.397812,8.545612",
-            1.2: "CANDIDATE AWAITING c17 at 47.397812,8.545612",
-            1.4: "CANDIDATE AWAITING c17 at 47.397812,8.545612",
-            2.5: "FOUND 47.397812,8.545612 +-2.5m",
-            2.6: "FOUND: a man in a red jacket (confirmed by gcs)",
-        }
+        timeline = (
+            dict(texts)
+            if texts is not None
+            else {
+                0.5: "SEARCHING: mission started",
+                1.0: "CANDIDATE AWAITING c17 at 47.397812,8.545612",
+                1.2: "CANDIDATE AWAITING c17 at 47.397812,8.545612",
+                1.4: "CANDIDATE AWAITING c17 at 47.397812,8.545612",
+                2.5: "FOUND 47.397812,8.545612 +-2.5m",
+                2.6: "FOUND: a man in a red jacket (confirmed by gcs)",
+            }
+        )
         next_heartbeat = 0.0
         while not stop.is_set() and time.monotonic() - start < seconds:
             t = time.monotonic() - start
             if t >= next_heartbeat:
                 as_component(1, lambda: conn.mav.heartbeat_send(2, 3, 217, 4, 4))  # ArduCopter, GUIDED
                 next_heartbeat += 1.0
-            for at in [a for a in texts if a <= t]:
-                text = texts.pop(at).encode()
+            for at in [a for a in timeline if a <= t]:
+                text = timeline.pop(at).encode()
                 as_component(191, lambda text=text: conn.mav.statustext_send(6, text.ljust(50, b"\0")[:50]))
             as_component(
                 100,
@@ -128,3 +134,26 @@ def test_watch_verbose_prints_every_message() -> None:
     with fake_vehicle(port, 4.0):
         lines = _gcs(port, "watch", "--duration", "3", "--verbose")
     assert len([line for line in lines if "target at" in line]) >= 15
+
+
+def test_watch_until_candidate_stops_when_one_awaits_the_supervisor() -> None:
+    port = _free_udp_port()
+    with fake_vehicle(port, 8.0):
+        lines = _gcs(port, "watch", "--duration", "7", "--until-candidate")
+    assert "[1/191] CANDIDATE AWAITING c17 at 47.397812,8.545612" in lines, lines
+    assert lines[-1].startswith("[summary]") and "last: CANDIDATE AWAITING c17" in lines[-1], lines
+    assert not any("FOUND" in line for line in lines), lines  # it stopped before the find at 2.5 s
+
+
+def test_watch_until_candidate_exits_1_when_none_came() -> None:
+    port = _free_udp_port()
+    exe = [sys.executable, "-m", "gcs.cli", "--connect", f"udpin:127.0.0.1:{port}", "--timeout", "10"]
+    with fake_vehicle(port, 4.0, texts={0.5: "SEARCHING: mission started"}):
+        done = subprocess.run(
+            [*exe, "watch", "--duration", "2", "--until-candidate"],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+    assert done.returncode == 1, done.stdout + done.stderr
+    assert done.stdout.splitlines()[-1].endswith("no candidate awaits the supervisor"), done.stdout

@@ -16,8 +16,10 @@ Select: -k reasons.
 from __future__ import annotations
 
 import os
+import queue
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -78,6 +80,56 @@ def gcs(sim: Any, *args: str, timeout: float = 60) -> subprocess.CompletedProces
         text=True,
         timeout=timeout,
     )
+
+
+class Watch:
+    """`cloudtrack-gcs watch` running beside the test: started before the companion, so the GCS link hears
+    the notices the companion says once; `until` reads its lines as they come."""
+
+    def __init__(self, sim: Any) -> None:
+        connect = f"udpout:127.0.0.1:{sim.link_port('gcs')}"
+        self.process = subprocess.Popen(
+            [sys.executable, "-m", "gcs.cli", "--connect", connect, "--timeout", "20", "watch"],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            env=dict(os.environ, PYTHONUNBUFFERED="1"),
+        )
+        self.lines: list[str] = []
+        self._queue: queue.Queue[str] = queue.Queue()
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self) -> None:
+        assert self.process.stdout is not None
+        for line in self.process.stdout:
+            self._queue.put(line)
+
+    def until(self, text: str, timeout_s: float, log: Path) -> str:
+        """All it printed so far, once a line holds `text`."""
+        deadline = time.monotonic() + timeout_s
+        while not any(text in line for line in self.lines):
+            left = deadline - time.monotonic()
+            try:
+                self.lines.append(self._queue.get(timeout=max(left, 0.0)))
+            except queue.Empty:
+                raise AssertionError(
+                    f"{text!r} not on the GCS within {timeout_s} s:\n{''.join(self.lines)}\n"
+                    f"companion log:\n{log.read_text()[-3000:]}"
+                ) from None
+        return "".join(self.lines)
+
+    def close(self) -> None:
+        self.process.terminate()
+        self.process.wait(timeout=10)
+
+
+@contextmanager
+def watching(sim: Any) -> Iterator[Watch]:
+    watch = Watch(sim)
+    try:
+        yield watch
+    finally:
+        watch.close()
 
 
 def snapshot_reason(url: str) -> dict[str, Any]:
@@ -147,6 +199,7 @@ def test_reasons_a_refused_token_is_named_on_the_gcs_and_the_page(
         live_backend(models_dir) as backend,
         autopilot("ardupilot") as sim,
         CameraStream(sequences_dir / "uav123_person12_1" / "frames", count=8) as camera,
+        watching(sim) as watch,
         companion(
             tmp_path,
             models_dir,
@@ -156,11 +209,10 @@ def test_reasons_a_refused_token_is_named_on_the_gcs_and_the_page(
             "not-the-token-of-drone-1",
         ) as (_, log),  # fmt: skip
     ):
-        watch = gcs(sim, "watch", "--duration", "6")
-        assert "the back-end refused this vehicle's token (HTTP 401: invalid bearer token)" in watch.stdout, (
-            watch.stdout + log.read_text()[-2000:]
+        said = watch.until(
+            "the back-end refused this vehicle's token (HTTP 401: invalid bearer token)", 20, log
         )
-        assert "unreachable" not in watch.stdout
+        assert "unreachable" not in said
         vehicle = wait(lambda: snapshot_reason(backend.url), 10, "drone-1 on the page", log)
         assert vehicle["state"] == "UNKNOWN" and "refused this vehicle's token (401" in vehicle["auth_error"]
     assert log.read_text().count("the back-end refused this vehicle's token") == 1
@@ -175,6 +227,7 @@ def test_reasons_a_back_end_down_at_start_up_is_waited_for_by_name(
     with (
         autopilot("ardupilot") as sim,
         CameraStream(sequences_dir / "uav123_person12_1" / "frames", count=8) as camera,
+        watching(sim) as watch,
         companion(
             tmp_path,
             models_dir,
@@ -184,10 +237,7 @@ def test_reasons_a_back_end_down_at_start_up_is_waited_for_by_name(
             VEHICLE_TOKENS["drone-1"],
         ) as (_, log),  # fmt: skip
     ):
-        down = gcs(sim, "watch", "--duration", "8")
-        assert f"waiting for the back-end at {url}: connection refused" in down.stdout, (
-            down.stdout + log.read_text()[-2000:]
-        )
+        watch.until(f"waiting for the back-end at {url}: connection refused", 20, log)
         config = BackendConfig(
             auth=AuthConfig(tokens=VEHICLE_TOKENS, supervisor_token=SUPERVISOR_TOKEN),
             detector=DetectorConfig(kind="yolox", model_dir=str(models_dir)),
@@ -195,11 +245,10 @@ def test_reasons_a_back_end_down_at_start_up_is_waited_for_by_name(
             sessions=SessionConfig(sqlite_path=":memory:"),
         )
         with BackgroundServer(create_app(config), port=port):
-            up = gcs(sim, "watch", "--duration", "6")
-            assert "back-end answers" in up.stdout, up.stdout
+            watch.until("back-end answers", 15, log)
             vehicle = wait(lambda: snapshot_reason(url), 10, "drone-1 on the page", log)
             assert vehicle["reason"] == ""
-    journal = log.read_text()
+            journal = log.read_text()  # before the back-end stops again (the companion would say so)
     assert journal.count("waiting for the back-end at") == 1, journal[-3000:]
     assert (
         "urllib3" not in journal
