@@ -71,6 +71,7 @@ def is_stand_in(name: str) -> bool:
     key = " ".join(words(name))
     return key in STAND_INS or vocabulary().lookup(key) in STAND_INS
 
+
 VOCABULARY_FILE = Path(__file__).with_name("coco_vocabulary.txt")
 
 # Words that end the prompt's head noun phrase: "the man | in a green shirt", "a red kayak | near the shore".
