@@ -676,7 +676,7 @@ def signal_table(
         weighing = evidence_settings
         if kind:  # as the front-end weighs the signals for a class outside `loss_model_classes`
             signals = replace(signals, hold_aspect=kind in config.loss_model_classes)
-            weighing = replace(evidence_settings, weak_alone=kind in config.loss_model_classes)
+            weighing = replace(evidence_settings, weigh_weak=kind in config.loss_model_classes)
         detector = LossDetector(signals)
         native_gt = ground_truth_for(seq, settings)
         evidence = LossEvidence()
