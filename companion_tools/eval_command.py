@@ -434,7 +434,7 @@ def _print_acquisition(
         on_target = (picked.chosen_iou or 0.0) >= 0.5
         print(
             f"  {r.sequence} (keyframe {picked.frame_id}, {'target' if on_target else 'OTHER'}): "
-            f"{picked.verdict}, placement {where}: {picked.justification or '-'}; not judged: "
+            f"{picked.verdict or '-'}, placement {where}: {picked.justification or '-'}; not judged: "
             f"{'; '.join(picked.unjudged) or '-'}"
         )
     print(

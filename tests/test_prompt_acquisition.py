@@ -264,7 +264,7 @@ def test_prompt_table_prints_ratio_ceiling_and_first_choice(capsys: pytest.Captu
     assert "first early starts on the described target: 1 of 1" in out
     # What was chosen, what was judged and what was not, per sequence.
     assert "seq_a (keyframe 1, target): yes, placement fits: dark 85% of the object; not judged: sedan" in out
-    assert "seq_b (keyframe 1, OTHER): , placement not judged: -; not judged: -" in out
+    assert "seq_b (keyframe 1, OTHER): -, placement not judged: -; not judged: -" in out
 
 
 def test_prompt_detection_keeps_the_detector_box_without_a_verifier_extent() -> None:
