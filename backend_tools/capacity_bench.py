@@ -108,7 +108,10 @@ def raw_detector_rate(
 ) -> dict[str, Any]:
     """Keyframes per second of the configured detector alone: one thread per core, one onnxruntime thread each."""
     cores = os.cpu_count() or 1
-    detectors = [build_detector(config.detector.model_copy(update={"threads": 1})) for _ in range(cores)]
+    detectors = [
+        build_detector(config.detector.model_copy(update={"threads": 1, "parallel_tiles": False}))
+        for _ in range(cores)
+    ]
     for detector in detectors:  # warm up: first runs allocate
         detector.detect(frames[0], ["person"])
     counts = [0] * cores
