@@ -391,7 +391,8 @@ def _command(state: State, event: GcsCommand, config: MissionConfig) -> Result:
             new, msg = _enter(new, MissionState.CONFIRMED, "operator selected target")
         else:  # followed like any candidate; only the supervisor's confirm allows descent
             new, msg = _enter(new, MissionState.FOLLOWING, "operator selected target")
-        return new, (*engage, TrackerInit(cmd.box, -1, "operator"), *msg)
+        kind = mission.superset if mission is not None else ""  # what the mission searches for
+        return new, (*engage, TrackerInit(cmd.box, -1, "operator", label=kind), *msg)
     if isinstance(cmd, StopTracking):
         if state.mode not in ACTIVE:
             return state, ()
@@ -582,7 +583,8 @@ def _acquire(state: State, det: Detection, position: GeoEstimate | None, answer:
     )
     # Stop (any search scan, or the survey's motion) while the tracker locks on; the link repeats it.
     stop: tuple[Action, ...] = (SendSetpoint(Setpoint.zero()),) if commanding(new) else ()
-    return new, (*take, *stop, TrackerInit(det.box, answer.keyframe_id, det.candidate_id), *msg)
+    init = TrackerInit(det.box, answer.keyframe_id, det.candidate_id, label=det.label)
+    return new, (*take, *stop, init, *msg)
 
 
 def _settle_early_start(

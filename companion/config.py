@@ -47,6 +47,11 @@ class TrackerConfig(ConfigSection):
         3.0, gt=0, le=100
     )  # re-init gate: C_box over (w + h) of the last trusted box
     max_aspect_change: float = Field(2.0, gt=1, le=100)  # width/height change since (re)init: "collapsed"
+    # Target classes (the candidate's detector label) the weak loss signals were measured on: for any other
+    # target (a car turning under the camera, an animal, a ball) "collapsed" skips its aspect test and a
+    # weak signal alone never untrusts the track (docs/tracking.md, "Loss evidence that is not
+    # person-shaped").
+    loss_model_classes: list[str] = Field(default_factory=lambda: ["person"], max_length=100)
     # What a re-detection answer may do (docs/tracking.md): "verified" moves the track only when a candidate
     # beats it on evidence reinit_confirmations keyframes in a row and otherwise waits; "c_box" is the
     # paper's (nearest candidate to the last trusted box whenever lost), "score" the reference code's.

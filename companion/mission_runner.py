@@ -132,7 +132,7 @@ class TrackingFrontendLike(Protocol):
 
     def feed(self, frame: Frame) -> TrackResult: ...
 
-    def start(self, keyframe_id: int, box: Any) -> bool: ...
+    def start(self, keyframe_id: int, box: Any, kind: str = "") -> bool: ...
 
     def apply_candidates(self, keyframe_id: int, detections: Sequence[Detection]) -> Detection | None: ...
 
@@ -390,7 +390,7 @@ class MissionRunner:
             )
             if chosen is not None:
                 return
-        self.frontend.start(keyframe, action.box)
+        self.frontend.start(keyframe, action.box, action.label)
 
     def _judge(self, action: JudgeCandidates) -> None:
         decision = self.frontend.judge_candidates(action.keyframe_id, action.candidates, action.refused)
