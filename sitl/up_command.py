@@ -215,16 +215,14 @@ class LocalStack:
         )
 
     def _start_arducopter(self, lat: float, lon: float) -> tuple[str, str]:
-        from sitl.arducopter_sitl import ArduCopterSitl, RealAutopilot, find_binary, free_tcp_port
+        from sitl.arducopter_sitl import ArduCopterSitl, RealAutopilot, find_binary
         from sitl.scenario_runner import ALTITUDE_M, HOME_ALT_M
         from sitl.scenarios import ScriptedGcs
 
         binary = find_binary(self.args.arducopter_binary)
-        gcs_serial = free_tcp_port()  # SERIAL3: the ground stations', relayed to UDP below
         sitl = ArduCopterSitl(
-            binary, self.work / "arducopter", (lat, lon, HOME_ALT_M, 0.0), speedup=5.0,
-            extra_params={"SERIAL3_PROTOCOL": 2}, extra_args=("--serial3", f"tcp:{gcs_serial}"),
-        ).start()  # fmt: skip
+            binary, self.work / "arducopter", (lat, lon, HOME_ALT_M, 0.0), speedup=5.0
+        ).start()
         self._parts.append(sitl)
         print(f"ArduCopter SITL {binary}: arming and taking off to {ALTITUDE_M:g} m ...", flush=True)
         pilot = ScriptedGcs(f"tcp:127.0.0.1:{sitl.ports.gcs}").start()
@@ -232,7 +230,7 @@ class LocalStack:
         autopilot = RealAutopilot(sitl, pilot)
         self._parts.append(autopilot)
         autopilot.fly_up(ALTITUDE_M, progress=lambda line: print(line, flush=True))
-        relay = UdpTcpRelay(self.args.gcs_port, gcs_serial).start()
+        relay = UdpTcpRelay(self.args.gcs_port, sitl.ports.ground).start()  # SERIAL5: the ground tools
         self._parts.append(relay)
         self.autopilot_text = f"ArduCopter SITL ({binary}), armed and hovering at {ALTITUDE_M:g} m in GUIDED"
         return f"tcp:127.0.0.1:{sitl.ports.camera}", f"udpout:127.0.0.1:{autopilot.bridge.udp_port}"
