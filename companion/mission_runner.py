@@ -200,6 +200,7 @@ class MissionRunner:
         clock: Callable[[], float] = time.monotonic,
         video_sinks: Sequence[Callable[[Any, Box | None, str], None]] = (),
         wall_clock: Callable[[], float] = time.time,
+        keyframe_max_width: int = 640,  # [backend] max_keyframe_width: the status's boxes are in its pixels
     ) -> None:
         # One policy for flight and eval: with the front-end's "verified" policy ([tracker] reinit_policy)
         # the mission hands it every answer for the track instead of choosing a re-init box itself.
@@ -225,7 +226,9 @@ class MissionRunner:
         self._poses: deque[Telemetry] = deque(maxlen=POSE_HISTORY)  # newest last
         self._result: TrackResult | None = None  # the tracker's result on the newest frame
         # Progress, finds and the tracked keyframe box for the status report.
-        self.report = StatusReport((mission.camera.width, mission.camera.height), wall_clock)
+        self.report = StatusReport(
+            (mission.camera.width, mission.camera.height), keyframe_max_width, wall_clock
+        )
 
     # ------------------------------------------------------------------------------------------ control
     def request_stop(self) -> None:

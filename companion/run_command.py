@@ -171,6 +171,7 @@ def run(args: argparse.Namespace) -> int:
         observers,
         ServiceNotifier.from_environment(),
         video_sinks=[record.video_frame] if record is not None and rec.video else [],
+        keyframe_max_width=config.backend.max_keyframe_width,
     )
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: runner.request_stop())

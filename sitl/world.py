@@ -228,3 +228,29 @@ def distractor_world(
             )
         )
     return World(seed, tuple(people), tuple(blocks), target_id="target")
+
+
+# The search scenario's area: a survey of 100 m (north) x 60 m (east) whose south edge lies 10 m north of
+# the vehicle's home. Nobody stands within 55 m of home, beyond the camera's view from there (pitch -40 deg
+# at 10 m sees the ground out to 45 m), so only a survey finds them.
+SEARCH_AREA_NE = ((10.0, -30.0), (110.0, 30.0))  # south-west and north-east corners (north, east), metres
+
+
+def search_world(seed: int) -> World:
+    """The search scenario's world: across the area, the described person (green shirt, black trousers,
+    strolling slowly), a look-alike (green shirt, blue trousers, standing) the supervisor must reject, and
+    people of the same class in other colours, lying and walking. The look-alike stands where the west
+    lane of a survey flown northwards sees it first; the described person is seen only from the east lane.
+    """
+    people = (
+        Person("target", "green", "black", "standing", ((72.0, 20.0), (72.0, 24.0)), 0.4, loop=True),
+        Person("decoy", "green", "blue", "standing", ((60.0, -14.0),)),
+        Person("person-1", "red", "gray", "lying", ((88.0, 2.0),)),
+        Person("person-2", "blue", "gray", "standing", ((100.0, -22.0), (100.0, -10.0)), 0.8, loop=True),
+        Person("person-3", "purple", "gray", "sitting", ((58.0, 26.0),)),
+    )
+    blocks = (
+        Block("vehicle", 95.0, 18.0, 4.5, 1.9, 1.5, colour=(60, 60, 180)),
+        Block("vehicle", 30.0, -24.0, 4.5, 1.9, 1.5, colour=(170, 170, 170)),
+    )
+    return World(seed, people, blocks, target_id="target")
