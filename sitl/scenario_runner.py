@@ -45,7 +45,15 @@ from sitl.metrics import (
     following_intervals,
     summarise,
 )
-from sitl.scenarios import COASTING_FAULTS, TAKEOVER_MODE, Scenario, ScriptedGcs, VehicleOutcome, assess
+from sitl.scenarios import (
+    COASTING_FAULTS,
+    MISSION_MODE,
+    TAKEOVER_MODE,
+    Scenario,
+    ScriptedGcs,
+    VehicleOutcome,
+    assess,
+)
 from sitl.simulated_detector import DetectorNoise, SimulatedPersonDetector
 from sitl.video_overlay import OverlayState, VideoWriter, draw_overlay
 
@@ -127,6 +135,9 @@ class _Vehicle:
     stall_resumed: float | None = None  # monotonic time of SIGCONT
     fly_to: tuple[float, tuple[float, float], tuple[float, float]] | None = None  # (t, from, to) world n/e
     flood: dict[str, int] = field(default_factory=dict)
+    # The back-end's view of the vehicle (search scenarios): (time, status) as the supervisor page polls it.
+    statuses: list[tuple[float, dict[str, Any]]] = field(default_factory=list)
+    survey: dict[str, Any] = field(default_factory=dict)  # the plan the pilot uploaded
 
 
 def default_tracker(model_dir: Path) -> str:
@@ -182,6 +193,8 @@ class ScenarioRun:
         self._t_mission: float | None = None
         self._flood_threads: list[Any] = []
         self._stopping = False
+        self._supervisor_token = secrets.token_hex(16)
+        self._last_poll = -math.inf
 
     @property
     def real(self) -> bool:
@@ -213,7 +226,7 @@ class ScenarioRun:
             self._vlm = VlmEmulator(latency_s=self.options.vlm_latency_s).start()
             vlm = VlmConfig(base_url=self._vlm.base_url)
         config = BackendConfig(
-            auth=AuthConfig(tokens=self.tokens, supervisor_token=secrets.token_hex(16)),
+            auth=AuthConfig(tokens=self.tokens, supervisor_token=self._supervisor_token),
             verifier=VerifierConfig(kind=self.options.verifier),
             vlm=vlm,
             sessions=SessionConfig(sqlite_path=":memory:"),  # each run starts with nothing remembered
@@ -284,11 +297,15 @@ class ScenarioRun:
 
         assert self.arducopter is not None
         lat, lon = _home(origin)
+        survey = self.scenario.survey
+        # AUTO flies at WPNAV_SPEED (cm/s) after a resume: a DO_CHANGE_SPEED before the break-off no longer holds.
+        params = {"WPNAV_SPEED": survey.speed_m_s * 100.0} if survey is not None else {}
         sitl = ArduCopterSitl(
             self.arducopter,
             self.work / f"{vid}-arducopter",
             (lat, lon, HOME_ALT_M, 0.0),
             speedup=self.options.speedup,
+            extra_params=params,
         ).start()
         self.progress(
             f"{vid}: ArduCopter SITL {self.arducopter} (pid {sitl.process.pid if sitl.process else '?'}, "
@@ -455,7 +472,9 @@ class ScenarioRun:
 
     def _send_start(self, v: _Vehicle, mission_id: int) -> None:
         v.start_sent = (self.now(), mission_id)
-        v.gcs.start_mission(self.scenario.prompt, mission_id=mission_id)
+        v.gcs.start_mission(
+            self.scenario.prompt, mission_id=mission_id, allow_engage=self.scenario.allow_engage
+        )
 
     def _resend_start(self, v: _Vehicle) -> None:
         """A GCS operator repeats a start that the companion did not take (lost on a lossy link)."""
@@ -653,6 +672,9 @@ class ScenarioRun:
                     "companions not ready in time:\n" + "\n".join(self._log_tail(v) for v in self.vehicles)
                 )
             time.sleep(0.1)
+        if s.survey is not None:
+            for v in self.vehicles:
+                self._fly_survey(v)
         if self.options.video_out is not None:
             self.video = VideoWriter(self.options.video_out, 30.0, (self.camera.width, self.camera.height))
         self.epoch = time.monotonic()
@@ -667,6 +689,7 @@ class ScenarioRun:
                 self._supervise(v)
                 self._resend_start(v)
             self._faults()
+            self._poll_statuses()
             time.sleep(0.05)
         end_t = self.now()
         for t in self._flood_threads:
@@ -676,6 +699,131 @@ class ScenarioRun:
             for e in self._read_events(v):
                 self._handle_event(v, e)
         return self._results(end_t)
+
+    # ------------------------------------------------------------------------------------------ survey
+    def _fly_survey(self, v: _Vehicle, timeout_s: float = 30.0) -> None:
+        """As the pilot would: plan the survey over the scenario's area and upload it with
+        `cloudtrack-gcs survey`'s planner and the mission protocol over the GCS link, then select AUTO
+        (ArduPilot) / Mission (PX4); returns once the autopilot flies it."""
+        from behaviors.survey_planner import SurveySettings, plan_survey
+        from cloudtrack.mission_protocol import MissionClient
+
+        spec = self.scenario.survey
+        assert spec is not None
+        (s_n, w_e), (n_n, e_e) = spec.area_ne
+        o_n, o_e = v.origin  # the area is given from the vehicle's home; the world is from the first home
+        corners = [_home((o_n + n, o_e + e)) for n, e in ((s_n, w_e), (s_n, e_e), (n_n, e_e), (n_n, w_e))]
+        settings = SurveySettings(
+            altitude_m=spec.altitude_m,
+            overlap=spec.overlap,
+            camera=self.camera,
+            search_range_m=spec.search_range_m,
+            min_altitude_m=5.0,
+            max_altitude_m=60.0,
+            speed_m_s=spec.speed_m_s,
+            start=_home(v.origin),
+        )
+        plan = plan_survey(corners, settings)
+        kind = "px4" if self.personality == "px4" else "ardupilot"
+        for msg_id, hz in ((0, 10.0), (42, 4.0)):  # HEARTBEAT (modes), MISSION_CURRENT (the item flown)
+            v.gcs.request_interval(msg_id, hz)
+        MissionClient(v.gcs.mission_link(), kind, target=(1, 1), source=(255, 190)).upload(plan.items)
+        v.survey = {"summary": plan.summary(), "lanes": plan.lanes, "items": len(plan.items)}
+        self.progress(f"{v.vehicle_id}: survey uploaded: {plan.summary()}")
+        mode = MISSION_MODE[self.personality]
+        v.autopilot.set_mode(mode, source="pilot")
+        deadline = time.monotonic() + timeout_s
+        while not (v.gcs.modes and v.gcs.modes[-1][1] == _custom_mode(self.personality, mode)):
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"{v.vehicle_id}: the autopilot did not enter {mode} for the survey")
+            time.sleep(0.1)
+        time.sleep(0.5)  # the companion's telemetry shows the mission flying before the mission starts
+        self.progress(f"{v.vehicle_id}: flying the survey in {mode}")
+
+    def _poll_statuses(self) -> None:
+        """The back-end's status of each vehicle, twice a second, as the supervisor page sees it (search
+        scenarios: coverage and the find come from there)."""
+        if self.scenario.survey is None or self._backend is None or self.now() - self._last_poll < 0.5:
+            return
+        import requests
+
+        self._last_poll = self.now()
+        for v in self.vehicles:
+            try:
+                r = requests.get(
+                    f"{self._backend.url}/v1/vehicles/{v.vehicle_id}/status",
+                    headers={"Authorization": f"Bearer {self._supervisor_token}"},
+                    timeout=1.0,
+                )
+            except requests.RequestException:
+                continue
+            if r.status_code == 200:
+                v.statuses.append((self.now(), r.json()))
+
+    def _mission_breaks(self, v: _Vehicle) -> list[dict[str, Any]]:
+        """Every time the autopilot left its mission after the start, and where it resumed: from its own
+        HEARTBEAT and MISSION_CURRENT on the GCS link (the autopilot's account, not the companion's)."""
+        epoch = self.epoch or 0.0
+        auto = _custom_mode(self.personality, MISSION_MODE[self.personality])
+        currents = list(v.gcs.mission_currents)
+        breaks: list[dict[str, Any]] = []
+        in_mission: bool | None = None
+        for t, mode, _ in list(v.gcs.modes):
+            now_in = mode == auto
+            if in_mission is True and not now_in and t >= epoch:
+                before = [seq for tc, seq in currents if tc <= t]
+                breaks.append(
+                    {
+                        "left_t": round(t - epoch, 2),
+                        "left_at": before[-1] if before else None,
+                        "resumed_at": None,
+                    }
+                )
+            elif in_mission is False and now_in and breaks and breaks[-1]["resumed_at"] is None:
+                after = [seq for tc, seq in currents if tc > t + 0.1]
+                breaks[-1]["resumed_t"] = round(t - epoch, 2)
+                breaks[-1]["resumed_at"] = after[0] if after else None
+            in_mission = now_in
+        return breaks
+
+    def _search_metrics(self, v: _Vehicle, confirm_t: float | None) -> dict[str, Any]:
+        """Time to find, coverage and the find's position error at the find, the mission's break-offs and
+        resumes, and what the companion sent the autopilot during the search."""
+        out: dict[str, Any] = {"survey": v.survey, "mission_breaks": self._mission_breaks(v)}
+        out["time_to_find_s"] = None if confirm_t is None else round(confirm_t, 2)
+        sighted = [t for t, pid in v.proposals if pid == self.world.target_id]
+        out["time_to_first_sighting_s"] = round(sighted[0], 2) if sighted else None
+        after = [st for t, st in v.statuses if confirm_t is not None and t >= confirm_t and st.get("find")]
+        coverage = [
+            (st.get("search") or {}).get("coverage")
+            for t, st in v.statuses
+            if confirm_t is not None and t >= confirm_t
+        ]
+        out["coverage_at_find"] = next((c for c in coverage if c is not None), None)
+        last = v.statuses[-1][1] if v.statuses else {}
+        out["coverage_at_end"] = (last.get("search") or {}).get("coverage")
+        out["geolocation_error_m"] = None
+        if after and confirm_t is not None:
+            find = after[0]["find"]
+            lat, lon = find["position"]
+            north = math.radians(lat - _home((0.0, 0.0))[0]) * EARTH_RADIUS
+            east = (
+                math.radians(lon - _home((0.0, 0.0))[1])
+                * EARTH_RADIUS
+                * math.cos(math.radians(_home((0.0, 0.0))[0]))
+            )
+            tn, te, _ = self.world.person(self.world.target_id).state_at(confirm_t)
+            out["find"] = {k: find.get(k) for k in ("candidate_id", "position", "sigma_m", "confirmed_by")}
+            out["geolocation_error_m"] = round(math.hypot(north - tn, east - te), 2)
+        commands = getattr(v.autopilot, "commands", None)
+        if commands is not None:
+            epoch = self.epoch or 0.0
+            setpoints = [
+                sp for sp in list(v.autopilot.setpoints) if sp.link == "companion" and sp.time >= epoch
+            ]
+            modes = [c for c in list(commands) if c[1] == "companion" and c[2] == 176 and c[0] >= epoch]
+            out["companion_commands"] = {"setpoints": len(setpoints), "mode_commands": len(modes)}
+        return out
 
     def _log_tail(self, v: _Vehicle, lines: int = 25) -> str:
         try:
@@ -875,6 +1023,9 @@ class ScenarioRun:
             if kind in COASTING_FAULTS
         }
         metrics.update(self._fault_metrics(v, setpoints))
+        if self.scenario.survey is not None:
+            found = [t for t, pid in v.confirmations if pid == target]
+            metrics.update(self._search_metrics(v, found[0] if found else None))
         return VehicleOutcome(
             metrics=metrics,
             confirmations=tuple(t for t, _ in v.confirmations),
@@ -978,6 +1129,16 @@ class ScenarioRun:
     def _sample(self, f: _Seen) -> FrameSample:
         tn, te, _ = self.world.person(self.world.target_id).state_at(f.time_s)
         return FrameSample(f.time_s, f.pose.north, f.pose.east, tn, te, None)
+
+
+def _custom_mode(personality: str, name: str) -> int:
+    """HEARTBEAT.custom_mode of a mode, as the GCS sees it (ArduCopter's number; PX4 main << 16 | sub << 24)."""
+    from sitl.autopilot import ARDUCOPTER_MODES, PX4_MODES
+
+    if personality == "px4":
+        main, sub = PX4_MODES[name]
+        return (main << 16) | (sub << 24)
+    return ARDUCOPTER_MODES[name]
 
 
 def _free_udp_port() -> int:
