@@ -273,16 +273,21 @@ class ScenarioRun:
 
     def _start_mock(self, origin: tuple[float, float], udp_port: int | None) -> tuple[Any, ScriptedGcs, str]:
         from sitl.autopilot import AutopilotOptions, SimulatedAutopilot
+        from sitl.autopilot_mission import MissionOptions
 
         lat, lon = _home(origin)
+        survey = self.scenario.survey
         options = AutopilotOptions(
             personality=self.personality,
             start_height_m=ALTITUDE_M,
             home_lat=lat,
             home_lon=lon,
             guid_timeout_s=GUID_TIMEOUT_S,
+            # The waypoint speed (WPNAV_SPEED / MPC_XY_CRUISE) the survey is flown at, after a resume too.
+            mission=MissionOptions(speed_m_s=survey.speed_m_s if survey is not None else None),
         )
-        links = {name: "udpin:127.0.0.1:0" for name in ("gcs", "companion", "camera")}
+        # "ground": a second ground station's link, for `cloudtrack-gcs survey` (the operator's laptop).
+        links = {name: "udpin:127.0.0.1:0" for name in ("gcs", "companion", "camera", "ground")}
         if udp_port is not None:
             links["companion"] = f"udpout:127.0.0.1:{udp_port}"  # the companion listens (udpin)
         autopilot = SimulatedAutopilot(options, links)
@@ -631,6 +636,11 @@ class ScenarioRun:
         if len(self.faults_done) < len(self.scenario.faults):
             return False
         t_confirm = self.vehicles[0].confirmations[0][0]
+        if self.scenario.survey is not None and "rejected_never_again" in self.scenario.checks:
+            # A survey meets the look-alike and the described person in either order: both must be decided.
+            if not all(v.rejections for v in self.vehicles):
+                return False
+            t_confirm = max(t_confirm, *(v.rejections[0][0] for v in self.vehicles))
         last_fault = max((f.after_confirm_s for f in self.scenario.faults), default=0.0)
         return self.now() >= t_confirm + max(self.scenario.follow_s, last_fault + 4.0)
 
@@ -702,34 +712,37 @@ class ScenarioRun:
 
     # ------------------------------------------------------------------------------------------ survey
     def _fly_survey(self, v: _Vehicle, timeout_s: float = 30.0) -> None:
-        """As the pilot would: plan the survey over the scenario's area and upload it with
-        `cloudtrack-gcs survey`'s planner and the mission protocol over the GCS link, then select AUTO
-        (ArduPilot) / Mission (PX4); returns once the autopilot flies it."""
-        from behaviors.survey_planner import SurveySettings, plan_survey
-        from cloudtrack.mission_protocol import MissionClient
-
+        """As the operator and the pilot would: upload the survey over the scenario's area with
+        `cloudtrack-gcs survey` (a second ground station's link, the camera and safety sections of the
+        companion's configuration), then select AUTO (ArduPilot) / Mission (PX4); returns once the autopilot
+        flies it."""
         spec = self.scenario.survey
         assert spec is not None
         (s_n, w_e), (n_n, e_e) = spec.area_ne
         o_n, o_e = v.origin  # the area is given from the vehicle's home; the world is from the first home
-        corners = [_home((o_n + n, o_e + e)) for n, e in ((s_n, w_e), (s_n, e_e), (n_n, e_e), (n_n, w_e))]
-        settings = SurveySettings(
-            altitude_m=spec.altitude_m,
-            overlap=spec.overlap,
-            camera=self.camera,
-            search_range_m=spec.search_range_m,
-            min_altitude_m=5.0,
-            max_altitude_m=60.0,
-            speed_m_s=spec.speed_m_s,
-            start=_home(v.origin),
+        centre = _home((o_n + (s_n + n_n) / 2.0, o_e + (w_e + e_e) / 2.0))
+        vehicle_config = self.work / f"{v.vehicle_id}-survey.toml"
+        vehicle_config.write_text(
+            f"[camera]\nhfov_deg = {math.degrees(2 * math.atan(self.camera.cx / self.camera.fx)):.6f}\n"
+            f"mount_pitch_deg = {MOUNT_PITCH_DEG}\nsearch_range_m = {spec.search_range_m}\n"
         )
-        plan = plan_survey(corners, settings)
-        kind = "px4" if self.personality == "px4" else "ardupilot"
         for msg_id, hz in ((0, 10.0), (42, 4.0)):  # HEARTBEAT (modes), MISSION_CURRENT (the item flown)
             v.gcs.request_interval(msg_id, hz)
-        MissionClient(v.gcs.mission_link(), kind, target=(1, 1), source=(255, 190)).upload(plan.items)
-        v.survey = {"summary": plan.summary(), "lanes": plan.lanes, "items": len(plan.items)}
-        self.progress(f"{v.vehicle_id}: survey uploaded: {plan.summary()}")
+        cmd = [
+            sys.executable, "-m", "gcs.cli", "--connect", self._ground_url(v), "--timeout", "15",
+            "survey", "--centre", f"{centre[0]:.7f},{centre[1]:.7f}", "--size", f"{e_e - w_e:g}x{n_n - s_n:g}",
+            "--altitude", f"{spec.altitude_m:g}", "--overlap", f"{spec.overlap:g}", "--speed",
+            f"{spec.speed_m_s:g}", "--companion-config", str(vehicle_config),
+        ]  # fmt: skip
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=120, env=dict(os.environ))
+        lines = [line.strip() for line in (done.stdout + done.stderr).splitlines() if line.strip()]
+        for line in lines:
+            self.progress(f"{v.vehicle_id}: cloudtrack-gcs survey: {line}")
+        if done.returncode != 0:
+            raise RuntimeError(
+                f"{v.vehicle_id}: cloudtrack-gcs survey exited {done.returncode}: {lines[-1:]}"
+            )
+        v.survey = {"command": " ".join(cmd[2:]), "output": lines}
         mode = MISSION_MODE[self.personality]
         v.autopilot.set_mode(mode, source="pilot")
         deadline = time.monotonic() + timeout_s
@@ -738,7 +751,13 @@ class ScenarioRun:
                 raise RuntimeError(f"{v.vehicle_id}: the autopilot did not enter {mode} for the survey")
             time.sleep(0.1)
         time.sleep(0.5)  # the companion's telemetry shows the mission flying before the mission starts
-        self.progress(f"{v.vehicle_id}: flying the survey in {mode}")
+        self.progress(f"{v.vehicle_id}: the pilot switched to {mode}: flying the survey")
+
+    def _ground_url(self, v: _Vehicle) -> str:
+        """Where a second ground station (the operator's laptop) connects to the vehicle's autopilot."""
+        if self.real:
+            return f"tcp:127.0.0.1:{v.autopilot.sitl.ports.ground}"
+        return f"udpout:127.0.0.1:{v.autopilot.link_port('ground')}"
 
     def _poll_statuses(self) -> None:
         """The back-end's status of each vehicle, twice a second, as the supervisor page sees it (search

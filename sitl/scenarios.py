@@ -13,7 +13,6 @@ import logging
 import math
 import threading
 import time
-from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -234,7 +233,7 @@ SCENARIOS: dict[str, Scenario] = {
             max_s=150.0,
             miss_rate=0.0,
             companion_settings=(f"camera.search_range_m={SurveySpec().search_range_m}",),
-            checks=("confirmed_target", "rejected_never_again", "no_commands", "find_position"),
+            checks=("confirmed_target", "rejected_never_again", "no_commands"),
         ),
         Scenario(
             "flood",
@@ -416,8 +415,6 @@ class ScriptedGcs:
         self.positions: list[tuple[float, float, float, float]] = []  # (time, north, east, down)
         self.params: dict[str, float] = {}
         self.mission_currents: list[tuple[float, int]] = []  # (time, MISSION_CURRENT.seq)
-        self._mission_messages: deque[Any] = deque(maxlen=256)  # for a mission transfer (`mission_link`)
-        self._mission_arrived = threading.Condition()
         self._rc: dict[int, int] = {}  # channel -> PWM the pilot's radio holds, re-sent at 10 Hz
         self._stop = threading.Event()
         self._lock = threading.Lock()
@@ -435,7 +432,7 @@ class ScriptedGcs:
             "HEARTBEAT",
             "LOCAL_POSITION_NED",
             "PARAM_VALUE",
-            *MISSION_TYPES,
+            "MISSION_CURRENT",
         ]
         while not self._stop.is_set():
             now = time.monotonic()
@@ -456,12 +453,8 @@ class ScriptedGcs:
                 continue
             now = time.monotonic()
             kind = msg.get_type()
-            if kind.startswith("MISSION_"):
-                if kind == "MISSION_CURRENT":
-                    self.mission_currents.append((now, int(msg.seq)))
-                with self._mission_arrived:
-                    self._mission_messages.append(msg)
-                    self._mission_arrived.notify_all()
+            if kind == "MISSION_CURRENT":
+                self.mission_currents.append((now, int(msg.seq)))
             elif kind == "STATUSTEXT":
                 self.statustexts.append((now, str(msg.text)))
             elif kind == "COMMAND_ACK":
@@ -490,32 +483,6 @@ class ScriptedGcs:
 
     def position(self) -> tuple[float, float, float] | None:
         return self.positions[-1][1:] if self.positions else None
-
-    def mission_item(self) -> int | None:
-        """The autopilot's current mission item (MISSION_CURRENT.seq), None before one arrived."""
-        return self.mission_currents[-1][1] if self.mission_currents else None
-
-    def mission_link(self) -> GcsMissionLink:
-        """The mission protocol on this GCS link (`cloudtrack.mission_protocol.MissionLink`): a transfer
-        sends through our connection and reads the autopilot's MISSION_* messages from the reader."""
-        with self._mission_arrived:
-            self._mission_messages.clear()
-        return GcsMissionLink(self)
-
-    def _send_built(self, build: Callable[[Any], Any]) -> bool:
-        with self._lock:
-            build(self.conn.mav)
-        return True
-
-    def _next_mission_message(self, timeout: float) -> Any | None:
-        deadline = time.monotonic() + timeout
-        with self._mission_arrived:
-            while not self._mission_messages:
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    return None
-                self._mission_arrived.wait(left)
-            return self._mission_messages.popleft()
 
     def request_interval(self, msg_id: int, hz: float) -> None:
         self._command(mavutil.mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, 1e6 / hz, component=1)
@@ -630,22 +597,3 @@ class ScriptedGcs:
         self._stop.set()
         self._thread.join(timeout=2)
         self.conn.close()
-
-
-MISSION_TYPES = (
-    "MISSION_CURRENT", "MISSION_COUNT", "MISSION_ITEM_INT", "MISSION_ITEM", "MISSION_REQUEST",
-    "MISSION_REQUEST_INT", "MISSION_ACK", "MISSION_ITEM_REACHED",
-)  # fmt: skip
-
-
-class GcsMissionLink:
-    """`ScriptedGcs.mission_link()`: what `cloudtrack.mission_protocol.MissionClient` needs of a link."""
-
-    def __init__(self, gcs: ScriptedGcs) -> None:
-        self._gcs = gcs
-
-    def send(self, build: Callable[[Any], Any]) -> bool:
-        return self._gcs._send_built(build)
-
-    def receive(self, timeout: float) -> Any | None:
-        return self._gcs._next_mission_message(timeout)
