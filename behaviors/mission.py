@@ -60,7 +60,6 @@ from behaviors.query_region import around, redetect_region
 from behaviors.rejection_memory import RejectedTarget, RejectionMemory
 from behaviors.safety_limits import apply_limits
 from behaviors.setpoint import Setpoint
-from behaviors.spatial_relations import parse_relation
 from behaviors.telemetry import Telemetry
 from behaviors.track_result import TrackResult
 
@@ -942,11 +941,9 @@ def _choose(
     state: State, candidates: Sequence[Detection], config: MissionConfig, pose: Telemetry | None
 ) -> tuple[Detection, GeoEstimate | None] | None:
     """A verified candidate not rejected or found before (`select_first_acquisition`), and where it stands."""
-    relation = parse_relation(state.mission.prompt) if state.mission is not None else None
     best = select_first_acquisition(
         candidates,
         config.accept_uncertain,
-        relation,
         lambda d: d.box.is_valid() and not _excluded(state, d, config, pose),
     )
     if best is None:

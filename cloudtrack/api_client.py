@@ -205,6 +205,8 @@ class BackendClient:
                     candidate_id=c.candidate_id,
                     judged=c.judged,
                     placement_ok=c.placement_ok,
+                    unjudged=tuple(c.unjudged),
+                    singled_out=c.singled_out,
                 )
                 for c in answer.candidates
             ]

@@ -119,9 +119,22 @@ class Candidate(ApiModel):
     )
     placement_ok: bool | None = Field(
         None,
-        description="whether the candidate stands where the description places the target relative to a "
-        'vehicle it names (outside "the boat" a wakeboarder is towed behind, inside "the car" someone sits '
-        "in); null: no such vehicle named or none in view. A search prefers candidates that are not false",
+        description="whether the candidate stands where the description places the target among what else "
+        'is in view, and has the size it states ("the second from the left", "next to the red car", outside '
+        '"the boat" a wakeboarder is towed behind, "the small truck"); null: nothing of that could be judged. '
+        "A search prefers candidates that are true, then null, then false; it never rejects one for it",
+    )
+    singled_out: bool = Field(
+        False,
+        description='an ordinal in the description ("the second from the left", "closest to the camera", '
+        '"first in the queue") picks this candidate alone among those of its kind not ruled out, and it fits '
+        'the rest of where the description places it: a search may start on it while its verdict is "uncertain"',
+    )
+    unjudged: list[Annotated[str, Field(max_length=200)]] = Field(
+        default_factory=list,
+        max_length=32,
+        description='the description\'s words nothing judged for this candidate ("suv", "canopy roof", "next to '
+        'the pier (the pier: not located)"): the verdict and placement hold for the rest only',
     )
     verifier: str = Field(description='who decided: a verifier name, "none" or "rejection-memory"')
     t_verify: float

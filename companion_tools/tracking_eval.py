@@ -36,7 +36,6 @@ from behaviors.detection import Detection, Verdict
 from behaviors.geometry import Box, iou
 from behaviors.loss_evidence import LossEvidence, judge_frame
 from behaviors.query_region import redetect_region
-from behaviors.spatial_relations import parse_relation
 from behaviors.track_result import TrackResult
 from behaviors.tracking_metrics import MiouResult, mean_iou, pooled_miou
 from companion.config import TrackerConfig
@@ -295,12 +294,10 @@ def make_frontend(
     )
 
 
-def first_candidate(
-    detections: Sequence[Detection], accept_uncertain: bool = False, prompt: str = ""
-) -> Detection | None:
+def first_candidate(detections: Sequence[Detection], accept_uncertain: bool = False) -> Detection | None:
     """First acquisition as in flight (`behaviors.candidate_selection.select_first_acquisition`, the
     mission's choice without its rejection memory)."""
-    return select_first_acquisition(detections, accept_uncertain, parse_relation(prompt))
+    return select_first_acquisition(detections, accept_uncertain)
 
 
 def _outcome(before: float, after: float) -> str:
@@ -412,7 +409,7 @@ def evaluate_sequence(
             # their choice, or ended when they accept no one.
             early_box, provisional = provisional[1], None
             chosen, kept = settle_early_choice(
-                found, early_box, lambda ds: first_candidate(ds, settings.accept_uncertain, seq.referring)
+                found, early_box, lambda ds: first_candidate(ds, settings.accept_uncertain)
             )
             looked(keyframe, found, frame_id, final, chosen)
             if kept:
@@ -424,7 +421,7 @@ def evaluate_sequence(
                 frontend.start(keyframe, chosen.start_box)
             return
         if from_prompt and not frontend.tracking:
-            chosen = first_candidate(found, settings.accept_uncertain, seq.referring)
+            chosen = first_candidate(found, settings.accept_uncertain)
             looked(keyframe, found, frame_id, final, chosen)
             if chosen is not None and frontend.start(keyframe, chosen.start_box) and not final:
                 provisional = (keyframe, chosen.box)

@@ -30,6 +30,7 @@ from cloudtrack.gcs_protocol import (
 )
 from cloudtrack.mavlink_connection import MavlinkEndpoint, mavlink, parse_connection
 from cloudtrack.mavlink_signing import parse_signing_key
+from gcs import survey_command
 
 EXIT_REFUSED, EXIT_TIMEOUT = 1, 3
 RESULT_NAMES = {
@@ -407,6 +408,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="stop after S seconds (default: until Ctrl-C)",
     )
     watch.set_defaults(func=_watch)
+    survey_command.add_parser(sub)
     return parser
 
 
@@ -425,6 +427,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command == "start" and args.print_mavproxy:
         print("\n".join(mavproxy_start_lines(args)))
         return 0
+    if getattr(args, "opens_own_link", False):
+        return int(args.func(args))  # survey: checks its area and plan before it opens the link
     try:
         session = GcsSession(args)
     except OSError as exc:

@@ -34,7 +34,7 @@ def test_detect_places_candidates_against_the_vehicle_the_prompt_names(
     client: TestClient, sequences_dir: Path
 ) -> None:
     """uav123_wakeboard7, frame 1: the boat the description names apart from the wakeboarder holds two of
-    the three people YOLOX finds (backend.placement); the boat itself is not a candidate."""
+    the three people YOLOX finds (backend.scene); the boat itself is not a candidate."""
     image = jpeg(frame(sequences_dir, "uav123_wakeboard7"))
     prompt = "the wakeboarder being towed to the left of the boat's wake"
     response = client.post("/v1/detect", headers=auth(), **detect_parts(image, prompt=prompt))

@@ -19,6 +19,11 @@ def cam(pitch: float, stabilised: bool = True) -> CameraModel:
     return CameraModel.from_hfov(640, 480, HFOV, pitch, stabilised)
 
 
+def ground(height: float, depression_deg: float) -> float:
+    """How far ahead a ray this many degrees below the horizon meets the ground."""
+    return height / math.tan(math.radians(depression_deg))
+
+
 def extent(points: tuple[tuple[float, float], ...]) -> tuple[float, float, float, float]:
     """(min north, max north, min east, max east)."""
     ns, es = [p[0] for p in points], [p[1] for p in points]
@@ -41,11 +46,11 @@ def test_nadir_footprint_is_the_image_rectangle() -> None:
     [
         # Oblique: the near edge is where the image's bottom ray meets the ground; the far edge is the top ray's,
         # or the range cut when that lies beyond it.
-        (-45.0, 30.0, 1000.0, 30 / math.tan(math.radians(45 + VFOV / 2)), 30 / math.tan(math.radians(45 - VFOV / 2))),
-        (-45.0, 30.0, 50.0, 30 / math.tan(math.radians(45 + VFOV / 2)), 50.0),
-        (-60.0, 20.0, 1000.0, 20 / math.tan(math.radians(60 + VFOV / 2)), 20 / math.tan(math.radians(60 - VFOV / 2))),
+        (-45.0, 30.0, 1000.0, ground(30, 45 + VFOV / 2), ground(30, 45 - VFOV / 2)),
+        (-45.0, 30.0, 50.0, ground(30, 45 + VFOV / 2), 50.0),
+        (-60.0, 20.0, 1000.0, ground(20, 60 + VFOV / 2), ground(20, 60 - VFOV / 2)),
         # Looking at the horizon: the upper half of the image sees sky; the ground is cut at the range.
-        (-20.0, 30.0, 80.0, 30 / math.tan(math.radians(20 + VFOV / 2)), 80.0),
+        (-20.0, 30.0, 80.0, ground(30, 20 + VFOV / 2), 80.0),
     ],
 )
 def test_oblique_footprint_near_and_far_edges(
@@ -99,7 +104,9 @@ def test_an_unstabilised_camera_rolls_with_the_vehicle_and_a_gimbal_does_not() -
 
 def test_every_border_pixel_geolocates_inside_the_footprint() -> None:
     """The footprint and `locate_pixel` are the same geometry: the ground point under any pixel lies inside."""
-    camera = CameraModel(640, 480, 420.0, 420.0, 330.0, 250.0, math.radians(-50), True, (-0.25, 0.08, 0, 0, 0))
+    camera = CameraModel(
+        640, 480, 420.0, 420.0, 330.0, 250.0, math.radians(-50), True, (-0.25, 0.08, 0, 0, 0)
+    )
     lat, lon, height = 47.0, 8.0, 25.0
     fp = ground_footprint(camera, height, 1000.0, yaw=0.3)
     telemetry = Telemetry(0.0, lat, lon, height, 0.0, 0.0, 0.3)

@@ -68,8 +68,8 @@ async def detect(
             frame = await run_in_threadpool(decode_image, data, settings.server.max_image_pixels)
             t_decode = time.perf_counter() - t_decode
             t_detect = time.perf_counter()
-            detections = await run_in_threadpool(
-                pipeline.detect, frame, superset, roi, fields.frame_id, fields.prompt
+            sighting = await run_in_threadpool(
+                pipeline.look, frame, superset, roi, fields.frame_id, fields.prompt
             )
             t_detect = time.perf_counter() - t_detect
     except QueueFullError as exc:
@@ -83,7 +83,7 @@ async def detect(
     early = pipeline.early_stage() if fields.stage == "early" else None
     t_verify = time.perf_counter()
     candidates = await (early or pipeline).verify_async(
-        frame, detections, fields.prompt, superset, check, t_received + pipeline.deadline_s
+        frame, sighting.candidates, fields.prompt, superset, check, t_received + pipeline.deadline_s, sighting
     )
     t_verify = time.perf_counter() - t_verify
     await run_in_threadpool(
@@ -114,6 +114,8 @@ async def detect(
                 justification=c.detection.justification,
                 judged=c.detection.judged,
                 placement_ok=c.detection.placement_ok,
+                unjudged=list(c.detection.unjudged),
+                singled_out=c.detection.singled_out,
                 verifier=c.verifier,
                 t_verify=round(c.t_verify, 4),
                 previously_rejected=c.previously_rejected,

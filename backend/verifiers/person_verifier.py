@@ -24,12 +24,16 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from backend.scene import ATTRIBUTE_WORDS, unjudged_words
 from backend.verifiers import person_model as body
 from backend.verifiers.attributes import (
     COLOUR_WORDS,
+    HEAD,
     LOWER,
-    REGIONS,
+    LYING,
+    SITTING,
     UPPER,
+    UPRIGHT,
     colour_claims,
     posture_claim,
 )
@@ -37,6 +41,7 @@ from backend.verifiers.colour_names import ColourNamer, srgb_to_lab, subsample, 
 from backend.verifiers.interface import VerifierAnswer, nothing_to_judge
 from backend.verifiers.person_model import PersonModel
 from behaviors.detection import Verdict
+from behaviors.spatial_relations import parse_description
 
 LYING_MIN_DEG = 60.0  # torso angle from the image vertical
 UPRIGHT_MAX_DEG = 30.0
@@ -47,6 +52,60 @@ DARK_ABSENT_SHARE = 0.2
 OTHER_COLOUR_SHARE = 0.4  # another colour this much of the garment, the named one under present: no
 BODY_MARGIN = 0.5  # the person's extent: mask within this many torso lengths of a visible keypoint
 OUTWEIGHED_RATIO = 0.5  # ...or the named colours together under half of that other colour: no
+
+
+OBJECT = "object"  # the one region of a candidate that is not a person
+GRABCUT_ITERATIONS = 4
+MIN_OBJECT_SHARE = 0.15  # a segmentation keeping less of the box than this failed: the box's middle instead
+OBJECT_MIDDLE = 0.6  # ...an ellipse over this share of the box's width and height
+
+
+def object_mask(crop_bgr: np.ndarray, target_box: tuple[float, float, float, float]) -> np.ndarray:
+    """The object's pixels in the crop (a boolean mask inside the box), not the road or water around it.
+
+    OpenCV's GrabCut, started from the box: everything outside it (the 50 px margin of the crop) is
+    background, colour models of both sides are fitted and the box's pixels split between them, so a car's
+    box loses the asphalt at its corners and a boat's the water. Where that keeps under
+    `MIN_OBJECT_SHARE` of the box (an object the colour of its surroundings, a box at the crop's edge
+    with no background to learn from), the middle of the box, an ellipse, stands in for it. Deterministic:
+    GrabCut's k-means seeding uses OpenCV's thread-local random generator, reseeded for every call.
+    """
+    height, width = crop_bgr.shape[:2]
+    x, y, w, h = target_box
+    x1, y1 = max(int(np.floor(x)), 0), max(int(np.floor(y)), 0)
+    x2, y2 = min(int(np.ceil(x + w)), width), min(int(np.ceil(y + h)), height)
+    inside = np.zeros((height, width), bool)
+    if x2 - x1 < 2 or y2 - y1 < 2:
+        return inside
+    inside[y1:y2, x1:x2] = True
+    middle = np.zeros((height, width), np.uint8)
+    centre = (int(round((x1 + x2 - 1) / 2)), int(round((y1 + y2 - 1) / 2)))
+    axes = (
+        max(int(round(OBJECT_MIDDLE * (x2 - x1) / 2)), 1),
+        max(int(round(OBJECT_MIDDLE * (y2 - y1) / 2)), 1),
+    )
+    cv2.ellipse(middle, centre, axes, 0, 0, 360, 1, -1)
+    has_background = x1 > 0 or y1 > 0 or x2 < width or y2 < height
+    if has_background and (x2 - x1) * (y2 - y1) >= 16:
+        mask = np.zeros((height, width), np.uint8)
+        background, foreground = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
+        cv2.setRNGSeed(0)
+        try:
+            cv2.grabCut(
+                np.ascontiguousarray(crop_bgr),
+                mask,
+                (x1, y1, x2 - x1, y2 - y1),
+                background,
+                foreground,
+                GRABCUT_ITERATIONS,
+                cv2.GC_INIT_WITH_RECT,
+            )
+        except cv2.error:
+            mask[:] = cv2.GC_BGD  # a degenerate colour model (a flat crop): the box's middle below
+        found: np.ndarray = ((mask == cv2.GC_FGD) | (mask == cv2.GC_PR_FGD)) & inside
+        if found.sum() >= MIN_OBJECT_SHARE * (x2 - x1) * (y2 - y1):
+            return found
+    return np.asarray((middle > 0) & inside)
 
 
 @dataclass
@@ -61,18 +120,31 @@ class Observation:
     extent: tuple[float, float, float, float] | None = None  # the person mask's box (x, y, w, h)
 
 
-# Words that bring in another person or thing ("between the man in the red shirt", "next to the car"):
-# what follows describes them, not the target.
-RELATIONS = re.compile(
-    r"\b(between|beside|besides|behind|near|next to|in front of|left of|right of|close to|"
-    r"following|followed by|towards?|with (?:the|a|an) (?:man|woman|person|people|boy|girl|child|dog))\b"
-)
-
-
 def own_description(prompt: str) -> str:
-    """The part of a description about the target itself, before a relation to someone or something else."""
-    match = RELATIONS.search(prompt.lower())
-    return prompt[: match.start()] if match else prompt
+    """The part of a description about the target itself: relations to someone or something else taken out
+    ("between the man in the red shirt and ...", "next to the car"; `backend.scene`)."""
+    return parse_description(prompt, ATTRIBUTE_WORDS).own
+
+
+def judged_words(prompt: str, superset: str) -> set[str]:
+    """The words of the target's own description this verifier judges: colour words with the garment they
+    name (not on the head: it has no head region), and posture words."""
+    tokens = re.findall(r"[a-z]+(?:-[a-z]+)*", prompt.lower())
+    judged: set[str] = set()
+    for i, token in enumerate(tokens):
+        parts = token.split("-")
+        if not any(p in COLOUR_WORDS for p in parts):
+            continue
+        following = tokens[i + 1 : i + 6]
+        garment = next((t for t in following if t in UPPER | LOWER | HEAD), None)
+        if superset == "person" and garment in HEAD:
+            continue
+        judged |= {token, *parts}
+        if garment is not None:
+            judged.add(garment)
+    if posture_claim(prompt, superset) is not None:
+        judged |= set(tokens) & (LYING | SITTING | UPRIGHT)
+    return judged
 
 
 def compound_colours(prompt: str) -> list[set[str]]:
@@ -239,10 +311,11 @@ class PersonVerifier:
         prompt = own_description(prompt)
         claims = colour_claims(prompt, superset)
         posture = posture_claim(prompt, superset)
+        unjudged = unjudged_words(prompt, superset, judged_words(prompt, superset))
         if not claims and posture is None:
-            return nothing_to_judge(self.name)
+            return nothing_to_judge(self.name, unjudged)
         if observation.reason:
-            return VerifierAnswer(Verdict.UNCERTAIN, observation.reason, self.name)
+            return VerifierAnswer(Verdict.UNCERTAIN, observation.reason, self.name, unjudged=unjudged)
         verdicts, notes = [], []
         if posture is not None:
             seen = observation.posture
@@ -265,6 +338,8 @@ class PersonVerifier:
                 notes.append(f"{name} on the head: no head region")
                 continue
             parts = ["upper", "lower"] if region == "whole" else [region]
+            if OBJECT in observation.regions:
+                parts = [OBJECT]  # not a person: one region, the object's own pixels
             visible = [r for r in parts if r in observation.regions]
             if not visible:
                 verdicts.append(Verdict.UNCERTAIN)
@@ -300,7 +375,8 @@ class PersonVerifier:
                     and hues < OUTWEIGHED_RATIO * other_share
                 )
                 notes.append(
-                    f"{name} {share:.0%} of {part} garment"
+                    f"{name} {share:.0%} of "
+                    + ("the object" if part == OBJECT else f"{part} garment")
                     + (f" (mostly {other}: {other_share:.0%})" if elsewhere or outweighed else "")
                 )
                 verdicts.append(
@@ -316,22 +392,17 @@ class PersonVerifier:
             verdict = Verdict.YES
         else:
             verdict = Verdict.UNCERTAIN
-        return VerifierAnswer(verdict, "; ".join(notes), self.name, observation.extent)
+        return VerifierAnswer(verdict, "; ".join(notes), self.name, observation.extent, unjudged=unjudged)
 
     def observe_object(
         self, crop_bgr: np.ndarray, target_box: tuple[float, float, float, float]
     ) -> Observation:
-        """Not a person: the middle of the box (no body model) as its one region, "whole"."""
-        x, y, w, h = target_box
-        top, bottom, left, right = REGIONS["whole"]
-        patch = crop_bgr[
-            max(int(y + top * h), 0) : max(int(y + bottom * h), 1),
-            max(int(x + left * w), 0) : max(int(x + right * w), 1),
-        ]
-        pixels = patch.reshape(-1, 3)
+        """Not a person: the object's own pixels (`object_mask`: segmented from the box, the margin around
+        it taken as background) as its one region."""
+        pixels = crop_bgr[object_mask(crop_bgr, target_box)]
         if len(pixels) < self.min_region_px:
             return Observation("box too small to judge colours")
-        return Observation(regions={"upper": srgb_to_lab(subsample(pixels), white_gains(crop_bgr))})
+        return Observation(regions={OBJECT: srgb_to_lab(subsample(pixels), white_gains(crop_bgr))})
 
     def verify(
         self,
@@ -343,7 +414,9 @@ class PersonVerifier:
     ) -> VerifierAnswer:
         prompt = own_description(prompt)
         if not colour_claims(prompt, superset) and posture_claim(prompt, superset) is None:
-            return nothing_to_judge(self.name)
+            return nothing_to_judge(
+                self.name, unjudged_words(prompt, superset, judged_words(prompt, superset))
+            )
         if superset == "person":
             return self.judge(self.observe(crop_bgr, target_box), prompt, superset)
         return self.judge(self.observe_object(crop_bgr, target_box), prompt, superset)
