@@ -276,7 +276,11 @@ class Pipeline:
         """`verify` for the server: waits without holding a thread, so waiting requests cost no threads."""
         t_start = time.perf_counter()
         deadline = deadline if deadline is not None else t_start + self.deadline_s
-        candidates, pending = self.submit(image, detections, prompt, superset, rejected)
+        # Crops, appearance histograms and the rejection check are CPU work on the client's image: off
+        # the event loop, like the detection.
+        candidates, pending = await asyncio.get_running_loop().run_in_executor(
+            None, self.submit, image, detections, prompt, superset, rejected
+        )
         for i, future in pending:
             wait_s = max(0.0, min(self.timeout_s, deadline - time.perf_counter()))
             try:

@@ -245,8 +245,12 @@ def judge_scene(
         if relation.kind in UNJUDGEABLE:
             unjudged.append(relation.text)
             continue
-        among_own = relation.kind in AMONG_OWN_KIND or (relation.kind == "between" and not relation.reference)
         ref = query.references.get(relation.reference)
+        # "between the man in red and the man in green": the others of its kind in view are the ends (the
+        # reference's two descriptions are not one object's).
+        among_own = relation.kind in AMONG_OWN_KIND or (
+            relation.kind == "between" and (ref is None or query.same_kind(ref) or ref.detector_class is None)
+        )
         located: list[Box] | None
         if among_own:
             located = list(boxes)

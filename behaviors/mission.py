@@ -196,6 +196,16 @@ def commanding(state: State) -> bool:
     return not state.along_mission or state.engaged
 
 
+def awaiting_decision(state: State) -> Target | None:
+    """The candidate the supervisor has still to decide on: while AWAITING_SUPERVISOR, and while LOST on the
+    way back to it (a short loss of the track must not take the candidate off the supervisor's page); else
+    one the search gave up before a decision (`State.pending`: a survey flew on past it)."""
+    waiting = state.mode is MissionState.AWAITING_SUPERVISOR or (
+        state.mode is MissionState.LOST and state.resume is MissionState.AWAITING_SUPERVISOR
+    )
+    return state.target if waiting else state.pending
+
+
 def step(state: State, event: Event, config: MissionConfig) -> Result:
     """The next state and the actions to execute, in order, for one event."""
     if not math.isfinite(event.time_s):
@@ -400,7 +410,8 @@ def _command(state: State, event: GcsCommand, config: MissionConfig) -> Result:
             new, msg = _enter(new, MissionState.CONFIRMED, "operator selected target")
         else:  # followed like any candidate; only the supervisor's confirm allows descent
             new, msg = _enter(new, MissionState.FOLLOWING, "operator selected target")
-        return new, (*engage, TrackerInit(cmd.box, -1, "operator"), *msg)
+        kind = mission.superset if mission is not None else ""  # what the mission searches for
+        return new, (*engage, TrackerInit(cmd.box, -1, "operator", label=kind), *msg)
     if isinstance(cmd, StopTracking):
         if state.mode not in ACTIVE:
             return state, ()
@@ -534,6 +545,8 @@ def _track(state: State, result: TrackResult, config: MissionConfig) -> Result:
     elif state.mode is MissionState.LOST:
         state, msg = _enter(replace(state, lost_stage=0), state.resume, "target re-acquired")
         actions.extend(msg)
+        if state.mode is MissionState.AWAITING_SUPERVISOR:
+            actions.append(_report(target, "awaiting"))  # the candidate again, for whoever missed it
 
     if config.verified_reinit and state.mode is MissionState.FOLLOWING:
         starting = bool(result.alarm) and not state.alarm
@@ -607,7 +620,8 @@ def _acquire(state: State, det: Detection, position: GeoEstimate | None, answer:
     )
     # Stop (any search scan, or the survey's motion) while the tracker locks on; the link repeats it.
     stop: tuple[Action, ...] = (SendSetpoint(Setpoint.zero()),) if commanding(new) else ()
-    return new, (*take, *stop, TrackerInit(det.box, answer.keyframe_id, det.candidate_id), *msg)
+    init = TrackerInit(det.box, answer.keyframe_id, det.candidate_id, label=det.label)
+    return new, (*take, *stop, init, *msg)
 
 
 def _settle_early_start(

@@ -51,7 +51,7 @@ from behaviors.events import (
     TimerTick,
 )
 from behaviors.geometry import Box
-from behaviors.mission import ACTIVE, MissionState, State, commanding, initial_state, step
+from behaviors.mission import ACTIVE, MissionState, State, awaiting_decision, commanding, initial_state, step
 from behaviors.mission_commands import MissionCommand, StartMission, TrackRectangle
 from behaviors.mission_config import MissionConfig
 from behaviors.reinit_policy import ReinitAction, ReinitDecision
@@ -146,7 +146,7 @@ class TrackingFrontendLike(Protocol):
 
     def feed(self, frame: Frame) -> TrackResult: ...
 
-    def start(self, keyframe_id: int, box: Any) -> bool: ...
+    def start(self, keyframe_id: int, box: Any, kind: str = "") -> bool: ...
 
     def apply_candidates(self, keyframe_id: int, detections: Sequence[Detection]) -> Detection | None: ...
 
@@ -416,7 +416,7 @@ class MissionRunner:
             )
             if chosen is not None:
                 return
-        self.frontend.start(keyframe, action.box)
+        self.frontend.start(keyframe, action.box, action.label)
 
     def _judge(self, action: JudgeCandidates) -> None:
         decision = self.frontend.judge_candidates(action.keyframe_id, action.candidates, action.refused)
@@ -481,6 +481,8 @@ class MissionRunner:
         if state.telemetry is not None:
             status["position"] = [state.telemetry.lat_deg, state.telemetry.lon_deg]
             status["altitude_m"] = state.telemetry.height_agl
+        # The candidate awaiting the supervisor rides every report while it waits, whatever happens to the
+        # track (a short loss, a re-acquisition, the survey flying on): the page keeps it and its Confirm button.
         awaiting = self._awaiting()
         if awaiting is not None:
             status["awaiting"] = awaiting
@@ -490,12 +492,10 @@ class MissionRunner:
         """The candidate awaiting the supervisor's decision: the tracked one (also while it is lost), else
         one the search gave up before a decision (`State.pending`, out of view: its crop from when it was)."""
         state = self.state
-        tracked = state.mode is MissionState.AWAITING_SUPERVISOR or (
-            state.mode is MissionState.LOST and state.resume is MissionState.AWAITING_SUPERVISOR
-        )
-        target = state.target if tracked else state.pending
+        target = awaiting_decision(state)
         if target is None:
             return None
+        tracked = target is state.target
         awaiting: dict[str, Any] = {
             "candidate_id": target.candidate_id or "tracked",
             "box": list(target.box.xyxy()),

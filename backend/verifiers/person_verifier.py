@@ -12,8 +12,10 @@ Answers: yes when every named attribute is seen (a colour covering at least `pre
 garment; shared out among several colours named for one garment), no when one is clearly not (under
 `absent_share`, another colour covering 40 %, or another posture), otherwise uncertain.
 A person the model cannot see (no body found, a garment under `min_region_px` pixels, a hat or bag it
-has no region for) is `uncertain`: nothing is guessed from the box. Other objects (a bag, a boat) have
-no body model: their colours are judged the same way on the middle of the box.
+has no region for) is `uncertain`: nothing is guessed from the box. Other objects (a car, a boat, a bag)
+have no body model: their own pixels are segmented from the box (`object_mask`, GrabCut with the crop's
+margin as background) and their colour is their dominant one (`object_colour`). Words it has no reading
+for ("suv", "motorboat", "striped") are listed in the answer's `unjudged`.
 """
 
 from __future__ import annotations
@@ -106,6 +108,40 @@ def object_mask(crop_bgr: np.ndarray, target_box: tuple[float, float, float, flo
         if found.sum() >= MIN_OBJECT_SHARE * (x2 - x1) * (y2 - y1):
             return found
     return np.asarray((middle > 0) & inside)
+
+
+DOMINANT_YES = (
+    0.8  # a colour covering this share of what the object's most common colour covers is its colour
+)
+DOMINANT_NO = 0.4  # ...one under this share of it is not
+
+
+def object_colour(
+    shares: dict[str, float], group: set[str], named: set[str], present: float, absent: float
+) -> tuple[Verdict, str]:
+    """The verdict on one colour claim about an object that is not a person (a car's paint, a hull): its
+    colour is its dominant one. The named colour is "yes" when it covers at least DOMINANT_YES of what the
+    object's most common colour covers (and `present` of the object), "no" under DOMINANT_NO of it or
+    under `absent`; in between it is uncertain. A black car's highlights read white and a white car's
+    glass black, but neither is the car's most common colour. "dark" keeps its lightness rule (most of the
+    object darker than L* 35)."""
+    share = sum(shares.get(c, 0.0) for c in group)
+    name = "-".join(sorted(group))
+    dominant, most = max(
+        ((c, v) for c, v in shares.items() if c != "dark"), key=lambda cv: cv[1], default=("", 0.0)
+    )
+    note = f"{name} {share:.0%} of the object (most: {dominant} {most:.0%})"
+    if group == {"dark"}:
+        return (
+            Verdict.YES
+            if share >= DARK_PRESENT_SHARE
+            else Verdict.NO
+            if share < DARK_ABSENT_SHARE
+            else Verdict.UNCERTAIN
+        ), note
+    if share < absent or share < DOMINANT_NO * most:
+        return Verdict.NO, note
+    return (Verdict.YES if share >= max(present, DOMINANT_YES * most) else Verdict.UNCERTAIN), note
 
 
 @dataclass
@@ -356,6 +392,11 @@ class PersonVerifier:
             for part in visible:
                 shares = namer.shares(observation.regions[part])
                 share = sum(shares.get(c, 0.0) for c in group)
+                if part == OBJECT:
+                    verdict_of, note = object_colour(shares, group, named, present, absent)
+                    verdicts.append(verdict_of)
+                    notes.append(note)
+                    continue
                 # Clearly another colour: one colour other than the named ones (black aside: shade is black)
                 # covers much of the garment while the named one stays under `present`.
                 other, other_share = max(
