@@ -109,6 +109,9 @@ class DetectorConfig(ConfigSection):
     # inferences: 2 lifted recall of people under 32 px in 640-px keyframes 0.61 -> 0.81 (2.4-3.1x the time).
     tiles: int = Field(2, ge=0, le=8)
     tile_overlap: float = Field(0.2, ge=0, le=0.5)
+    # A keyframe's inferences (whole frame and tiles) at once, up to one per core over all requests: the
+    # same work, a lone keyframe answered sooner. False: one after another, on the request's thread.
+    parallel_tiles: bool = True
     # With kind = "yolox": the open-vocabulary detector for prompts naming no COCO class (built from hf_model
     # and device; needs the gpu extra). Empty: such prompts are answered 422 with the nearest known classes.
     open_vocabulary: Literal["", "grounding_dino", "owlv2"] = ""
@@ -123,6 +126,9 @@ class VerifierConfig(ConfigSection):
     timeout_s: float = Field(10.0, gt=0, le=300)  # one verification
     request_deadline_s: float = Field(20.0, gt=0, le=600)  # the whole request, detection included
     concurrency: int = Field(16, ge=1, le=512)  # verifications in flight, all vehicles together
+    # The local verifier's pose-model interpreters: candidates are judged this many at once (0: one per
+    # core; each holds the model, about 30 MB). 1: one after another, as before.
+    local_instances: int = Field(0, ge=0, le=64)
     uncertain_policy: UncertainPolicy = "uncertain"  # what an unparseable or timed-out answer becomes
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import cv2
@@ -250,6 +251,19 @@ def test_int8_model_is_derived_from_the_shared_weights(
     image = _read(sequences_dir / "uav123_person12_1" / "frames" / "000001.jpg")
     found = int8.detect(image, ["person"])
     assert found and all(d.label == "person" and d.box.is_valid() for d in found)
+
+
+def test_parallel_tiles_find_exactly_what_one_after_another_finds(
+    detector: YoloxDetector, sequences_dir: Path
+) -> None:
+    """`[detector] parallel_tiles` changes when the inferences run, never what they find."""
+    image = cv2.resize(_read(sequences_dir / "uav123_group1_1" / "frames" / "000001.jpg"), (640, 360))
+    serial = TiledDetector(detector, 2, min_side=detector.input_size)
+    parallel = TiledDetector(detector, 2, min_side=detector.input_size, parallel=True)
+    found = serial.detect(image, ["person"])
+    assert len(found) >= 3 and parallel.detect(image, ["person"]) == found
+    with ThreadPoolExecutor(4) as pool:  # several requests at once share the pool
+        assert list(pool.map(lambda _: parallel.detect(image, ["person"]), range(6))) == [found] * 6
 
 
 def test_tiles_leave_frames_the_model_sees_whole(detector: YoloxDetector, sequences_dir: Path) -> None:
