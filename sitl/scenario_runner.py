@@ -36,6 +36,13 @@ from behaviors.geometry import Box, iou
 from sitl.camera_render import FrameTruth, RenderedFrame, TruthBox, VehiclePose
 from sitl.camera_server import CameraServer, PoseFollower
 from sitl.fault_proxy import FaultProxy
+from sitl.flight_stack import (
+    REAL_AUTOPILOTS,
+    FlightStack,
+    PoseSource,
+    find_flight_stack,
+    start_flight_stack,
+)
 from sitl.metrics import (
     FOLLOW_STATES,
     FrameSample,
@@ -80,7 +87,9 @@ class RunOptions:
     vlm_latency_s: float = 2.0
     startup_timeout_s: float = 90.0
     arducopter_binary: Path | None = None  # None: sitl.arducopter_sitl.default_binary()
-    speedup: float = 5.0  # the real SITL's speed-up while it boots and takes off (the mission runs at 1)
+    px4_package: Path | None = None  # None: sitl.px4_sitl.default_package()
+    speedup: float = 5.0  # ArduCopter's speed-up while it boots and takes off (the mission runs at 1)
+    companion_settings: tuple[str, ...] = ()  # more `--set section.key=value` for the companion
 
 
 @dataclass(frozen=True)
@@ -98,7 +107,7 @@ class _Vehicle:
     index: int
     vehicle_id: str
     autopilot: Any
-    follower: PoseFollower
+    follower: PoseSource
     camera: CameraServer
     proxy: FaultProxy
     gcs: ScriptedGcs
@@ -162,11 +171,10 @@ class ScenarioRun:
         self.camera = CameraModel.from_hfov(640, 480, 70.0, MOUNT_PITCH_DEG, stabilised=True)
         self.model_dir = resolve_model_dir(options.model_dir)
         self.tracker = options.tracker or default_tracker(self.model_dir)
-        self.arducopter: Path | None = None
-        if self.personality == "arducopter":
-            from sitl.arducopter_sitl import find_binary
-
-            self.arducopter = find_binary(options.arducopter_binary)  # never a silent fall-back to the mock
+        self.flight_stack: Path | None = None  # the real autopilot's binary or package
+        if self.real:
+            override = options.arducopter_binary if self.personality == "arducopter" else options.px4_package
+            self.flight_stack = find_flight_stack(self.personality, override)  # never the mock instead
         # A temp work dir is removed after the run (--work-dir keeps one).
         self._own_work = options.work_dir is None
         self.work = options.work_dir or Path(tempfile.mkdtemp(prefix=f"cloudtrack-sim-{scenario.name}-"))
@@ -185,7 +193,7 @@ class ScenarioRun:
 
     @property
     def real(self) -> bool:
-        return self.personality == "arducopter"
+        return self.personality in REAL_AUTOPILOTS
 
     # ----------------------------------------------------------------------------------------- helpers
     def now(self) -> float:
@@ -230,11 +238,14 @@ class ScenarioRun:
         origin = VEHICLE_ORIGINS[index % len(VEHICLE_ORIGINS)]
         vid = f"drone-{index + 1}"
         udp_port = _free_udp_port() if self.scenario.companion_listens else None
+        follower: Any
         if self.real:
-            autopilot, gcs, camera_url = self._start_arducopter(vid, origin, udp_port)
+            autopilot = self._start_real(vid, origin, udp_port)
+            gcs = autopilot.gcs
+            follower = autopilot.camera_pose(origin)
         else:
             autopilot, gcs, camera_url = self._start_mock(origin, udp_port)
-        follower = PoseFollower(camera_url, origin=origin).start()
+            follower = PoseFollower(camera_url, origin=origin).start()
         camera = CameraServer(
             self.world, self.camera, follower.pose, fps=30.0, frame_id_base=index << FRAME_ID_BITS
         )
@@ -277,30 +288,19 @@ class ScenarioRun:
         gcs = ScriptedGcs(f"udpout:127.0.0.1:{autopilot.link_port('gcs')}").start()
         return autopilot, gcs, f"udpout:127.0.0.1:{autopilot.link_port('camera')}"
 
-    def _start_arducopter(
-        self, vid: str, origin: tuple[float, float], udp_port: int | None
-    ) -> tuple[Any, ScriptedGcs, str]:
-        from sitl.arducopter_sitl import ArduCopterSitl, RealAutopilot
-
-        assert self.arducopter is not None
+    def _start_real(self, vid: str, origin: tuple[float, float], udp_port: int | None) -> FlightStack:
+        assert self.flight_stack is not None
         lat, lon = _home(origin)
-        sitl = ArduCopterSitl(
-            self.arducopter,
-            self.work / f"{vid}-arducopter",
-            (lat, lon, HOME_ALT_M, 0.0),
+        autopilot = start_flight_stack(
+            self.personality,
+            self.flight_stack,
+            self.work / f"{vid}-{self.personality}",
+            (lat, lon, HOME_ALT_M),
+            udp_port,
             speedup=self.options.speedup,
-        ).start()
-        self.progress(
-            f"{vid}: ArduCopter SITL {self.arducopter} (pid {sitl.process.pid if sitl.process else '?'}, "
-            f"instance {sitl.instance}, speed-up {self.options.speedup:g} until airborne)"
         )
-        try:
-            gcs = ScriptedGcs(f"tcp:127.0.0.1:{sitl.ports.gcs}").start()
-            autopilot = RealAutopilot(sitl, gcs, udp_port)
-        except Exception:
-            sitl.stop()
-            raise
-        return autopilot, gcs, f"tcp:127.0.0.1:{sitl.ports.camera}"
+        self.progress(f"{vid}: {autopilot.describe()}")
+        return autopilot
 
     def _start_companion(self, v: _Vehicle) -> None:
         v.events_path.unlink(missing_ok=True)  # a work dir may be reused: only this run's events count
@@ -310,12 +310,14 @@ class ScenarioRun:
             f"camera.mount_pitch_deg={MOUNT_PITCH_DEG}",
             "camera.hfov_deg=70.0",
             f"mavlink.connection={self._companion_link(v)}",
+            f"mavlink.target_system={v.autopilot.system_id if self.real else 1}",
             f"backend.url={v.proxy.url}",
             f"tracker.name={self.tracker}",
             f"tracker.model_dir={self.model_dir}",
             f"behavior.standoff_m={STANDOFF_M}",
             f"recording.dir={self.work / 'records'}",
             *self.scenario.companion_settings,
+            *self.options.companion_settings,
         ]
         cmd = [
             sys.executable,
@@ -503,13 +505,11 @@ class ScenarioRun:
             self.fault_times[fault.kind] = self.now()
             self.say(f"FAULT {fault.kind} on {v.vehicle_id}")
             if fault.kind == "takeover":
-                v.autopilot.set_mode(TAKEOVER_MODE[self.personality], source="pilot")
+                v.autopilot.set_mode(self._takeover_mode(v), source="pilot")
             elif fault.kind == "rc_takeover":
                 self.fault_times["takeover"] = self.now()
                 if self.real:
-                    from sitl.arducopter_sitl import RC_LOITER_PWM
-
-                    v.autopilot.rc_mode_switch(RC_LOITER_PWM, "LOITER")
+                    v.autopilot.rc_takeover()
                 else:
                     from sitl.autopilot import RC_MODE_SWITCH_PWM
 
@@ -539,14 +539,20 @@ class ScenarioRun:
                 v.pending_decision = None
                 self._send_start(v, 2)
 
+    def _takeover_mode(self, v: _Vehicle) -> str:
+        return str(v.autopilot.takeover_mode) if self.real else TAKEOVER_MODE[self.personality]
+
     def _fly_to(self, v: _Vehicle) -> None:
         """The GCS takes the vehicle back: GUIDED, then a position target 15 m east of where it is."""
         pose = v.follower.pose()
         here = (pose.north, pose.east)
         there = (here[0] + FLY_TO_OFFSET_M[0], here[1] + FLY_TO_OFFSET_M[1])
-        v.gcs.set_mode(4)  # GUIDED on ArduCopter
-        time.sleep(0.1)
-        v.gcs.fly_to(there[0] - v.origin[0], there[1] - v.origin[1], pose.down)
+        if self.real:
+            v.autopilot.gcs_fly_to(there[0] - v.origin[0], there[1] - v.origin[1], pose.down)
+        else:
+            v.gcs.set_mode(4)  # GUIDED on ArduCopter
+            time.sleep(0.1)
+            v.gcs.fly_to(there[0] - v.origin[0], there[1] - v.origin[1], pose.down)
         v.fly_to = (self.now(), here, there)
         self.say(
             f"{v.vehicle_id}: GCS fly-to ({there[0]:.1f}, {there[1]:.1f}) from ({here[0]:.1f}, {here[1]:.1f})"
@@ -636,7 +642,8 @@ class ScenarioRun:
             for v in self.vehicles:  # the pilot arms and takes off; the companion never does
                 took = v.autopilot.fly_up(ALTITUDE_M, progress=self.progress)
                 self.progress(
-                    f"{v.vehicle_id}: airborne at {ALTITUDE_M:g} m in GUIDED after {took:.1f} s, SITL at real time"
+                    f"{v.vehicle_id}: airborne at {ALTITUDE_M:g} m in {v.autopilot.mode_name()} after "
+                    f"{took:.1f} s, SITL at real time"
                 )
         deadline = time.monotonic() + self.options.startup_timeout_s
         while not all(v.ready for v in self.vehicles):
@@ -829,9 +836,7 @@ class ScenarioRun:
             if self.real:
                 # The real autopilot changes mode some time after the pilot's action (the RC switch is
                 # debounced for 200 ms); the stop latency counts from the HEARTBEAT that reported the change.
-                from sitl.arducopter_sitl import ARDUCOPTER_MODES
-
-                wanted = ARDUCOPTER_MODES[TAKEOVER_MODE[self.personality]]
+                wanted = v.autopilot.custom_mode(v.autopilot.takeover_mode)
                 seen = [
                     t - epoch
                     for t, mode, _ in list(v.gcs.modes)
@@ -864,7 +869,9 @@ class ScenarioRun:
         )
         metrics["frames_rendered"] = len(v.frames)
         # ArduCopter flies a setpoint only in GUIDED, PX4 only in OFFBOARD: those are the accepted ones.
-        active = "OFFBOARD" if self.personality == "px4" else "GUIDED"
+        active = (
+            v.autopilot.offboard_mode if self.real else "OFFBOARD" if self.personality == "px4" else "GUIDED"
+        )
         metrics["setpoints_accepted"] = sum(
             1 for sp in list(v.autopilot.setpoints) if sp.link == "companion" and sp.mode == active
         )

@@ -339,6 +339,7 @@ class ScriptedGcs:
         self.positions: list[tuple[float, float, float, float]] = []  # (time, north, east, down)
         self.params: dict[str, float] = {}
         self._rc: dict[int, int] = {}  # channel -> PWM the pilot's radio holds, re-sent at 10 Hz
+        self._sticks: tuple[int, int, int, int] | None = None  # MANUAL_CONTROL x, y, z, r, re-sent at 10 Hz
         self._stop = threading.Event()
         self._lock = threading.Lock()
         self._thread = threading.Thread(target=self._run, name="scripted-gcs", daemon=True)
@@ -358,7 +359,7 @@ class ScriptedGcs:
                         mavutil.mavlink.MAV_TYPE_GCS, mavutil.mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0
                     )
                 last_hb = now
-            if self._rc and now - last_rc >= 0.1:
+            if (self._rc or self._sticks) and now - last_rc >= 0.1:
                 self._send_rc()
                 last_rc = now
             try:
@@ -401,19 +402,35 @@ class ScriptedGcs:
     def request_interval(self, msg_id: int, hz: float) -> None:
         self._command(mavutil.mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, 1e6 / hz, component=1)
 
-    def set_mode(self, custom_mode: int) -> None:
+    def set_mode(self, custom_mode: int, sub_mode: int = 0) -> None:
+        """MAV_CMD_DO_SET_MODE: ArduPilot's mode number, or PX4's main and sub mode."""
         self._command(
             mavutil.mavlink.MAV_CMD_DO_SET_MODE,
             mavutil.mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
             custom_mode,
+            sub_mode,
             component=1,
         )
+
+    def heartbeat(self) -> None:
+        """One GCS HEARTBEAT now (besides the 1 Hz ones): PX4 takes the first local sender as its GCS."""
+        with self._lock:
+            self.conn.mav.heartbeat_send(
+                mavutil.mavlink.MAV_TYPE_GCS, mavutil.mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0
+            )
 
     def arm(self) -> None:
         self._command(mavutil.mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1, component=1)
 
     def takeoff(self, height_m: float) -> None:
+        """ArduCopter: param7 is the height above home."""
         self._command(mavutil.mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, height_m, component=1)
+
+    def takeoff_here(self) -> None:
+        """PX4: yaw, latitude, longitude and altitude NaN (here, facing as now, to MIS_TAKEOFF_ALT); a zero
+        latitude/longitude would be a take-off towards 0 N 0 E."""
+        nan = math.nan
+        self._command(mavutil.mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, nan, nan, nan, nan, component=1)
 
     def set_param(self, name: str, value: float) -> None:
         with self._lock:
@@ -444,7 +461,19 @@ class ScriptedGcs:
         """Flip the flight-mode switch (channel 5, FLTMODE_CH)."""
         self.hold_rc(5, pwm)
 
+    def hold_sticks(self, pitch: int = 0, roll: int = 0, throttle: int = 500, yaw: int = 0) -> None:
+        """The pilot's sticks as PX4's MAVLink joystick (MANUAL_CONTROL x, y, z, r: -1000..1000, throttle
+        0..1000, 500 = hold height in POSCTL), re-sent at 10 Hz as QGroundControl's virtual joystick does."""
+        self._sticks = (pitch, roll, throttle, yaw)
+        self._send_rc()
+
     def _send_rc(self) -> None:
+        if self._sticks is not None:
+            x, y, z, r = self._sticks
+            with self._lock:
+                self.conn.mav.manual_control_send(self.target[0], x, y, z, r, 0)
+        if not self._rc:
+            return
         # 0: channel not overridden (the SITL's own input stays); the throttle the pilot holds at mid-stick
         # keeps LOITER/ALT_HOLD level after a takeover instead of descending on the SITL's idle throttle.
         pwm = [self._rc.get(ch, 0) for ch in range(1, 9)]
@@ -473,6 +502,16 @@ class ScriptedGcs:
                 0,
                 0,
             )
+
+    def reposition(self, lat: float, lon: float, alt_amsl: float, yaw_deg: float = math.nan) -> None:
+        """MAV_CMD_DO_REPOSITION as COMMAND_INT (QGroundControl's "Go to location" on PX4): switch to the
+        hold mode and fly there at the default speed."""
+        with self._lock:
+            self.conn.mav.command_int_send(
+                self.target[0], 1, mavutil.mavlink.MAV_FRAME_GLOBAL, mavutil.mavlink.MAV_CMD_DO_REPOSITION,
+                0, 0, -1, mavutil.mavlink.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE, 0, yaw_deg,
+                round(lat * 1e7), round(lon * 1e7), alt_amsl,
+            )  # fmt: skip
 
     def abort(self) -> None:
         from cloudtrack.gcs_protocol import CMD_ABORT
