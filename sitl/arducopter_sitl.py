@@ -243,6 +243,11 @@ class RealAutopilot:
         serial2 = socket.create_connection(("127.0.0.1", sitl.ports.companion), timeout=5.0)
         self.bridge = CompanionBridge(serial2, self.mode_name, companion_port).start()
 
+    def reset(
+        self, companion_port: int | None, height_m: float, progress: Callable[[str], None] = print
+    ) -> float:
+        raise NotImplementedError("the scenarios start a fresh ArduCopter SITL for each run")
+
     def describe(self) -> str:
         pid = self.sitl.process.pid if self.sitl.process else "?"
         return (
@@ -272,8 +277,10 @@ class RealAutopilot:
         return self.bridge.setpoints
 
     def mode_name(self) -> str:
-        number = self.gcs.mode()
-        return next((n for n, v in ARDUCOPTER_MODES.items() if v == number), str(number))
+        return self.mode_of(self.gcs.mode())
+
+    def mode_of(self, custom_mode: int | None) -> str:
+        return next((n for n, v in ARDUCOPTER_MODES.items() if v == custom_mode), str(custom_mode))
 
     def set_mode(self, name: str, source: str = "pilot") -> bool:
         self.mode_history.append((time.monotonic(), name, source))

@@ -71,6 +71,13 @@ class CompanionBridge:
             t.start()
         return self
 
+    def reset(self, companion_port: int | None) -> None:
+        """For the next companion on a reused autopilot: its address learnt afresh (or its listening port),
+        nothing recorded, the link up."""
+        self._peer = ("127.0.0.1", companion_port) if companion_port else None
+        self.setpoints = []
+        self._down.clear()
+
     def set_down(self, down: bool) -> None:
         if down:
             self._down.set()

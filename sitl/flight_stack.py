@@ -42,7 +42,13 @@ class FlightStack(Protocol):
         """The pose the camera renders, in world coordinates (the vehicle's home lies at `origin`)."""
         ...
 
-    def mode_name(self) -> str: ...
+    def mode_name(self) -> str:
+        """The mode the autopilot's last HEARTBEAT on the GCS link reported."""
+        ...
+
+    def mode_of(self, custom_mode: int | None) -> str:
+        """A HEARTBEAT.custom_mode's name."""
+        ...
 
     def custom_mode(self, name: str) -> int:
         """HEARTBEAT.custom_mode of a mode name (to find when the autopilot reported it)."""
@@ -64,6 +70,13 @@ class FlightStack(Protocol):
         self, height_m: float, timeout_s: float = 90.0, progress: Callable[[str], None] = print
     ) -> float:
         """Arm and take off as the pilot would; the seconds it took."""
+        ...
+
+    def reset(
+        self, companion_port: int | None, height_m: float, progress: Callable[[str], None] = print
+    ) -> float:
+        """Make a vehicle a scenario has used fit for the next one (over home, facing north, hovering); the
+        seconds it took. Only PX4 is shared between runs; ArduCopter starts afresh each time."""
         ...
 
     def describe(self) -> str: ...

@@ -340,6 +340,7 @@ class GroundTruthPose:
         self._parser.robust_parsing = True
         self._pose = VehiclePose(origin[0], origin[1], 0.0)
         self._pose_time = 0.0
+        self._speed = 0.0
         self.history: list[tuple[float, VehiclePose]] = []  # (monotonic time, pose), for drift measurements
         self._lock = threading.Lock()
         self._stop = threading.Event()
@@ -356,6 +357,11 @@ class GroundTruthPose:
     def age_s(self) -> float:
         with self._lock:
             return time.monotonic() - self._pose_time if self._pose_time else math.inf
+
+    def speed(self) -> float:
+        """Horizontal ground speed (m/s), SIH's."""
+        with self._lock:
+            return self._speed
 
     def _run(self) -> None:
         while not self._stop.is_set():
@@ -379,13 +385,15 @@ class GroundTruthPose:
                 now = time.monotonic()
                 with self._lock:
                     self._pose, self._pose_time = pose, now
+                    self._speed = math.hypot(msg.vx, msg.vy) / 100.0
                     self.history.append((now, pose))
                     if len(self.history) > 20000:
                         del self.history[:10000]
 
     def stop(self) -> None:
         self._stop.set()
-        self._thread.join(timeout=2)
+        if self._thread.is_alive():
+            self._thread.join(timeout=2)
         self._sock.close()
 
 
@@ -422,6 +430,7 @@ class RealPx4:
         self.system_id = sitl.system_id
         self.mode_history: list[tuple[float, str, str]] = []
         self.bridge = CompanionBridge(sitl.take_onboard_socket(), self.mode_name, companion_port).start()
+        self.truth = GroundTruthPose(sitl.take_truth_socket(), sitl.home, (0.0, 0.0)).start()
         self.gcs.hold_sticks()
 
     @property
@@ -436,10 +445,15 @@ class RealPx4:
         )
 
     def camera_pose(self, origin: tuple[float, float]) -> GroundTruthPose:
-        return GroundTruthPose(self.sitl.take_truth_socket(), self.sitl.home, origin).start()
+        """SIH's ground truth (the real vehicle, not PX4's estimate), placed with its home at `origin`."""
+        self.truth.origin = origin
+        return self.truth
 
     def mode_name(self) -> str:
         return px4_mode_name(self.gcs.mode())
+
+    def mode_of(self, custom_mode: int | None) -> str:
+        return px4_mode_name(custom_mode)
 
     def custom_mode(self, name: str) -> int:
         return px4_custom_mode(name)
@@ -521,8 +535,49 @@ class RealPx4:
             time.sleep(0.1)
         return time.monotonic() - started
 
+    def reset(
+        self, companion_port: int | None, height_m: float, progress: Callable[[str], None] = print
+    ) -> float:
+        """Make a vehicle a scenario has used fit for the next one (tests share one PX4 this way): the
+        companion's link up and recorded afresh, airborne in HOLD at `height_m` over home, facing north.
+        The GCS's reposition also ends whatever mode the last scenario left (a failsafe's intended OFFBOARD
+        included, which would come back with the next setpoint stream). Returns the seconds it took."""
+        started = time.monotonic()
+        self.bridge.reset(companion_port)
+        self.mode_history.clear()
+        self.gcs.hold_sticks()
+        pos = self.gcs.position()
+        if not (self.gcs.modes and self.gcs.modes[-1][2]) or pos is None or -pos[2] < height_m / 2:
+            self.fly_up(height_m, progress=progress)
+        lat0, lon0, alt0 = self.sitl.home
+        deadline = time.monotonic() + 40.0
+        last_sent = -math.inf
+        while True:
+            self.sitl.check_running()
+            if time.monotonic() - last_sent > 3.0:  # again if a command was lost
+                self.gcs.reposition(lat0, lon0, alt0 + height_m, yaw_deg=0.0)
+                last_sent = time.monotonic()
+            pos, truth = self.gcs.position(), self.truth.pose()
+            if (
+                pos is not None
+                and self.mode_name() == "HOLD"
+                and math.hypot(pos[0], pos[1]) < 0.5
+                and abs(-pos[2] - height_m) < 0.3
+                and abs(math.degrees(truth.yaw)) < 10.0
+                and self.truth.speed() < 0.2
+            ):
+                break
+            if time.monotonic() > deadline:
+                raise RuntimeError(
+                    f"px4 did not come back over home in 40 s (at {pos}, mode {self.mode_name()}, "
+                    f"yaw {math.degrees(truth.yaw):.0f} deg):\n{self.sitl.log_tail()}"
+                )
+            time.sleep(0.1)
+        return time.monotonic() - started
+
     def close(self) -> None:
         self.bridge.close()
+        self.truth.stop()
         self.sitl.stop()
 
 

@@ -90,6 +90,9 @@ class RunOptions:
     px4_package: Path | None = None  # None: sitl.px4_sitl.default_package()
     speedup: float = 5.0  # ArduCopter's speed-up while it boots and takes off (the mission runs at 1)
     companion_settings: tuple[str, ...] = ()  # more `--set section.key=value` for the companion
+    # A real autopilot already running and airborne (tests share one PX4 this way): the runner resets it
+    # for the scenario (`FlightStack.reset`) instead of starting one, and leaves it running afterwards.
+    flight_stack: FlightStack | None = None
 
 
 @dataclass(frozen=True)
@@ -172,7 +175,12 @@ class ScenarioRun:
         self.model_dir = resolve_model_dir(options.model_dir)
         self.tracker = options.tracker or default_tracker(self.model_dir)
         self.flight_stack: Path | None = None  # the real autopilot's binary or package
-        if self.real:
+        self.shared = options.flight_stack
+        if self.shared is not None:
+            self.personality = self.shared.name
+            if scenario.vehicles != 1:
+                raise ValueError(f"{scenario.name} flies {scenario.vehicles} vehicles: one shared autopilot")
+        elif self.real:
             override = options.arducopter_binary if self.personality == "arducopter" else options.px4_package
             self.flight_stack = find_flight_stack(self.personality, override)  # never the mock instead
         # A temp work dir is removed after the run (--work-dir keeps one).
@@ -289,6 +297,10 @@ class ScenarioRun:
         return autopilot, gcs, f"udpout:127.0.0.1:{autopilot.link_port('camera')}"
 
     def _start_real(self, vid: str, origin: tuple[float, float], udp_port: int | None) -> FlightStack:
+        if self.shared is not None:
+            took = self.shared.reset(udp_port, ALTITUDE_M, self.progress)
+            self.progress(f"{vid}: {self.shared.describe()}, back over home after {took:.1f} s")
+            return self.shared
         assert self.flight_stack is not None
         lat, lon = _home(origin)
         autopilot = start_flight_stack(
@@ -638,7 +650,7 @@ class ScenarioRun:
         self.vehicles = [self._start_vehicle(i, backend_url) for i in range(s.vehicles)]
         for v in self.vehicles:
             self._start_companion(v)
-        if self.real:
+        if self.real and self.shared is None:
             for v in self.vehicles:  # the pilot arms and takes off; the companion never does
                 took = v.autopilot.fly_up(ALTITUDE_M, progress=self.progress)
                 self.progress(
@@ -726,7 +738,8 @@ class ScenarioRun:
                     self._write_video_frame(v)
             self.video.close()
         for v in self.vehicles:
-            for stop in (v.gcs.stop, v.follower.stop, v.proxy.stop, v.autopilot.close):
+            parts = (v.gcs.stop, v.follower.stop, v.proxy.stop, v.autopilot.close)
+            for stop in parts if self.shared is None else (v.proxy.stop,):
                 try:
                     stop()
                 except Exception as exc:  # tear everything down even if one part is already broken
@@ -931,9 +944,29 @@ class ScenarioRun:
                     "speed_m_s": round(after[0].horizontal_speed, 3),
                 }
             )
+        if self.real and "stall" in self.fault_times:
+            out["autopilot_during_stall"] = self._autopilot_during_stall(v)
         if v.flood:
             out["flood"] = dict(v.flood)
         return out
+
+    def _autopilot_during_stall(self, v: _Vehicle) -> dict[str, Any]:
+        """What the real autopilot did while the companion was frozen: its first mode change (PX4 leaves
+        OFFBOARD after COM_OF_LOSS_T; ArduCopter stays in GUIDED and stops after GUID_TIMEOUT) and what it
+        told the GCS."""
+        epoch = self.epoch or 0.0
+        t_stall = self.fault_times["stall"]
+        t_resume = self.fault_times.get("resume", math.inf)
+        modes = [(t - epoch, m) for t, m, _ in list(v.gcs.modes)]
+        before = [m for t, m in modes if t < t_stall]
+        change = next(((t, m) for t, m in modes if t >= t_stall and before and m != before[-1]), None)
+        return {
+            "mode_before": v.autopilot.mode_of(before[-1]) if before else None,
+            "mode_change": None
+            if change is None
+            else {"mode": v.autopilot.mode_of(change[1]), "after_s": round(change[0] - t_stall, 3)},
+            "texts": [text for t, text in v.gcs.statustexts if t_stall <= t - epoch <= t_resume][:10],
+        }
 
     def _results(self, end_t: float) -> dict[str, Any]:
         s = self.scenario

@@ -610,13 +610,13 @@ class VehicleLink:
         # Someone else took the vehicle: stop streaming at once and say why.
         self._enabled = self._engage = False
         self._stream_since = None
-        detail = f"{previous} -> {hb.mode} by pilot or GCS"
+        detail = f"{previous} -> {hb.mode} by {'the autopilot failsafe' if hb.failsafe else 'pilot or GCS'}"
         log.warning("offboard control ended: %s", detail)
         return SafetyEvent(now, "mode_change", "offboard_ended", detail, by_other_party=True, mode=hb.mode)
 
     def _request_streams(self) -> None:
         target = self._cfg.target_system
-        for msg_id, interval in stream_intervals_us(self._cfg.telemetry_rate_hz):
+        for msg_id, interval in stream_intervals_us(self._cfg.telemetry_rate_hz, self.autopilot_kind):
             self.endpoint.send(
                 partial(_set_message_interval, target=target, msg_id=msg_id, interval_us=interval)
             )
