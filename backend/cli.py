@@ -23,11 +23,12 @@ examples:
 # Subcommand modules; each defines add_parser(subparsers) and sets `func` on its parser.
 COMMAND_MODULES = (
     "backend.serve_command",
-    "backend.detect_command",
-    "backend.eval_command",
-    "backend.bench_command",
     "backend.service_command",
 )
+# The tools (detect, eval, bench: package backend_tools) declare their subcommands in this entry-point
+# group (pyproject.toml), so the service never imports them, nor what they import (nginx and redis
+# harnesses, the VLM emulator, the evaluation libraries).
+TOOL_COMMANDS = "cloudtrack.backend_commands"
 
 
 def add_config_flags(parser: argparse.ArgumentParser) -> None:
@@ -52,7 +53,7 @@ def build_parser() -> argparse.ArgumentParser:
         "CloudTrack back-end: superset detection, 50 px crops and concurrent verification for many drones.",
         EXAMPLES,
     )
-    add_command_modules(subparsers, COMMAND_MODULES)
+    add_command_modules(subparsers, COMMAND_MODULES, TOOL_COMMANDS)
     return parser
 
 

@@ -98,7 +98,7 @@ class DetectorConfig(ConfigSection):
     device: str = "cpu"  # torch device for grounding_dino / owlv2, e.g. "cuda"
     max_candidates: int = Field(10, ge=1, le=100)
     # yolox weights: "fp32" (the shared model) or "int8" (<model_dir>/yolox_nano/yolox_nano_int8.onnx, made by
-    # `python -m backend.detectors.quantize`). fp32 by default: int8 lost recall and was no faster here.
+    # `python -m backend_tools.quantize`). fp32 by default: int8 lost recall and was no faster here.
     precision: Literal["fp32", "int8"] = "fp32"
     # Sliced inference for small targets: the whole frame plus a grid of `tiles` columns (rows follow the
     # frame's aspect ratio) overlapping by `tile_overlap`; 0 = whole frame only. Costs tiles x rows + 1

@@ -5,7 +5,7 @@ detectors (YOLOX, COCO-80) need it mapped to their own class names; open-vocabul
 superset text as it is. An unmapped superset is an error naming the nearest known classes, never a silent
 empty answer.
 
-The words come from `coco_vocabulary.txt`, generated from WordNet by `backend.wordnet_vocabulary` (every
+The words come from `coco_vocabulary.txt`, generated from WordNet by `backend_tools.wordnet_vocabulary` (every
 noun below a COCO class's synsets: "kayak", "labrador retriever", "hiker", "moose" -> animal) and read once
 per process. Plurals are reduced to the singular the table knows (irregular ones are in the table).
 """

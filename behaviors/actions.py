@@ -22,6 +22,7 @@ class FlightMode(str, Enum):
     LOITER = "loiter"
     RTL = "rtl"
     LAND = "land"
+    MISSION = "mission"  # the autopilot's own mission: ArduPilot AUTO, PX4 MISSION (see ResumeMission)
 
 
 class QueryPurpose(str, Enum):
@@ -58,6 +59,17 @@ class ReleaseControl:
 @dataclass(frozen=True)
 class RequestMode:
     mode: FlightMode
+    reason: str = ""
+
+
+@dataclass(frozen=True)
+class ResumeMission:
+    """Hand the vehicle back to the autopilot's own mission (ArduPilot AUTO, PX4 MISSION) after a candidate
+    the companion had taken it for: at mission item `item`, the one it broke off at (the link sets the
+    current item only when the autopilot has moved on from it; None: wherever the autopilot stands).
+    Streaming ends; the request is repeated briefly, never against a mode the pilot chose meanwhile."""
+
+    item: int | None
     reason: str = ""
 
 
@@ -119,6 +131,7 @@ class ReportCandidate:
     position: GeoEstimate | None
     box: Box
     status: str  # "awaiting", "reverified" or "confirmed"
+    confirmed_by: str = ""  # with "confirmed": who confirmed ("supervisor page", "gcs")
 
 
 @dataclass(frozen=True)
@@ -135,6 +148,7 @@ Action = (
     | Hold
     | ReleaseControl
     | RequestMode
+    | ResumeMission
     | GcsMessage
     | BackendQuery
     | TrackerInit

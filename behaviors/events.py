@@ -20,6 +20,8 @@ class BackendAnswer:
     """The back-end's answer to a `BackendQuery` (same `query_id`), about keyframe `keyframe_id`.
 
     Candidate boxes are in the camera's pixels (the client scales them back from the keyframe size).
+    `pose` is the vehicle's telemetry when the keyframe was captured: a candidate is located on the ground
+    from where the camera was then, not from where a surveying drone has flown since (None: use the latest).
     """
 
     time_s: float
@@ -27,6 +29,7 @@ class BackendAnswer:
     keyframe_id: int
     candidates: tuple[Detection, ...] = ()
     final: bool = True  # false: the back-end's fast stage; the final verdicts on the keyframe follow
+    pose: Telemetry | None = None
 
 
 @dataclass(frozen=True)

@@ -66,6 +66,12 @@ def _rot_z(a: float, v: Vec3) -> Vec3:
 def pixel_ray_ned(camera: CameraModel, u: float, v: float, roll: float, pitch: float, yaw: float) -> Vec3:
     """The (unnormalised) NED direction of pixel (u, v) for a vehicle at the given attitude."""
     x, y = camera.normalised(u, v)  # through the lens model: wide lenses bend the edges most
+    return camera_ray_ned(camera, x, y, roll, pitch, yaw)
+
+
+def camera_ray_ned(camera: CameraModel, x: float, y: float, roll: float, pitch: float, yaw: float) -> Vec3:
+    """The NED direction of the ray (1, x, y) in the camera's forward-right-down axes (undistorted
+    normalised coordinates); linear in (x, y)."""
     ray: Vec3 = (1.0, x, y)  # FRD of the camera
     ray = _rot_y(camera.mount_pitch, ray)
     if not camera.stabilised:

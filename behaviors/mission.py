@@ -24,6 +24,7 @@ from behaviors.actions import (
     RememberRejection,
     ReportCandidate,
     RequestMode,
+    ResumeMission,
     SendSetpoint,
     TrackerInit,
     TrackerStop,
@@ -54,7 +55,7 @@ from behaviors.mission_commands import (
     StopTracking,
     TrackRectangle,
 )
-from behaviors.mission_config import ConfirmAction, LostAction, MissionConfig
+from behaviors.mission_config import ConfirmAction, LostAction, MissionConfig, SearchMode
 from behaviors.query_region import around, redetect_region
 from behaviors.rejection_memory import RejectedTarget, RejectionMemory
 from behaviors.safety_limits import apply_limits
@@ -130,6 +131,7 @@ class Target:
     signature: tuple[float, ...] = ()
     operator_selected: bool = False
     early: EarlyStart | None = None  # started before the final verdicts (never reported to the supervisor)
+    confirmed_by: str = ""  # who confirmed it ("supervisor page", "gcs"), once confirmed
 
 
 @dataclass(frozen=True)
@@ -156,17 +158,33 @@ class State:
     # The final verdicts refused a track the fast stage started: searches wait for final verdicts until a
     # track is verified or the mission restarts (the fast stage would pick the same person again).
     early_refused: bool = False
+    # The search runs along the autopilot's own mission (ArduPilot AUTO, PX4 MISSION): the companion
+    # commands nothing while it only looks. `engaged`: it took the vehicle from the mission for the
+    # current candidate (allowed by the start) when the mission was on item `break_off_item`, and hands
+    # it back there when the candidate ends (docs/behavior.md, "Search along the mission").
+    along_mission: bool = False
+    engaged: bool = False
+    break_off_item: int | None = None
+    let_go: bool = False  # the companion let go on a confirmation (on_confirm = hold): it commands nothing
+    found: RejectionMemory = RejectionMemory()  # confirmed finds the search went on from: not proposed again
 
 
 Result = tuple[State, tuple[Action, ...]]
 
 
 def initial_state(config: MissionConfig) -> State:
-    return State(
-        rejections=RejectionMemory(
-            radius_m=config.rejection_radius_m, signature_threshold=config.signature_threshold
-        )
+    memory = RejectionMemory(
+        radius_m=config.rejection_radius_m, signature_threshold=config.signature_threshold
     )
+    return State(rejections=memory, found=memory)
+
+
+def commanding(state: State) -> bool:
+    """Whether the companion flies the vehicle now (setpoints, holds; a stop is owed when it ends): an active
+    state, not after letting go on a confirmation, and along the autopilot's mission only once engaged."""
+    if state.mode not in ACTIVE or state.let_go:
+        return False
+    return not state.along_mission or state.engaged
 
 
 def step(state: State, event: Event, config: MissionConfig) -> Result:
@@ -203,27 +221,45 @@ def _abort(state: State, reason: str) -> Result:
     if state.mode is MissionState.ABORTED:
         return state, ()
     stop: list[Action] = []
-    if state.mode in ACTIVE:
+    if commanding(state):
         # Every abort lets go: stop, the autopilot's hold mode (none after a pilot's own mode change),
         # then silence.
         stop.append(ReleaseControl(reason))
     if state.mode in TRACKING:
         stop.append(TrackerStop(reason))
     new, msg = _enter(
-        replace(state, control=ControlState(), queries=()), MissionState.ABORTED, reason, "critical"
+        replace(state, control=ControlState(), queries=(), engaged=False),
+        MissionState.ABORTED,
+        reason,
+        "critical",
     )
     return new, (*stop, *msg)
 
 
 def _start_search(state: State, reason: str, config: MissionConfig) -> Result:
+    """SEARCHING (again): along the mission the vehicle goes back to it, if the companion had taken it, at
+    the item it broke off at; on the spot the search setpoint starts."""
+    hand_back: tuple[Action, ...] = ()
+    if state.engaged:
+        state = replace(state, engaged=False, holding=False, mode_requested=FlightMode.MISSION)
+        item = state.break_off_item
+        hand_back = (ResumeMission(item, reason), GcsMessage(f"RESUMING MISSION at item {_item(item)}"))
     new, msg = _enter(
-        replace(state, target=None, control=ControlState(), lost_stage=0, last_query_s=None),
+        replace(state, target=None, control=ControlState(), lost_stage=0, last_query_s=None, let_go=False),
         MissionState.SEARCHING,
         reason,
     )
     new, query = _search_query(new, config)
-    new, scan = _scan(new, config)
-    return new, (*msg, *scan, *query)
+    scan: tuple[Action, ...] = ()
+    if not new.along_mission:
+        new, scan = _scan(new, config)
+    return new, (*hand_back, *msg, *scan, *query)
+
+
+def _remember_found(state: State, target: Target) -> State:
+    """A confirmed find the search goes on from: never proposed again in this mission."""
+    entry = RejectedTarget(target.candidate_id, target.position, target.signature, state.now_s)
+    return replace(state, found=state.found.remember(entry))
 
 
 def _start_lost(state: State, reason: str, config: MissionConfig) -> Result:
@@ -236,12 +272,14 @@ def _start_lost(state: State, reason: str, config: MissionConfig) -> Result:
         "warning",
     )
     new, query = _redetect(new, state.target.box, config)
-    return new, (SendSetpoint(Setpoint.zero()), *msg, *query)
+    stop: tuple[Action, ...] = (SendSetpoint(Setpoint.zero()),) if commanding(state) else ()
+    return new, (*stop, *msg, *query)
 
 
-def _confirm(state: State, config: MissionConfig) -> Result:
-    target = state.target
-    assert target is not None
+def _confirm(state: State, by: str, config: MissionConfig) -> Result:
+    assert state.target is not None
+    target = replace(state.target, confirmed_by=by)
+    state = replace(state, target=target)
     report = _report(target, "confirmed")
     if state.mode is MissionState.LOST:
         new = replace(state, resume=MissionState.CONFIRMED, last_report_s=state.now_s)
@@ -251,7 +289,9 @@ def _confirm(state: State, config: MissionConfig) -> Result:
     )
     hold: tuple[Action, ...] = ()
     if config.on_confirm is ConfirmAction.HOLD:
-        hold = (ReleaseControl("confirmed: hold"),)  # the autopilot holds there; the GCS owns the vehicle
+        if commanding(state):  # the autopilot holds there; the GCS owns the vehicle
+            hold = (ReleaseControl("confirmed: hold"),)
+        new = replace(new, let_go=True, engaged=False)
     return new, (*hold, report, *msg)
 
 
@@ -271,8 +311,9 @@ def _reject(state: State, candidate_id: str) -> Result:
         MissionState.REJECTED,
         "supervisor rejected",
     )
+    stop: tuple[Action, ...] = (SendSetpoint(Setpoint.zero()),) if commanding(state) else ()
     actions: tuple[Action, ...] = (
-        SendSetpoint(Setpoint.zero()),
+        *stop,
         TrackerStop("rejected"),
         RememberRejection(target.candidate_id, target.position, target.signature),
         *msg,
@@ -291,22 +332,23 @@ def _command(state: State, event: GcsCommand, config: MissionConfig) -> Result:
         if not cmd.prompt.strip():
             return state, (GcsMessage("start refused: empty prompt", "warning"),)
         keep = state.mission is not None and state.mission.prompt == cmd.prompt
-        rejections = (
-            state.rejections
-            if keep
-            else RejectionMemory((), state.rejections.radius_m, state.rejections.signature_threshold)
-        )
+        rejections = state.rejections if keep else _forgotten(state.rejections)
+        found = state.found if keep else _forgotten(state.found)
         stop: tuple[Action, ...] = (TrackerStop("new mission"),) if state.mode in TRACKING else ()
         new = replace(
             state,
             mission=cmd,
             rejections=rejections,
+            found=found,
             backend_down=False,
             mode_requested=None,
             holding=False,
             early_refused=False,
+            along_mission=_along_mission(state, config),
         )
-        new, engage = _engage(new, "mission start")
+        engage: tuple[Action, ...] = ()
+        if not new.along_mission:  # on the spot: fly from the start (when allowed)
+            new, engage = _engage(new, "mission start")
         new, actions = _start_search(new, "mission started", config)
         return new, (*stop, *engage, *actions)
     if isinstance(cmd, TrackRectangle):
@@ -329,10 +371,14 @@ def _command(state: State, event: GcsCommand, config: MissionConfig) -> Result:
             target=target,
             control=ControlState(),
             lost_stage=0,
-            mode_requested=None,
             holding=False,
+            let_go=False,
+            along_mission=state.along_mission and mission is not None,
         )
-        new, engage = _engage(new, "operator target")
+        if new.along_mission:  # taken from the autopilot's mission (when allowed), handed back after
+            new, engage = _take_control(new, "operator target")
+        else:
+            new, engage = _engage(replace(new, mode_requested=None), "operator target")
         if config.operator_box_confirms:
             new, msg = _enter(new, MissionState.CONFIRMED, "operator selected target")
         else:  # followed like any candidate; only the supervisor's confirm allows descent
@@ -358,10 +404,46 @@ def _command(state: State, event: GcsCommand, config: MissionConfig) -> Result:
             return state, (GcsMessage("confirm: no such candidate", "warning"),)
         if state.mode is MissionState.CONFIRMED:
             return state, ()
-        return _confirm(state, config)
+        return _confirm(state, cmd.by, config)
     if isinstance(cmd, RejectCandidate):
         return _reject(state, cmd.candidate_id)
     return state, ()
+
+
+def _forgotten(memory: RejectionMemory) -> RejectionMemory:
+    return RejectionMemory((), memory.radius_m, memory.signature_threshold, memory.capacity)
+
+
+def _along_mission(state: State, config: MissionConfig) -> bool:
+    """Does a search starting now run along the autopilot's mission? (`[behavior] search`.) A restart while
+    the companion holds a vehicle it took from the mission stays along it (and hands it back)."""
+    if config.search is SearchMode.SPOT:
+        return False
+    if config.search is SearchMode.MISSION:
+        return True
+    flying_mission = state.telemetry is not None and state.telemetry.mission_active
+    return flying_mission or (state.along_mission and state.engaged)
+
+
+def _take_control(state: State, reason: str) -> Result:
+    """Along the mission: take the vehicle from it for a candidate, only when the start allowed it and the
+    autopilot is flying its mission at that moment (never from a mode the pilot chose). Remembers the item
+    to hand it back at."""
+    if not state.along_mission or state.engaged or state.mission is None or not state.mission.allow_engage:
+        return state, ()
+    telemetry = state.telemetry
+    if telemetry is None or not telemetry.mission_active:
+        return state, ()
+    item = telemetry.mission_item
+    new = replace(state, engaged=True, break_off_item=item, mode_requested=FlightMode.OFFBOARD, holding=False)
+    return new, (
+        RequestMode(FlightMode.OFFBOARD, reason),
+        GcsMessage(f"LEFT MISSION at item {_item(item)}: {reason}"[:50]),
+    )
+
+
+def _item(item: int | None) -> str:
+    return "?" if item is None else str(item)
 
 
 def _engage(state: State, reason: str) -> Result:
@@ -376,17 +458,23 @@ def _engage(state: State, reason: str) -> Result:
 def _telemetry(state: State, telemetry: Telemetry) -> Result:
     previous = state.telemetry
     new = replace(state, telemetry=telemetry)
-    # Leaving offboard is expected after our own hold (PX4 HOLD, ArduPilot BRAKE/LOITER) or mode request;
-    # then only the link's PilotTakeover event, which knows what it asked for, reports a takeover.
+    # Leaving offboard is expected after our own hold (PX4 HOLD, ArduPilot BRAKE/LOITER) or mode request
+    # (the mission handed back included); then only the link's PilotTakeover event, which knows what it
+    # asked for, reports a takeover.
     our_request = state.holding or state.mode_requested not in (None, FlightMode.OFFBOARD)
     if (
-        state.mode in ACTIVE
+        commanding(state)
         and previous is not None
         and previous.offboard_active
         and not telemetry.offboard_active
         and not our_request
     ):
         return _abort(new, f"pilot takeover {telemetry.mode}".strip())
+    if state.mode_requested is FlightMode.MISSION and telemetry.mission_active:
+        new = replace(new, mode_requested=None)
+        if previous is None or not previous.mission_active:
+            item, left = _item(telemetry.mission_item), _item(state.break_off_item)
+            return new, (GcsMessage(f"MISSION RESUMED at item {item} (left at {left})"),)
     return new, ()
 
 
@@ -411,11 +499,7 @@ def _track(state: State, result: TrackResult, config: MissionConfig) -> Result:
     elif state.mode is MissionState.LOST:
         state, msg = _enter(replace(state, lost_stage=0), state.resume, "target re-acquired")
         actions.extend(msg)
-        if state.mode is MissionState.CONFIRMED and config.on_confirm is ConfirmAction.HOLD:
-            return state, tuple(actions)  # let go on confirmation; the re-acquired target is only reported
 
-    if state.mode is MissionState.CONFIRMED and config.on_confirm is ConfirmAction.HOLD:
-        return state, tuple(actions)
     if config.verified_reinit and state.mode is MissionState.FOLLOWING:
         starting = bool(result.alarm) and not state.alarm
         state = replace(state, alarm=bool(result.alarm))
@@ -448,7 +532,7 @@ def _answer(state: State, answer: BackendAnswer, config: MissionConfig) -> Resul
         assert target is not None
         return _settle_early_start(state, target, early, answer, config)
     if purpose is QueryPurpose.SEARCH and state.mode is MissionState.SEARCHING:
-        chosen = _choose(state, answer.candidates, config)
+        chosen = _choose(state, answer.candidates, config, answer.pose)
         if chosen is None:
             return state, ()
         return _acquire(state, *chosen, answer)
@@ -457,7 +541,9 @@ def _answer(state: State, answer: BackendAnswer, config: MissionConfig) -> Resul
     state, actions = _answer_for_target(state, target, purpose, answer, config)
     if config.verified_reinit and _judging(state, config) and answer.candidates:
         # Every answer for the track goes to the front-end's policy, with what the mission refuses marked.
-        refused = tuple(i for i, d in enumerate(answer.candidates) if _refused(state, target, d, config))
+        refused = tuple(
+            i for i, d in enumerate(answer.candidates) if _refused(state, target, d, config, answer.pose)
+        )
         actions = (*actions, JudgeCandidates(answer.keyframe_id, answer.candidates, refused))
     return state, actions
 
@@ -476,17 +562,17 @@ def _acquire(state: State, det: Detection, position: GeoEstimate | None, answer:
         det.signature,
         early=early,
     )
+    # Along the mission the vehicle is taken from it now (when allowed): at survey speed the candidate
+    # would be out of view before the tracker has locked on.
+    state, take = _take_control(replace(state, target=picked, control=ControlState()), "candidate")
     new, msg = _enter(
-        replace(state, target=picked, control=ControlState()),
+        state,
         MissionState.ACQUIRING,
         f"candidate {det.candidate_id}" + (" (early)" if early is not None else ""),
     )
-    # Stop any search scan while the tracker locks on; the link repeats the last setpoint.
-    return new, (
-        SendSetpoint(Setpoint.zero()),
-        TrackerInit(det.box, answer.keyframe_id, det.candidate_id),
-        *msg,
-    )
+    # Stop (any search scan, or the survey's motion) while the tracker locks on; the link repeats it.
+    stop: tuple[Action, ...] = (SendSetpoint(Setpoint.zero()),) if commanding(new) else ()
+    return new, (*take, *stop, TrackerInit(det.box, answer.keyframe_id, det.candidate_id), *msg)
 
 
 def _settle_early_start(
@@ -498,7 +584,7 @@ def _settle_early_start(
     goes on when they accept no one."""
 
     def acceptable(candidates: Sequence[Detection]) -> Detection | None:
-        chosen = _choose(state, candidates, config)
+        chosen = _choose(state, candidates, config, answer.pose)
         return chosen[0] if chosen is not None else None
 
     det, kept = settle_early_choice(answer.candidates, early.box, acceptable)
@@ -508,7 +594,7 @@ def _settle_early_start(
         )
         return new, (TrackerStop("early candidate not verified"), *actions)
     if not kept:
-        return _acquire(state, det, _position(state, det, config), answer)
+        return _acquire(state, det, _position(state, det, config, answer.pose), answer)
     verified = replace(
         target,
         candidate_id=det.candidate_id,
@@ -544,7 +630,7 @@ def _answer_for_target(
         and not _given_up(state, config)
         and not config.verified_reinit  # the paper's policy: the mission picks the box itself
     ):
-        usable = [d for d in answer.candidates if not _refused(state, target, d, config)]
+        usable = [d for d in answer.candidates if not _refused(state, target, d, config, answer.pose)]
         best = select_by_c_box(target.box, usable)
         gate = config.reinit_gate * (config.camera.width + config.camera.height)
         if best is None or c_box(target.box, best.box) > gate:
@@ -562,14 +648,16 @@ def _judging(state: State, config: MissionConfig) -> bool:
     return state.mode in _JUDGED and not _given_up(state, config)
 
 
-def _refused(state: State, target: Target, det: Detection, config: MissionConfig) -> bool:
+def _refused(
+    state: State, target: Target, det: Detection, config: MissionConfig, pose: Telemetry | None = None
+) -> bool:
     """A candidate the mission would never re-initialise on. Away from the last box only a "yes" may re-find
     the target, however wide the query's region: anything less could be a distractor anywhere in view.
     Near it, the operator's own target (never checked against the prompt) may be re-found on any verdict,
     others on anything but "no". The rejection memory (supervisor's rejections) is never re-found."""
     near = _centre_inside(det.box, _roi(target.box, config))
-    return not _redetect_verdict_ok(det.verdict, near, target.operator_selected) or _rejected(
-        state, det, config
+    return not _redetect_verdict_ok(det.verdict, near, target.operator_selected) or _excluded(
+        state, det, config, pose
     )
 
 
@@ -578,7 +666,7 @@ def _backend_down(state: State, event: BackendUnreachable) -> Result:
         return state, ()
     new = replace(state, backend_down=True, queries=())
     msg = GcsMessage(f"back-end unreachable {event.reason}".strip()[:50], "warning")
-    if state.mode in ACTIVE:
+    if commanding(state):
         # Watchdog rule: motion ends with a stop then hold; setpoints resume once the back-end answers.
         return replace(new, holding=True), (Hold("back-end unreachable"), msg)
     return new, (msg,)
@@ -589,11 +677,18 @@ def _tick(state: State, config: MissionConfig) -> Result:
     mode = state.mode
     if mode is MissionState.REJECTED:
         return _start_search(state, "searching again", config)
+    if mode is MissionState.CONFIRMED and config.on_confirm is ConfirmAction.SURVEY and state.target:
+        # The find is reported; the search goes on (along the mission: the vehicle goes back to it).
+        found = _remember_found(state, state.target)
+        new, back = _start_search(found, "find reported: searching on", config)
+        return new, (TrackerStop("confirmed: searching on"), *back)
     if mode is MissionState.SEARCHING:
         actions: tuple[Action, ...] = ()
         if _query_due(state, config.search_interval_s):
             state, actions = _search_query(state, config)
-        state, scan = _scan(state, config)
+        scan: tuple[Action, ...] = ()
+        if not state.along_mission:
+            state, scan = _scan(state, config)
         return state, (*scan, *actions)
     early = state.target.early if state.target is not None and mode in TRACKING else None
     if early is not None and now - early.since_s > config.final_answer_timeout_s:
@@ -636,11 +731,17 @@ def _lost_tick(state: State, target: Target, config: MissionConfig) -> Result:
     if _given_up(state, config):
         return state, ()
     elapsed = state.now_s - state.since_s
+    if _lost_ends_in_search(state) and elapsed >= config.lost_resume_after_s:
+        if state.resume is MissionState.CONFIRMED:
+            state = _remember_found(state, target)  # reported already; never proposed again
+        new, back = _start_search(state, "target not found again", config)
+        return new, (TrackerStop("lost: back to the search"), *back)
     actions: list[Action] = []
-    if state.lost_stage == 0 and elapsed >= config.lost_hold_after_s:
+    # Looking only (along the mission, not engaged): nothing to hold or request.
+    if commanding(state) and state.lost_stage == 0 and elapsed >= config.lost_hold_after_s:
         state = replace(state, lost_stage=1, holding=True)
         actions.append(Hold("target lost"))
-    if state.lost_stage == 1 and elapsed >= config.lost_action_after_s:
+    if commanding(state) and state.lost_stage == 1 and elapsed >= config.lost_action_after_s:
         state = replace(state, lost_stage=2)
         if config.lost_action is LostAction.HOLD:
             actions.append(GcsMessage("LOST: still holding, re-detecting", "warning"))
@@ -660,6 +761,12 @@ def _lost_tick(state: State, target: Target, config: MissionConfig) -> Result:
         state, query = _redetect(state, target.box, config)
         actions.extend(query)
     return state, tuple(actions)
+
+
+def _lost_ends_in_search(state: State) -> bool:
+    """Along the mission a target lost for `lost_resume_after_s` is given up and the search flies on; only a
+    confirmed target the companion flies after keeps the lost rules (hold, `lost_action`)."""
+    return state.along_mission and not (state.resume is MissionState.CONFIRMED and commanding(state))
 
 
 def _given_up(state: State, config: MissionConfig) -> bool:
@@ -761,7 +868,7 @@ def _roi(box: Box, config: MissionConfig) -> Box | None:
 
 
 def _follow(state: State, box: Box, time_s: float, config: MissionConfig) -> tuple[State, tuple[Action, ...]]:
-    if state.backend_down:
+    if state.backend_down or not commanding(state):
         return state, ()
     telemetry = state.telemetry or Telemetry(time_s, height_agl=math.nan)  # unknown height: zero output
     confirmed = state.mode is MissionState.CONFIRMED
@@ -775,40 +882,55 @@ def _follow(state: State, box: Box, time_s: float, config: MissionConfig) -> tup
 
 
 def _arrived(state: State, box: Box, config: MissionConfig) -> bool:
-    if state.now_s - state.since_s >= config.approach_timeout_s:
-        return True
+    if state.now_s - state.since_s >= config.approach_timeout_s or not commanding(state):
+        return True  # looking only (along the mission, not engaged): the supervisor is asked at once
     if state.telemetry is None:
         return False
     distance = estimate_distance(config.camera, state.telemetry, box, config.gains.target_height_m)
     return distance is not None and abs(distance.ground_m - config.standoff_m) <= config.arrive_tolerance_m
 
 
-def _rejected(state: State, det: Detection, config: MissionConfig) -> bool:
-    position = locate_box(config.camera, state.telemetry, det.box) if state.telemetry else None
-    return state.rejections.matches(det.candidate_id, position, det.signature) is not None
+def _excluded(state: State, det: Detection, config: MissionConfig, pose: Telemetry | None) -> bool:
+    """Rejected by the supervisor, or a find the search already went on from (by id, place or looks)."""
+    position = _position(state, det, config, pose)
+    return any(
+        memory.matches(det.candidate_id, position, det.signature) is not None
+        for memory in (state.rejections, state.found)
+    )
 
 
 def _choose(
-    state: State, candidates: Sequence[Detection], config: MissionConfig
+    state: State, candidates: Sequence[Detection], config: MissionConfig, pose: Telemetry | None
 ) -> tuple[Detection, GeoEstimate | None] | None:
-    """A verified candidate not rejected before (`select_first_acquisition`), and where it stands."""
+    """A verified candidate not rejected or found before (`select_first_acquisition`), and where it stands."""
     relation = parse_relation(state.mission.prompt) if state.mission is not None else None
     best = select_first_acquisition(
         candidates,
         config.accept_uncertain,
         relation,
-        lambda d: d.box.is_valid() and not _rejected(state, d, config),
+        lambda d: d.box.is_valid() and not _excluded(state, d, config, pose),
     )
     if best is None:
         return None
-    return best, _position(state, best, config)
+    return best, _position(state, best, config, pose)
 
 
-def _position(state: State, det: Detection, config: MissionConfig) -> GeoEstimate | None:
-    return locate_box(config.camera, state.telemetry, det.box) if state.telemetry else None
+def _position(
+    state: State, det: Detection, config: MissionConfig, pose: Telemetry | None
+) -> GeoEstimate | None:
+    """Where `det` stands on the ground, seen from `pose` (the vehicle when its keyframe was captured; else
+    the latest telemetry: a surveying drone moves metres while a keyframe is verified)."""
+    telemetry = pose or state.telemetry
+    return locate_box(config.camera, telemetry, det.box) if telemetry else None
 
 
 def _report(target: Target, status: str) -> ReportCandidate:
     return ReportCandidate(
-        target.candidate_id, target.justification, target.verdict, target.position, target.box, status
+        target.candidate_id,
+        target.justification,
+        target.verdict,
+        target.position,
+        target.box,
+        status,
+        target.confirmed_by if status == "confirmed" else "",
     )

@@ -25,6 +25,7 @@ class AbortMission:
 @dataclass(frozen=True)
 class ConfirmCandidate:
     candidate_id: str = ""  # empty: the candidate currently awaiting the supervisor
+    by: str = ""  # who confirmed: "supervisor page", "gcs" (reported with the find)
 
 
 @dataclass(frozen=True)

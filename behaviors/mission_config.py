@@ -33,6 +33,17 @@ class ConfirmAction(str, Enum):
     FOLLOW = "follow"
     HOLD = "hold"
     ORBIT = "orbit"
+    SURVEY = (
+        "survey"  # report the find and go on searching (back to the autopilot's mission, if it flies one)
+    )
+
+
+class SearchMode(str, Enum):
+    """Where a search looks (`[behavior] search`): along the autopilot's own mission, or on the spot."""
+
+    AUTO = "auto"  # along the mission when the autopilot flies it (AUTO / MISSION) at the start, else on the spot
+    MISSION = "mission"  # always along the mission: the companion commands nothing until a candidate
+    SPOT = "spot"  # on the spot: the companion holds the vehicle (zero or a yaw scan) while it looks
 
 
 @dataclass(frozen=True)
@@ -57,6 +68,10 @@ class MissionConfig:
     lost_action_after_s: float = 30.0
     lost_action: LostAction = LostAction.HOLD
     on_confirm: ConfirmAction = ConfirmAction.FOLLOW
+    search: SearchMode = SearchMode.AUTO
+    # A search along the mission: a candidate lost this long (and not confirmed) ends, and the vehicle goes
+    # back to the mission.
+    lost_resume_after_s: float = 10.0
     orbit_speed_m_s: float = 1.0
     frame_stale_s: float = 0.5  # no tracker result for this long counts as lost
     accept_uncertain: bool = False  # may an "uncertain" verdict start tracking (after every "yes")?
@@ -132,6 +147,8 @@ class MissionConfig:
             lost_action_after_s=_float(behavior, "lost_action_after_s", d.lost_action_after_s),
             lost_action=LostAction(_str(behavior, "lost_action", d.lost_action.value)),
             on_confirm=ConfirmAction(_str(behavior, "on_confirm", d.on_confirm.value)),
+            search=SearchMode(_str(behavior, "search", d.search.value)),
+            lost_resume_after_s=_float(behavior, "lost_resume_after_s", d.lost_resume_after_s),
             orbit_speed_m_s=_float(behavior, "orbit_speed_m_s", d.orbit_speed_m_s),
             frame_stale_s=_float(safety, "frame_stale_s", d.frame_stale_s),
             accept_uncertain=_bool(behavior, "accept_uncertain", d.accept_uncertain),

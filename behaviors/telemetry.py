@@ -11,7 +11,9 @@ class Telemetry:
 
     `height_agl` is the height above the ground the target stands on (relative altitude from
     GLOBAL_POSITION_INT on flat ground). `offboard_active` is true while the autopilot is in the mode
-    that accepts our setpoints (ArduPilot GUIDED, PX4 OFFBOARD).
+    that accepts our setpoints (ArduPilot GUIDED, PX4 OFFBOARD), `mission_active` while it flies its own
+    mission (ArduPilot AUTO, PX4 MISSION); `mission_item` is MISSION_CURRENT's sequence number (the item
+    the mission is on or resumes at), `mission_items` its item count, None before the autopilot said.
     """
 
     time_s: float
@@ -27,3 +29,6 @@ class Telemetry:
     armed: bool = False
     mode: str = ""
     offboard_active: bool = False
+    mission_active: bool = False
+    mission_item: int | None = None
+    mission_items: int | None = None

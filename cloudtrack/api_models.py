@@ -8,9 +8,9 @@ Boxes on the wire are `[x1, y1, x2, y2]` in the pixels of the image that was sen
 from __future__ import annotations
 
 import math
-from typing import Literal
+from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validator, model_validator
 
 IDENTIFIER = r"^[A-Za-z0-9_.-]{1,64}$"
 ID_FIELD = Field(pattern=IDENTIFIER, description="letters, digits, '_', '.', '-'; 1-64 characters")
@@ -233,17 +233,112 @@ class AwaitingCandidate(ApiModel):
     position: GeoPoint | None = Field(None, min_length=2, max_length=2, description="[lat, lon] estimate")
 
 
+def _lat_lon(value: list[float]) -> list[float]:
+    if not (-90 <= value[0] <= 90 and -180 <= value[1] <= 180):
+        raise ValueError("a position is [lat, lon] in degrees: lat in [-90, 90], lon in [-180, 180]")
+    return value
+
+
+# A checked [lat, lon]: two finite numbers (ApiModel refuses NaN/inf) within the globe's ranges.
+LatLonPoint = Annotated[list[float], Field(min_length=2, max_length=2), AfterValidator(_lat_lon)]
+
+SEARCH_AREA_MAX_VERTICES = 200
+COVERED_MAX_RINGS = 20
+COVERED_MAX_VERTICES = 500
+
+
+class SearchProgress(ApiModel):
+    """How far the mission's search has come (counted by the companion since the mission started)."""
+
+    keyframes: int = Field(0, ge=0, le=2**31, description="keyframes the back-end checked this mission")
+    candidates: int = Field(0, ge=0, le=2**31, description="distinct candidates the back-end returned")
+    rejected: int = Field(0, ge=0, le=2**31, description="candidates rejected (supervisor, GCS or memory)")
+
+
+class SearchStatus(ApiModel):
+    """The area search: the polygon, how much of it the camera has seen, where the autopilot's mission is."""
+
+    area: list[LatLonPoint] = Field(
+        default_factory=list,
+        max_length=SEARCH_AREA_MAX_VERTICES,
+        description=f"the search polygon, [[lat, lon], ...] (at most {SEARCH_AREA_MAX_VERTICES} vertices)",
+    )
+    coverage: float = Field(0.0, ge=0.0, le=1.0, description="share of the area the camera has seen, 0..1")
+    covered: list[list[LatLonPoint]] = Field(
+        default_factory=list,
+        max_length=COVERED_MAX_RINGS,
+        description=f"the seen area, simplified: at most {COVERED_MAX_RINGS} rings of [lat, lon], "
+        f"{COVERED_MAX_VERTICES} vertices in all",
+    )
+    mission_item: int | None = Field(None, ge=0, le=65535, description="the autopilot's current mission item")
+    mission_items: int | None = Field(None, ge=0, le=65535, description="items in the autopilot's mission")
+    mode: str = Field("", max_length=32, description='the autopilot\'s flight mode, e.g. "AUTO", "GUIDED"')
+
+    @field_validator("covered")
+    @classmethod
+    def _covered_bounded(cls, value: list[list[list[float]]]) -> list[list[list[float]]]:
+        if sum(len(ring) for ring in value) > COVERED_MAX_VERTICES:
+            raise ValueError(f"covered holds more than {COVERED_MAX_VERTICES} vertices in all")
+        return value
+
+
+class Find(ApiModel):
+    """A confirmed find: where, when, what was searched for and who confirmed it."""
+
+    candidate_id: str = CANDIDATE_ID
+    position: LatLonPoint = Field(description="[lat, lon] of the person found")
+    sigma_m: float = Field(ge=0.0, le=100_000.0, description="1-sigma horizontal uncertainty (m)")
+    time: float = Field(ge=0.0, le=2**34, description="Unix time of the confirmation (s)")
+    prompt: str = Field("", max_length=500)
+    confirmed_by: str = Field(max_length=64, description='"supervisor page", "gcs" or the operator\'s name')
+    crop_jpeg_b64: str | None = Field(None, max_length=400_000, description="the candidate's crop (JPEG)")
+
+
 class VehicleStatusIn(ApiModel):
     mission_id: str | None = Field(None, pattern=IDENTIFIER)
     state: str = Field(
         max_length=64, description="the companion's mission state, e.g. SEARCH, TRACK, AWAIT_SUPERVISOR"
     )
     prompt: str | None = Field(None, max_length=500)
-    position: GeoPoint | None = Field(
-        None, min_length=2, max_length=2, description="[lat, lon] of the vehicle"
-    )
-    altitude_m: float | None = None
+    position: LatLonPoint | None = Field(None, description="[lat, lon] of the vehicle")
+    altitude_m: float | None = Field(None, ge=-1000.0, le=100_000.0)
     awaiting: AwaitingCandidate | None = None
+    reason: str = Field(
+        "",
+        max_length=200,
+        description="why the companion is in its state: the mission's reason, a refusal, or what it waits for "
+        '("waiting for the autopilot\'s HEARTBEAT on udpin:0.0.0.0:14550")',
+    )
+    heading_deg: float | None = Field(None, ge=-360.0, le=360.0, description="vehicle heading (deg)")
+    track_box: list[float] | None = Field(
+        None,
+        min_length=4,
+        max_length=4,
+        description="[x1, y1, x2, y2]: the tracked box in the pixels of keyframe `frame_id`",
+    )
+    frame_id: int | None = Field(None, ge=0, le=2**53, description="the keyframe `track_box` refers to")
+    progress: SearchProgress | None = None
+    search: SearchStatus | None = None
+    find: Find | None = Field(
+        None, description="the mission's confirmed find, sent with every status while the mission holds it"
+    )
+
+    @field_validator("track_box")
+    @classmethod
+    def _box_ordered(cls, value: list[float] | None) -> list[float] | None:
+        if value is not None and not (
+            0 <= value[0] < value[2] <= 100_000 and 0 <= value[1] < value[3] <= 100_000
+        ):
+            raise ValueError(
+                "track_box must be [x1, y1, x2, y2] in pixels with x2 > x1 >= 0 and y2 > y1 >= 0"
+            )
+        return value
+
+    @model_validator(mode="after")
+    def _box_names_its_frame(self) -> VehicleStatusIn:
+        if self.track_box is not None and self.frame_id is None:
+            raise ValueError("track_box needs the frame_id of the keyframe it is drawn in")
+        return self
 
 
 class VehicleStatus(VehicleStatusIn):

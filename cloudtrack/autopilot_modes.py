@@ -34,6 +34,7 @@ _ARDUPILOT_ACTIONS = {
     "brake": "BRAKE",
     "rtl": "RTL",
     "land": "LAND",
+    "mission": "AUTO",
 }
 _PX4_ACTIONS = {
     "offboard": "OFFBOARD",
@@ -42,6 +43,7 @@ _PX4_ACTIONS = {
     "hold": "HOLD",
     "rtl": "RTL",
     "land": "LAND",
+    "mission": "MISSION",
 }
 
 
@@ -82,7 +84,7 @@ def mode_name(kind: AutopilotKind, custom_mode: int, vehicle_type: int = QUADROT
 
 
 def mode_for_action(kind: AutopilotKind, action: str) -> str:
-    """offboard / loiter / brake / hold / rtl / land in this autopilot's mode names."""
+    """offboard / loiter / brake / hold / rtl / land / mission in this autopilot's mode names."""
     table = _ARDUPILOT_ACTIONS if kind is AutopilotKind.ARDUPILOT else _PX4_ACTIONS
     if action not in table:
         raise ValueError(f"no {kind.value} mode for action {action!r}; known: {', '.join(table)}")
@@ -91,6 +93,11 @@ def mode_for_action(kind: AutopilotKind, action: str) -> str:
 
 def offboard_mode(kind: AutopilotKind) -> str:
     return mode_for_action(kind, "offboard")
+
+
+def mission_mode(kind: AutopilotKind) -> str:
+    """The mode in which the autopilot flies its own mission: ArduPilot AUTO, PX4 MISSION."""
+    return mode_for_action(kind, "mission")
 
 
 def set_mode_params(kind: AutopilotKind, name: str, vehicle_type: int = QUADROTOR) -> SetModeParams:

@@ -80,6 +80,7 @@ MAV_RESULT_TEMPORARILY_REJECTED = int(mavlink.MAV_RESULT_TEMPORARILY_REJECTED)
 MAV_RESULT_DENIED = int(mavlink.MAV_RESULT_DENIED)
 MAV_RESULT_UNSUPPORTED = int(mavlink.MAV_RESULT_UNSUPPORTED)
 MAV_RESULT_FAILED = int(mavlink.MAV_RESULT_FAILED)
+MAV_SEVERITY_CRITICAL = int(mavlink.MAV_SEVERITY_CRITICAL)
 MAV_SEVERITY_WARNING = int(mavlink.MAV_SEVERITY_WARNING)
 MAV_SEVERITY_NOTICE = int(mavlink.MAV_SEVERITY_NOTICE)
 MAV_SEVERITY_INFO = int(mavlink.MAV_SEVERITY_INFO)
@@ -324,7 +325,7 @@ class GcsProtocol:
         if cmd in (CMD_CONFIRM, CMD_REJECT):
             number = _whole(p[0], 0, 1_000_000)
             candidate = str(number) if number else ""
-            return ConfirmCandidate(candidate) if cmd == CMD_CONFIRM else RejectCandidate(candidate)
+            return ConfirmCandidate(candidate, by="gcs") if cmd == CMD_CONFIRM else RejectCandidate(candidate)
         if cmd == CMD_CAMERA_TRACK_RECTANGLE:
             return TrackRectangle(self._rectangle(*p))
         if cmd == CMD_CAMERA_TRACK_POINT:

@@ -1,5 +1,6 @@
 """The companion's configuration schema: every section, key, default and allowed range.
 
+The [camera] and [safety] sections live in `cloudtrack/vehicle_config.py`: the ground tool reads them too.
 `config/companion.toml` mirrors these defaults; `tests/test_config_defaults.py` keeps the two in step key
 by key. The control gains' defaults are the control law's own (`behaviors.control_law.ControlGains`).
 """
@@ -16,41 +17,14 @@ from pydantic import Field, model_validator
 
 from behaviors.control_law import ControlGains
 from cloudtrack.config_files import ConfigSection, default_config_files, load_config
+from cloudtrack.vehicle_config import CameraConfig as CameraConfig  # re-exported: the companion imports
+from cloudtrack.vehicle_config import SafetyConfig as SafetyConfig  # every section from here
 
 TrackerName = Literal["nano", "vit", "dasiamrpn", "csrt", "kcf", "mil", "goturn"]
 
 
 class VehicleConfig(ConfigSection):
     id: str = Field("drone-1", min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")
-
-
-class CameraConfig(ConfigSection):
-    # V4L2 index ("0"), video file, RTSP/GStreamer URL, or a folder of frames (000001.jpg ...).
-    source: str = "0"
-    width: int = Field(640, ge=64, le=7680)
-    height: int = Field(480, ge=48, le=4320)
-    fps: float = Field(30.0, gt=0, le=240)
-    hfov_deg: float = Field(70.0, gt=1, lt=179)
-    # Negative looks down. With `stabilised` a gimbal holds this pitch against the vehicle's attitude.
-    mount_pitch_deg: float = Field(-45.0, ge=-90, le=30)
-    stabilised: bool = True
-    reconnect_interval_s: float = Field(1.0, gt=0, le=60)
-    # Lens calibration (OpenCV's model; companion/vision/camera_calibration.py). Empty: an ideal pinhole from
-    # hfov_deg. Either a file (cv2.FileStorage YAML/XML/JSON, or a ROS camera_calibration YAML) or inline:
-    # camera_matrix = [fx, 0, cx, 0, fy, cy, 0, 0, 1] at width x height, distortion = [k1, k2, p1, p2, k3].
-    calibration_file: str = ""
-    camera_matrix: list[float] = Field(default_factory=list)
-    distortion: list[float] = Field(default_factory=list)
-
-    @model_validator(mode="after")
-    def _calibration_shape(self) -> CameraConfig:
-        if len(self.camera_matrix) not in (0, 9):
-            raise ValueError(f"camera_matrix takes 9 numbers (row-major 3x3), got {len(self.camera_matrix)}")
-        if self.distortion and not self.camera_matrix:
-            raise ValueError("distortion needs camera_matrix (or use calibration_file)")
-        if len(self.distortion) not in (0, 4, 5, 8, 12):
-            raise ValueError(f"distortion takes 4, 5, 8 or 12 coefficients, got {len(self.distortion)}")
-        return self
 
 
 class TrackerConfig(ConfigSection):
@@ -145,32 +119,6 @@ class MavlinkConfig(ConfigSection):
         return self
 
 
-class SafetyConfig(ConfigSection):
-    """The one place every motion limit lives; the control law's output is clamped to these."""
-
-    max_speed_m_s: float = Field(3.0, gt=0, le=15)
-    max_vertical_speed_m_s: float = Field(1.0, ge=0, le=5)
-    max_yaw_rate_deg_s: float = Field(45.0, gt=0, le=180)
-    min_altitude_m: float = Field(5.0, ge=1, le=500)
-    max_altitude_m: float = Field(60.0, ge=2, le=1000)
-    frame_stale_s: float = Field(0.5, gt=0, le=10)
-    backend_lost_s: float = Field(10.0, gt=0, le=600)
-    heartbeat_timeout_s: float = Field(2.0, gt=0, le=30)
-    loop_stall_s: float = Field(0.5, gt=0, le=10)
-    target_lost_s: float = Field(1.0, gt=0, le=60)  # while following: no trusted target this long -> hold
-    telemetry_stale_s: float = Field(1.0, gt=0, le=10)  # older altitude/position counts as missing: hold
-    setpoint_max_age_s: float = Field(0.5, gt=0, le=5)  # older setpoints are never sent (zero instead)
-    gcs_track_confirms: bool = False  # may a GCS track rectangle skip the supervisor's confirmation?
-
-    @model_validator(mode="after")
-    def _altitude_band(self) -> SafetyConfig:
-        if self.min_altitude_m >= self.max_altitude_m:
-            raise ValueError(
-                f"min_altitude_m ({self.min_altitude_m}) must be below max_altitude_m ({self.max_altitude_m})"
-            )
-        return self
-
-
 class BehaviorConfig(ConfigSection):
     standoff_m: float = Field(12.0, gt=1, le=200)
     search_yaw_rate_deg_s: float = Field(0.0, ge=0, le=30)
@@ -178,7 +126,10 @@ class BehaviorConfig(ConfigSection):
     lost_hold_after_s: float = Field(1.0, ge=0, le=60)
     lost_action_after_s: float = Field(30.0, gt=0, le=3600)
     lost_action: Literal["hold", "loiter", "rtl", "land"] = "hold"
-    on_confirm: Literal["follow", "hold", "orbit"] = "follow"
+    on_confirm: Literal["follow", "hold", "orbit", "survey"] = "follow"  # survey: report, search on
+    # Along the autopilot's mission (auto: when it flies one at the start) or on the spot (docs/behavior.md)
+    search: Literal["auto", "mission", "spot"] = "auto"
+    lost_resume_after_s: float = Field(10.0, gt=0, le=600)  # along the mission: lost this long, fly on
     orbit_speed_m_s: float = Field(1.0, gt=0, le=10)
     accept_uncertain: bool = False  # may an "uncertain" verdict start tracking (after every "yes")
     acquire_timeout_s: float = Field(3.0, gt=0, le=60)  # tracker must lock on this soon after init

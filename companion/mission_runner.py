@@ -15,9 +15,11 @@ within a fraction of a second.
 
 from __future__ import annotations
 
+import bisect
 import logging
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass, replace
 from typing import Any, Protocol
@@ -33,6 +35,7 @@ from behaviors.actions import (
     RememberRejection,
     ReportCandidate,
     RequestMode,
+    ResumeMission,
     SendSetpoint,
     TrackerInit,
     TrackerStop,
@@ -48,7 +51,7 @@ from behaviors.events import (
     TimerTick,
 )
 from behaviors.geometry import Box
-from behaviors.mission import ACTIVE, MissionState, State, initial_state, step
+from behaviors.mission import ACTIVE, MissionState, State, commanding, initial_state, step
 from behaviors.mission_commands import MissionCommand, StartMission, TrackRectangle
 from behaviors.mission_config import MissionConfig
 from behaviors.reinit_policy import ReinitAction, ReinitDecision
@@ -59,6 +62,7 @@ from cloudtrack.service_notify import Notifier
 from companion.cloud.backend_worker import BackendWorker
 from companion.cloud.candidate_crop import candidate_crop
 from companion.safety_watchdog import BACKEND_UNREACHABLE, HEARTBEAT_LOST, SafetyEvent
+from companion.status_report import StatusReport
 from companion.vision.frame_sources import Frame, FrameSource
 
 log = logging.getLogger(__name__)
@@ -88,6 +92,8 @@ class VehicleLink(Protocol):
 
     def request_mode(self, action: str) -> None: ...
 
+    def resume_mission(self, item: int | None, reason: str = "") -> None: ...
+
     def kick(self) -> None: ...
 
     def report_frame(self, when: float | None = None) -> None: ...
@@ -99,6 +105,12 @@ class VehicleLink(Protocol):
     def clear_target(self) -> None: ...
 
     def send_status(self, text: str, severity: int = 6) -> None: ...
+
+    def announce_find(
+        self, lat: float, lon: float, sigma_m: float, slant_range_m: float, prompt: str, confirmed_by: str
+    ) -> None: ...
+
+    def send_find_position(self, lat: float, lon: float, sigma_m: float, slant_range_m: float) -> None: ...
 
     def report_tracking(self, box: Box | None, image_size: tuple[int, int]) -> None: ...
 
@@ -154,6 +166,7 @@ class LoopSettings:
 
 
 SEVERITY = {"info": 6, "warning": 4, "critical": 2}  # MAV_SEVERITY for the GCS
+POSE_HISTORY = 400  # telemetry snapshots kept to locate a keyframe's candidates (40 s at 10 Hz)
 FOLLOWING_STATES = frozenset(
     {MissionState.FOLLOWING, MissionState.AWAITING_SUPERVISOR, MissionState.CONFIRMED}
 )
@@ -186,6 +199,7 @@ class MissionRunner:
         notifier: Notifier | None = None,
         clock: Callable[[], float] = time.monotonic,
         video_sinks: Sequence[Callable[[Any, Box | None, str], None]] = (),
+        wall_clock: Callable[[], float] = time.time,
     ) -> None:
         # One policy for flight and eval: with the front-end's "verified" policy ([tracker] reinit_policy)
         # the mission hands it every answer for the track instead of choosing a re-init box itself.
@@ -208,6 +222,10 @@ class MissionRunner:
         self._ready = False
         self._pending_since: float | None = None  # oldest back-end request not answered yet
         self._crop: tuple[str, dict[str, Any]] | None = None  # (candidate id, its crop fields), encoded once
+        self._poses: deque[Telemetry] = deque(maxlen=POSE_HISTORY)  # newest last
+        self._result: TrackResult | None = None  # the tracker's result on the newest frame
+        # Progress, finds and the tracked keyframe box for the status report.
+        self.report = StatusReport((mission.camera.width, mission.camera.height), wall_clock)
 
     # ------------------------------------------------------------------------------------------ control
     def request_stop(self) -> None:
@@ -241,6 +259,7 @@ class MissionRunner:
             self.state.telemetry is None or telemetry.time_s > self.state.telemetry.time_s
         ):
             events.append(telemetry)
+            self._poses.append(telemetry)
         commands = self.vehicle.commands() + (self.session.commands() if self.session is not None else [])
         events.extend(GcsCommand(now, cmd) for cmd in commands)
         events.extend(self._safety_events())
@@ -249,12 +268,18 @@ class MissionRunner:
             self.stats.frames += 1
             self.vehicle.report_frame(frame.capture_time)
             result = self.frontend.feed(frame)
+            self._result = result
             events.append(result)
         answer = self.backend.poll()
         if answer is not None:
             self._pending_since = None
             query_id = int(answer.fields.get("query_id", PROBE_QUERY_ID))
-            events.append(BackendAnswer(now, query_id, answer.frame_id, answer.detections, answer.final))
+            if query_id != PROBE_QUERY_ID and answer.final:
+                self.report.on_answer(answer.detections)
+            pose = self._pose_at(answer.capture_time)
+            events.append(
+                BackendAnswer(now, query_id, answer.frame_id, answer.detections, answer.final, pose)
+            )
         if now - self._last_tick >= self.settings.tick_s:
             self._last_tick = now
             events.append(TimerTick(now))
@@ -265,16 +290,27 @@ class MissionRunner:
         self._feed_watchdogs(now)
         self._report_health(started)
 
+    def _pose_at(self, when: float) -> Telemetry | None:
+        """The newest telemetry received at or before `when` (a keyframe's capture time); None if none is
+        that old (the behaviour then uses the latest)."""
+        times = [t.time_s for t in self._poses]
+        i = bisect.bisect_right(times, when)
+        return self._poses[i - 1] if i > 0 else None
+
     def _handle(self, event: Event) -> None:
         self.stats.events += 1
         for obs in self.observers:
             obs.on_event(event)
         before = self.state
         self.state, actions = step(self.state, event, self.mission)
-        if _operator_started(event, self.state):
+        if isinstance(event, GcsCommand) and isinstance(event.command, StartMission) and self.state.mission:
+            self.report.start(self.state.mission.mission_id or self.state.mission.prompt)
+        if _operator_started(event, self.state) and commanding(self.state):
             # A mission or an operator's track box the behaviour accepted may fly the vehicle once the
             # pilot or GCS selects GUIDED/OFFBOARD; asking for that mode itself is the behaviour's
-            # RequestMode, emitted only when the running mission allowed engagement. Never arms.
+            # RequestMode, emitted only when the running mission allowed engagement. Never arms. A search
+            # along the autopilot's mission commands nothing: the link streams nothing (not even PX4's
+            # pre-stream) until the behaviour takes the vehicle for a candidate.
             self.vehicle.enable_offboard()
         if self.state.mode is not before.mode:
             log.info("state %s -> %s (%s)", before.mode.value, self.state.mode.value, self.state.reason)
@@ -302,6 +338,8 @@ class MissionRunner:
                 self.vehicle.request_offboard()
             else:
                 self.vehicle.request_mode(action.mode.value)
+        elif isinstance(action, ResumeMission):
+            self.vehicle.resume_mission(action.item, action.reason)
         elif isinstance(action, GcsMessage):
             self.vehicle.send_status(action.text, SEVERITY.get(action.severity, 6))
         elif isinstance(action, BackendQuery):
@@ -315,6 +353,7 @@ class MissionRunner:
         elif isinstance(action, ReportCandidate):
             self._report_candidate(action)
         elif isinstance(action, RememberRejection):
+            self.report.on_rejection()
             position = (
                 (action.position.lat_deg, action.position.lon_deg) if action.position is not None else None
             )
@@ -336,6 +375,9 @@ class MissionRunner:
         if self.state.mission is not None and self.state.mission.mission_id:
             fields["mission_id"] = self.state.mission.mission_id
         self.backend.submit(frame.frame_id, frame.image, frame.capture_time, **fields)
+        result = self._result
+        tracked = result is not None and result.frame_id == frame.frame_id and result.trusted
+        self.report.on_keyframe(frame.frame_id, result.box if tracked and result is not None else None)
         if self._pending_since is None:
             self._pending_since = self.clock()
 
@@ -365,18 +407,44 @@ class MissionRunner:
                     on_reinit(reinit, self.state.now_s)
 
     def _report_candidate(self, report: ReportCandidate) -> None:
-        where = ""
-        if report.position is not None:
-            where = f" at {report.position.lat_deg:.6f},{report.position.lon_deg:.6f}"
-        self.vehicle.send_status(
-            f"CANDIDATE {report.status.upper()} {report.candidate_id}{where}", SEVERITY["info"]
-        )
+        if report.status == "confirmed":
+            self._report_find(report)
+        else:
+            where = ""
+            if report.position is not None:
+                where = f" at {report.position.lat_deg:.6f},{report.position.lon_deg:.6f}"
+            self.vehicle.send_status(
+                f"CANDIDATE {report.status.upper()} {report.candidate_id}{where}", SEVERITY["info"]
+            )
         if self.session is not None:
             self.session.update(self._status(report))
 
+    def _report_find(self, report: ReportCandidate) -> None:
+        """A confirmed candidate is a find: announced to the GCS once (QGC pops it up), its position sent
+        again with every later confirmed report, and carried by every status report (`find`)."""
+        new = self.report.find_of(report.candidate_id) is None
+        crop = self._candidate_crop(report.candidate_id or "tracked", report.box).get("crop_jpeg_b64")
+        prompt = self.state.mission.prompt if self.state.mission is not None else ""
+        find = self.report.record_find(report, prompt, crop)
+        if find is None:
+            self.vehicle.send_status(
+                f"FOUND {report.candidate_id}: position unknown (no telemetry)", SEVERITY["critical"]
+            )
+            return
+        if new:
+            log.warning(
+                "FOUND %s at %.7f,%.7f +-%.1f m (confirmed by %s)",
+                find.candidate_id, find.lat, find.lon, find.sigma_m, find.confirmed_by,
+            )  # fmt: skip
+            self.vehicle.announce_find(
+                find.lat, find.lon, find.sigma_m, find.slant_range_m, find.prompt, find.confirmed_by
+            )
+        else:
+            self.vehicle.send_find_position(find.lat, find.lon, find.sigma_m, find.slant_range_m)
+
     def _status(self, report: ReportCandidate | None = None) -> dict[str, Any]:
         state = self.state
-        status: dict[str, Any] = {"state": state.mode.value}
+        status: dict[str, Any] = {"state": state.mode.value, **self.report.fields(state, self._search())}
         if state.mission is not None:
             status["prompt"] = state.mission.prompt
             if state.mission.mission_id:
@@ -396,6 +464,18 @@ class MissionRunner:
             awaiting.update(self._candidate_crop(awaiting["candidate_id"], report.box))
             status["awaiting"] = awaiting
         return status
+
+    def _search(self) -> dict[str, Any] | None:
+        """The status report's `search`: where the autopilot's mission stands (mode, item, item count)."""
+        t = self.state.telemetry
+        if self.state.mission is None or t is None:
+            return None
+        search: dict[str, Any] = {"mode": t.mode[:32]}
+        if t.mission_item is not None and 0 <= t.mission_item <= 65535:
+            search["mission_item"] = t.mission_item
+        if t.mission_items is not None:
+            search["mission_items"] = t.mission_items
+        return search
 
     def _video(self, frame: Frame, result: TrackResult) -> None:
         box = result.box if result.trusted else None
@@ -619,6 +699,8 @@ def describe_action(action: Action, t: float) -> dict[str, Any]:
         }
     if isinstance(action, RequestMode):
         return {"kind": "request_mode", "t": t, "mode": action.mode.value, "reason": action.reason}
+    if isinstance(action, ResumeMission):
+        return {"kind": "resume_mission", "t": t, "item": action.item, "reason": action.reason}
     if isinstance(action, GcsMessage):
         return {"kind": "gcs_message", "t": t, "text": action.text, "severity": action.severity}
     return {"kind": type(action).__name__, "t": t, "candidate_id": getattr(action, "candidate_id", "")}

@@ -13,7 +13,9 @@ It behaves the way the companion has to cope with on a real vehicle:
 - routing between links (GCS and companion) by the MAVLink routing rules: a message addressed to a
   component goes only to the link where that component was seen, broadcasts go everywhere; the raw bytes
   are forwarded so signatures survive;
-- it starts armed and hovering and never arms for anyone (arm and take-off requests are denied).
+- it starts armed and hovering and never arms for anyone (arm and take-off requests are denied);
+- a mission through the real mission protocol, flown in AUTO (ArduCopter) / Mission (PX4), resumed where it
+  broke off after GUIDED/OFFBOARD, with MISSION_CURRENT and MISSION_ITEM_REACHED (sitl/autopilot_mission.py).
 
 Mode numbers are written out here independently of `cloudtrack.autopilot_modes` on purpose: a wrong table
 on the companion side must show up as a failing test, not cancel out.
@@ -27,10 +29,12 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 from pymavlink import mavutil
 
 from cloudtrack.mavlink_connection import mavlink, receive_message, use_mavlink2
+from sitl.autopilot_mission import AutopilotMission, MissionOptions
 from sitl.vehicle_dynamics import (
     VehicleLimits,
     VehicleState,
@@ -104,6 +108,7 @@ class AutopilotOptions:
     limits: VehicleLimits = VehicleLimits()
     wind: Wind = Wind()
     signing_key: bytes | None = None  # sign everything sent (unsigned input is still accepted)
+    mission: MissionOptions = MissionOptions()
 
 
 @dataclass(frozen=True)
@@ -166,6 +171,9 @@ class SimulatedAutopilot:
         self._position_target: tuple[float, float, float] | None = None
         self._last_setpoint_time = -math.inf
         self._mode_switch_slot = self._slot(RC_START_PWM)
+        self.mission = AutopilotMission(
+            options.personality, options.mission, (options.home_lat, options.home_lon, options.home_alt_m)
+        )
         self._boot = clock()
         defaults = PX4_DEFAULT_INTERVALS if not self.is_ardupilot else ARDUPILOT_DEFAULT_INTERVALS
         self._links: dict[str, _Link] = {}
@@ -253,9 +261,17 @@ class SimulatedAutopilot:
         if name == "OFFBOARD" and not self._px4_stream_alive(now):
             self._status(f"Offboard refused: no setpoint stream (requested by {source})")
             return False
-        if name in ("TAKEOFF", "AUTO", "MISSION"):
-            return False  # no mission or take-off in this simulator
+        if name == "TAKEOFF":
+            return False  # no take-off in this simulator
+        mission_mode = "AUTO" if self.is_ardupilot else "MISSION"
+        if name == mission_mode and name != self.mode and not self.mission.start_or_resume():
+            self._status(
+                "Mode change to AUTO failed: init failed" if self.is_ardupilot else "No valid mission"
+            )
+            return False
         if name != self.mode:
+            if self.mode == mission_mode:
+                self.mission.stop()
             self.mode = name
             self.mode_history.append((now, name, source))
             self._position_target = None
@@ -305,7 +321,11 @@ class SimulatedAutopilot:
         local = target_system in (None, 0) or (target_system == sysid and target_component in (0, 1))
         if not local:
             return
-        if mtype == "COMMAND_LONG":
+        if mtype.startswith("MISSION_"):
+            self.mission.handle(
+                msg, self._sender(link), self._broadcast, link.name, self._clock(), self._status
+            )
+        elif mtype == "COMMAND_LONG":
             self._on_command(link, msg)
         elif mtype == "SET_POSITION_TARGET_LOCAL_NED":
             self._on_setpoint(link, msg)
@@ -350,6 +370,18 @@ class SimulatedAutopilot:
             if broadcast or seen_there:
                 other.conn.write(buf)
 
+    def _sender(self, link: _Link) -> Callable[[Callable[[Any], Any]], None]:
+        def send(build: Callable[[Any], Any]) -> None:
+            if not link.down:
+                build(link.conn.mav)
+
+        return send
+
+    def _broadcast(self, build: Callable[[Any], Any]) -> None:
+        for link in self._links.values():
+            if not link.down:
+                build(link.conn.mav)
+
     def _ack(self, link: _Link, msg: mavutil.mavlink.MAVLink_message, result: int) -> None:
         if link.down:
             return
@@ -368,9 +400,11 @@ class SimulatedAutopilot:
                 )
                 return
             ok = self._try_set_mode(name, who)
-            self._ack(
-                link, msg, mavlink.MAV_RESULT_ACCEPTED if ok else mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+            # ArduCopter 4.7 answers FAILED to a mode whose init fails (AUTO without a mission).
+            refused = (
+                mavlink.MAV_RESULT_FAILED if self.is_ardupilot else mavlink.MAV_RESULT_TEMPORARILY_REJECTED
             )
+            self._ack(link, msg, mavlink.MAV_RESULT_ACCEPTED if ok else refused)
         elif cmd == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
             msg_id, interval_us = int(msg.param1), msg.param2
             if interval_us < 0:
@@ -454,6 +488,7 @@ class SimulatedAutopilot:
             with self._lock:
                 try:
                     self._tick(now, min(now - last, 0.2))
+                    self.mission.tick(now, lambda name: self._sender(self._links[name]), self._status)
                     self._send_streams(now)
                 except Exception:
                     log.exception("autopilot tick failed")
@@ -493,6 +528,13 @@ class SimulatedAutopilot:
             return VelocityCommand(-s.north / dist * speed, -s.east / dist * speed, 0.0, 0.0)
         if self.mode == "LAND":
             return VelocityCommand(0.0, 0.0, self.options.land_speed_m_s, 0.0)
+        if self.mode in ("AUTO", "MISSION"):
+            cmd = self.mission.command(s, self._broadcast, self._status)
+            if math.hypot(cmd.vn, cmd.ve) > 0.5:  # WP_YAW_BEHAVIOR 2 / MPC_YAW_MODE 0: face the way it flies
+                cmd = VelocityCommand(
+                    cmd.vn, cmd.ve, cmd.vd, 2.0 * wrap_pi(math.atan2(cmd.ve, cmd.vn) - s.yaw)
+                )
+            return cmd
         return VelocityCommand()  # BRAKE, LOITER, POSHOLD, ALT_HOLD, HOLD, POSCTL...: hold position
 
     def _tick(self, now: float, dt: float) -> None:
@@ -548,6 +590,8 @@ class SimulatedAutopilot:
                 boot_ms, int(lat * 1e7), int(lon * 1e7), int((o.home_alt_m + s.height) * 1000), int(s.height * 1000),
                 int(s.vn * 100), int(s.ve * 100), int(s.vd * 100), int(math.degrees(s.yaw) % 360 * 100),
             )  # fmt: skip
+        elif msg_id == mavlink.MAVLINK_MSG_ID_MISSION_CURRENT:
+            self.mission.send_current(mav)
         elif msg_id == mavlink.MAVLINK_MSG_ID_SYS_STATUS:
             sensors = 0x3FFF
             mav.sys_status_send(sensors, sensors, sensors, 250, 15800, 1200, 85, 0, 0, 0, 0, 0, 0)

@@ -222,7 +222,7 @@ class ScenarioRun:
         from backend.app import create_app
         from backend.config import AuthConfig, BackendConfig, SessionConfig, VerifierConfig, VlmConfig
         from backend.serving import BackgroundServer
-        from backend.vlm_emulator import VlmEmulator
+        from backend_tools.vlm_emulator import VlmEmulator
 
         vlm = VlmConfig()
         if self.options.verifier in ("vlm", "cascade"):

@@ -258,6 +258,20 @@ status_bodies = st.fixed_dictionaries(
         "mission_id": json_values,
         "position": json_values,
         "altitude_m": json_values,
+        "reason": json_values,
+        "track_box": json_values,
+        "frame_id": json_values,
+        "progress": json_values,
+        "search": st.one_of(
+            json_values,
+            st.fixed_dictionaries(
+                {}, optional={"area": json_values, "covered": json_values, "coverage": json_values}
+            ),
+        ),
+        "find": st.one_of(
+            json_values,
+            st.fixed_dictionaries({"candidate_id": st.text(max_size=70), "position": json_values}),
+        ),
         "awaiting": st.one_of(
             json_values,
             st.fixed_dictionaries(

@@ -13,7 +13,7 @@ import requests
 
 from backend.app import create_app
 from backend.serving import BackgroundServer
-from backend.vlm_emulator import VlmEmulator
+from backend_tools.vlm_emulator import VlmEmulator
 from behaviors.detection import Verdict
 from behaviors.geometry import Box, iou
 from cloudtrack.api_client import BackendClient, BackendError, encode_keyframe

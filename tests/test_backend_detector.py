@@ -12,10 +12,10 @@ import pytest
 from backend.config import DetectorConfig
 from backend.detectors.factory import build_detector
 from backend.detectors.nms import merge_overlapping, nms
-from backend.detectors.quantize import main as quantize_main
 from backend.detectors.tiling import TiledDetector, tile_grid
 from backend.detectors.yolox import YoloxDetector
 from backend.supersets import UnknownSupersetError, coco_classes_for, superset_from_prompt
+from backend_tools.quantize import main as quantize_main
 from behaviors.geometry import Box, iou
 from cloudtrack.model_store import ModelError
 
@@ -233,7 +233,7 @@ def test_factory_builds_tiles_and_names_the_int8_command(models_dir: Path) -> No
     tiled = build_detector(DetectorConfig(model_dir=str(models_dir)))  # tiles = 2 by default
     assert isinstance(tiled, TiledDetector) and tiled.columns == 2 and tiled.name == "yolox_nano"
     assert isinstance(build_detector(DetectorConfig(model_dir=str(models_dir), tiles=0)), YoloxDetector)
-    with pytest.raises(ModelError, match="backend.detectors.quantize"):
+    with pytest.raises(ModelError, match="backend_tools.quantize"):
         build_detector(DetectorConfig(model_dir=str(models_dir), precision="int8"))
 
 
@@ -258,7 +258,7 @@ def test_tiles_leave_frames_the_model_sees_whole(detector: YoloxDetector, sequen
     assert tiled.detect(image, ["person"]) == detector.detect(image, ["person"])
 
 
-@pytest.mark.parametrize("module", ["backend.detectors.recall", "backend.detectors.quantize"])
+@pytest.mark.parametrize("module", ["backend_tools.detector_recall", "backend_tools.quantize"])
 def test_detector_tools_have_help_with_examples(module: str, capsys: pytest.CaptureFixture[str]) -> None:
     import importlib
 
@@ -270,7 +270,7 @@ def test_detector_tools_have_help_with_examples(module: str, capsys: pytest.Capt
 def test_recall_command_reports_size_bins_and_ratios(
     models_dir: Path, sequences_dir: Path, tmp_path: Path
 ) -> None:
-    from backend.detectors.recall import main as recall_main
+    from backend_tools.detector_recall import main as recall_main
 
     out = tmp_path / "recall.json"
     seq = str(sequences_dir / "uav123_wakeboard7")

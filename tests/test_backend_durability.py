@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import requests
 
-from backend.fleet_services import BackendProcess
+from backend_tools.fleet_services import BackendProcess
 from tests.backend_fixtures import frame, jpeg
 
 TOKENS = {"drone-1": "durability-drone-1-token", "drone-2": "durability-drone-2-token"}

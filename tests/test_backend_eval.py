@@ -9,7 +9,9 @@ from pathlib import Path
 import pytest
 
 from backend.detectors.yolox import YoloxDetector
-from backend.evaluation import (
+from backend.pipeline import Pipeline
+from backend.verifiers.attributes import AttributeVerifier
+from backend_tools.evaluation import (
     DatasetError,
     EvalImage,
     EvalSet,
@@ -21,8 +23,6 @@ from backend.evaluation import (
     load_sard_voc,
     markdown_table,
 )
-from backend.pipeline import Pipeline
-from backend.verifiers.attributes import AttributeVerifier
 from behaviors.geometry import Box
 
 A, B = Box(0, 0, 10, 10), Box(50, 50, 10, 10)

@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from backend.fleet_services import RedisServer
 from backend.redis_store import RedisStore
 from backend.sessions import SessionStore
 from backend.state_store import QuotaExceededError, SqliteStore, StateStore, vector_bytes, vector_from
+from backend_tools.fleet_services import RedisServer
 from cloudtrack.api_models import DecisionIn, Rejection, RejectionIn, VehicleStatus
 
 

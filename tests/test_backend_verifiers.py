@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 import requests
 
-from backend.bench_command import mosaic
 from backend.crops import crop_box, margin_crop
 from backend.detectors.yolox import YoloxDetector
 from backend.pipeline import Pipeline
@@ -21,7 +20,8 @@ from backend.verifiers.cascade import CascadeVerifier
 from backend.verifiers.interface import VerifierError, VerifierTimeout
 from backend.verifiers.openai_chat import OpenAIChatVerifier
 from backend.verifiers.prompts import family_for, render
-from backend.vlm_emulator import MODEL_NAME, VlmEmulator
+from backend_tools.bench_command import mosaic
+from backend_tools.vlm_emulator import MODEL_NAME, VlmEmulator
 from behaviors.detection import Verdict
 from behaviors.geometry import Box
 

@@ -8,7 +8,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from backend.detect_command import COLOURS, draw_candidates
+from backend_tools.detect_command import COLOURS, draw_candidates
 from behaviors.detection import Verdict
 
 

@@ -44,7 +44,7 @@ def test_supervisor_commands_and_track_box(capsys: pytest.CaptureFixture[str]) -
         assert "confirm: ACCEPTED" in capsys.readouterr().out
         assert wait_for(lambda: len(link._commands) >= 3)
         commands = link.commands()
-        assert commands[0] == ConfirmCandidate("4") and commands[2] == AbortMission("gcs")
+        assert commands[0] == ConfirmCandidate("4", by="gcs") and commands[2] == AbortMission("gcs")
         assert isinstance(commands[1], TrackRectangle) and commands[1].box.xywh() == (
             160.0,
             240.0,

@@ -67,7 +67,7 @@ def test_mavproxy_module_sends_every_mission_command() -> None:
                 allow_engage=False,
                 mission_id=commands[0].mission_id,
             ),  # type: ignore[attr-defined]
-            ConfirmCandidate(""),
+            ConfirmCandidate("", by="gcs"),
             RejectCandidate("2"),
             AbortMission("gcs"),
         ]

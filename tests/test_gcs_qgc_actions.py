@@ -28,4 +28,4 @@ def test_qgc_actions_file_sends_confirm_reject_abort_and_status() -> None:
                 qgc, lambda m, a=a: m.get_type() == "COMMAND_ACK" and m.command == a["mavCmd"], 3.0
             )
             assert ack is not None and ack.result == 0, label
-        assert link.commands() == [ConfirmCandidate(""), RejectCandidate(""), AbortMission("gcs")]
+        assert link.commands() == [ConfirmCandidate("", by="gcs"), RejectCandidate(""), AbortMission("gcs")]

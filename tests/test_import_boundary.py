@@ -49,7 +49,16 @@ def test_behaviors_imports_only_stdlib_and_itself() -> None:
 # process shares and may use the core's value types; the process packages build on both and never on each
 # other; sitl drives everything and nothing depends on it. Tests may import anything.
 ROOT = BEHAVIORS.parent
-PACKAGES = ("behaviors", "cloudtrack", "companion", "companion_tools", "gcs", "backend", "sitl")
+PACKAGES = (
+    "behaviors",
+    "cloudtrack",
+    "companion",
+    "companion_tools",
+    "gcs",
+    "backend",
+    "backend_tools",
+    "sitl",
+)
 MAY_IMPORT: dict[str, set[str]] = {
     "behaviors": set(),
     "cloudtrack": {"behaviors"},
@@ -60,7 +69,11 @@ MAY_IMPORT: dict[str, set[str]] = {
     # The companion's tools (eval, bench, replay) sit on top: they run the back-end's detector and verifiers
     # in process; `cloudtrack-companion` finds them through entry points, never by import.
     "companion_tools": {"cloudtrack", "behaviors", "companion", "backend"},
-    "sitl": {"cloudtrack", "behaviors", "companion", "backend"},
+    # The back-end's tools (bench, eval, detect, recall, quantisation, verifier table) sit on top of the
+    # service as companion_tools sits on the companion; `cloudtrack-backend` finds them through entry points.
+    "backend_tools": {"cloudtrack", "behaviors", "backend"},
+    # The simulator flies with the VLM emulator (backend_tools) as the hosted VLM it cannot reach.
+    "sitl": {"cloudtrack", "behaviors", "companion", "backend", "backend_tools"},
 }
 # The one import against the direction, and why: MAVProxy's `module load cloudtrack` imports the top-level
 # package by the name the user types and calls its init(), which hands over to the ground tool.
@@ -97,4 +110,5 @@ def test_the_mavproxy_hook_is_the_only_exception_and_still_needed() -> None:
 def test_nothing_imports_sitl_and_the_process_packages_stay_apart() -> None:
     found = _cross_package_imports()
     assert sorted(m for m, name in found if name == "sitl") == []
+    assert sorted(m for m, name in found if name == "backend_tools" and m.split("/")[0] != "sitl") == []
     assert sorted((m, name) for m, name in found if {m.split("/")[0], name} == {"companion", "backend"}) == []

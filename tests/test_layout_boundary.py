@@ -8,16 +8,37 @@ rules the split of `companion/` adds (`python -m pytest -k layout`).
 from __future__ import annotations
 
 import ast
+import sys
 from pathlib import Path
 
+if sys.version_info >= (3, 11):
+    import tomllib
+else:
+    import tomli as tomllib
+
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("behaviors", "cloudtrack", "companion", "companion_tools", "gcs", "backend", "sitl")
+PACKAGES = (
+    "behaviors",
+    "cloudtrack",
+    "companion",
+    "companion_tools",
+    "gcs",
+    "backend",
+    "backend_tools",
+    "sitl",
+)
 CAPABILITIES = ("companion.mavlink", "companion.vision", "companion.cloud")
 # The main loop's wiring: capabilities are parts it puts together, so they never import it back.
 WIRING = ("companion.mission_runner", "companion.run_command", "companion.cli")
 # MAVProxy loads `module load cloudtrack` by importing the package named `cloudtrack` and calling its
 # `init`, so that hook (and only it) may hand over to the ground side's module, lazily.
 ENTRY_POINT_HOOKS = {("cloudtrack/__init__.py", "gcs")}
+# Each process and the tools on top of it, which it finds through an entry-point group, never by import.
+TOOLS = {"companion": ("companion_tools", "cloudtrack.companion_commands"),
+         "backend": ("backend_tools", "cloudtrack.backend_commands")}  # fmt: skip
+# The only modules of a service package runnable on their own: its command line, and the pose model's
+# installer (`make install` runs it). Anything else with a command line is a tool and lives in *_tools.
+SERVICE_MAIN_MODULES = {"companion.cli", "backend.cli", "backend.verifiers.person_model"}
 # Names that repeat with the same meaning in each package; any other repeat is a clash to rename.
 SAME_MEANING = {
     "__init__": "each package's own",
@@ -65,7 +86,7 @@ def _graph() -> dict[str, set[str]]:
 
 def test_layout_packages_exist() -> None:
     modules = _modules()
-    for package in (*CAPABILITIES, "companion_tools", "gcs"):
+    for package in (*CAPABILITIES, "companion_tools", "backend_tools", "gcs"):
         assert package in modules, f"{package}/__init__.py is missing"
 
 
@@ -84,15 +105,42 @@ def test_layout_capabilities_do_not_import_each_other_nor_the_wiring_nor_the_too
 
 
 def test_layout_runtime_never_imports_the_tools() -> None:
-    """The tools may import the runtime; the runtime finds them only through entry points (companion/cli.py)."""
-    wrong = sorted(
-        (module, name)
-        for module, names in _graph().items()
-        if _within(module, "companion") and not _within(module, "companion_tools")
-        for name in names
-        if _within(name, "companion_tools")
+    """The tools may import the runtime; the runtime finds them only through entry points (its cli.py)."""
+    for runtime, (tools, _) in TOOLS.items():
+        wrong = sorted(
+            (module, name)
+            for module, names in _graph().items()
+            if _within(module, runtime) and not _within(module, tools)
+            for name in names
+            if _within(name, tools)
+        )
+        assert wrong == [], runtime
+
+
+def _entry_points() -> dict[str, dict[str, str]]:
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    return dict(project["entry-points"])
+
+
+def test_layout_each_tool_subcommand_is_declared_and_each_declared_one_exists() -> None:
+    groups = _entry_points()
+    modules = _modules()
+    for tools, group in TOOLS.values():
+        declared = groups[group]
+        assert [m for m in declared.values() if m not in modules or not _within(m, tools)] == [], group
+        commands = {m for m in modules if _within(m, tools) and m.endswith("_command")}
+        assert commands == set(declared.values()), f"{tools}: every *_command module is a declared subcommand"
+        assert all(m.rsplit(".", 1)[-1] == f"{name}_command" for name, m in declared.items()), group
+
+
+def test_layout_service_packages_hold_no_tools() -> None:
+    """A module with its own command line (`if __name__ == "__main__"`) in a service package is a tool."""
+    runnable = sorted(
+        module
+        for module, path in _modules().items()
+        if module.split(".")[0] in TOOLS and "__main__" in path.read_text()
     )
-    assert wrong == []
+    assert set(runnable) <= SERVICE_MAIN_MODULES, set(runnable) - SERVICE_MAIN_MODULES
 
 
 def test_layout_ground_side_and_companion_never_import_each_other() -> None:

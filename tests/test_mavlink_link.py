@@ -112,14 +112,10 @@ def test_mode_tables_match_the_autopilots_encodings() -> None:
 
 def test_stream_requests_cover_every_decoded_message() -> None:
     ids = {msg_id for msg_id, _ in stream_intervals_us(10.0)}
-    assert ids == {
-        0,
-        1,
-        30,
-        32,
-        33,
-    }  # HEARTBEAT, SYS_STATUS, ATTITUDE, LOCAL_POSITION_NED, GLOBAL_POSITION_INT
+    # HEARTBEAT, SYS_STATUS, ATTITUDE, LOCAL_POSITION_NED, GLOBAL_POSITION_INT, MISSION_CURRENT
+    assert ids == {0, 1, 30, 32, 33, 42}
     assert dict(stream_intervals_us(10.0))[30] == 100_000
+    assert dict(stream_intervals_us(10.0))[42] == 500_000  # the item changes at waypoints only
     # PX4 refuses a HEARTBEAT rate (FAILED, stays at 1 Hz): its mode comes from CURRENT_MODE (436) too.
     px4 = dict(stream_intervals_us(10.0, AutopilotKind.PX4))
     assert px4[436] == 100_000 and 436 not in dict(stream_intervals_us(10.0, AutopilotKind.ARDUPILOT))
@@ -258,7 +254,7 @@ def test_signing_refuses_forged_and_unsigned_commands() -> None:
                 ground, lambda m: m.get_type() == "COMMAND_ACK" and m.command == CMD_CONFIRM, 3.0
             )
             assert ack is not None and ack.result == 0 and ack._signed
-        assert link.commands() == [ConfirmCandidate("2")]
+        assert link.commands() == [ConfirmCandidate("2", by="gcs")]
 
 
 def test_bad_signing_key_is_a_clear_error() -> None:

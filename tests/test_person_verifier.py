@@ -16,7 +16,6 @@ from backend.config import VerifierConfig, VlmConfig
 from backend.crops import margin_crop
 from backend.verifiers.attributes import AttributeVerifier
 from backend.verifiers.colour_names import BASIC_SRGB, ColourNamer, calibrate, srgb_to_lab
-from backend.verifiers.crop_set import COLOUR_NAMES, POSTURES, LabelledCrop, load_crops, read_frame
 from backend.verifiers.factory import build_verifier
 from backend.verifiers.person_model import (
     L_HIP,
@@ -27,7 +26,8 @@ from backend.verifiers.person_model import (
     PersonModelUnavailable,
 )
 from backend.verifiers.person_verifier import PersonVerifier, compound_colours, own_description
-from backend.verifiers.verifier_eval import DEFAULT_CROPS, evaluate, report
+from backend_tools.crop_set import COLOUR_NAMES, POSTURES, LabelledCrop, load_crops, read_frame
+from backend_tools.verifier_eval import DEFAULT_CROPS, evaluate, report
 from behaviors.detection import Verdict
 from behaviors.geometry import Box
 

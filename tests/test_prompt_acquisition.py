@@ -317,8 +317,8 @@ def test_prompt_red_shirt_is_not_grey_blue_on_real_crops(sequences_dir: Path) ->
     blue, but a red shirt is never "grey-blue"; the grey-blue striped shirt is, with or without the
     pattern word. (The shipped colour prototypes were calibrated on these crops: optimistic for them.)"""
     from backend.crops import margin_crop
-    from backend.verifiers.crop_set import load_crops, read_frame
-    from backend.verifiers.verifier_eval import DEFAULT_CROPS
+    from backend_tools.crop_set import load_crops, read_frame
+    from backend_tools.verifier_eval import DEFAULT_CROPS
 
     verifier = PersonVerifier()
     crops = [c for c in load_crops(DEFAULT_CROPS) if c.sequence == GROUP and c.posture]

@@ -286,7 +286,7 @@ def test_backend_session_reports_status_and_delivers_supervisor_decisions(tmp_pa
             while len(commands) < 2 and time.monotonic() < deadline:
                 commands += session.commands()
                 time.sleep(0.05)
-            assert commands == [ConfirmCandidate("c7"), RejectCandidate("c7")]
+            assert commands == [ConfirmCandidate("c7", by="supervisor page"), RejectCandidate("c7")]
             # A rejection the back-end refuses for good (unknown candidate) does not block the session.
             session.reject("never-seen", None)
             before = session.last_success()

@@ -19,7 +19,7 @@ from backend.supersets import (
     superset_from_prompt,
     vocabulary,
 )
-from backend.wordnet_vocabulary import WordNet, adjective_words, build, render
+from backend_tools.wordnet_vocabulary import WordNet, adjective_words, build, render
 from tests.backend_fixtures import auth, backend_config, detect_parts, frame, jpeg
 
 PROMPTS: list[tuple[str, str]] = [
@@ -332,7 +332,7 @@ def test_supersets_table_loads_once_and_maps_fast() -> None:
 
 
 def test_supersets_committed_table_is_what_wordnet_gives() -> None:
-    # Debian's wordnet-base (installed by `make test`); regenerate: `python -m backend.wordnet_vocabulary`.
+    # Debian's wordnet-base (installed by `make test`); regenerate: `python -m backend_tools.wordnet_vocabulary`.
     wordnet = WordNet.read(Path("/usr/share/wordnet"))
     table = build(wordnet)
     assert render(table, adjective_words(wordnet, table)) == VOCABULARY_FILE.read_text(encoding="utf-8")

@@ -13,7 +13,7 @@ import pytest
 
 from backend.app import create_app
 from backend.config import AuthConfig, BackendConfig, DetectorConfig, SessionConfig, VerifierConfig
-from backend.fleet_services import RedisServer
+from backend_tools.fleet_services import RedisServer
 from tests.live_backend import SUPERVISOR_TOKEN, VEHICLE_TOKENS, serve
 from tests.test_supervisor_page import read_events
 

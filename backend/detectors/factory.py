@@ -6,6 +6,9 @@ from backend.config import DetectorConfig
 from backend.detectors.interface import SupersetDetector
 from cloudtrack.model_store import ModelError, require, resolve_model_dir
 
+# `precision = "int8"`: the weights `python -m backend_tools.quantize` derives from the fp32 ones, beside them.
+INT8_NAME = "yolox_nano_int8.onnx"
+
 
 def build_detector(config: DetectorConfig) -> SupersetDetector:
     """The detector for `config.kind`; heavy or optional dependencies are imported only when chosen."""
@@ -27,7 +30,6 @@ def build_detector(config: DetectorConfig) -> SupersetDetector:
 
 
 def _yolox(config: DetectorConfig) -> SupersetDetector:
-    from backend.detectors.quantize import INT8_NAME
     from backend.detectors.yolox import YoloxDetector
 
     model_dir = resolve_model_dir(config.model_dir or None)
@@ -37,7 +39,7 @@ def _yolox(config: DetectorConfig) -> SupersetDetector:
         if not weights.is_file():
             raise ModelError(
                 f"detector precision int8: {weights} is missing; derive it from the fp32 weights with "
-                f"`python -m backend.detectors.quantize SEQUENCE_FOLDERS... --model-dir {model_dir}`"
+                f"`python -m backend_tools.quantize SEQUENCE_FOLDERS... --model-dir {model_dir}`"
             )
     yolox = YoloxDetector(weights, config.score_threshold, config.nms_threshold, threads=config.threads)
     if not config.tiles:

@@ -3,7 +3,7 @@
 A background thread, once a `period_s`: posts the vehicle's status (state, prompt, position and the
 candidate awaiting the supervisor, with its small JPEG crop from `companion.cloud.candidate_crop`; the crop
 goes up once per candidate, the back-end keeps it, and it is sent again every CROP_REFRESH_S so a
-restarted back-end recovers it) so the supervisor page shows it, fetches the supervisor's new
+restarted back-end recovers it; the same for the mission's find and its crop) so the supervisor page shows it, fetches the supervisor's new
 decisions and turns them into Confirm/Reject commands, and sends queued rejections so the back-end
 never proposes a rejected candidate again in this mission. Nothing here blocks the main loop; every
 failure is logged and retried on the next round. `last_success()` feeds the lost-back-end watchdog.
@@ -59,6 +59,7 @@ class BackendSession:
         self._after = 0
         self._primed = False  # decisions made before we started are history, not commands
         self._crop_sent: tuple[str, float] | None = None  # (candidate id, when) of the last crop delivered
+        self._find_crop_sent: tuple[str, float] | None = None  # the same for the find's crop
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="backend-session", daemon=True)
 
@@ -113,9 +114,19 @@ class BackendSession:
                 if sent is not None and sent[0] == crop_id and self._clock() - sent[1] < CROP_REFRESH_S:
                     fields["awaiting"] = {k: v for k, v in awaiting.items() if k not in _CROP_FIELDS}
                     crop_id = None  # the back-end already holds this candidate's crop
+            find = fields.get("find")
+            find_id = None
+            if isinstance(find, dict) and find.get("crop_jpeg_b64"):
+                find_id = find.get("candidate_id")
+                sent = self._find_crop_sent
+                if sent is not None and sent[0] == find_id and self._clock() - sent[1] < CROP_REFRESH_S:
+                    fields["find"] = {k: v for k, v in find.items() if k != "crop_jpeg_b64"}
+                    find_id = None  # stored with the find already
             self._client.report_status(str(status.get("state", "IDLE")), **fields)
             if crop_id is not None:
                 self._crop_sent = (crop_id, self._clock())
+            if find_id is not None:
+                self._find_crop_sent = (find_id, self._clock())
         for candidate_id, position, mission in pending:
             try:
                 self._client.reject(
@@ -136,7 +147,9 @@ class BackendSession:
                     continue
                 cid = d.candidate_id
                 self._commands.append(
-                    ConfirmCandidate(cid) if d.action == "confirm" else RejectCandidate(cid)
+                    ConfirmCandidate(cid, by="supervisor page")
+                    if d.action == "confirm"
+                    else RejectCandidate(cid)
                 )
             self._primed = True
             self._last_success = self._clock()

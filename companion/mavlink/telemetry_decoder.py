@@ -18,7 +18,14 @@ from typing import Any
 from pymavlink.dialects.v20 import development
 
 from behaviors.telemetry import Telemetry
-from cloudtrack.autopilot_modes import AutopilotKind, detect_autopilot, is_armed, mode_name, offboard_mode
+from cloudtrack.autopilot_modes import (
+    AutopilotKind,
+    detect_autopilot,
+    is_armed,
+    mission_mode,
+    mode_name,
+    offboard_mode,
+)
 from cloudtrack.mavlink_connection import mavlink
 
 MSG_ID_HEARTBEAT = int(mavlink.MAVLINK_MSG_ID_HEARTBEAT)
@@ -27,6 +34,8 @@ MSG_ID_ATTITUDE = int(mavlink.MAVLINK_MSG_ID_ATTITUDE)
 MSG_ID_LOCAL_POSITION_NED = int(mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED)
 MSG_ID_GLOBAL_POSITION_INT = int(mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT)
 MSG_ID_CURRENT_MODE = int(development.MAVLINK_MSG_ID_CURRENT_MODE)  # not in the ardupilotmega dialect
+MSG_ID_MISSION_CURRENT = int(mavlink.MAVLINK_MSG_ID_MISSION_CURRENT)
+MISSION_CURRENT_HZ = 2.0  # the item changes at waypoints only; the break-off item is read from it
 MAV_TYPE_GCS = int(mavlink.MAV_TYPE_GCS)
 MAV_TYPE_ONBOARD_CONTROLLER = int(mavlink.MAV_TYPE_ONBOARD_CONTROLLER)
 MAV_STATE_CRITICAL = int(mavlink.MAV_STATE_CRITICAL)
@@ -41,6 +50,7 @@ def stream_intervals_us(rate_hz: float, kind: AutopilotKind | None = None) -> li
         (MSG_ID_LOCAL_POSITION_NED, fast),
         (MSG_ID_HEARTBEAT, fast),
         (MSG_ID_SYS_STATUS, max(fast, 1e6)),  # battery and sensor health change slowly
+        (MSG_ID_MISSION_CURRENT, max(fast, 1e6 / MISSION_CURRENT_HZ)),
     ]
     if kind is AutopilotKind.PX4:
         streams.append((MSG_ID_CURRENT_MODE, fast))  # PX4's HEARTBEAT stays at 1 Hz
@@ -82,6 +92,8 @@ class TelemetryDecoder:
         self._current_mode = _current_mode_parser()
         self.battery_remaining: int | None = None
         self.local_position: tuple[float, float, float] | None = None
+        self._mission: tuple[int, int | None] | None = None  # MISSION_CURRENT: (seq, total or None)
+        self._home_amsl: float | None = None  # the ground under a hovering vehicle, flat-ground assumption
 
     def feed(self, msg: Any, now: float) -> AutopilotHeartbeat | None:
         """Take one message; returns the decoded HEARTBEAT when `msg` is the autopilot's heartbeat, or its
@@ -104,6 +116,7 @@ class TelemetryDecoder:
             elif mtype == "GLOBAL_POSITION_INT":
                 if math.isfinite(msg.relative_alt):
                     self._height = (msg.relative_alt / 1000.0, now)
+                    self._home_amsl = (msg.alt - msg.relative_alt) / 1000.0
                 self._update(
                     now, lat_deg=msg.lat / 1e7, lon_deg=msg.lon / 1e7, height_agl=msg.relative_alt / 1000.0,
                     vn=msg.vx / 100.0, ve=msg.vy / 100.0, vd=msg.vz / 100.0,
@@ -113,7 +126,21 @@ class TelemetryDecoder:
                 self._update(now, vn=msg.vx, ve=msg.vy, vd=msg.vz)
             elif mtype == "SYS_STATUS":
                 self.battery_remaining = msg.battery_remaining
+            elif mtype == "MISSION_CURRENT":
+                # `total` (MAVLink 2 extension): 0 not supported, UINT16_MAX no mission on the vehicle.
+                total = int(getattr(msg, "total", 0) or 0)
+                self._mission = (int(msg.seq), total if 0 < total < 0xFFFF else None)
         return None
+
+    def ground_amsl(self) -> float | None:
+        """The ground's altitude above mean sea level (m): home's, from GLOBAL_POSITION_INT (alt - relative)."""
+        with self._lock:
+            return self._home_amsl
+
+    def mission_item(self) -> int | None:
+        """MISSION_CURRENT's sequence number: the item the mission is on, or resumes at; None before one."""
+        with self._lock:
+            return self._mission[0] if self._mission is not None else None
 
     def _heartbeat(self, msg: Any, now: float) -> AutopilotHeartbeat | None:
         if msg.type in (MAV_TYPE_GCS, MAV_TYPE_ONBOARD_CONTROLLER) or msg.get_srcComponent() != 1:
@@ -155,10 +182,14 @@ class TelemetryDecoder:
                 return None
             hb = self.heartbeat
             mode = hb.mode if hb else ""
+            item, items = self._mission if self._mission is not None else (None, None)
             return Telemetry(
                 time_s=self._time,
                 armed=hb.armed if hb else False,
                 mode=mode,
                 offboard_active=hb is not None and mode == offboard_mode(hb.kind),
+                mission_active=hb is not None and mode == mission_mode(hb.kind),
+                mission_item=item,
+                mission_items=items,
                 **self._fields,
             )

@@ -47,6 +47,7 @@ from behaviors.telemetry import Telemetry
 from cloudtrack.autopilot_modes import (
     QUADROTOR,
     AutopilotKind,
+    mission_mode,
     mode_for_action,
     offboard_mode,
     set_mode_params,
@@ -54,6 +55,7 @@ from cloudtrack.autopilot_modes import (
 from cloudtrack.gcs_protocol import (
     CAMERA_CAP_FLAGS_HAS_TRACKING_POINT,
     CAMERA_CAP_FLAGS_HAS_TRACKING_RECTANGLE,
+    MAV_SEVERITY_CRITICAL,
     MAV_SEVERITY_INFO,
     MAV_SEVERITY_WARNING,
     GcsProtocol,
@@ -141,7 +143,8 @@ class VehicleLink:
 
         self._setpoint = Setpoint.zero()
         self._setpoint_time = -math.inf  # when the main loop computed `_setpoint`
-        self._release: tuple[str, float] | None = None  # letting go: (hold mode requested, since)
+        # Letting go (the hold mode) or handing back to the mission: (mode requested, since, what it is).
+        self._release: tuple[str, float, str] | None = None
         self._telemetry_missing = False
         self._descent_allowed = False
         self._held_reason = ""  # a hold the main loop asked for, until its next set_velocity
@@ -289,9 +292,50 @@ class VehicleLink:
                 return
             mode = self._release_mode(kind)
             with self._lock:
-                self._release = (mode, self._clock())
+                self._release = (mode, self._clock(), "HOLD MODE")
             self._send_zero()
             self._request_mode(mode)
+
+    def resume_mission(self, item: int | None, reason: str = "") -> None:
+        """Hand the vehicle back to the autopilot's own mission (ArduPilot AUTO, PX4 MISSION) at mission item
+        `item`, the one it broke off at: the current item is set first only when the autopilot has moved on
+        from it (both resume the current item when their mission mode is selected again). Like letting go:
+        an explicit zero, the mode requested (repeated while GUIDED/OFFBOARD remains, at most
+        RELEASE_TIMEOUT_S), then silence; nothing is requested if the mode is no longer ours (the pilot chose
+        one meanwhile) or the autopilot never left its mission."""
+        with self._offboard_lock:
+            kind = self.autopilot_kind
+            with self._lock:
+                ours = kind is not None and self._mode == offboard_mode(kind)
+                self._enabled = self._engage = False
+                self._held_reason = ""
+                self._setpoint = Setpoint.zero()
+                self._stream_since = None
+            if kind is None or not ours:
+                log.info(
+                    "mission not requested (%s): the autopilot is in %s", reason, self._mode or "no mode"
+                )
+                return
+            mode = mission_mode(kind)
+            current = self._decoder.mission_item()
+            log.info("handing back to the mission at item %s (%s; current %s)", item, reason, current)
+            mavsdk = self._mavsdk is not None and kind is AutopilotKind.PX4
+            if self._mavsdk is not None and mavsdk:
+                self._mavsdk.stop(reason)  # MAVSDK would keep re-sending the last setpoint otherwise
+            else:
+                self._send_zero()
+            if item is not None and current is not None and item != current:
+                self._set_mission_current(item)
+            if not mavsdk:  # MAVSDK gets no more setpoints: the request goes once
+                with self._lock:
+                    self._release = (mode, self._clock(), "MISSION MODE")
+            self._request_mode(mode)
+
+    def _set_mission_current(self, item: int) -> None:
+        """MISSION_SET_CURRENT (ArduPilot and PX4 alike, as `cloudtrack.mission_protocol` sets it): the item
+        the mission resumes at."""
+        target = self._cfg.target_system
+        self.endpoint.send(lambda m: m.mission_set_current_send(target, 1, item))
 
     def _release_mode(self, kind: AutopilotKind) -> str:
         if kind is AutopilotKind.PX4:
@@ -344,6 +388,31 @@ class VehicleLink:
         encoded = value_name(name)
         boot_ms = self._boot_ms()
         self.endpoint.send(lambda m: m.named_value_float_send(boot_ms, encoded, float(value)))
+
+    def announce_find(
+        self, lat: float, lon: float, sigma_m: float, slant_range_m: float, prompt: str, confirmed_by: str
+    ) -> None:
+        """A confirmed find: STATUSTEXT at CRITICAL, which QGroundControl pops up (`FOUND <lat>,<lon>
+        +-<sigma>m`, at most 50 bytes), a second line with the prompt and who confirmed, and the position as
+        CAMERA_TRACKING_GEO_STATUS."""
+        self.send_status(f"FOUND {lat:.6f},{lon:.6f} +-{min(sigma_m, 9999.0):.1f}m", MAV_SEVERITY_CRITICAL)
+        self.status(f"FOUND: {prompt} (confirmed by {confirmed_by or 'supervisor'})", MAV_SEVERITY_INFO)
+        self.send_find_position(lat, lon, sigma_m, slant_range_m)
+
+    def send_find_position(self, lat: float, lon: float, sigma_m: float, slant_range_m: float) -> None:
+        """CAMERA_TRACKING_GEO_STATUS (from the camera identity) with the find's position: ground altitude
+        AMSL from the autopilot's home, horizontal accuracy the geolocation's sigma, unknowns NaN."""
+        ground = self._decoder.ground_amsl()
+        alt = ground if ground is not None else math.nan
+        nan = math.nan
+        lat_e7, lon_e7 = int(round(lat * 1e7)), int(round(lon * 1e7))
+        status = mavlink.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE
+        self.endpoint.send(
+            lambda m: m.camera_tracking_geo_status_send(
+                status, lat_e7, lon_e7, alt, sigma_m, nan, nan, nan, nan, nan, slant_range_m, nan, nan
+            ),
+            self._camera_component or None,
+        )
 
     def report_tracking(self, box: Box | None, image_size: tuple[int, int]) -> None:
         """CAMERA_TRACKING_IMAGE_STATUS at up to 10 Hz while tracking; one IDLE status when it stops."""
@@ -694,13 +763,13 @@ class VehicleLink:
         """While letting go (lock held): zeros and the hold-mode request until the mode leaves GUIDED/OFFBOARD
         or RELEASE_TIMEOUT_S passes; then nothing more. Returns (setpoint, mode to request, notice)."""
         assert self._release is not None
-        mode, since = self._release
+        mode, since, what = self._release
         if not in_offboard:
             self._release = None  # the autopilot holds (or the pilot chose a mode): silence
             return None, None, ""
         if now - since > RELEASE_TIMEOUT_S:
             self._release = None
-            return None, None, f"HOLD MODE {mode} NOT SET: companion silent in {self._mode}"
+            return None, None, f"{what} {mode} NOT SET: companion silent in {self._mode}"
         recently = self._mode_request is not None and now - self._mode_request[1] < MODE_REQUEST_RETRY_S
         return Setpoint.zero(), (None if recently else mode), ""
 

@@ -1,6 +1,6 @@
 """Detector recall on the described targets by box size, and time per keyframe, for several set-ups at once.
 
-    python -m backend.detectors.recall ../shared/data/sequences/* --model-dir ../shared/models \
+    python -m backend_tools.detector_recall ../shared/data/sequences/* --model-dir ../shared/models \
         --variants fp32,fp32+tiles2,fp32+tiles3 --step 2
 
 A target counts as found in a frame when a detection of its class (the sequence's `referring.txt` mapped
@@ -78,7 +78,7 @@ def build_variant(spec: str, model_dir: Path, int8_model: Path | None, threads: 
     path = fp32 if precision == "fp32" else (int8_model or fp32.with_name("yolox_nano_int8.onnx"))
     if not path.is_file():
         raise ValueError(
-            f"{path} is missing; make it with `python -m backend.detectors.quantize SEQUENCES --out {path}`"
+            f"{path} is missing; make it with `python -m backend_tools.quantize SEQUENCES --out {path}`"
         )
     yolox = YoloxDetector(path, threads=threads)
     detector: SupersetDetector = yolox
@@ -152,13 +152,13 @@ def main(argv: list[str] | None = None) -> int:
     from cloudtrack.model_store import ModelError, resolve_model_dir
 
     parser = argparse.ArgumentParser(
-        prog="python -m backend.detectors.recall",
+        prog="python -m backend_tools.detector_recall",
         description="YOLOX recall on each sequence's described target by box size, and detector time per "
         "keyframe, for several variants side by side (interleaved on every frame).",
         epilog="examples:\n"
-        "  python -m backend.detectors.recall ../shared/data/sequences/* --model-dir ../shared/models "
+        "  python -m backend_tools.detector_recall ../shared/data/sequences/* --model-dir ../shared/models "
         "--variants fp32,fp32+tiles2,fp32+tiles3\n"
-        "  python -m backend.detectors.recall ../shared/data/sequences/uav123_person12_1 "
+        "  python -m backend_tools.detector_recall ../shared/data/sequences/uav123_person12_1 "
         "--model-dir ../shared/models "
         "--variants fp32,int8 --int8-model /tmp/yolox_nano_int8.onnx --step 1 --speed-runs 300 --threads 0",
         formatter_class=argparse.RawDescriptionHelpFormatter,

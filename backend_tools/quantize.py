@@ -1,6 +1,6 @@
 """Static int8 quantisation of YOLOX-nano with onnxruntime's own tooling, calibrated on real frames.
 
-    python -m backend.detectors.quantize ../shared/data/sequences/* --model-dir ../shared/models \
+    python -m backend_tools.quantize ../shared/data/sequences/* --model-dir ../shared/models \
         --out ~/.cache/cloudtrack/models/yolox_nano/yolox_nano_int8.onnx
 
 The shared fp32 weights are read, never changed; the int8 model is written where `[detector] precision =
@@ -28,7 +28,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-INT8_NAME = "yolox_nano_int8.onnx"
+from backend.detectors.factory import INT8_NAME
+
 STEM_CONVS = 10
 
 
@@ -116,10 +117,10 @@ def main(argv: list[str] | None = None) -> int:
     from cloudtrack.model_store import ModelError, require, resolve_model_dir
 
     parser = argparse.ArgumentParser(
-        prog="python -m backend.detectors.quantize",
+        prog="python -m backend_tools.quantize",
         description="Derive an int8 YOLOX-nano from the fp32 weights (static quantisation, calibrated on "
         'frames of the given sequences) for [detector] precision = "int8".',
-        epilog="example:\n  python -m backend.detectors.quantize ../shared/data/sequences/* "
+        epilog="example:\n  python -m backend_tools.quantize ../shared/data/sequences/* "
         "--model-dir ../shared/models "
         "--out /tmp/models/yolox_nano/yolox_nano_int8.onnx",
         formatter_class=argparse.RawDescriptionHelpFormatter,

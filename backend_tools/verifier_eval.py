@@ -1,6 +1,6 @@
 """The verifier table: the person-model verifier (`local`) beside the box-fraction HSV one (`local-hsv`).
 
-    python -m backend.verifiers.verifier_eval --sequences ../shared/data/sequences
+    python -m backend_tools.verifier_eval --sequences ../shared/data/sequences
 
 Both judge the same 50 px margin crops the pipeline makes, of every labelled person in
 tests/data/verifier_crops.json. Per attribute (upper garment colour, lower garment colour, posture) every
@@ -28,12 +28,12 @@ import numpy as np
 from backend.crops import margin_crop
 from backend.verifiers.attributes import AttributeVerifier
 from backend.verifiers.colour_names import BASIC_SRGB, PROTOTYPES_PATH, ColourNamer, calibrate
-from backend.verifiers.crop_set import LabelledCrop, load_crops, read_frame
 from backend.verifiers.person_verifier import Observation, PersonVerifier
+from backend_tools.crop_set import LabelledCrop, load_crops, read_frame
 from behaviors.detection import Verdict
 from behaviors.geometry import Box
 
-DEFAULT_CROPS = Path(__file__).resolve().parents[2] / "tests" / "data" / "verifier_crops.json"
+DEFAULT_CROPS = Path(__file__).resolve().parents[1] / "tests" / "data" / "verifier_crops.json"
 COLOURS = (*BASIC_SRGB, "dark")
 POSTURE_PROMPTS = {
     "standing": "a person standing",
@@ -288,7 +288,7 @@ def write_prototypes(crops: list[LabelledCrop], sequences_dir: Path, path: Path)
             if part in obs.regions
         ]
     table = {
-        "source": "python -m backend.verifiers.verifier_eval --write-prototypes (tests/data/verifier_crops.json)",
+        "source": "python -m backend_tools.verifier_eval --write-prototypes (tests/data/verifier_crops.json)",
         "calibrated": calibrate(garments),
     }
     path.write_text(json.dumps(table, indent=1) + "\n")
@@ -296,7 +296,7 @@ def write_prototypes(crops: list[LabelledCrop], sequences_dir: Path, path: Path)
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m backend.verifiers.verifier_eval",
+        prog="python -m backend_tools.verifier_eval",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

@@ -1,12 +1,12 @@
 """`cloudtrack-backend bench`: what the back-end costs a fleet, against a real server and a VLM endpoint
-of fixed latency L (the OpenAI-compatible emulator in backend/vlm_emulator.py, on loopback).
+of fixed latency L (the OpenAI-compatible emulator in backend_tools/vlm_emulator.py, on loopback).
 
 1. Detection time of a 640x480 frame (YOLOX-nano, onnxruntime).
 2. t_f for a keyframe with k candidates, verified concurrently versus one after another (the reference
    code's way): two servers, verifier pool k and 1.
 3. N simulated vehicles (threads, each its own token, sending real keyframes back to back with
    BackendClient): p50/p95 latency and throughput versus N, and bytes per request.
-4. Replicas (backend/fleet_bench.py): 16 vehicles through nginx over 1 and over 2 replicas sharing one
+4. Replicas (backend_tools/fleet_bench.py): 16 vehicles through nginx over 1 and over 2 replicas sharing one
    redis-server, then a failover run that SIGKILLs one replica half-way and counts acknowledged
    rejections and decisions lost (must be 0). Needs Debian's redis-server and nginx (make install-services).
 Servers run as separate `cloudtrack-backend serve` processes so the bench's own threads do not share
@@ -27,9 +27,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from backend.fleet_bench import fleet_tokens, replicated_bench
-from backend.fleet_services import BackendProcess
-from backend.vlm_emulator import MODEL_NAME, VlmEmulator
+from backend_tools.fleet_bench import fleet_tokens, replicated_bench
+from backend_tools.fleet_services import BackendProcess
+from backend_tools.vlm_emulator import MODEL_NAME, VlmEmulator
 from cloudtrack.api_client import BackendClient, BackendError
 from cloudtrack.config_files import ConfigError
 from cloudtrack.model_store import ModelError, require, resolve_model_dir

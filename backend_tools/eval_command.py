@@ -12,7 +12,9 @@ from pathlib import Path
 from tqdm import tqdm
 
 from backend.detectors.factory import build_detector
-from backend.evaluation import (
+from backend.pipeline import Pipeline
+from backend.verifiers.factory import build_verifier
+from backend_tools.evaluation import (
     DatasetError,
     EvalSet,
     evaluate,
@@ -21,8 +23,6 @@ from backend.evaluation import (
     load_sequences,
     markdown_table,
 )
-from backend.pipeline import Pipeline
-from backend.verifiers.factory import build_verifier
 from cloudtrack.config_files import ConfigError
 from cloudtrack.model_store import ModelError
 

@@ -5,9 +5,9 @@ when looking at it: the upper and lower garment colours and the posture. The set
 `propose` lists the target (ground truth) and every other person YOLOX-nano finds on sampled frames, and
 `contact_sheet` draws numbered grids of them to label by eye.
 
-    python -m backend.verifiers.crop_set propose --sequences ../shared/data/sequences --models ../shared/models \
+    python -m backend_tools.crop_set propose --sequences ../shared/data/sequences --models ../shared/models \
         --out proposals.json
-    python -m backend.verifiers.crop_set sheets proposals.json --sequences ../shared/data/sequences --out sheets/
+    python -m backend_tools.crop_set sheets proposals.json --sequences ../shared/data/sequences --out sheets/
 """
 
 from __future__ import annotations
@@ -156,7 +156,7 @@ def contact_sheet(
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m backend.verifiers.crop_set",
+        prog="python -m backend_tools.crop_set",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import requests
 
-from backend.fleet_services import BackendProcess, NginxBalancer, RedisServer
+from backend_tools.fleet_services import BackendProcess, NginxBalancer, RedisServer
 from cloudtrack.api_client import BackendClient, BackendError
 
 SUPERVISOR_TOKEN = "bench-supervisor-token-0001"

@@ -1,0 +1,506 @@
+"""The search along the autopilot's own mission (ArduPilot AUTO, PX4 MISSION), table-driven: the companion
+commands nothing while it only looks, takes the vehicle for a candidate only when the start allowed it and
+the mission is flying, hands it back at the item it broke off at, and never proposes a rejected person or
+a find again. Every state is reached by real `step` calls (docs/behavior.md, "Search along the mission")."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import replace
+
+import pytest
+
+from behaviors.actions import (
+    Action,
+    BackendQuery,
+    FlightMode,
+    GcsMessage,
+    Hold,
+    ReleaseControl,
+    ReportCandidate,
+    RequestMode,
+    ResumeMission,
+    SendSetpoint,
+    TrackerInit,
+    TrackerStop,
+)
+from behaviors.events import BackendAnswer, BackendUnreachable, Event, PilotTakeover, TimerTick
+from behaviors.geolocation import offset_to_latlon
+from behaviors.mission import MissionState, State, commanding, initial_state, step
+from behaviors.mission_commands import (
+    AbortMission,
+    ConfirmCandidate,
+    RejectCandidate,
+    StartMission,
+    TrackRectangle,
+)
+from behaviors.mission_config import ConfirmAction, MissionConfig, SearchMode
+from behaviors.telemetry import Telemetry
+from tests.test_mission import AT_STANDOFF, CFG, FAR, HEIGHT, PROMPT, box_at, candidate, cmd, kinds, tracked
+from tests.test_mission import reach as spot_reach
+
+S = MissionState
+BREAK_OFF = 7  # the survey item the autopilot is on when the candidate appears
+# What moves the vehicle or its mode: never emitted while the search only looks.
+COMMANDS = (SendSetpoint, Hold, RequestMode, ResumeMission, ReleaseControl)
+
+
+def auto(t: float, item: int = BREAK_OFF, north_m: float = 0.0) -> Telemetry:
+    """The autopilot flying its mission (ArduPilot AUTO) on `item`, `north_m` along its lane."""
+    lat, lon = offset_to_latlon(47.0, 8.0, north_m, 0.0)
+    return Telemetry(
+        t, lat, lon, HEIGHT, mode="AUTO", mission_active=True, mission_item=item, mission_items=24
+    )
+
+
+def guided(t: float, item: int = BREAK_OFF) -> Telemetry:
+    return Telemetry(t, 47.0, 8.0, HEIGHT, mode="GUIDED", offboard_active=True, mission_item=item)
+
+
+def loiter(t: float) -> Telemetry:
+    return Telemetry(t, 47.0, 8.0, HEIGHT, mode="LOITER", mission_item=BREAK_OFF)
+
+
+def run(state: State, events: Sequence[Event], config: MissionConfig = CFG) -> tuple[State, list[Action]]:
+    """Every action of every event, in order."""
+    out: list[Action] = []
+    for event in events:
+        state, actions = step(state, event, config)
+        out.extend(actions)
+    return state, out
+
+
+def reach(mode: MissionState, engage: bool = True, config: MissionConfig = CFG) -> State:
+    """A search started while the autopilot flies its mission, driven into `mode` (taken over when engaged)."""
+    state, _ = run(initial_state(config), [auto(0.0)], config)
+    state, actions = run(state, [cmd(0.1, StartMission(PROMPT, allow_engage=engage))], config)
+    assert state.along_mission
+    if mode is S.SEARCHING:
+        return state
+    query = [a for a in actions if isinstance(a, BackendQuery)][-1]
+    state, _ = run(state, [BackendAnswer(1.0, query.query_id, 30, (candidate(FAR),))], config)
+    if engage:  # the autopilot took our GUIDED request
+        state, _ = run(state, [guided(1.05)], config)
+    if mode is S.ACQUIRING:
+        return state
+    state, _ = run(state, [tracked(1.1, FAR)], config)
+    if mode is S.FOLLOWING:
+        return state
+    if mode is S.LOST:
+        state, _ = run(state, [tracked(1.2, None, ok=False, reason="score")], config)
+        return state
+    state, _ = run(state, [tracked(1.2, AT_STANDOFF)], config)
+    if mode is S.AWAITING_SUPERVISOR:
+        return state
+    if mode is S.CONFIRMED:
+        state, _ = run(state, [cmd(1.3, ConfirmCandidate(by="supervisor page"))], config)
+        return state
+    state, _ = run(state, [cmd(1.3, RejectCandidate())], config)
+    assert mode is S.REJECTED
+    return state
+
+
+@pytest.mark.parametrize("mode", [m for m in MissionState if m not in (S.IDLE, S.ABORTED)])
+@pytest.mark.parametrize("engage", [True, False])
+def test_every_state_is_reachable_along_the_mission(mode: MissionState, engage: bool) -> None:
+    state = reach(mode, engage)
+    if mode is S.FOLLOWING and not engage:  # looking only: the supervisor is asked on the first lock
+        assert state.mode is S.AWAITING_SUPERVISOR
+        return
+    assert state.mode is mode and state.along_mission
+    assert commanding(state) is (engage and mode is not S.SEARCHING)
+
+
+# (name, engaged, start, event, expected mode, expected action kinds in order)
+SURVEY: list[tuple[str, bool, MissionState, Event, MissionState, list[str]]] = [
+    ("searching tick: no setpoint", True, S.SEARCHING, TimerTick(0.7), S.SEARCHING, ["BackendQuery"]),
+    (
+        "candidate: leave the mission",
+        True,
+        S.SEARCHING,
+        BackendAnswer(1.0, 1, 30, (candidate(FAR),)),
+        S.ACQUIRING,
+        ["RequestMode", "GcsMessage", "SendSetpoint", "TrackerInit", "GcsMessage"],
+    ),
+    (
+        "candidate without engage: track only",
+        False,
+        S.SEARCHING,
+        BackendAnswer(1.0, 1, 30, (candidate(FAR),)),
+        S.ACQUIRING,
+        ["TrackerInit", "GcsMessage"],
+    ),
+    ("locked: follow", True, S.ACQUIRING, tracked(1.1, FAR), S.FOLLOWING, ["GcsMessage", "SendSetpoint"]),
+    (
+        "locked without engage: ask the supervisor at once",
+        False,
+        S.ACQUIRING,
+        tracked(1.1, FAR),
+        S.AWAITING_SUPERVISOR,
+        ["GcsMessage", "ReportCandidate", "GcsMessage"],
+    ),
+    (
+        "acquire timeout: back to the mission",
+        True,
+        S.ACQUIRING,
+        TimerTick(4.5),
+        S.SEARCHING,
+        ["TrackerStop", "ResumeMission", "GcsMessage", "GcsMessage", "BackendQuery"],
+    ),
+    (
+        "acquire timeout without engage",
+        False,
+        S.ACQUIRING,
+        TimerTick(4.5),
+        S.SEARCHING,
+        ["TrackerStop", "GcsMessage", "BackendQuery"],
+    ),
+    (
+        "reject",
+        True,
+        S.AWAITING_SUPERVISOR,
+        cmd(1.3, RejectCandidate()),
+        S.REJECTED,
+        ["SendSetpoint", "TrackerStop", "RememberRejection", "GcsMessage"],
+    ),
+    (
+        "reject without engage",
+        False,
+        S.AWAITING_SUPERVISOR,
+        cmd(1.3, RejectCandidate()),
+        S.REJECTED,
+        ["TrackerStop", "RememberRejection", "GcsMessage"],
+    ),
+    (
+        "rejected tick: back to the mission",
+        True,
+        S.REJECTED,
+        TimerTick(1.4),
+        S.SEARCHING,
+        ["ResumeMission", "GcsMessage", "GcsMessage", "BackendQuery"],
+    ),
+    (
+        "rejected tick without engage",
+        False,
+        S.REJECTED,
+        TimerTick(1.4),
+        S.SEARCHING,
+        ["GcsMessage", "BackendQuery"],
+    ),
+    (
+        "tracker lost: stop",
+        True,
+        S.FOLLOWING,
+        tracked(1.2, None, ok=False),
+        S.LOST,
+        ["SendSetpoint", "GcsMessage", "BackendQuery"],
+    ),
+    (
+        "tracker lost without engage",
+        False,
+        S.AWAITING_SUPERVISOR,
+        tracked(1.3, None, ok=False),
+        S.LOST,
+        ["GcsMessage", "BackendQuery"],
+    ),
+    ("lost hold", True, S.LOST, TimerTick(2.25), S.LOST, ["Hold", "BackendQuery"]),
+    ("lost without engage: no hold", False, S.LOST, TimerTick(2.25), S.LOST, ["BackendQuery"]),
+    (
+        "lost too long: back to the mission",
+        True,
+        S.LOST,
+        TimerTick(1.2 + CFG.lost_resume_after_s),
+        S.SEARCHING,
+        ["TrackerStop", "ResumeMission", "GcsMessage", "GcsMessage", "BackendQuery"],
+    ),
+    (
+        "lost too long without engage",
+        False,
+        S.LOST,
+        TimerTick(1.2 + CFG.lost_resume_after_s),
+        S.SEARCHING,
+        ["TrackerStop", "GcsMessage", "BackendQuery"],
+    ),
+    (
+        "confirm",
+        True,
+        S.AWAITING_SUPERVISOR,
+        cmd(1.3, ConfirmCandidate(by="gcs")),
+        S.CONFIRMED,
+        ["ReportCandidate", "GcsMessage"],
+    ),
+    (
+        "back-end lost while engaged: hold",
+        True,
+        S.FOLLOWING,
+        BackendUnreachable(1.2),
+        S.FOLLOWING,
+        ["Hold", "GcsMessage"],
+    ),
+    (
+        "back-end lost while looking only",
+        False,
+        S.AWAITING_SUPERVISOR,
+        BackendUnreachable(1.3),
+        S.AWAITING_SUPERVISOR,
+        ["GcsMessage"],
+    ),
+    (
+        "abort while engaged: let go",
+        True,
+        S.FOLLOWING,
+        cmd(1.2, AbortMission()),
+        S.ABORTED,
+        ["ReleaseControl", "TrackerStop", "GcsMessage"],
+    ),
+    (
+        "abort while looking only: nothing to let go",
+        False,
+        S.SEARCHING,
+        cmd(1.2, AbortMission()),
+        S.ABORTED,
+        ["GcsMessage"],
+    ),
+    (
+        "pilot switches away from GUIDED while engaged: takeover",
+        True,
+        S.FOLLOWING,
+        loiter(1.2),
+        S.ABORTED,
+        ["ReleaseControl", "TrackerStop", "GcsMessage"],
+    ),
+    (
+        "pilot switches the engaged vehicle to AUTO: takeover",
+        True,
+        S.AWAITING_SUPERVISOR,
+        auto(1.3),
+        S.ABORTED,
+        ["ReleaseControl", "TrackerStop", "GcsMessage"],
+    ),
+    (
+        "pilot switches AUTO to LOITER while looking only: the search goes on",
+        False,
+        S.SEARCHING,
+        loiter(1.2),
+        S.SEARCHING,
+        [],
+    ),
+    (
+        "operator box: leave the mission",
+        True,
+        S.SEARCHING,
+        cmd(1.2, TrackRectangle(FAR)),
+        S.FOLLOWING,
+        ["RequestMode", "GcsMessage", "TrackerInit", "GcsMessage"],
+    ),
+]
+
+
+@pytest.mark.parametrize(
+    ("name", "engage", "start", "event", "expected", "expected_kinds"), SURVEY, ids=[t[0] for t in SURVEY]
+)
+def test_survey_transition_table(
+    name: str,
+    engage: bool,
+    start: MissionState,
+    event: Event,
+    expected: MissionState,
+    expected_kinds: list[str],
+) -> None:
+    state, actions = step(reach(start, engage), event, CFG)
+    assert state.mode is expected, name
+    assert kinds(actions) == expected_kinds, name
+
+
+def test_the_start_in_auto_commands_nothing_even_with_engage_allowed() -> None:
+    state, actions = run(initial_state(CFG), [auto(0.0), cmd(0.1, StartMission(PROMPT, allow_engage=True))])
+    assert state.mode is S.SEARCHING and state.along_mission and not commanding(state)
+    assert kinds(actions) == ["GcsMessage", "BackendQuery"]
+    for i in range(1, 60):
+        state, actions = run(state, [auto(0.1 * i, item=BREAK_OFF + i // 20), TimerTick(0.1 * i)])
+        assert not any(isinstance(a, COMMANDS) for a in actions)
+
+
+def test_the_candidate_takes_the_vehicle_and_remembers_the_item() -> None:
+    state, actions = step(reach(S.SEARCHING), BackendAnswer(1.0, 1, 30, (candidate(FAR),)), CFG)
+    assert actions[0] == RequestMode(FlightMode.OFFBOARD, "candidate")
+    assert (
+        isinstance(actions[1], GcsMessage)
+        and actions[1].text == f"LEFT MISSION at item {BREAK_OFF}: candidate"
+    )
+    assert actions[2] == SendSetpoint(actions[2].setpoint) and actions[2].setpoint.horizontal_speed == 0.0
+    assert state.engaged and state.break_off_item == BREAK_OFF and commanding(state)
+
+
+def test_reject_hands_the_vehicle_back_at_the_break_off_item_and_sees_it_resume() -> None:
+    state = reach(S.REJECTED)
+    state, actions = step(state, TimerTick(1.4), CFG)
+    assert actions[0] == ResumeMission(BREAK_OFF, "searching again")
+    assert GcsMessage(f"RESUMING MISSION at item {BREAK_OFF}") in actions
+    assert state.mode_requested is FlightMode.MISSION and not state.engaged and not commanding(state)
+    # GUIDED -> AUTO is our own request: no takeover; the resume is told with both items.
+    state, actions = step(state, auto(1.5), CFG)
+    assert state.mode is S.SEARCHING and state.mode_requested is None
+    assert actions == (GcsMessage(f"MISSION RESUMED at item {BREAK_OFF} (left at {BREAK_OFF})"),)
+    _, actions = step(state, TimerTick(2.5), CFG)
+    assert kinds(actions) == ["BackendQuery"]
+
+
+def test_the_pilot_choosing_a_mode_meanwhile_is_left_alone() -> None:
+    state, _ = step(reach(S.REJECTED), TimerTick(1.4), CFG)
+    state, actions = step(state, loiter(1.5), CFG)  # the pilot, before the autopilot took AUTO
+    assert state.mode is S.SEARCHING and actions == ()
+    # A candidate now is only reported: the vehicle is the pilot's, not the mission's.
+    state, actions = step(state, BackendAnswer(1.6, state.queries[-1][0], 40, (candidate(FAR, "c2"),)), CFG)
+    assert state.mode is S.ACQUIRING and not any(isinstance(a, COMMANDS) for a in actions)
+
+
+def test_no_engage_no_command_ever() -> None:
+    """Without allow_engage a whole search along the mission (a candidate rejected, one lost, one confirmed,
+    searching on) never emits a setpoint, hold, mode request or hand-back."""
+    config = replace(CFG, on_confirm=ConfirmAction.SURVEY)
+    state, out = run(initial_state(config), [auto(0.0), cmd(0.1, StartMission(PROMPT))], config)
+    t = 0.1
+    for round_, end in enumerate(("reject", "lost", "confirm")):
+        t += 0.5
+        box = box_at(20.0, u=100.0 + 230.0 * round_)  # three people about 11 m apart
+        query = [q for q, _ in state.queries][-1]
+        events: list[Event] = [
+            auto(t, BREAK_OFF + round_),
+            BackendAnswer(t, query, 30 + round_, (candidate(box, f"c{round_}"),)),
+            tracked(t + 0.1, box),
+            TimerTick(t + 0.2),
+        ]
+        if end == "reject":
+            events.append(cmd(t + 0.3, RejectCandidate()))
+        elif end == "lost":
+            events += [tracked(t + 0.3, None, ok=False), TimerTick(t + 0.4 + config.lost_resume_after_s)]
+            t += config.lost_resume_after_s
+        else:
+            events.append(cmd(t + 0.3, ConfirmCandidate(by="gcs")))
+        events += [TimerTick(t + 0.5 + k * 0.1) for k in range(10)]
+        state, actions = run(state, events, config)
+        out += actions
+        t += 1.5
+    reports = [a.status for a in out if isinstance(a, ReportCandidate)]
+    assert reports == ["awaiting", "awaiting", "awaiting", "confirmed"]
+    assert not [a for a in out if isinstance(a, COMMANDS)]
+    assert state.mode is S.SEARCHING and len(state.found.entries) == 1 and len(state.rejections.entries) == 1
+
+
+def test_the_rejected_person_is_never_proposed_again_from_another_lane() -> None:
+    """The decoy lies 20 m ahead of the drone on item 7; rejected; the survey flies on. From the next lane
+    (80 m further north, looking back south) the same spot is seen in another part of the image under
+    another candidate id: matched by place, from where the camera was when the keyframe was taken."""
+    state = reach(S.REJECTED)
+    state, _ = run(state, [TimerTick(1.4), auto(1.5)])
+    decoy = state.rejections.entries[-1].position
+    assert decoy is not None
+    # 40 m further along, flying back: seen 20 m ahead again, i.e. 60 m north of the first view's pose.
+    back = replace(auto(30.0, item=BREAK_OFF + 2, north_m=decoy.north_m + 20.0), yaw=math.pi)
+    far_on = auto(31.0, item=BREAK_OFF + 3, north_m=-100.0)  # where the drone is when the answer arrives
+    query = state.queries[-1][0]
+    seen_again = BackendAnswer(31.0, query, 900, (candidate(box_at(20.0, u=330), "c77"),), pose=back)
+    state, _ = run(state, [back, far_on])
+    after, actions = step(state, seen_again, CFG)
+    assert after.mode is S.SEARCHING and actions == ()
+    # Located from the latest telemetry instead, it would have passed for someone else.
+    assert step(state, replace(seen_again, pose=None), CFG)[0].mode is S.ACQUIRING
+
+
+@pytest.mark.parametrize("engage", [True, False])
+def test_confirm_with_on_confirm_survey_reports_the_find_and_searches_on(engage: bool) -> None:
+    config = replace(CFG, on_confirm=ConfirmAction.SURVEY)
+    state = reach(S.AWAITING_SUPERVISOR, engage, config)
+    state, actions = step(state, cmd(1.3, ConfirmCandidate(by="supervisor page")), config)
+    report = [a for a in actions if isinstance(a, ReportCandidate)]
+    assert state.mode is S.CONFIRMED and len(report) == 1
+    assert report[0].status == "confirmed" and report[0].confirmed_by == "supervisor page"
+    assert report[0].position is not None
+    state, actions = step(state, TimerTick(1.4), config)
+    expected = (
+        ["TrackerStop"] + (["ResumeMission", "GcsMessage"] if engage else []) + ["GcsMessage", "BackendQuery"]
+    )
+    assert state.mode is S.SEARCHING and kinds(actions) == expected
+    # The find is not proposed again, under whatever id, while the search flies on.
+    answer = BackendAnswer(1.6, state.queries[-1][0], 50, (candidate(AT_STANDOFF, "c9"),), pose=guided(1.2))
+    assert step(state, answer, config)[0].mode is S.SEARCHING
+
+
+def test_a_confirmed_target_followed_after_keeps_the_lost_rules() -> None:
+    state = reach(S.CONFIRMED)  # on_confirm = follow: the companion flies after the find
+    state, _ = step(state, tracked(1.4, None, ok=False), CFG)
+    state, actions = run(state, [TimerTick(1.4 + 0.1 * i) for i in range(1, 150)])
+    assert state.mode is S.LOST and Hold("target lost") in actions
+    assert not any(isinstance(a, ResumeMission) for a in actions)
+
+
+@pytest.mark.parametrize("along", [True, False])
+def test_on_confirm_hold_lets_go_and_the_hold_mode_is_no_takeover(along: bool) -> None:
+    config = replace(CFG, on_confirm=ConfirmAction.HOLD)
+    if along:
+        state = reach(S.AWAITING_SUPERVISOR, True, config)
+    else:
+        state = spot_reach(S.AWAITING_SUPERVISOR, config, allow_engage=True)
+    state, actions = step(state, cmd(1.3, ConfirmCandidate()), config)
+    assert ReleaseControl("confirmed: hold") in actions and not commanding(state)
+    state, actions = step(state, loiter(1.4), config)  # the hold mode the release asked for
+    assert state.mode is S.CONFIRMED and actions == ()
+    state, actions = step(state, tracked(1.5, AT_STANDOFF), config)
+    assert state.mode is S.CONFIRMED and not any(isinstance(a, COMMANDS) for a in actions)
+
+
+def test_a_restart_while_engaged_hands_the_vehicle_back() -> None:
+    state = reach(S.FOLLOWING)
+    state, actions = step(state, cmd(1.2, StartMission(PROMPT, allow_engage=True)), CFG)
+    assert state.mode is S.SEARCHING and state.along_mission
+    assert kinds(actions)[:2] == ["TrackerStop", "ResumeMission"]
+
+
+@pytest.mark.parametrize(
+    ("search", "telemetry", "along"),
+    [
+        (SearchMode.AUTO, auto(0.0), True),
+        (SearchMode.AUTO, guided(0.0), False),
+        (SearchMode.AUTO, loiter(0.0), False),
+        (SearchMode.MISSION, loiter(0.0), True),
+        (SearchMode.SPOT, auto(0.0), False),
+    ],
+)
+def test_search_option_decides_where_the_search_looks(
+    search: SearchMode, telemetry: Telemetry, along: bool
+) -> None:
+    config = replace(CFG, search=search)
+    state, actions = run(
+        initial_state(config), [telemetry, cmd(0.1, StartMission(PROMPT, allow_engage=True))], config
+    )
+    assert state.along_mission is along
+    # On the spot: offboard requested at the start (unless already in it) and the search setpoint streams.
+    assert any(isinstance(a, SendSetpoint) for a in actions) is (not along)
+    assert any(isinstance(a, RequestMode) for a in actions) is (not along and not telemetry.offboard_active)
+
+
+def test_search_options_come_from_the_behavior_section() -> None:
+    config = MissionConfig.from_sections(
+        behavior={"search": "mission", "lost_resume_after_s": 4.0, "on_confirm": "survey"},
+        control={},
+        safety={},
+        camera={},
+        backend={},
+    )
+    assert config.search is SearchMode.MISSION and config.lost_resume_after_s == 4.0
+    assert config.on_confirm is ConfirmAction.SURVEY
+    assert MissionConfig().search is SearchMode.AUTO
+
+
+def test_takeover_event_while_looking_only_aborts_without_letting_go() -> None:
+    state, actions = step(reach(S.AWAITING_SUPERVISOR, engage=False), PilotTakeover(2.0, "LOITER"), CFG)
+    assert state.mode is S.ABORTED and kinds(actions) == ["TrackerStop", "GcsMessage"]
+
+
+def test_hand_back_to_mission_is_not_sent_without_a_break_off() -> None:
+    state = reach(S.ACQUIRING, engage=False)
+    _, actions = step(state, TimerTick(4.5), CFG)
+    assert not any(isinstance(a, (ResumeMission, TrackerInit)) for a in actions)
+    assert TrackerStop("acquire timeout") in actions
