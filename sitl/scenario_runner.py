@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import secrets
 import shutil
 import signal
@@ -46,9 +47,11 @@ from sitl.flight_stack import (
 from sitl.metrics import (
     FOLLOW_STATES,
     FrameSample,
+    PoseSample,
     SetpointSample,
     TimedEvent,
     distance_coasted,
+    estimate_error,
     following_intervals,
     summarise,
 )
@@ -64,6 +67,8 @@ STANDOFF_M = 12.0
 VIDEO_DELAY_FRAMES = 20
 VEHICLE_ORIGINS = ((0.0, 0.0), (0.0, -8.0))  # where each vehicle's home lies in the world (north, east)
 HOME_ALT_M = 488.0
+HOME_LAT, HOME_LON = 47.397742, 8.545594  # the world's origin (PX4's SIH default home)
+FOUND_TEXT = re.compile(r"FOUND (-?\d+\.\d+),(-?\d+\.\d+) \+-(\d+(?:\.\d+)?)m")  # VehicleLink.announce_find
 GUID_TIMEOUT_S = 1.0  # what docs/operations.md recommends; the mock and the real SITL both run with it
 FLOOD_SENDERS = 200
 FLY_TO_OFFSET_M = (0.0, 15.0)  # the GCS "fly to" target, from where the vehicle is (north, east)
@@ -152,9 +157,7 @@ def default_tracker(model_dir: Path) -> str:
         return "csrt"
 
 
-def _home(
-    origin: tuple[float, float], lat0: float = 47.397742, lon0: float = 8.545594
-) -> tuple[float, float]:
+def _home(origin: tuple[float, float], lat0: float = HOME_LAT, lon0: float = HOME_LON) -> tuple[float, float]:
     lat = lat0 + math.degrees(origin[0] / EARTH_RADIUS)
     lon = lon0 + math.degrees(origin[1] / (EARTH_RADIUS * math.cos(math.radians(lat0))))
     return lat, lon
@@ -895,6 +898,7 @@ class ScenarioRun:
             if kind in COASTING_FAULTS
         }
         metrics.update(self._fault_metrics(v, setpoints))
+        metrics.update(self._position_metrics(v, end_t))
         return VehicleOutcome(
             metrics=metrics,
             confirmations=tuple(t for t, _ in v.confirmations),
@@ -948,6 +952,37 @@ class ScenarioRun:
             out["autopilot_during_stall"] = self._autopilot_during_stall(v)
         if v.flood:
             out["flood"] = dict(v.flood)
+        return out
+
+    def _position_metrics(self, v: _Vehicle, end_t: float) -> dict[str, Any]:
+        """The find's geolocation error: the FOUND position the GCS heard against where the target truly was
+        then. Where the camera renders the truth rather than the autopilot's estimate (PX4's SIH), also how
+        far the estimate the companion flies on was from the truth during the mission."""
+        out: dict[str, Any] = {}
+        epoch = self.epoch or 0.0
+        found = next(
+            ((t, m) for t, text in list(v.gcs.statustexts) if (m := FOUND_TEXT.search(text)) is not None),
+            None,
+        )
+        if found is not None:
+            t, match = found
+            north, east = _world(float(match[1]), float(match[2]))
+            tn, te, _ = self.world.person(self.world.target_id).state_at(t - epoch)
+            out["geolocation_error_m"] = round(math.hypot(north - tn, east - te), 2)
+            out["find_sigma_m"] = float(match[3])
+        history = getattr(v.follower, "history", None)
+        if history and v.gcs.estimates:
+            estimates = [
+                PoseSample(t - epoch, *_world(lat, lon), HOME_ALT_M - alt, heading)
+                for t, lat, lon, alt, heading in list(v.gcs.estimates)
+                if 0.0 <= t - epoch <= end_t
+            ]
+            truth = [
+                PoseSample(t - epoch, p.north, p.east, p.down, math.degrees(p.yaw))
+                for t, p in list(history)
+                if -1.0 <= t - epoch <= end_t + 1.0
+            ]
+            out["estimate_error"] = estimate_error(estimates, truth)
         return out
 
     def _autopilot_during_stall(self, v: _Vehicle) -> dict[str, Any]:
@@ -1018,6 +1053,13 @@ class ScenarioRun:
     def _sample(self, f: _Seen) -> FrameSample:
         tn, te, _ = self.world.person(self.world.target_id).state_at(f.time_s)
         return FrameSample(f.time_s, f.pose.north, f.pose.east, tn, te, None)
+
+
+def _world(lat: float, lon: float) -> tuple[float, float]:
+    """World north/east (metres) of a latitude/longitude: the inverse of `_home`."""
+    north = math.radians(lat - HOME_LAT) * EARTH_RADIUS
+    east = math.radians(lon - HOME_LON) * EARTH_RADIUS * math.cos(math.radians(HOME_LAT))
+    return north, east
 
 
 def _free_udp_port() -> int:

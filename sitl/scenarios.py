@@ -13,6 +13,7 @@ import logging
 import math
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -337,6 +338,9 @@ class ScriptedGcs:
         # What the autopilot (target_system/1) reports: its mode and armed flag per HEARTBEAT, its position.
         self.modes: list[tuple[float, int, bool]] = []
         self.positions: list[tuple[float, float, float, float]] = []  # (time, north, east, down)
+        # The autopilot's estimate as GLOBAL_POSITION_INT gives it (PX4 streams it on its GCS link):
+        # (time, lat, lon, altitude AMSL m, heading deg), the last 50 000.
+        self.estimates: deque[tuple[float, float, float, float, float]] = deque(maxlen=50_000)
         self.params: dict[str, float] = {}
         self._rc: dict[int, int] = {}  # channel -> PWM the pilot's radio holds, re-sent at 10 Hz
         self._sticks: tuple[int, int, int, int] | None = None  # MANUAL_CONTROL x, y, z, r, re-sent at 10 Hz
@@ -350,7 +354,14 @@ class ScriptedGcs:
 
     def _run(self) -> None:
         last_hb = last_rc = 0.0
-        types = ["STATUSTEXT", "COMMAND_ACK", "HEARTBEAT", "LOCAL_POSITION_NED", "PARAM_VALUE"]
+        types = [
+            "STATUSTEXT",
+            "COMMAND_ACK",
+            "HEARTBEAT",
+            "LOCAL_POSITION_NED",
+            "PARAM_VALUE",
+            "GLOBAL_POSITION_INT",
+        ]
         while not self._stop.is_set():
             now = time.monotonic()
             if now - last_hb >= 1.0:
@@ -381,6 +392,8 @@ class ScriptedGcs:
             elif kind == "HEARTBEAT":
                 armed = bool(msg.base_mode & mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
                 self.modes.append((now, int(msg.custom_mode), armed))
+            elif kind == "GLOBAL_POSITION_INT":
+                self.estimates.append((now, msg.lat / 1e7, msg.lon / 1e7, msg.alt / 1000.0, msg.hdg / 100.0))
             else:
                 self.positions.append((now, float(msg.x), float(msg.y), float(msg.z)))
 
