@@ -562,10 +562,10 @@ class RealPx4:
             if (
                 pos is not None
                 and self.mode_name() == "HOLD"
-                and math.hypot(pos[0], pos[1]) < 0.5
+                and math.hypot(pos[0], pos[1]) < 1.5  # SIH's hover wanders about half a metre
                 and abs(-pos[2] - height_m) < 1.0  # the local origin's altitude is not home's AMSL
                 and abs(math.remainder(heading, 360.0)) < 5.0  # PX4's heading: the truth may differ
-                and self.truth.speed() < 0.2
+                and self.truth.speed() < 0.3
             ):
                 break
             if time.monotonic() > deadline:
