@@ -137,7 +137,7 @@ PX4_HOLD, PX4_OFFBOARD, PX4_POSCTL = 4 << 16 | 3 << 24, 6 << 16, 3 << 16
         (PX4_POSCTL, PX4_POSCTL, True, 4, ("POSCTL", False)),  # the pilot's switch, seen at once
         (PX4_HOLD, PX4_OFFBOARD, True, 4, ("HOLD", True)),  # offboard lost: a failsafe chose HOLD
         (PX4_HOLD, 0, True, 4, ("HOLD", False)),  # intended mode not reported
-        (PX4_OFFBOARD, PX4_OFFBOARD, True, 4, None),  # no change
+        (PX4_OFFBOARD, PX4_OFFBOARD, True, 4, ("OFFBOARD", False)),  # no change: still a sign of life
         (PX4_POSCTL, PX4_POSCTL, False, 4, None),  # bad CRC: not a mode report
         (PX4_POSCTL, PX4_POSCTL, True, 9, None),  # another system's
     ],

@@ -135,3 +135,37 @@ def test_mavsdk_listens_on_nothing_and_is_the_vehicles_onboard_component() -> No
     finally:
         for closing in (link, sim, plain_link, plain_sim):
             closing.close()
+
+
+def test_relay_holds_mavsdks_setpoints_after_a_takeover() -> None:
+    """MAVSDK re-sends its last setpoint until PX4's 1 Hz HEARTBEAT tells it OFFBOARD ended; the companion
+    learns it within 100 ms and closes the relay to MAVSDK's setpoints (and only those)."""
+    from pymavlink.dialects.v20 import ardupilotmega
+
+    from companion.mavlink.mavsdk_relay import MavsdkRelay
+
+    sent: list[Any] = []
+
+    class Endpoint:
+        def send(self, build: Any, component: int | None = None) -> bool:
+            build(Recorder())
+            return True
+
+    class Recorder:
+        def send(self, msg: Any) -> None:
+            sent.append(msg.get_type())
+
+    mav = ardupilotmega.MAVLink(None, srcSystem=1, srcComponent=191)
+    setpoint = mav.set_position_target_local_ned_encode(
+        0, 1, 1, 8, 0, 0, 0, 0, 1.0, 0, 0, 0, 0, 0, 0, 0
+    ).pack(mav)
+    status = mav.statustext_encode(6, b"hello").pack(mav)
+    relay = MavsdkRelay(Endpoint())  # type: ignore[arg-type]
+    relay.from_mavsdk(setpoint)
+    relay.setpoints_allowed = False  # VehicleLink: the pilot took over
+    relay.from_mavsdk(setpoint)
+    relay.from_mavsdk(status)
+    relay.setpoints_allowed = True  # a mission enabled offboard again
+    relay.from_mavsdk(setpoint)
+    assert sent == ["SET_POSITION_TARGET_LOCAL_NED", "STATUSTEXT", "SET_POSITION_TARGET_LOCAL_NED"]
+    assert relay.setpoints_dropped == 1

@@ -6,6 +6,11 @@ companion's link (re-encoded as the companion, signed when signing is on) and ha
 messages. MAVSDK's own HEARTBEATs stay here: PX4 counts heartbeats when it decides whether links are
 alive, and the only HEARTBEAT the autopilot should see from this computer is the companion's own
 MAV_TYPE_ONBOARD_CONTROLLER one (same system id, component 191).
+
+MAVSDK re-sends the last setpoint at 20 Hz until it notices the vehicle left OFFBOARD, which it learns
+only from PX4's HEARTBEAT (1 Hz). After a pilot's takeover the companion knows within 100 ms (PX4's
+CURRENT_MODE) and closes `setpoints_allowed`: MAVSDK's setpoints stop here until a mission enables
+offboard control again.
 """
 
 from __future__ import annotations
@@ -28,7 +33,9 @@ class MavsdkRelay:
         self._parser = self._new_parser()
         self._lock = threading.Lock()  # MAVSDK calls back from its own threads
         self.heartbeats_dropped = 0
+        self.setpoints_dropped = 0
         self.forwarded = 0
+        self.setpoints_allowed = True
 
     @staticmethod
     def _new_parser() -> Any:
@@ -68,6 +75,9 @@ class MavsdkRelay:
                     continue
                 if msg.get_type() == "HEARTBEAT":
                     self.heartbeats_dropped += 1
+                    continue
+                if msg.get_type() == "SET_POSITION_TARGET_LOCAL_NED" and not self.setpoints_allowed:
+                    self.setpoints_dropped += 1
                     continue
                 if self._endpoint.send(_resend(msg)):
                     self.forwarded += 1

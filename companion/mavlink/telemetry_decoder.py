@@ -154,13 +154,13 @@ class TelemetryDecoder:
         return self.heartbeat
 
     def _mode_report(self, msg: Any, now: float) -> AutopilotHeartbeat | None:
-        """A CURRENT_MODE between heartbeats: the last heartbeat with the new mode, when it changed."""
+        """A CURRENT_MODE between heartbeats, as a heartbeat: the mode it reports, the rest from the last
+        HEARTBEAT. On PX4 it is the companion's 10 Hz sign of life from the autopilot (its HEARTBEAT is fixed
+        at 1 Hz), so the heartbeat watchdog can use a limit under a second as on ArduPilot."""
         hb = self.heartbeat
         if hb is None or hb.kind is not AutopilotKind.PX4:
             return None
         mode = mode_name(hb.kind, int(msg.custom_mode), hb.vehicle_type)
-        if mode == hb.mode:
-            return None
         failsafe = msg.intended_custom_mode not in (0, msg.custom_mode)
         self.heartbeat = AutopilotHeartbeat(hb.kind, mode, hb.armed, now, hb.vehicle_type, failsafe)
         return self.heartbeat

@@ -261,6 +261,7 @@ class VehicleLink:
         with self._lock:
             self._enabled = True
             self._release = None  # a new mission ends the letting-go of the last one
+            self._allow_mavsdk_setpoints(True)
 
     def request_offboard(self) -> None:
         """The operator allowed engagement: ask for GUIDED, or OFFBOARD after >= 1 s of setpoints (PX4)."""
@@ -268,6 +269,7 @@ class VehicleLink:
             self._enabled = True
             self._engage = True
             self._release = None
+            self._allow_mavsdk_setpoints(True)
 
     def release_offboard(self, reason: str) -> None:
         """Let go: explicit zero, the hold mode requested if we were flying it, then silence (bounded).
@@ -679,9 +681,14 @@ class VehicleLink:
         # Someone else took the vehicle: stop streaming at once and say why.
         self._enabled = self._engage = False
         self._stream_since = None
+        self._allow_mavsdk_setpoints(False)  # MAVSDK would re-send until PX4's next 1 Hz HEARTBEAT
         detail = f"{previous} -> {hb.mode} by {'the autopilot failsafe' if hb.failsafe else 'pilot or GCS'}"
         log.warning("offboard control ended: %s", detail)
         return SafetyEvent(now, "mode_change", "offboard_ended", detail, by_other_party=True, mode=hb.mode)
+
+    def _allow_mavsdk_setpoints(self, allowed: bool) -> None:
+        if self._relay is not None:
+            self._relay.setpoints_allowed = allowed
 
     def _request_streams(self) -> None:
         target = self._cfg.target_system
