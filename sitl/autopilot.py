@@ -60,6 +60,7 @@ PX4_MODES = {
 PERSONALITIES = ("ardupilot", "px4")
 MSG_ID_CURRENT_MODE = development.MAVLINK_MSG_ID_CURRENT_MODE  # PX4 1.16; not in the ardupilotmega dialect
 PX4_STANDARD_MODES = {"POSCTL": 1}  # CURRENT_MODE.standard_mode (MAV_STANDARD_MODE), as PX4 1.16 reports
+PX4_CURRENT_MODE_PERIOD_S = 0.6
 # ArduCopter's flight-mode switch (FLTMODE_CH 5) with the shipped SITL copter.parm's FLTMODE1..6, and the
 # PWM each slot ends at (RC_Channel: <=1230, <=1360, <=1490, <=1620, <=1749, above). CIRCLE and STABILIZE are
 # not flown here; they stay unmapped.
@@ -78,6 +79,7 @@ POSITION_IGNORE = 0b111
 VELOCITY_IGNORE = 0b111000
 YAW_IGNORE = 1024
 YAW_RATE_IGNORE = 2048
+PX4_VELOCITY_FRAMES = {mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_BODY_NED}  # what PX4 1.16 flies
 BODY_FRAMES = {
     mavlink.MAV_FRAME_BODY_NED,
     mavlink.MAV_FRAME_BODY_OFFSET_NED,
@@ -293,6 +295,10 @@ class SimulatedAutopilot:
                 for link in self._links.values():
                     if not link.down:
                         self._send_message(link, mavlink.MAVLINK_MSG_ID_HEARTBEAT, now)
+            else:  # PX4 sends CURRENT_MODE on a change to the links that stream it (its HEARTBEAT waits)
+                for link in self._links.values():
+                    if not link.down and MSG_ID_CURRENT_MODE in link.intervals:
+                        self._send_message(link, MSG_ID_CURRENT_MODE, now)
         return True
 
     def _px4_stream_alive(self, now: float) -> bool:
@@ -412,12 +418,9 @@ class SimulatedAutopilot:
             if (
                 name is None
             ):  # ArduCopter 4.7 answers FAILED to a mode number it does not have (conformance suite)
+                # PX4 1.16 accepts a main mode it does not have (the second ACK too) and changes nothing.
                 self._ack(
-                    link,
-                    msg,
-                    mavlink.MAV_RESULT_FAILED
-                    if self.is_ardupilot
-                    else mavlink.MAV_RESULT_TEMPORARILY_REJECTED,
+                    link, msg, mavlink.MAV_RESULT_FAILED if self.is_ardupilot else mavlink.MAV_RESULT_ACCEPTED
                 )
                 return
             ok = self._try_set_mode(name, who)
@@ -441,6 +444,8 @@ class SimulatedAutopilot:
                     link.intervals.pop(msg_id, None)
             else:
                 link.intervals[msg_id] = interval_us / 1e6
+                if msg_id == MSG_ID_CURRENT_MODE:  # PX4 1.16: about 1.7 Hz however fast, and on a change
+                    link.intervals[msg_id] = max(link.intervals[msg_id], PX4_CURRENT_MODE_PERIOD_S)
             link.next_due.pop(msg_id, None)
             self._ack(link, msg, mavlink.MAV_RESULT_ACCEPTED)
         elif cmd == mavlink.MAV_CMD_REQUEST_MESSAGE:
@@ -485,6 +490,8 @@ class SimulatedAutopilot:
         if len(self.setpoints) > 20000:
             del self.setpoints[:10000]
         active = "GUIDED" if self.is_ardupilot else "OFFBOARD"
+        if not self.is_ardupilot and msg.coordinate_frame not in PX4_VELOCITY_FRAMES:
+            return  # PX4 1.16 flies LOCAL_NED and BODY_NED only; other frames are no offboard signal either
         if not self.is_ardupilot:
             self._last_setpoint_time = now  # PX4 counts the stream in any mode (needed before OFFBOARD)
             if self._px4_failsafe and self._intended_mode == "OFFBOARD" and self._px4_stream_alive(now):

@@ -154,9 +154,8 @@ class TelemetryDecoder:
         return self.heartbeat
 
     def _mode_report(self, msg: Any, now: float) -> AutopilotHeartbeat | None:
-        """A CURRENT_MODE between heartbeats, as a heartbeat: the mode it reports, the rest from the last
-        HEARTBEAT. On PX4 it is the companion's 10 Hz sign of life from the autopilot (its HEARTBEAT is fixed
-        at 1 Hz), so the heartbeat watchdog can use a limit under a second as on ArduPilot."""
+        """A CURRENT_MODE between heartbeats, as a heartbeat: the mode it reports (PX4 sends it when the mode
+        changes), the rest from the last HEARTBEAT."""
         hb = self.heartbeat
         if hb is None or hb.kind is not AutopilotKind.PX4:
             return None
