@@ -243,9 +243,10 @@ class RealAutopilot:
         serial2 = socket.create_connection(("127.0.0.1", sitl.ports.companion), timeout=5.0)
         self.bridge = CompanionBridge(serial2, self.mode_name, companion_port).start()
 
-    def reset(
-        self, companion_port: int | None, height_m: float, progress: Callable[[str], None] = print
-    ) -> float:
+    def reuse(self, companion_port: int | None) -> None:
+        raise NotImplementedError("the scenarios start a fresh ArduCopter SITL for each run")
+
+    def return_home(self, height_m: float, progress: Callable[[str], None] = print) -> float:
         raise NotImplementedError("the scenarios start a fresh ArduCopter SITL for each run")
 
     def describe(self) -> str:

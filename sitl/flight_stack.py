@@ -72,11 +72,13 @@ class FlightStack(Protocol):
         """Arm and take off as the pilot would; the seconds it took."""
         ...
 
-    def reset(
-        self, companion_port: int | None, height_m: float, progress: Callable[[str], None] = print
-    ) -> float:
-        """Make a vehicle a scenario has used fit for the next one (over home, facing north, hovering); the
-        seconds it took. Only PX4 is shared between runs; ArduCopter starts afresh each time."""
+    def reuse(self, companion_port: int | None) -> None:
+        """A vehicle a scenario has used, for the next one: the companion's link recorded afresh. Only PX4 is
+        shared between runs; ArduCopter starts afresh each time."""
+        ...
+
+    def return_home(self, height_m: float, progress: Callable[[str], None] = print) -> float:
+        """After `reuse`: back over home, facing north, hovering at `height_m`; the seconds it took."""
         ...
 
     def describe(self) -> str: ...

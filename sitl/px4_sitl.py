@@ -62,7 +62,7 @@ INSTANCES = range(1, 10)
 EARTH_RADIUS = 6_378_137.0
 COM_OF_LOSS_T_S = 0.5  # docs/operations.md: offboard lost after 0.5 s of no setpoints
 PX4_HOLD = 5  # COM_OBL_RC_ACT: Hold
-RC_MID = 1500
+RETURN_SPEED_M_S = 8.0  # the GCS's reposition back over home between scenarios
 
 
 class Px4NotFound(RuntimeError):
@@ -535,17 +535,19 @@ class RealPx4:
             time.sleep(0.1)
         return time.monotonic() - started
 
-    def reset(
-        self, companion_port: int | None, height_m: float, progress: Callable[[str], None] = print
-    ) -> float:
-        """Make a vehicle a scenario has used fit for the next one (tests share one PX4 this way): the
-        companion's link up and recorded afresh, airborne in HOLD at `height_m` over home, facing north.
-        The GCS's reposition also ends whatever mode the last scenario left (a failsafe's intended OFFBOARD
-        included, which would come back with the next setpoint stream). Returns the seconds it took."""
-        started = time.monotonic()
+    def reuse(self, companion_port: int | None) -> None:
+        """For the next scenario on this vehicle (tests share one PX4 this way): the companion's link up
+        and recorded afresh, the pilot's sticks centred. `return_home` then flies it back."""
         self.bridge.reset(companion_port)
         self.mode_history.clear()
         self.gcs.hold_sticks()
+
+    def return_home(self, height_m: float, progress: Callable[[str], None] = print) -> float:
+        """A vehicle a scenario has used, airborne in HOLD at `height_m` over home and facing north again
+        (armed and taken off again if it landed); the seconds it took. The GCS's reposition also ends
+        whatever mode the last scenario left, a failsafe's intended OFFBOARD included (it would come back
+        with the next setpoint stream)."""
+        started = time.monotonic()
         pos = self.gcs.position()
         if not (self.gcs.modes and self.gcs.modes[-1][2]) or pos is None or -pos[2] < height_m / 2:
             self.fly_up(height_m, progress=progress)
@@ -555,7 +557,7 @@ class RealPx4:
         while True:
             self.sitl.check_running()
             if time.monotonic() - last_sent > 3.0:  # again if a command was lost
-                self.gcs.reposition(lat0, lon0, alt0 + height_m, yaw_deg=0.0)
+                self.gcs.reposition(lat0, lon0, alt0 + height_m, yaw_deg=0.0, speed_m_s=RETURN_SPEED_M_S)
                 last_sent = time.monotonic()
             pos = self.gcs.position()
             heading = self.gcs.estimates[-1][4] if self.gcs.estimates else math.nan

@@ -301,8 +301,8 @@ class ScenarioRun:
 
     def _start_real(self, vid: str, origin: tuple[float, float], udp_port: int | None) -> FlightStack:
         if self.shared is not None:
-            took = self.shared.reset(udp_port, ALTITUDE_M, self.progress)
-            self.progress(f"{vid}: {self.shared.describe()}, back over home after {took:.1f} s")
+            self.shared.reuse(udp_port)
+            self.progress(f"{vid}: {self.shared.describe()}, used before")
             return self.shared
         assert self.flight_stack is not None
         lat, lon = _home(origin)
@@ -653,7 +653,10 @@ class ScenarioRun:
         self.vehicles = [self._start_vehicle(i, backend_url) for i in range(s.vehicles)]
         for v in self.vehicles:
             self._start_companion(v)
-        if self.real and self.shared is None:
+        if self.shared is not None:  # the GCS brings it back while the companion starts
+            took = self.shared.return_home(ALTITUDE_M, self.progress)
+            self.progress(f"drone-1: back over home in HOLD after {took:.1f} s")
+        elif self.real:
             for v in self.vehicles:  # the pilot arms and takes off; the companion never does
                 took = v.autopilot.fly_up(ALTITUDE_M, progress=self.progress)
                 self.progress(

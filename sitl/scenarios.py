@@ -516,13 +516,15 @@ class ScriptedGcs:
                 0,
             )
 
-    def reposition(self, lat: float, lon: float, alt_amsl: float, yaw_deg: float = math.nan) -> None:
+    def reposition(
+        self, lat: float, lon: float, alt_amsl: float, yaw_deg: float = math.nan, speed_m_s: float = -1.0
+    ) -> None:
         """MAV_CMD_DO_REPOSITION as COMMAND_INT (QGroundControl's "Go to location" on PX4): switch to the
-        hold mode and fly there at the default speed."""
+        hold mode and fly there (at the default speed for -1)."""
         with self._lock:
             self.conn.mav.command_int_send(
                 self.target[0], 1, mavutil.mavlink.MAV_FRAME_GLOBAL, mavutil.mavlink.MAV_CMD_DO_REPOSITION,
-                0, 0, -1, mavutil.mavlink.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE, 0, yaw_deg,
+                0, 0, speed_m_s, mavutil.mavlink.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE, 0, yaw_deg,
                 round(lat * 1e7), round(lon * 1e7), alt_amsl,
             )  # fmt: skip
 

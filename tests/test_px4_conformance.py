@@ -387,7 +387,7 @@ def test_what_happens_after_com_of_loss_t(vehicle: Px4Link) -> None:
         else next((n for n in MODES if custom_mode(n) == current.intended_custom_mode), "?"),
         "system_status_critical": mavlink.MAV_STATE_CRITICAL in statuses,
         "told_the_gcs": any(text.startswith("Failsafe activated") for text in texts),
-        "stopped_by_3_s": speed < 0.3,
+        "stopped_by_3_s": speed < 0.5,  # SIH's hover wanders at up to 0.3 m/s
         "back_in_offboard_when_setpoints_return": back,
     }
     _compare(vehicle, "offboard_loss", answer)
@@ -426,6 +426,7 @@ def test_message_rates_after_set_message_interval(vehicle: Px4Link) -> None:
     start = time.monotonic()
     time.sleep(1.5)
     _compare(vehicle, "disabled_after_minus_one", not vehicle.since(start, "GLOBAL_POSITION_INT"))
+    assert vehicle.interval(mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, 10) == [ACCEPTED]  # the others use it
 
 
 def test_how_soon_a_mode_change_shows(vehicle: Px4Link) -> None:
@@ -491,8 +492,10 @@ def test_gcs_reposition(vehicle: Px4Link) -> None:
     """The GCS's "go to location" (MAV_CMD_DO_REPOSITION, the abort scenario's fly-to) 8 m north of the vehicle."""
     vehicle.settle()
     vehicle.offboard()
-    here = vehicle.latest("GLOBAL_POSITION_INT")
-    assert here is not None  # PX4 streams it on the onboard link
+    asked = vehicle.send_command(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT)
+    time.sleep(0.5)
+    here = next((m for _, m in reversed(vehicle.since(asked, "GLOBAL_POSITION_INT"))), None)
+    assert here is not None
     lat = here.lat / 1e7 + math.degrees(8.0 / EARTH_RADIUS)
     start = vehicle.latest("LOCAL_POSITION_NED")
     vehicle.gcs.reposition(lat, here.lon / 1e7, here.alt / 1000.0)

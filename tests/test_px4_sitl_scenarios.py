@@ -3,7 +3,7 @@
 Each test runs `cloudtrack-sim run SCENARIO --autopilot px4-sitl`'s code path against one PX4 shared by the
 module: it is started once (fresh work directory, COM_OF_LOSS_T 0.5 s, COM_OBL_RC_ACT Hold,
 COM_RC_OVERRIDE 3), armed and taken off to 10 m by the scripted pilot over the GCS link, and before each
-scenario the GCS brings it back over home facing north in HOLD (`RealPx4.reset`). The mission runs at real
+scenario the GCS brings it back over home facing north in HOLD (`RealPx4.return_home`). The mission runs at real
 time with the real companion process, the camera rendered from SIH's ground truth and the real back-end.
 Every scenario flies twice: with the companion's pymavlink offboard path and with `mavlink.use_mavsdk`
 (MAVSDK 4 in process). `pytest -k px4_sitl` selects them (with the conformance and parameter tests).
