@@ -169,3 +169,18 @@ def test_relay_holds_mavsdks_setpoints_after_a_takeover() -> None:
     relay.from_mavsdk(setpoint)
     assert sent == ["SET_POSITION_TARGET_LOCAL_NED", "STATUSTEXT", "SET_POSITION_TARGET_LOCAL_NED"]
     assert relay.setpoints_dropped == 1
+
+    # After a freeze MAVSDK's timer re-sends the pre-freeze setpoint first: older than the bound, dropped.
+    now = [100.0]
+    sent.clear()
+    fresh = MavsdkRelay(Endpoint(), max_setpoint_age_s=0.5, clock=lambda: now[0])  # type: ignore[arg-type]
+    fresh.from_mavsdk(setpoint)  # nothing handed yet
+    fresh.note_setpoint()
+    now[0] = 100.4
+    fresh.from_mavsdk(setpoint)
+    now[0] = 103.4  # three seconds frozen
+    fresh.from_mavsdk(setpoint)
+    fresh.note_setpoint()  # the watchdog's zero
+    fresh.from_mavsdk(setpoint)
+    assert sent == ["SET_POSITION_TARGET_LOCAL_NED", "SET_POSITION_TARGET_LOCAL_NED"]
+    assert fresh.setpoints_dropped == 2

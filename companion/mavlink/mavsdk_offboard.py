@@ -45,6 +45,7 @@ class MavsdkOffboard:
         self._requests = threading.Condition()
         self._request: tuple[str, str] | None = None  # the latest ("start" | "stop", reason) not yet run
         self._closing = False
+        self._running = False  # a request is being carried out
         self._worker = threading.Thread(target=self._run_requests, name="mavsdk-offboard", daemon=True)
 
     def start(self) -> None:
@@ -73,6 +74,7 @@ class MavsdkOffboard:
         """The body-frame velocity MAVSDK keeps sending (already limited by the caller)."""
         from mavsdk.plugins.offboard import VelocityBodyYawspeed
 
+        self._relay.note_setpoint()  # before MAVSDK sends it: the relay lets fresh setpoints through
         velocity = VelocityBodyYawspeed(
             setpoint.forward,
             setpoint.right,
@@ -103,7 +105,7 @@ class MavsdkOffboard:
     def _submit(self, request: str, reason: str) -> None:
         with self._requests:
             self._request = (request, reason)
-            self._requests.notify()
+            self._requests.notify_all()
 
     def _run_requests(self) -> None:
         from mavsdk.plugins.offboard import OffboardError
@@ -116,6 +118,7 @@ class MavsdkOffboard:
                     return
                 assert self._request is not None
                 (request, reason), self._request = self._request, None
+                self._running = True
             try:
                 if request == "start":
                     self._offboard.start()
@@ -128,11 +131,20 @@ class MavsdkOffboard:
                 log.warning("MAVSDK offboard %s refused (%s): %s", request, reason or "mission", exc)
             except Exception as exc:  # this thread must outlive any MAVSDK error
                 log.error("MAVSDK offboard %s failed (%s): %s", request, reason or "mission", exc)
+            with self._requests:
+                self._running = False
+                self._requests.notify_all()
+
+    def wait_idle(self, timeout_s: float) -> bool:
+        """Wait until every request so far has been carried out (MAVSDK needs the link's reader for the
+        autopilot's answer, so the link waits for this before it closes); False on timeout."""
+        with self._requests:
+            return self._requests.wait_for(lambda: self._request is None and not self._running, timeout_s)
 
     def close(self) -> None:
         with self._requests:
             self._closing = True
-            self._requests.notify()
+            self._requests.notify_all()
         if self._worker.is_alive():
             self._worker.join(timeout=3.0)  # the final stop: MAVSDK gives up on a lost autopilot after ~2 s
         self._relay.detach()

@@ -10,13 +10,18 @@ MAV_TYPE_ONBOARD_CONTROLLER one (same system id, component 191).
 MAVSDK re-sends the last setpoint at 20 Hz until it notices the vehicle left OFFBOARD, which it learns
 only from PX4's HEARTBEAT (1 Hz). After a pilot's takeover the companion knows within 100 ms (PX4's
 CURRENT_MODE) and closes `setpoints_allowed`: MAVSDK's setpoints stop here until a mission enables
-offboard control again.
+offboard control again. For the same reason it drops MAVSDK's setpoints once the last one the companion
+handed it is older than `max_setpoint_age_s` (`[safety] setpoint_max_age_s`, as every setpoint of the
+pymavlink path): after a freeze (SIGSTOP, swap) MAVSDK's timer wakes with the process and re-sent the
+pre-freeze command 1 ms after SIGCONT, before the watchdog could set zero (measured on a real PX4).
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import threading
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -26,8 +31,16 @@ log = logging.getLogger(__name__)
 
 
 class MavsdkRelay:
-    def __init__(self, endpoint: MavlinkEndpoint):
+    def __init__(
+        self,
+        endpoint: MavlinkEndpoint,
+        max_setpoint_age_s: float = math.inf,
+        clock: Callable[[], float] = time.monotonic,
+    ):
         self._endpoint = endpoint
+        self._max_age = max_setpoint_age_s
+        self._clock = clock
+        self._setpoint_time = -math.inf  # when the companion last handed MAVSDK a setpoint
         self._mavsdk: Any = None
         self._subscription: Any = None
         self._parser = self._new_parser()
@@ -36,6 +49,10 @@ class MavsdkRelay:
         self.setpoints_dropped = 0
         self.forwarded = 0
         self.setpoints_allowed = True
+
+    def note_setpoint(self) -> None:
+        """The companion has just handed MAVSDK a setpoint: its re-sends are fresh for `max_setpoint_age_s`."""
+        self._setpoint_time = self._clock()
 
     @staticmethod
     def _new_parser() -> Any:
@@ -76,7 +93,9 @@ class MavsdkRelay:
                 if msg.get_type() == "HEARTBEAT":
                     self.heartbeats_dropped += 1
                     continue
-                if msg.get_type() == "SET_POSITION_TARGET_LOCAL_NED" and not self.setpoints_allowed:
+                if msg.get_type() == "SET_POSITION_TARGET_LOCAL_NED" and (
+                    not self.setpoints_allowed or self._clock() - self._setpoint_time > self._max_age
+                ):
                     self.setpoints_dropped += 1
                     continue
                 if self._endpoint.send(_resend(msg)):

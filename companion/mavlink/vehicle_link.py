@@ -174,7 +174,7 @@ class VehicleLink:
         if self._camera_component:
             self._endpoint.add_identity(self._camera_component)
         if self._cfg.use_mavsdk:
-            self._relay = MavsdkRelay(self._endpoint)
+            self._relay = MavsdkRelay(self._endpoint, self._setpoint_max_age, self._clock)
             ids = (self._cfg.target_system, self._cfg.source_component)
             self._mavsdk = MavsdkOffboard(self._relay, *ids)
         self._watchdog.seen(LOOP_STALLED)
@@ -191,6 +191,8 @@ class VehicleLink:
         """Explicit stop and hold if we are flying the vehicle, then shut the threads and the link."""
         if self._endpoint is not None and self._enabled:
             self.release_offboard("companion link closing")
+        if self._mavsdk is not None:
+            self._mavsdk.wait_idle(2.5)  # its stop needs the reader below for PX4's COMMAND_ACK
         self._stop.set()
         self._watchdog.close()
         for thread in self._threads:
