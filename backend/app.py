@@ -16,9 +16,9 @@ from collections.abc import AsyncIterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
 from pathlib import Path
+from urllib.parse import urlsplit
 
 from fastapi import FastAPI, Request
-from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
@@ -29,17 +29,20 @@ from backend.config import BackendConfig, SessionConfig
 from backend.detectors.factory import build_detector
 from backend.detectors.interface import SupersetDetector
 from backend.fair_queue import FairScheduler
+from backend.find_export import find_report
 from backend.images import ImageError
 from backend.pipeline import Pipeline
-from backend.request_limits import BodyLimits
-from backend.routers import detection, health, missions, supervisor, vehicles
+from backend.request_limits import RequestLimits
+from backend.routers import detection, finds, health, missions, supervisor, vehicles
 from backend.security_headers import SecurityHeaders
 from backend.service_lifecycle import lifecycle_router
 from backend.sessions import SessionStore
 from backend.state_store import QuotaExceededError, SqliteStore, StateStore
 from backend.supervisor_view import SupervisorView
+from backend.validation_errors import summary
 from backend.verifiers.factory import build_verifier
 from backend.verifiers.interface import Verifier
+from cloudtrack.cursor_on_target import CotSender, find_event
 
 _UNSET = object()
 
@@ -95,12 +98,21 @@ def create_app(
         config.server.max_crop_pixels,
     )
     feed = ChangeFeed(store.state)
+    tak = config.tak
+    sender = CotSender(tak.url, tak.tls_cert, tak.tls_key, tak.tls_ca) if tak.url else None
+    if sender is not None:
+        # Each find stored (or refined by the vehicle's own geolocation) goes to the TAK map, off the request.
+        store.on_find = lambda find: sender.send(find_event(find_report(find), tak.callsign, tak.stale_s))
 
     @asynccontextmanager
     async def lifespan(_: FastAPI) -> AsyncIterator[None]:
         feed.start()
+        if sender is not None:
+            sender.start()
         yield
         feed.stop()
+        if sender is not None:
+            sender.close()
         pool.shutdown(wait=False, cancel_futures=True)
 
     app = FastAPI(
@@ -118,12 +130,19 @@ def create_app(
     app.state.sessions = store
     app.state.feed = feed
     app.state.scheduler = FairScheduler(s.detector_concurrency, s.max_queued_per_vehicle)
-    app.state.supervisor_view = SupervisorView(store)
+    app.state.supervisor_view = SupervisorView(store, map_tiles=config.supervisor.map_tiles)
     app.state.started = time.time()
     app.add_middleware(
-        BodyLimits, max_bytes=config.server.max_request_bytes, timeout_s=config.server.body_timeout_s
+        RequestLimits,
+        server=config.server,
+        auth=config.auth,
+        sessions=config.sessions,
+        rate_hit=store.state.rate_hit,
     )
-    app.add_middleware(SecurityHeaders)
+    tiles = urlsplit(config.supervisor.map_tiles)
+    app.add_middleware(
+        SecurityHeaders, tile_origin=f"{tiles.scheme}://{tiles.netloc}" if tiles.netloc else ""
+    )
 
     @app.exception_handler(QuotaExceededError)
     async def _quota(_: Request, exc: QuotaExceededError) -> JSONResponse:
@@ -139,11 +158,16 @@ def create_app(
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(_: Request, exc: RequestValidationError) -> JSONResponse:
-        # FastAPI's default echoes the input back, and JSON cannot encode a NaN or Infinity it was sent.
-        errors = [{"type": e["type"], "loc": list(e["loc"]), "msg": e["msg"]} for e in exc.errors()]
-        return JSONResponse(status_code=422, content={"detail": jsonable_encoder(errors)})
+        return JSONResponse(status_code=422, content=summary(exc.errors()))
 
-    for router in (health.router, detection.router, missions.router, vehicles.router, supervisor.router):
+    for router in (
+        health.router,
+        detection.router,
+        missions.router,
+        finds.router,
+        vehicles.router,
+        supervisor.router,
+    ):
         app.include_router(router)
     app.include_router(lifecycle_router())  # sd_notify READY/WATCHDOG/STOPPING under systemd
     add_offline_docs(app)

@@ -7,8 +7,9 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from backend.config import BackendConfig, load_backend_config
+from backend.config import CONFIG_FILE_NAME, BackendConfig, load_backend_config
 from cloudtrack.command_line import add_command_modules, new_parser, run
+from cloudtrack.config_files import config_search_help
 
 EXAMPLES = """\
 examples:
@@ -33,7 +34,7 @@ TOOL_COMMANDS = "cloudtrack.backend_commands"
 
 def add_config_flags(parser: argparse.ArgumentParser) -> None:
     """--config and --set, shared by every subcommand that reads the configuration."""
-    parser.add_argument("--config", type=Path, help="TOML file (defaults: config/backend.toml)")
+    parser.add_argument("--config", type=Path, help=config_search_help(CONFIG_FILE_NAME))
     parser.add_argument(
         "--set",
         action="append",

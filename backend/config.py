@@ -17,6 +17,7 @@ from pydantic import Field, field_validator, model_validator
 from cloudtrack.config_files import ConfigSection, default_config_files, load_config
 
 ENV_PREFIX = "CLOUDTRACK_BACKEND_"
+CONFIG_FILE_NAME = "backend.toml"  # looked up in /etc/cloudtrack/ and $XDG_CONFIG_HOME/cloudtrack/
 
 DetectorKind = Literal["yolox", "grounding_dino", "owlv2", "simulated"]
 VerifierKind = Literal["none", "local", "local-hsv", "vlm", "cascade"]
@@ -32,6 +33,9 @@ class ServerConfig(ConfigSection):
     max_crop_pixels: int = Field(4_000_000, ge=10_000, le=100_000_000)
     # A request body must arrive within this time (a body that never completes is cut off with 408).
     body_timeout_s: float = Field(15.0, gt=0, le=600)
+    # The request line and headers must arrive within this time of the connection (or of the previous
+    # answer on a kept-alive one); a client trickling header lines is answered 408 and disconnected.
+    header_timeout_s: float = Field(10.0, gt=0, le=600)
 
 
 MIN_TOKEN_CHARS = 16
@@ -155,6 +159,42 @@ class SessionConfig(ConfigSection):
     redis_url: str = "redis://127.0.0.1:6379/0"
 
 
+class SupervisorConfig(ConfigSection):
+    # An optional tile layer under the page's map: a URL template with {z}, {x} and {y}, e.g. a tile server
+    # on the rescue site's own network. Empty (the default): the map is drawn from the positions alone and
+    # works with no internet at all.
+    map_tiles: str = ""
+
+    @field_validator("map_tiles")
+    @classmethod
+    def _template(cls, value: str) -> str:
+        if value and (
+            not value.startswith(("http://", "https://"))
+            or not all(k in value for k in ("{z}", "{x}", "{y}"))
+        ):
+            raise ValueError("map_tiles must be an http(s) URL template with {z}, {x} and {y}")
+        return value
+
+
+class TakConfig(ConfigSection):
+    # Where each confirmed find goes as a Cursor-on-Target event: "tcp://host:8087", "udp://host:6969"
+    # (also multicast, e.g. udp://239.2.3.1:6969, what ATAK listens on), "tls://host:8089". Empty: off.
+    url: str = ""
+    callsign: str = "CloudTrack"  # the sender's name on the map (the find's own name says what it is)
+    stale_s: float = Field(24 * 3600.0, gt=0, le=30 * 86400.0)  # how long the map shows the marker
+    # TLS client certificate, key and CA (PEM files) for tls:// (TAK servers ask for a client certificate).
+    tls_cert: str = ""
+    tls_key: str = ""
+    tls_ca: str = ""
+
+    @field_validator("url")
+    @classmethod
+    def _scheme(cls, value: str) -> str:
+        if value and not value.startswith(("tcp://", "udp://", "tls://")):
+            raise ValueError("tak.url must start with tcp://, udp:// or tls:// (e.g. tcp://tak.local:8087)")
+        return value
+
+
 class BackendConfig(ConfigSection):
     server: ServerConfig = ServerConfig()
     auth: AuthConfig = AuthConfig()
@@ -163,6 +203,8 @@ class BackendConfig(ConfigSection):
     verifier: VerifierConfig = VerifierConfig()
     vlm: VlmConfig = VlmConfig()
     sessions: SessionConfig = SessionConfig()
+    supervisor: SupervisorConfig = SupervisorConfig()
+    tak: TakConfig = TakConfig()
 
 
 def backend_environment(environ: Mapping[str, str]) -> dict[str, str]:
@@ -189,5 +231,5 @@ def load_backend_config(
         env_prefix=ENV_PREFIX,
         environ=backend_environment(full),
         assignments=assignments,
-        default_files=default_config_files("backend.toml", full),
+        default_files=default_config_files(CONFIG_FILE_NAME, full),
     )

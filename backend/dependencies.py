@@ -10,7 +10,6 @@ schema declares the bearer scheme and /docs has an Authorize button; the 401 ans
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 from typing import Annotated, cast
 
@@ -24,7 +23,6 @@ from backend.config import BackendConfig
 from backend.fair_queue import FairScheduler
 from backend.pipeline import Pipeline
 from backend.sessions import SessionStore
-from backend.state_store import QuotaExceededError
 from backend.supervisor_view import SupervisorView
 from cloudtrack.api_models import IDENTIFIER, ModelNames
 
@@ -99,9 +97,20 @@ Credentials = Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)]
 
 
 def authenticated(request: Request, settings: Settings, _credentials: Credentials) -> Principal:
-    """A vehicle or the supervisor; 401 for a missing, malformed or unknown token."""
+    """A vehicle or the supervisor; 401 for a missing, malformed or unknown token.
+
+    A refusal on a configured vehicle's own path (its status, its decisions) is told to the supervisor's
+    view: that vehicle cannot report, so the page shows why in its place."""
     # The header is parsed here, not from `_credentials`, so that a malformed one gets backend.auth's answer.
-    return principal_for(settings.auth, request.headers.get("authorization"))
+    try:
+        return principal_for(settings.auth, request.headers.get("authorization"))
+    except HTTPException as exc:
+        vehicle_id = request.path_params.get("vehicle_id")
+        if vehicle_id in settings.auth.tokens:
+            get_supervisor_view(request).note_auth_failure(
+                vehicle_id, f"the back-end refused this vehicle's token ({exc.status_code}: {exc.detail})"
+            )
+        raise
 
 
 Caller = Annotated[Principal, Depends(authenticated)]
@@ -115,19 +124,3 @@ def require_supervisor(principal: Caller) -> Principal:
 
 
 SupervisorCaller = Annotated[Principal, Depends(require_supervisor)]
-
-
-def admit(settings: BackendConfig, sessions: SessionStore, principal: Principal) -> None:
-    """A vehicle's request-rate quota (the supervisor has none): QuotaExceededError -> 429 + Retry-After."""
-    if principal.vehicle_id is None:
-        return
-    s = settings.sessions
-    wait = sessions.state.rate_hit(
-        principal.vehicle_id, time.time(), s.rate_limit_requests, s.rate_limit_window_s
-    )
-    if wait is not None:
-        raise QuotaExceededError(
-            f"vehicle {principal.vehicle_id!r} sent more than {s.rate_limit_requests} requests in "
-            f"{s.rate_limit_window_s:g} s",
-            wait,
-        )

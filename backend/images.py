@@ -19,6 +19,7 @@ PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 # 0xC4 (DHT), 0xC8 (JPG) and 0xCC (DAC) share the range but are not frames.
 _SOF_MARKERS = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
 _STANDALONE = frozenset([0x01, *range(0xD0, 0xD8)])  # TEM, RSTn: no length field
+MAX_SEGMENTS_BEFORE_FRAME = 1000  # markers and fill bytes; EXIF, ICC chunks and tables are far fewer
 
 
 class ImageError(ValueError):
@@ -30,9 +31,13 @@ class ImageError(ValueError):
 
 
 def _jpeg_size(data: bytes) -> tuple[int, int]:
-    """(width, height) from the first start-of-frame segment, walking the marker segments only."""
+    """(width, height) from the first start-of-frame segment, walking the marker segments only: at most
+    MAX_SEGMENTS_BEFORE_FRAME of them (a real JPEG has a few dozen; 2 MB of 4-byte segments would be a
+    500,000-step walk on the event loop)."""
     i = 2
-    while i + 4 <= len(data):
+    for _ in range(MAX_SEGMENTS_BEFORE_FRAME):
+        if i + 4 > len(data):
+            break
         if data[i] != 0xFF:
             raise ImageError(
                 "the image could not be decoded: its JPEG header is corrupt (no marker where one must be)"

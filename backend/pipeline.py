@@ -28,7 +28,8 @@ import numpy as np
 from backend.appearance import descriptor
 from backend.crops import crop_box, margin_crop
 from backend.detectors.interface import SupersetDetector
-from backend.placement import named_vehicles, placement_ok
+from backend.scene import SceneQuery, judge_scene, read_description, unjudged_words
+from backend.supersets import UnknownSupersetError, coco_classes_for
 from backend.verifiers.cascade import fast_stage
 from backend.verifiers.interface import Verifier, VerifierAnswer, VerifierError, VerifierTimeout
 from behaviors.detection import Detection, Verdict
@@ -46,6 +47,41 @@ class VerifiedCandidate:
     appearance: list[float] = field(repr=False, default_factory=list)
     previously_rejected: bool = False
     crop_origin: tuple[int, int] = (0, 0)  # the margin crop's top-left corner in the request image
+
+
+@dataclass(frozen=True)
+class Sighting:
+    """What the detector found for one request: the candidates to verify, and what the description's
+    relations are judged on (`backend.scene`)."""
+
+    candidates: list[Detection]  # the superset's best `max_candidates`, best first
+    context: list[Detection]  # every detection of the superset: the candidates first, then the rest
+    references: dict[str, list[Detection]]  # a named object's phrase -> its detections (absent: not located)
+    query: SceneQuery | None  # None: no prompt
+    view: tuple[int, int]  # the image's width and height
+    whole_frame: bool  # no region: every object in view was looked at
+
+
+def _belongs(detection: Detection, name: str) -> bool:
+    """A detection is of the class a superset name stands for (its COCO classes, or the name itself for
+    an open-vocabulary detector, which labels boxes with the phrase they matched)."""
+    if detection.label == name:
+        return True
+    try:
+        return detection.label in coco_classes_for(name)
+    except UnknownSupersetError:
+        return False
+
+
+def _mapped(name: str) -> bool:
+    try:
+        coco_classes_for(name)
+    except UnknownSupersetError:
+        return False
+    return True
+
+
+REFERENCE_CHECKS = 5  # objects of a named kind checked against their own description, best scored first
 
 
 @dataclass(frozen=True)
@@ -163,7 +199,11 @@ class Pipeline:
                 det = replace(det, verdict=Verdict.NO, justification=reason)
                 candidates.append(VerifiedCandidate(det, "rejection-memory", 0.0, appearance, True))
             elif self.verifier is None:
-                candidates.append(VerifiedCandidate(replace(det, judged=False), "none", 0.0, appearance))
+                own = read_description(prompt, superset).own
+                nothing = unjudged_words(own, superset, set())
+                candidates.append(
+                    VerifiedCandidate(replace(det, judged=False, unjudged=nothing), "none", 0.0, appearance)
+                )
             else:
                 crop, inner = margin_crop(image, det.box, self.margin_px)
                 height, width = image.shape[:2]
@@ -187,7 +227,11 @@ class Pipeline:
     @staticmethod
     def _settle(base: VerifiedCandidate, answer: VerifierAnswer, t_verify: float) -> VerifiedCandidate:
         detection = replace(
-            base.detection, verdict=answer.verdict, justification=answer.justification, judged=answer.judged
+            base.detection,
+            verdict=answer.verdict,
+            justification=answer.justification,
+            judged=answer.judged,
+            unjudged=answer.unjudged,
         )
         body = refined_box(detection.box, answer.box, base.crop_origin)
         if body is not None:
@@ -202,8 +246,10 @@ class Pipeline:
         superset: str,
         rejected: RejectionCheck | None = None,
         deadline: float | None = None,
+        sighting: Sighting | None = None,
     ) -> list[VerifiedCandidate]:
-        """Verify detections concurrently; `deadline` is a perf_counter() time (default: deadline_s from now)."""
+        """Verify detections concurrently; `deadline` is a perf_counter() time (default: deadline_s from now).
+        With the `sighting` they came from, then judge where each stands (`place`)."""
         t_start = time.perf_counter()
         deadline = deadline if deadline is not None else t_start + self.deadline_s
         candidates, pending = self.submit(image, detections, prompt, superset, rejected)
@@ -215,7 +261,7 @@ class Pipeline:
                 future.cancel()  # still queued: never runs; running: its own HTTP timeout ends it
                 answer, t_verify = self._timed_out(candidates[i]), time.perf_counter() - t_start
             candidates[i] = self._settle(candidates[i], answer, t_verify)
-        return candidates
+        return self.place(image, sighting, candidates, deadline) if sighting is not None else candidates
 
     async def verify_async(
         self,
@@ -225,11 +271,16 @@ class Pipeline:
         superset: str,
         rejected: RejectionCheck | None = None,
         deadline: float | None = None,
+        sighting: Sighting | None = None,
     ) -> list[VerifiedCandidate]:
         """`verify` for the server: waits without holding a thread, so waiting requests cost no threads."""
         t_start = time.perf_counter()
         deadline = deadline if deadline is not None else t_start + self.deadline_s
-        candidates, pending = self.submit(image, detections, prompt, superset, rejected)
+        # Crops, appearance histograms and the rejection check are CPU work on the client's image: off
+        # the event loop, like the detection.
+        candidates, pending = await asyncio.get_running_loop().run_in_executor(
+            None, self.submit, image, detections, prompt, superset, rejected
+        )
         for i, future in pending:
             wait_s = max(0.0, min(self.timeout_s, deadline - time.perf_counter()))
             try:
@@ -237,7 +288,45 @@ class Pipeline:
             except asyncio.TimeoutError:  # wait_for cancelled the future: queued ones never run
                 answer, t_verify = self._timed_out(candidates[i]), time.perf_counter() - t_start
             candidates[i] = self._settle(candidates[i], answer, t_verify)
-        return candidates
+        if sighting is None:
+            return candidates
+        return await asyncio.to_thread(self.place, image, sighting, candidates, deadline)
+
+    def look(
+        self,
+        image: np.ndarray,
+        superset: str,
+        roi: Box | None = None,
+        frame_id: int | None = None,
+        prompt: str = "",
+    ) -> Sighting:
+        """The superset's detections, and with the prompt the objects it names besides the target, found in
+        the same detector call (a detector that cannot take their class is asked for the target alone)."""
+        query = read_description(prompt, superset) if prompt else None
+        wanted = query.detector_classes() if query is not None else []
+        mapped = [name for name in wanted if _mapped(name)]
+        # Every named class, then the ones COCO has (an open-vocabulary detector takes the rest), then the
+        # target's class alone (the SITL detector knows people only).
+        for extra in dict.fromkeys((tuple(wanted), tuple(mapped), ())):
+            try:
+                found = self._detect(image, [superset, *extra], roi, frame_id)
+                break
+            except UnknownSupersetError:
+                if not extra:
+                    raise
+        own = sorted((d for d in found if _belongs(d, superset)), key=lambda d: -d.score)
+        references: dict[str, list[Detection]] = {}
+        for phrase, ref in query.references.items() if query is not None else ():
+            if ref.detector_class is None:
+                continue
+            if query is not None and query.same_kind(ref):
+                references[phrase] = own
+            elif ref.detector_class in extra:
+                seen = [d for d in found if _belongs(d, ref.detector_class)]
+                if seen:
+                    references[phrase] = sorted(seen, key=lambda d: -d.score)
+        height, width = image.shape[:2]
+        return Sighting(own[: self.max_candidates], own, references, query, (width, height), roi is None)
 
     def detect(
         self,
@@ -247,18 +336,83 @@ class Pipeline:
         frame_id: int | None = None,
         prompt: str = "",
     ) -> list[Detection]:
-        """The best `max_candidates` detections of the superset, highest score first; with the prompt,
-        each marked with whether it stands where the description places the target relative to a
-        vehicle it names (`backend.placement`: the same inference finds the vehicles)."""
-        vehicles = named_vehicles(prompt, superset) if prompt else ()
-        extra = [v.coco_class for v in vehicles]
-        found = self._detect(image, [superset, *extra], roi, frame_id)
-        seen = [(d.label, d.box) for d in found if d.label in extra]
-        found = [d for d in found if d.label not in extra]  # a named vehicle is context, not a candidate
-        found = sorted(found, key=lambda d: -d.score)[: self.max_candidates]
-        if not vehicles:
-            return found
-        return [replace(d, placement_ok=placement_ok(d.box, vehicles, seen)) for d in found]
+        """The best `max_candidates` detections of the superset, highest score first."""
+        return self.look(image, superset, roi, frame_id, prompt).candidates
+
+    def _check_references(
+        self, image: np.ndarray, sighting: Sighting, deadline: float
+    ) -> dict[str, list[Box] | None]:
+        """Each named object's boxes that fit its own description ("the man in the green hoodie": the
+        people the verifier does not rule out, those it says yes to when there are any); None where
+        nothing of it was found."""
+        located: dict[str, list[Box] | None] = {}
+        query = sighting.query
+        if query is None:
+            return located
+        pending: list[tuple[str, Detection, Future[tuple[VerifierAnswer, float]]]] = []
+        for phrase, found in sighting.references.items():
+            ref = query.references[phrase]
+            if not ref.described or self.verifier is None:
+                located[phrase] = [d.box for d in found]
+                continue
+            for det in found[:REFERENCE_CHECKS]:
+                crop, inner = margin_crop(image, det.box, self.margin_px)
+                assert ref.detector_class is not None  # found, so asked for by its class
+                future = self.verify_pool.submit(
+                    self._verify_one, crop, inner, phrase, ref.detector_class, self.timeout_s
+                )
+                pending.append((phrase, det, future))
+        verdicts: dict[str, list[tuple[Box, Verdict]]] = {}
+        for phrase, det, future in pending:
+            try:
+                answer, _ = future.result(
+                    timeout=max(0.0, min(self.timeout_s, deadline - time.perf_counter()))
+                )
+                verdict = answer.verdict
+            except FutureTimeout:
+                future.cancel()
+                verdict = Verdict.UNCERTAIN
+            verdicts.setdefault(phrase, []).append((det.box, verdict))
+        for phrase, judged in verdicts.items():
+            yes = [box for box, v in judged if v is Verdict.YES]
+            located[phrase] = yes or [box for box, v in judged if v is not Verdict.NO] or None
+        return located
+
+    def place(
+        self,
+        image: np.ndarray,
+        sighting: Sighting,
+        candidates: list[VerifiedCandidate],
+        deadline: float | None = None,
+    ) -> list[VerifiedCandidate]:
+        """The verified candidates with what the whole keyframe says about them (`backend.scene`): where
+        each stands and its size among the others (`placement_ok`, notes in the justification), and the
+        description's words nothing judged (`unjudged`)."""
+        query = sighting.query
+        if query is None:
+            return candidates
+        deadline = deadline if deadline is not None else time.perf_counter() + self.deadline_s
+        located = self._check_references(image, sighting, deadline)
+        boxes = [c.detection.box for c in candidates]
+        boxes += [d.box for d in sighting.context[len(candidates) :]]
+        may_be = [c.detection.verdict is not Verdict.NO for c in candidates]
+        may_be += [True] * (len(boxes) - len(candidates))  # not verified: may be the target
+        placements = judge_scene(query, boxes, may_be, located, sighting.view, sighting.whole_frame)
+        placed = []
+        for candidate, placement in zip(candidates, placements, strict=False):
+            detection = candidate.detection
+            unjudged = [w for w in detection.unjudged if w != query.size_word or len(boxes) < 2]
+            notes = "; ".join(placement.notes)
+            justification = "; ".join(p for p in (detection.justification, notes) if p)
+            detection = replace(
+                detection,
+                placement_ok=placement.ok,
+                singled_out=placement.singled_out,
+                justification=justification,
+                unjudged=tuple(dict.fromkeys([*unjudged, *placement.unjudged])),
+            )
+            placed.append(replace(candidate, detection=detection))
+        return placed
 
     def run(
         self,
@@ -272,9 +426,11 @@ class Pipeline:
     ) -> PipelineResult:
         """Detect, crop and verify; `started` (perf_counter) lets the deadline include queueing time."""
         t0 = started if started is not None else time.perf_counter()
-        detections = self.detect(image, superset, roi, frame_id, prompt)
+        sighting = self.look(image, superset, roi, frame_id, prompt)
         t_detected = time.perf_counter()
-        candidates = self.verify(image, detections, prompt, superset, rejected, deadline=t0 + self.deadline_s)
+        candidates = self.verify(
+            image, sighting.candidates, prompt, superset, rejected, t0 + self.deadline_s, sighting
+        )
         t_end = time.perf_counter()
         return PipelineResult(
             superset=superset,

@@ -4,7 +4,10 @@ Keys (prefix `ct:`): `mission:<v>:<m>` nothing but its place in the sorted sets 
 seen: expiry reads only the expired range) and `vmissions:<v>` (one vehicle's, for its quota);
 `cand:<v>:<m>` hash id -> float32 bytes with `candseq:<v>:<m>` ordering them; `rej:<v>:<m>` and
 `rejapp:<v>:<m>` lists of rejection records and their appearance bytes; `status` hash vehicle -> record;
-`dec:<v>` list of decisions; `ids:rejection`, `ids:decision`, `version` counters; `rate:<v>:<window>`.
+`dec:<v>` list of decisions and `decided:<v>:<m>` hash candidate -> the standing decision (first wins);
+`finds:<v>:<m>` hash candidate -> find; `map:<v>:<m>` the mission's map; `keyframe:<v>` and
+`keyframemeta:<v>` the newest keyframe (expiring); `ids:rejection`, `ids:decision`, `version` counters;
+`rate:<v>:<window>`.
 Changes the supervisor page shows are published on `changes` (one subscriber per process).
 Durability is the server's: run it with `appendonly yes` and `appendfsync always` (make backend-redis).
 """
@@ -18,9 +21,11 @@ from typing import Any
 
 import redis
 
+from backend.schemas import KeyframeRecord, MissionMap, StoredFind
 from backend.state_store import (
     CANDIDATES_PER_MISSION,
     DECISIONS_KEPT_PER_VEHICLE,
+    FINDS_PER_MISSION,
     QuotaExceededError,
     StateStore,
 )
@@ -28,6 +33,7 @@ from cloudtrack.api_models import Decision, DecisionIn, Rejection, VehicleStatus
 
 PREFIX = "ct:"
 CHANNEL = PREFIX + "changes"
+KEYFRAME_TTL_S = 600  # a vehicle silent this long shows no picture
 
 
 class RedisStore(StateStore):
@@ -78,7 +84,7 @@ class RedisStore(StateStore):
             with self._redis.pipeline() as pipe:
                 pipe.zrem(self._k("missions"), raw)
                 pipe.zrem(self._k("vmissions", vehicle), mission)
-                for name in ("cand", "candseq", "rej", "rejapp"):
+                for name in ("cand", "candseq", "rej", "rejapp", "decided", "finds", "map"):
                     pipe.delete(self._k(name, vehicle, mission))
                 pipe.execute()
         return len(stale)
@@ -154,22 +160,111 @@ class RedisStore(StateStore):
             (VehicleStatus.model_validate_json(v) for v in values.values()), key=lambda s: s.vehicle_id
         )
 
+    def set_mission_map(self, vehicle: str, mission: str, record: MissionMap) -> None:
+        self._redis.set(self._k("map", vehicle, mission), record.model_dump_json())
+
+    def mission_map(self, vehicle: str, mission: str) -> MissionMap | None:
+        value = self._redis.get(self._k("map", vehicle, mission))
+        return MissionMap.model_validate_json(value) if value is not None else None
+
     def add_decision(
-        self, vehicle: str, mission: str | None, decision: DecisionIn, created_at: float
-    ) -> Decision:
-        record = Decision(
-            decision_id=int(self._redis.incr(self._k("ids", "decision"))),
-            vehicle_id=vehicle,
-            mission_id=mission,
-            created_at=created_at,
-            **decision.model_dump(),
-        )
+        self,
+        vehicle: str,
+        mission: str | None,
+        decision: DecisionIn,
+        created_at: float,
+        source: str = "supervisor",
+    ) -> tuple[Decision, bool]:
+        decided = self._k("decided", vehicle, mission or "")
+        # WATCH: two replicas deciding on one candidate at once; the second's EXEC fails, it reads the first's.
         with self._redis.pipeline() as pipe:
-            pipe.rpush(self._k("dec", vehicle), record.model_dump_json())
-            pipe.ltrim(self._k("dec", vehicle), -DECISIONS_KEPT_PER_VEHICLE, -1)
+            while True:
+                try:
+                    pipe.watch(decided)
+                    standing = pipe.hget(decided, decision.candidate_id)
+                    if standing is not None:
+                        pipe.unwatch()
+                        return Decision.model_validate_json(standing), False
+                    record = Decision(
+                        decision_id=int(self._redis.incr(self._k("ids", "decision"))),
+                        vehicle_id=vehicle,
+                        mission_id=mission,
+                        created_at=created_at,
+                        source=source,
+                        **decision.model_dump(),
+                    )
+                    pipe.multi()
+                    pipe.hset(decided, decision.candidate_id, record.model_dump_json())
+                    pipe.rpush(self._k("dec", vehicle), record.model_dump_json())
+                    pipe.ltrim(self._k("dec", vehicle), -DECISIONS_KEPT_PER_VEHICLE, -1)
+                    self._changed(pipe)
+                    pipe.execute()
+                    return record, True
+                except redis.WatchError:
+                    continue
+
+    def standing_decision(self, vehicle: str, mission: str | None, candidate_id: str) -> Decision | None:
+        value = self._redis.hget(self._k("decided", vehicle, mission or ""), candidate_id)
+        return Decision.model_validate_json(value) if value is not None else None
+
+    def put_find(self, find: StoredFind, replace_source: str | None = None) -> tuple[StoredFind, bool]:
+        key = self._k("finds", find.vehicle_id, find.mission_id)
+        with self._redis.pipeline() as pipe:
+            while True:
+                try:
+                    pipe.watch(key)
+                    existing = pipe.hget(key, find.candidate_id)
+                    if existing is not None:
+                        kept = StoredFind.model_validate_json(existing)
+                        if kept.source != replace_source:
+                            pipe.unwatch()
+                            return kept, False
+                    elif int(pipe.hlen(key)) >= FINDS_PER_MISSION:
+                        pipe.unwatch()
+                        raise QuotaExceededError(
+                            f"mission {find.mission_id!r} of {find.vehicle_id!r} holds {FINDS_PER_MISSION} finds "
+                            "(the limit)",
+                            60,
+                        )
+                    pipe.multi()
+                    pipe.hset(key, find.candidate_id, find.model_dump_json())
+                    self._changed(pipe)
+                    pipe.execute()
+                    return find, True
+                except redis.WatchError:
+                    continue
+
+    def finds(self, vehicle: str, mission: str | None = None) -> list[StoredFind]:
+        if mission is not None:
+            missions = [mission]
+        else:
+            missions = [m.decode() for m in self._redis.zrange(self._k("vmissions", vehicle), 0, -1)]
+        with self._redis.pipeline(transaction=False) as pipe:
+            for m in missions:
+                pipe.hvals(self._k("finds", vehicle, m))
+            values = pipe.execute()
+        found = [StoredFind.model_validate_json(v) for group in values for v in group]
+        return sorted(found, key=lambda f: f.time)
+
+    def set_keyframe(self, vehicle: str, record: KeyframeRecord, jpeg: bytes) -> None:
+        with self._redis.pipeline() as pipe:
+            pipe.set(self._k("keyframe", vehicle), jpeg, ex=KEYFRAME_TTL_S)
+            pipe.set(self._k("keyframemeta", vehicle), record.model_dump_json(), ex=KEYFRAME_TTL_S)
             self._changed(pipe)
             pipe.execute()
-        return record
+
+    def keyframe(self, vehicle: str) -> KeyframeRecord | None:
+        value = self._redis.get(self._k("keyframemeta", vehicle))
+        return KeyframeRecord.model_validate_json(value) if value is not None else None
+
+    def keyframe_jpeg(self, vehicle: str) -> tuple[KeyframeRecord, bytes] | None:
+        with self._redis.pipeline(transaction=True) as pipe:
+            pipe.get(self._k("keyframemeta", vehicle))
+            pipe.get(self._k("keyframe", vehicle))
+            meta, jpeg = pipe.execute()
+        if meta is None or jpeg is None:
+            return None
+        return KeyframeRecord.model_validate_json(meta), bytes(jpeg)
 
     def decisions(self, vehicle: str, after: int = 0) -> list[Decision]:
         records = [

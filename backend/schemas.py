@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
+from pydantic import Field
+
 from cloudtrack.api_models import (
     CANDIDATE_ID,
     ID_FIELD,
@@ -18,12 +20,15 @@ from cloudtrack.api_models import (
     DetectMeta,
     DetectResponse,
     ErrorResponse,
+    Find,
     GeoPoint,
     HealthResponse,
     ModelNames,
     ModelsResponse,
     Rejection,
     RejectionIn,
+    SearchProgress,
+    SearchStatus,
     Timings,
     VehicleStatus,
     VehicleStatusIn,
@@ -32,6 +37,50 @@ from cloudtrack.api_models import (
 ERROR_RESPONSES: dict[int | str, dict[str, Any]] = {
     status: {"model": ErrorResponse} for status in (400, 401, 403, 404, 408, 413, 415, 422, 429)
 }
+
+
+# What the back-end keeps per mission beside the rejection memory: the finds and the map.
+
+
+class StoredFind(Find):
+    """A confirmed find as the back-end keeps it: once per (vehicle, mission, candidate)."""
+
+    vehicle_id: str
+    mission_id: str
+    received_at: float
+    source: Literal["vehicle", "supervisor"] = Field(
+        description='"vehicle": from its status (its own geolocation); "supervisor": made at the supervisor\'s '
+        "confirm from the candidate's reported position, replaced once by the vehicle's own"
+    )
+
+
+class MissionMap(ApiModel):
+    """A mission's map: the vehicle's track (decimated, bounded) and its search area and covered area."""
+
+    track: list[list[float]] = Field(
+        default_factory=list, description="[[lat, lon, unix time], ...], oldest first"
+    )
+    area: list[list[float]] = Field(default_factory=list)
+    covered: list[list[list[float]]] = Field(default_factory=list)
+    coverage: float | None = None
+    updated_at: float = 0.0
+
+
+class KeyframeCandidate(ApiModel):
+    id: str
+    box: list[float]
+    verdict: Literal["yes", "no", "uncertain"]
+
+
+class KeyframeRecord(ApiModel):
+    """The newest keyframe a vehicle sent to /v1/detect and the candidates the answer held (its pixels)."""
+
+    frame_id: int | None
+    mission_id: str
+    width: int
+    height: int
+    received_at: float
+    candidates: list[KeyframeCandidate]
 
 
 # The supervisor page's snapshot (GET /supervisor/api/state and each `state` event of /supervisor/events).
@@ -52,23 +101,58 @@ class CandidateView(ApiModel):
     box: list[float]
     age_s: float = 0.0
     crop_url: str | None
+    crop_box: list[float] | None = None
     status: Literal["awaiting", "confirmed", "rejected"]
+    decided_by: str = ""
+
+
+class KeyframeView(ApiModel):
+    frame_id: int | None
+    url: str
+    width: int
+    height: int
+    age_s: float = 0.0
+    candidates: list[KeyframeCandidate]
+    track_box: list[float] | None = Field(
+        None, description="the vehicle's tracked box, when in this keyframe"
+    )
+
+
+class FindView(ApiModel):
+    candidate_id: str
+    mission_id: str
+    position: LatLon
+    sigma_m: float | None
+    time: float
+    prompt: str
+    confirmed_by: str
+    crop_url: str | None
+    crop_box: list[float] | None
 
 
 class VehicleView(ApiModel):
     id: str
     state: str
+    reason: str = ""
     mission_id: str | None
     prompt: str | None
     position: GeoPoint | None
     altitude_m: float | None
+    heading_deg: float | None = None
     age_s: float = 0.0
     candidates: list[CandidateView]
+    progress: SearchProgress | None = None
+    search: SearchStatus | None = None
+    track: list[list[float]] = Field(default_factory=list, description="[[lat, lon], ...] of this mission")
+    keyframe: KeyframeView | None = None
+    finds: list[FindView] = Field(default_factory=list, description="this vehicle's finds, oldest first")
+    auth_error: str | None = Field(None, description="the back-end refused this vehicle's credentials")
 
 
 class SupervisorSnapshot(ApiModel):
     server_time: float
     vehicles: list[VehicleView]
+    map_tiles: str = Field("", description="[supervisor] map_tiles: the optional tile layer's URL template")
 
 
 class SupervisorEnabled(ApiModel):
@@ -90,13 +174,22 @@ __all__ = [
     "DetectMeta",
     "DetectResponse",
     "ErrorResponse",
+    "Find",
+    "FindView",
     "GeoPoint",
     "HealthResponse",
+    "KeyframeCandidate",
+    "KeyframeRecord",
+    "KeyframeView",
     "LatLon",
+    "MissionMap",
     "ModelNames",
     "ModelsResponse",
     "Rejection",
     "RejectionIn",
+    "SearchProgress",
+    "SearchStatus",
+    "StoredFind",
     "SupervisorEnabled",
     "SupervisorSnapshot",
     "Timings",

@@ -17,15 +17,25 @@ reports for the supervisor must be a real JPEG: the page serves it as image/jpeg
 from __future__ import annotations
 
 import logging
-import math
 import time
 from collections.abc import Callable
 
 from backend.appearance import descriptor, similarity
 from backend.images import ImageError, b64_image_bytes, decode_image, is_jpeg
+from backend.mission_map import distance_m, updated_map
+from backend.schemas import KeyframeCandidate, KeyframeRecord, MissionMap, StoredFind
 from backend.state_store import QuotaExceededError, SqliteStore, StateStore, vector_bytes, vector_from
 from behaviors.geometry import Box
-from cloudtrack.api_models import Decision, DecisionIn, Rejection, RejectionIn, VehicleStatus, VehicleStatusIn
+from cloudtrack.api_models import (
+    AwaitingCandidate,
+    Decision,
+    DecisionIn,
+    Find,
+    Rejection,
+    RejectionIn,
+    VehicleStatus,
+    VehicleStatusIn,
+)
 
 log = logging.getLogger(__name__)
 
@@ -34,13 +44,6 @@ __all__ = ["QuotaExceededError", "SessionStore", "UnknownCandidateError", "crop_
 
 class UnknownCandidateError(LookupError):
     """A rejection names a candidate id the back-end does not know and carries no crop."""
-
-
-def distance_m(a: list[float], b: list[float]) -> float:
-    """Great-circle distance between two [lat, lon] points in metres (haversine)."""
-    lat1, lon1, lat2, lon2 = map(math.radians, (a[0], a[1], b[0], b[1]))
-    h = math.sin((lat2 - lat1) / 2) ** 2 + math.cos(lat1) * math.cos(lat2) * math.sin((lon2 - lon1) / 2) ** 2
-    return 2 * 6_371_000.0 * math.asin(min(1.0, math.sqrt(h)))
 
 
 def crop_descriptor(crop_jpeg_b64: str, crop_box: list[float] | None, max_pixels: int) -> list[float]:
@@ -68,6 +71,7 @@ class SessionStore:
         max_missions: int = 32,
         max_crop_pixels: int = 4_000_000,
         clock: Callable[[], float] = time.time,
+        on_find: Callable[[StoredFind], None] | None = None,
     ) -> None:
         self.state = state or SqliteStore()
         self.similarity_threshold = similarity_threshold
@@ -77,6 +81,7 @@ class SessionStore:
         self.max_missions = max_missions
         self.max_crop_pixels = max_crop_pixels
         self._clock = clock
+        self.on_find = on_find  # told of every find stored or refined (Cursor-on-Target), off the request
 
     def open_mission(self, vehicle_id: str, mission_id: str) -> None:
         """Mark the mission alive (QuotaExceededError for one too many) and forget the expired ones."""
@@ -157,14 +162,18 @@ class SessionStore:
     # Vehicle status and supervisor decisions
 
     def set_status(self, vehicle_id: str, status: VehicleStatusIn) -> VehicleStatus:
-        """Store the vehicle's report; a crop that is not a JPEG within the crop size limit: ImageError."""
+        """Store the vehicle's report, extend its mission's map and keep its find; a crop that is not a JPEG
+        within the crop size limit: ImageError."""
         awaiting = status.awaiting
-        if awaiting is not None and awaiting.crop_jpeg_b64 is not None:
-            data = b64_image_bytes(awaiting.crop_jpeg_b64)
-            if not is_jpeg(data, self.max_crop_pixels):
+        for sent in (
+            awaiting.crop_jpeg_b64 if awaiting else None,
+            status.find.crop_jpeg_b64 if status.find else None,
+        ):
+            if sent is not None and not is_jpeg(b64_image_bytes(sent), self.max_crop_pixels):
                 raise ImageError(f"the crop must be a JPEG of at most {self.max_crop_pixels} pixels", 422)
         if status.mission_id is not None:
             self.open_mission(vehicle_id, status.mission_id)
+        now = self._clock()
         previous = self.state.status(vehicle_id)
         kept = previous.awaiting if previous is not None else None
         if (
@@ -176,8 +185,18 @@ class SessionStore:
             # Vehicles send a candidate's crop once; later reports about the same candidate keep it.
             crop = {"crop_jpeg_b64": kept.crop_jpeg_b64, "crop_box": kept.crop_box}
             status = status.model_copy(update={"awaiting": awaiting.model_copy(update=crop)})
-        record = VehicleStatus(vehicle_id=vehicle_id, updated_at=self._clock(), **status.model_dump())
+        find = status.find
+        if find is not None and find.crop_jpeg_b64 is not None:  # the find keeps its crop, not every status
+            status = status.model_copy(update={"find": find.model_copy(update={"crop_jpeg_b64": None})})
+        record = VehicleStatus(vehicle_id=vehicle_id, updated_at=now, **status.model_dump())
         self.state.set_status(record)
+        if status.mission_id is not None and (status.position is not None or status.search is not None):
+            mission_map = self.state.mission_map(vehicle_id, status.mission_id)
+            changed = updated_map(mission_map, status.position, status.search, now)
+            if changed is not None:
+                self.state.set_mission_map(vehicle_id, status.mission_id, changed)
+        if find is not None and status.mission_id is not None:
+            self._vehicle_find(vehicle_id, status.mission_id, find, status.prompt, kept)
         return record
 
     def status(self, vehicle_id: str) -> VehicleStatus | None:
@@ -186,8 +205,94 @@ class SessionStore:
     def statuses(self) -> list[VehicleStatus]:
         return self.state.statuses()
 
-    def add_decision(self, vehicle_id: str, decision: DecisionIn) -> Decision:
-        """Record the supervisor's confirm/reject; a reject also enters the mission's rejection memory.
+    # Finds: stored once per (vehicle, mission, candidate), from the vehicle's status or a supervisor's confirm
+
+    def _vehicle_find(
+        self,
+        vehicle_id: str,
+        mission_id: str,
+        find: Find,
+        prompt: str | None,
+        awaited: AwaitingCandidate | None,
+    ) -> None:
+        """A find the vehicle reports; it replaces one made at the supervisor's confirm (its geolocation is
+        the vehicle's own) and records the confirm as the standing decision, once."""
+        known = {f.candidate_id: f for f in self.state.finds(vehicle_id, mission_id)}
+        earlier = known.get(find.candidate_id)
+        if earlier is not None and earlier.source == "vehicle":
+            return  # reported with every status: stored once
+        crop = {}
+        if find.crop_jpeg_b64 is None:
+            if awaited is not None and awaited.candidate_id == find.candidate_id and awaited.crop_jpeg_b64:
+                crop = {"crop_jpeg_b64": awaited.crop_jpeg_b64, "crop_box": awaited.crop_box}
+            elif earlier is not None:
+                crop = {"crop_jpeg_b64": earlier.crop_jpeg_b64, "crop_box": earlier.crop_box}
+        stored = StoredFind(
+            **{**find.model_dump(), "prompt": find.prompt or prompt or "", **crop},
+            vehicle_id=vehicle_id,
+            mission_id=mission_id,
+            received_at=self._clock(),
+            source="vehicle",
+        )
+        self._keep_find(stored, replace_source="supervisor")
+        confirm = DecisionIn(
+            candidate_id=find.candidate_id,
+            action="confirm",
+            operator=find.confirmed_by[:64],
+            note="the vehicle's find",
+        )
+        self.state.add_decision(vehicle_id, mission_id, confirm, self._clock(), source="vehicle")
+
+    def _keep_find(self, find: StoredFind, replace_source: str | None = None) -> None:
+        try:
+            saved, changed = self.state.put_find(find, replace_source)
+        except QuotaExceededError as exc:
+            log.warning("find %s not stored: %s", find.candidate_id, exc)
+            return
+        if changed and self.on_find is not None:
+            try:
+                self.on_find(saved)
+            except Exception:  # telling the TAK server must never lose the find
+                log.exception("find %s stored, but not forwarded", find.candidate_id)
+
+    def finds(self, vehicle_id: str, mission_id: str | None = None) -> list[StoredFind]:
+        return self.state.finds(vehicle_id, mission_id)
+
+    def mission_map(self, vehicle_id: str, mission_id: str) -> MissionMap | None:
+        return self.state.mission_map(vehicle_id, mission_id)
+
+    # The newest keyframe, for the supervisor's live view
+
+    def set_keyframe(
+        self,
+        vehicle_id: str,
+        mission_id: str,
+        frame_id: int | None,
+        data: bytes,
+        size: tuple[int, int],
+        candidates: list[KeyframeCandidate],
+    ) -> None:
+        """Keep the keyframe as sent (a JPEG only: the page shows it as one) with the answer's boxes."""
+        if not is_jpeg(data, size[0] * size[1] + 1):
+            return
+        record = KeyframeRecord(
+            frame_id=frame_id,
+            mission_id=mission_id,
+            width=size[0],
+            height=size[1],
+            received_at=self._clock(),
+            candidates=candidates,
+        )
+        self.state.set_keyframe(vehicle_id, record, data)
+
+    # Supervisor decisions: the first on a candidate stands
+
+    def add_decision(
+        self, vehicle_id: str, decision: DecisionIn, source: str = "supervisor"
+    ) -> tuple[Decision, bool]:
+        """Record the supervisor's confirm/reject unless a decision on that candidate stands already (then
+        that one, created False). A reject that stands enters the mission's rejection memory; a confirm
+        that stands is kept as a find at the candidate's reported position.
 
         The decision is stored whatever happens to the rejection memory (an undecodable crop, a full
         mission): the companion must get the supervisor's word. Both are stored before this returns.
@@ -195,17 +300,20 @@ class SessionStore:
         current = self.status(vehicle_id)
         mission_id = current.mission_id if current else None
         awaiting = current.awaiting if current else None
-        if decision.action == "reject" and mission_id is not None:
-            same = awaiting is not None and awaiting.candidate_id == decision.candidate_id
+        same = awaiting if awaiting is not None and awaiting.candidate_id == decision.candidate_id else None
+        record, created = self.state.add_decision(vehicle_id, mission_id, decision, self._clock(), source)
+        if not created or mission_id is None:
+            return record, created
+        if decision.action == "reject":
             try:
                 self.add_rejection(
                     mission_id,
                     RejectionIn(
                         vehicle_id=vehicle_id,
                         candidate_id=decision.candidate_id,
-                        crop_jpeg_b64=awaiting.crop_jpeg_b64 if same and awaiting else None,
-                        crop_box=awaiting.crop_box if same and awaiting else None,
-                        position=awaiting.position if same and awaiting else None,
+                        crop_jpeg_b64=same.crop_jpeg_b64 if same else None,
+                        crop_box=same.crop_box if same else None,
+                        position=same.position if same else None,
                         reason=decision.note or "rejected by the supervisor",
                     ),
                 )
@@ -216,7 +324,37 @@ class SessionStore:
                     decision.candidate_id,
                     exc,
                 )
-        return self.state.add_decision(vehicle_id, mission_id, decision, self._clock())
+        elif same is not None and same.position is not None:
+            self._keep_find(
+                StoredFind(
+                    candidate_id=decision.candidate_id,
+                    position=same.position,
+                    sigma_m=None,  # the vehicle's own find, when it comes, says how sure it is
+                    time=record.created_at,
+                    prompt=(current.prompt if current else None) or "",
+                    confirmed_by=decision.operator or "supervisor",
+                    crop_jpeg_b64=same.crop_jpeg_b64,
+                    crop_box=same.crop_box,
+                    vehicle_id=vehicle_id,
+                    mission_id=mission_id,
+                    received_at=record.created_at,
+                    source="supervisor",
+                )
+            )
+        return record, created
+
+    def record_vehicle_reject(self, vehicle_id: str, mission_id: str, candidate_id: str) -> None:
+        """A reject the vehicle took from its GCS over MAVLink (it reports it as a rejection): the standing
+        decision, so a later supervisor's confirm is refused instead of contradicting the vehicle."""
+        reject = DecisionIn(
+            candidate_id=candidate_id, action="reject", operator="gcs", note="reported by the vehicle"
+        )
+        self.state.add_decision(vehicle_id, mission_id, reject, self._clock(), source="vehicle")
+
+    def standing_decision(
+        self, vehicle_id: str, mission_id: str | None, candidate_id: str
+    ) -> Decision | None:
+        return self.state.standing_decision(vehicle_id, mission_id, candidate_id)
 
     def decisions(self, vehicle_id: str, after: int = 0) -> list[Decision]:
         return self.state.decisions(vehicle_id, after)

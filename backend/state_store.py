@@ -24,10 +24,13 @@ from typing import Any
 
 import numpy as np
 
+from backend.schemas import KeyframeRecord, MissionMap, StoredFind
 from cloudtrack.api_models import Decision, DecisionIn, Rejection, VehicleStatus
+from cloudtrack.private_files import private_dir, private_file
 
 CANDIDATES_PER_MISSION = 500
 DECISIONS_KEPT_PER_VEHICLE = 1000
+FINDS_PER_MISSION = 20
 
 
 class QuotaExceededError(Exception):
@@ -82,13 +85,48 @@ class StateStore(ABC):
     def statuses(self) -> list[VehicleStatus]: ...
 
     @abstractmethod
+    def set_mission_map(self, vehicle: str, mission: str, record: MissionMap) -> None: ...
+
+    @abstractmethod
+    def mission_map(self, vehicle: str, mission: str) -> MissionMap | None: ...
+
+    @abstractmethod
     def add_decision(
-        self, vehicle: str, mission: str | None, decision: DecisionIn, created_at: float
-    ) -> Decision:
-        """Store it durably under a new decision_id before returning."""
+        self,
+        vehicle: str,
+        mission: str | None,
+        decision: DecisionIn,
+        created_at: float,
+        source: str = "supervisor",
+    ) -> tuple[Decision, bool]:
+        """The first decision on (vehicle, mission, candidate) wins: stored durably under a new decision_id
+        before returning (created: True); when one stands already, that one (created: False). Atomic
+        against concurrent callers, also across replicas."""
+
+    @abstractmethod
+    def standing_decision(self, vehicle: str, mission: str | None, candidate_id: str) -> Decision | None: ...
 
     @abstractmethod
     def decisions(self, vehicle: str, after: int = 0) -> list[Decision]: ...
+
+    @abstractmethod
+    def put_find(self, find: StoredFind, replace_source: str | None = None) -> tuple[StoredFind, bool]:
+        """Store a find once per (vehicle, mission, candidate) (changed: True); an existing one stays and is
+        returned, unless its `source` is `replace_source`. At most FINDS_PER_MISSION per mission."""
+
+    @abstractmethod
+    def finds(self, vehicle: str, mission: str | None = None) -> list[StoredFind]:
+        """A vehicle's finds (of one mission, or of all its live missions), oldest first."""
+
+    @abstractmethod
+    def set_keyframe(self, vehicle: str, record: KeyframeRecord, jpeg: bytes) -> None:
+        """The vehicle's newest keyframe (not precious: kept in memory or with an expiry)."""
+
+    @abstractmethod
+    def keyframe(self, vehicle: str) -> KeyframeRecord | None: ...
+
+    @abstractmethod
+    def keyframe_jpeg(self, vehicle: str) -> tuple[KeyframeRecord, bytes] | None: ...
 
     @abstractmethod
     def rate_hit(self, vehicle: str, now: float, limit: int, window_s: float) -> float | None:
@@ -126,6 +164,14 @@ CREATE TABLE IF NOT EXISTS statuses (vehicle TEXT PRIMARY KEY, record TEXT NOT N
 CREATE TABLE IF NOT EXISTS decisions (
     decision_id INTEGER PRIMARY KEY AUTOINCREMENT, vehicle TEXT NOT NULL, record TEXT NOT NULL);
 CREATE INDEX IF NOT EXISTS decisions_by_vehicle ON decisions (vehicle, decision_id);
+CREATE TABLE IF NOT EXISTS decided (
+    vehicle TEXT NOT NULL, mission TEXT NOT NULL, candidate_id TEXT NOT NULL, record TEXT NOT NULL,
+    PRIMARY KEY (vehicle, mission, candidate_id));
+CREATE TABLE IF NOT EXISTS finds (
+    seq INTEGER PRIMARY KEY AUTOINCREMENT, vehicle TEXT NOT NULL, mission TEXT NOT NULL,
+    candidate_id TEXT NOT NULL, record TEXT NOT NULL, UNIQUE (vehicle, mission, candidate_id));
+CREATE TABLE IF NOT EXISTS mission_maps (
+    vehicle TEXT NOT NULL, mission TEXT NOT NULL, record TEXT NOT NULL, PRIMARY KEY (vehicle, mission));
 CREATE TABLE IF NOT EXISTS counters (name TEXT PRIMARY KEY, value INTEGER NOT NULL);
 INSERT OR IGNORE INTO counters VALUES ('version', 0);
 """
@@ -137,7 +183,15 @@ class SqliteStore(StateStore):
     def __init__(self, path: str | Path = ":memory:") -> None:
         self.path = str(path)
         if self.path != ":memory:":
-            Path(self.path).parent.mkdir(parents=True, exist_ok=True)
+            # Decisions, rejections and positions are the operator's alone, whatever the umask: the file
+            # is created 0600 in a 0700 folder, and SQLite gives its -wal and -shm the file's mode.
+            db = Path(self.path)
+            private_dir(db.parent)
+            private_file(db)
+            for suffix in ("-wal", "-shm", "-journal"):  # left by an earlier run, maybe wider
+                side = db.with_name(db.name + suffix)
+                if side.exists():
+                    private_file(side)
         # One connection, used under a lock: handlers run on a thread pool.
         self._db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None, timeout=10)
         self._lock = threading.Lock()
@@ -146,7 +200,12 @@ class SqliteStore(StateStore):
                 self._db.execute("PRAGMA journal_mode=WAL")
             self._db.execute("PRAGMA synchronous=FULL")  # a commit is on disk before the API answers
             self._db.executescript(_SCHEMA)
-        self._windows: dict[str, tuple[float, int]] = {}  # rate windows: one server, so in memory
+        # Rate windows: one server, so in memory, under their own lock (never waiting on a commit's fsync).
+        self._windows: dict[str, tuple[float, int]] = {}
+        self._windows_lock = threading.Lock()
+        # The newest keyframe per vehicle: one server, and nothing lost in a restart, so in memory too.
+        self._keyframes: dict[str, tuple[KeyframeRecord, bytes]] = {}
+        self._memory_changes = 0
 
     def _write(self, sql_and_params: list[tuple[str, tuple[object, ...]]]) -> list[sqlite3.Cursor]:
         with self._lock:
@@ -198,7 +257,7 @@ class SqliteStore(StateStore):
                 return 0
             self._db.execute("BEGIN IMMEDIATE")
             for vehicle, mission in stale:
-                for table in ("missions", "candidates", "rejections"):
+                for table in ("missions", "candidates", "rejections", "decided", "finds", "mission_maps"):
                     self._db.execute(
                         f"DELETE FROM {table} WHERE vehicle = ? AND mission = ?", (vehicle, mission)
                     )
@@ -287,12 +346,40 @@ class SqliteStore(StateStore):
             for (r,) in self._read("SELECT record FROM statuses ORDER BY vehicle")
         ]
 
+    def set_mission_map(self, vehicle: str, mission: str, record: MissionMap) -> None:
+        self._write(
+            [
+                (
+                    "INSERT OR REPLACE INTO mission_maps VALUES (?, ?, ?)",
+                    (vehicle, mission, record.model_dump_json()),
+                )
+            ]
+        )
+
+    def mission_map(self, vehicle: str, mission: str) -> MissionMap | None:
+        rows = self._read(
+            "SELECT record FROM mission_maps WHERE vehicle = ? AND mission = ?", (vehicle, mission)
+        )
+        return MissionMap.model_validate_json(str(rows[0][0])) if rows else None
+
     def add_decision(
-        self, vehicle: str, mission: str | None, decision: DecisionIn, created_at: float
-    ) -> Decision:
+        self,
+        vehicle: str,
+        mission: str | None,
+        decision: DecisionIn,
+        created_at: float,
+        source: str = "supervisor",
+    ) -> tuple[Decision, bool]:
+        key = (vehicle, mission or "", decision.candidate_id)
         with self._lock:
-            self._db.execute("BEGIN IMMEDIATE")
+            self._db.execute("BEGIN IMMEDIATE")  # the check and the insert in one write transaction
             try:
+                standing = self._db.execute(
+                    "SELECT record FROM decided WHERE vehicle = ? AND mission = ? AND candidate_id = ?", key
+                ).fetchone()
+                if standing is not None:
+                    self._db.execute("ROLLBACK")
+                    return Decision.model_validate_json(str(standing[0])), False
                 cursor = self._db.execute(
                     "INSERT INTO decisions (vehicle, record) VALUES (?, '')", (vehicle,)
                 )
@@ -301,12 +388,14 @@ class SqliteStore(StateStore):
                     vehicle_id=vehicle,
                     mission_id=mission,
                     created_at=created_at,
+                    source=source,
                     **decision.model_dump(),
                 )
                 self._db.execute(
                     "UPDATE decisions SET record = ? WHERE decision_id = ?",
                     (record.model_dump_json(), record.decision_id),
                 )
+                self._db.execute("INSERT INTO decided VALUES (?, ?, ?, ?)", (*key, record.model_dump_json()))
                 self._db.execute(
                     "DELETE FROM decisions WHERE vehicle = ? AND decision_id NOT IN "
                     "(SELECT decision_id FROM decisions WHERE vehicle = ? ORDER BY decision_id DESC LIMIT ?)",
@@ -317,7 +406,14 @@ class SqliteStore(StateStore):
                 self._db.execute("ROLLBACK")
                 raise
             self._db.execute("COMMIT")
-            return record
+            return record, True
+
+    def standing_decision(self, vehicle: str, mission: str | None, candidate_id: str) -> Decision | None:
+        rows = self._read(
+            "SELECT record FROM decided WHERE vehicle = ? AND mission = ? AND candidate_id = ?",
+            (vehicle, mission or "", candidate_id),
+        )
+        return Decision.model_validate_json(str(rows[0][0])) if rows else None
 
     def decisions(self, vehicle: str, after: int = 0) -> list[Decision]:
         rows = self._read(
@@ -326,8 +422,68 @@ class SqliteStore(StateStore):
         )
         return [Decision.model_validate_json(str(r)) for (r,) in rows]
 
-    def rate_hit(self, vehicle: str, now: float, limit: int, window_s: float) -> float | None:
+    def put_find(self, find: StoredFind, replace_source: str | None = None) -> tuple[StoredFind, bool]:
+        key = (find.vehicle_id, find.mission_id, find.candidate_id)
         with self._lock:
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                row = self._db.execute(
+                    "SELECT record FROM finds WHERE vehicle = ? AND mission = ? AND candidate_id = ?", key
+                ).fetchone()
+                if row is not None:
+                    kept = StoredFind.model_validate_json(str(row[0]))
+                    if kept.source != replace_source:
+                        self._db.execute("ROLLBACK")
+                        return kept, False
+                    self._db.execute(
+                        "UPDATE finds SET record = ? WHERE vehicle = ? AND mission = ? AND candidate_id = ?",
+                        (find.model_dump_json(), *key),
+                    )
+                else:
+                    (count,) = self._db.execute(
+                        "SELECT count(*) FROM finds WHERE vehicle = ? AND mission = ?", key[:2]
+                    ).fetchone()
+                    if count >= FINDS_PER_MISSION:
+                        raise QuotaExceededError(
+                            f"mission {find.mission_id!r} of {find.vehicle_id!r} holds {count} finds (the limit)",
+                            60,
+                        )
+                    self._db.execute(
+                        "INSERT INTO finds (vehicle, mission, candidate_id, record) VALUES (?, ?, ?, ?)",
+                        (*key, find.model_dump_json()),
+                    )
+                self._db.execute("UPDATE counters SET value = value + 1 WHERE name = 'version'")
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+            self._db.execute("COMMIT")
+            return find, True
+
+    def finds(self, vehicle: str, mission: str | None = None) -> list[StoredFind]:
+        if mission is None:
+            rows = self._read("SELECT record FROM finds WHERE vehicle = ? ORDER BY seq", (vehicle,))
+        else:
+            rows = self._read(
+                "SELECT record FROM finds WHERE vehicle = ? AND mission = ? ORDER BY seq", (vehicle, mission)
+            )
+        return sorted((StoredFind.model_validate_json(str(r)) for (r,) in rows), key=lambda f: f.time)
+
+    def set_keyframe(self, vehicle: str, record: KeyframeRecord, jpeg: bytes) -> None:
+        with self._lock:
+            self._keyframes[vehicle] = (record, jpeg)
+            self._memory_changes += 1
+
+    def keyframe(self, vehicle: str) -> KeyframeRecord | None:
+        with self._lock:
+            kept = self._keyframes.get(vehicle)
+        return kept[0] if kept else None
+
+    def keyframe_jpeg(self, vehicle: str) -> tuple[KeyframeRecord, bytes] | None:
+        with self._lock:
+            return self._keyframes.get(vehicle)
+
+    def rate_hit(self, vehicle: str, now: float, limit: int, window_s: float) -> float | None:
+        with self._windows_lock:
             start = math.floor(now / window_s) * window_s
             opened, count = self._windows.get(vehicle, (start, 0))
             if opened != start:
@@ -338,7 +494,7 @@ class SqliteStore(StateStore):
 
     def version(self) -> int:
         rows = self._read("SELECT value FROM counters WHERE name = 'version'")
-        return int(rows[0][0])
+        return int(rows[0][0]) + self._memory_changes  # both only grow
 
     def close(self) -> None:
         with self._lock:

@@ -53,6 +53,9 @@ SUPERSET_TO_COCO: dict[str, tuple[str, ...]] = {
     "bag": COCO_THINGS,
     "aircraft": ("aeroplane",),
 }
+# Supersets searched as a broader set of classes than their name (a bag as every inanimate thing): a
+# detection says it is one of those, never that it is the named kind.
+STAND_INS = frozenset({"bag"})
 
 VOCABULARY_FILE = Path(__file__).with_name("coco_vocabulary.txt")
 
@@ -216,6 +219,12 @@ def _ends_head(token: str, before: list[str]) -> bool:
     return token in _HEAD_ENDS or (token.endswith("ing") and any(t not in _FILLER for t in before))
 
 
+def head_phrase(tokens: list[str]) -> list[str]:
+    """The words of a description's head noun phrase: before "in", "with", "near", a participle ..."""
+    end = next((i for i, t in enumerate(tokens) if i > 0 and _ends_head(t, tokens[:i])), len(tokens))
+    return tokens[:end]
+
+
 def superset_from_prompt(prompt: str) -> str | None:
     """The superset a prompt names ("the man in a gray shirt" -> "person"), or None when it names nothing.
 
@@ -226,8 +235,7 @@ def superset_from_prompt(prompt: str) -> str | None:
     Only a head with no word of its own ("the one in the red kayak") lets the rest decide.
     """
     tokens = words(prompt)
-    end = next((i for i, t in enumerate(tokens) if i > 0 and _ends_head(t, tokens[:i])), len(tokens))
-    head = tokens[:end]
+    head = head_phrase(tokens)
     target = _first_target(head)
     if target is not None:
         return target

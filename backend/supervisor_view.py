@@ -1,83 +1,201 @@
-"""The supervisor page's view of the fleet: every vehicle's state and the candidate it awaits, with ages.
+"""The supervisor page's view of the fleet: per vehicle its state and why, the newest keyframe with its boxes,
+the candidate it awaits (with the decision that stands on it), search progress and coverage, the mission's
+track, and its finds, which stay.
 
 Built from the session store (the whole fleet, whichever replica answers); it remembers since when each
 candidate waits, and forgets a candidate as soon as nobody waits on it, so it stays as small as the fleet.
+Refused credentials are remembered here too (per process, for `AUTH_ERROR_KEEP_S`): a vehicle whose token
+the back-end refuses cannot report, so the page says so in its place.
 """
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable
 
-from backend.schemas import CandidateView, LatLon, SupervisorSnapshot, VehicleView
+from backend.schemas import (
+    CandidateView,
+    FindView,
+    KeyframeView,
+    LatLon,
+    SearchStatus,
+    StoredFind,
+    SupervisorSnapshot,
+    VehicleStatus,
+    VehicleView,
+)
 from backend.sessions import SessionStore
 
 _STATUS = {"confirm": "confirmed", "reject": "rejected"}
+TRACK_SHOWN = 300  # points of the track the page draws (the download has them all)
+AUTH_ERROR_KEEP_S = 60.0
+
+
+def _shown(track: list[list[float]]) -> list[list[float]]:
+    """At most TRACK_SHOWN [lat, lon] points, evenly spread, the newest always kept."""
+    step = max(1, -(-len(track) // TRACK_SHOWN))
+    kept = track[::step]
+    if track and kept[-1] is not track[-1]:
+        kept.append(track[-1])
+    return [p[:2] for p in kept]
+
+
+def find_view(find: StoredFind) -> FindView:
+    return FindView(
+        candidate_id=find.candidate_id,
+        mission_id=find.mission_id,
+        position=LatLon(lat=find.position[0], lon=find.position[1]),
+        sigma_m=find.sigma_m,
+        time=find.time,
+        prompt=find.prompt,
+        confirmed_by=find.confirmed_by,
+        crop_url=(
+            f"/supervisor/api/vehicles/{find.vehicle_id}/finds/{find.mission_id}/{find.candidate_id}/crop.jpg"
+            if find.crop_jpeg_b64
+            else None
+        ),
+        crop_box=find.crop_box,
+    )
 
 
 class SupervisorView:
     """Turns the session store into what the page shows, and remembers since when each candidate waits."""
 
-    def __init__(self, store: SessionStore, clock: Callable[[], float] = time.time) -> None:
+    def __init__(
+        self, store: SessionStore, clock: Callable[[], float] = time.time, map_tiles: str = ""
+    ) -> None:
         self.store = store
         self._clock = clock
+        self.map_tiles = map_tiles
         self._first_seen: dict[tuple[str, str], float] = {}
+        self._auth_errors: dict[str, tuple[str, float]] = {}
+        self._lock = threading.Lock()
+
+    def note_auth_failure(self, vehicle_id: str, reason: str) -> None:
+        """A request for this vehicle was refused its credentials (401/403): shown on its card for a while."""
+        with self._lock:
+            self._auth_errors[vehicle_id] = (reason, self._clock())
+
+    def _auth_error(self, vehicle_id: str, now: float) -> str | None:
+        with self._lock:
+            noted = self._auth_errors.get(vehicle_id)
+            if noted is None:
+                return None
+            if now - noted[1] > AUTH_ERROR_KEEP_S:
+                del self._auth_errors[vehicle_id]
+                return None
+            return noted[0]
 
     def snapshot(self) -> SupervisorSnapshot:
         now = self._clock()
         vehicles = []
         waiting: set[tuple[str, str]] = set()
-        for status in self.store.statuses():
-            candidates = []
-            awaiting = status.awaiting
-            if awaiting is not None:
-                key = (status.vehicle_id, awaiting.candidate_id)
-                waiting.add(key)
-                first = self._first_seen.setdefault(key, min(now, status.updated_at))
-                decided = [
-                    d
-                    for d in self.store.decisions(status.vehicle_id)
-                    if d.candidate_id == awaiting.candidate_id
-                ]
-                candidates.append(
-                    CandidateView(
-                        id=awaiting.candidate_id,
-                        verdict=awaiting.verdict,
-                        justification=awaiting.justification,
-                        position=LatLon(lat=awaiting.position[0], lon=awaiting.position[1])
-                        if awaiting.position
-                        else None,
-                        box=awaiting.box,
-                        age_s=round(max(0.0, now - first), 1),
-                        crop_url=(
-                            f"/supervisor/api/vehicles/{status.vehicle_id}/candidates/{awaiting.candidate_id}/crop.jpg"
-                            if awaiting.crop_jpeg_b64
-                            else None
-                        ),
-                        status=_STATUS[decided[-1].action] if decided else "awaiting",
+        statuses = {s.vehicle_id: s for s in self.store.statuses()}
+        with self._lock:
+            refused = [v for v in self._auth_errors if v not in statuses]
+        for vehicle_id in refused:
+            error = self._auth_error(vehicle_id, now)
+            if error is not None:
+                vehicles.append(
+                    VehicleView(
+                        id=vehicle_id,
+                        state="UNKNOWN",
+                        reason=error,
+                        mission_id=None,
+                        prompt=None,
+                        position=None,
+                        altitude_m=None,
+                        candidates=[],
+                        auth_error=error,
                     )
                 )
-            vehicles.append(
-                VehicleView(
-                    id=status.vehicle_id,
-                    state=status.state,
-                    mission_id=status.mission_id,
-                    prompt=status.prompt,
-                    position=status.position,
-                    altitude_m=status.altitude_m,
-                    age_s=round(max(0.0, now - status.updated_at), 1),
-                    candidates=candidates,
-                )
-            )
+        for status in statuses.values():
+            vehicles.append(self._vehicle(status, now, waiting))
+        vehicles.sort(key=lambda v: v.id)
         for key in [k for k in self._first_seen if k not in waiting]:
             del self._first_seen[key]
-        return SupervisorSnapshot(server_time=now, vehicles=vehicles)
+        return SupervisorSnapshot(server_time=now, vehicles=vehicles, map_tiles=self.map_tiles)
+
+    def _vehicle(self, status: VehicleStatus, now: float, waiting: set[tuple[str, str]]) -> VehicleView:
+        vehicle_id = status.vehicle_id
+        candidates = []
+        awaiting = status.awaiting
+        if awaiting is not None:
+            key = (vehicle_id, awaiting.candidate_id)
+            waiting.add(key)
+            first = self._first_seen.setdefault(key, min(now, status.updated_at))
+            standing = self.store.standing_decision(vehicle_id, status.mission_id, awaiting.candidate_id)
+            candidates.append(
+                CandidateView(
+                    id=awaiting.candidate_id,
+                    verdict=awaiting.verdict,
+                    justification=awaiting.justification,
+                    position=LatLon(lat=awaiting.position[0], lon=awaiting.position[1])
+                    if awaiting.position
+                    else None,
+                    box=awaiting.box,
+                    age_s=round(max(0.0, now - first), 1),
+                    crop_url=(
+                        f"/supervisor/api/vehicles/{vehicle_id}/candidates/{awaiting.candidate_id}/crop.jpg"
+                        if awaiting.crop_jpeg_b64
+                        else None
+                    ),
+                    crop_box=awaiting.crop_box,
+                    status=_STATUS[standing.action] if standing else "awaiting",
+                    decided_by=(standing.operator or standing.source) if standing else "",
+                )
+            )
+        keyframe = None
+        record = self.store.state.keyframe(vehicle_id)
+        if record is not None and record.mission_id == status.mission_id:
+            keyframe = KeyframeView(
+                frame_id=record.frame_id,
+                url=f"/supervisor/api/vehicles/{vehicle_id}/keyframe.jpg?frame={record.frame_id}&t={record.received_at}",
+                width=record.width,
+                height=record.height,
+                age_s=round(max(0.0, now - record.received_at), 1),
+                candidates=record.candidates,
+                track_box=status.track_box if status.frame_id == record.frame_id else None,
+            )
+        search = status.search
+        track: list[list[float]] = []
+        if status.mission_id is not None:
+            mission_map = self.store.mission_map(vehicle_id, status.mission_id)
+            if mission_map is not None:
+                track = _shown(mission_map.track)
+                if search is None and (mission_map.area or mission_map.covered):
+                    search = SearchStatus(
+                        area=mission_map.area,
+                        covered=mission_map.covered,
+                        coverage=mission_map.coverage or 0.0,
+                    )
+        return VehicleView(
+            id=vehicle_id,
+            state=status.state,
+            reason=status.reason,
+            mission_id=status.mission_id,
+            prompt=status.prompt,
+            position=status.position,
+            altitude_m=status.altitude_m,
+            heading_deg=status.heading_deg,
+            age_s=round(max(0.0, now - status.updated_at), 1),
+            candidates=candidates,
+            progress=status.progress,
+            search=search,
+            track=track,
+            keyframe=keyframe,
+            finds=[find_view(f) for f in self.store.finds(vehicle_id)],
+            auth_error=self._auth_error(vehicle_id, now),
+        )
+
+
+def view_content(vehicle: VehicleView) -> str:
+    """A vehicle's view minus what changes every second, to tell a real change from time passing."""
+    ages = {"age_s": True, "candidates": {"__all__": {"age_s"}}, "keyframe": {"age_s"}}
+    return vehicle.model_dump_json(exclude=ages)  # type: ignore[arg-type]
 
 
 def without_ages(snapshot: SupervisorSnapshot) -> str:
-    """The snapshot's content minus what changes every second, to tell a real change from time passing."""
-    ages = {
-        "server_time": True,
-        "vehicles": {"__all__": {"age_s": True, "candidates": {"__all__": {"age_s"}}}},
-    }
-    return snapshot.model_dump_json(exclude=ages)  # type: ignore[arg-type]
+    """The snapshot's content minus what changes every second."""
+    return "\n".join(view_content(v) for v in snapshot.vehicles) + snapshot.map_tiles

@@ -8,12 +8,20 @@ when looking at it: the upper and lower garment colours and the posture. The set
     python -m backend_tools.crop_set propose --sequences ../shared/data/sequences --models ../shared/models \
         --out proposals.json
     python -m backend_tools.crop_set sheets proposals.json --sequences ../shared/data/sequences --out sheets/
+
+Objects that are not people (tests/data/object_crops.json: cars, boats, the bag, labelled with the colours of
+their paint or hull) the same way, from the companion's 640 px keyframes:
+
+    python -m backend_tools.crop_set propose-objects --sequences ../shared/data/sequences \
+        --models ../shared/models --step 25 --out objects.json
+    python -m backend_tools.crop_set sheets objects.json --objects --sequences ../shared/data/sequences --out sheets/
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -74,11 +82,11 @@ def save_crops(crops: list[LabelledCrop], path: Path) -> None:
     path.write_text("[\n" + ",\n".join(json.dumps(r) for r in rows) + "\n]\n")
 
 
-def frame_path(sequences_dir: Path, crop: LabelledCrop) -> Path:
+def frame_path(sequences_dir: Path, crop: LabelledCrop | ObjectCrop) -> Path:
     return sequences_dir / crop.sequence / "frames" / f"{crop.frame:06d}.jpg"
 
 
-def read_frame(sequences_dir: Path, crop: LabelledCrop) -> np.ndarray:
+def read_frame(sequences_dir: Path, crop: LabelledCrop | ObjectCrop) -> np.ndarray:
     image = cv2.imread(str(frame_path(sequences_dir, crop)))
     if image is None:
         raise FileNotFoundError(frame_path(sequences_dir, crop))
@@ -123,8 +131,92 @@ def propose(sequences_dir: Path, models_dir: Path, step: int, min_height: int = 
     return crops
 
 
+# Sequences whose target is not a person, and the class their objects are proposed as (the description's).
+OBJECT_SEQUENCES = {
+    "uav123_boat5": "boat",
+    "uav123_wakeboard7": "boat",
+    "uav123_bike1": "car",
+    "uavdt_S1606": "car",
+    "uavdt_S1301": "car",
+    "uavdt_S0601": "car",
+    "vot2015_bag": "bag",
+}
+
+
+@dataclass(frozen=True)
+class ObjectCrop:
+    """An object that is not a person, with the colours a person saw on it (its paint, its hull)."""
+
+    sequence: str
+    frame: int
+    box: tuple[int, int, int, int]  # x, y, w, h in the frame's pixels
+    source: str  # "target" or "yolox"
+    kind: str  # the class it was proposed as: "car", "boat", "bag"
+    colours: tuple[str, ...] = ()  # empty: not labelled / cannot be seen
+    note: str = ""
+
+    @property
+    def key(self) -> str:
+        return f"{self.sequence}:{self.frame}:{','.join(map(str, self.box))}"
+
+
+def load_objects(path: Path) -> list[ObjectCrop]:
+    return [
+        ObjectCrop(
+            r["sequence"], r["frame"], tuple(r["box"]), r["source"], r["kind"], tuple(r.get("colours", ())),
+            r.get("note", ""),
+        )
+        for r in json.loads(path.read_text())
+    ]  # fmt: skip
+
+
+def save_objects(crops: list[ObjectCrop], path: Path) -> None:
+    rows = [{k: v for k, v in asdict(c).items() if v not in ("", ())} for c in crops]
+    path.write_text("[\n" + ",\n".join(json.dumps(r) for r in rows) + "\n]\n")
+
+
+def propose_objects(sequences_dir: Path, models_dir: Path, step: int, min_side: int = 8) -> list[ObjectCrop]:
+    """The target and every box of its class the back-end's tiled YOLOX finds in the companion's 640 px
+    keyframe, every `step` frames of each object sequence (boxes in the frame's own pixels; unlabelled)."""
+    from backend.detectors.tiling import TiledDetector
+    from backend.detectors.yolox import YoloxDetector
+    from cloudtrack.api_client import encode_keyframe
+
+    yolox = YoloxDetector(models_dir / "yolox_nano" / "yolox_nano.onnx", threads=1)
+    detector = TiledDetector(yolox, 2, min_side=yolox.input_size)
+    crops: list[ObjectCrop] = []
+    for name, kind in OBJECT_SEQUENCES.items():
+        seq = sequences_dir / name
+        if not (seq / "groundtruth.txt").exists():
+            continue
+        gt = [
+            tuple(float(v) for v in line.split(",")) for line in (seq / "groundtruth.txt").read_text().split()
+        ]
+        frames = sorted((seq / "frames").glob("*.jpg"))
+        for index in range(1, len(frames) + 1, step):
+            image = np.asarray(cv2.imread(str(frames[index - 1])))
+            jpeg, scale = encode_keyframe(image, 640, 80)
+            sent = np.asarray(cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR))
+            found = [d.box.scaled(1 / scale, 1 / scale) for d in detector.detect(sent, [kind])]
+            target = gt[index - 1]
+            boxes = [(target, "target")] if kind != "car" or name != "uav123_bike1" else []
+            boxes += [
+                ((b.x, b.y, b.w, b.h), "yolox") for b in found if _iou(target, (b.x, b.y, b.w, b.h)) < 0.3
+            ]
+            for box, source in boxes:
+                if min(box[2], box[3]) * scale < min_side:
+                    continue
+                x, y, w, h = (int(round(v)) for v in box)
+                crops.append(ObjectCrop(name, index, (x, y, w, h), source, kind))
+    return crops
+
+
 def contact_sheet(
-    crops: list[LabelledCrop], sequences_dir: Path, first_number: int, cell: int = 160, columns: int = 8
+    crops: Sequence[LabelledCrop | ObjectCrop],
+    sequences_dir: Path,
+    first_number: int,
+    cell: int = 160,
+    columns: int = 8,
 ) -> np.ndarray:
     """A grid of numbered crops (the box outlined, with some context), numbers from `first_number`."""
     rows = (len(crops) + columns - 1) // columns
@@ -168,18 +260,35 @@ def main(argv: list[str] | None = None) -> int:
     prop.add_argument("--models", type=Path, required=True, help="folder with yolox_nano/yolox_nano.onnx")
     prop.add_argument("--step", type=int, default=10, help="every STEP-th frame (default 10)")
     prop.add_argument("--out", type=Path, required=True)
+    objects = sub.add_parser(
+        "propose-objects",
+        help="list the target and the back-end's tiled YOLOX boxes of its class in 640 px keyframes of the "
+        "sequences whose target is not a person (unlabelled) as JSON",
+    )
+    objects.add_argument("--sequences", type=Path, required=True)
+    objects.add_argument("--models", type=Path, required=True)
+    objects.add_argument("--step", type=int, default=25, help="every STEP-th frame (default 25)")
+    objects.add_argument("--out", type=Path, required=True)
     sheets = sub.add_parser("sheets", help="numbered contact sheets (PNG) of a crop list, to label by eye")
     sheets.add_argument("crops", type=Path)
     sheets.add_argument("--sequences", type=Path, required=True)
     sheets.add_argument("--out", type=Path, required=True, help="folder for sheet_NN.png")
     sheets.add_argument("--per-sheet", type=int, default=40, help="crops per sheet (default 40)")
+    sheets.add_argument("--objects", action="store_true", help="the list is objects (propose-objects)")
     args = parser.parse_args(argv)
     if args.command == "propose":
-        crops = propose(args.sequences, args.models, args.step)
-        save_crops(crops, args.out)
-        print(f"{len(crops)} crops -> {args.out}")
+        people = propose(args.sequences, args.models, args.step)
+        save_crops(people, args.out)
+        print(f"{len(people)} crops -> {args.out}")
         return 0
-    crops = load_crops(args.crops)
+    if args.command == "propose-objects":
+        found = propose_objects(args.sequences, args.models, args.step)
+        save_objects(found, args.out)
+        print(f"{len(found)} objects -> {args.out}")
+        return 0
+    crops: Sequence[LabelledCrop | ObjectCrop] = (
+        load_objects(args.crops) if args.objects else load_crops(args.crops)
+    )
     args.out.mkdir(parents=True, exist_ok=True)
     for n, start in enumerate(range(0, len(crops), args.per_sheet)):
         path = args.out / f"sheet_{n:02d}.png"

@@ -15,21 +15,33 @@ Yes/no F1 count `uncertain` as a miss; "F1" is the mean of the yes and the no F1
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import os
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from backend.crops import margin_crop
-from backend.verifiers.attributes import AttributeVerifier
-from backend.verifiers.colour_names import BASIC_SRGB, PROTOTYPES_PATH, ColourNamer, calibrate
+from backend.scene import SceneQuery
+from backend.supersets import superset_from_prompt
+from backend.verifiers.attributes import REGIONS, AttributeVerifier
+from backend.verifiers.colour_names import (
+    BASIC_SRGB,
+    PROTOTYPES_PATH,
+    ColourNamer,
+    calibrate,
+    srgb_to_lab,
+    subsample,
+    white_gains,
+)
 from backend.verifiers.person_verifier import Observation, PersonVerifier
-from backend_tools.crop_set import LabelledCrop, load_crops, read_frame
+from backend_tools.crop_set import LabelledCrop, ObjectCrop, load_crops, load_objects, read_frame
+from behaviors.candidate_selection import select_first_acquisition
 from behaviors.detection import Verdict
 from behaviors.geometry import Box
 
@@ -294,6 +306,155 @@ def write_prototypes(crops: list[LabelledCrop], sequences_dir: Path, path: Path)
     path.write_text(json.dumps(table, indent=1) + "\n")
 
 
+# ---- objects that are not people: colour per class, and where things are ----------------------------
+
+DEFAULT_OBJECTS = DEFAULT_CROPS.with_name("object_crops.json")
+KEYFRAME_WIDTH = 640  # as the companion sends keyframes ([backend] max_keyframe_width)
+
+
+def keyframe(sequences_dir: Path, sequence: str, frame: int) -> tuple[np.ndarray, float]:
+    """A frame as flight sends it (downscaled to KEYFRAME_WIDTH and JPEG-encoded) and its scale."""
+    from cloudtrack.api_client import encode_keyframe
+
+    image = cv2.imread(str(sequences_dir / sequence / "frames" / f"{frame:06d}.jpg"))
+    if image is None:
+        raise FileNotFoundError(sequences_dir / sequence / "frames" / f"{frame:06d}.jpg")
+    jpeg, scale = encode_keyframe(image, KEYFRAME_WIDTH, 80)
+    return np.asarray(cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)), scale
+
+
+class BoxMiddleVerifier(PersonVerifier):
+    """The `local` verifier as it judged objects before issue 30: the middle of the box (background
+    included) with the garment rules; people as today."""
+
+    def observe_object(
+        self, crop_bgr: np.ndarray, target_box: tuple[float, float, float, float]
+    ) -> Observation:
+        x, y, w, h = target_box
+        top, bottom, left, right = REGIONS["whole"]
+        patch = crop_bgr[
+            max(int(y + top * h), 0) : max(int(y + bottom * h), 1),
+            max(int(x + left * w), 0) : max(int(x + right * w), 1),
+        ]
+        pixels = patch.reshape(-1, 3)
+        if len(pixels) < self.min_region_px:
+            return Observation("box too small to judge colours")
+        return Observation(regions={"upper": srgb_to_lab(subsample(pixels), white_gains(crop_bgr))})
+
+
+def object_colours(objects: list[ObjectCrop], sequences_dir: Path) -> dict[str, dict[str, Score]]:
+    """Per class (cars by day and at night apart), every labelled object asked every colour word ("the
+    red car") by the old and the new verifier, on the 50 px margin crop of the 640 px keyframe."""
+    new, old = PersonVerifier(), BoxMiddleVerifier()
+    scores: dict[str, dict[str, Score]] = {}
+    for crop in objects:
+        if not crop.colours:
+            continue
+        sent, scale = keyframe(sequences_dir, crop.sequence, crop.frame)
+        image, inner = margin_crop(sent, Box(*crop.box).scaled(scale, scale), MARGIN_PX)
+        seen = {
+            "local (box middle)": old.observe_object(image, inner.xywh()),
+            "local": new.observe_object(image, inner.xywh()),
+        }
+        label = crop.kind + (" (night)" if "night" in crop.note else "")
+        for colour in COLOURS:
+            truth = has_colour(crop.colours, colour)
+            for name, observation in seen.items():
+                verdict = new.judge(observation, f"the {colour} {crop.kind}", crop.kind).verdict
+                for row in (label, "all objects"):
+                    scores.setdefault(row, {}).setdefault(name, Score()).add(verdict, truth)
+    return scores
+
+
+def _old_scene(query: SceneQuery) -> SceneQuery:
+    """The relations the back-end judged before issue 30: "between" among the others in view, and a
+    vehicle the target is in or apart from (containment)."""
+    kept = tuple(r for r in query.description.relations if r.kind in ("between", "inside", "outside"))
+    return replace(query, description=replace(query.description, relations=kept), size_word="")
+
+
+def first_choices(
+    sequences_dir: Path, models_dir: Path, step_s: float = 1.0
+) -> dict[str, dict[str, list[int]]]:
+    """Per dev sequence where some keyframe holds two or more of the target's class: on keyframes every
+    `step_s` of sequence time where the detector finds the target, how often the search's first choice is
+    the target, someone else, or nobody; before issue 30 (box-middle colours, "between" and vehicles only)
+    and now. -> {sequence: {"old"|"new": [target, other, none, keyframes]}}."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from backend.config import load_backend_config
+    from backend.detectors.factory import build_detector
+    from backend.pipeline import Pipeline
+    from backend_tools.crop_set import _iou
+    from backend_tools.detector_recall import _groundtruth
+
+    # The back-end's pipeline as its configuration builds it (tiled YOLOX), on the weights in `models_dir`.
+    detector = build_detector(
+        load_backend_config().detector.model_copy(update={"model_dir": str(models_dir)})
+    )
+    pipeline = Pipeline(detector, PersonVerifier(), ThreadPoolExecutor(max_workers=2))
+    old = copy.copy(pipeline)
+    old.verifier = BoxMiddleVerifier()
+    result: dict[str, dict[str, list[int]]] = {}
+    for path in sorted(p for p in sequences_dir.iterdir() if (p / "referring.txt").is_file()):
+        referring = (path / "referring.txt").read_text().strip()
+        superset = superset_from_prompt(referring) or "person"
+        source = json.loads((path / "source.json").read_text()) if (path / "source.json").is_file() else {}
+        fps = 10.0 if "10fps" in str(source.get("dataset", "")).lower() else 30.0  # as eval reads them
+        ground_truth = _groundtruth(path)
+        counts = {"old": [0, 0, 0, 0], "new": [0, 0, 0, 0]}
+        crowded = False  # two or more of its kind seen on some keyframe
+        for index in range(0, len(ground_truth), max(1, round(step_s * fps))):
+            truth = ground_truth[index]
+            if truth is None:
+                continue
+            sent, scale = keyframe(sequences_dir, path.name, index + 1)
+            truth = truth.scaled(scale, scale)
+            sighting = pipeline.look(sent, superset, prompt=referring)
+            crowded = crowded or len(sighting.context) >= 2
+            if not any(_iou(d.box.xywh(), truth.xywh()) >= 0.5 for d in sighting.candidates):
+                continue
+            assert sighting.query is not None
+            for name, (runner, query) in {
+                "old": (old, _old_scene(sighting.query)),
+                "new": (pipeline, sighting.query),
+            }.items():
+                seen = replace(sighting, query=query)
+                found = [
+                    c.detection
+                    for c in runner.verify(sent, sighting.candidates, referring, superset, sighting=seen)
+                ]
+                if name == "old":
+                    found = [replace(d, singled_out=False) for d in found]
+                chosen = select_first_acquisition(found, False)
+                slot = 2 if chosen is None else 0 if _iou(chosen.start_box.xywh(), truth.xywh()) >= 0.5 else 1
+                counts[name][slot] += 1
+                counts[name][3] += 1
+        if crowded and counts["new"][3]:
+            result[path.name] = counts
+    return result
+
+
+def object_report(colours: dict[str, dict[str, Score]], choices: dict[str, dict[str, list[int]]]) -> str:
+    head = (
+        "| {} | old answered | old accuracy | old yes P/R | old no P/R | old F1 | new answered | new accuracy "
+        "| new yes P/R | new no P/R | new F1 |\n|---" + "|---" * 10 + "|"
+    )
+    lines = [head.format("object colour")]
+    for row, scores in colours.items():
+        lines.append(_row(row, {"local-hsv": scores["local (box middle)"], "local": scores["local"]}))
+    lines += [
+        "",
+        "| first choice on keyframes where the target is detected | keyframes | old: target / other / none "
+        "| new: target / other / none |",
+        "|---|---|---|---|",
+    ]
+    for name, counts in choices.items():
+        o, n = counts["old"], counts["new"]
+        lines.append(f"| {name} | {n[3]} | {o[0]} / {o[1]} / {o[2]} | {n[0]} / {n[1]} / {n[2]} |")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m backend_tools.verifier_eval",
@@ -309,6 +470,16 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--json", type=Path, help="also write the scores as JSON here")
     parser.add_argument(
+        "--objects",
+        type=Path,
+        nargs="?",
+        const=DEFAULT_OBJECTS,
+        help="instead of the person table: object colour per class from these labelled objects (default "
+        "tests/data/object_crops.json) and the search's first choice on the dev keyframes, old and new "
+        "(needs --models)",
+    )
+    parser.add_argument("--models", type=Path, help="the weights folder (for --objects: the detector)")
+    parser.add_argument(
         "--timing",
         type=int,
         metavar="N",
@@ -320,6 +491,16 @@ def main(argv: list[str] | None = None) -> int:
         help=f"calibrate on all crops and write {PROTOTYPES_PATH.name} instead of the table",
     )
     args = parser.parse_args(argv)
+    if args.objects is not None:
+        if args.models is None:
+            parser.error("--objects needs --models (the detector's weights)")
+        print(
+            object_report(
+                object_colours(load_objects(args.objects), args.sequences),
+                first_choices(args.sequences, args.models),
+            )
+        )
+        return 0
     crops = load_crops(args.crops)
     if args.timing:
         print(timing(crops, args.sequences, args.timing))

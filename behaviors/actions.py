@@ -101,6 +101,9 @@ class TrackerInit:
     keyframe_id: int
     candidate_id: str = ""
     reinit: bool = False
+    # The target's class: the candidate's detector label, or the mission's superset for an operator's box
+    # ("" unknown). The loss signals model a person's shape only for people.
+    label: str = ""
 
 
 @dataclass(frozen=True)

@@ -7,39 +7,43 @@ from collections.abc import Callable, Sequence
 
 from behaviors.detection import Detection, Verdict
 from behaviors.geometry import Box, iou
-from behaviors.spatial_relations import Relation, narrow_by_relation
 
 
 def select_first_acquisition(
     candidates: Sequence[Detection],
     accept_uncertain: bool,
-    relation: Relation | None,
     eligible: Callable[[Detection], bool] = lambda d: d.box.is_valid(),
 ) -> Detection | None:
-    """The candidate a search starts tracking: "yes" first, then "uncertain" if allowed, never a "no";
-    among them the ones not placed against the description (`Detection.placement_ok` false: in the
-    boat a wakeboarder is towed behind), then the ones that stand as the prompt relates the target to
-    others ("between the man in red and ..."; every candidate in view counts as one of the others), then
-    the best detector score. Each narrowing applies only when some candidate passes it.
+    """The candidate a search starts tracking, never a "no".
+
+    First the verifier's verdict ("yes", then "uncertain" where it may start), and within each the
+    back-end's judgement of where the candidate stands and how large it is among the others in view
+    (`Detection.placement_ok`, `backend.scene`: "the second from the left", "next to the pier", outside
+    the boat a wakeboarder is towed behind): fitting first, then not judged, then not fitting; then the
+    best detector score. The placement ranks, never rejects: with no other candidate, one that does not
+    fit is still taken.
 
     An "uncertain" that nothing judged past the detector's class (`Detection.judged` false: the
     description names nothing the verifier can check) starts a search even when uncertain ones may not:
     no answer will ever say more, and in search and rescue an unconfirmed find, held for the supervisor,
     beats none. An "uncertain" the verifier did judge (too small to see, a colour half there) waits for
-    a "yes"."""
-    boxes = [d.box for d in candidates]
-    tiers: tuple[Callable[[Detection], bool], ...] = (
-        lambda d: d.verdict is Verdict.YES,
-        lambda d: d.verdict is Verdict.UNCERTAIN and (accept_uncertain or not d.judged),
-    )
-    for admitted in tiers:
-        indices = [i for i, d in enumerate(candidates) if admitted(d) and eligible(d)]
-        placed = [i for i in indices if candidates[i].placement_ok is not False]
-        indices = placed or indices
-        pool = [candidates[i] for i in narrow_by_relation(relation, indices, boxes)]
-        if pool:
-            return max(pool, key=lambda d: d.score)
-    return None
+    a "yes", unless the description's rank picks it alone (`Detection.singled_out`: "the cyclist in the
+    blue shirt closest to the camera" whose dark blue shirt reads mostly black); it then comes right after
+    a "yes" that fits too. A relation that several may satisfy ("between", "next to") only ranks."""
+    pool = [d for d in candidates if d.verdict is not Verdict.NO and eligible(d)]
+    picked = [d for d in pool if d.singled_out and d.placement_ok is True]
+    singled = picked[0] if len(picked) == 1 else None
+    may_start = [
+        d for d in pool if d.verdict is Verdict.YES or accept_uncertain or not d.judged or d is singled
+    ]
+
+    def rank(d: Detection) -> tuple[int, int, float]:
+        placement = {True: 0, None: 1, False: 2}[d.placement_ok]
+        if d.verdict is Verdict.YES:
+            return (0 if placement == 0 else 2, placement, -d.score)
+        return (1 if d is singled else 3, placement, -d.score)
+
+    return min(may_start, key=rank, default=None)
 
 
 SAME_CANDIDATE_IOU = 0.5  # two answers about one keyframe name the same person when their boxes overlap this

@@ -35,10 +35,19 @@ class Detection:
     # check nothing it names ("the wakeboarder being towed", "a dog"). Its "uncertain" is then the
     # whole check there will ever be, and a search may start on it (`select_first_acquisition`).
     judged: bool = True
-    # Whether the candidate stands where the description places the target relative to a vehicle it
-    # names: outside "the boat" a wakeboarder is towed behind, inside "the red car" someone sits in
-    # (`backend.placement`). None: no such vehicle named, or none in view. Ranks, never rejects.
+    # Whether the candidate stands where the description places the target among what else is in view,
+    # and has the size it says (`backend.scene`): "the second from the left", "next to the red car",
+    # outside "the boat" a wakeboarder is towed behind, "the small truck". None: nothing of that could
+    # be judged (no relation, or what it names is not in view). Ranks, never rejects.
     placement_ok: bool | None = None
+    # The words of the description nothing judged for this candidate: words the verifier has no reading
+    # for ("suv", "canopy roof") and relations to things not located ("next to the pier"). Its verdict
+    # and placement hold for the rest only.
+    unjudged: tuple[str, ...] = ()
+    # An ordinal in the description ("the second from the left", "closest to the camera", "first in the
+    # queue") picks this candidate alone among those of its kind not ruled out, and it fits the rest of
+    # where the description places it. The rank identifies it where its look is uncertain.
+    singled_out: bool = False
 
     @property
     def start_box(self) -> Box:

@@ -33,6 +33,10 @@ _EPS = 1e-9
 class LossEvidenceSettings:
     persistence_s: float = 1.0  # seconds of evidence to untrust on a weak signal alone, and to re-trust
     weak_signals: frozenset[str] = WEAK_SIGNALS
+    # False: a weak signal alone is no evidence at all (only a strong one, or two weak ones together,
+    # untrust the track): for targets the weak signals were not measured on (`[tracker]
+    # loss_model_classes`), where their alarms on the dev set were as often on target as off it.
+    weak_alone: bool = True
 
     def __post_init__(self) -> None:
         if self.persistence_s < 0:
@@ -68,7 +72,7 @@ def judge_frame(
         # Name what is wrong with the box itself when a geometric signal fired.
         reason = next((name for name in fired if name not in settings.weak_signals), fired[0])
         return LossEvidence(limit, reason, time_s)
-    if weak:
+    if weak and settings.weak_alone:
         evidence = min(limit, state.evidence_s + dt)
         lost = evidence >= limit - _EPS or bool(state.reason)
         return LossEvidence(evidence, weak[0] if lost else "", time_s)

@@ -60,7 +60,6 @@ from behaviors.query_region import around, redetect_region
 from behaviors.rejection_memory import RejectedTarget, RejectionMemory
 from behaviors.safety_limits import apply_limits
 from behaviors.setpoint import Setpoint
-from behaviors.spatial_relations import parse_relation
 from behaviors.telemetry import Telemetry
 from behaviors.track_result import TrackResult
 
@@ -185,6 +184,15 @@ def commanding(state: State) -> bool:
     if state.mode not in ACTIVE or state.let_go:
         return False
     return not state.along_mission or state.engaged
+
+
+def awaiting_decision(state: State) -> Target | None:
+    """The candidate the supervisor has still to decide on: while AWAITING_SUPERVISOR, and while LOST on the
+    way back to it (a short loss of the track must not take the candidate off the supervisor's page)."""
+    waiting = state.mode is MissionState.AWAITING_SUPERVISOR or (
+        state.mode is MissionState.LOST and state.resume is MissionState.AWAITING_SUPERVISOR
+    )
+    return state.target if waiting else None
 
 
 def step(state: State, event: Event, config: MissionConfig) -> Result:
@@ -383,7 +391,8 @@ def _command(state: State, event: GcsCommand, config: MissionConfig) -> Result:
             new, msg = _enter(new, MissionState.CONFIRMED, "operator selected target")
         else:  # followed like any candidate; only the supervisor's confirm allows descent
             new, msg = _enter(new, MissionState.FOLLOWING, "operator selected target")
-        return new, (*engage, TrackerInit(cmd.box, -1, "operator"), *msg)
+        kind = mission.superset if mission is not None else ""  # what the mission searches for
+        return new, (*engage, TrackerInit(cmd.box, -1, "operator", label=kind), *msg)
     if isinstance(cmd, StopTracking):
         if state.mode not in ACTIVE:
             return state, ()
@@ -499,6 +508,8 @@ def _track(state: State, result: TrackResult, config: MissionConfig) -> Result:
     elif state.mode is MissionState.LOST:
         state, msg = _enter(replace(state, lost_stage=0), state.resume, "target re-acquired")
         actions.extend(msg)
+        if state.mode is MissionState.AWAITING_SUPERVISOR:
+            actions.append(_report(target, "awaiting"))  # the candidate again, for whoever missed it
 
     if config.verified_reinit and state.mode is MissionState.FOLLOWING:
         starting = bool(result.alarm) and not state.alarm
@@ -572,7 +583,8 @@ def _acquire(state: State, det: Detection, position: GeoEstimate | None, answer:
     )
     # Stop (any search scan, or the survey's motion) while the tracker locks on; the link repeats it.
     stop: tuple[Action, ...] = (SendSetpoint(Setpoint.zero()),) if commanding(new) else ()
-    return new, (*take, *stop, TrackerInit(det.box, answer.keyframe_id, det.candidate_id), *msg)
+    init = TrackerInit(det.box, answer.keyframe_id, det.candidate_id, label=det.label)
+    return new, (*take, *stop, init, *msg)
 
 
 def _settle_early_start(
@@ -903,11 +915,9 @@ def _choose(
     state: State, candidates: Sequence[Detection], config: MissionConfig, pose: Telemetry | None
 ) -> tuple[Detection, GeoEstimate | None] | None:
     """A verified candidate not rejected or found before (`select_first_acquisition`), and where it stands."""
-    relation = parse_relation(state.mission.prompt) if state.mission is not None else None
     best = select_first_acquisition(
         candidates,
         config.accept_uncertain,
-        relation,
         lambda d: d.box.is_valid() and not _excluded(state, d, config, pose),
     )
     if best is None:

@@ -30,6 +30,7 @@ from urllib3.fields import RequestField
 from behaviors.detection import Detection, Verdict
 from behaviors.geometry import Box
 from cloudtrack.api_models import Decision, DetectResponse, HealthResponse, Rejection, VehicleStatus
+from cloudtrack.config_files import hide_url_secrets
 
 T = TypeVar("T")
 
@@ -130,10 +131,14 @@ class BackendClient:
             response = self._session().request(method, self.url + path, timeout=self.timeout_s, **kwargs)
         except requests.Timeout as exc:
             raise BackendError(
-                f"back-end {self.url}: no answer within {self.timeout_s:.1f} s", retryable=True
+                f"back-end {hide_url_secrets(self.url)}: no answer within {self.timeout_s:.1f} s",
+                retryable=True,
             ) from exc
         except requests.RequestException as exc:
-            raise BackendError(f"back-end {self.url} unreachable: {exc}", retryable=True) from exc
+            # The message may reach the GCS and the flight record: never a password of the URL.
+            raise BackendError(
+                hide_url_secrets(f"back-end {self.url} unreachable: {exc}"), retryable=True
+            ) from exc
         if response.status_code >= 400:
             try:
                 detail = response.json().get("detail", response.text)
@@ -208,6 +213,8 @@ class BackendClient:
                     candidate_id=c.candidate_id,
                     judged=c.judged,
                     placement_ok=c.placement_ok,
+                    unjudged=tuple(c.unjudged),
+                    singled_out=c.singled_out,
                 )
                 for c in answer.candidates
             ]

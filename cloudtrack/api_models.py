@@ -19,16 +19,34 @@ CANDIDATE_ID = Field(
     pattern=IDENTIFIER, description="as returned by /v1/detect (letters, digits, '_', '.', '-')"
 )
 NOTE_MAX = 500  # one limit for a supervisor's note, on the API and on the page
+CROP_B64_MAX_CHARS = 400_000  # a crop in base64 (about 300 kB of JPEG); the route body limits follow it
+PIXELS_MAX = 100_000  # no coordinate in pixels lies further out than this
 
 
 class ApiModel(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
-def _finite(values: list[float]) -> list[float]:
-    if not all(math.isfinite(v) for v in values):
-        raise ValueError("coordinates must be finite numbers")
-    return values
+def _lat_lon(value: list[float]) -> list[float]:
+    if not (-90 <= value[0] <= 90 and -180 <= value[1] <= 180):
+        raise ValueError("a position is [lat, lon] in degrees: lat in [-90, 90], lon in [-180, 180]")
+    return value
+
+
+# A checked [lat, lon]: two finite numbers (ApiModel refuses NaN/inf) within the globe's ranges.
+LatLonPoint = Annotated[list[float], Field(min_length=2, max_length=2), AfterValidator(_lat_lon)]
+
+
+def _pixel_box(value: list[float]) -> list[float]:
+    if not all(-PIXELS_MAX <= v <= PIXELS_MAX for v in value):
+        raise ValueError(f"box coordinates are pixels within +-{PIXELS_MAX}")
+    if not (value[2] > value[0] and value[3] > value[1]):
+        raise ValueError("a box is [x1, y1, x2, y2] with x2 > x1 and y2 > y1")
+    return value
+
+
+# A checked [x1, y1, x2, y2] in pixels: finite, ordered, within PIXELS_MAX.
+PixelBox = Annotated[list[float], Field(min_length=4, max_length=4), AfterValidator(_pixel_box)]
 
 
 class DetectMeta(ApiModel):
@@ -45,19 +63,13 @@ class DetectMeta(ApiModel):
         max_length=64,
         description='detector class, e.g. "person"; default: derived from the prompt',
     )
-    roi: list[float] | None = Field(
-        None,
-        min_length=4,
-        max_length=4,
-        description="[x1, y1, x2, y2] region to search, in the sent image's pixels",
+    roi: PixelBox | None = Field(
+        None, description="[x1, y1, x2, y2] region to search, in the sent image's pixels"
     )
     frame_id: int | None = Field(None, ge=0, le=2**53)
     capture_time: float | None = Field(None, description="Unix time the frame was captured (s)")
-    vehicle_position: list[float] | None = Field(
-        None,
-        min_length=2,
-        max_length=2,
-        description="[lat, lon] degrees, lets rejections be matched by place",
+    vehicle_position: LatLonPoint | None = Field(
+        None, description="[lat, lon] degrees, lets rejections be matched by place"
     )
     stage: Literal["final", "early"] = Field(
         "final",
@@ -74,27 +86,11 @@ class DetectMeta(ApiModel):
             raise ValueError("the prompt must describe the target in words")
         return text
 
-    @field_validator("roi")
-    @classmethod
-    def _roi_ordered(cls, value: list[float] | None) -> list[float] | None:
-        if value is not None:
-            _finite(value)
-            if not (value[2] > value[0] and value[3] > value[1]):
-                raise ValueError("roi must be [x1, y1, x2, y2] with x2 > x1 and y2 > y1")
-        return value
-
     @field_validator("capture_time")
     @classmethod
     def _finite_time(cls, value: float | None) -> float | None:
         if value is not None and not math.isfinite(value):
             raise ValueError("capture_time must be a finite number")
-        return value
-
-    @field_validator("vehicle_position")
-    @classmethod
-    def _lat_lon(cls, value: list[float] | None) -> list[float] | None:
-        if value is not None and not (-90 <= value[0] <= 90 and -180 <= value[1] <= 180):
-            raise ValueError("vehicle_position must be [lat, lon] in degrees")
         return value
 
 
@@ -119,9 +115,22 @@ class Candidate(ApiModel):
     )
     placement_ok: bool | None = Field(
         None,
-        description="whether the candidate stands where the description places the target relative to a "
-        'vehicle it names (outside "the boat" a wakeboarder is towed behind, inside "the car" someone sits '
-        "in); null: no such vehicle named or none in view. A search prefers candidates that are not false",
+        description="whether the candidate stands where the description places the target among what else "
+        'is in view, and has the size it states ("the second from the left", "next to the red car", outside '
+        '"the boat" a wakeboarder is towed behind, "the small truck"); null: nothing of that could be judged. '
+        "A search prefers candidates that are true, then null, then false; it never rejects one for it",
+    )
+    singled_out: bool = Field(
+        False,
+        description='an ordinal in the description ("the second from the left", "closest to the camera", '
+        '"first in the queue") picks this candidate alone among those of its kind not ruled out, and it fits '
+        'the rest of where the description places it: a search may start on it while its verdict is "uncertain"',
+    )
+    unjudged: list[Annotated[str, Field(max_length=200)]] = Field(
+        default_factory=list,
+        max_length=32,
+        description='the description\'s words nothing judged for this candidate ("suv", "canopy roof", "next to '
+        'the pier (the pier: not located)"): the verdict and placement hold for the rest only',
     )
     verifier: str = Field(description='who decided: a verifier name, "none" or "rejection-memory"')
     t_verify: float
@@ -161,7 +170,10 @@ class DetectResponse(ApiModel):
 
 
 class ErrorResponse(ApiModel):
-    detail: str | list[dict[str, object]]
+    detail: str | list[dict[str, object]] = Field(
+        description="the reason, or (422) the first few validation errors: {type, loc, msg}"
+    )
+    error_count: int | None = Field(None, description="422: how many validation errors there were")
 
 
 class HealthResponse(ApiModel):
@@ -194,17 +206,14 @@ class RejectionIn(ApiModel):
     vehicle_id: str = ID_FIELD
     candidate_id: str | None = Field(None, pattern=IDENTIFIER, description="as returned by /v1/detect")
     crop_jpeg_b64: str | None = Field(
-        None, max_length=400_000, description="the candidate's crop, when the back-end may not know the id"
-    )
-    crop_box: list[float] | None = Field(
         None,
-        min_length=4,
-        max_length=4,
-        description="[x1, y1, x2, y2] of the candidate inside the crop; default: all of it",
+        max_length=CROP_B64_MAX_CHARS,
+        description="the candidate's crop, when the back-end may not know the id",
     )
-    position: GeoPoint | None = Field(
-        None, min_length=2, max_length=2, description="[lat, lon] of the candidate"
+    crop_box: PixelBox | None = Field(
+        None, description="[x1, y1, x2, y2] of the candidate inside the crop; default: all of it"
     )
+    position: LatLonPoint | None = Field(None, description="[lat, lon] of the candidate")
     reason: str = Field("", max_length=500)
 
 
@@ -220,27 +229,15 @@ class Rejection(ApiModel):
 
 class AwaitingCandidate(ApiModel):
     candidate_id: str = CANDIDATE_ID
-    box: list[float] = Field(min_length=4, max_length=4, description="[x1, y1, x2, y2] in the keyframe")
+    box: PixelBox = Field(description="[x1, y1, x2, y2] in the keyframe")
     verdict: Literal["yes", "no", "uncertain"] = "yes"
     justification: str = Field("", max_length=2000)
-    crop_jpeg_b64: str | None = Field(None, max_length=400_000)
-    crop_box: list[float] | None = Field(
-        None,
-        min_length=4,
-        max_length=4,
-        description="[x1, y1, x2, y2] of the candidate inside the crop; default: all of it",
+    crop_jpeg_b64: str | None = Field(None, max_length=CROP_B64_MAX_CHARS)
+    crop_box: PixelBox | None = Field(
+        None, description="[x1, y1, x2, y2] of the candidate inside the crop; default: all of it"
     )
-    position: GeoPoint | None = Field(None, min_length=2, max_length=2, description="[lat, lon] estimate")
+    position: LatLonPoint | None = Field(None, description="[lat, lon] estimate")
 
-
-def _lat_lon(value: list[float]) -> list[float]:
-    if not (-90 <= value[0] <= 90 and -180 <= value[1] <= 180):
-        raise ValueError("a position is [lat, lon] in degrees: lat in [-90, 90], lon in [-180, 180]")
-    return value
-
-
-# A checked [lat, lon]: two finite numbers (ApiModel refuses NaN/inf) within the globe's ranges.
-LatLonPoint = Annotated[list[float], Field(min_length=2, max_length=2), AfterValidator(_lat_lon)]
 
 SEARCH_AREA_MAX_VERTICES = 200
 COVERED_MAX_RINGS = 20
@@ -287,11 +284,16 @@ class Find(ApiModel):
 
     candidate_id: str = CANDIDATE_ID
     position: LatLonPoint = Field(description="[lat, lon] of the person found")
-    sigma_m: float = Field(ge=0.0, le=100_000.0, description="1-sigma horizontal uncertainty (m)")
+    sigma_m: float | None = Field(
+        ge=0.0, le=100_000.0, description="1-sigma horizontal uncertainty (m); null: not known"
+    )
     time: float = Field(ge=0.0, le=2**34, description="Unix time of the confirmation (s)")
     prompt: str = Field("", max_length=500)
     confirmed_by: str = Field(max_length=64, description='"supervisor page", "gcs" or the operator\'s name')
-    crop_jpeg_b64: str | None = Field(None, max_length=400_000, description="the candidate's crop (JPEG)")
+    crop_jpeg_b64: str | None = Field(
+        None, max_length=CROP_B64_MAX_CHARS, description="the candidate's crop (JPEG)"
+    )
+    crop_box: PixelBox | None = Field(None, description="[x1, y1, x2, y2] of the person inside the crop")
 
 
 class VehicleStatusIn(ApiModel):
@@ -346,10 +348,16 @@ class VehicleStatus(VehicleStatusIn):
     updated_at: float
 
 
+OPERATOR_MAX = 64
+
+
 class DecisionIn(ApiModel):
     candidate_id: str = CANDIDATE_ID
     action: Literal["confirm", "reject"]
     note: str = Field("", max_length=NOTE_MAX)
+    operator: str = Field(
+        "", max_length=OPERATOR_MAX, description='who decides, e.g. "supervisor page" (default: "supervisor")'
+    )
 
 
 class Decision(DecisionIn):
@@ -357,3 +365,8 @@ class Decision(DecisionIn):
     vehicle_id: str
     mission_id: str | None
     created_at: float
+    source: Literal["supervisor", "vehicle"] = Field(
+        "supervisor",
+        description='"vehicle": the vehicle reported it (a GCS decision over MAVLink, a find it confirmed); it '
+        "already acted on it and only the standing decision is recorded",
+    )

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import sys
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
@@ -36,6 +37,28 @@ def is_secret_key(dotted: str) -> bool:
     return any(part.lower().endswith(SECRET_SUFFIXES) for part in dotted.split("."))
 
 
+# In a URL: the password of `scheme://user:password@host` (a lone `scheme://token@host` is all secret), and
+# query values whose names say they are secrets (`?token=`, `&api_key=`, ...).
+_URL_USERINFO = re.compile(r"(?P<scheme>\b[A-Za-z][A-Za-z0-9+.-]*://)(?P<info>[^/@\s]+)@")
+_URL_SECRET_QUERY = re.compile(
+    r"(?P<name>[?&][^=&#\s]*(?:token|key|secret|password|passwd|pwd|auth|signature)[^=&#\s]*=)[^&#\s\"']*",
+    re.IGNORECASE,
+)
+
+
+def _hidden_userinfo(match: re.Match[str]) -> str:
+    user, colon, _ = match["info"].partition(":")
+    return f"{match['scheme']}{user}:{HIDDEN}@" if colon else f"{match['scheme']}{HIDDEN}@"
+
+
+def hide_url_secrets(text: str) -> str:
+    """`text` with the secrets of any URL in it hidden: `https://pilot:<hidden>@host/?token=<hidden>`.
+    For `config show`, error messages and every log line (cloudtrack.logging_setup)."""
+    if "://" not in text and "=" not in text:
+        return text
+    return _URL_SECRET_QUERY.sub(lambda m: m["name"] + HIDDEN, _URL_USERINFO.sub(_hidden_userinfo, text))
+
+
 def _holds_secret(value: Any) -> bool:
     """Whether a whole section given as a value (a model-level error's input) has a secret inside."""
     if isinstance(value, Mapping):
@@ -52,6 +75,12 @@ def config_search_path(name: str, environ: Mapping[str, str] | None = None) -> l
     env = os.environ if environ is None else environ
     user_base = Path(env["XDG_CONFIG_HOME"]) if env.get("XDG_CONFIG_HOME") else Path.home() / ".config"
     return [SYSTEM_CONFIG_DIR / name, user_base / "cloudtrack" / name]
+
+
+def config_search_help(name: str) -> str:
+    """--config's help: the files read without it, as `config_search_path` looks them up."""
+    system, _ = config_search_path(name, {})
+    return f"TOML file (default: {system}, then $XDG_CONFIG_HOME/cloudtrack/{name}, where they exist)"
 
 
 def default_config_files(name: str, environ: Mapping[str, str] | None = None) -> list[Path]:
@@ -229,7 +258,7 @@ def dump_toml(config: BaseModel) -> str:
         if isinstance(value, (int, float)):
             return repr(value)
         if isinstance(value, str):
-            return json.dumps(value)
+            return json.dumps(hide_url_secrets(value))
         if isinstance(value, (list, tuple)):
             return "[" + ", ".join(literal(v) for v in value) + "]"
         if isinstance(value, Mapping):

@@ -1,4 +1,5 @@
-"""One logging set-up for every process: readable lines by default, JSON lines with --log-json."""
+"""One logging set-up for every process: readable lines by default, JSON lines with --log-json; either
+way the secrets of any URL in a line are hidden (`cloudtrack.config_files.hide_url_secrets`)."""
 
 from __future__ import annotations
 
@@ -7,6 +8,8 @@ import logging
 import sys
 import time
 from typing import Any
+
+from cloudtrack.config_files import hide_url_secrets
 
 _STANDARD_ATTRS = set(vars(logging.LogRecord("", 0, "", 0, "", (), None))) | {"message", "asctime"}
 
@@ -26,13 +29,16 @@ class JsonLinesFormatter(logging.Formatter):
                 entry[key] = value
         if record.exc_info:
             entry["exception"] = self.formatException(record.exc_info)
-        return json.dumps(entry, default=str)
+        return hide_url_secrets(json.dumps(entry, default=str))
 
 
 class ReadableFormatter(logging.Formatter):
     def __init__(self) -> None:
         super().__init__("%(asctime)s.%(msecs)03d %(levelname)-7s %(name)s: %(message)s", "%H:%M:%S")
         self.converter = time.gmtime
+
+    def format(self, record: logging.LogRecord) -> str:
+        return hide_url_secrets(super().format(record))  # a password in a URL never reaches a log
 
 
 def setup_logging(level: str = "INFO", json_lines: bool = False) -> None:

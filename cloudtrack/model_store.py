@@ -6,6 +6,7 @@ the user cache (`$XDG_CACHE_HOME/cloudtrack/models`, default `~/.cache/cloudtrac
 
 from __future__ import annotations
 
+import difflib
 import hashlib
 import os
 import sys
@@ -185,6 +186,27 @@ def _fix_hint(spec: ModelSpec, model_dir: Path) -> str:
     return f"run `cloudtrack-companion models download {spec.name} --model-dir {model_dir}`"
 
 
+def _missing_folder(model_dir: Path) -> str:
+    """A folder that does not exist is most often a typo: name the folder, never offer to download into it."""
+    message = (
+        f"model folder {model_dir} does not exist: check --model-dir and ${MODEL_DIR_ENV} "
+        f"(default {default_cache_dir()})"
+    )
+    parent = model_dir.parent
+    if parent.is_dir():
+        siblings = [p.name for p in parent.iterdir() if p.is_dir()]
+        close = difflib.get_close_matches(model_dir.name, siblings, n=1, cutoff=0.6)
+        if close:
+            return f"{message}; did you mean {parent / close[0]}?"
+    elif parent.parent.is_dir():
+        # A typo one level up (../shard/models for ../shared/models).
+        uncles = [p.name for p in parent.parent.iterdir() if (p / model_dir.name).is_dir()]
+        close = difflib.get_close_matches(parent.name, uncles, n=1, cutoff=0.6)
+        if close:
+            return f"{message}; did you mean {parent.parent / close[0] / model_dir.name}?"
+    return message
+
+
 def require(name: str, model_dir: Path) -> dict[str, Path]:
     """Paths of a model's files, checked; raises ModelError naming the bad file and the fixing command.
 
@@ -194,6 +216,8 @@ def require(name: str, model_dir: Path) -> dict[str, Path]:
     if name not in REGISTRY:
         raise ModelError(f"unknown model {name!r}; known: {', '.join(REGISTRY)}")
     spec = REGISTRY[name]
+    if not model_dir.is_dir() and model_dir != default_cache_dir():  # the cache is made by `models download`
+        raise ModelError(_missing_folder(model_dir))
     paths: dict[str, Path] = {}
     for mf in spec.files:
         status = file_status(model_dir, mf)

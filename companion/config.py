@@ -13,7 +13,7 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from behaviors.control_law import ControlGains
 from cloudtrack.config_files import ConfigSection, default_config_files, load_config
@@ -47,6 +47,11 @@ class TrackerConfig(ConfigSection):
         3.0, gt=0, le=100
     )  # re-init gate: C_box over (w + h) of the last trusted box
     max_aspect_change: float = Field(2.0, gt=1, le=100)  # width/height change since (re)init: "collapsed"
+    # Target classes (the candidate's detector label) the weak loss signals were measured on: for any other
+    # target (a car turning under the camera, an animal, a ball) "collapsed" skips its aspect test and a
+    # weak signal alone never untrusts the track (docs/tracking.md, "Loss evidence that is not
+    # person-shaped").
+    loss_model_classes: list[str] = Field(default_factory=lambda: ["person"], max_length=100)
     # What a re-detection answer may do (docs/tracking.md): "verified" moves the track only when a candidate
     # beats it on evidence reinit_confirmations keyframes in a row and otherwise waits; "c_box" is the
     # paper's (nearest candidate to the last trusted box whenever lost), "score" the reference code's.
@@ -117,6 +122,16 @@ class MavlinkConfig(ConfigSection):
         if any(not 1 <= sysid <= 255 for sysid in self.gcs_system_ids):
             raise ValueError("gcs_system_ids must be MAVLink system ids 1-255")
         return self
+
+    @field_validator("signing_key")
+    @classmethod
+    def _signing_key(cls, value: str) -> str:
+        """Empty (no signing) or 64 hex digits, checked by `config check`, not first in flight."""
+        if value:
+            from cloudtrack.mavlink_signing import parse_signing_key
+
+            parse_signing_key(value)  # its error says what is expected, never the value
+        return value
 
 
 class BehaviorConfig(ConfigSection):

@@ -6,18 +6,13 @@ import argparse
 import sys
 from pathlib import Path
 
-from cloudtrack.config_files import ConfigError, dump_toml
-from companion.config import CompanionConfig, load_companion_config
+from cloudtrack.config_files import ConfigError, config_search_help, dump_toml
+from companion.config import CONFIG_FILE_NAME, CompanionConfig, load_companion_config
 
 
 def add_config_flags(parser: argparse.ArgumentParser) -> None:
     """--config and --set, shared by every subcommand that reads the configuration."""
-    parser.add_argument(
-        "--config",
-        type=Path,
-        help="TOML file (default: /etc/cloudtrack/companion.toml, then "
-        "$XDG_CONFIG_HOME/cloudtrack/companion.toml, where they exist)",
-    )
+    parser.add_argument("--config", type=Path, help=config_search_help(CONFIG_FILE_NAME))
     parser.add_argument(
         "--set",
         action="append",

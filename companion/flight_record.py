@@ -53,6 +53,7 @@ from behaviors.mission import State, initial_state
 from behaviors.mission_commands import ConfirmCandidate, RejectCandidate, StartMission
 from behaviors.mission_config import MissionConfig
 from cloudtrack.h264_video import H264Writer
+from cloudtrack.private_files import open_private, private_dir, private_file, write_private
 
 log = logging.getLogger(__name__)
 
@@ -148,9 +149,10 @@ class FlightRecorder:
         self._others_counted = False
         self._others_total = 0
         try:
-            (self.folder / KEYFRAMES_DIR).mkdir(parents=True, exist_ok=True)
+            # What the drone saw and did is its owner's alone, whatever the umask (0700 folders, 0600 files).
+            private_dir(self.folder / KEYFRAMES_DIR)
             threading.Thread(target=self._measure_others, name="flight-record-measure", daemon=True).start()
-            self._events = open(self.folder / EVENTS_FILE, "a", encoding="utf-8")  # noqa: SIM115 - lives as long as the mission
+            self._events = open_private(self.folder / EVENTS_FILE, "a", encoding="utf-8")
             self._check_free_space()
         except OSError as exc:
             self._stop(f"cannot create {self.folder}: {exc}")
@@ -206,7 +208,7 @@ class FlightRecorder:
             relative = f"{KEYFRAMES_DIR}/{frame_id:06d}.jpg"
             path = self.folder / relative
             try:
-                path.write_bytes(jpeg)
+                write_private(path, jpeg)
             except OSError as exc:
                 path.unlink(missing_ok=True)
                 self._stop(f"keyframe write failed: {exc}")
@@ -289,7 +291,7 @@ class FlightRecorder:
             self._tlog.close()
             self._rotatable.append(self.folder / f"mavlink-{self._tlog_index:03d}.tlog")
             self._tlog_index += 1
-        self._tlog = open(self.folder / f"mavlink-{self._tlog_index:03d}.tlog", "ab")  # noqa: SIM115 - one segment
+        self._tlog = open_private(self.folder / f"mavlink-{self._tlog_index:03d}.tlog", "ab")
         self._tlog_bytes = 0
 
     def _next_video_segment(self) -> None:
@@ -303,7 +305,7 @@ class FlightRecorder:
             ).start()
         self._video = None
         self._video_rotate = False
-        path = self.folder / f"video-{self._video_index:03d}.mp4"
+        path = private_file(self.folder / f"video-{self._video_index:03d}.mp4")  # FFmpeg keeps its mode
         # An encoder process, not a thread: the encoder must never hold the control loop's GIL.
         self._video = H264Writer(
             path,

@@ -51,7 +51,7 @@ from behaviors.events import (
     TimerTick,
 )
 from behaviors.geometry import Box
-from behaviors.mission import ACTIVE, MissionState, State, commanding, initial_state, step
+from behaviors.mission import ACTIVE, MissionState, State, awaiting_decision, commanding, initial_state, step
 from behaviors.mission_commands import MissionCommand, StartMission, TrackRectangle
 from behaviors.mission_config import MissionConfig
 from behaviors.reinit_policy import ReinitAction, ReinitDecision
@@ -132,7 +132,7 @@ class TrackingFrontendLike(Protocol):
 
     def feed(self, frame: Frame) -> TrackResult: ...
 
-    def start(self, keyframe_id: int, box: Any) -> bool: ...
+    def start(self, keyframe_id: int, box: Any, kind: str = "") -> bool: ...
 
     def apply_candidates(self, keyframe_id: int, detections: Sequence[Detection]) -> Detection | None: ...
 
@@ -390,7 +390,7 @@ class MissionRunner:
             )
             if chosen is not None:
                 return
-        self.frontend.start(keyframe, action.box)
+        self.frontend.start(keyframe, action.box, action.label)
 
     def _judge(self, action: JudgeCandidates) -> None:
         decision = self.frontend.judge_candidates(action.keyframe_id, action.candidates, action.refused)
@@ -452,16 +452,29 @@ class MissionRunner:
         if state.telemetry is not None:
             status["position"] = [state.telemetry.lat_deg, state.telemetry.lon_deg]
             status["altitude_m"] = state.telemetry.height_agl
-        if report is not None and report.status != "confirmed":
+        # The candidate awaiting the supervisor rides every report while it waits, whatever happens to the
+        # track (a short loss, a re-acquisition): the page keeps it and its Confirm button.
+        target = awaiting_decision(state)
+        candidate = report if report is not None and report.status != "confirmed" else None
+        if candidate is None and target is not None:
+            candidate = ReportCandidate(
+                target.candidate_id,
+                target.justification,
+                target.verdict,
+                target.position,
+                target.box,
+                "awaiting",
+            )
+        if candidate is not None:
             awaiting: dict[str, Any] = {
-                "candidate_id": report.candidate_id or "tracked",
-                "box": list(report.box.xyxy()),
-                "verdict": report.verdict.value,
-                "justification": report.justification[:2000],
+                "candidate_id": candidate.candidate_id or "tracked",
+                "box": list(candidate.box.xyxy()),
+                "verdict": candidate.verdict.value,
+                "justification": candidate.justification[:2000],
             }
-            if report.position is not None:
-                awaiting["position"] = [report.position.lat_deg, report.position.lon_deg]
-            awaiting.update(self._candidate_crop(awaiting["candidate_id"], report.box))
+            if candidate.position is not None:
+                awaiting["position"] = [candidate.position.lat_deg, candidate.position.lon_deg]
+            awaiting.update(self._candidate_crop(awaiting["candidate_id"], candidate.box))
             status["awaiting"] = awaiting
         return status
 
@@ -535,7 +548,7 @@ class MissionRunner:
             times.append(now)
         if times:
             self.vehicle.report_backend_ok(max(times))
-        if self.session is not None and self.state.mode is not MissionState.AWAITING_SUPERVISOR:
+        if self.session is not None:
             self.session.update(self._status())
 
     def _report_health(self, started: float) -> None:

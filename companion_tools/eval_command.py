@@ -273,6 +273,13 @@ def _detector(
     return detect
 
 
+def _target_kind(seq: SequenceData) -> str:
+    """The class the sequence's description names (its superset), as a ground-truth start knows it."""
+    from backend.supersets import superset_from_prompt
+
+    return superset_from_prompt(seq.referring) or "person" if seq.referring else ""
+
+
 def _unscaled(detection: Detection, scale: float) -> Detection:
     body = detection.body_box
     return replace(
@@ -522,6 +529,7 @@ def run(args: argparse.Namespace) -> int:
                 args.occlude,
                 caches,
                 keyframe_s=args.keyframe_s,
+                kinds={s.name: _target_kind(s) for s in seqs},
             )
             _print_signal_table(report, config.tracker.loss_persistence_s)
             output["runs"].append({"signal_table": _signal_dict(report)})
@@ -598,6 +606,7 @@ def _run_evals(
                 max_in_flight=args.backend_config.max_requests_in_flight,
                 reverify_interval=round(args.reverify_s * seq.fps),
                 early_frames=round(args.early_s * seq.fps) if args.early else None,
+                target_kind=_target_kind(seq),
             )
             results.append(
                 evaluate_sequence(

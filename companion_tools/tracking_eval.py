@@ -24,7 +24,7 @@ import re
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -36,7 +36,6 @@ from behaviors.detection import Detection, Verdict
 from behaviors.geometry import Box, iou
 from behaviors.loss_evidence import LossEvidence, judge_frame
 from behaviors.query_region import redetect_region
-from behaviors.spatial_relations import parse_relation
 from behaviors.track_result import TrackResult
 from behaviors.tracking_metrics import MiouResult, mean_iou, pooled_miou
 from companion.config import TrackerConfig
@@ -140,6 +139,10 @@ class EvalSettings:
     # grown this much, growing to the whole frame over `region_full_frame_s`; None: always the whole frame.
     region_scale: float | None = None
     region_full_frame_s: float = 4.0
+    # The target's class as a ground-truth start knows it (the description's superset): the loss signals
+    # model a person's shape only for people (`[tracker] loss_model_classes`). A prompt start takes the chosen
+    # candidate's label.
+    target_kind: str = ""
 
 
 @dataclass(frozen=True)
@@ -292,15 +295,14 @@ def make_frontend(
         reinit=reinit_settings(cfg),
         name=name,
         evidence=loss_evidence_settings(cfg),
+        loss_model_classes=cfg.loss_model_classes,
     )
 
 
-def first_candidate(
-    detections: Sequence[Detection], accept_uncertain: bool = False, prompt: str = ""
-) -> Detection | None:
+def first_candidate(detections: Sequence[Detection], accept_uncertain: bool = False) -> Detection | None:
     """First acquisition as in flight (`behaviors.candidate_selection.select_first_acquisition`, the
     mission's choice without its rejection memory)."""
-    return select_first_acquisition(detections, accept_uncertain, parse_relation(prompt))
+    return select_first_acquisition(detections, accept_uncertain)
 
 
 def _outcome(before: float, after: float) -> str:
@@ -412,7 +414,7 @@ def evaluate_sequence(
             # their choice, or ended when they accept no one.
             early_box, provisional = provisional[1], None
             chosen, kept = settle_early_choice(
-                found, early_box, lambda ds: first_candidate(ds, settings.accept_uncertain, seq.referring)
+                found, early_box, lambda ds: first_candidate(ds, settings.accept_uncertain)
             )
             looked(keyframe, found, frame_id, final, chosen)
             if kept:
@@ -421,12 +423,12 @@ def evaluate_sequence(
                 frontend.stop()
                 early_refused = True
             else:
-                frontend.start(keyframe, chosen.start_box)
+                frontend.start(keyframe, chosen.start_box, chosen.label)
             return
         if from_prompt and not frontend.tracking:
-            chosen = first_candidate(found, settings.accept_uncertain, seq.referring)
+            chosen = first_candidate(found, settings.accept_uncertain)
             looked(keyframe, found, frame_id, final, chosen)
-            if chosen is not None and frontend.start(keyframe, chosen.start_box) and not final:
+            if chosen is not None and frontend.start(keyframe, chosen.start_box, chosen.label) and not final:
                 provisional = (keyframe, chosen.box)
             return
         if not final:  # a fast stage's verdicts only ever start a search's track
@@ -445,7 +447,7 @@ def evaluate_sequence(
         box = result.box if result.trusted else None
         if index == 0 and not from_prompt:
             init = _scaled(seq.ground_truth[0], sx, sy)
-            if init is not None and frontend.start(frame.frame_id, init):
+            if init is not None and frontend.start(frame.frame_id, init, settings.target_kind):
                 box = init  # the initialisation frame reports the box it started on
         if result.lost_reason and result.lost_reason not in ("idle", "acquiring"):
             reasons[result.lost_reason] += 1
@@ -641,6 +643,7 @@ def signal_table(
     occlude: bool = False,
     detections: dict[str, DetectionCache | None] | None = None,
     keyframe_s: float = 1.0,
+    kinds: dict[str, str] | None = None,
 ) -> SignalReport:
     """Track each sequence from its first box without re-initialisation and score every loss signal.
 
@@ -658,7 +661,13 @@ def signal_table(
     evidence_settings = loss_evidence_settings(config)
     enabled = frozenset(config.loss_signals)
     for seq in seqs:
-        detector = LossDetector(loss_settings(config, tracker_name))
+        signals = loss_settings(config, tracker_name)
+        kind = (kinds or {}).get(seq.name, "")
+        weighing = evidence_settings
+        if kind:  # as the front-end weighs the signals for a class outside `loss_model_classes`
+            signals = replace(signals, hold_aspect=kind in config.loss_model_classes)
+            weighing = replace(evidence_settings, weak_alone=kind in config.loss_model_classes)
+        detector = LossDetector(signals)
         native_gt = ground_truth_for(seq, settings)
         evidence = LossEvidence()
         episode_start: float | None = None  # time of the first frame of the current off-target run
@@ -694,7 +703,7 @@ def signal_table(
                     report.combos[combo].fired_lost += int(lost)
                     report.combos[combo].fired_on_target += int(on_target)
             names = [name for name in SIGNALS if name in enabled and fired[name]]
-            evidence = judge_frame(evidence, frame.capture_time, names, evidence_settings)
+            evidence = judge_frame(evidence, frame.capture_time, names, weighing)
             flagged = not evidence.trusted
             if flagged:
                 report.decided.fired += 1

@@ -12,6 +12,7 @@ import sys
 import time
 from collections.abc import Sequence
 from functools import partial
+from pathlib import Path
 from typing import Any
 
 from cloudtrack.autopilot_modes import detect_autopilot, mode_name
@@ -30,6 +31,7 @@ from cloudtrack.gcs_protocol import (
 )
 from cloudtrack.mavlink_connection import MavlinkEndpoint, mavlink, parse_connection
 from cloudtrack.mavlink_signing import parse_signing_key
+from gcs import survey_command
 
 EXIT_REFUSED, EXIT_TIMEOUT = 1, 3
 RESULT_NAMES = {
@@ -52,10 +54,11 @@ examples:
   cloudtrack-gcs track-box 0.40 0.30 0.55 0.70   # normalised corners, as QGroundControl sends them
   cloudtrack-gcs watch --duration 60
   cloudtrack-gcs start --prompt "man in a red cap" --print-mavproxy   # the same start as MAVProxy commands
-  cloudtrack-gcs --connect tcp:192.168.1.10:5760 --signing-key $KEY status
+  cloudtrack-gcs --connect tcp:192.168.1.10:5760 --signing-key-file ~/.config/cloudtrack/signing.key watch
 
 The default link listens on udpin:0.0.0.0:14550, where `cloudtrack-sim autopilot` and most autopilots send
-GCS traffic. With signing on, pass the same 64-hex-character key as the companion.
+GCS traffic. With signing on, give the companion's 64-hex-character key in a file (--signing-key-file) or in
+$CLOUDTRACK_GCS_SIGNING_KEY, never on the command line (every user of the machine sees it in `ps`).
 """
 
 
@@ -68,6 +71,29 @@ def _command_long(
     mav: Any, target: tuple[int, int], command: int, confirmation: int, params: list[float]
 ) -> None:
     mav.command_long_send(target[0], target[1], command, confirmation, *params)
+
+
+SIGNING_KEY_ENV = "CLOUDTRACK_GCS_SIGNING_KEY"
+
+
+def signing_key(args: argparse.Namespace) -> bytes | None:
+    """The MAVLink signing key from --signing-key-file, else $CLOUDTRACK_GCS_SIGNING_KEY (None: no signing);
+    ValueError for --signing-key HEX, which would show the key to every user in `ps`."""
+    if args.signing_key is not None:
+        raise ValueError(
+            "--signing-key was removed: a key on the command line is visible to every user of this machine "
+            f"(ps, /proc); put it in a file only you can read (--signing-key-file PATH) or in ${SIGNING_KEY_ENV}"
+        )
+    if args.signing_key_file is not None:
+        try:
+            text = args.signing_key_file.expanduser().read_text()
+        except OSError as exc:
+            raise ValueError(
+                f"cannot read the signing key file {args.signing_key_file}: {exc.strerror}"
+            ) from None
+    else:
+        text = os.environ.get(SIGNING_KEY_ENV, "")
+    return parse_signing_key(text) if text.strip() else None
 
 
 class GcsError(Exception):
@@ -83,10 +109,11 @@ class GcsSession:
         self.args = args
         self.target = (args.system, args.component)
         self.endpoint = MavlinkEndpoint.open(args.connect, args.gcs_system, args.gcs_component, args.system)
-        if args.signing_key:
+        key = signing_key(args)
+        if key is not None:
             # The autopilot's telemetry may be unsigned; an acknowledgement must carry the companion's signature.
             self.endpoint.conn.setup_signing(
-                parse_signing_key(args.signing_key), sign_outgoing=True,
+                key, sign_outgoing=True,
                 allow_unsigned_callback=lambda _mav, msg_id: msg_id != mavlink.MAVLINK_MSG_ID_COMMAND_ACK,
             )  # fmt: skip
         self._statustexts: dict[int, list[bytes]] = {}
@@ -326,9 +353,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="wait this long for an acknowledgement (default 5)",
     )
     parser.add_argument(
-        "--signing-key", default=os.environ.get("CLOUDTRACK_GCS_SIGNING_KEY", ""), metavar="HEX",
-        help="MAVLink 2 signing key, 64 hex characters (default $CLOUDTRACK_GCS_SIGNING_KEY)",
+        "--signing-key-file", type=Path, metavar="PATH",
+        help=f"file holding the MAVLink 2 signing key, 64 hex characters (default: ${SIGNING_KEY_ENV}, else "
+        "no signing)",
     )  # fmt: skip
+    # Removed: a key in argv is visible to every user (ps, /proc/*/cmdline). Kept only to say so.
+    parser.add_argument("--signing-key", help=argparse.SUPPRESS)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     start = sub.add_parser(
@@ -407,6 +437,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="stop after S seconds (default: until Ctrl-C)",
     )
     watch.set_defaults(func=_watch)
+    survey_command.add_parser(sub)
     return parser
 
 
@@ -415,8 +446,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         parse_connection(args.connect)
-        if args.signing_key:
-            parse_signing_key(args.signing_key)
+        signing_key(args)  # a key that cannot be read or parsed stops here, before any link opens
         if args.command == "start":
             encode_prompt(args.mission_id, args.superset, args.prompt)
     except ValueError as exc:
@@ -425,6 +455,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command == "start" and args.print_mavproxy:
         print("\n".join(mavproxy_start_lines(args)))
         return 0
+    if getattr(args, "opens_own_link", False):
+        return int(args.func(args))  # survey: checks its area and plan before it opens the link
     try:
         session = GcsSession(args)
     except OSError as exc:

@@ -21,6 +21,7 @@ examples:
 """
 
 log = logging.getLogger(__name__)
+DEFAULT_HEIGHT_M = AutopilotOptions.start_height_m
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -28,8 +29,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
         "autopilot",
         help="run the mock MAVLink autopilot (ArduCopter or PX4 personality) on its own",
         description=(
-            "Run the simulated autopilot: armed and hovering at 20 m, routing MAVLink between a GCS link and "
-            "a companion link. It never arms for anyone. Stop with Ctrl-C."
+            f"Run the simulated autopilot: armed and hovering at {DEFAULT_HEIGHT_M:g} m (--height), routing "
+            "MAVLink between a GCS link and a companion link. It never arms for anyone. Stop with Ctrl-C."
         ),
         epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -60,6 +61,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
         help="steady wind towards north and east in m/s, 80%% rejected by the position controller (default 0 0)",
     )  # fmt: skip
     parser.add_argument(
+        "--height",
+        type=float,
+        default=DEFAULT_HEIGHT_M,
+        metavar="M",
+        help=f"start hovering this high above home (default {DEFAULT_HEIGHT_M:g})",
+    )
+    parser.add_argument(
         "--duration", type=float, default=0.0, metavar="S", help="stop after S seconds (0: run until Ctrl-C)"
     )
     parser.set_defaults(func=run)
@@ -68,7 +76,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
 def run(args: argparse.Namespace) -> int:
     options = AutopilotOptions(
         personality=args.autopilot, guid_timeout_s=args.guid_timeout, offboard_loss_s=args.offboard_loss,
-        wind=Wind(north=args.wind[0], east=args.wind[1]),
+        wind=Wind(north=args.wind[0], east=args.wind[1]), start_height_m=args.height,
     )  # fmt: skip
     try:
         sim = SimulatedAutopilot(options, {"gcs": args.gcs, "companion": args.companion})

@@ -12,6 +12,7 @@ import argparse
 import math
 import re
 import signal
+import sys
 import threading
 import time
 
@@ -99,6 +100,16 @@ def run_camera(args: argparse.Namespace) -> int:
     if args.scenario not in SCENARIOS:
         print(f"error: unknown scenario {args.scenario!r}; known: {', '.join(SCENARIOS)}")
         return 2
+    if args.backend_port is not None:
+        from backend.config import MIN_TOKEN_CHARS
+
+        if len(args.token) < MIN_TOKEN_CHARS:  # the back-end refuses it: say so before anything starts
+            print(
+                f"error: --token must be at least {MIN_TOKEN_CHARS} characters (got {len(args.token)}); "
+                'e.g. --token "$(openssl rand -hex 24)"',
+                file=sys.stderr,
+            )
+            return 2
     world = SCENARIOS[args.scenario].build_world(args.seed)
     camera = CameraModel.from_hfov(640, 480, 70.0, args.mount_pitch)
     servers: list[CameraServer] = []

@@ -190,7 +190,7 @@ def test_hostile_reject_with_an_undecodable_stored_crop_still_records_the_decisi
     store.state.set_status(
         VehicleStatus(vehicle_id="d1", updated_at=1.0, mission_id="m1", state="AWAIT", awaiting=awaiting)
     )
-    decision = store.add_decision("d1", DecisionIn(candidate_id="c1", action="reject"))
+    decision, _ = store.add_decision("d1", DecisionIn(candidate_id="c1", action="reject"))
     assert store.decisions("d1") == [decision] and decision.action == "reject"
 
 

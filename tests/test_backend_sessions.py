@@ -96,12 +96,12 @@ def test_supervisor_reject_decision_enters_the_rejection_memory() -> None:
     store.remember_candidates("d1", "m1", [("c1", descriptor(RED, WHOLE))])
     awaiting = AwaitingCandidate(candidate_id="c1", box=[0, 0, 60, 120], justification="red shirt")
     store.set_status("d1", VehicleStatusIn(mission_id="m1", state="AWAIT_SUPERVISOR", awaiting=awaiting))
-    confirm = store.add_decision("d1", DecisionIn(candidate_id="c1", action="confirm"))
-    assert store.rejections("d1", "m1") == []
-    reject = store.add_decision("d1", DecisionIn(candidate_id="c1", action="reject", note="not him"))
+    reject, _ = store.add_decision("d1", DecisionIn(candidate_id="c1", action="reject", note="not him"))
     assert [r.reason for r in store.rejections("d1", "m1")] == ["not him"]
-    assert [d.decision_id for d in store.decisions("d1")] == [confirm.decision_id, reject.decision_id]
-    assert store.decisions("d1", after=confirm.decision_id) == [reject]
+    # The first decision stands: a later confirm changes nothing and enters nothing.
+    standing, created = store.add_decision("d1", DecisionIn(candidate_id="c1", action="confirm"))
+    assert not created and standing == reject and store.finds("d1") == []
+    assert store.decisions("d1") == [reject] and store.decisions("d1", after=reject.decision_id) == []
     assert store.decisions("d2") == []
     # A reject for a candidate the back-end never saw still reaches the companion.
     store.add_decision("d1", DecisionIn(candidate_id="unknown", action="reject"))

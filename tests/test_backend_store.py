@@ -15,8 +15,16 @@ import numpy as np
 import pytest
 
 from backend.redis_store import RedisStore
+from backend.schemas import KeyframeCandidate, KeyframeRecord, MissionMap, StoredFind
 from backend.sessions import SessionStore
-from backend.state_store import QuotaExceededError, SqliteStore, StateStore, vector_bytes, vector_from
+from backend.state_store import (
+    FINDS_PER_MISSION,
+    QuotaExceededError,
+    SqliteStore,
+    StateStore,
+    vector_bytes,
+    vector_from,
+)
 from backend_tools.fleet_services import RedisServer
 from cloudtrack.api_models import DecisionIn, Rejection, RejectionIn, VehicleStatus
 
@@ -86,8 +94,9 @@ def test_store_statuses_decisions_version_and_rate(state: StateStore) -> None:
     state.set_status(VehicleStatus(vehicle_id="d2", updated_at=1.0, state="SEARCH"))
     state.set_status(VehicleStatus(vehicle_id="d1", updated_at=2.0, state="TRACK"))
     assert [s.vehicle_id for s in state.statuses()] == ["d1", "d2"] and state.status("d1").state == "TRACK"  # type: ignore[union-attr]
-    a = state.add_decision("d1", "m1", DecisionIn(candidate_id="c1", action="reject"), 3.0)
-    b = state.add_decision("d1", "m1", DecisionIn(candidate_id="c2", action="confirm"), 4.0)
+    a, created_a = state.add_decision("d1", "m1", DecisionIn(candidate_id="c1", action="reject"), 3.0)
+    b, created_b = state.add_decision("d1", "m1", DecisionIn(candidate_id="c2", action="confirm"), 4.0)
+    assert created_a and created_b
     assert state.decisions("d1") == [a, b] and state.decisions("d1", after=a.decision_id) == [b]
     assert state.decisions("d2") == []
     assert state.version() >= v0 + 4
@@ -96,16 +105,96 @@ def test_store_statuses_decisions_version_and_rate(state: StateStore) -> None:
     assert state.rate_hit("d1", 1010.0, 2, 10.0) is None  # a new window
 
 
+def test_store_first_decision_on_a_candidate_stands(state: StateStore) -> None:
+    confirm, created = state.add_decision("d1", "m1", DecisionIn(candidate_id="c1", action="confirm"), 1.0)
+    reject, again = state.add_decision("d1", "m1", DecisionIn(candidate_id="c1", action="reject"), 2.0)
+    assert created and not again and reject == confirm  # the standing one comes back, nothing new stored
+    assert state.decisions("d1") == [confirm] and state.standing_decision("d1", "m1", "c1") == confirm
+    # Another mission's candidate of the same id, another vehicle's: decided on their own.
+    assert state.add_decision("d1", "m2", DecisionIn(candidate_id="c1", action="reject"), 3.0)[1]
+    assert state.add_decision("d2", "m1", DecisionIn(candidate_id="c1", action="reject"), 3.0)[1]
+    assert state.standing_decision("d1", "m3", "c1") is None
+
+
+def test_store_first_decision_wins_when_twenty_pairs_race(state: StateStore) -> None:
+    """Confirm and reject of each candidate from two threads at once: exactly one is stored, and both callers
+    are answered with it."""
+    for i in range(20):
+        answers: list[tuple[object, bool]] = []
+        barrier = threading.Barrier(2)
+
+        def decide(
+            action: str,
+            candidate: str = f"c{i}",
+            barrier: threading.Barrier = barrier,
+            answers: list = answers,
+        ) -> None:
+            barrier.wait()
+            decision = DecisionIn(candidate_id=candidate, action=action)  # type: ignore[arg-type]
+            answers.append(state.add_decision("d1", "m1", decision, 1.0))
+
+        threads = [threading.Thread(target=decide, args=(a,)) for a in ("confirm", "reject")]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        assert sorted(created for _, created in answers) == [False, True]
+        assert answers[0][0] == answers[1][0] == state.standing_decision("d1", "m1", f"c{i}")
+    assert len(state.decisions("d1")) == 20
+
+
+def _find(
+    candidate: str, source: str = "vehicle", mission: str = "m1", sigma: float | None = 2.0
+) -> StoredFind:
+    return StoredFind(
+        candidate_id=candidate, position=[47.0, 8.0], sigma_m=sigma, time=10.0, prompt="a man in red",
+        confirmed_by="gcs", vehicle_id="d1", mission_id=mission, received_at=10.0, source=source,  # type: ignore[arg-type]
+    )  # fmt: skip
+
+
+def test_store_finds_once_maps_and_keyframes(state: StateStore) -> None:
+    state.touch_mission("d1", "m1", 1.0, 1e9, 10)
+    state.touch_mission("d1", "m2", 1.0, 1e9, 10)
+    made, changed = state.put_find(_find("c1", "supervisor", sigma=None))
+    assert changed and state.finds("d1", "m1") == [made]
+    better, replaced = state.put_find(_find("c1"), replace_source="supervisor")  # the vehicle's own, once
+    assert replaced and state.finds("d1", "m1") == [better]
+    kept, again = state.put_find(_find("c1", sigma=9.0), replace_source="supervisor")
+    assert not again and kept == better
+    state.put_find(_find("c2", mission="m2"))
+    assert [f.candidate_id for f in state.finds("d1")] == ["c1", "c2"] and state.finds("d2") == []
+    for i in range(3, 3 + FINDS_PER_MISSION - 1):
+        state.put_find(_find(f"c{i}"))
+    with pytest.raises(QuotaExceededError):
+        state.put_find(_find("one-too-many"))
+    area = MissionMap(track=[[47.0, 8.0, 1.0]], area=[[47.0, 8.0], [47.1, 8.0], [47.1, 8.1]], coverage=0.25)
+    state.set_mission_map("d1", "m1", area)
+    assert state.mission_map("d1", "m1") == area and state.mission_map("d1", "m2") is None
+    record = KeyframeRecord(
+        frame_id=7, mission_id="m1", width=64, height=48, received_at=5.0,
+        candidates=[KeyframeCandidate(id="c1", box=[1, 2, 3, 4], verdict="yes")],
+    )  # fmt: skip
+    before = state.version()
+    state.set_keyframe("d1", record, b"\xff\xd8jpeg")
+    assert state.version() > before  # the page's live view is woken by a new keyframe
+    assert state.keyframe("d1") == record and state.keyframe_jpeg("d1") == (record, b"\xff\xd8jpeg")
+    assert state.keyframe("d2") is None
+    state.expire(float("inf"))  # finds, decisions on candidates and maps go with their mission
+    assert state.finds("d1") == [] and state.mission_map("d1", "m1") is None
+
+
 def test_store_sqlite_keeps_everything_across_a_reopen(tmp_path: Path) -> None:
     path = tmp_path / "s.sqlite3"
     first = SessionStore(SqliteStore(path))
     first.state.set_status(VehicleStatus(vehicle_id="d1", updated_at=1.0, state="AWAIT", mission_id="m1"))
     first.open_mission("d1", "m1")
     first.remember_candidates("d1", "m1", [("c1", [0.5] * 128)])
-    decision = first.add_decision("d1", DecisionIn(candidate_id="c1", action="reject"))
+    decision, _ = first.add_decision("d1", DecisionIn(candidate_id="c1", action="reject"))
+    first.state.put_find(_find("c2"))
     # No close(): what a SIGKILL leaves behind.
     again = SessionStore(SqliteStore(path))
-    assert again.decisions("d1") == [decision]
+    assert again.decisions("d1") == [decision] and again.finds("d1", "m1") == [_find("c2")]
+    assert again.standing_decision("d1", "m1", "c1") == decision
     assert [r.candidate_id for r in again.rejections("d1", "m1")] == ["c1"]
     assert again.rejection_check("d1", "m1", None)([0.5] * 127 + [0.6]) is not None
 

@@ -37,7 +37,7 @@ NO_UNJUDGED = Detection(Box(200, 0, 10, 20), 0.95, verdict=Verdict.NO, judged=Fa
 def test_first_acquisition_admits_an_uncertain_only_when_nothing_could_judge_it(
     candidates: list[Detection], accept_uncertain: bool, chosen: Detection | None
 ) -> None:
-    assert select_first_acquisition(candidates, accept_uncertain, None) is chosen
+    assert select_first_acquisition(candidates, accept_uncertain) is chosen
 
 
 def test_c_box_is_l1_of_centres_and_sizes() -> None:
@@ -91,6 +91,6 @@ def test_settle_early_choice(
 ) -> None:
     candidates = [Detection(box, score, verdict=verdict) for box, verdict, score in final]
     chosen, was_kept = settle_early_choice(
-        candidates, EARLY, lambda ds: select_first_acquisition(ds, accept_uncertain=False, relation=None)
+        candidates, EARLY, lambda ds: select_first_acquisition(ds, accept_uncertain=False)
     )
     assert (chosen.box if chosen is not None else None, was_kept) == (expected, kept)

@@ -74,3 +74,50 @@ def test_serve_applies_model_dir_to_the_detector(tmp_path: Path, capsys: pytest.
     # An empty folder: serve must look for YOLOX there (and say so), not in the cache or the environment.
     assert main(["serve", "--model-dir", str(tmp_path)]) == 2
     assert str(tmp_path / "yolox_nano" / "yolox_nano.onnx") in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("script", "command", "name"),
+    [("cloudtrack-backend", "serve", "backend.toml"), ("cloudtrack-companion", "run", "companion.toml")],
+)
+def test_config_help_names_the_files_read_without_it(script: str, command: str, name: str) -> None:
+    from cloudtrack.config_files import config_search_path
+
+    sub = _subparsers(importlib.import_module(SCRIPTS[script]).build_parser())[command]
+    text = " ".join(sub.format_help().split())
+    system, user = config_search_path(name, {"XDG_CONFIG_HOME": "$XDG_CONFIG_HOME"})
+    assert f"default: {system}, then {user}, where they exist" in text
+    assert "config/" not in text  # the repository's example file is never read by default
+
+
+def test_camera_with_a_short_token_says_so_in_one_line() -> None:
+    exe = Path(sys.executable).with_name("cloudtrack-sim")
+    result = subprocess.run(
+        [
+            str(exe),
+            "camera",
+            "--autopilot-url",
+            "udpin:127.0.0.1:0",
+            "--backend-port",
+            "0",
+            "--token",
+            "short",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "--token must be at least 16 characters" in lines[0], result.stderr
+    assert "Traceback" not in result.stdout + result.stderr and "short" not in lines[0]  # never echo a secret
+
+
+def test_the_backend_starts_without_a_colour_science_warning() -> None:
+    """The back-end installs no SciPy; colour-science must not warn about it at every start."""
+    code = (
+        "import sys, warnings; sys.modules['scipy'] = None; warnings.simplefilter('error');"
+        "import backend.verifiers.colour_names"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0 and "Warning" not in result.stderr, result.stderr

@@ -96,7 +96,9 @@ def test_no_autopilot_times_out_with_a_clear_message(capsys: pytest.CaptureFixtu
 
 
 @pytest.mark.slow
-def test_wrong_signing_key_gets_no_acknowledgement(capsys: pytest.CaptureFixture[str]) -> None:
+def test_wrong_signing_key_gets_no_acknowledgement(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
     key = bytes.fromhex(
         KEY_HEX
     )  # the autopilot signs too: with signing on the companion acts on nothing unsigned
@@ -105,9 +107,12 @@ def test_wrong_signing_key_gets_no_acknowledgement(capsys: pytest.CaptureFixture
         vehicle_link(sim, signing_key=KEY_HEX) as link,
         MainLoop(link),
     ):
-        assert gcs_cli.main(_gcs_args(sim, "--signing-key", "77" * 32, "abort", timeout=1.5)) == 3
+        wrong, right = tmp_path / "wrong.key", tmp_path / "right.key"
+        wrong.write_text("77" * 32 + "\n")
+        right.write_text(KEY_HEX + "\n")
+        assert gcs_cli.main(_gcs_args(sim, "--signing-key-file", str(wrong), "abort", timeout=1.5)) == 3
         assert "no acknowledgement for abort" in capsys.readouterr().err
-        assert gcs_cli.main(_gcs_args(sim, "--signing-key", KEY_HEX, "abort")) == 0
+        assert gcs_cli.main(_gcs_args(sim, "--signing-key-file", str(right), "abort")) == 0
         assert link.commands() == [AbortMission("gcs")] and "COMMAND_LONG" in link.signing.refused
 
 
@@ -117,7 +122,8 @@ def test_wrong_signing_key_gets_no_acknowledgement(capsys: pytest.CaptureFixture
         (["start", "--prompt", "   "], "the prompt is empty"),
         (["start", "--prompt", "man", "--superset", "per|son"], "superset"),
         (["--connect", "udp:nowhere", "abort"], "expected one of"),
-        (["--signing-key", "xyz", "abort"], "64 hexadecimal"),
+        (["--signing-key", KEY_HEX, "abort"], "visible to every user"),
+        (["--signing-key-file", "/nonexistent/cloudtrack.key", "abort"], "cannot read the signing key file"),
         (["track-box", "0.5", "0.5", "0.2", "0.9", "--"], None),
     ],
 )
@@ -129,6 +135,21 @@ def test_bad_input_is_refused_before_sending(
         return
     assert gcs_cli.main(argv) == 2
     assert message in capsys.readouterr().err
+
+
+def test_the_signing_key_comes_from_a_file_or_the_environment(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    parse = gcs_cli.build_parser().parse_args
+    monkeypatch.delenv(gcs_cli.SIGNING_KEY_ENV, raising=False)
+    assert gcs_cli.signing_key(parse(["abort"])) is None  # no key: no signing
+    monkeypatch.setenv(gcs_cli.SIGNING_KEY_ENV, KEY_HEX)
+    assert gcs_cli.signing_key(parse(["abort"])) == bytes.fromhex(KEY_HEX)
+    key_file = tmp_path / "signing.key"
+    key_file.write_text("77" * 32 + "\n")
+    assert gcs_cli.signing_key(parse(["--signing-key-file", str(key_file), "abort"])) == bytes(32 * [0x77])
+    monkeypatch.setenv(gcs_cli.SIGNING_KEY_ENV, "not-hex")
+    assert gcs_cli.main(["abort"]) == 2 and "64 hexadecimal" in capsys.readouterr().err
 
 
 def test_help_has_examples() -> None:

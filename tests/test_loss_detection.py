@@ -13,7 +13,7 @@ from companion.config import TrackerConfig
 from companion.vision.frame_sources import Frame
 from companion.vision.loss_detection import SIGNALS, LossDetector, LossSettings, parse_signals
 from companion.vision.trackers import TrackerStep, create_tracker
-from companion.vision.tracking_frontend import TrackingFrontend
+from companion.vision.tracking_frontend import TrackingFrontend, loss_evidence_settings, loss_settings
 from companion_tools.tracking_eval import _occluded, load_sequence, occlusion_span
 
 PERSON = "uav123_person12_1"  # 1280x720, one person on a roof
@@ -72,6 +72,41 @@ def test_each_signal_fires_on_its_own_case(person, step_box, score, ok, expected
     )  # the tracker's first box
     reason = detector.check(frames[2], TrackerStep(boxes[step_box], score, ok))
     assert reason == expected, detector.last_signals
+
+
+def test_a_target_that_does_not_keep_a_persons_shape_is_not_collapsed_by_turning(person) -> None:  # type: ignore[no-untyped-def]
+    """A car turning under the camera turns its box from wide to tall: without `hold_aspect` that is no
+    "collapsed"; a tiny box or an area x3 in one frame still is."""
+    seq, frames = person
+    gt0, gt1 = seq.ground_truth[0], seq.ground_truth[2]
+    turned = Box.from_center(gt1.cx, gt1.cy, gt1.h, gt1.w)
+    for hold, expected in ((True, True), (False, False)):
+        detector = _detector(frames[0], gt0, score_threshold=0.7, hold_aspect=hold)
+        detector.check(frames[1], TrackerStep(seq.ground_truth[1], 0.9, True))
+        detector.check(frames[2], TrackerStep(turned, 0.9, True))
+        assert detector.last_signals["collapsed"] is expected
+    detector = _detector(frames[0], gt0, score_threshold=0.7, hold_aspect=False)
+    detector.check(frames[1], TrackerStep(seq.ground_truth[1], 0.9, True))
+    assert detector.check(frames[2], TrackerStep(Box(gt1.x, gt1.y, 3, 3), 0.9, True)) == "collapsed"
+
+
+def test_the_front_end_models_a_persons_shape_and_look_for_people_only() -> None:
+    """`start(kind=...)`: the weak signals were measured on people (`[tracker] loss_model_classes`); for
+    any other target the aspect test is off and a weak signal alone untrusts nothing."""
+    config = TrackerConfig()
+    assert config.loss_model_classes == ["person"]
+    frontend = TrackingFrontend(
+        lambda: create_tracker("csrt", Path(".")),
+        loss_settings(config, "csrt"),
+        evidence=loss_evidence_settings(config),
+        loss_model_classes=config.loss_model_classes,
+    )
+    image = np.zeros((120, 160, 3), np.uint8)
+    frontend.feed(Frame(1, 0.0, image))
+    frontend.start(1, Box(10, 10, 20, 40), "car")
+    assert frontend.loss.settings.hold_aspect is False and frontend.evidence.weak_alone is False
+    frontend.start(1, Box(10, 10, 20, 40), "person")
+    assert frontend.loss.settings.hold_aspect is True and frontend.evidence.weak_alone is True
 
 
 def test_trackers_without_a_score_never_fire_the_score_signal(person) -> None:  # type: ignore[no-untyped-def]

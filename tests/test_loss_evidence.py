@@ -52,6 +52,17 @@ def test_loss_evidence_table(name: str, frames: list[tuple[str, ...]], fps: floa
     assert run(frames, fps) == expected, name
 
 
+def test_a_weak_signal_alone_is_no_evidence_for_a_target_it_was_not_measured_on() -> None:
+    """`weak_alone` False (a car, a bird, a ball: `[tracker] loss_model_classes`): a weak signal alone,
+    however long, untrusts nothing; two together or a strong one still do."""
+    objects = LossEvidenceSettings(persistence_s=1.0, weak_signals=WEAK, weak_alone=False)
+    assert run([S] * 30, settings=objects) == "." * 30
+    assert run([("score", "appearance"), Q], settings=objects) == "ss"
+    assert run([J, Q], settings=objects) == "jj"
+    # While lost a weak alarm no longer holds the account up: 1 s after the loss it is trusted again.
+    assert run([L] + [A] * 11, settings=objects) == "l" * 10 + ".."
+
+
 def test_loss_evidence_zero_persistence_is_per_frame() -> None:
     per_frame = LossEvidenceSettings(persistence_s=0.0, weak_signals=WEAK)
     assert run([A, Q, C, Q, J, Q], settings=per_frame) == "a.c.j."

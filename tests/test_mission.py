@@ -967,9 +967,10 @@ def test_verified_lost_that_gave_up_judges_nothing() -> None:
     assert actions == ()
 
 
-def test_prompt_relation_chooses_the_candidate_between_the_others() -> None:
-    """Acquisition from a prompt that places the target between two others: of several "yes", the one
-    standing between two other people in view is taken, even over a higher detector score."""
+def test_acquisition_takes_the_candidate_the_back_end_places_where_the_prompt_says() -> None:
+    """Acquisition from a prompt that places the target ("between the man in red and the man in green"):
+    of several "yes", the one the back-end judged to stand there (`placement_ok`, backend.scene) is taken,
+    even over a higher detector score; one judged not to stand there comes last."""
     start = StartMission("the man in the grey shirt walking between the man in red and the man in green")
     state, actions = step(reach(S.IDLE), cmd(0.1, start), CFG)
     left, middle, right = box_at(30, u=200), box_at(30, u=320), box_at(30, u=440)
@@ -978,12 +979,13 @@ def test_prompt_relation_chooses_the_candidate_between_the_others() -> None:
         last_query(actions).query_id,
         30,
         (
-            candidate(left, "left", Verdict.YES, 0.9),
-            candidate(middle, "middle", Verdict.YES, 0.5),
-            candidate(right, "right", Verdict.NO, 0.8),
+            replace(candidate(left, "left", Verdict.YES, 0.9), placement_ok=False),
+            replace(candidate(middle, "middle", Verdict.YES, 0.5), placement_ok=True),
+            replace(candidate(right, "right", Verdict.NO, 0.8), placement_ok=False),
         ),
     )
     init = [a for a in step(state, answer, CFG)[1] if isinstance(a, TrackerInit)][0]
     assert init.candidate_id == "middle"
-    plain = step(reach(S.SEARCHING), replace(answer, query_id=1), CFG)[1]  # no relation in the prompt
+    unplaced = tuple(replace(c, placement_ok=None) for c in answer.candidates)
+    plain = step(state, replace(answer, candidates=unplaced), CFG)[1]  # nothing placed: the best score
     assert [a for a in plain if isinstance(a, TrackerInit)][0].candidate_id == "left"

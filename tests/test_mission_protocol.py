@@ -164,7 +164,8 @@ def test_an_upload_the_ground_abandons_is_cancelled_by_the_autopilot_and_leaves_
             elif msg.get_type() == "MISSION_ACK":
                 acks.append(int(msg.type))
         assert acks == [15]  # OPERATION_CANCELLED
-        assert "Mission upload timeout" in sim.statustexts
+        # The autopilot records its STATUSTEXT just after the ACK goes out: wait for it, not race it.
+        assert wait_for(lambda: "Mission upload timeout" in sim.statustexts), sim.statustexts
         mixed = client.download().items
         assert positions_match(mixed, [*new[:2], *SQUARE[2:]])  # two new items, then the old mission's tail
 

@@ -44,6 +44,22 @@ def test_missing_and_user_supplied_errors_name_file_and_fix(tmp_path: Path) -> N
         require("dasiamrpn", tmp_path)
 
 
+@pytest.mark.parametrize(
+    ("typo", "meant"),
+    [("shard/models", "shared/models"), ("shared/modles", "shared/models"), ("elsewhere/x", None)],
+)
+def test_a_model_folder_that_does_not_exist_is_named_never_offered_for_download(
+    tmp_path: Path, typo: str, meant: str | None
+) -> None:
+    (tmp_path / "shared" / "models").mkdir(parents=True)
+    with pytest.raises(ModelError) as info:
+        require("nano", tmp_path / typo)
+    message = str(info.value)
+    assert f"model folder {tmp_path / typo} does not exist" in message and "--model-dir" in message
+    assert "download" not in message  # never into the misspelt folder
+    assert (f"did you mean {tmp_path / meant}?" in message) if meant else "did you mean" not in message
+
+
 def _corrupt_copy(models_dir: Path, tmp_path: Path) -> Path:
     copy = tmp_path / "models"
     shutil.copytree(models_dir, copy)

@@ -149,7 +149,7 @@ def test_verifier_posture_from_keypoints_on_a_turned_crop(
 
 def test_verifier_reads_only_the_targets_own_description() -> None:
     prompt = "the person in the grey-blue striped shirt walking between the man in the red shirt and a woman"
-    assert own_description(prompt) == "the person in the grey-blue striped shirt walking "
+    assert own_description(prompt) == "the person in the grey-blue striped shirt walking"
     assert own_description("a surfer in a black wetsuit") == "a surfer in a black wetsuit"
     assert compound_colours("a grey-blue shirt and green-and-white shorts") == [{"gray", "blue"}]
 

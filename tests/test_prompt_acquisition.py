@@ -193,11 +193,12 @@ def test_prompt_first_keyframe_of_group_chooses_the_described_man_by_his_body(
     takes in his shadow; the local verifier says yes to him alone and reports his body's extent, which is
     the ground truth's person (IoU >= 0.5), where the detector's own box is not."""
     image, truth, prompt = _keyframe(sequences_dir, 1)
-    detected = pipeline.detect(image, "person")
-    candidates = [c.detection for c in pipeline.verify(image, detected, prompt, "person")]
+    sighting = pipeline.look(image, "person", prompt=prompt)
+    detected = sighting.candidates
+    candidates = [c.detection for c in pipeline.verify(image, detected, prompt, "person", sighting=sighting)]
     yes = [d for d in candidates if d.verdict is YES]
     assert len(yes) == 1, [d.justification for d in candidates]
-    chosen = first_candidate(candidates, accept_uncertain=False, prompt=prompt)
+    chosen = first_candidate(candidates, accept_uncertain=False)
     assert chosen is yes[0] and iou(chosen.start_box, truth) >= 0.5
     raw = max(detected, key=lambda d: iou(d.box, truth))
     assert chosen.box == raw.box  # re-detection keeps judging the detector's box
@@ -214,7 +215,7 @@ def test_prompt_group_keyframes_choose_the_described_man(pipeline: Pipeline, seq
     for frame_id in range(1, len(seq.ground_truth) + 1, round(seq.fps)):
         image, truth, prompt = _keyframe(sequences_dir, frame_id)
         candidates = [c.detection for c in pipeline.run(image, prompt, "person").candidates]
-        chosen = first_candidate(candidates, accept_uncertain=False, prompt=prompt)
+        chosen = first_candidate(candidates, accept_uncertain=False)
         if chosen is not None:
             right += iou(chosen.start_box, truth) >= 0.5
             wrong += iou(chosen.start_box, truth) < 0.5

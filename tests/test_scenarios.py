@@ -220,7 +220,10 @@ def test_sim_cli_lists_scenarios_and_has_help(capsys: pytest.CaptureFixture[str]
         (["camera.source=/no/such/camera/file.mp4"], "not a device index"),
         (["camera.source=sim+tcp://127.0.0.1"], "sim+tcp://HOST:PORT"),
         (["safety.max_speed_m_s=-1"], "max_speed_m_s"),
-        (["tracker.name=nano", "tracker.model_dir=/no/such/models"], "missing"),
+        (
+            ["tracker.name=nano", "tracker.model_dir=/no/such/models"],
+            "model folder /no/such/models does not exist",
+        ),
     ],
 )
 def test_companion_run_refuses_bad_start_up_with_a_clear_error(
@@ -274,19 +277,19 @@ def test_backend_session_reports_status_and_delivers_supervisor_decisions(tmp_pa
                 timeout=5,
             ).json()
             assert status["state"] == "AWAITING_SUPERVISOR" and status["mission_id"] == "m1"
-            for action in ("confirm", "reject"):
+            for candidate, action in (("c7", "confirm"), ("c8", "reject")):
                 r = requests.post(
                     f"{server.url}/v1/vehicles/drone-1/decisions",
                     headers=sup,
                     timeout=5,
-                    json={"candidate_id": "c7", "action": action},
+                    json={"candidate_id": candidate, "action": action, "operator": "supervisor page"},
                 )
                 assert r.status_code == 201, r.text
             commands: list[Any] = []
             while len(commands) < 2 and time.monotonic() < deadline:
                 commands += session.commands()
                 time.sleep(0.05)
-            assert commands == [ConfirmCandidate("c7", by="supervisor page"), RejectCandidate("c7")]
+            assert commands == [ConfirmCandidate("c7", by="supervisor page"), RejectCandidate("c8")]
             # A rejection the back-end refuses for good (unknown candidate) does not block the session.
             session.reject("never-seen", None)
             before = session.last_success()

@@ -4,10 +4,15 @@ from __future__ import annotations
 
 import argparse
 import math
+import re
+import socket
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 
 import pytest
 
@@ -251,3 +256,31 @@ def test_autopilot_subcommand_parses_and_runs(capsys: pytest.CaptureFixture[str]
     assert "px4 autopilot simulator" in capsys.readouterr().out
     bad = parser.parse_args(["autopilot", "--gcs", "bogus:1"])
     assert bad.func(bad) == 2
+
+
+def test_autopilot_help_docs_and_flight_agree_on_the_hover_height() -> None:
+    """`cloudtrack-sim autopilot --help`, docs/sitl.md and the mock's own GLOBAL_POSITION_INT name one height."""
+    parser = argparse.ArgumentParser(prog="cloudtrack-sim")
+    autopilot_command.add_parser(parser.add_subparsers(dest="command"))
+    help_text = " ".join(parser._subparsers._group_actions[0].choices["autopilot"].format_help().split())  # type: ignore[union-attr]
+    (helped,) = {float(v) for v in re.findall(r"hovering at (\d+(?:\.\d+)?) m", help_text)}
+    docs = (Path(__file__).resolve().parents[1] / "docs" / "sitl.md").read_text()
+    (line,) = [ln for ln in docs.splitlines() if ln.startswith("cloudtrack-sim autopilot")]
+    (documented,) = {float(v) for v in re.findall(r"hovering at (\d+(?:\.\d+)?) m", line)}
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    ground = MavlinkEndpoint.open(f"udpin:127.0.0.1:{port}", 255, 190)
+    command = ["autopilot", "--gcs", f"udpout:127.0.0.1:{port}", "--companion", "udpin:127.0.0.1:0"]
+    sim = subprocess.Popen([sys.executable, "-m", "sitl.cli", *command, "--duration", "5"])
+    try:
+        assert receive_until(ground, lambda m: m.get_type() == "HEARTBEAT", 20.0) is not None
+        # Like ArduPilot, the mock sends position only when asked (SET_MESSAGE_INTERVAL, 5 Hz).
+        ground.send(lambda m: m.command_long_send(1, 1, 511, 0, 33, 200_000, 0, 0, 0, 0, 0))
+        position = receive_until(ground, lambda m: m.get_type() == "GLOBAL_POSITION_INT", 5.0)
+    finally:
+        sim.terminate()
+        sim.wait(timeout=10)
+        ground.close()
+    assert position is not None
+    assert helped == documented == pytest.approx(position.relative_alt / 1000.0, abs=0.5)

@@ -222,3 +222,81 @@ def test_supervisor_confirms_a_running_companions_candidate_in_a_real_browser(
     report = replay(load_recording(folder), folder)
     assert report.steps > 50 and report.identical, [d.describe() for d in report.differences[:3]]
     assert SCREENSHOT.stat().st_size > 10_000
+
+
+@pytest.mark.slow
+def test_supervisor_keeps_the_candidate_through_a_loss_and_reacquisition_while_awaiting(
+    page: Page, tmp_path: Path, models_dir: Path, sequences_dir: Path
+) -> None:
+    """The camera goes dark for a moment while the companion awaits the supervisor: it declares the target
+    LOST, then re-acquires it. Throughout, the page keeps the candidate and its Confirm button (issue 28: it
+    showed "drone-1 LOST" with no candidate), and a Confirm clicked after the re-acquisition reaches the
+    companion."""
+    records = tmp_path / "records"
+    with (
+        live_backend(models_dir, verifier="local-hsv") as backend,
+        autopilot("ardupilot") as sim,
+        gcs(sim) as ground,
+        CameraStream(sequences_dir / "uav123_person12_1" / "frames", count=8) as camera,
+    ):
+        settings = {
+            "vehicle.id": "drone-1",
+            "mavlink.connection": f"udpout:127.0.0.1:{sim.link_port('companion')}",
+            "camera.source": f"sim+tcp://127.0.0.1:{camera.port}",
+            "camera.fps": CAMERA_FPS,
+            "backend.url": backend.url,
+            "behavior.standoff_m": STANDOFF_M,
+            "recording.dir": str(records),
+        }
+        command = [sys.executable, "-m", "companion.cli", "run", "--model-dir", str(models_dir)]
+        for key, value in settings.items():
+            command += ["--set", f"{key}={value}"]
+        env = {**os.environ, "CLOUDTRACK_BACKEND__TOKEN": VEHICLE_TOKENS["drone-1"]}
+        log_path = tmp_path / "companion.log"
+        with open(log_path, "w") as log:
+            companion = subprocess.Popen(command, env=env, stdout=log, stderr=subprocess.STDOUT)
+        try:
+            page.goto(f"{backend.url}/supervisor")
+            page.fill("#token", SUPERVISOR_TOKEN)
+            page.click("#login button[type=submit]")
+            expect(page.locator("#connection")).to_have_text("live", timeout=15_000)
+            start_mission(ground)
+            mine = page.locator('section[data-vehicle="drone-1"]')
+            candidate = mine.locator("article.candidate")
+            try:
+                expect(candidate).to_have_count(1, timeout=60_000)
+            except AssertionError:
+                raise AssertionError("no candidate:\n" + log_path.read_text()[-4000:]) from None
+            expect(mine.locator(".state")).to_have_text("AWAITING_SUPERVISOR")
+            waiting_id = candidate.get_attribute("data-candidate")
+            # The camera goes dark: the companion loses the target while it awaits the decision ...
+            camera.paused.set()
+            try:
+                expect(mine.locator(".state")).to_have_text("LOST", timeout=20_000)
+            except AssertionError:
+                raise AssertionError("never LOST:\n" + log_path.read_text()[-4000:]) from None
+            expect(candidate).to_have_count(1)
+            assert candidate.get_attribute("data-candidate") == waiting_id
+            expect(candidate.locator("button.confirm")).to_be_enabled()
+            page.screenshot(path=str(SCREENSHOT.with_name("supervisor-lost-awaiting.png")), full_page=True)
+            # ... and finds it again: still the same candidate, still waiting for the supervisor.
+            camera.paused.clear()
+            expect(mine.locator(".state")).to_have_text("AWAITING_SUPERVISOR", timeout=20_000)
+            expect(candidate).to_have_count(1)
+            assert candidate.get_attribute("data-candidate") == waiting_id
+            candidate.locator("button.confirm").click()
+            expect(mine.locator(".state")).to_have_text("CONFIRMED", timeout=20_000)
+            page.goto("about:blank")
+        finally:
+            if companion.poll() is None:
+                companion.send_signal(signal.SIGTERM)
+                try:
+                    companion.wait(timeout=15)
+                except subprocess.TimeoutExpired:
+                    companion.kill()
+                    companion.wait()
+    log_text = log_path.read_text()
+    assert "LOST -> AWAITING_SUPERVISOR (target re-acquired)" in log_text, log_text[-3000:]
+    (folder,) = [p for p in records.iterdir() if p.is_dir()]
+    decisions = [e for e in read_events(folder) if e["kind"] == "supervisor_decision"]
+    assert [d["decision"] for d in decisions] == ["confirm"]

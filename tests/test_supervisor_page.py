@@ -156,8 +156,11 @@ def test_snapshot_crop_and_decision_reach_the_vehicle(backend: LiveBackend, crop
         )
 
 
-def read_events(lines: Iterator[str], count: int, timeout_s: float = 15.0) -> list[dict[str, Any]]:
-    """The next `count` `state` events from the lines of an open Server-Sent Events response."""
+def read_events(
+    lines: Iterator[str], count: int, timeout_s: float = 15.0, kinds: tuple[str, ...] = ("state", "vehicle")
+) -> list[dict[str, Any]]:
+    """The snapshot after each of the next `count` `state` or `vehicle` events (a `vehicle` event replaces
+    that vehicle in the last snapshot, as the page does) from an open Server-Sent Events response."""
     found: list[dict[str, Any]] = []
     kind, data = "", []
     deadline = time.monotonic() + timeout_s
@@ -168,12 +171,31 @@ def read_events(lines: Iterator[str], count: int, timeout_s: float = 15.0) -> li
         elif line.startswith("data:"):
             data.append(line[5:].strip())
         elif line == "" and data:
+            body = json.loads("\n".join(data))
             if kind == "state":
-                found.append(json.loads("\n".join(data)))
+                read_events.snapshot = body  # type: ignore[attr-defined]
+            elif kind == "vehicle":
+                last = read_events.snapshot  # type: ignore[attr-defined]
+                last["vehicles"] = [body if v["id"] == body["id"] else v for v in last["vehicles"]]
+            if kind in kinds:
+                found.append(json.loads(json.dumps(read_events.snapshot if kind != "ages" else body)))  # type: ignore[attr-defined]
                 if len(found) == count:
                     return found
             kind, data = "", []
     raise AssertionError("stream ended")
+
+
+def test_a_report_that_changes_nothing_still_renews_the_vehicles_age(backend: LiveBackend) -> None:
+    """The companion reports every second; "last report" must say so even when nothing else changed."""
+    with httpx.Client(base_url=backend.url, timeout=15) as client:
+        report(client, "SEARCHING", None, vehicle="drone-2")
+        with client.stream("GET", "/supervisor/events", headers=SUPERVISOR) as stream:
+            lines = stream.iter_lines()
+            read_events(lines, 1, kinds=("state",))
+            time.sleep(1.5)
+            report(client, "SEARCHING", None, vehicle="drone-2")
+            (ages,) = read_events(lines, 1, kinds=("ages",))
+            assert ages["drone-2"] < 1.0
 
 
 def test_live_updates_arrive_as_server_sent_events(backend: LiveBackend, crop_b64: str) -> None:

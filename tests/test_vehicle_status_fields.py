@@ -56,7 +56,10 @@ def test_status_fields_are_stored_and_served_back(client: TestClient) -> None:
     served = client.get("/v1/vehicles/drone-1/status", headers=auth()).json()
     fleet = client.get("/v1/vehicles", headers={"Authorization": f"Bearer {SUPERVISOR}"}).json()
     for body in (response.json(), served, fleet[0]):
-        assert {k: body[k] for k in FULL} == {**FULL, "find": {**FULL["find"], "crop_jpeg_b64": None}}
+        assert {k: body[k] for k in FULL} == {
+            **FULL,
+            "find": {**FULL["find"], "crop_jpeg_b64": None, "crop_box": None},
+        }
     # Every new field is optional: an old companion's report still fits.
     minimal = client.post("/v1/vehicles/drone-1/status", headers=auth(), json={"state": "IDLE"})
     assert minimal.status_code == 200 and minimal.json()["reason"] == "" and minimal.json()["search"] is None

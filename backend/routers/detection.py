@@ -11,14 +11,15 @@ from typing import Annotated
 
 from fastapi import APIRouter, File, Form, HTTPException, UploadFile
 from fastapi.concurrency import run_in_threadpool
-from fastapi.encoders import jsonable_encoder
+from fastapi.exceptions import RequestValidationError
 from pydantic import ValidationError
 
 from backend.auth import require_vehicle_access
-from backend.dependencies import Caller, CurrentPipeline, LoadedModels, Scheduler, Sessions, Settings, admit
+from backend.dependencies import Caller, CurrentPipeline, LoadedModels, Scheduler, Sessions, Settings
 from backend.fair_queue import QueueFullError
 from backend.images import check_size, decode_image
-from backend.schemas import ERROR_RESPONSES, Candidate, DetectMeta, DetectResponse, Timings
+from backend.request_limits import DETECT_META, json_shape_problem
+from backend.schemas import ERROR_RESPONSES, Candidate, DetectMeta, DetectResponse, KeyframeCandidate, Timings
 from backend.supersets import UnknownSupersetError, superset_from_prompt
 from behaviors.geometry import Box
 
@@ -38,17 +39,16 @@ async def detect(
 ) -> DetectResponse:
     """Detect the superset in a keyframe and verify each candidate against the full description."""
     t_received = time.perf_counter()
+    problem = json_shape_problem(meta, DETECT_META)  # bounded before pydantic sees it
+    if problem is not None:
+        raise HTTPException(413, f"meta: {problem}")
     try:
         fields = DetectMeta.model_validate_json(meta)
     except ValidationError as exc:
-        # Echoing the input back could carry NaN/inf, which JSON cannot encode: loc + msg say enough.
-        errors = [
-            {"type": e["type"], "loc": ["meta", *e["loc"]], "msg": e["msg"]}
-            for e in exc.errors(include_url=False, include_context=False, include_input=False)
-        ]
-        raise HTTPException(422, jsonable_encoder(errors)) from None
+        errors = exc.errors(include_url=False, include_context=False, include_input=False)
+        # The app's handler answers it as every 422: the first few errors and their count.
+        raise RequestValidationError([{**e, "loc": ("meta", *e["loc"])} for e in errors]) from None
     require_vehicle_access(principal, fields.vehicle_id)
-    admit(settings, sessions, principal)
     superset = (fields.superset or superset_from_prompt(fields.prompt) or "").strip().lower()
     if not superset:
         raise HTTPException(422, "the prompt names no known class; set 'superset' (e.g. \"person\")")
@@ -68,8 +68,8 @@ async def detect(
             frame = await run_in_threadpool(decode_image, data, settings.server.max_image_pixels)
             t_decode = time.perf_counter() - t_decode
             t_detect = time.perf_counter()
-            detections = await run_in_threadpool(
-                pipeline.detect, frame, superset, roi, fields.frame_id, fields.prompt
+            sighting = await run_in_threadpool(
+                pipeline.look, frame, superset, roi, fields.frame_id, fields.prompt
             )
             t_detect = time.perf_counter() - t_detect
     except QueueFullError as exc:
@@ -83,7 +83,7 @@ async def detect(
     early = pipeline.early_stage() if fields.stage == "early" else None
     t_verify = time.perf_counter()
     candidates = await (early or pipeline).verify_async(
-        frame, detections, fields.prompt, superset, check, t_received + pipeline.deadline_s
+        frame, sighting.candidates, fields.prompt, superset, check, t_received + pipeline.deadline_s, sighting
     )
     t_verify = time.perf_counter() - t_verify
     await run_in_threadpool(
@@ -91,6 +91,23 @@ async def detect(
         fields.vehicle_id,
         fields.mission_id,
         [(c.detection.candidate_id, c.appearance) for c in candidates],
+    )
+    # The newest keyframe and its boxes, for the supervisor's live view.
+    await run_in_threadpool(
+        sessions.set_keyframe,
+        fields.vehicle_id,
+        fields.mission_id,
+        fields.frame_id,
+        data,
+        (int(frame.shape[1]), int(frame.shape[0])),
+        [
+            KeyframeCandidate(
+                id=c.detection.candidate_id,
+                box=[round(v, 1) for v in c.detection.box.xyxy()],
+                verdict=c.detection.verdict.value,
+            )
+            for c in candidates
+        ],
     )
     return DetectResponse(
         vehicle_id=fields.vehicle_id,
@@ -114,6 +131,8 @@ async def detect(
                 justification=c.detection.justification,
                 judged=c.detection.judged,
                 placement_ok=c.detection.placement_ok,
+                unjudged=list(c.detection.unjudged),
+                singled_out=c.detection.singled_out,
                 verifier=c.verifier,
                 t_verify=round(c.t_verify, 4),
                 previously_rejected=c.previously_rejected,

@@ -11,7 +11,7 @@ from fastapi import APIRouter, HTTPException, Query
 from fastapi.concurrency import run_in_threadpool
 
 from backend.auth import require_vehicle_access
-from backend.dependencies import Caller, MissionId, Scheduler, Sessions, Settings, admit
+from backend.dependencies import Caller, MissionId, Scheduler, Sessions
 from backend.fair_queue import QueueFullError
 from backend.schemas import ERROR_RESPONSES, IDENTIFIER, Rejection, RejectionIn
 from backend.sessions import UnknownCandidateError
@@ -24,7 +24,6 @@ async def add_rejection(
     mission_id: MissionId,
     body: RejectionIn,
     principal: Caller,
-    settings: Settings,
     sessions: Sessions,
     scheduler: Scheduler,
 ) -> Rejection:
@@ -33,24 +32,28 @@ async def add_rejection(
     The mission is the sending vehicle's (`vehicle_id`): missions are keyed by (vehicle, mission).
     """
     require_vehicle_access(principal, body.vehicle_id)
-    admit(settings, sessions, principal)
     try:
         # A crop is decoded in the vehicle's slot, like a keyframe (its size checked from its header first).
         async with scheduler.slot(body.vehicle_id):
-            return await run_in_threadpool(sessions.add_rejection, mission_id, body)
+            rejection = await run_in_threadpool(sessions.add_rejection, mission_id, body)
     except QueueFullError as exc:
         raise HTTPException(
             429, f"too many requests waiting for this vehicle: {exc}", headers={"Retry-After": "1"}
         ) from None
     except UnknownCandidateError as exc:
         raise HTTPException(404, str(exc)) from None
+    if principal.vehicle_id is not None and body.candidate_id:
+        # The vehicle's own reject (from its GCS): it stands, so the supervisor cannot contradict it later.
+        await run_in_threadpool(
+            sessions.record_vehicle_reject, body.vehicle_id, mission_id, body.candidate_id
+        )
+    return rejection
 
 
 @router.get("/rejections", response_model=list[Rejection], responses=ERROR_RESPONSES)
 def list_rejections(
     mission_id: MissionId,
     principal: Caller,
-    settings: Settings,
     sessions: Sessions,
     vehicle_id: Annotated[
         str | None, Query(pattern=IDENTIFIER, description="whose mission; default: the token's vehicle")
@@ -61,5 +64,4 @@ def list_rejections(
     if vehicle is None:
         raise HTTPException(422, "the supervisor must name the vehicle: ?vehicle_id=<id>")
     require_vehicle_access(principal, vehicle)
-    admit(settings, sessions, principal)
     return sessions.rejections(vehicle, mission_id)

@@ -7,6 +7,8 @@ Routes (all under /supervisor):
   GET  /supervisor/api/enabled          {"enabled": bool}: whether a supervisor token is configured (no token)
   GET  /supervisor/events               the same snapshot pushed as Server-Sent Events on every change
   GET  /supervisor/api/vehicles/{v}/candidates/{c}/crop.jpg    the crop the verifier saw
+  GET  /supervisor/api/vehicles/{v}/finds/{m}/{c}/crop.jpg      a confirmed find's crop
+  GET  /supervisor/api/vehicles/{v}/keyframe.jpg                the newest keyframe (the snapshot has its boxes)
 
 The page's Confirm / Reject go to the API's one decision endpoint, `POST /v1/vehicles/{v}/decisions`
 with `?require_awaiting=true` (`backend.routers.vehicles`): stored in the session store (on disk or in
@@ -22,6 +24,7 @@ stream is woken by the store's changes (backend.change_feed), not by polling per
 
 from __future__ import annotations
 
+import json
 import time
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -33,6 +36,7 @@ from fastapi.responses import FileResponse, Response, StreamingResponse
 from backend.dependencies import (
     CandidateId,
     Feed,
+    MissionId,
     Sessions,
     Settings,
     StreamLimits,
@@ -42,7 +46,7 @@ from backend.dependencies import (
 )
 from backend.images import ImageError, b64_image_bytes, is_jpeg
 from backend.schemas import SupervisorEnabled, SupervisorSnapshot
-from backend.supervisor_view import without_ages
+from backend.supervisor_view import view_content
 
 STATIC_DIR = Path(__file__).resolve().parents[1] / "static"
 STATIC_FILES = {
@@ -83,23 +87,35 @@ def state(view: View) -> SupervisorSnapshot:
 
 @router.get("/events", dependencies=_AUTHED)
 async def events(request: Request, view: View, feed: Feed, limits: StreamLimits) -> StreamingResponse:
-    """Server-Sent Events: `event: state` with the snapshot whenever the store changes, comments as keep-alive."""
+    """Server-Sent Events: `state` (the whole snapshot) first and when vehicles come or go, `vehicle` (one
+    vehicle's view) when only it changed, `ages` when only reports arrived, comments as keep-alive."""
 
     async def stream() -> AsyncIterator[str]:
         opened = time.monotonic()
         yield "retry: 1000\n\n"
         version = feed.version
-        last = None
+        sent: dict[str, str] | None = None  # vehicle id -> its content as last sent
+        reported: dict[str, float] = {}
         # A stream ends after max_stream_s and the page reconnects at once: a server shutting down
         # (uvicorn waits for open responses) or a proxy's idle limit never holds a stream for long.
         while not await request.is_disconnected() and time.monotonic() - opened < limits.max_stream_s:
             snapshot = await run_in_threadpool(view.snapshot)
-            content = without_ages(snapshot)
-            if content != last:
-                last = content
+            content = {v.id: view_content(v) for v in snapshot.vehicles}
+            ages = {v.id: v.age_s for v in snapshot.vehicles}
+            # A report that changed nothing still makes the vehicle's "last report" young again.
+            reports = {vid: snapshot.server_time - age for vid, age in ages.items()}
+            fresher = any(at > reported.get(vid, 0.0) + 0.05 for vid, at in reports.items())
+            if sent is None or content.keys() != sent.keys():
                 yield f"event: state\ndata: {snapshot.model_dump_json()}\n\n"
+            elif content != sent:
+                for vehicle in snapshot.vehicles:
+                    if content[vehicle.id] != sent[vehicle.id]:
+                        yield f"event: vehicle\ndata: {vehicle.model_dump_json()}\n\n"
+            elif fresher:
+                yield f"event: ages\ndata: {json.dumps(ages)}\n\n"
             else:
                 yield ": keep-alive\n\n"  # proxies close silent connections
+            sent, reported = content, reports
             remaining = limits.max_stream_s - (time.monotonic() - opened)
             version = await feed.wait(version, max(0.0, min(limits.keepalive_s, remaining)))
 
@@ -115,11 +131,37 @@ def crop(vehicle_id: VehicleId, candidate_id: CandidateId, sessions: Sessions) -
         raise HTTPException(
             status.HTTP_404_NOT_FOUND, f"no crop for candidate {candidate_id!r} of {vehicle_id!r}"
         )
+    return _jpeg(awaiting.crop_jpeg_b64, sessions.max_crop_pixels)
+
+
+@router.get("/api/vehicles/{vehicle_id}/finds/{mission_id}/{candidate_id}/crop.jpg", dependencies=_AUTHED)
+def find_crop(
+    vehicle_id: VehicleId, mission_id: MissionId, candidate_id: CandidateId, sessions: Sessions
+) -> Response:
+    """The crop of a confirmed find (it stays when the vehicle has moved on)."""
+    found = [f for f in sessions.finds(vehicle_id, mission_id) if f.candidate_id == candidate_id]
+    if not found or not found[0].crop_jpeg_b64:
+        raise HTTPException(
+            status.HTTP_404_NOT_FOUND, f"no crop for the find {candidate_id!r} of {vehicle_id!r}"
+        )
+    return _jpeg(found[0].crop_jpeg_b64, sessions.max_crop_pixels)
+
+
+@router.get("/api/vehicles/{vehicle_id}/keyframe.jpg", dependencies=_AUTHED)
+def keyframe(vehicle_id: VehicleId, sessions: Sessions) -> Response:
+    """The newest keyframe the vehicle sent to /v1/detect (the snapshot holds its boxes)."""
+    kept = sessions.state.keyframe_jpeg(vehicle_id)
+    if kept is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"no keyframe from {vehicle_id!r}")
+    return Response(kept[1], media_type="image/jpeg", headers=_NO_STORE)
+
+
+def _jpeg(b64: str, max_pixels: int) -> Response:
     try:
-        data = b64_image_bytes(awaiting.crop_jpeg_b64)
+        data = b64_image_bytes(b64)
     except ImageError as exc:
         raise HTTPException(exc.status, str(exc)) from None
     # Only bytes that are a JPEG by their header go out as image/jpeg (the store checks on the way in too).
-    if not is_jpeg(data, sessions.max_crop_pixels):
+    if not is_jpeg(data, max_pixels):
         raise HTTPException(422, "the vehicle's crop is not a JPEG image")
     return Response(data, media_type="image/jpeg", headers=_NO_STORE)

@@ -6,12 +6,13 @@ other supervisor client; the companion polls `GET .../decisions?after=N`.
 
 from __future__ import annotations
 
+import time
 from typing import Annotated
 
-from fastapi import APIRouter, HTTPException, Query, status
+from fastapi import APIRouter, HTTPException, Query, Response, status
 
 from backend.auth import require_vehicle_access
-from backend.dependencies import Caller, Sessions, Settings, SupervisorCaller, VehicleId, admit
+from backend.dependencies import Caller, Sessions, SupervisorCaller, VehicleId
 from backend.schemas import (
     ERROR_RESPONSES,
     Decision,
@@ -26,14 +27,13 @@ router = APIRouter(prefix="/v1/vehicles", tags=["sessions"])
 
 @router.post("/{vehicle_id}/status", response_model=VehicleStatus, responses=ERROR_RESPONSES)
 def report_status(
-    vehicle_id: VehicleId, body: VehicleStatusIn, principal: Caller, settings: Settings, sessions: Sessions
+    vehicle_id: VehicleId, body: VehicleStatusIn, principal: Caller, sessions: Sessions
 ) -> VehicleStatus:
     """The companion's state and the candidate awaiting the supervisor (crop, justification, position).
 
     The crop must be a JPEG (checked from its header, at most `server.max_crop_pixels`), else 413/422.
     """
     require_vehicle_access(principal, vehicle_id)
-    admit(settings, sessions, principal)
     return sessions.set_status(vehicle_id, body)
 
 
@@ -55,13 +55,21 @@ def list_vehicles(_: SupervisorCaller, sessions: Sessions) -> list[VehicleStatus
     "/{vehicle_id}/decisions",
     response_model=Decision,
     status_code=status.HTTP_201_CREATED,
-    responses={**ERROR_RESPONSES, 409: {"model": ErrorResponse}},
+    responses={
+        **ERROR_RESPONSES,
+        200: {
+            "model": Decision,
+            "description": "the same decision stands already (a repeat changes nothing)",
+        },
+        409: {"model": ErrorResponse, "description": "another decision on this candidate stands (named)"},
+    },
 )
 def decide(
     vehicle_id: VehicleId,
     body: DecisionIn,
     _: SupervisorCaller,
     sessions: Sessions,
+    response: Response,
     require_awaiting: Annotated[
         bool,
         Query(
@@ -70,9 +78,11 @@ def decide(
         ),
     ] = False,
 ) -> Decision:
-    """The supervisor confirms or rejects a candidate; a reject also enters the rejection memory.
+    """The supervisor confirms or rejects a candidate; the first decision on a candidate stands.
 
-    Both are stored (on disk, or in Redis) before the 201; a crop that cannot be read only keeps the
+    201: stored (on disk, or in Redis) before the answer; a reject also enters the rejection memory, a
+    confirm is kept as a find. 200: the same decision stood already. 409: a different one stands (the
+    answer names it), also when the vehicle took it from its GCS. A crop that cannot be read only keeps a
     reject out of the memory, never loses the decision.
     """
     if require_awaiting:
@@ -80,22 +90,40 @@ def decide(
         if current is None:
             raise HTTPException(status.HTTP_404_NOT_FOUND, f"vehicle {vehicle_id!r} has not reported")
         if current.awaiting is None or current.awaiting.candidate_id != body.candidate_id:
-            raise HTTPException(
-                status.HTTP_409_CONFLICT,
-                f"{vehicle_id!r} is no longer waiting for a decision on {body.candidate_id!r}",
-            )
-    return sessions.add_decision(vehicle_id, body)
+            standing = sessions.standing_decision(vehicle_id, current.mission_id, body.candidate_id)
+            if standing is not None and standing.action != body.action:
+                raise HTTPException(status.HTTP_409_CONFLICT, standing_text(standing))
+            if standing is None:
+                raise HTTPException(
+                    status.HTTP_409_CONFLICT,
+                    f"{vehicle_id!r} is no longer waiting for a decision on {body.candidate_id!r}",
+                )
+    decision, created = sessions.add_decision(vehicle_id, body)
+    if not created:
+        if decision.action != body.action:
+            raise HTTPException(status.HTTP_409_CONFLICT, standing_text(decision))
+        response.status_code = status.HTTP_200_OK
+    return decision
+
+
+def standing_text(decision: Decision) -> str:
+    """A refused decision's answer: the one that stands, who took it and when."""
+    when = time.strftime("%H:%M:%S UTC", time.gmtime(decision.created_at))
+    who = decision.operator or decision.source
+    done = {"confirm": "confirmed", "reject": "rejected"}[decision.action]
+    return (
+        f"candidate {decision.candidate_id!r} was already {done} by {who} at {when} "
+        f"(decision {decision.decision_id}); that decision stands"
+    )
 
 
 @router.get("/{vehicle_id}/decisions", response_model=list[Decision], responses=ERROR_RESPONSES)
 def poll_decisions(
     vehicle_id: VehicleId,
     principal: Caller,
-    settings: Settings,
     sessions: Sessions,
-    after: Annotated[int, Query(ge=0, description="last decision_id already seen")] = 0,
+    after: Annotated[int, Query(ge=0, le=2**63 - 1, description="last decision_id already seen")] = 0,
 ) -> list[Decision]:
     """Decisions for this vehicle newer than `after` (the companion polls this)."""
     require_vehicle_access(principal, vehicle_id)
-    admit(settings, sessions, principal)
     return sessions.decisions(vehicle_id, after)

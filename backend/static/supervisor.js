@@ -1,16 +1,20 @@
-// CloudTrack supervisor page: live vehicle states and candidates, Confirm / Reject.
+// CloudTrack supervisor page: the operator's console per vehicle. The newest keyframe with the tracked and
+// candidate boxes, the state and why, search progress and coverage, the candidate awaiting a decision (its
+// crop with the box drawn) with Confirm / Reject, a map drawn from the positions themselves (no internet
+// needed; an optional tile layer from `[supervisor] map_tiles`), and the finds, which stay.
 // The token is a bearer token like the API's; it lives in this tab's sessionStorage only. Live updates are
 // Server-Sent Events read with fetch() so the token travels in a header, never in a URL (or a proxy log).
 // Everything that came from a vehicle or a VLM is inserted as text, never as HTML.
 "use strict";
 
 const TOKEN_KEY = "cloudtrack.supervisor_token";
+const SVG = "http://www.w3.org/2000/svg";
 const $ = (selector, root = document) => root.querySelector(selector);
 let token = sessionStorage.getItem(TOKEN_KEY) || "";
-let snapshot = { vehicles: [] };
-let receivedAt = performance.now();
+let mapTiles = "";
+const vehicles = new Map(); // vehicle id -> { view, receivedAt }
 let stream = null;
-const cropUrls = new Map(); // crop URL -> object URL of the fetched image
+const images = new Map(); // image URL -> object URL of the fetched image ("" while fetching)
 
 function authHeaders(extra = {}) {
   return { Authorization: `Bearer ${token}`, ...extra };
@@ -46,7 +50,7 @@ async function login(event) {
   $("#login-error").textContent = "";
   $("#token").value = "";
   $("#logout").hidden = false;
-  render(await response.json());
+  renderAll(await response.json());
   connect();
 }
 
@@ -76,7 +80,7 @@ async function connect(delayMs = 1000) {
         buffer = buffer.slice(end + 2);
       }
     }
-    // The server ends every stream after a while (see supervisor_routes): open the next one at once.
+    // The server ends every stream after a while (see backend/routers/supervisor.py): open the next one.
     if (!signal.aborted) connect();
     return;
   } catch (error) {
@@ -95,7 +99,21 @@ function handleMessage(block) {
     if (line.startsWith("event:")) kind = line.slice(6).trim();
     else if (line.startsWith("data:")) data.push(line.slice(5).replace(/^ /, ""));
   }
-  if (kind === "state" && data.length) render(JSON.parse(data.join("\n")));
+  if (!data.length) return;
+  const body = JSON.parse(data.join("\n"));
+  if (kind === "state") renderAll(body);
+  else if (kind === "vehicle") renderVehicle(body);
+  else if (kind === "ages") {
+    // Reports that changed nothing else: only "last report" becomes young again.
+    for (const [id, age] of Object.entries(body)) {
+      const known = vehicles.get(id);
+      if (known) {
+        known.view.age_s = age;
+        known.receivedAt = performance.now();
+      }
+    }
+    tick();
+  }
 }
 
 // --- rendering ------------------------------------------------------------------------------------
@@ -106,42 +124,229 @@ function formatAge(seconds) {
   return `${(seconds / 3600).toFixed(1)} h ago`;
 }
 
-function formatPosition(position) {
+function formatPosition(position, sigma) {
   if (!position) return "position unknown";
   const text = `${position.lat.toFixed(6)}, ${position.lon.toFixed(6)}`;
-  return position.uncertainty_m != null ? `${text} (± ${Math.round(position.uncertainty_m)} m)` : text;
+  if (sigma === undefined) return text;
+  return sigma === null ? `${text} (± ? m)` : `${text} (± ${sigma.toFixed(1)} m)`;
 }
 
-function elapsed() {
-  return (performance.now() - receivedAt) / 1000;
+function formatTime(unix) {
+  const date = new Date(unix * 1000);
+  return `${date.toISOString().slice(0, 19).replace("T", " ")} UTC`;
 }
 
-function render(data) {
-  snapshot = data;
-  receivedAt = performance.now();
-  const main = $("#vehicles");
-  const seen = new Set();
-  for (const vehicle of data.vehicles) {
-    seen.add(vehicle.id);
-    let card = main.querySelector(`section.vehicle[data-vehicle="${CSS.escape(vehicle.id)}"]`);
-    if (!card) {
-      card = $("#vehicle-template").content.firstElementChild.cloneNode(true);
-      card.dataset.vehicle = vehicle.id;
-      main.appendChild(card);
+function svg(tag, attributes = {}, parent = null) {
+  const node = document.createElementNS(SVG, tag);
+  for (const [name, value] of Object.entries(attributes)) node.setAttribute(name, value);
+  if (parent) parent.appendChild(node);
+  return node;
+}
+
+function renderAll(snapshot) {
+  mapTiles = snapshot.map_tiles || "";
+  const seen = new Set(snapshot.vehicles.map((v) => v.id));
+  for (const card of document.querySelectorAll("section.vehicle")) {
+    if (!seen.has(card.dataset.vehicle)) {
+      card.remove();
+      vehicles.delete(card.dataset.vehicle);
     }
-    $(".vehicle-id", card).textContent = vehicle.id;
-    const state = $(".state", card);
-    state.textContent = vehicle.state;
-    state.dataset.state = vehicle.state;
-    $(".mission", card).textContent = vehicle.prompt ? `Looking for: ${vehicle.prompt}` : "";
-    renderCandidates(card, vehicle);
   }
-  for (const card of main.querySelectorAll("section.vehicle")) {
-    if (!seen.has(card.dataset.vehicle)) card.remove();
+  for (const vehicle of snapshot.vehicles) renderVehicle(vehicle);
+  $("#no-vehicles").hidden = snapshot.vehicles.length > 0;
+}
+
+function renderVehicle(vehicle) {
+  vehicles.set(vehicle.id, { view: vehicle, receivedAt: performance.now() });
+  const main = $("#vehicles");
+  let card = main.querySelector(`section.vehicle[data-vehicle="${CSS.escape(vehicle.id)}"]`);
+  if (!card) {
+    card = $("#vehicle-template").content.firstElementChild.cloneNode(true);
+    card.dataset.vehicle = vehicle.id;
+    main.appendChild(card);
   }
-  $("#no-vehicles").hidden = data.vehicles.length > 0;
+  $("#no-vehicles").hidden = true;
+  $(".vehicle-id", card).textContent = vehicle.id;
+  const state = $(".state", card);
+  state.textContent = vehicle.state;
+  state.dataset.state = vehicle.state;
+  $(".reason", card).textContent = vehicle.reason || "";
+  const authError = $(".auth-error", card);
+  authError.hidden = !vehicle.auth_error;
+  authError.textContent = vehicle.auth_error || "";
+  $(".mission", card).textContent = vehicle.prompt
+    ? `Looking for: ${vehicle.prompt}${vehicle.mission_id ? ` (mission ${vehicle.mission_id})` : ""}`
+    : "";
+  renderKeyframe(card, vehicle);
+  renderProgress(card, vehicle);
+  renderMap(card, vehicle);
+  renderCandidates(card, vehicle);
+  renderFinds(card, vehicle);
   tick();
 }
+
+function renderKeyframe(card, vehicle) {
+  const keyframe = vehicle.keyframe;
+  const img = $(".keyframe", card);
+  const overlay = $(".overlay", card);
+  $(".no-keyframe", card).hidden = Boolean(keyframe);
+  img.hidden = !keyframe;
+  overlay.replaceChildren();
+  if (!keyframe) {
+    $(".keyframe-info", card).textContent = "";
+    return;
+  }
+  if (card.dataset.keyframe !== keyframe.url) {
+    card.dataset.keyframe = keyframe.url;
+    loadImage(img, keyframe.url, { replaces: true });
+  }
+  overlay.setAttribute("viewBox", `0 0 ${keyframe.width} ${keyframe.height}`);
+  overlay.setAttribute("font-size", Math.max(12, keyframe.width / 55)); // labels readable at any frame size
+  $(".frame", card).style.aspectRatio = `${keyframe.width} / ${keyframe.height}`;
+  for (const candidate of keyframe.candidates) {
+    const [x1, y1, x2, y2] = candidate.box;
+    svg("rect", { x: x1, y: y1, width: x2 - x1, height: y2 - y1, class: candidate.verdict }, overlay);
+    const label = svg("text", { x: x1, y: Math.max(keyframe.width / 55, y1 - 4) }, overlay);
+    label.textContent = `${candidate.verdict} ${candidate.id.slice(0, 6)}`;
+  }
+  const track = keyframe.track_box;
+  if (track) {
+    const [x1, y1, x2, y2] = track;
+    svg("rect", { x: x1, y: y1, width: x2 - x1, height: y2 - y1, class: "track" }, overlay);
+    const label = svg("text", { x: x1, y: Math.min(keyframe.height - 4, y2 + keyframe.width / 50) }, overlay);
+    label.textContent = "tracked";
+  }
+  $(".keyframe-info", card).dataset.frame = keyframe.frame_id ?? "";
+}
+
+function renderProgress(card, vehicle) {
+  const progress = vehicle.progress;
+  $(".progress", card).textContent = progress
+    ? `${progress.keyframes} keyframes checked · ${progress.candidates} candidates · ${progress.rejected} rejected`
+    : "no search progress reported";
+  const search = vehicle.search;
+  const coverage = search ? search.coverage : null;
+  $(".coverage-fill", card).style.width = `${Math.round((coverage || 0) * 100)}%`;
+  $(".coverage", card).textContent = coverage === null ? "coverage unknown" : `${(coverage * 100).toFixed(0)} % of the area seen`;
+  const item = search && search.mission_item != null
+    ? `mission item ${search.mission_item}${search.mission_items != null ? ` of ${search.mission_items}` : ""}`
+    : "";
+  $(".mission-item", card).textContent = [item, search && search.mode ? `mode ${search.mode}` : ""].filter(Boolean).join(" · ");
+  const position = vehicle.position;
+  $(".position", card).textContent = position
+    ? `vehicle ${position[0].toFixed(6)}, ${position[1].toFixed(6)}` +
+      (vehicle.altitude_m != null ? `, ${vehicle.altitude_m.toFixed(0)} m up` : "") +
+      (vehicle.heading_deg != null ? `, heading ${vehicle.heading_deg.toFixed(0)}°` : "")
+    : "vehicle position unknown";
+}
+
+// --- the map: Web Mercator, fitted to what there is to show; tiles only when configured -------------
+
+function mercator(lat, lon) {
+  const s = Math.sin((Math.max(-85, Math.min(85, lat)) * Math.PI) / 180);
+  return [((lon + 180) / 360) * 256, (0.5 - Math.log((1 + s) / (1 - s)) / (4 * Math.PI)) * 256];
+}
+
+function renderMap(card, vehicle) {
+  const map = $(".map", card);
+  const width = 400;
+  const height = 300;
+  map.setAttribute("viewBox", `0 0 ${width} ${height}`);
+  map.replaceChildren();
+  const search = vehicle.search || { area: [], covered: [] };
+  const candidates = vehicle.candidates.filter((c) => c.position);
+  const points = [
+    ...search.area,
+    ...search.covered.flat(),
+    ...vehicle.track,
+    ...(vehicle.position ? [vehicle.position] : []),
+    ...candidates.map((c) => [c.position.lat, c.position.lon]),
+    ...vehicle.finds.map((f) => [f.position.lat, f.position.lon]),
+  ];
+  if (!points.length) {
+    const empty = svg("text", { x: width / 2, y: height / 2, "text-anchor": "middle", class: "empty" }, map);
+    empty.textContent = "no positions reported yet";
+    $(".map-info", card).textContent = "";
+    return;
+  }
+  const world = points.map(([lat, lon]) => mercator(lat, lon));
+  const xs = world.map((p) => p[0]);
+  const ys = world.map((p) => p[1]);
+  const [minX, maxX, minY, maxY] = [Math.min(...xs), Math.max(...xs), Math.min(...ys), Math.max(...ys)];
+  const midLat = points.reduce((sum, p) => sum + p[0], 0) / points.length;
+  const metresPerUnit = (40075016.686 * Math.cos((midLat * Math.PI) / 180)) / 256;
+  const span = Math.max(maxX - minX, maxY - minY, 60 / metresPerUnit); // at least 60 m across
+  const scale = (Math.min(width, height) * 0.85) / span; // pixels per world unit
+  const cx = (minX + maxX) / 2;
+  const cy = (minY + maxY) / 2;
+  const project = ([lat, lon]) => {
+    const [x, y] = mercator(lat, lon);
+    return [width / 2 + (x - cx) * scale, height / 2 + (y - cy) * scale];
+  };
+  if (mapTiles) drawTiles(map, scale, cx, cy, width, height);
+  const path = (ring) => ring.map(project).map(([x, y], i) => `${i ? "L" : "M"}${x.toFixed(1)},${y.toFixed(1)}`).join(" ");
+  for (const ring of search.covered) if (ring.length > 2) svg("path", { d: `${path(ring)} Z`, class: "covered" }, map);
+  if (search.area.length > 2) svg("path", { d: `${path(search.area)} Z`, class: "area" }, map);
+  if (vehicle.track.length > 1) svg("path", { d: path(vehicle.track), class: "track" }, map);
+  for (const candidate of candidates) {
+    const [x, y] = project([candidate.position.lat, candidate.position.lon]);
+    svg("circle", { cx: x, cy: y, r: 6, class: "candidate-mark" }, map);
+    const label = svg("text", { x: x + 8, y: y - 6 }, map);
+    label.textContent = `candidate ${candidate.status}`;
+  }
+  for (const find of vehicle.finds) {
+    const [x, y] = project([find.position.lat, find.position.lon]);
+    if (find.sigma_m) svg("circle", { cx: x, cy: y, r: Math.max(4, (find.sigma_m / metresPerUnit) * scale), class: "sigma" }, map);
+    svg("path", { d: `M${x},${y} l-7,-16 a7.5,7.5 0 1 1 14,0 z`, class: "find-mark" }, map);
+    const label = svg("text", { x: x + 9, y: y - 12 }, map);
+    label.textContent = `find ${formatTime(find.time).slice(11, 16)}`;
+  }
+  if (vehicle.position) {
+    const [x, y] = project(vehicle.position);
+    const heading = vehicle.heading_deg ?? 0;
+    svg("path", { d: "M0,-10 L6,7 L0,3 L-6,7 Z", transform: `translate(${x},${y}) rotate(${heading})`, class: "vehicle-mark" }, map);
+  }
+  drawScale(map, metresPerUnit / scale, height);
+  $(".map-info", card).textContent = mapTiles ? "map tiles from the configured tile server" : "drawn from the reported positions (no map tiles)";
+}
+
+function drawTiles(map, scale, cx, cy, width, height) {
+  const zoom = Math.max(0, Math.min(20, Math.floor(Math.log2(scale))));
+  const tileWorld = 256 / 2 ** zoom; // one tile in world units
+  const size = tileWorld * scale;
+  const left = cx - width / 2 / scale;
+  const top = cy - height / 2 / scale;
+  const layer = svg("g", { class: "tiles" }, map);
+  for (let tx = Math.floor(left / tileWorld); tx * tileWorld < left + width / scale; tx++) {
+    for (let ty = Math.floor(top / tileWorld); ty * tileWorld < top + height / scale; ty++) {
+      if (ty < 0 || ty >= 2 ** zoom) continue;
+      const wrapped = ((tx % 2 ** zoom) + 2 ** zoom) % 2 ** zoom;
+      const href = mapTiles.replace("{z}", zoom).replace("{x}", wrapped).replace("{y}", ty);
+      svg("image", {
+        href,
+        x: (tx * tileWorld - left) * scale,
+        y: (ty * tileWorld - top) * scale,
+        width: size + 0.5,
+        height: size + 0.5,
+        preserveAspectRatio: "none",
+      }, layer);
+    }
+  }
+}
+
+function drawScale(map, metresPerPixel, height) {
+  const target = metresPerPixel * 100;
+  const nice = [1, 2, 5, 10, 20, 50, 100, 200, 500, 1000, 2000, 5000, 10000].find((m) => m >= target / 2) || 10000;
+  const pixels = nice / metresPerPixel;
+  const group = svg("g", { class: "scale", transform: `translate(10,${height - 12})` }, map);
+  svg("line", { x1: 0, y1: 0, x2: pixels, y2: 0 }, group);
+  svg("line", { x1: 0, y1: -4, x2: 0, y2: 4 }, group);
+  svg("line", { x1: pixels, y1: -4, x2: pixels, y2: 4 }, group);
+  const label = svg("text", { x: pixels + 5, y: 4 }, group);
+  label.textContent = nice >= 1000 ? `${nice / 1000} km` : `${nice} m`;
+}
+
+// --- candidates and finds ----------------------------------------------------------------------------
 
 function renderCandidates(card, vehicle) {
   const box = $(".candidates", card);
@@ -159,46 +364,132 @@ function renderCandidates(card, vehicle) {
     const verdict = $(".verdict", item);
     verdict.textContent = candidate.verdict;
     verdict.dataset.verdict = candidate.verdict;
-    $(".status", item).textContent = candidate.status;
+    $(".status", item).textContent = candidate.decided_by ? `${candidate.status} by ${candidate.decided_by}` : candidate.status;
     item.dataset.status = candidate.status;
     $(".justification", item).textContent = candidate.justification || "(no justification)";
     $(".position", item).textContent = formatPosition(candidate.position);
     const open = candidate.status === "awaiting";
     for (const button of item.querySelectorAll(".decide button")) button.disabled = !open || item.dataset.sent === "1";
     if (!open) $(".decision", item).textContent = candidate.status;
-    const crop = $(".crop", item);
-    crop.hidden = !candidate.crop_url;
-    $(".no-crop", item).hidden = Boolean(candidate.crop_url);
-    if (candidate.crop_url) loadCrop(crop, candidate.crop_url);
+    showCrop(item, candidate.crop_url, candidate.crop_box);
   }
   for (const item of box.querySelectorAll("article.candidate")) {
     if (!seen.has(item.dataset.candidate)) item.remove();
   }
 }
 
-async function loadCrop(img, url) {
-  if (cropUrls.has(url)) {
-    img.src = cropUrls.get(url);
+function renderFinds(card, vehicle) {
+  const list = $(".finds", card);
+  $(".no-finds", card).hidden = vehicle.finds.length > 0;
+  const seen = new Set();
+  for (const find of vehicle.finds) {
+    const key = `${find.mission_id}/${find.candidate_id}`;
+    seen.add(key);
+    let item = list.querySelector(`li[data-find="${CSS.escape(key)}"]`);
+    if (!item) {
+      item = $("#find-template").content.firstElementChild.cloneNode(true);
+      item.dataset.find = key;
+      list.appendChild(item);
+    }
+    $(".where", item).textContent = formatPosition(find.position, find.sigma_m);
+    $(".when", item).textContent = formatTime(find.time);
+    $(".who", item).textContent = `confirmed by ${find.confirmed_by}`;
+    $(".what", item).textContent = `${find.prompt} (mission ${find.mission_id})`;
+    showCrop(item, find.crop_url, find.crop_box);
+  }
+  for (const item of list.querySelectorAll("li.find")) {
+    if (!seen.has(item.dataset.find)) item.remove();
+  }
+  const downloads = $(".downloads", card);
+  const missions = [...new Set(vehicle.finds.map((f) => f.mission_id))];
+  if (downloads.dataset.missions !== missions.join(",")) {
+    downloads.dataset.missions = missions.join(",");
+    downloads.replaceChildren();
+    for (const mission of missions) {
+      for (const kind of ["geojson", "kml"]) {
+        const button = document.createElement("button");
+        button.type = "button";
+        button.textContent = `${kind.toUpperCase()}${missions.length > 1 ? ` ${mission}` : ""}`;
+        button.addEventListener("click", () => download(vehicle.id, mission, kind));
+        downloads.appendChild(button);
+      }
+    }
+  }
+}
+
+function showCrop(item, url, cropBox) {
+  const img = $(".crop", item);
+  const overlay = $(".crop-overlay", item);
+  img.hidden = !url;
+  overlay.hidden = !url;
+  $(".no-crop", item).hidden = Boolean(url);
+  if (!url) return;
+  const draw = () => {
+    overlay.replaceChildren();
+    if (!img.naturalWidth) return;
+    overlay.setAttribute("viewBox", `0 0 ${img.naturalWidth} ${img.naturalHeight}`);
+    if (cropBox) {
+      const [x1, y1, x2, y2] = cropBox;
+      svg("rect", { x: x1, y: y1, width: x2 - x1, height: y2 - y1 }, overlay);
+    }
+  };
+  img.onload = draw;
+  if (img.dataset.url !== url) {
+    img.dataset.url = url;
+    loadImage(img, url);
+  } else {
+    draw();
+  }
+}
+
+async function loadImage(img, url, { replaces = false } = {}) {
+  if (images.has(url)) {
+    if (images.get(url)) img.src = images.get(url);
     return;
   }
-  cropUrls.set(url, ""); // one fetch per crop
+  images.set(url, ""); // one fetch per image
   const response = await fetch(url, { headers: authHeaders() });
   if (!response.ok) {
-    cropUrls.delete(url);
+    images.delete(url);
     return;
   }
   const objectUrl = URL.createObjectURL(await response.blob());
-  cropUrls.set(url, objectUrl);
-  img.src = objectUrl;
+  if (replaces) {
+    // A keyframe replaces the one before it: free the old picture.
+    const old = img.src;
+    if (old.startsWith("blob:")) {
+      for (const [key, value] of images) if (value === old) images.delete(key);
+      URL.revokeObjectURL(old);
+    }
+  }
+  images.set(url, objectUrl);
+  if (img.dataset.url === url || replaces) img.src = objectUrl;
+}
+
+async function download(vehicleId, missionId, kind) {
+  const url = `/v1/missions/${encodeURIComponent(missionId)}/finds.${kind}?vehicle_id=${encodeURIComponent(vehicleId)}`;
+  const response = await fetch(url, { headers: authHeaders() });
+  if (!response.ok) return;
+  const link = document.createElement("a");
+  link.href = URL.createObjectURL(await response.blob());
+  link.download = `cloudtrack-${vehicleId}-${missionId}-finds.${kind}`;
+  link.click();
+  setTimeout(() => URL.revokeObjectURL(link.href), 10_000);
 }
 
 function tick() {
-  const extra = elapsed();
-  for (const vehicle of snapshot.vehicles) {
-    const card = document.querySelector(`section.vehicle[data-vehicle="${CSS.escape(vehicle.id)}"]`);
+  const now = performance.now();
+  for (const [id, { view, receivedAt }] of vehicles) {
+    const card = document.querySelector(`section.vehicle[data-vehicle="${CSS.escape(id)}"]`);
     if (!card) continue;
-    $(".seen", card).textContent = `last report ${formatAge(vehicle.age_s + extra)}`;
-    for (const candidate of vehicle.candidates) {
+    const extra = (now - receivedAt) / 1000;
+    $(".seen", card).textContent = view.auth_error && !view.mission_id && view.state === "UNKNOWN"
+      ? "no report accepted"
+      : `last report ${formatAge(view.age_s + extra)}`;
+    if (view.keyframe) {
+      $(".keyframe-info", card).textContent = `keyframe ${view.keyframe.frame_id ?? ""} · ${formatAge(view.keyframe.age_s + extra)}`;
+    }
+    for (const candidate of view.candidates) {
       const item = card.querySelector(`article[data-candidate="${CSS.escape(candidate.id)}"]`);
       if (item) $(".age", item).textContent = `seen ${formatAge(candidate.age_s + extra)}`;
     }
@@ -210,12 +501,13 @@ async function decide(vehicleId, candidateId, decision, item) {
   item.dataset.sent = "1";
   const note = $(".decision", item);
   note.textContent = `${decision} sent…`;
-  // The API's one decision endpoint; require_awaiting: 409 instead of deciding on a candidate gone stale.
+  // The API's one decision endpoint; require_awaiting: 409 instead of deciding on a candidate gone stale,
+  // and 409 naming the decision that stands when someone decided first.
   const url = `/v1/vehicles/${encodeURIComponent(vehicleId)}/decisions?require_awaiting=true`;
   const response = await fetch(url, {
     method: "POST",
     headers: authHeaders({ "Content-Type": "application/json" }),
-    body: JSON.stringify({ candidate_id: candidateId, action: decision, note: "supervisor page" }),
+    body: JSON.stringify({ candidate_id: candidateId, action: decision, operator: "supervisor page" }),
   });
   if (response.ok) {
     note.textContent = `${decision} sent, waiting for the vehicle`;
@@ -224,7 +516,7 @@ async function decide(vehicleId, candidateId, decision, item) {
   item.dataset.sent = "";
   const detail = await response.json().catch(() => ({}));
   note.textContent = `not sent: ${detail.detail || response.status}`;
-  for (const button of item.querySelectorAll(".decide button")) button.disabled = false;
+  for (const button of item.querySelectorAll(".decide button")) button.disabled = response.status === 409;
 }
 
 $("#login").addEventListener("submit", login);

@@ -38,7 +38,12 @@ class CascadeVerifier:
         )
         justification = f"{second.justification} [fast check: {first.justification}]".strip()
         return VerifierAnswer(
-            second.verdict, justification, second.verifier, second.box or first.box, second.judged
+            second.verdict,
+            justification,
+            second.verifier,
+            second.box or first.box,
+            second.judged,
+            second.unjudged,
         )
 
 

@@ -9,11 +9,17 @@ colours toward grey). `calibrate` makes that table; the verifier loads the store
 from __future__ import annotations
 
 import json
+import warnings
 from collections.abc import Collection, Iterable, Mapping
 from pathlib import Path
 
-import colour
 import numpy as np
+
+with warnings.catch_warnings():
+    # colour-science announces at import that its SciPy-based features are off; the conversions and
+    # CIEDE2000 used here need none of them, and the back-end does not install SciPy.
+    warnings.filterwarnings("ignore", message='.*"SciPy" related API features are not available')
+    import colour
 
 # Basic colour terms, sRGB 0-255 centres (the verifier's vocabulary; the prompt's synonyms map onto it).
 BASIC_SRGB: dict[str, tuple[int, int, int]] = {

@@ -22,12 +22,19 @@ class VerifierAnswer:
     # False when the verifier can check nothing the description names past its class: its answer is
     # then "uncertain" for every candidate, whatever they look like.
     judged: bool = True
+    # The words of the target's own description it could not judge ("suv", "canopy roof", "striped"):
+    # its verdict holds for the rest only. Empty for a verifier that reads the whole description (a VLM).
+    unjudged: tuple[str, ...] = ()
 
 
-def nothing_to_judge(verifier: str) -> VerifierAnswer:
+def nothing_to_judge(verifier: str, unjudged: tuple[str, ...] = ()) -> VerifierAnswer:
     """The answer of a verifier that can check nothing the description names past the detector's class."""
     return VerifierAnswer(
-        Verdict.UNCERTAIN, "no colour or posture named that can be judged from pixels", verifier, judged=False
+        Verdict.UNCERTAIN,
+        "no colour or posture named that can be judged from pixels",
+        verifier,
+        judged=False,
+        unjudged=unjudged,
     )
 
 

@@ -12,8 +12,10 @@ Answers: yes when every named attribute is seen (a colour covering at least `pre
 garment; shared out among several colours named for one garment), no when one is clearly not (under
 `absent_share`, another colour covering 40 %, or another posture), otherwise uncertain.
 A person the model cannot see (no body found, a garment under `min_region_px` pixels, a hat or bag it
-has no region for) is `uncertain`: nothing is guessed from the box. Other objects (a bag, a boat) have
-no body model: their colours are judged the same way on the middle of the box.
+has no region for) is `uncertain`: nothing is guessed from the box. Other objects (a car, a boat, a bag)
+have no body model: their own pixels are segmented from the box (`object_mask`, GrabCut with the crop's
+margin as background) and their colour is their dominant one (`object_colour`). Words it has no reading
+for ("suv", "motorboat", "striped") are listed in the answer's `unjudged`.
 """
 
 from __future__ import annotations
@@ -24,12 +26,16 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from backend.scene import ATTRIBUTE_WORDS, unjudged_words
 from backend.verifiers import person_model as body
 from backend.verifiers.attributes import (
     COLOUR_WORDS,
+    HEAD,
     LOWER,
-    REGIONS,
+    LYING,
+    SITTING,
     UPPER,
+    UPRIGHT,
     colour_claims,
     posture_claim,
 )
@@ -37,6 +43,7 @@ from backend.verifiers.colour_names import ColourNamer, srgb_to_lab, subsample, 
 from backend.verifiers.interface import VerifierAnswer, nothing_to_judge
 from backend.verifiers.person_model import PersonModel
 from behaviors.detection import Verdict
+from behaviors.spatial_relations import parse_description
 
 LYING_MIN_DEG = 60.0  # torso angle from the image vertical
 UPRIGHT_MAX_DEG = 30.0
@@ -47,6 +54,94 @@ DARK_ABSENT_SHARE = 0.2
 OTHER_COLOUR_SHARE = 0.4  # another colour this much of the garment, the named one under present: no
 BODY_MARGIN = 0.5  # the person's extent: mask within this many torso lengths of a visible keypoint
 OUTWEIGHED_RATIO = 0.5  # ...or the named colours together under half of that other colour: no
+
+
+OBJECT = "object"  # the one region of a candidate that is not a person
+GRABCUT_ITERATIONS = 4
+MIN_OBJECT_SHARE = 0.15  # a segmentation keeping less of the box than this failed: the box's middle instead
+OBJECT_MIDDLE = 0.6  # ...an ellipse over this share of the box's width and height
+
+
+def object_mask(crop_bgr: np.ndarray, target_box: tuple[float, float, float, float]) -> np.ndarray:
+    """The object's pixels in the crop (a boolean mask inside the box), not the road or water around it.
+
+    OpenCV's GrabCut, started from the box: everything outside it (the 50 px margin of the crop) is
+    background, colour models of both sides are fitted and the box's pixels split between them, so a car's
+    box loses the asphalt at its corners and a boat's the water. Where that keeps under
+    `MIN_OBJECT_SHARE` of the box (an object the colour of its surroundings, a box at the crop's edge
+    with no background to learn from), the middle of the box, an ellipse, stands in for it. Deterministic:
+    GrabCut's k-means seeding uses OpenCV's thread-local random generator, reseeded for every call.
+    """
+    height, width = crop_bgr.shape[:2]
+    x, y, w, h = target_box
+    x1, y1 = max(int(np.floor(x)), 0), max(int(np.floor(y)), 0)
+    x2, y2 = min(int(np.ceil(x + w)), width), min(int(np.ceil(y + h)), height)
+    inside = np.zeros((height, width), bool)
+    if x2 - x1 < 2 or y2 - y1 < 2:
+        return inside
+    inside[y1:y2, x1:x2] = True
+    middle = np.zeros((height, width), np.uint8)
+    centre = (int(round((x1 + x2 - 1) / 2)), int(round((y1 + y2 - 1) / 2)))
+    axes = (
+        max(int(round(OBJECT_MIDDLE * (x2 - x1) / 2)), 1),
+        max(int(round(OBJECT_MIDDLE * (y2 - y1) / 2)), 1),
+    )
+    cv2.ellipse(middle, centre, axes, 0, 0, 360, 1, -1)
+    has_background = x1 > 0 or y1 > 0 or x2 < width or y2 < height
+    if has_background and (x2 - x1) * (y2 - y1) >= 16:
+        mask = np.zeros((height, width), np.uint8)
+        background, foreground = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
+        cv2.setRNGSeed(0)
+        try:
+            cv2.grabCut(
+                np.ascontiguousarray(crop_bgr),
+                mask,
+                (x1, y1, x2 - x1, y2 - y1),
+                background,
+                foreground,
+                GRABCUT_ITERATIONS,
+                cv2.GC_INIT_WITH_RECT,
+            )
+        except cv2.error:
+            mask[:] = cv2.GC_BGD  # a degenerate colour model (a flat crop): the box's middle below
+        found: np.ndarray = ((mask == cv2.GC_FGD) | (mask == cv2.GC_PR_FGD)) & inside
+        if found.sum() >= MIN_OBJECT_SHARE * (x2 - x1) * (y2 - y1):
+            return found
+    return np.asarray((middle > 0) & inside)
+
+
+DOMINANT_YES = (
+    0.8  # a colour covering this share of what the object's most common colour covers is its colour
+)
+DOMINANT_NO = 0.4  # ...one under this share of it is not
+
+
+def object_colour(
+    shares: dict[str, float], group: set[str], named: set[str], present: float, absent: float
+) -> tuple[Verdict, str]:
+    """The verdict on one colour claim about an object that is not a person (a car's paint, a hull): its
+    colour is its dominant one. The named colour is "yes" when it covers at least DOMINANT_YES of what the
+    object's most common colour covers (and `present` of the object), "no" under DOMINANT_NO of it or
+    under `absent`; in between it is uncertain. A black car's highlights read white and a white car's
+    glass black, but neither is the car's most common colour. "dark" keeps its lightness rule (most of the
+    object darker than L* 35)."""
+    share = sum(shares.get(c, 0.0) for c in group)
+    name = "-".join(sorted(group))
+    dominant, most = max(
+        ((c, v) for c, v in shares.items() if c != "dark"), key=lambda cv: cv[1], default=("", 0.0)
+    )
+    note = f"{name} {share:.0%} of the object (most: {dominant} {most:.0%})"
+    if group == {"dark"}:
+        return (
+            Verdict.YES
+            if share >= DARK_PRESENT_SHARE
+            else Verdict.NO
+            if share < DARK_ABSENT_SHARE
+            else Verdict.UNCERTAIN
+        ), note
+    if share < absent or share < DOMINANT_NO * most:
+        return Verdict.NO, note
+    return (Verdict.YES if share >= max(present, DOMINANT_YES * most) else Verdict.UNCERTAIN), note
 
 
 @dataclass
@@ -61,18 +156,31 @@ class Observation:
     extent: tuple[float, float, float, float] | None = None  # the person mask's box (x, y, w, h)
 
 
-# Words that bring in another person or thing ("between the man in the red shirt", "next to the car"):
-# what follows describes them, not the target.
-RELATIONS = re.compile(
-    r"\b(between|beside|besides|behind|near|next to|in front of|left of|right of|close to|"
-    r"following|followed by|towards?|with (?:the|a|an) (?:man|woman|person|people|boy|girl|child|dog))\b"
-)
-
-
 def own_description(prompt: str) -> str:
-    """The part of a description about the target itself, before a relation to someone or something else."""
-    match = RELATIONS.search(prompt.lower())
-    return prompt[: match.start()] if match else prompt
+    """The part of a description about the target itself: relations to someone or something else taken out
+    ("between the man in the red shirt and ...", "next to the car"; `backend.scene`)."""
+    return parse_description(prompt, ATTRIBUTE_WORDS).own
+
+
+def judged_words(prompt: str, superset: str) -> set[str]:
+    """The words of the target's own description this verifier judges: colour words with the garment they
+    name (not on the head: it has no head region), and posture words."""
+    tokens = re.findall(r"[a-z]+(?:-[a-z]+)*", prompt.lower())
+    judged: set[str] = set()
+    for i, token in enumerate(tokens):
+        parts = token.split("-")
+        if not any(p in COLOUR_WORDS for p in parts):
+            continue
+        following = tokens[i + 1 : i + 6]
+        garment = next((t for t in following if t in UPPER | LOWER | HEAD), None)
+        if superset == "person" and garment in HEAD:
+            continue
+        judged |= {token, *parts}
+        if garment is not None:
+            judged.add(garment)
+    if posture_claim(prompt, superset) is not None:
+        judged |= set(tokens) & (LYING | SITTING | UPRIGHT)
+    return judged
 
 
 def compound_colours(prompt: str) -> list[set[str]]:
@@ -239,10 +347,11 @@ class PersonVerifier:
         prompt = own_description(prompt)
         claims = colour_claims(prompt, superset)
         posture = posture_claim(prompt, superset)
+        unjudged = unjudged_words(prompt, superset, judged_words(prompt, superset))
         if not claims and posture is None:
-            return nothing_to_judge(self.name)
+            return nothing_to_judge(self.name, unjudged)
         if observation.reason:
-            return VerifierAnswer(Verdict.UNCERTAIN, observation.reason, self.name)
+            return VerifierAnswer(Verdict.UNCERTAIN, observation.reason, self.name, unjudged=unjudged)
         verdicts, notes = [], []
         if posture is not None:
             seen = observation.posture
@@ -265,6 +374,8 @@ class PersonVerifier:
                 notes.append(f"{name} on the head: no head region")
                 continue
             parts = ["upper", "lower"] if region == "whole" else [region]
+            if OBJECT in observation.regions:
+                parts = [OBJECT]  # not a person: one region, the object's own pixels
             visible = [r for r in parts if r in observation.regions]
             if not visible:
                 verdicts.append(Verdict.UNCERTAIN)
@@ -281,6 +392,11 @@ class PersonVerifier:
             for part in visible:
                 shares = namer.shares(observation.regions[part])
                 share = sum(shares.get(c, 0.0) for c in group)
+                if part == OBJECT:
+                    verdict_of, note = object_colour(shares, group, named, present, absent)
+                    verdicts.append(verdict_of)
+                    notes.append(note)
+                    continue
                 # Clearly another colour: one colour other than the named ones (black aside: shade is black)
                 # covers much of the garment while the named one stays under `present`.
                 other, other_share = max(
@@ -300,7 +416,8 @@ class PersonVerifier:
                     and hues < OUTWEIGHED_RATIO * other_share
                 )
                 notes.append(
-                    f"{name} {share:.0%} of {part} garment"
+                    f"{name} {share:.0%} of "
+                    + ("the object" if part == OBJECT else f"{part} garment")
                     + (f" (mostly {other}: {other_share:.0%})" if elsewhere or outweighed else "")
                 )
                 verdicts.append(
@@ -316,22 +433,17 @@ class PersonVerifier:
             verdict = Verdict.YES
         else:
             verdict = Verdict.UNCERTAIN
-        return VerifierAnswer(verdict, "; ".join(notes), self.name, observation.extent)
+        return VerifierAnswer(verdict, "; ".join(notes), self.name, observation.extent, unjudged=unjudged)
 
     def observe_object(
         self, crop_bgr: np.ndarray, target_box: tuple[float, float, float, float]
     ) -> Observation:
-        """Not a person: the middle of the box (no body model) as its one region, "whole"."""
-        x, y, w, h = target_box
-        top, bottom, left, right = REGIONS["whole"]
-        patch = crop_bgr[
-            max(int(y + top * h), 0) : max(int(y + bottom * h), 1),
-            max(int(x + left * w), 0) : max(int(x + right * w), 1),
-        ]
-        pixels = patch.reshape(-1, 3)
+        """Not a person: the object's own pixels (`object_mask`: segmented from the box, the margin around
+        it taken as background) as its one region."""
+        pixels = crop_bgr[object_mask(crop_bgr, target_box)]
         if len(pixels) < self.min_region_px:
             return Observation("box too small to judge colours")
-        return Observation(regions={"upper": srgb_to_lab(subsample(pixels), white_gains(crop_bgr))})
+        return Observation(regions={OBJECT: srgb_to_lab(subsample(pixels), white_gains(crop_bgr))})
 
     def verify(
         self,
@@ -343,7 +455,9 @@ class PersonVerifier:
     ) -> VerifierAnswer:
         prompt = own_description(prompt)
         if not colour_claims(prompt, superset) and posture_claim(prompt, superset) is None:
-            return nothing_to_judge(self.name)
+            return nothing_to_judge(
+                self.name, unjudged_words(prompt, superset, judged_words(prompt, superset))
+            )
         if superset == "person":
             return self.judge(self.observe(crop_bgr, target_box), prompt, superset)
         return self.judge(self.observe_object(crop_bgr, target_box), prompt, superset)

@@ -143,11 +143,11 @@ class BackendSession:
         with self._lock:
             for d in decisions:
                 self._after = max(self._after, d.decision_id)
-                if not self._primed:
-                    continue
+                if not self._primed or d.source == "vehicle":
+                    continue  # history, or this vehicle's own decision (from its GCS) recorded by the back-end
                 cid = d.candidate_id
                 self._commands.append(
-                    ConfirmCandidate(cid, by="supervisor page")
+                    ConfirmCandidate(cid, by=d.operator or "supervisor")
                     if d.action == "confirm"
                     else RejectCandidate(cid)
                 )

@@ -9,7 +9,8 @@ the score is one signal among:
 - "collapsed": box narrower/shorter than `min_box_px`, its area changed by more than
   `max_scale_change` times in one frame, or its width/height ratio changed by more than
   `max_aspect_change` times since the tracker's first box after (re)initialisation (a tracker sliding
-  off a standing person onto a roof or a patch of ground flattens its box);
+  off a standing person onto a roof or a patch of ground flattens its box; only for targets that keep
+  their shape, `LossSettings.hold_aspect`);
 - "jump": the centre moved more than `max_jump_box_sizes` box sizes (sqrt of area) or
   `max_jump_fraction` of the image diagonal in one frame;
 - "appearance": the colour histogram inside the box drifted from the target as first seen
@@ -51,6 +52,9 @@ class LossSettings:
     appearance_rate: float = 0.1  # weight of each trusted frame in the appearance model
     max_aspect_change: float = 2.0  # width/height ratio change since (re)initialisation: "collapsed"
     enabled: frozenset[str] = field(default_factory=lambda: frozenset(SIGNALS))
+    # The aspect test models a target that keeps its shape (a standing or walking person); a car turning
+    # under the camera, a bird or a ball changes its width/height all the time (`[tracker] loss_model_classes`).
+    hold_aspect: bool = True
 
     def __post_init__(self) -> None:
         unknown = set(self.enabled) - set(SIGNALS)
@@ -174,7 +178,7 @@ class LossDetector:
         if self._reference is None and box.is_valid():
             self._reference = box
         ref = self._reference
-        if ref is not None and ref.is_valid() and box.w > 0 and box.h > 0:
+        if s.hold_aspect and ref is not None and ref.is_valid() and box.w > 0 and box.h > 0:
             change = (box.w / box.h) / (ref.w / ref.h)
             collapsed = collapsed or max(change, 1.0 / change) > s.max_aspect_change
         fired["collapsed"] = collapsed

@@ -30,7 +30,7 @@ import math
 import time
 from collections import deque
 from collections.abc import Callable, Collection, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
@@ -149,9 +149,12 @@ class TrackingFrontend:
         reinit: ReinitSettings | None = None,
         name: str = "",
         evidence: LossEvidenceSettings | None = None,
+        loss_model_classes: Collection[str] | None = None,
     ) -> None:
         self._make_tracker = make_tracker
         self.loss = LossDetector(settings)
+        # Target kinds the weak loss signals model (None: every target, as `settings` say).
+        self.loss_model_classes = frozenset(loss_model_classes) if loss_model_classes is not None else None
         self.ring = FrameRing(ring_frames)
         self.max_fast_forward_frames = max_fast_forward_frames
         self.catch_up_per_frame = catch_up_per_frame
@@ -210,6 +213,7 @@ class TrackingFrontend:
             max_c_box_sizes=config.max_c_box_sizes,
             reinit=reinit_settings(config),
             evidence=loss_evidence_settings(config),
+            loss_model_classes=config.loss_model_classes,
             **kwargs,  # type: ignore[arg-type]
         )
 
@@ -235,8 +239,15 @@ class TrackingFrontend:
             return ""
         return first_reason(self.loss.last_signals, self.loss.settings.enabled)
 
-    def start(self, keyframe_id: int, box: Box) -> bool:
-        """Track `box` as seen in frame `keyframe_id` (a new target: the appearance model restarts)."""
+    def start(self, keyframe_id: int, box: Box, kind: str = "") -> bool:
+        """Track `box` as seen in frame `keyframe_id` (a new target: the appearance model restarts). `kind`
+        is the target's class (the candidate's detector label): for a class outside `loss_model_classes`
+        (the classes the weak loss signals were measured on: people) the aspect test is off and a weak
+        signal alone untrusts nothing ("" keeps the settings as they are)."""
+        if kind and self.loss_model_classes is not None:
+            modelled = kind in self.loss_model_classes
+            self.loss.settings = replace(self.loss.settings, hold_aspect=modelled)
+            self.evidence = replace(self.evidence, weak_alone=modelled)
         keyframe = self.ring.get(keyframe_id)
         self._anchor = appearance_histogram(keyframe.image, box) if keyframe is not None else None
         self._confirmed_look = None

@@ -1,0 +1,159 @@
+"""A mission's finds for the rescuers' own tools: GeoJSON (RFC 7946) and KML (simplekml), each with the finds
+(points: time, prompt, who confirmed, sigma), the drone's track (a line) and the search and covered areas
+(polygons); and a find as the `cloudtrack.cursor_on_target.FindReport` a TAK map takes.
+
+GeoJSON positions are [lon, lat] and exterior rings run counter-clockwise (RFC 7946 section 3.1.6), so
+strict readers accept them; a ring is closed here when the vehicle sent it open.
+"""
+
+from __future__ import annotations
+
+import json
+from datetime import datetime, timezone
+from typing import Any
+
+import simplekml
+
+from backend.schemas import MissionMap, StoredFind
+from cloudtrack.cursor_on_target import FindReport
+
+
+def find_report(find: StoredFind) -> FindReport:
+    return FindReport(
+        candidate_id=find.candidate_id,
+        lat=find.position[0],
+        lon=find.position[1],
+        sigma_m=find.sigma_m,
+        time=find.time,
+        prompt=find.prompt,
+        confirmed_by=find.confirmed_by,
+        vehicle_id=find.vehicle_id,
+        mission_id=find.mission_id,
+    )
+
+
+def _iso(unix: float) -> str:
+    return datetime.fromtimestamp(unix, timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+def _closed(ring: list[list[float]]) -> list[list[float]]:
+    return ring if ring and ring[0] == ring[-1] else [*ring, ring[0]]
+
+
+def _counter_clockwise(ring: list[list[float]]) -> list[list[float]]:
+    """[lon, lat] ring, closed, counter-clockwise (shoelace sign)."""
+    closed = _closed(ring)
+    area = sum(a[0] * b[1] - b[0] * a[1] for a, b in zip(closed, closed[1:], strict=False))
+    return closed if area >= 0 else closed[::-1]
+
+
+def _lon_lat(points: list[list[float]]) -> list[list[float]]:
+    return [[p[1], p[0]] for p in points]
+
+
+def find_properties(find: StoredFind) -> dict[str, Any]:
+    return {
+        "kind": "find",
+        "vehicle_id": find.vehicle_id,
+        "mission_id": find.mission_id,
+        "candidate_id": find.candidate_id,
+        "time": _iso(find.time),
+        "prompt": find.prompt,
+        "confirmed_by": find.confirmed_by,
+        "sigma_m": find.sigma_m,
+    }
+
+
+def geojson_document(
+    finds: list[StoredFind], maps: dict[tuple[str, str], MissionMap], title: str
+) -> dict[str, Any]:
+    """A FeatureCollection: one Point per find, and per (vehicle, mission) its track and areas."""
+    features: list[dict[str, Any]] = [
+        {
+            "type": "Feature",
+            "geometry": {"type": "Point", "coordinates": [f.position[1], f.position[0]]},
+            "properties": find_properties(f),
+        }
+        for f in finds
+    ]
+    for (vehicle, mission), mission_map in maps.items():
+        owner = {"vehicle_id": vehicle, "mission_id": mission}
+        if len(mission_map.track) >= 2:
+            features.append(
+                {
+                    "type": "Feature",
+                    "geometry": {"type": "LineString", "coordinates": _lon_lat(mission_map.track)},
+                    "properties": {
+                        "kind": "track",
+                        **owner,
+                        "start": _iso(mission_map.track[0][2]),
+                        "end": _iso(mission_map.track[-1][2]),
+                    },
+                }
+            )
+        if len(mission_map.area) >= 3:
+            features.append(
+                {
+                    "type": "Feature",
+                    "geometry": {
+                        "type": "Polygon",
+                        "coordinates": [_counter_clockwise(_lon_lat(mission_map.area))],
+                    },
+                    "properties": {"kind": "search_area", **owner},
+                }
+            )
+        rings = [r for r in mission_map.covered if len(r) >= 3]
+        if rings:
+            features.append(
+                {
+                    "type": "Feature",
+                    "geometry": {
+                        "type": "MultiPolygon",
+                        "coordinates": [[_counter_clockwise(_lon_lat(r))] for r in rings],
+                    },
+                    "properties": {"kind": "covered", **owner, "coverage": mission_map.coverage},
+                }
+            )
+    return {"type": "FeatureCollection", "name": title, "features": features}
+
+
+def geojson_text(finds: list[StoredFind], maps: dict[tuple[str, str], MissionMap], title: str) -> str:
+    return json.dumps(geojson_document(finds, maps, title), indent=1)
+
+
+def kml_text(finds: list[StoredFind], maps: dict[tuple[str, str], MissionMap], title: str) -> str:
+    """The same as a KML document (Google Earth, ATAK, QGIS, Mission Planner): folders of finds, tracks and
+    areas."""
+    kml = simplekml.Kml(name=title)
+    folder = kml.newfolder(name="Finds")
+    for find in finds:
+        sigma = f"±{find.sigma_m:.1f} m" if find.sigma_m is not None else "accuracy unknown"
+        point = folder.newpoint(
+            name=f"FOUND {_iso(find.time)[11:16]} UTC",
+            coords=[(find.position[1], find.position[0])],
+            description=(
+                f"{find.prompt}\nconfirmed by {find.confirmed_by}; {sigma}\n"
+                f"{find.vehicle_id}, mission {find.mission_id}, candidate {find.candidate_id}"
+            ),
+        )
+        point.timestamp.when = _iso(find.time)
+        point.style.iconstyle.color = simplekml.Color.red
+        for name, value in find_properties(find).items():
+            point.extendeddata.newdata(name=name, value="" if value is None else str(value))
+    for (vehicle, mission), mission_map in maps.items():
+        sub = kml.newfolder(name=f"{vehicle} mission {mission}")
+        if len(mission_map.track) >= 2:
+            line = sub.newlinestring(name="track", coords=[(p[1], p[0]) for p in mission_map.track])
+            line.style.linestyle.width = 2
+        if len(mission_map.area) >= 3:
+            area = sub.newpolygon(
+                name="search area", outerboundaryis=_counter_clockwise(_lon_lat(mission_map.area))
+            )
+            area.style.polystyle.fill = 0
+            area.style.linestyle.color = simplekml.Color.blue
+        for i, ring in enumerate(r for r in mission_map.covered if len(r) >= 3):
+            covered = sub.newpolygon(
+                name=f"covered {i + 1}", outerboundaryis=_counter_clockwise(_lon_lat(ring))
+            )
+            covered.style.polystyle.color = simplekml.Color.changealphaint(80, simplekml.Color.green)
+    return str(kml.kml())

@@ -1,0 +1,223 @@
+"""A confirmed find as a Cursor-on-Target event, sent to a TAK server or straight to ATAK devices.
+
+One module for the back-end (each find it stores, `[tak] url`) and the ground tool (`cloudtrack-gcs watch
+--cot-url`, finds heard over MAVLink, for a site without internet): `find_event` builds the CoT XML with
+pytak's own builders (TAK protocol version 0, which TAK servers take on their streaming ports and ATAK
+takes on its mesh multicast), and `CotSender` delivers it with pytak's transports: `tcp://host:port`,
+`udp://host:port` (unicast, broadcast or multicast such as ATAK's udp://239.2.3.1:6969) and
+`tls://host:port` with a client certificate.
+
+The event: type `a-n-G` (a neutral ground point: the person found, not a team member), how `h-e` (a
+person confirmed it; its place is an estimate), uid `cloudtrack-find-<vehicle>-<mission>-<candidate>`
+(stable: a refined position moves the same marker), `ce` the find's 1-sigma error in metres (9999999,
+CoT's "unknown", when not known), callsign `FOUND: <prompt>`, and remarks saying who found whom, when,
+and who confirmed it.
+
+Sending never blocks the caller and never loses a find to a passing outage: events wait in a bounded
+queue and a background thread retries until the endpoint takes them (oldest dropped beyond
+`max_queued`). pytak is imported when a sender starts, so the companion never needs it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import configparser
+import contextlib
+import logging
+import threading
+import time
+import warnings
+import xml.etree.ElementTree as ET
+from collections import deque
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+COT_TYPE = "a-n-G"
+COT_HOW = "h-e"
+UNKNOWN = 9999999.0  # CoT's value for an unknown ce / le / hae
+SCHEMES = ("tcp", "udp", "tls")
+
+
+@dataclass(frozen=True)
+class FindReport:
+    """What the rescuers' map needs of a find (the back-end's StoredFind, or a find heard over MAVLink)."""
+
+    candidate_id: str
+    lat: float
+    lon: float
+    sigma_m: float | None
+    time: float  # Unix seconds of the confirmation
+    prompt: str
+    confirmed_by: str
+    vehicle_id: str
+    mission_id: str
+
+
+def find_uid(find: FindReport) -> str:
+    return f"cloudtrack-find-{find.vehicle_id}-{find.mission_id}-{find.candidate_id}"
+
+
+def _pytak() -> Any:
+    """pytak, without its import-time warnings about optional extras (enrolment, HTTP) that are not used."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="The '(cryptography|aiohttp)' package is required")
+        import pytak
+    return pytak
+
+
+def find_event(find: FindReport, callsign: str = "CloudTrack", stale_s: float = 24 * 3600.0) -> bytes:
+    """The find as one CoT event (XML bytes)."""
+    pytak = _pytak()
+
+    when = datetime.fromtimestamp(find.time, timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC")
+    sigma = f"±{find.sigma_m:.1f} m" if find.sigma_m is not None else "accuracy unknown"
+    detail = pytak.cot_detail(flow_tag=False)
+    pytak.add_remarks(
+        detail,
+        [
+            f"{find.prompt!r} found by {find.vehicle_id} (mission {find.mission_id}, candidate "
+            f"{find.candidate_id}) at {when}, confirmed by {find.confirmed_by}; {sigma}. Sent by {callsign}."
+        ],
+    )
+    event = pytak.cot_event(
+        uid=find_uid(find),
+        cot_type=COT_TYPE,
+        how=COT_HOW,
+        stale=stale_s,
+        point=pytak.cot_point(
+            find.lat, find.lon, ce=find.sigma_m if find.sigma_m is not None else UNKNOWN, precision=7
+        ),
+        detail=detail,
+        callsign=f"FOUND: {find.prompt}"[:80],
+    )
+    return bytes(pytak.serialize_cot(event))
+
+
+def parse_find_event(data: bytes) -> ET.Element:
+    """The `event` element of CoT XML bytes (for tools and tests that read what was sent)."""
+    return ET.fromstring(data)
+
+
+def check_url(url: str) -> str:
+    """`url` if it is one CotSender can use; ValueError with the allowed forms otherwise."""
+    scheme, sep, rest = url.partition("://")
+    host, _, port = rest.rpartition(":")
+    if not sep or scheme not in SCHEMES or not host or not port.isdigit():
+        raise ValueError(
+            f"not a Cursor-on-Target address: {url!r}; use tcp://host:port, udp://host:port or tls://host:port"
+        )
+    return url
+
+
+class CotSender:
+    """Sends CoT events to one endpoint from a background thread, retrying until delivered."""
+
+    def __init__(
+        self,
+        url: str,
+        tls_cert: str = "",
+        tls_key: str = "",
+        tls_ca: str = "",
+        retry_s: float = 5.0,
+        max_queued: int = 100,
+    ) -> None:
+        self.url = check_url(url)
+        # Write-only: pytak would otherwise also bind a UDP reader on the destination's own port.
+        pytak_url = "udp+wo://" + url[len("udp://") :] if url.startswith("udp://") else url
+        self._settings = {"COT_URL": pytak_url, "TAK_PROTO": "0"}
+        if url.startswith("tls://"):
+            self._settings.update(
+                {
+                    k: v
+                    for k, v in (
+                        ("PYTAK_TLS_CLIENT_CERT", tls_cert),
+                        ("PYTAK_TLS_CLIENT_KEY", tls_key),
+                        ("PYTAK_TLS_CLIENT_CAFILE", tls_ca),
+                    )
+                    if v
+                }  # fmt: skip
+            )
+        self._retry_s = retry_s
+        self._queue: deque[bytes] = deque(maxlen=max_queued)
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self.sent = 0
+        self.last_error = ""
+        self._thread = threading.Thread(target=self._run, name="cursor-on-target", daemon=True)
+
+    def start(self) -> CotSender:
+        _pytak()  # fail at start-up, not at the first find
+
+        self._thread.start()
+        return self
+
+    def send(self, event: bytes) -> None:
+        """Queue one event; returns at once."""
+        with self._lock:
+            self._queue.append(event)
+        self._wake.set()
+
+    def pending(self) -> int:
+        with self._lock:
+            return len(self._queue)
+
+    def close(self, timeout_s: float = 2.0) -> None:
+        """Stop after trying to deliver what is queued for up to `timeout_s`."""
+        deadline = time.monotonic() + timeout_s
+        while self.pending() and time.monotonic() < deadline and self._thread.is_alive():
+            time.sleep(0.02)
+        self._stop.set()
+        self._wake.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=timeout_s)
+
+    def _run(self) -> None:
+        asyncio.run(self._serve())
+
+    async def _serve(self) -> None:
+        pytak = _pytak()
+
+        config = configparser.ConfigParser()
+        config["cloudtrack"] = self._settings
+        section = config["cloudtrack"]
+        writer = None
+        while not self._stop.is_set():
+            if not self.pending():
+                await asyncio.get_running_loop().run_in_executor(None, self._wake.wait, 1.0)
+                self._wake.clear()
+                continue
+            try:
+                if writer is None:
+                    _, writer = await asyncio.wait_for(pytak.protocol_factory(section), timeout=10)
+                with self._lock:
+                    event = self._queue[0]
+                await asyncio.wait_for(pytak.TXWorker(asyncio.Queue(), section, writer).send_data(event), 10)
+                with self._lock:
+                    if self._queue and self._queue[0] is event:
+                        self._queue.popleft()
+                self.sent += 1
+                self.last_error = ""
+            except Exception as exc:  # refused, unreachable, TLS: keep the event, try again later
+                if str(exc) != self.last_error:
+                    log.warning(
+                        "Cursor-on-Target to %s failed (%s); retrying every %g s",
+                        self.url,
+                        exc,
+                        self._retry_s,
+                    )
+                self.last_error = str(exc)
+                _close(writer)
+                writer = None
+                await asyncio.get_running_loop().run_in_executor(None, self._stop.wait, self._retry_s)
+        _close(writer)
+
+
+def _close(writer: object) -> None:
+    close = getattr(writer, "close", None)
+    if close is not None:
+        with contextlib.suppress(Exception):  # already gone
+            close()
