@@ -71,6 +71,14 @@ def _add_run(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         "the mission itself always runs at 1, since the world, the camera and the companion run in "
         "wall-clock time (PX4 takes its speed factor only at start-up, so px4-sitl always runs at 1)",
     )
+    run.add_argument(
+        "--companion-set",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help="one more companion setting, as `cloudtrack-companion run --set` takes it (repeatable), e.g. "
+        "mavlink.use_mavsdk=true to fly PX4 through MAVSDK",
+    )
     run.add_argument("--seed", type=int, default=1, help="world seed (default 1)")
     run.add_argument("--json", type=Path, metavar="OUT", help="write the metrics JSON here")
     run.add_argument(
@@ -121,6 +129,7 @@ def _run(args: argparse.Namespace) -> int:
         vlm_latency_s=args.vlm_latency_s,
         arducopter_binary=args.arducopter_binary,
         px4_package=args.px4_package,
+        companion_settings=tuple(args.companion_set),
         speedup=args.speedup,
     )
     try:
