@@ -199,6 +199,37 @@ SCENARIOS: dict[str, Scenario] = {
             companion_listens=True,
             checks=("confirmed_target", "flood"),
         ),
+        # The real autopilots' CI flights: several faults in one flight, each after the companion is following
+        # again (a stall, a takeover and an abort end the companion's control, so each flight ends with one).
+        Scenario(
+            "flood-stall",
+            "`follow`, with the `flood` 2 s in and the `stall` (frozen 3 s) 10 s in: one flight",
+            faults=(Fault("flood", 2.0), Fault("stall", 10.0), Fault("resume", 13.0)),
+            follow_s=17.0,
+            companion_listens=True,
+            checks=(
+                "confirmed_target",
+                "in_view",
+                "standoff",
+                "flood",
+                "stall_coast",
+                "stall_reported",
+                "no_stale_setpoint",
+            ),
+        ),
+        Scenario(
+            "link-drop-takeover",
+            "`link-drop` (down 2-6 s, the GCS restarts the mission at 7 s), then the pilot's RC takeover at 15 s",
+            faults=(
+                Fault("link_down", 2.0),
+                Fault("link_up", 6.0),
+                Fault("restart", 7.0),
+                Fault("rc_takeover", 15.0),
+            ),
+            follow_s=17.0,
+            companion_settings=LINK_DROP_SETTINGS,
+            checks=("confirmed_target", "link_hold", "takeover"),
+        ),
     )
 }
 

@@ -6,8 +6,8 @@ COM_OBL_RC_ACT Hold: `mock` (sitl/autopilot.py, personality px4) and `px4_sitl` 
 client speaks as the companion does (system N+1 / 191) on the companion's link; the pilot's side is
 `ScriptedGcs` on the GCS link. Each test reduces what it saw to an answer and compares it with `REAL`, what
 the real PX4 answers; where the mock differs on purpose the difference is in `KNOWN_DIFFERENCES` with its
-reason (docs/sitl.md lists both). `pytest -k px4_sitl` selects the real side (slow: one PX4 boot for the
-module, about two minutes).
+reason (docs/sitl.md lists both). `pytest -k px4_sitl` selects the real side (slow: the PX4 it shares with
+tests/test_px4_sitl_scenarios.py, one boot and take-off for both).
 """
 
 from __future__ import annotations
@@ -26,9 +26,8 @@ from pymavlink.dialects.v20 import development
 
 from sitl.scenarios import ScriptedGcs
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.shares_px4]
 mavlink = development  # the client decodes CURRENT_MODE (development.xml); PX4 speaks the common set
-HOME = (47.397742, 8.545594, 488.0)
 EARTH_RADIUS = 6_378_137.0
 # PX4's custom_mode: main mode in byte 2, sub mode in byte 3. Written out here, not taken from the mock.
 MODES = {"ALTCTL": (2, 0), "POSCTL": (3, 0), "HOLD": (4, 3), "OFFBOARD": (6, 0)}
@@ -206,7 +205,8 @@ class Px4Link:
         self.stream(seconds, lambda: self.setpoint(mavlink.MAV_FRAME_LOCAL_NED, VELOCITY_AND_YAW))
 
     def settle(self) -> None:
-        """HOLD, stopped: where every exchange starts (the pilot's mode, set from the GCS)."""
+        """HOLD, stopped: where every exchange that flies starts (the pilot's mode, set from the GCS); none
+        ends with it, the next one settles (CI pays for each second of the real half)."""
         main, sub = MODES["HOLD"]
         self.gcs.set_mode(main, sub)
         assert self.wait_mode("HOLD", 3.0), self.mode()
@@ -246,29 +246,18 @@ def _client(url: str, system: int) -> Any:
     return client
 
 
-def _px4_sitl(work: Any) -> Px4Link:
-    from sitl.px4_sitl import find_package, start_px4
-
-    real = start_px4(find_package(), work, HOME, None)
-    try:
-        real.fly_up(10.0, progress=print)
-    except Exception:
-        real.gcs.stop()
-        real.close()
-        raise
+def _px4_sitl(shared: Any) -> Px4Link:
+    """The real PX4 the scenario flights share (tests/conftest.py `shared_px4`), back over home in HOLD."""
+    real = shared.get()
+    real.reuse(None)  # the bridge answers whoever speaks to it: this client
+    real.return_home(10.0, progress=print)
     client = _client(f"udpout:127.0.0.1:{real.bridge.udp_port}", real.system_id)
-
-    def close() -> None:
-        real.gcs.stop()
-        client.close()
-        real.close()
-
-    return Px4Link("px4_sitl", real.system_id, client, real.gcs, close).start()
+    return Px4Link("px4_sitl", real.system_id, client, real.gcs, client.close).start()
 
 
 @pytest.fixture(scope="module", params=["mock", "px4_sitl"])
-def vehicle(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Px4Link]:
-    v = _mock() if request.param == "mock" else _px4_sitl(tmp_path_factory.mktemp("px4"))
+def vehicle(request: pytest.FixtureRequest) -> Iterator[Px4Link]:
+    v = _mock() if request.param == "mock" else _px4_sitl(request.getfixturevalue("shared_px4"))
     try:
         assert v.interval(mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 10) == [ACCEPTED]
         assert v.interval(mavlink.MAVLINK_MSG_ID_CURRENT_MODE, 10) == [ACCEPTED]
@@ -308,7 +297,6 @@ def test_mode_encoding(vehicle: Px4Link) -> None:
         mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 13, 0, wait=1.5
     )
     _compare(vehicle, "unknown_mode", {"acks": acks, "mode": vehicle.mode()})
-    vehicle.settle()
 
 
 def test_command_acks(vehicle: Px4Link) -> None:
@@ -344,7 +332,6 @@ def test_offboard_entry_without_and_with_a_setpoint_stream(vehicle: Px4Link) -> 
         if m.command == mavlink.MAV_CMD_DO_SET_MODE
     ]
     _compare(vehicle, "offboard_after_a_stream", {"acks": acks, "mode": vehicle.mode()})
-    vehicle.settle()
 
 
 def test_what_happens_after_com_of_loss_t(vehicle: Px4Link) -> None:
@@ -391,7 +378,6 @@ def test_what_happens_after_com_of_loss_t(vehicle: Px4Link) -> None:
         "back_in_offboard_when_setpoints_return": back,
     }
     _compare(vehicle, "offboard_loss", answer)
-    vehicle.settle()
 
 
 def test_message_rates_after_set_message_interval(vehicle: Px4Link) -> None:
@@ -449,7 +435,6 @@ def test_how_soon_a_mode_change_shows(vehicle: Px4Link) -> None:
             "heartbeat_within_0_2_s": max(delays["HEARTBEAT"]) < 0.2,
         },
     )
-    vehicle.settle()
 
 
 def test_velocity_frames_of_set_position_target_local_ned(vehicle: Px4Link) -> None:
@@ -474,7 +459,6 @@ def test_velocity_frames_of_set_position_target_local_ned(vehicle: Px4Link) -> N
             2.5, lambda: vehicle.setpoint(mavlink.MAV_FRAME_LOCAL_NED, VELOCITY_AND_YAW, yaw=math.pi / 2)
         )
     _compare(vehicle, "course_deg", courses)
-    vehicle.settle()
 
 
 def test_setpoints_ignored_outside_offboard(vehicle: Px4Link) -> None:
@@ -485,7 +469,6 @@ def test_setpoints_ignored_outside_offboard(vehicle: Px4Link) -> None:
     _compare(
         vehicle, "ignored_outside_offboard", _course(track, 1.0, 2.0)[1] < 0.3 and vehicle.mode() == "HOLD"
     )
-    vehicle.settle()
 
 
 def test_gcs_reposition(vehicle: Px4Link) -> None:
@@ -504,7 +487,6 @@ def test_gcs_reposition(vehicle: Px4Link) -> None:
     miss = math.dist((end.x, end.y), (start.x + 8.0, start.y))
     print(f"{vehicle.kind}: {miss:.2f} m from the target after 8 s, mode {vehicle.mode()}")
     _compare(vehicle, "reposition_arrives", {"mode": vehicle.mode(), "within_1_5_m": miss < 1.5})
-    vehicle.settle()
 
 
 def test_yaw_rate_in_the_companions_frame(vehicle: Px4Link) -> None:
@@ -520,4 +502,3 @@ def test_yaw_rate_in_the_companions_frame(vehicle: Px4Link) -> None:
     rate = turned / (window[-1][0] - window[0][0])
     print(f"{vehicle.kind}: yaw rate {rate:.3f} rad/s for 0.3 commanded")
     _compare(vehicle, "yaw_rate", {"clockwise": rate > 0, "within_30_percent": abs(rate - 0.3) <= 0.09})
-    vehicle.settle()
