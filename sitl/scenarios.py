@@ -203,9 +203,9 @@ SCENARIOS: dict[str, Scenario] = {
         # again (a stall, a takeover and an abort end the companion's control, so each flight ends with one).
         Scenario(
             "flood-stall",
-            "`follow`, with the `flood` 2 s in and the `stall` (frozen 3 s) 10 s in: one flight",
-            faults=(Fault("flood", 2.0), Fault("stall", 10.0), Fault("resume", 13.0)),
-            follow_s=17.0,
+            "`follow`, with the `flood` 2 s in and the `stall` (frozen 3 s) 8 s in: one flight",
+            faults=(Fault("flood", 2.0), Fault("stall", 8.0), Fault("resume", 11.0)),
+            follow_s=15.0,
             companion_listens=True,
             checks=(
                 "confirmed_target",
@@ -219,14 +219,14 @@ SCENARIOS: dict[str, Scenario] = {
         ),
         Scenario(
             "link-drop-takeover",
-            "`link-drop` (down 2-6 s, the GCS restarts the mission at 7 s), then the pilot's RC takeover at 15 s",
+            "`link-drop` (down 2-6 s, the GCS restarts the mission at 7 s), then the pilot's RC takeover at 14 s",
             faults=(
                 Fault("link_down", 2.0),
                 Fault("link_up", 6.0),
                 Fault("restart", 7.0),
-                Fault("rc_takeover", 15.0),
+                Fault("rc_takeover", 14.0),
             ),
-            follow_s=17.0,
+            follow_s=16.0,
             companion_settings=LINK_DROP_SETTINGS,
             checks=("confirmed_target", "link_hold", "takeover"),
         ),

@@ -74,7 +74,8 @@ class MavsdkOffboard:
         """The body-frame velocity MAVSDK keeps sending (already limited by the caller)."""
         from mavsdk.plugins.offboard import VelocityBodyYawspeed
 
-        self._relay.note_setpoint()  # before MAVSDK sends it: the relay lets fresh setpoints through
+        # Before MAVSDK sends it: the relay lets this setpoint through, fresh, and no other.
+        self._relay.note_setpoint((setpoint.forward, setpoint.right, setpoint.down, setpoint.yaw_rate))
         velocity = VelocityBodyYawspeed(
             setpoint.forward,
             setpoint.right,
