@@ -92,7 +92,10 @@ class AuthConfig(ConfigSection):
 class DetectorConfig(ConfigSection):
     kind: DetectorKind = "yolox"
     model_dir: str = ""  # empty: $CLOUDTRACK_MODEL_DIR, then the user cache
-    score_threshold: float = Field(0.3, ge=0, le=1)
+    # 0.2: the detector proposes, the verifier judges; a target never proposed can never be chosen. YOLOX-nano
+    # scores targets between its classes (a van, a bag COCO has no class for) 0.2-0.3: recall at 0.2 rises in
+    # every size class for about one more box per keyframe to verify (docs/benchmarks.md, "Back-end detection").
+    score_threshold: float = Field(0.2, ge=0, le=1)
     nms_threshold: float = Field(0.45, gt=0, le=1)
     # onnxruntime intra-op threads per detection (0: all cores). One thread and `sessions.detector_concurrency`
     # detections in parallel uses the cores best under load; more threads lower one frame's latency on an idle CPU.
@@ -109,6 +112,9 @@ class DetectorConfig(ConfigSection):
     # inferences: 2 lifted recall of people under 32 px in 640-px keyframes 0.61 -> 0.81 (2.4-3.1x the time).
     tiles: int = Field(2, ge=0, le=8)
     tile_overlap: float = Field(0.2, ge=0, le=0.5)
+    # A keyframe's inferences (whole frame and tiles) at once, up to one per core over all requests: the
+    # same work, a lone keyframe answered sooner. False: one after another, on the request's thread.
+    parallel_tiles: bool = True
     # With kind = "yolox": the open-vocabulary detector for prompts naming no COCO class (built from hf_model
     # and device; needs the gpu extra). Empty: such prompts are answered 422 with the nearest known classes.
     open_vocabulary: Literal["", "grounding_dino", "owlv2"] = ""
@@ -123,6 +129,9 @@ class VerifierConfig(ConfigSection):
     timeout_s: float = Field(10.0, gt=0, le=300)  # one verification
     request_deadline_s: float = Field(20.0, gt=0, le=600)  # the whole request, detection included
     concurrency: int = Field(16, ge=1, le=512)  # verifications in flight, all vehicles together
+    # The local verifier's pose-model interpreters: candidates are judged this many at once (0: one per
+    # core; each holds the model, about 30 MB). 1: one after another, as before.
+    local_instances: int = Field(0, ge=0, le=64)
     uncertain_policy: UncertainPolicy = "uncertain"  # what an unparseable or timed-out answer becomes
 
 

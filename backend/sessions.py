@@ -17,6 +17,8 @@ reports for the supervisor must be a real JPEG: the page serves it as image/jpeg
 from __future__ import annotations
 
 import logging
+import math
+import threading
 import time
 from collections.abc import Callable
 
@@ -82,12 +84,25 @@ class SessionStore:
         self.max_crop_pixels = max_crop_pixels
         self._clock = clock
         self.on_find = on_find  # told of every find stored or refined (Cursor-on-Target), off the request
+        # Missions this process marked alive, and when: a mission touched less than `touch_interval_s` ago
+        # is not written again (a keyframe and a status report each opened it: two commits with an fsync).
+        self.touch_interval_s = min(60.0, mission_ttl_s / 10)
+        self._touched: dict[tuple[str, str], float] = {}
+        self._touched_lock = threading.Lock()
 
     def open_mission(self, vehicle_id: str, mission_id: str) -> None:
         """Mark the mission alive (QuotaExceededError for one too many) and forget the expired ones."""
         now = self._clock()
+        key = (vehicle_id, mission_id)
+        with self._touched_lock:
+            if now - self._touched.get(key, -math.inf) < self.touch_interval_s:
+                return  # alive, and written moments ago: its last-seen time lags by less than the interval
         self.state.expire(now - self.mission_ttl_s)  # an indexed range: only what expired is touched
         self.state.touch_mission(vehicle_id, mission_id, now, self.mission_ttl_s, self.max_missions)
+        with self._touched_lock:
+            if len(self._touched) >= 4096:  # keep only the recent ones
+                self._touched = {k: t for k, t in self._touched.items() if now - t < self.touch_interval_s}
+            self._touched[key] = now
 
     # Candidates and rejections
 

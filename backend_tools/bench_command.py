@@ -50,7 +50,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
         "  cloudtrack-backend bench --latency 1.0 --candidates 5 --vehicles 1 4 16\n"
         "  cloudtrack-backend bench --latency 0.2 --requests 5 --json out/bench.json\n"
         '  cloudtrack-backend bench --url https://backend.example.org --tokens \'{"drone-1": "...", "drone-2": "..."}\' '
-        "--vehicles 1 2",
+        "--vehicles 1 2\n"
+        "  cloudtrack-backend bench --capacity --json out/capacity.json\n"
+        "  cloudtrack-backend bench --hostile --json out/hostile.json",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--latency", type=float, default=1.0, help="VLM latency L in seconds (default 1.0)")
@@ -80,6 +82,50 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
         "--no-replicas",
         action="store_true",
         help="skip the replica runs (they need redis-server and nginx: make install-services)",
+    )
+    capacity = parser.add_argument_group("capacity (--capacity)")
+    capacity.add_argument(
+        "--capacity",
+        action="store_true",
+        help="find the most vehicles one back-end serves (local verifier, no emulated delay) and print it "
+        "beside the detector's raw keyframes/s on the same cores; nothing else is measured",
+    )
+    capacity.add_argument(
+        "--baseline",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help="also measure the server with this setting first, as 'before' (repeatable)",
+    )
+    capacity.add_argument(
+        "--baseline-tree",
+        type=Path,
+        metavar="DIR",
+        help="also measure the server run from this source tree first, as 'before' (e.g. `git worktree add "
+        "DIR COMMIT`): before and after in one run",
+    )
+    capacity.add_argument(
+        "--rate", type=float, default=2.0, help="keyframes per second per vehicle (default 2: searching)"
+    )
+    capacity.add_argument(
+        "--p95-bound", type=float, default=1.0, help="p95 latency a served fleet stays within (default 1.0 s)"
+    )
+    capacity.add_argument(
+        "--trial-s", type=float, default=20.0, help="seconds measured per fleet size (default 20)"
+    )
+    hostile = parser.add_argument_group("hostile load (--hostile)")
+    hostile.add_argument(
+        "--hostile",
+        action="store_true",
+        help="one vehicle's search alone, then beside another token's hostile requests of every kind and "
+        "clients trickling header lines: its p95 ratio, /health, status codes, RSS; nothing else is measured",
+    )
+    hostile.add_argument("--hostile-requests", type=int, default=2000, help="hostile requests (default 2000)")
+    hostile.add_argument(
+        "--slow-clients", type=int, default=90, help="connections trickling header lines (default 90)"
+    )
+    hostile.add_argument(
+        "--solo-s", type=float, default=30.0, help="seconds of the vehicle's search alone (default 30)"
     )
     parser.add_argument("--json", type=Path, metavar="OUT", help="write the figures as JSON")
     parser.set_defaults(func=_bench)
@@ -301,9 +347,51 @@ def _print_report(report: dict[str, Any]) -> None:
         )
 
 
+def _capacity(args: argparse.Namespace, model_dir: Path, sequences: Path) -> int:
+    from backend_tools.capacity_bench import CapacitySettings, Configuration, capacity_report, print_capacity
+
+    settings = CapacitySettings(rate_hz=args.rate, p95_bound_s=args.p95_bound, trial_s=args.trial_s)
+    before = args.baseline or args.baseline_tree
+    configurations = [Configuration("before", tuple(args.baseline), args.baseline_tree)] if before else []
+    configurations.append(Configuration("after" if before else "defaults"))
+    try:
+        require("yolox", model_dir)
+        say(f"[capacity] {args.rate:g} keyframes/s per vehicle, p95 <= {args.p95_bound:g} s ...")
+        report = capacity_report(model_dir, sequences, settings, configurations, say)
+    except (ConfigError, ModelError, ValueError, OSError, RuntimeError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print_capacity(report)
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(report, indent=2))
+    return 0
+
+
+def _hostile(args: argparse.Namespace, model_dir: Path, sequences: Path) -> int:
+    from backend_tools.hostile_bench import hostile_run, print_hostile
+
+    try:
+        require("yolox", model_dir)
+        say(f"[hostile] {args.hostile_requests} hostile requests, {args.slow_clients} slow clients ...")
+        report = hostile_run(model_dir, sequences, args.hostile_requests, args.slow_clients, args.solo_s, say)
+    except (ConfigError, ModelError, ValueError, OSError, RuntimeError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print_hostile(report)
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(report, indent=2))
+    return 0
+
+
 def _bench(args: argparse.Namespace) -> int:
     sequences = _shared(args) / "data" / "sequences"
     model_dir = resolve_model_dir(args.model_dir)
+    if args.capacity:
+        return _capacity(args, model_dir, sequences)
+    if args.hostile:
+        return _hostile(args, model_dir, sequences)
     report: dict[str, Any] = {"latency_s": args.latency}
     try:
         frames = _fleet_frames(sequences)

@@ -188,11 +188,18 @@ class BackendProcess:
     """`cloudtrack-backend serve` in a child process on a free loopback port; `kill()` is a SIGKILL."""
 
     def __init__(
-        self, settings: list[str], tokens: dict[str, str], supervisor_token: str = "", port: int | None = None
+        self,
+        settings: list[str],
+        tokens: dict[str, str],
+        supervisor_token: str = "",
+        port: int | None = None,
+        source_tree: Path | None = None,
     ) -> None:
         self.port = port or free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         env = {**os.environ, "CLOUDTRACK_BACKEND_AUTH__TOKENS": json.dumps(tokens)}
+        if source_tree is not None:  # another version of the code (a bench's "before"), first on the path
+            env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(source_tree), env.get("PYTHONPATH")]))
         if supervisor_token:
             env["CLOUDTRACK_BACKEND_AUTH__SUPERVISOR_TOKEN"] = supervisor_token
         flags = [arg for s in [f"server.port={self.port}", *settings] for arg in ("--set", s)]

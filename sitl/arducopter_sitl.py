@@ -8,6 +8,7 @@ serial ports, laid out as on a real flight controller:
     SERIAL0  GCS (the scripted pilot/GCS: arming, take-off, mode changes, RC override, fly-to)
     SERIAL1  a spare output the simulated camera follows (like `cloudtrack-sim camera --autopilot-url`)
     SERIAL2  TELEM2, the companion: reached through `CompanionBridge` (MAV3_* stream rates, 4.5+ names)
+    SERIAL5  a second ground station's port (MAVLink 2), for the ground tools: `cloudtrack-gcs survey`
 
 `sitl.companion_bridge.CompanionBridge` relays the companion's UDP datagrams to SERIAL2's TCP stream and
 back, records the companion's setpoints and cuts the link on demand.
@@ -118,6 +119,7 @@ class SitlPorts:
     gcs: int
     camera: int
     companion: int
+    ground: int  # SERIAL5: a ground tool beside the scripted GCS (SERIAL0 takes one TCP client)
 
 
 class ArduCopterSitl:
@@ -135,8 +137,8 @@ class ArduCopterSitl:
         self.work_dir = work_dir
         self.home = home  # lat, lon, alt (m AMSL), heading (deg)
         self.speedup = speedup
-        self.params = {**project_parameters(), **(extra_params or {})}
-        self.ports = SitlPorts(free_tcp_port(), free_tcp_port(), free_tcp_port())
+        self.params = {**project_parameters(), "SERIAL5_PROTOCOL": 2, **(extra_params or {})}
+        self.ports = SitlPorts(free_tcp_port(), free_tcp_port(), free_tcp_port(), free_tcp_port())
         self.instance = _free_instance()
         self.process: subprocess.Popen[bytes] | None = None
 
@@ -172,11 +174,13 @@ class ArduCopterSitl:
             f"tcp:{self.ports.camera}",
             "--serial2",
             f"tcp:{self.ports.companion}",
+            "--serial5",
+            f"tcp:{self.ports.ground}",
         ]
         with open(self.work_dir / "arducopter.log", "wb") as out:
             self.process = subprocess.Popen(cmd, cwd=self.work_dir, stdout=out, stderr=subprocess.STDOUT)
         deadline = time.monotonic() + timeout_s
-        for port in (self.ports.gcs, self.ports.camera, self.ports.companion):
+        for port in (self.ports.gcs, self.ports.camera, self.ports.companion, self.ports.ground):
             while not self._listening(port):
                 if self.process.poll() is not None:
                     raise RuntimeError(

@@ -290,7 +290,6 @@ class SimulatedAutopilot:
             self._position_target = None
             if name in ("GUIDED", "OFFBOARD"):
                 self._velocity_target = VelocityCommand()
-            log.info("mode %s (by %s)", name, source)
             if self.is_ardupilot:  # ArduCopter announces a new mode at once on every link (conformance suite)
                 for link in self._links.values():
                     if not link.down:
@@ -299,6 +298,7 @@ class SimulatedAutopilot:
                 for link in self._links.values():
                     if not link.down and MSG_ID_CURRENT_MODE in link.intervals:
                         self._send_message(link, MSG_ID_CURRENT_MODE, now)
+            log.info("mode %s (by %s)", name, source)  # after the announcement: a slow log never delays it
         return True
 
     def _px4_stream_alive(self, now: float) -> bool:

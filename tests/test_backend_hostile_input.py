@@ -274,3 +274,27 @@ def test_hostile_a_slow_but_complete_request_is_still_served(models_dir: Path) -
             while chunk := conn.recv(4096):
                 answer += chunk
         assert answer.startswith(b"HTTP/1.1 200"), answer[:100]
+
+
+# Hostile load beside a vehicle's search (the bench's figures: docs/benchmarks.md, "Back-end under hostile load")
+
+
+@pytest.mark.slow
+def test_hostile_load_beside_a_search_answers_every_kind_without_a_5xx(
+    models_dir: Path, sequences_dir: Path
+) -> None:
+    """`cloudtrack-backend bench --hostile` in small: every hostile kind gets its refusal, the searching
+    vehicle every answer, the slow clients are cut by the server. No timing is asserted."""
+    from backend_tools.hostile_bench import hostile_kinds, hostile_run
+
+    kinds = hostile_kinds()
+    report = hostile_run(models_dir, sequences_dir, 4 * len(kinds), 6, 3.0, lambda _: None,
+                         ("server.header_timeout_s=1.0",))  # fmt: skip
+    assert report["server_errors"] == 0, report["by_kind"]
+    refusals = {kind: set(codes) for kind, codes in report["by_kind"].items()}
+    assert set(refusals) == {k.kind for k in kinds}
+    for kind, codes in refusals.items():
+        expected = {"200", "429"} if kind.startswith("a new mission") else {"413", "422"}
+        assert codes <= expected, (kind, codes)
+    assert set(report["vehicle_a"]["codes"]) == {"A 200"} and report["vehicle_a"]["beside"]["keyframes"] > 0
+    assert report["slow_clients_closed"] == 6  # by the server: the clients never stop on their own

@@ -211,3 +211,23 @@ def test_status_keeps_a_candidates_crop_but_never_gives_it_to_another() -> None:
         "drone-1", VehicleStatusIn(mission_id="m1", state="AWAITING_SUPERVISOR", awaiting=other)
     )
     assert fresh.awaiting is not None and fresh.awaiting.crop_jpeg_b64 is None
+
+
+def test_a_mission_opened_moments_ago_is_not_written_again() -> None:
+    """Every keyframe and status report opens its mission; within touch_interval_s only the first writes
+    (a commit with an fsync), a new mission always reaches the store (and its quota)."""
+    now = [1000.0]
+    store = SessionStore(mission_ttl_s=6 * 3600, max_missions=2, clock=lambda: now[0])
+    writes: list[str] = []
+    touch = store.state.touch_mission
+    store.state.touch_mission = lambda v, m, *a: (writes.append(m), touch(v, m, *a))[1]  # type: ignore[method-assign]
+    for _ in range(5):
+        store.open_mission("v1", "m1")
+        now[0] += 1
+    assert writes == ["m1"] and store.touch_interval_s == 60
+    now[0] += 60
+    store.open_mission("v1", "m1")
+    store.open_mission("v1", "m2")
+    assert writes == ["m1", "m1", "m2"]
+    with pytest.raises(QuotaExceededError):
+        store.open_mission("v1", "m3")  # never cached: the quota still holds

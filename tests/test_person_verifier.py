@@ -6,6 +6,7 @@ Select with `pytest -k verifier`; the whole-crop-set table is marked slow.
 from __future__ import annotations
 
 import re
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import cv2
@@ -106,6 +107,19 @@ def test_verifier_group_dev_case_grey_blue_yes_red_and_green_white_not(
     assert all(a.verdict is NO for a in answers["red"] + answers["green-white"])
     assert not any(re.search(r"\bred \d", a.justification) for a in answers["red"])  # the other men's shirts
     assert all("blue-gray" in a.justification and "dark" in a.justification for a in answers["grey-blue"])
+
+
+def test_verifier_interpreters_in_parallel_answer_as_one_does(
+    crops: list[LabelledCrop], sequences_dir: Path
+) -> None:
+    """`[verifier] local_instances`: candidates judged at once, each as a lone interpreter judges it."""
+    cases = [_margin(sequences_dir, c) for c in crops[:6]]
+    alone = [PersonModel().estimate(image, box) for image, box in cases]
+    pooled = PersonModel(instances=2)
+    with ThreadPoolExecutor(4) as pool:
+        together = list(pool.map(lambda case: pooled.estimate(*case), cases))
+    assert [p.presence for p in together] == [p.presence for p in alone]
+    assert all(np.array_equal(a.keypoints, b.keypoints) for a, b in zip(alone, together, strict=True))
 
 
 def test_verifier_is_deterministic_and_names_what_it_saw(

@@ -47,7 +47,12 @@ def _yolox(config: DetectorConfig) -> SupersetDetector:
     from backend.detectors.tiling import TiledDetector
 
     return TiledDetector(
-        yolox, config.tiles, config.tile_overlap, config.nms_threshold, min_side=yolox.input_size
+        yolox,
+        config.tiles,
+        config.tile_overlap,
+        config.nms_threshold,
+        min_side=yolox.input_size,
+        parallel=config.parallel_tiles,
     )
 
 

@@ -7,6 +7,7 @@ from backend.verifiers.attributes import AttributeVerifier
 from backend.verifiers.cascade import CascadeVerifier
 from backend.verifiers.interface import Verifier
 from backend.verifiers.openai_chat import OpenAIChatVerifier
+from backend.verifiers.person_model import PersonModel
 from backend.verifiers.person_verifier import PersonVerifier
 
 
@@ -19,7 +20,7 @@ def build_verifier(verifier: VerifierConfig, vlm: VlmConfig) -> Verifier | None:
     if verifier.kind == "none":
         return None
     if verifier.kind == "local":
-        return PersonVerifier()
+        return PersonVerifier(PersonModel(instances=verifier.local_instances))
     if verifier.kind == "local-hsv":
         return AttributeVerifier()
     chat = OpenAIChatVerifier(
@@ -33,4 +34,6 @@ def build_verifier(verifier: VerifierConfig, vlm: VlmConfig) -> Verifier | None:
         vlm.crop_max_side,
         vlm.jpeg_quality,
     )
-    return chat if verifier.kind == "vlm" else CascadeVerifier(PersonVerifier(), chat)
+    if verifier.kind == "vlm":
+        return chat
+    return CascadeVerifier(PersonVerifier(PersonModel(instances=verifier.local_instances)), chat)

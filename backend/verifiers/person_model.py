@@ -17,13 +17,14 @@ from __future__ import annotations
 import argparse
 import hashlib
 import os
+import queue
 import subprocess
 import sys
 import tempfile
-import threading
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -118,10 +119,20 @@ def _sigmoid(v: np.ndarray) -> np.ndarray:
     return np.asarray(1.0 / (1.0 + np.exp(-np.clip(v, -30, 30))))
 
 
-class PersonModel:
-    """Loads the model once; `estimate` is serialised (one interpreter, one thread in it)."""
+@dataclass
+class _Interpreter:
+    interpreter: Any
+    input: int
+    landmarks: int
+    flag: int
+    segmentation: int
 
-    def __init__(self, model_dir: Path | None = None, threads: int = 1) -> None:
+
+class PersonModel:
+    """Loads the model once per interpreter; `estimate` takes a free interpreter (`instances` of them, 0:
+    one per core, each with one thread), so candidates are judged in parallel up to that many."""
+
+    def __init__(self, model_dir: Path | None = None, threads: int = 1, instances: int = 1) -> None:
         path = (model_dir or default_model_dir()) / MODEL_NAME
         try:
             from ai_edge_litert.interpreter import Interpreter
@@ -134,16 +145,20 @@ class PersonModel:
                 f"no {path}: run `python -m backend.verifiers.person_model install` "
                 "(copies it from the mediapipe 0.10.14 wheel on PyPI)"
             )
-        self._interpreter = Interpreter(str(path), num_threads=threads)
-        self._interpreter.allocate_tensors()
-        self._input = self._interpreter.get_input_details()[0]["index"]
-        outputs = {d["name"]: d["index"] for d in self._interpreter.get_output_details()}
-        self._landmarks, self._flag, self._segmentation = (
-            outputs["Identity"],
-            outputs["Identity_1"],
-            outputs["Identity_2"],
-        )
-        self._lock = threading.Lock()
+        self._idle: queue.SimpleQueue[_Interpreter] = queue.SimpleQueue()
+        for _ in range(instances or os.cpu_count() or 1):
+            interpreter = Interpreter(str(path), num_threads=threads)
+            interpreter.allocate_tensors()
+            outputs = {d["name"]: d["index"] for d in interpreter.get_output_details()}
+            self._idle.put(
+                _Interpreter(
+                    interpreter,
+                    interpreter.get_input_details()[0]["index"],
+                    outputs["Identity"],
+                    outputs["Identity_1"],
+                    outputs["Identity_2"],
+                )
+            )
 
     def _run(
         self, image_bgr: np.ndarray, box: tuple[float, float, float, float], rotation: int
@@ -157,12 +172,15 @@ class PersonModel:
             image_bgr, forward, (INPUT, INPUT), flags=cv2.INTER_LINEAR, borderValue=(0, 0, 0)
         )
         tensor = cv2.cvtColor(square, cv2.COLOR_BGR2RGB).astype(np.float32)[None] / 255.0
-        with self._lock:
-            self._interpreter.set_tensor(self._input, tensor)
-            self._interpreter.invoke()
-            landmarks = self._interpreter.get_tensor(self._landmarks).reshape(39, 5)[:33].copy()
-            presence = float(self._interpreter.get_tensor(self._flag).ravel()[0])
-            logits = self._interpreter.get_tensor(self._segmentation)[0, :, :, 0].copy()
+        slot = self._idle.get()  # blocks while every interpreter is busy
+        try:
+            slot.interpreter.set_tensor(slot.input, tensor)
+            slot.interpreter.invoke()
+            landmarks = slot.interpreter.get_tensor(slot.landmarks).reshape(39, 5)[:33].copy()
+            presence = float(slot.interpreter.get_tensor(slot.flag).ravel()[0])
+            logits = slot.interpreter.get_tensor(slot.segmentation)[0, :, :, 0].copy()
+        finally:
+            self._idle.put(slot)
         back = cv2.invertAffineTransform(forward)
         points = landmarks[:, :2] @ back[:, :2].T + back[:, 2]
         mask = cv2.warpAffine(

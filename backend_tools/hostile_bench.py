@@ -1,0 +1,273 @@
+"""`cloudtrack-backend bench --hostile`: one token's hostile requests beside another vehicle's search.
+
+A real `cloudtrack-backend serve` (default configuration, SQLite store on disk). Vehicle A sends real
+keyframes the companion's way (one every 0.5 s, at most 4 out) first alone, then while vehicle B's token
+sends `count` hostile requests of every kind issue 31 found, and while `slow_clients` connections trickle
+header lines. Printed: A's p95 alone and beside B (and their ratio, goal <= 1.5), /health's p95 alone and
+beside B, every status code B got (no 5xx), and the server's RSS before and after (goal +50 MB).
+B's token gets a rate quota high enough that every hostile request reaches the check meant for it (the
+default quota would refuse most with 429 before their bodies are read, which is the cheap case).
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import socket
+import tempfile
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import requests
+
+from backend_tools.capacity_bench import PROMPT, keyframes
+from backend_tools.fleet_services import BackendProcess
+
+TOKENS = {"vehicle-a": "hostile-bench-vehicle-a-token", "vehicle-b": "hostile-bench-vehicle-b-token"}
+
+
+def _header_bomb(width: int, height: int) -> bytes:
+    """A small real JPEG whose frame header claims width x height."""
+    data = bytearray(cv2.imencode(".jpg", np.full((16, 16, 3), 128, np.uint8))[1].tobytes())
+    sof = data.index(b"\xff\xc0")
+    data[sof + 5 : sof + 7] = height.to_bytes(2, "big")
+    data[sof + 7 : sof + 9] = width.to_bytes(2, "big")
+    return bytes(data)
+
+
+@dataclass(frozen=True)
+class Hostile:
+    """One kind of hostile request: what issue 31 (and issue 14 before it) found."""
+
+    kind: str
+    method: str
+    path: str
+    body: bytes = b""
+    content_type: str = "application/json"
+    files: dict[str, Any] | None = None
+    data: dict[str, str] | None = None
+
+
+def hostile_kinds() -> list[Hostile]:
+    """Every kind, each built once (the sender's own CPU stays small beside the server's)."""
+    status = "/v1/vehicles/vehicle-b/status"
+    meta = json.dumps({"vehicle_id": "vehicle-b", "mission_id": "bombs", "prompt": PROMPT})
+    crop_bomb = base64.b64encode(_header_bomb(8700, 8700)).decode()
+    deep: Any = 1
+    for _ in range(30):
+        deep = [deep]
+    return [
+        Hostile("150000 unknown keys (1.7 MB)", "POST", status, json.dumps({f"k{i}": 0 for i in range(150_000)}).encode()),
+        Hostile("5000 unknown keys", "POST", status, json.dumps({"state": "S", **{f"k{i}": 0 for i in range(5000)}}).encode()),
+        Hostile("nested 30 deep", "POST", status, json.dumps({"state": "S", "search": deep}).encode()),
+        Hostile("invalid fields", "POST", status, json.dumps({"state": [1], "altitude_m": "x", **{f"x{i}": i for i in range(50)}}).encode()),
+        Hostile("position off the globe", "POST", "/v1/missions/geo/rejections",
+                json.dumps({"vehicle_id": "vehicle-b", "candidate_id": "c1", "position": [135, 0]}).encode()),
+        Hostile("position 1e308", "POST", status, json.dumps({"state": "S", "position": [1e308, -1e308]}).encode()),
+        Hostile("after = 2^63", "GET", "/v1/vehicles/vehicle-b/decisions?after=9223372036854775808"),
+        Hostile("keyframe header 16000x16000", "POST", "/v1/detect", content_type="",
+                files={"image": ("b.jpg", _header_bomb(16000, 16000), "image/jpeg")}, data={"meta": meta}),
+        Hostile("crop header 8700x8700", "POST", "/v1/missions/bombs/rejections",
+                json.dumps({"vehicle_id": "vehicle-b", "crop_jpeg_b64": crop_bomb}).encode()),
+        Hostile("a new mission each time", "POST", status, b""),  # body made per request below
+    ]  # fmt: skip
+
+
+@dataclass
+class Phase:
+    latencies: list[float] = field(default_factory=list)
+    health: list[float] = field(default_factory=list)
+    codes: dict[str, int] = field(default_factory=dict)
+
+    def p95(self, values: list[float]) -> float:
+        return float(np.percentile(values, 95)) if values else float("nan")
+
+
+def _vehicle_a(url: str, jpegs: list[bytes], stop: threading.Event, phase: Phase) -> None:
+    """Vehicle A: a keyframe every 0.5 s, waiting for each answer (one out at a time: its own latency)."""
+    period = 0.5
+    frame = 0
+    with requests.Session() as http:
+        http.headers["Authorization"] = f"Bearer {TOKENS['vehicle-a']}"
+        due = time.monotonic()
+        while not stop.is_set():
+            meta = {"vehicle_id": "vehicle-a", "mission_id": "search", "prompt": PROMPT, "frame_id": frame}
+            started = time.monotonic()
+            answer = http.post(
+                f"{url}/v1/detect",
+                files={"image": ("k.jpg", jpegs[frame % len(jpegs)], "image/jpeg")},
+                data={"meta": json.dumps(meta)},
+                timeout=60,
+            )
+            code = str(answer.status_code)
+            phase.codes[f"A {code}"] = phase.codes.get(f"A {code}", 0) + 1
+            if answer.status_code == 200:
+                phase.latencies.append(time.monotonic() - started)
+            frame += 1
+            due += period
+            time.sleep(max(0.0, due - time.monotonic()))
+
+
+def _health(url: str, stop: threading.Event, phase: Phase) -> None:
+    """/health every 0.1 s: how long the event loop takes to answer anything."""
+    with requests.Session() as http:
+        while not stop.is_set():
+            started = time.monotonic()
+            http.get(f"{url}/health", timeout=60)
+            phase.health.append(time.monotonic() - started)
+            time.sleep(0.1)
+
+
+def _trickle(port: int, stop: threading.Event, closed: list[float]) -> None:
+    """Header lines a second apart, never the blank line; `closed` gets the seconds until the server cut it."""
+    started = time.monotonic()
+    try:
+        with socket.create_connection(("127.0.0.1", port), timeout=60) as conn:
+            conn.sendall(b"GET /health HTTP/1.1\r\nHost: x\r\n")
+            conn.settimeout(1.0)
+            while not stop.is_set():
+                conn.sendall(b"X-Trickle: 1\r\n")  # a header line a second, never the blank line
+                try:
+                    conn.recv(4096)  # an answer (408) or the close: the server cut it
+                except TimeoutError:
+                    continue
+                closed.append(time.monotonic() - started)
+                return
+    except OSError:
+        closed.append(time.monotonic() - started)
+
+
+def _hostile_requests(url: str, count: int) -> Iterator[tuple[str, requests.Response | None]]:
+    kinds = hostile_kinds()
+    with requests.Session() as http:
+        http.headers["Authorization"] = f"Bearer {TOKENS['vehicle-b']}"
+        for i in range(count):
+            kind = kinds[i % len(kinds)]
+            headers = {"Content-Type": kind.content_type} if kind.content_type else {}
+            body = kind.body or (json.dumps({"mission_id": f"flood-{i}", "state": "SEARCH"}).encode()
+                                 if kind.kind.startswith("a new mission") else b"")  # fmt: skip
+            try:
+                answer = http.request(
+                    kind.method, url + kind.path, data=kind.data if kind.files else body,
+                    files=kind.files, headers=headers, timeout=60,
+                )  # fmt: skip
+            except requests.RequestException:
+                answer = None
+            yield kind.kind, answer
+
+
+def hostile_run(
+    model_dir: Path,
+    sequences: Path,
+    count: int,
+    slow_clients: int,
+    solo_s: float,
+    say: Callable[[str], None],
+    extra_settings: tuple[str, ...] = (),
+) -> dict[str, Any]:
+    jpegs = keyframes(sequences)
+    with tempfile.TemporaryDirectory(prefix="cloudtrack-hostile-") as folder:
+        settings = [
+            f"detector.model_dir={json.dumps(str(model_dir))}",
+            f"sessions.sqlite_path={json.dumps(str(Path(folder) / 'sessions.sqlite3'))}",
+            "sessions.rate_limit_requests=100000",  # every hostile request reaches its own check
+            *extra_settings,
+        ]
+        with BackendProcess(settings, TOKENS) as server:
+            port = int(server.url.rsplit(":", 1)[1])
+            for _ in range(3):  # warm up: models loaded, first allocations made
+                requests.post(
+                    f"{server.url}/v1/detect",
+                    files={"image": ("k.jpg", jpegs[0], "image/jpeg")},
+                    data={"meta": json.dumps({"vehicle_id": "vehicle-a", "mission_id": "warm", "prompt": PROMPT})},
+                    headers={"Authorization": f"Bearer {TOKENS['vehicle-a']}"},
+                    timeout=60,
+                )  # fmt: skip
+            say(f"  vehicle A alone for {solo_s:g} s ...")
+            solo = Phase()
+            stop = threading.Event()
+            workers = [
+                threading.Thread(target=_vehicle_a, args=(server.url, jpegs, stop, solo)),
+                threading.Thread(target=_health, args=(server.url, stop, solo)),
+            ]
+            for w in workers:
+                w.start()
+            time.sleep(solo_s)
+            stop.set()
+            for w in workers:
+                w.join()
+            rss_before = server.rss_bytes()
+            say(f"  vehicle A beside {count} hostile requests and {slow_clients} slow clients ...")
+            beside = Phase()
+            stop = threading.Event()
+            closed: list[float] = []
+            workers = [
+                threading.Thread(target=_vehicle_a, args=(server.url, jpegs, stop, beside)),
+                threading.Thread(target=_health, args=(server.url, stop, beside)),
+                *(threading.Thread(target=_trickle, args=(port, stop, closed)) for _ in range(slow_clients)),
+            ]
+            for w in workers:
+                w.start()
+            started = time.monotonic()
+            by_kind: dict[str, dict[str, int]] = {}
+            for kind, answer in _hostile_requests(server.url, count):
+                code = str(answer.status_code) if answer is not None else "no answer"
+                counts = by_kind.setdefault(kind, {})
+                counts[code] = counts.get(code, 0) + 1
+            hostile_s = time.monotonic() - started
+            time.sleep(max(0.0, solo_s - hostile_s))  # A's phase at least as long as its solo one
+            stop.set()
+            for w in workers:
+                w.join()
+            rss_after = server.rss_bytes()
+    solo_p95, beside_p95 = solo.p95(solo.latencies), beside.p95(beside.latencies)
+    server_errors = sum(
+        n for counts in by_kind.values() for code, n in counts.items() if code.startswith("5")
+    )
+    server_errors += sum(n for code, n in beside.codes.items() if code.startswith("A 5"))
+    return {
+        "hostile_requests": count,
+        "hostile_s": hostile_s,
+        "slow_clients": slow_clients,
+        "slow_clients_closed": len(closed),
+        "slow_client_max_s": max(closed) if closed else float("nan"),
+        "by_kind": by_kind,
+        "vehicle_a": {
+            "solo": {"keyframes": len(solo.latencies), "p50_s": float(np.median(solo.latencies)), "p95_s": solo_p95},
+            "beside": {"keyframes": len(beside.latencies), "p50_s": float(np.median(beside.latencies)),
+                       "p95_s": beside_p95},
+            "codes": beside.codes,
+            "p95_ratio": beside_p95 / solo_p95,
+        },
+        "health_p95_s": {"solo": solo.p95(solo.health), "beside": beside.p95(beside.health),
+                         "max_beside": max(beside.health) if beside.health else float("nan")},
+        "server_errors": server_errors,
+        "rss_mb": {"before": rss_before / 1e6, "after": rss_after / 1e6, "grown": (rss_after - rss_before) / 1e6},
+    }  # fmt: skip
+
+
+def print_hostile(report: dict[str, Any]) -> None:
+    a, h, r = report["vehicle_a"], report["health_p95_s"], report["rss_mb"]
+    print(
+        f"Hostile load: {report['hostile_requests']} requests from one token in {report['hostile_s']:.1f} s, "
+        f"{report['slow_clients']} clients trickling header lines ({report['slow_clients_closed']} cut off by the "
+        f"server, the last after {report['slow_client_max_s']:.1f} s)"
+    )
+    print("| kind | answers |\n|---|---|")
+    for kind, codes in report["by_kind"].items():
+        print(f"| {kind} | {', '.join(f'{n} x {code}' for code, n in sorted(codes.items()))} |")
+    print(
+        f"Vehicle A (a keyframe every 0.5 s): p95 {a['solo']['p95_s']:.3f} s alone, {a['beside']['p95_s']:.3f} s "
+        f"beside the hostile token: ratio {a['p95_ratio']:.2f} (goal <= 1.5); answers {a['codes']}"
+    )
+    print(
+        f"/health p95 {1000 * h['solo']:.1f} ms alone, {1000 * h['beside']:.1f} ms beside (max "
+        f"{1000 * h['max_beside']:.1f} ms); 5xx answers: {report['server_errors']}; RSS {r['before']:.1f} -> "
+        f"{r['after']:.1f} MB ({r['grown']:+.1f} MB, goal < +50 MB)"
+    )
