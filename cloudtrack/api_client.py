@@ -58,9 +58,6 @@ class DetectReply:
     final: bool = True  # false: the fast stage's verdicts (asked with stage "early")
 
 
-KEYFRAME_MAX_WIDTH = 640  # keyframes are downscaled to this width before they are sent
-
-
 def encode_keyframe(
     image: np.ndarray, max_width: int, jpeg_quality: int, max_bytes: int = 90_000
 ) -> tuple[bytes, float]:
@@ -97,7 +94,7 @@ class BackendClient:
         token: str,
         timeout_s: float = 5.0,
         jpeg_quality: int = 80,
-        max_width: int = KEYFRAME_MAX_WIDTH,
+        max_width: int = 640,
         vehicle_id: str | None = None,
         mission_id: str | None = None,
         max_keyframe_bytes: int = 90_000,

@@ -156,6 +156,15 @@ def run(args: argparse.Namespace) -> int:
         on_keyframe=record.keyframe if record is not None else None,
     )
     session = BackendSession(client, period_s=config.backend.status_interval_s)
+    from companion.search_coverage import SearchCoverage
+
+    coverage = SearchCoverage(
+        mission.camera,
+        cam.search_range_m,
+        link.mission_link,
+        lambda: link.autopilot_kind.value if link.autopilot_kind is not None else None,
+        (config.mavlink.target_system, config.mavlink.source_component),
+    )
     worker = BackendWorker(_QueryService(client), max_in_flight=config.backend.max_requests_in_flight)
     settings = LoopSettings(
         frame_stale_s=config.safety.frame_stale_s, loop_stall_s=config.safety.loop_stall_s
@@ -171,6 +180,8 @@ def run(args: argparse.Namespace) -> int:
         observers,
         ServiceNotifier.from_environment(),
         video_sinks=[record.video_frame] if record is not None and rec.video else [],
+        keyframe_max_width=config.backend.max_keyframe_width,
+        coverage=coverage,
     )
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: runner.request_stop())

@@ -8,7 +8,8 @@ serial ports, laid out as on a real flight controller:
     SERIAL0  GCS (the scripted pilot/GCS: arming, take-off, mode changes, RC override, fly-to)
     SERIAL1  a spare output the simulated camera follows (like `cloudtrack-sim camera --autopilot-url`)
     SERIAL2  TELEM2, the companion: reached through `CompanionBridge` (MAV3_* stream rates, 4.5+ names)
-    SERIAL5  a second ground station's port (MAVLink 2), for the ground tools: `cloudtrack-gcs survey`
+    SERIAL5  a second ground station (MAVLink 2): the operator's laptop running `cloudtrack-gcs survey`
+             (SERIAL3 and SERIAL4 are the SITL's simulated GPS receivers)
 
 `sitl.companion_bridge.CompanionBridge` relays the companion's UDP datagrams to SERIAL2's TCP stream and
 back, records the companion's setpoints and cuts the link on demand.
@@ -107,7 +108,7 @@ def _free_instance() -> int:
 
 def project_parameters() -> dict[str, float]:
     """What the runner sets on top of copter.parm: the values docs/operations.md recommends."""
-    params: dict[str, float] = {"GUID_TIMEOUT": GUID_TIMEOUT_S}
+    params: dict[str, float] = {"GUID_TIMEOUT": GUID_TIMEOUT_S, "SERIAL5_PROTOCOL": 2}  # SERIAL5: MAVLink 2
     for n in (2, 3):  # SERIAL1 (camera) and SERIAL2 (companion, TELEM2)
         for group in STREAM_GROUPS:
             params[f"MAV{n}_{group}"] = TELEMETRY_HZ if group != "EXTRA3" else 2
@@ -119,7 +120,7 @@ class SitlPorts:
     gcs: int
     camera: int
     companion: int
-    ground: int  # SERIAL5: a ground tool beside the scripted GCS (SERIAL0 takes one TCP client)
+    ground: int  # SERIAL5: a second ground station (`cloudtrack-gcs survey`)
 
 
 class ArduCopterSitl:
@@ -137,7 +138,7 @@ class ArduCopterSitl:
         self.work_dir = work_dir
         self.home = home  # lat, lon, alt (m AMSL), heading (deg)
         self.speedup = speedup
-        self.params = {**project_parameters(), "SERIAL5_PROTOCOL": 2, **(extra_params or {})}
+        self.params = {**project_parameters(), **(extra_params or {})}
         self.ports = SitlPorts(free_tcp_port(), free_tcp_port(), free_tcp_port(), free_tcp_port())
         self.instance = _free_instance()
         self.process: subprocess.Popen[bytes] | None = None

@@ -175,6 +175,8 @@ class SimulatedAutopilot:
         self.mode_history: list[tuple[float, str, str]] = []
         self.setpoints: list[ReceivedSetpoint] = []
         self.statustexts: list[str] = []
+        # (time, link, command) of every COMMAND_LONG (SET_MODE as DO_SET_MODE) addressed to the autopilot
+        self.commands: list[tuple[float, str, int]] = []
         self._velocity_target = VelocityCommand()
         self._yaw_target: float | None = None
         self._auto_yaw = False
@@ -353,6 +355,7 @@ class SimulatedAutopilot:
         elif mtype == "RC_CHANNELS_OVERRIDE" and self.is_ardupilot:
             self._on_rc_override(link, msg)
         elif mtype == "SET_MODE":
+            self.commands.append((self._clock(), link.name, int(mavlink.MAV_CMD_DO_SET_MODE)))
             name = (
                 self._mode_from_numbers(msg.custom_mode, 0)
                 if self.is_ardupilot
@@ -411,6 +414,9 @@ class SimulatedAutopilot:
     def _on_command(self, link: _Link, msg: mavutil.mavlink.MAVLink_message) -> None:
         who = f"{link.name} {msg.get_srcSystem()}/{msg.get_srcComponent()}"
         cmd = msg.command
+        self.commands.append((self._clock(), link.name, int(cmd)))
+        if len(self.commands) > 20000:
+            del self.commands[:10000]
         if cmd == mavlink.MAV_CMD_DO_SET_MODE:
             if not self.is_ardupilot:  # PX4 1.16 answers twice: ACCEPTED at once, then the outcome
                 self._ack(link, msg, mavlink.MAV_RESULT_ACCEPTED)
