@@ -156,6 +156,22 @@ class CoverageMap:
         return bounded_rings(self.covered.intersection(self.area), self.frame, max_rings, max_vertices)
 
 
+def fly_path(cover: CoverageMap, path: Sequence[LatLon], height_m: float, step_m: float = 2.0) -> CoverageMap:
+    """Add the views along straight legs between `path`'s points at `height_m`, facing along each leg (as the
+    autopilot flies a survey), one every `step_m`: what a flight exactly on the plan would see."""
+    frame = cover.frame
+    points = [frame.xy(lat, lon) for lat, lon in path]
+    for (x0, y0), (x1, y1) in zip(points, points[1:], strict=False):
+        length = math.hypot(x1 - x0, y1 - y0)
+        if length <= 0:
+            continue
+        yaw = math.atan2(x1 - x0, y1 - y0)  # clockwise from north: atan2(east, north)
+        for k in range(math.ceil(length / step_m) + 1):
+            t = min(1.0, k * step_m / length)
+            cover.add_view(*frame.latlon(x0 + t * (x1 - x0), y0 + t * (y1 - y0)), height_m, yaw)
+    return cover
+
+
 def _polygons(geometry: BaseGeometry) -> list[Polygon]:
     if isinstance(geometry, Polygon):
         return [] if geometry.is_empty else [geometry]

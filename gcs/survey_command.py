@@ -37,6 +37,7 @@ from behaviors.mission_items import MissionItem
 from behaviors.survey_planner import LatLon, SurveyError, SurveyPlan, SurveySettings, plan_survey, rectangle
 from cloudtrack.autopilot_modes import AutopilotKind, detect_autopilot, mission_mode, mode_name
 from cloudtrack.config_files import ConfigError
+from cloudtrack.coverage import CoverageMap, fly_path
 from cloudtrack.mavlink_connection import mavlink
 from cloudtrack.mission_protocol import MissionClient, MissionError, MissionTimeouts, positions_match
 from cloudtrack.vehicle_config import VehicleSections, load_vehicle_sections
@@ -193,15 +194,23 @@ def settings_from(args: argparse.Namespace, vehicle: VehicleSections, cruise: fl
     )
 
 
-def describe(plan: SurveyPlan, altitude: float, speed_note: str = "") -> list[str]:
+def describe(
+    plan: SurveyPlan, area: list[LatLon], settings: SurveySettings, speed_note: str = ""
+) -> list[str]:
     minutes, seconds = divmod(round(plan.time_s), 60)
     counts = Counter(item.name for item in plan.items)
     speed = f"{plan.speed_m_s:g} m/s" + (f" ({speed_note})" if speed_note else "")
+    started = time.perf_counter()
+    cover = fly_path(
+        CoverageMap(area, settings.camera, settings.search_range_m), plan.waypoints, settings.altitude_m
+    )
+    share, took = cover.coverage(), time.perf_counter() - started
     return [
-        f"lanes: {plan.lanes}, {plan.spacing_m:.1f} m apart (camera swath {plan.swath_m:.1f} m at {altitude:g} m), "
-        f"along {plan.angle_deg:g} deg",
+        f"lanes: {plan.lanes}, {plan.spacing_m:.1f} m apart (camera swath {plan.swath_m:.1f} m at "
+        f"{settings.altitude_m:g} m), along {plan.angle_deg:g} deg",
         f"length: {plan.length_m:.0f} m over {plan.area_m2 / 1e4:.2f} ha",
         f"time to fly: about {minutes} min {seconds:02d} s at {speed}",
+        f"coverage if flown as planned: {100 * share:.1f} % of the area ({cover.views} camera views, {took:.2f} s)",
         "items: " + ", ".join(f"{n} {name}" for name, n in counts.items()),
     ]
 
@@ -286,14 +295,15 @@ def run(args: argparse.Namespace) -> int:
     try:
         area = area_from_args(args)
         vehicle_config = load_vehicle_sections(Path(args.companion_config) if args.companion_config else None)
-        plan = plan_survey(area, settings_from(args, vehicle_config, CRUISE_SPEED[AutopilotKind.PX4]))
+        settings = settings_from(args, vehicle_config, CRUISE_SPEED[AutopilotKind.PX4])
+        plan = plan_survey(area, settings)
     except (InputError, SurveyError, ConfigError) as exc:
         print(f"error: {_one_line(exc)}", file=sys.stderr)
         return EXIT_INPUT
     if args.dry_run:
         print(f"survey (dry run, nothing sent): {len(area)} corners", flush=True)
         note = "" if args.speed is not None else "assumed: the autopilot's own unless --speed"
-        for line in describe(plan, args.altitude, note):
+        for line in describe(plan, area, settings, note):
             print(f"  {line}", flush=True)
         for k, (lat, lon) in enumerate(plan.waypoints):
             print(f"  waypoint {k + 1}: {lat:.7f},{lon:.7f}")
@@ -342,7 +352,7 @@ def _upload(
     name = "ArduPilot" if vehicle.kind is AutopilotKind.ARDUPILOT else "PX4"
     print(f"survey for system {args.system} ({name}, mode {vehicle.mode}):", flush=True)
     note = "" if args.speed is not None else f"the {name} default; --speed sets one"
-    for line in describe(plan, args.altitude, note):
+    for line in describe(plan, area, settings, note):
         print(f"  {line}", flush=True)
     if vehicle.mode == mission_mode(vehicle.kind):
         print(

@@ -8,6 +8,8 @@ serial ports, laid out as on a real flight controller:
     SERIAL0  GCS (the scripted pilot/GCS: arming, take-off, mode changes, RC override, fly-to)
     SERIAL1  a spare output the simulated camera follows (like `cloudtrack-sim camera --autopilot-url`)
     SERIAL2  TELEM2, the companion: reached through `CompanionBridge` (MAV3_* stream rates, 4.5+ names)
+    SERIAL5  a second ground station (MAVLink 2): the operator's laptop running `cloudtrack-gcs survey`
+             (SERIAL3 and SERIAL4 are the SITL's simulated GPS receivers)
 
 `CompanionBridge` relays the companion's UDP datagrams to SERIAL2's TCP stream and back. It records every
 SET_POSITION_TARGET_LOCAL_NED the companion sends (the metrics' "setpoints received") and can cut the
@@ -107,7 +109,7 @@ def _free_instance() -> int:
 
 def project_parameters() -> dict[str, float]:
     """What the runner sets on top of copter.parm: the values docs/operations.md recommends."""
-    params: dict[str, float] = {"GUID_TIMEOUT": GUID_TIMEOUT_S}
+    params: dict[str, float] = {"GUID_TIMEOUT": GUID_TIMEOUT_S, "SERIAL5_PROTOCOL": 2}  # SERIAL5: MAVLink 2
     for n in (2, 3):  # SERIAL1 (camera) and SERIAL2 (companion, TELEM2)
         for group in STREAM_GROUPS:
             params[f"MAV{n}_{group}"] = TELEMETRY_HZ if group != "EXTRA3" else 2
@@ -119,6 +121,7 @@ class SitlPorts:
     gcs: int
     camera: int
     companion: int
+    ground: int  # SERIAL5: a second ground station (`cloudtrack-gcs survey`)
 
 
 class ArduCopterSitl:
@@ -137,7 +140,7 @@ class ArduCopterSitl:
         self.home = home  # lat, lon, alt (m AMSL), heading (deg)
         self.speedup = speedup
         self.params = {**project_parameters(), **(extra_params or {})}
-        self.ports = SitlPorts(free_tcp_port(), free_tcp_port(), free_tcp_port())
+        self.ports = SitlPorts(free_tcp_port(), free_tcp_port(), free_tcp_port(), free_tcp_port())
         self.instance = _free_instance()
         self.process: subprocess.Popen[bytes] | None = None
 
@@ -173,11 +176,13 @@ class ArduCopterSitl:
             f"tcp:{self.ports.camera}",
             "--serial2",
             f"tcp:{self.ports.companion}",
+            "--serial5",
+            f"tcp:{self.ports.ground}",
         ]
         with open(self.work_dir / "arducopter.log", "wb") as out:
             self.process = subprocess.Popen(cmd, cwd=self.work_dir, stdout=out, stderr=subprocess.STDOUT)
         deadline = time.monotonic() + timeout_s
-        for port in (self.ports.gcs, self.ports.camera, self.ports.companion):
+        for port in (self.ports.gcs, self.ports.camera, self.ports.companion, self.ports.ground):
             while not self._listening(port):
                 if self.process.poll() is not None:
                     raise RuntimeError(

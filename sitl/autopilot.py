@@ -165,6 +165,8 @@ class SimulatedAutopilot:
         self.mode_history: list[tuple[float, str, str]] = []
         self.setpoints: list[ReceivedSetpoint] = []
         self.statustexts: list[str] = []
+        # (time, link, command) of every COMMAND_LONG (SET_MODE as DO_SET_MODE) addressed to the autopilot
+        self.commands: list[tuple[float, str, int]] = []
         self._velocity_target = VelocityCommand()
         self._yaw_target: float | None = None
         self._auto_yaw = False
@@ -277,11 +279,11 @@ class SimulatedAutopilot:
             self._position_target = None
             if name in ("GUIDED", "OFFBOARD"):
                 self._velocity_target = VelocityCommand()
-            log.info("mode %s (by %s)", name, source)
             if self.is_ardupilot:  # ArduCopter announces a new mode at once on every link (conformance suite)
                 for link in self._links.values():
                     if not link.down:
                         self._send_message(link, mavlink.MAVLINK_MSG_ID_HEARTBEAT, now)
+            log.info("mode %s (by %s)", name, source)  # after the announcement: a slow log never delays it
         return True
 
     def _px4_stream_alive(self, now: float) -> bool:
@@ -332,6 +334,7 @@ class SimulatedAutopilot:
         elif mtype == "RC_CHANNELS_OVERRIDE" and self.is_ardupilot:
             self._on_rc_override(link, msg)
         elif mtype == "SET_MODE":
+            self.commands.append((self._clock(), link.name, int(mavlink.MAV_CMD_DO_SET_MODE)))
             name = (
                 self._mode_from_numbers(msg.custom_mode, 0)
                 if self.is_ardupilot
@@ -390,6 +393,9 @@ class SimulatedAutopilot:
     def _on_command(self, link: _Link, msg: mavutil.mavlink.MAVLink_message) -> None:
         who = f"{link.name} {msg.get_srcSystem()}/{msg.get_srcComponent()}"
         cmd = msg.command
+        self.commands.append((self._clock(), link.name, int(cmd)))
+        if len(self.commands) > 20000:
+            del self.commands[:10000]
         if cmd == mavlink.MAV_CMD_DO_SET_MODE:
             name = self._mode_from_numbers(msg.param2, msg.param3)
             if (

@@ -128,6 +128,7 @@ class AutopilotMission:
         self._origin: tuple[float, float, float] | None = None  # where the current leg starts (NED)
         self._started_item = False
         self._speed = self.default_speed
+        self._do_from: int | None = None  # ArduPilot: DO items set current before AUTO, run when it starts
 
     @property
     def first_seq(self) -> int:
@@ -179,8 +180,9 @@ class AutopilotMission:
                 self.current, self.complete, self.interrupted = 0, False, False
             reply(lambda m: m.mission_ack_send(*peer, ACCEPTED if ok else ERROR, 0))
         elif kind == "MISSION_SET_CURRENT":
-            self._set_current(int(msg.seq))
-            reply(self.send_current)
+            seq = int(msg.seq)
+            self._set_current(seq)
+            reply(lambda m: self.send_current(m, seq))  # the answer names the item asked for
             if not self.ardupilot:
                 broadcast(self.send_current)
 
@@ -319,14 +321,22 @@ class AutopilotMission:
         elif now - up.last_request_time > self.options.request_resend_s:
             self._request(reply_on(up.link), now)
 
-    def send_current(self, mav: Any) -> None:
+    def send_current(self, mav: Any, seq: int | None = None) -> None:
         """MISSION_CURRENT (MAVLink 2: with total, mission_state, mission_mode)."""
         total = max(0, len(self.items) - self.first_seq)
-        mav.mission_current_send(self.current, total, self.state, int(self.running))
+        mav.mission_current_send(self.current if seq is None else seq, total, self.state, int(self.running))
 
     def _set_current(self, seq: int) -> None:
         if not self.first_seq <= seq < len(self.items):
             return
+        self._do_from = None
+        if self.ardupilot:  # AP_Mission loads the navigation item at or after it and reports that one; the
+            # DO items before it still run when AUTO starts (measured: MISSION_ITEM_REACHED for them)
+            nav = next(
+                (k for k in range(seq, len(self.items)) if self.items[k].command != DO_CHANGE_SPEED), seq
+            )
+            self._do_from = seq if nav > seq else None
+            seq = nav
         self.current, self.complete = seq, False
         self._started_item = False
         if self.running:
@@ -342,12 +352,14 @@ class AutopilotMission:
             self._speed = self.default_speed
         elif self.ardupilot:
             self._speed = self.default_speed  # re-entering AUTO resets WPNAV_SPEED (measured)
+            if self._do_from is not None:
+                self.current = self._do_from
         else:
             speeds = [
                 i.param2 for i in self.items[: self.current] if i.command == DO_CHANGE_SPEED and i.param2 > 0
             ]
             self._speed = speeds[-1] if speeds else self.default_speed  # PX4 replays its speed items
-        self.running, self.complete = True, False
+        self.running, self.complete, self._do_from = True, False, None
         self._origin = None  # the interrupted item is flown from where the vehicle is now
         self._started_item = False
         return True

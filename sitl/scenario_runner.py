@@ -45,7 +45,15 @@ from sitl.metrics import (
     following_intervals,
     summarise,
 )
-from sitl.scenarios import COASTING_FAULTS, TAKEOVER_MODE, Scenario, ScriptedGcs, VehicleOutcome, assess
+from sitl.scenarios import (
+    COASTING_FAULTS,
+    MISSION_MODE,
+    TAKEOVER_MODE,
+    Scenario,
+    ScriptedGcs,
+    VehicleOutcome,
+    assess,
+)
 from sitl.simulated_detector import DetectorNoise, SimulatedPersonDetector
 from sitl.video_overlay import OverlayState, VideoWriter, draw_overlay
 
@@ -127,6 +135,9 @@ class _Vehicle:
     stall_resumed: float | None = None  # monotonic time of SIGCONT
     fly_to: tuple[float, tuple[float, float], tuple[float, float]] | None = None  # (t, from, to) world n/e
     flood: dict[str, int] = field(default_factory=dict)
+    # The back-end's view of the vehicle (search scenarios): (time, status) as the supervisor page polls it.
+    statuses: list[tuple[float, dict[str, Any]]] = field(default_factory=list)
+    survey: dict[str, Any] = field(default_factory=dict)  # the plan the pilot uploaded
 
 
 def default_tracker(model_dir: Path) -> str:
@@ -182,6 +193,8 @@ class ScenarioRun:
         self._t_mission: float | None = None
         self._flood_threads: list[Any] = []
         self._stopping = False
+        self._supervisor_token = secrets.token_hex(16)
+        self._last_poll = -math.inf
 
     @property
     def real(self) -> bool:
@@ -213,7 +226,7 @@ class ScenarioRun:
             self._vlm = VlmEmulator(latency_s=self.options.vlm_latency_s).start()
             vlm = VlmConfig(base_url=self._vlm.base_url)
         config = BackendConfig(
-            auth=AuthConfig(tokens=self.tokens, supervisor_token=secrets.token_hex(16)),
+            auth=AuthConfig(tokens=self.tokens, supervisor_token=self._supervisor_token),
             verifier=VerifierConfig(kind=self.options.verifier),
             vlm=vlm,
             sessions=SessionConfig(sqlite_path=":memory:"),  # each run starts with nothing remembered
@@ -260,16 +273,21 @@ class ScenarioRun:
 
     def _start_mock(self, origin: tuple[float, float], udp_port: int | None) -> tuple[Any, ScriptedGcs, str]:
         from sitl.autopilot import AutopilotOptions, SimulatedAutopilot
+        from sitl.autopilot_mission import MissionOptions
 
         lat, lon = _home(origin)
+        survey = self.scenario.survey
         options = AutopilotOptions(
             personality=self.personality,
             start_height_m=ALTITUDE_M,
             home_lat=lat,
             home_lon=lon,
             guid_timeout_s=GUID_TIMEOUT_S,
+            # The waypoint speed (WPNAV_SPEED / MPC_XY_CRUISE) the survey is flown at, after a resume too.
+            mission=MissionOptions(speed_m_s=survey.speed_m_s if survey is not None else None),
         )
-        links = {name: "udpin:127.0.0.1:0" for name in ("gcs", "companion", "camera")}
+        # "ground": a second ground station's link, for `cloudtrack-gcs survey` (the operator's laptop).
+        links = {name: "udpin:127.0.0.1:0" for name in ("gcs", "companion", "camera", "ground")}
         if udp_port is not None:
             links["companion"] = f"udpout:127.0.0.1:{udp_port}"  # the companion listens (udpin)
         autopilot = SimulatedAutopilot(options, links)
@@ -284,11 +302,15 @@ class ScenarioRun:
 
         assert self.arducopter is not None
         lat, lon = _home(origin)
+        survey = self.scenario.survey
+        # AUTO flies at WPNAV_SPEED (cm/s) after a resume: a DO_CHANGE_SPEED before the break-off no longer holds.
+        params = {"WPNAV_SPEED": survey.speed_m_s * 100.0} if survey is not None else {}
         sitl = ArduCopterSitl(
             self.arducopter,
             self.work / f"{vid}-arducopter",
             (lat, lon, HOME_ALT_M, 0.0),
             speedup=self.options.speedup,
+            extra_params=params,
         ).start()
         self.progress(
             f"{vid}: ArduCopter SITL {self.arducopter} (pid {sitl.process.pid if sitl.process else '?'}, "
@@ -455,7 +477,9 @@ class ScenarioRun:
 
     def _send_start(self, v: _Vehicle, mission_id: int) -> None:
         v.start_sent = (self.now(), mission_id)
-        v.gcs.start_mission(self.scenario.prompt, mission_id=mission_id)
+        v.gcs.start_mission(
+            self.scenario.prompt, mission_id=mission_id, allow_engage=self.scenario.allow_engage
+        )
 
     def _resend_start(self, v: _Vehicle) -> None:
         """A GCS operator repeats a start that the companion did not take (lost on a lossy link)."""
@@ -612,6 +636,11 @@ class ScenarioRun:
         if len(self.faults_done) < len(self.scenario.faults):
             return False
         t_confirm = self.vehicles[0].confirmations[0][0]
+        if self.scenario.survey is not None and "rejected_never_again" in self.scenario.checks:
+            # A survey meets the look-alike and the described person in either order: both must be decided.
+            if not all(v.rejections for v in self.vehicles):
+                return False
+            t_confirm = max(t_confirm, *(v.rejections[0][0] for v in self.vehicles))
         last_fault = max((f.after_confirm_s for f in self.scenario.faults), default=0.0)
         return self.now() >= t_confirm + max(self.scenario.follow_s, last_fault + 4.0)
 
@@ -653,6 +682,9 @@ class ScenarioRun:
                     "companions not ready in time:\n" + "\n".join(self._log_tail(v) for v in self.vehicles)
                 )
             time.sleep(0.1)
+        if s.survey is not None:
+            for v in self.vehicles:
+                self._fly_survey(v)
         if self.options.video_out is not None:
             self.video = VideoWriter(self.options.video_out, 30.0, (self.camera.width, self.camera.height))
         self.epoch = time.monotonic()
@@ -667,6 +699,7 @@ class ScenarioRun:
                 self._supervise(v)
                 self._resend_start(v)
             self._faults()
+            self._poll_statuses()
             time.sleep(0.05)
         end_t = self.now()
         for t in self._flood_threads:
@@ -676,6 +709,140 @@ class ScenarioRun:
             for e in self._read_events(v):
                 self._handle_event(v, e)
         return self._results(end_t)
+
+    # ------------------------------------------------------------------------------------------ survey
+    def _fly_survey(self, v: _Vehicle, timeout_s: float = 30.0) -> None:
+        """As the operator and the pilot would: upload the survey over the scenario's area with
+        `cloudtrack-gcs survey` (a second ground station's link, the camera and safety sections of the
+        companion's configuration), then select AUTO (ArduPilot) / Mission (PX4); returns once the autopilot
+        flies it."""
+        spec = self.scenario.survey
+        assert spec is not None
+        (s_n, w_e), (n_n, e_e) = spec.area_ne
+        o_n, o_e = v.origin  # the area is given from the vehicle's home; the world is from the first home
+        centre = _home((o_n + (s_n + n_n) / 2.0, o_e + (w_e + e_e) / 2.0))
+        vehicle_config = self.work / f"{v.vehicle_id}-survey.toml"
+        vehicle_config.write_text(
+            f"[camera]\nhfov_deg = {math.degrees(2 * math.atan(self.camera.cx / self.camera.fx)):.6f}\n"
+            f"mount_pitch_deg = {MOUNT_PITCH_DEG}\nsearch_range_m = {spec.search_range_m}\n"
+        )
+        for msg_id, hz in ((0, 10.0), (42, 4.0)):  # HEARTBEAT (modes), MISSION_CURRENT (the item flown)
+            v.gcs.request_interval(msg_id, hz)
+        cmd = [
+            sys.executable, "-m", "gcs.cli", "--connect", self._ground_url(v), "--timeout", "15",
+            "survey", "--centre", f"{centre[0]:.7f},{centre[1]:.7f}", "--size", f"{e_e - w_e:g}x{n_n - s_n:g}",
+            "--altitude", f"{spec.altitude_m:g}", "--overlap", f"{spec.overlap:g}", "--speed",
+            f"{spec.speed_m_s:g}", "--companion-config", str(vehicle_config),
+        ]  # fmt: skip
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=120, env=dict(os.environ))
+        lines = [line.strip() for line in (done.stdout + done.stderr).splitlines() if line.strip()]
+        for line in lines:
+            self.progress(f"{v.vehicle_id}: cloudtrack-gcs survey: {line}")
+        if done.returncode != 0:
+            raise RuntimeError(
+                f"{v.vehicle_id}: cloudtrack-gcs survey exited {done.returncode}: {lines[-1:]}"
+            )
+        v.survey = {"command": " ".join(cmd[2:]), "output": lines}
+        mode = MISSION_MODE[self.personality]
+        v.autopilot.set_mode(mode, source="pilot")
+        deadline = time.monotonic() + timeout_s
+        while not (v.gcs.modes and v.gcs.modes[-1][1] == _custom_mode(self.personality, mode)):
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"{v.vehicle_id}: the autopilot did not enter {mode} for the survey")
+            time.sleep(0.1)
+        time.sleep(0.5)  # the companion's telemetry shows the mission flying before the mission starts
+        self.progress(f"{v.vehicle_id}: the pilot switched to {mode}: flying the survey")
+
+    def _ground_url(self, v: _Vehicle) -> str:
+        """Where a second ground station (the operator's laptop) connects to the vehicle's autopilot."""
+        if self.real:
+            return f"tcp:127.0.0.1:{v.autopilot.sitl.ports.ground}"
+        return f"udpout:127.0.0.1:{v.autopilot.link_port('ground')}"
+
+    def _poll_statuses(self) -> None:
+        """The back-end's status of each vehicle, twice a second, as the supervisor page sees it (search
+        scenarios: coverage and the find come from there)."""
+        if self.scenario.survey is None or self._backend is None or self.now() - self._last_poll < 0.5:
+            return
+        import requests
+
+        self._last_poll = self.now()
+        for v in self.vehicles:
+            try:
+                r = requests.get(
+                    f"{self._backend.url}/v1/vehicles/{v.vehicle_id}/status",
+                    headers={"Authorization": f"Bearer {self._supervisor_token}"},
+                    timeout=1.0,
+                )
+            except requests.RequestException:
+                continue
+            if r.status_code == 200:
+                v.statuses.append((self.now(), r.json()))
+
+    def _mission_breaks(self, v: _Vehicle) -> list[dict[str, Any]]:
+        """Every time the autopilot left its mission after the start, and where it resumed: from its own
+        HEARTBEAT and MISSION_CURRENT on the GCS link (the autopilot's account, not the companion's)."""
+        epoch = self.epoch or 0.0
+        auto = _custom_mode(self.personality, MISSION_MODE[self.personality])
+        currents = list(v.gcs.mission_currents)
+        breaks: list[dict[str, Any]] = []
+        in_mission: bool | None = None
+        for t, mode, _ in list(v.gcs.modes):
+            now_in = mode == auto
+            if in_mission is True and not now_in and t >= epoch:
+                before = [seq for tc, seq in currents if tc <= t]
+                breaks.append(
+                    {
+                        "left_t": round(t - epoch, 2),
+                        "left_at": before[-1] if before else None,
+                        "resumed_at": None,
+                    }
+                )
+            elif in_mission is False and now_in and breaks and breaks[-1]["resumed_at"] is None:
+                after = [seq for tc, seq in currents if tc > t + 0.1]
+                breaks[-1]["resumed_t"] = round(t - epoch, 2)
+                breaks[-1]["resumed_at"] = after[0] if after else None
+            in_mission = now_in
+        return breaks
+
+    def _search_metrics(self, v: _Vehicle, confirm_t: float | None) -> dict[str, Any]:
+        """Time to find, coverage and the find's position error at the find, the mission's break-offs and
+        resumes, and what the companion sent the autopilot during the search."""
+        out: dict[str, Any] = {"survey": v.survey, "mission_breaks": self._mission_breaks(v)}
+        out["time_to_find_s"] = None if confirm_t is None else round(confirm_t, 2)
+        sighted = [t for t, pid in v.proposals if pid == self.world.target_id]
+        out["time_to_first_sighting_s"] = round(sighted[0], 2) if sighted else None
+        after = [st for t, st in v.statuses if confirm_t is not None and t >= confirm_t and st.get("find")]
+        coverage = [
+            (st.get("search") or {}).get("coverage")
+            for t, st in v.statuses
+            if confirm_t is not None and t >= confirm_t
+        ]
+        out["coverage_at_find"] = next((c for c in coverage if c is not None), None)
+        last = v.statuses[-1][1] if v.statuses else {}
+        out["coverage_at_end"] = (last.get("search") or {}).get("coverage")
+        out["geolocation_error_m"] = None
+        if after and confirm_t is not None:
+            find = after[0]["find"]
+            lat, lon = find["position"]
+            north = math.radians(lat - _home((0.0, 0.0))[0]) * EARTH_RADIUS
+            east = (
+                math.radians(lon - _home((0.0, 0.0))[1])
+                * EARTH_RADIUS
+                * math.cos(math.radians(_home((0.0, 0.0))[0]))
+            )
+            tn, te, _ = self.world.person(self.world.target_id).state_at(confirm_t)
+            out["find"] = {k: find.get(k) for k in ("candidate_id", "position", "sigma_m", "confirmed_by")}
+            out["geolocation_error_m"] = round(math.hypot(north - tn, east - te), 2)
+        commands = getattr(v.autopilot, "commands", None)
+        if commands is not None:
+            epoch = self.epoch or 0.0
+            setpoints = [
+                sp for sp in list(v.autopilot.setpoints) if sp.link == "companion" and sp.time >= epoch
+            ]
+            modes = [c for c in list(commands) if c[1] == "companion" and c[2] == 176 and c[0] >= epoch]
+            out["companion_commands"] = {"setpoints": len(setpoints), "mode_commands": len(modes)}
+        return out
 
     def _log_tail(self, v: _Vehicle, lines: int = 25) -> str:
         try:
@@ -875,6 +1042,9 @@ class ScenarioRun:
             if kind in COASTING_FAULTS
         }
         metrics.update(self._fault_metrics(v, setpoints))
+        if self.scenario.survey is not None:
+            found = [t for t, pid in v.confirmations if pid == target]
+            metrics.update(self._search_metrics(v, found[0] if found else None))
         return VehicleOutcome(
             metrics=metrics,
             confirmations=tuple(t for t, _ in v.confirmations),
@@ -978,6 +1148,16 @@ class ScenarioRun:
     def _sample(self, f: _Seen) -> FrameSample:
         tn, te, _ = self.world.person(self.world.target_id).state_at(f.time_s)
         return FrameSample(f.time_s, f.pose.north, f.pose.east, tn, te, None)
+
+
+def _custom_mode(personality: str, name: str) -> int:
+    """HEARTBEAT.custom_mode of a mode, as the GCS sees it (ArduCopter's number; PX4 main << 16 | sub << 24)."""
+    from sitl.autopilot import ARDUCOPTER_MODES, PX4_MODES
+
+    if personality == "px4":
+        main, sub = PX4_MODES[name]
+        return (main << 16) | (sub << 24)
+    return ARDUCOPTER_MODES[name]
 
 
 def _free_udp_port() -> int:

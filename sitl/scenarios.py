@@ -20,7 +20,7 @@ from typing import Any, Literal
 from pymavlink import mavutil
 
 from cloudtrack.mavlink_connection import use_mavlink2
-from sitl.world import Person, World, distractor_world
+from sitl.world import SEARCH_AREA_NE, Person, World, distractor_world, search_world
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +52,20 @@ class Fault:
 
 
 @dataclass(frozen=True)
+class SurveySpec:
+    """The survey the pilot flies in AUTO (ArduPilot) / Mission (PX4): a rectangle of `area_ne` (its
+    south-west and north-east corners, metres north and east of the vehicle's home), planned and uploaded
+    with `cloudtrack-gcs survey`'s planner at `altitude_m` and `speed_m_s` with lanes sized by the camera's
+    footprint cut at `search_range_m` (also the companion's `[camera] search_range_m`)."""
+
+    area_ne: tuple[tuple[float, float], tuple[float, float]] = SEARCH_AREA_NE
+    altitude_m: float = 10.0
+    speed_m_s: float = 5.0
+    overlap: float = 0.0
+    search_range_m: float = 15.0
+
+
+@dataclass(frozen=True)
 class Scenario:
     name: str
     summary: str
@@ -68,8 +82,13 @@ class Scenario:
     companion_settings: tuple[str, ...] = ()
     checks: tuple[str, ...] = field(default_factory=tuple)
     companion_listens: bool = False  # the companion's MAVLink link is udpin (the flood's target port)
+    world: Literal["follow", "search"] = "follow"
+    survey: SurveySpec | None = None  # the pilot flies this survey in AUTO before the mission starts
+    allow_engage: bool = True  # the GCS's mission start lets the companion select GUIDED/OFFBOARD itself
 
     def build_world(self, seed: int) -> World:
+        if self.world == "search":
+            return search_world(seed)
         # The turn comes after the roof, so the occlusion happens on a straight stretch.
         turn_at = 20.0 if self.occluder_at_m is None else self.occluder_at_m + 10.0
         world = distractor_world(
@@ -92,6 +111,8 @@ class Scenario:
 
 
 TAKEOVER_MODE = {"ardupilot": "LOITER", "arducopter": "LOITER", "px4": "POSCTL"}
+MISSION_MODE = {"ardupilot": "AUTO", "arducopter": "AUTO", "px4": "MISSION"}  # the pilot's survey mode
+FIND_MAX_ERROR_M = 3.0  # the reported position of the find against the truth
 FLY_TO_MIN_PROGRESS_M = (
     5.0  # after an abort the GCS's "fly to" must move the vehicle at least this far in 8 s
 )
@@ -190,6 +211,31 @@ SCENARIOS: dict[str, Scenario] = {
             checks=("confirmed_target", "stall_coast", "stall_reported", "no_stale_setpoint"),
         ),
         Scenario(
+            "search",
+            "the pilot flies a 100 x 60 m survey in AUTO; a look-alike is proposed and rejected, the mission "
+            "resumes where it broke off, the described person is found, followed and confirmed",
+            world="search",
+            survey=SurveySpec(),
+            follow_s=5.0,
+            max_s=150.0,
+            miss_rate=0.0,
+            companion_settings=(f"camera.search_range_m={SurveySpec().search_range_m}",),
+            checks=("confirmed_target", "rejected_never_again", "resumed_where_left", "find_position"),
+        ),
+        Scenario(
+            "search-no-engage",
+            "the search scenario started without allow-engage: candidates are only reported while the survey "
+            "flies on; no setpoint or mode command reaches the autopilot",
+            world="search",
+            survey=SurveySpec(),
+            allow_engage=False,
+            follow_s=3.0,
+            max_s=150.0,
+            miss_rate=0.0,
+            companion_settings=(f"camera.search_range_m={SurveySpec().search_range_m}",),
+            checks=("confirmed_target", "rejected_never_again", "no_commands"),
+        ),
+        Scenario(
             "flood",
             "200 UDP senders hit the companion's MAVLink port mid-follow: it keeps following and "
             "sends them nothing",
@@ -240,6 +286,7 @@ def assess(
             rmse = m.get("standoff_rmse_m")
             if rmse is None or rmse > 3.0:
                 failures.append(f"{name}: standoff RMSE {rmse} m, needs <= 3 m")
+        failures += _search_checks(scenario, name, m)
         if "rejected_never_again" in scenario.checks:
             if not o.rejected_ids:
                 failures.append(f"{name}: nobody was rejected")
@@ -278,6 +325,35 @@ def assess(
             recover_from = fault_times.get("restart", fault_times.get(up, math.inf))
             if o.following_after(recover_from) < 4.0:
                 failures.append(f"{name}: did not resume following after {up.replace('_', ' ')}")
+    return failures
+
+
+def _search_checks(scenario: Scenario, name: str, m: dict[str, Any]) -> list[str]:
+    failures: list[str] = []
+    if "find_position" in scenario.checks:
+        error = m.get("geolocation_error_m")
+        if error is None or error > FIND_MAX_ERROR_M:
+            failures.append(
+                f"{name}: the find was reported {error} m from the person, needs <= {FIND_MAX_ERROR_M:g} m"
+            )
+    if "resumed_where_left" in scenario.checks:
+        episodes = m.get("mission_breaks") or []
+        if not episodes:
+            failures.append(f"{name}: the companion never took the vehicle from the mission")
+        for e in episodes:
+            if e["resumed_at"] is not None and e["resumed_at"] != e["left_at"]:
+                failures.append(
+                    f"{name}: the mission left at item {e['left_at']} resumed at item {e['resumed_at']}"
+                )
+        if not any(e["resumed_at"] is not None for e in episodes):
+            failures.append(f"{name}: the mission never resumed after a break-off")
+    if "no_commands" in scenario.checks:
+        sent = m.get("companion_commands") or {}
+        if sent.get("setpoints", 1) or sent.get("mode_commands", 1):
+            failures.append(
+                f"{name}: without allow-engage the companion sent {sent.get('setpoints')} setpoints and "
+                f"{sent.get('mode_commands')} mode commands during the search"
+            )
     return failures
 
 
@@ -338,6 +414,7 @@ class ScriptedGcs:
         self.modes: list[tuple[float, int, bool]] = []
         self.positions: list[tuple[float, float, float, float]] = []  # (time, north, east, down)
         self.params: dict[str, float] = {}
+        self.mission_currents: list[tuple[float, int]] = []  # (time, MISSION_CURRENT.seq)
         self._rc: dict[int, int] = {}  # channel -> PWM the pilot's radio holds, re-sent at 10 Hz
         self._stop = threading.Event()
         self._lock = threading.Lock()
@@ -349,7 +426,14 @@ class ScriptedGcs:
 
     def _run(self) -> None:
         last_hb = last_rc = 0.0
-        types = ["STATUSTEXT", "COMMAND_ACK", "HEARTBEAT", "LOCAL_POSITION_NED", "PARAM_VALUE"]
+        types = [
+            "STATUSTEXT",
+            "COMMAND_ACK",
+            "HEARTBEAT",
+            "LOCAL_POSITION_NED",
+            "PARAM_VALUE",
+            "MISSION_CURRENT",
+        ]
         while not self._stop.is_set():
             now = time.monotonic()
             if now - last_hb >= 1.0:
@@ -369,7 +453,9 @@ class ScriptedGcs:
                 continue
             now = time.monotonic()
             kind = msg.get_type()
-            if kind == "STATUSTEXT":
+            if kind == "MISSION_CURRENT":
+                self.mission_currents.append((now, int(msg.seq)))
+            elif kind == "STATUSTEXT":
                 self.statustexts.append((now, str(msg.text)))
             elif kind == "COMMAND_ACK":
                 self.acks.append((now, int(msg.command), int(msg.result)))

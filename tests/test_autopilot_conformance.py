@@ -7,6 +7,12 @@ link; the pilot's side is `ScriptedGcs` on the GCS link. Each test reduces what 
 compares it with `REAL`, what the real ArduCopter 4.7 answers; where the mock differs on purpose the
 difference is in `KNOWN_DIFFERENCES` with its reason (listed in docs/sitl.md). `pytest -k arducopter`
 selects the real side (slow: one SITL boot for the module, about a minute).
+
+The mission exchanges (`test_mission_*`) upload, download, clear and fly a small mission around where the
+vehicle hovers, through `cloudtrack.mission_protocol.MissionClient` on the companion's link. They are
+written for any autopilot the fixture provides; `MISSION_ANSWERS` keys them by the autopilot's family (the
+PX4 side follows with PX4 SITL). `cloudtrack-gcs survey` on a second ground station's link (the SITL's
+SERIAL5) is flown in the search scenario (tests/test_arducopter_scenarios.py::test_arducopter_search).
 """
 
 from __future__ import annotations
@@ -21,6 +27,9 @@ from typing import Any
 import pytest
 from pymavlink import mavutil
 
+from behaviors.geolocation import offset_to_latlon
+from behaviors.mission_items import NAV_WAYPOINT, MissionItem
+from cloudtrack.mission_protocol import MissionClient, MissionError, MissionTimeouts, positions_match
 from sitl.scenarios import ScriptedGcs
 
 pytestmark = pytest.mark.slow  # real time on both sides: about a minute each
@@ -63,6 +72,7 @@ class Vehicle:
     client: Any  # pymavlink connection on the companion's link, as 1/191
     gcs: ScriptedGcs
     closer: Any
+    autopilot: str = "ardupilot"
 
     def recv(self, types: list[str], timeout: float) -> Any:
         return self.client.recv_match(type=types, blocking=True, timeout=timeout)
@@ -125,9 +135,14 @@ class Vehicle:
 
 def _mock() -> Vehicle:
     from sitl.autopilot import AutopilotOptions, SimulatedAutopilot
+    from sitl.autopilot_mission import MissionOptions
 
+    # The stalled upload waits out the autopilot's upload timeout: ArduCopter's 8 s, the mock's shortened to 2 s
+    # here (the answers do not depend on it).
     sim = SimulatedAutopilot(
-        AutopilotOptions(start_height_m=10.0, guid_timeout_s=1.0),
+        AutopilotOptions(
+            start_height_m=10.0, guid_timeout_s=1.0, mission=MissionOptions(upload_timeout_s=2.0)
+        ),
         {"gcs": "udpin:127.0.0.1:0", "companion": "udpin:127.0.0.1:0"},
     )
     sim.start()
@@ -374,3 +389,278 @@ def test_yaw_rate_in_the_companions_frame(vehicle: Vehicle) -> None:
     print(f"{vehicle.kind}: yaw rate {rate:.3f} rad/s for 0.3 commanded")
     _compare(vehicle, "yaw_rate", {"clockwise": rate > 0, "within_30_percent": abs(rate - 0.3) <= 0.09})
     vehicle.settle()
+
+
+# ----------------------------------------------------------------------------------------------- missions
+# What each autopilot family answers to the mission exchanges (measured with this suite on ArduCopter 4.7);
+# the mock's personality of that family must give the same.
+MISSION_ANSWERS: dict[str, dict[str, Any]] = {
+    "ardupilot": {
+        "upload_download_clear": {
+            "requests": [
+                "MISSION_REQUEST"
+            ],  # not MISSION_REQUEST_INT: answered with MISSION_ITEM_INT all the same
+            "round_trip": True,
+            "home_is_item_0": True,
+            "current_after_set": (1, 5, 2),  # seq, total (without home), NOT_STARTED
+            "after_clear": (0, False, 1),  # items, home item, NO_MISSION
+        },
+        "refusals": {
+            "too_many": (4, "the previous mission is unchanged"),  # NO_SPACE at MISSION_COUNT
+            "limit_text": "Only 650 items are supported",
+            "previous_kept": True,
+            "bad_frame": (2, "the partly written mission was cleared"),  # UNSUPPORTED_FRAME
+            "bad_command": (3, "the partly written mission was cleared"),  # UNSUPPORTED
+            "items_after_refusal": 0,
+            "auto_without_mission": 4,  # COMMAND_ACK FAILED
+        },
+        "stalled_upload": {
+            "autopilot_cancels": (15, "the partly written mission was cleared", 0),  # OPERATION_CANCELLED
+            "cancel_text": "Mission upload timeout",
+            "ground_gives_up": ("the partly written mission was cleared", 0),
+        },
+        "auto_resume": {
+            "auto_ack": 0,
+            "survey_speed_on_the_first_leg": True,  # DO_CHANGE_SPEED 3 m/s, within 0.5 m/s
+            "reached_before_break": [1, 2],  # DO_CHANGE_SPEED is "reached" too
+            "current_after_break": (3, 2),  # the item it broke off at, NOT_STARTED
+            "first_reached_after_resume": 3,  # that item, not the first one
+            "straight_from_break_off": True,  # within 2 m of the line from where AUTO resumed to the item
+            "faster_than_the_survey_speed": True,  # DO_CHANGE_SPEED was dropped: WPNAV_SPEED again
+            "end": (5, 3),  # COMPLETE, and still in AUTO (custom_mode 3)
+        },
+    },
+}
+SURVEY_SPEED = 3.0
+STEP_TIMEOUTS = MissionTimeouts(1.0, 5)
+LEG_M = 15.0
+
+
+class _Link:
+    """`cloudtrack.mission_protocol.MissionLink` over the test's client, noting what arrives on the way."""
+
+    def __init__(self, v: Vehicle, drop: Any = None) -> None:
+        self.v = v
+        self.drop = drop  # drop(build) -> True: this message is lost on the way to the autopilot
+        self.types: set[str] = set()
+        self.texts: list[str] = []
+        self.reached: list[int] = []
+        self.positions: list[tuple[float, float, float]] = []  # (time, north, east)
+
+    def send(self, build: Any) -> bool:
+        if self.drop is None or not self.drop(build):
+            build(self.v.client.mav)
+        return True
+
+    def receive(self, timeout: float) -> Any:
+        msg = self.v.client.recv_match(blocking=True, timeout=timeout)
+        if msg is not None:
+            self.note(msg)
+        return msg
+
+    def note(self, msg: Any) -> None:
+        kind = msg.get_type()
+        self.types.add(kind)
+        if kind == "STATUSTEXT":
+            self.texts.append(str(msg.text))
+        elif kind == "MISSION_ITEM_REACHED":
+            self.reached.append(int(msg.seq))
+        elif kind == "LOCAL_POSITION_NED":
+            self.positions.append((time.monotonic(), float(msg.x), float(msg.y)))
+
+    def pump(self, seconds: float, until: Any = None) -> bool:
+        """Read for up to `seconds`, or until `until()` holds."""
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            self.receive(0.05)
+            if until is not None and until():
+                return True
+        return False
+
+
+def _mission_client(v: Vehicle, link: _Link, timeouts: MissionTimeouts = STEP_TIMEOUTS) -> MissionClient:
+    return MissionClient(link, v.autopilot, target=(1, 1), source=(1, 191), timeouts=timeouts)
+
+
+def _here(v: Vehicle, link: _Link) -> tuple[float, float, float, float]:
+    """(lat, lon, north, east) of the vehicle now: GLOBAL_POSITION_INT asked for, LOCAL_POSITION_NED streamed."""
+    v.client.mav.command_long_send(1, 1, mavlink.MAV_CMD_REQUEST_MESSAGE, 0, 33, 0, 0, 0, 0, 0, 0)
+    found: list[Any] = []
+    link.positions.clear()
+    end = time.monotonic() + 5.0
+    while time.monotonic() < end and not (found and link.positions):
+        msg = link.receive(0.1)
+        if msg is not None and msg.get_type() == "GLOBAL_POSITION_INT":
+            found.append(msg)
+    assert found and link.positions, "no GLOBAL_POSITION_INT / LOCAL_POSITION_NED"
+    _, north, east = link.positions[-1]
+    return found[0].lat / 1e7, found[0].lon / 1e7, north, east
+
+
+def _square(lat: float, lon: float, alt: float = 10.0) -> list[MissionItem]:
+    """Waypoints LEG_M north, then east, then south of (lat, lon): three legs of a square."""
+    corners = ((LEG_M, 0.0), (LEG_M, LEG_M), (0.0, LEG_M))
+    return [MissionItem.waypoint(*offset_to_latlon(lat, lon, n, e), alt) for n, e in corners]
+
+
+def _compare_mission(v: Vehicle, name: str, answer: dict[str, Any]) -> None:
+    print(f"{v.kind} {name}: {answer}")
+    expected = MISSION_ANSWERS[v.autopilot][name]
+    assert answer == expected, f"{v.kind} answers {answer} to {name}; the real autopilot answers {expected}"
+
+
+def _ending(exc: MissionError) -> str:
+    return str(exc).rsplit("; ", 1)[-1]
+
+
+def test_mission_upload_download_clear(vehicle: Vehicle) -> None:
+    vehicle.settle()
+    link = _Link(vehicle)
+    client = _mission_client(vehicle, link)
+    lat, lon, _, _ = _here(vehicle, link)
+    items = [MissionItem.change_speed(SURVEY_SPEED), *_square(lat, lon), MissionItem.waypoint(lat, lon, 10.0)]
+    link.types.clear()
+    client.upload(items)
+    requests = sorted(link.types & {"MISSION_REQUEST", "MISSION_REQUEST_INT"})
+    got = client.download()
+    current = client.set_current(client.first_seq)
+    answer: dict[str, Any] = {
+        "requests": requests,
+        "round_trip": positions_match(got.items, items),
+        "home_is_item_0": got.home is not None,
+        "current_after_set": (current.seq, current.total, current.state),
+    }
+    client.clear()
+    after = client.download()
+    answer["after_clear"] = (len(after.items), after.home is not None, client.read_current().state)
+    _compare_mission(vehicle, "upload_download_clear", answer)
+
+
+def test_mission_refusals(vehicle: Vehicle) -> None:
+    """More items than the autopilot stores, a frame and a command it cannot store, AUTO without a mission:
+    each refusal as the client reports it, and what is left on the vehicle."""
+    vehicle.settle()
+    link = _Link(vehicle)
+    client = _mission_client(vehicle, link)
+    lat, lon, _, _ = _here(vehicle, link)
+    good = _square(lat, lon)
+    client.upload(good)
+    answer: dict[str, Any] = {}
+    with pytest.raises(MissionError) as too_many:
+        client.upload(good[:1] * 650)  # 651 with home
+    answer["too_many"] = (too_many.value.result, _ending(too_many.value))
+    link.pump(1.0)
+    answer["limit_text"] = next((t for t in link.texts if "items are supported" in t), None)
+    answer["previous_kept"] = positions_match(client.download().items, good)
+    for name, bad in (
+        (
+            "bad_frame",
+            MissionItem(NAV_WAYPOINT, 7, x=good[0].x, y=good[0].y, z=10.0),
+        ),  # MAV_FRAME_LOCAL_NED_INT?
+        ("bad_command", MissionItem(31010, 2)),
+    ):
+        with pytest.raises(MissionError) as refused:
+            client.upload([good[0], bad, good[1]])
+        answer[name] = (refused.value.result, _ending(refused.value))
+    answer["items_after_refusal"] = len(client.download().items)
+    answer["auto_without_mission"] = vehicle.set_mode(3)
+    _compare_mission(vehicle, "refusals", answer)
+
+
+def test_mission_stalled_upload(vehicle: Vehicle) -> None:
+    """The ground's link stops carrying items midway. With the protocol's own timeouts the autopilot gives up
+    first (it cancels after 8 s, the mock here after 2 s); with short ones the ground tool gives up while the
+    autopilot still waits for items (it then refuses MISSION_CLEAR_ALL, and the client clears with an empty
+    upload). Either way what the autopilot had written is gone: nothing half uploaded stays."""
+    from cloudtrack.mission_protocol import send_item
+
+    vehicle.settle()
+
+    def cut(build: Any) -> bool:  # items after the second never arrive
+        return getattr(build, "func", None) is send_item and build.keywords["seq"] > 2
+
+    link = _Link(vehicle, drop=cut)
+    client = _mission_client(vehicle, link, MissionTimeouts(1.5, 8))
+    lat, lon, _, _ = _here(vehicle, link)
+    old = _square(lat, lon)
+    _mission_client(vehicle, _Link(vehicle)).upload(old)
+    new = _square(lat, lon, alt=12.0) + _square(lat, lon, alt=12.0)
+    answer: dict[str, Any] = {}
+    with pytest.raises(MissionError) as cancelled:
+        client.upload(new)
+    answer["autopilot_cancels"] = (
+        cancelled.value.result,
+        _ending(cancelled.value),
+        len(_mission_client(vehicle, _Link(vehicle)).download().items),
+    )
+    answer["cancel_text"] = next((t for t in link.texts if "upload timeout" in t), None)
+    _mission_client(vehicle, _Link(vehicle)).upload(old)
+    short = _mission_client(vehicle, _Link(vehicle, drop=cut), MissionTimeouts(0.3, 1))
+    with pytest.raises(MissionError) as gave_up:
+        short.upload(new)
+    answer["ground_gives_up"] = (
+        _ending(gave_up.value),
+        len(_mission_client(vehicle, _Link(vehicle)).download().items),
+    )
+    _compare_mission(vehicle, "stalled_upload", answer)
+
+
+def test_mission_auto_resume(vehicle: Vehicle) -> None:
+    """AUTO flies the mission; GUIDED takes the vehicle away halfway along a leg; AUTO again resumes at the item
+    it broke off at, flying straight there from where it is (ArduCopter MIS_RESTART 0)."""
+    vehicle.settle()
+    link = _Link(vehicle)
+    client = _mission_client(vehicle, link)
+    lat, lon, north0, east0 = _here(vehicle, link)
+    square = _square(lat, lon)
+    client.upload([MissionItem.change_speed(SURVEY_SPEED), *square])
+    client.set_current(client.first_seq)
+    first_wp = client.first_seq + 1
+    link.reached.clear()
+    t_auto = time.monotonic()
+    answer: dict[str, Any] = {"auto_ack": vehicle.set_mode(3)}
+    assert link.pump(20.0, lambda: first_wp in link.reached), f"{vehicle.kind} never reached {first_wp}"
+    first_leg = _top_speed([p for p in link.positions if p[0] >= t_auto])
+    answer["survey_speed_on_the_first_leg"] = abs(first_leg - SURVEY_SPEED) < 0.5
+    # Halfway along the next leg (east), the pilot or the companion takes the vehicle: GUIDED, 8 m away.
+    assert link.pump(10.0, lambda: link.positions[-1][2] - east0 > LEG_M / 2)
+    answer["reached_before_break"] = list(link.reached)
+    assert vehicle.set_mode(MODES["GUIDED"]) == 0
+    _, n, e = link.positions[-1]
+    vehicle.setpoint(mavlink.MAV_FRAME_LOCAL_NED, POSITION_ONLY, pos=(n - 8.0, e - 8.0, -10.0))
+    link.pump(7.0)
+    current = client.read_current()
+    answer["current_after_break"] = (current.seq, current.state)
+    link.reached.clear()
+    t_resume = time.monotonic()
+    assert vehicle.set_mode(3) == 0
+    target = (north0 + LEG_M, east0 + LEG_M)
+    assert link.pump(20.0, lambda: bool(link.reached)), f"{vehicle.kind} reached nothing after the resume"
+    answer["first_reached_after_resume"] = link.reached[0]
+    leg = [(t, n, e) for t, n, e in link.positions if t >= t_resume]
+    start = (leg[0][1], leg[0][2])
+    deviation = max(_off_line((n, e), start, target) for _, n, e in leg)
+    top = _top_speed(leg)
+    print(f"{vehicle.kind}: first leg at {first_leg:.1f} m/s; resumed from {start} to {target}: "
+          f"{deviation:.2f} m off the line, top speed {top:.1f} m/s")  # fmt: skip
+    answer["straight_from_break_off"] = deviation < 2.0
+    answer["faster_than_the_survey_speed"] = top > SURVEY_SPEED + 0.5
+    last = client.first_seq + len(square)
+    assert link.pump(20.0, lambda: last in link.reached), f"{vehicle.kind} never reached the last item"
+    end = client.read_current()
+    answer["end"] = (end.state, vehicle.mode())
+    _compare_mission(vehicle, "auto_resume", answer)
+    assert vehicle.set_mode(MODES["GUIDED"]) == 0  # ArduCopter refuses a clear in AUTO
+    client.clear()
+
+
+def _top_speed(track: list[tuple[float, float, float]]) -> float:
+    """The highest speed over half-second spans of a (time, north, east) track."""
+    pairs = zip(track, track[5:], strict=False)
+    return max((math.dist(a[1:], b[1:]) / (b[0] - a[0]) for a, b in pairs if b[0] > a[0]), default=0.0)
+
+
+def _off_line(p: tuple[float, float], a: tuple[float, float], b: tuple[float, float]) -> float:
+    ax, ay = b[0] - a[0], b[1] - a[1]
+    t = max(0.0, min(1.0, ((p[0] - a[0]) * ax + (p[1] - a[1]) * ay) / (ax * ax + ay * ay)))
+    return math.dist(p, (a[0] + t * ax, a[1] + t * ay))

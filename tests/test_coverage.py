@@ -7,6 +7,7 @@ import math
 import pytest
 from shapely.geometry import MultiPolygon, Polygon
 
+from behaviors.camera_footprint import swath_width_m
 from behaviors.camera_model import CameraModel
 from behaviors.geolocation import offset_to_latlon
 from behaviors.survey_planner import SurveySettings, plan_survey, rectangle
@@ -15,6 +16,7 @@ from cloudtrack.coverage import (
     LocalFrame,
     area_from_waypoints,
     bounded_rings,
+    fly_path,
     footprint_polygon,
     geometry_from_rings,
 )
@@ -134,3 +136,18 @@ def test_a_search_area_must_have_an_area() -> None:
         CoverageMap([at(0, 0), at(0, 10)], NADIR, 50.0)
     with pytest.raises(ValueError):
         CoverageMap([at(0, 0), at(0, 10), at(0, 20)], NADIR, 50.0)
+
+
+def test_a_planned_survey_flown_as_planned_covers_its_area() -> None:
+    """The planner's lane spacing is the camera's swath less the overlap: flown exactly, a nadir survey sees
+    the whole area (the lane ends reach the polygon's edges, the swath the bands' edges)."""
+    camera = CameraModel.from_hfov(640, 480, 70.0, -90.0)
+    area = rectangle(ORIGIN, 120.0, 80.0)
+    plan = plan_survey(area, SurveySettings(20.0, 0.2, camera, 50.0, 5.0, 60.0))
+    cover = fly_path(CoverageMap(area, camera, 50.0), plan.waypoints, 20.0)
+    assert cover.coverage() == pytest.approx(1.0, abs=1e-6)
+    sparse = plan_survey(area, SurveySettings(20.0, 0.2, camera, 50.0, 5.0, 60.0, angle_deg=0.0))
+    one_lane = fly_path(CoverageMap(area, camera, 50.0), sparse.waypoints[:2], 20.0)
+    # The first of six 20 m bands: its lane 10 m in from the west edge, half its 28 m swath beyond the edge.
+    seen = 10.0 + swath_width_m(camera, 20.0, 50.0) / 2
+    assert one_lane.coverage() == pytest.approx(seen * 80.0 / (120.0 * 80.0), rel=1e-3)

@@ -56,9 +56,11 @@ def test_dry_run_prints_lanes_length_and_time(capsys: pytest.CaptureFixture[str]
     assert lines[1] == "  lanes: 2, 40.0 m apart (camera swath 63.1 m at 25 m), along 90 deg"
     assert lines[2] == "  length: 280 m over 0.96 ha"
     assert lines[3] == "  time to fly: about 1 min 15 s at 4 m/s"
-    assert lines[4] == "  items: 1 DO_CHANGE_SPEED, 4 NAV_WAYPOINT"
-    assert [line.split(":")[0] for line in lines[5:9]] == [f"  waypoint {k}" for k in range(1, 5)]
-    assert lines[9] == f"saved 5 items to {saved} (QGC WPL 110)"
+    # The oblique camera looks ahead: what it never sees is behind the lane starts, 2.5 % of the area.
+    assert lines[4].startswith("  coverage if flown as planned: 97.5 % of the area (")
+    assert lines[5] == "  items: 1 DO_CHANGE_SPEED, 4 NAV_WAYPOINT"
+    assert [line.split(":")[0] for line in lines[6:10]] == [f"  waypoint {k}" for k in range(1, 5)]
+    assert lines[10] == f"saved 5 items to {saved} (QGC WPL 110)"
     loader = mavwp.MAVWPLoader()
     loader.load(str(saved))  # Mission Planner's and MAVProxy's format reads back: home, then the items
     assert [loader.wp(i).command for i in range(loader.count())] == [16, DO_CHANGE_SPEED] + [NAV_WAYPOINT] * 4

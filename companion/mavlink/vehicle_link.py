@@ -59,6 +59,7 @@ from cloudtrack.gcs_protocol import (
     MAV_SEVERITY_INFO,
     MAV_SEVERITY_WARNING,
     GcsProtocol,
+    StartGate,
     statustext_chunks,
     value_name,
 )
@@ -82,6 +83,7 @@ from companion.safety_watchdog import (
 log = logging.getLogger(__name__)
 
 MODE_REQUEST_RETRY_S = 1.0
+MISSION_QUEUE = 256  # the autopilot's mission-protocol messages kept for a transfer (bounded)
 RELEASE_TIMEOUT_S = 3.0  # after letting go, zeros in GUIDED/OFFBOARD at most this long, then silence
 OWN_MODE_CHANGE_WINDOW_S = 5.0  # a mode we asked for that shows up this soon is our own change
 STREAM_REQUEST_RETRY_S = 2.0
@@ -108,6 +110,7 @@ class VehicleLink:
         image_size: tuple[int, int] = (640, 480),
         on_safety_event: Callable[[SafetyEvent], None] | None = None,
         clock: Callable[[], float] = time.monotonic,
+        start_gate: StartGate | None = None,
     ):
         self._cfg = mavlink_config
         self._clock = clock
@@ -136,7 +139,7 @@ class VehicleLink:
         self._camera_component = mavlink_config.camera_component
         self._gcs = GcsProtocol(
             mavlink_config.target_system, mavlink_config.source_component, self._camera_component,
-            lambda: self._image_size, self, frozenset(mavlink_config.gcs_system_ids),
+            lambda: self._image_size, self, frozenset(mavlink_config.gcs_system_ids), start_gate,
         )  # fmt: skip
         self._setpoint_max_age = safety.setpoint_max_age_s
         self._telemetry_stale = safety.telemetry_stale_s
@@ -160,6 +163,8 @@ class VehicleLink:
         self._latest_status = ("CloudTrack ready: no mission", MAV_SEVERITY_INFO)
         self._text_id = 0
         self._commands: deque[MissionCommand] = deque(maxlen=100)
+        self._mission_messages: deque[Any] = deque(maxlen=MISSION_QUEUE)
+        self._mission_arrived = threading.Condition(self._lock)
         self._events: deque[SafetyEvent] = deque(maxlen=1000)
         self.setpoints_sent = 0
         self.stale_setpoints_dropped = 0
@@ -361,6 +366,24 @@ class VehicleLink:
         self._watchdog.seen(LOOP_STALLED, now)
         if now - self._last_heartbeat_sent >= 1.0:
             self._send_heartbeat(now)
+
+    def mission_link(self) -> MissionMessages:
+        """The mission protocol over this link (`cloudtrack.mission_protocol.MissionClient` runs over it):
+        sends through the endpoint, receives the autopilot's MISSION_* messages the reader hands over. One
+        transfer at a time; a new one starts from an empty queue."""
+        with self._lock:
+            self._mission_messages.clear()
+        return MissionMessages(self)
+
+    def _next_mission_message(self, timeout: float) -> Any | None:
+        deadline = self._clock() + timeout
+        with self._mission_arrived:
+            while not self._mission_messages:
+                left = deadline - self._clock()
+                if left <= 0 or self._stop.is_set():
+                    return None
+                self._mission_arrived.wait(min(left, 0.05))
+            return self._mission_messages.popleft()
 
     def report_frame(self, when: float | None = None) -> None:
         """A camera frame arrived (`when` on time.monotonic(); default now)."""
@@ -641,6 +664,12 @@ class VehicleLink:
             try:
                 event = None
                 with self._lock:
+                    if (
+                        msg.get_type().startswith("MISSION_")
+                        and msg.get_srcSystem() == self._cfg.target_system
+                    ):
+                        self._mission_messages.append(msg)
+                        self._mission_arrived.notify_all()
                     hb = self._decoder.feed(msg, now)
                     if hb is not None:
                         self._watchdog.seen(HEARTBEAT_LOST, now)
@@ -782,3 +811,16 @@ class VehicleLink:
             if missing and self._enabled:
                 log.warning("position telemetry older than %.1f s: holding", self._telemetry_stale)
         return None if missing else height
+
+
+class MissionMessages:
+    """A `cloudtrack.mission_protocol.MissionLink` on the companion's own link (`VehicleLink.mission_link`)."""
+
+    def __init__(self, link: VehicleLink) -> None:
+        self._link = link
+
+    def send(self, build: Callable[[Any], Any]) -> bool:
+        return self._link.endpoint.send(build)
+
+    def receive(self, timeout: float) -> Any | None:
+        return self._link._next_mission_message(timeout)
