@@ -17,6 +17,7 @@ from sitl.scenarios import SCENARIOS
 EXAMPLES = """\
 examples:
   cloudtrack-sim list
+  cloudtrack-sim up                         # everything on this machine, to drive by hand (docs/quickstart.md)
   cloudtrack-sim run follow --video out/demo.mp4 --plot out/demo.png --json out/demo.json
   cloudtrack-sim run reject --seed 3 --json out/reject.json
   cloudtrack-sim run follow --autopilot px4 --tracker vit --model-dir ../shared/models
@@ -185,7 +186,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     listing.add_argument("--json", action="store_true", help="as a JSON object name -> summary")
     listing.set_defaults(func=_list)
-    add_command_modules(subparsers, ("sitl.autopilot_command",))
+    add_command_modules(subparsers, ("sitl.autopilot_command", "sitl.up_command"))
     from sitl import camera_command
 
     camera_command.add_parsers(subparsers)  # `camera` and `bench`

@@ -59,6 +59,7 @@ from cloudtrack.gcs_protocol import (
     MAV_SEVERITY_INFO,
     MAV_SEVERITY_WARNING,
     GcsProtocol,
+    StartGate,
     statustext_chunks,
     value_name,
 )
@@ -109,6 +110,7 @@ class VehicleLink:
         image_size: tuple[int, int] = (640, 480),
         on_safety_event: Callable[[SafetyEvent], None] | None = None,
         clock: Callable[[], float] = time.monotonic,
+        start_gate: StartGate | None = None,
     ):
         self._cfg = mavlink_config
         self._clock = clock
@@ -137,7 +139,7 @@ class VehicleLink:
         self._camera_component = mavlink_config.camera_component
         self._gcs = GcsProtocol(
             mavlink_config.target_system, mavlink_config.source_component, self._camera_component,
-            lambda: self._image_size, self, frozenset(mavlink_config.gcs_system_ids),
+            lambda: self._image_size, self, frozenset(mavlink_config.gcs_system_ids), start_gate,
         )  # fmt: skip
         self._setpoint_max_age = safety.setpoint_max_age_s
         self._telemetry_stale = safety.telemetry_stale_s
