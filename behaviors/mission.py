@@ -131,6 +131,13 @@ class Target:
     operator_selected: bool = False
     early: EarlyStart | None = None  # started before the final verdicts (never reported to the supervisor)
     confirmed_by: str = ""  # who confirmed it ("supervisor page", "gcs"), once confirmed
+    # The estimate with the smallest error the track had: where the memories (rejected, found) place the
+    # person. The latest estimate can be the worst (the view's far edge as a survey flies away).
+    best_position: GeoEstimate | None = None
+
+    @property
+    def fix(self) -> GeoEstimate | None:
+        return self.best_position or self.position
 
 
 @dataclass(frozen=True)
@@ -166,6 +173,9 @@ class State:
     break_off_item: int | None = None
     let_go: bool = False  # the companion let go on a confirmation (on_confirm = hold): it commands nothing
     found: RejectionMemory = RejectionMemory()  # confirmed finds the search went on from: not proposed again
+    # A candidate put to the supervisor that the search gave up (out of view, the survey flew on) before a
+    # decision: it keeps awaiting one while the search goes on (confirm: a find; reject: remembered).
+    pending: Target | None = None
 
 
 Result = tuple[State, tuple[Action, ...]]
@@ -188,11 +198,12 @@ def commanding(state: State) -> bool:
 
 def awaiting_decision(state: State) -> Target | None:
     """The candidate the supervisor has still to decide on: while AWAITING_SUPERVISOR, and while LOST on the
-    way back to it (a short loss of the track must not take the candidate off the supervisor's page)."""
+    way back to it (a short loss of the track must not take the candidate off the supervisor's page); else
+    one the search gave up before a decision (`State.pending`: a survey flew on past it)."""
     waiting = state.mode is MissionState.AWAITING_SUPERVISOR or (
         state.mode is MissionState.LOST and state.resume is MissionState.AWAITING_SUPERVISOR
     )
-    return state.target if waiting else None
+    return state.target if waiting else state.pending
 
 
 def step(state: State, event: Event, config: MissionConfig) -> Result:
@@ -266,7 +277,7 @@ def _start_search(state: State, reason: str, config: MissionConfig) -> Result:
 
 def _remember_found(state: State, target: Target) -> State:
     """A confirmed find the search goes on from: never proposed again in this mission."""
-    entry = RejectedTarget(target.candidate_id, target.position, target.signature, state.now_s)
+    entry = RejectedTarget(target.candidate_id, target.fix, target.signature, state.now_s)
     return replace(state, found=state.found.remember(entry))
 
 
@@ -306,6 +317,13 @@ def _confirm(state: State, by: str, config: MissionConfig) -> Result:
 def _reject(state: State, candidate_id: str) -> Result:
     target = state.target if state.mode in TRACKING else None
     if target is None or (candidate_id and candidate_id != target.candidate_id):
+        pending = state.pending
+        if pending is not None and candidate_id in ("", pending.candidate_id):
+            entry = RejectedTarget(pending.candidate_id, pending.fix, pending.signature, state.now_s)
+            return replace(state, rejections=state.rejections.remember(entry), pending=None), (
+                RememberRejection(pending.candidate_id, pending.fix, pending.signature),
+                GcsMessage(f"rejected {pending.candidate_id}"[:50]),
+            )
         if not candidate_id:
             return state, (GcsMessage("reject: no candidate awaiting", "warning"),)
         # Not the one we track: remember the id so the back-end's candidate is never picked.
@@ -313,7 +331,7 @@ def _reject(state: State, candidate_id: str) -> Result:
         return replace(state, rejections=state.rejections.remember(entry)), (
             RememberRejection(candidate_id, None),
         )
-    entry = RejectedTarget(target.candidate_id, target.position, target.signature, state.now_s)
+    entry = RejectedTarget(target.candidate_id, target.fix, target.signature, state.now_s)
     new, msg = _enter(
         replace(state, rejections=state.rejections.remember(entry), target=None, control=ControlState()),
         MissionState.REJECTED,
@@ -323,7 +341,7 @@ def _reject(state: State, candidate_id: str) -> Result:
     actions: tuple[Action, ...] = (
         *stop,
         TrackerStop("rejected"),
-        RememberRejection(target.candidate_id, target.position, target.signature),
+        RememberRejection(target.candidate_id, target.fix, target.signature),
         *msg,
     )
     return new, actions
@@ -353,6 +371,7 @@ def _command(state: State, event: GcsCommand, config: MissionConfig) -> Result:
             holding=False,
             early_refused=False,
             along_mission=_along_mission(state, config),
+            pending=None,
         )
         engage: tuple[Action, ...] = ()
         if not new.along_mission:  # on the spot: fly from the start (when allowed)
@@ -410,6 +429,15 @@ def _command(state: State, event: GcsCommand, config: MissionConfig) -> Result:
             or state.mode not in TRACKING
             or (cmd.candidate_id and cmd.candidate_id != current.candidate_id)
         ):
+            pending = state.pending
+            if pending is not None and cmd.candidate_id in ("", pending.candidate_id):
+                # Out of view by now: the find is where it was seen best; the search goes on.
+                decided = replace(pending, confirmed_by=cmd.by)
+                new = _remember_found(replace(state, pending=None), decided)
+                return new, (
+                    _report(decided, "confirmed"),
+                    GcsMessage(f"confirmed {decided.candidate_id}"[:50]),
+                )
             return state, (GcsMessage("confirm: no such candidate", "warning"),)
         if state.mode is MissionState.CONFIRMED:
             return state, ()
@@ -499,7 +527,16 @@ def _track(state: State, result: TrackResult, config: MissionConfig) -> Result:
         return _start_lost(state, f"tracker lost ({result.lost_reason or 'failed'})", config)
 
     position = locate_box(config.camera, state.telemetry, result.box) if state.telemetry else None
-    target = replace(target, box=result.box, last_seen_s=result.time_s, position=position or target.position)
+    best = target.best_position
+    if position is not None and (best is None or position.sigma_m <= best.sigma_m):
+        best = position
+    target = replace(
+        target,
+        box=result.box,
+        last_seen_s=result.time_s,
+        position=position or target.position,
+        best_position=best,
+    )
     state = replace(state, target=target)
     actions: list[Action] = []
     if state.mode is MissionState.ACQUIRING:
@@ -743,9 +780,12 @@ def _lost_tick(state: State, target: Target, config: MissionConfig) -> Result:
     if _given_up(state, config):
         return state, ()
     elapsed = state.now_s - state.since_s
-    if _lost_ends_in_search(state) and elapsed >= config.lost_resume_after_s:
+    give_up_s = config.lost_resume_after_s if commanding(state) else config.lost_looking_s
+    if _lost_ends_in_search(state) and elapsed >= give_up_s:
         if state.resume is MissionState.CONFIRMED:
             state = _remember_found(state, target)  # reported already; never proposed again
+        elif state.resume is MissionState.AWAITING_SUPERVISOR:
+            state = replace(state, pending=target)  # still awaits the supervisor's decision
         new, back = _start_search(state, "target not found again", config)
         return new, (TrackerStop("lost: back to the search"), *back)
     actions: list[Action] = []
@@ -935,11 +975,12 @@ def _position(
 
 
 def _report(target: Target, status: str) -> ReportCandidate:
+    # A confirmation reports the best estimate the track had (a passing survey's last one can be poor).
     return ReportCandidate(
         target.candidate_id,
         target.justification,
         target.verdict,
-        target.position,
+        target.fix if status == "confirmed" else target.position,
         target.box,
         status,
         target.confirmed_by if status == "confirmed" else "",

@@ -72,6 +72,8 @@ class MissionConfig:
     # A search along the mission: a candidate lost this long (and not confirmed) ends, and the vehicle goes
     # back to the mission.
     lost_resume_after_s: float = 10.0
+    # ... and while only looking (not engaged) this soon: the survey flies on and takes it out of view.
+    lost_looking_s: float = 2.0
     orbit_speed_m_s: float = 1.0
     frame_stale_s: float = 0.5  # no tracker result for this long counts as lost
     accept_uncertain: bool = False  # may an "uncertain" verdict start tracking (after every "yes")?
@@ -149,6 +151,7 @@ class MissionConfig:
             on_confirm=ConfirmAction(_str(behavior, "on_confirm", d.on_confirm.value)),
             search=SearchMode(_str(behavior, "search", d.search.value)),
             lost_resume_after_s=_float(behavior, "lost_resume_after_s", d.lost_resume_after_s),
+            lost_looking_s=_float(behavior, "lost_looking_s", d.lost_looking_s),
             orbit_speed_m_s=_float(behavior, "orbit_speed_m_s", d.orbit_speed_m_s),
             frame_stale_s=_float(safety, "frame_stale_s", d.frame_stale_s),
             accept_uncertain=_bool(behavior, "accept_uncertain", d.accept_uncertain),

@@ -92,6 +92,9 @@ class BackendConfig(ConfigSection):
     timeout_s: float = Field(5.0, gt=0, le=120)
     superset: str = ""  # empty: derived from the prompt by the back-end
     status_interval_s: float = Field(1.0, gt=0, le=60)  # status post + supervisor decisions poll
+    # A GCS start waits this long for the back-end to say it can search for the prompt (DENIED with its
+    # reason when it cannot); no answer in time: the start goes ahead and the search waits. 0: no check.
+    start_check_s: float = Field(3.0, ge=0, le=30)
 
 
 class MavlinkConfig(ConfigSection):
@@ -145,6 +148,7 @@ class BehaviorConfig(ConfigSection):
     # Along the autopilot's mission (auto: when it flies one at the start) or on the spot (docs/behavior.md)
     search: Literal["auto", "mission", "spot"] = "auto"
     lost_resume_after_s: float = Field(10.0, gt=0, le=600)  # along the mission: lost this long, fly on
+    lost_looking_s: float = Field(2.0, gt=0, le=600)  # ... while only looking (not engaged)
     orbit_speed_m_s: float = Field(1.0, gt=0, le=10)
     accept_uncertain: bool = False  # may an "uncertain" verdict start tracking (after every "yes")
     acquire_timeout_s: float = Field(3.0, gt=0, le=60)  # tracker must lock on this soon after init

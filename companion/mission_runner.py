@@ -61,6 +61,7 @@ from behaviors.track_result import TrackResult
 from cloudtrack.service_notify import Notifier
 from companion.cloud.backend_worker import BackendWorker
 from companion.cloud.candidate_crop import candidate_crop
+from companion.operator_notices import OperatorNotices
 from companion.safety_watchdog import BACKEND_UNREACHABLE, HEARTBEAT_LOST, SafetyEvent
 from companion.status_report import StatusReport
 from companion.vision.frame_sources import Frame, FrameSource
@@ -106,6 +107,8 @@ class VehicleLink(Protocol):
 
     def send_status(self, text: str, severity: int = 6) -> None: ...
 
+    def send_value(self, name: str, value: float) -> None: ...
+
     def announce_find(
         self, lat: float, lon: float, sigma_m: float, slant_range_m: float, prompt: str, confirmed_by: str
     ) -> None: ...
@@ -125,6 +128,18 @@ class BackendSessionLike(Protocol):
     def commands(self) -> list[MissionCommand]: ...
 
     def last_success(self) -> float | None: ...
+
+
+class SearchCoverageLike(Protocol):
+    """`companion.search_coverage.SearchCoverage`: the search area and the share of it seen."""
+
+    def start(self) -> None: ...
+
+    def stop(self) -> None: ...
+
+    def update(self, telemetry: Telemetry) -> None: ...
+
+    def report(self) -> dict[str, Any] | None: ...
 
 
 class TrackingFrontendLike(Protocol):
@@ -166,6 +181,7 @@ class LoopSettings:
 
 
 SEVERITY = {"info": 6, "warning": 4, "critical": 2}  # MAV_SEVERITY for the GCS
+MAX_CROPS = 8  # candidates' crops kept (a candidate awaiting a decision out of view keeps its crop)
 POSE_HISTORY = 400  # telemetry snapshots kept to locate a keyframe's candidates (40 s at 10 Hz)
 FOLLOWING_STATES = frozenset(
     {MissionState.FOLLOWING, MissionState.AWAITING_SUPERVISOR, MissionState.CONFIRMED}
@@ -200,6 +216,9 @@ class MissionRunner:
         clock: Callable[[], float] = time.monotonic,
         video_sinks: Sequence[Callable[[Any, Box | None, str], None]] = (),
         wall_clock: Callable[[], float] = time.time,
+        keyframe_max_width: int = 640,  # [backend] max_keyframe_width: the status's boxes are in its pixels
+        coverage: SearchCoverageLike | None = None,
+        notices: OperatorNotices | None = None,
     ) -> None:
         # One policy for flight and eval: with the front-end's "verified" policy ([tracker] reinit_policy)
         # the mission hands it every answer for the track instead of choosing a re-init box itself.
@@ -212,6 +231,9 @@ class MissionRunner:
         self.settings = settings
         self.observers = list(observers)
         self.notifier = notifier
+        # Why it cannot do its job right now (waiting for the autopilot or the back-end, a refused token or
+        # prompt): said once per change in the journal and on the GCS, carried by every status report.
+        self.notices = notices or OperatorNotices()
         self.clock = clock
         self.video_sinks = list(video_sinks)  # `(image, tracked box, state)` for every frame (record video)
         self.state = initial_state(mission)
@@ -221,11 +243,15 @@ class MissionRunner:
         self._last_tick = -float("inf")
         self._ready = False
         self._pending_since: float | None = None  # oldest back-end request not answered yet
-        self._crop: tuple[str, dict[str, Any]] | None = None  # (candidate id, its crop fields), encoded once
+        self._crops: dict[str, dict[str, Any]] = {}  # candidate id -> its crop fields, encoded once
         self._poses: deque[Telemetry] = deque(maxlen=POSE_HISTORY)  # newest last
         self._result: TrackResult | None = None  # the tracker's result on the newest frame
         # Progress, finds and the tracked keyframe box for the status report.
-        self.report = StatusReport((mission.camera.width, mission.camera.height), wall_clock)
+        self.report = StatusReport(
+            (mission.camera.width, mission.camera.height), keyframe_max_width, wall_clock
+        )
+        self.coverage = coverage
+        self._coverage_told = (-float("inf"), 0)  # (when the GCS last got the value, tenths announced)
 
     # ------------------------------------------------------------------------------------------ control
     def request_stop(self) -> None:
@@ -288,6 +314,7 @@ class MissionRunner:
         if frame is not None:
             self._video(frame, result)
         self._feed_watchdogs(now)
+        self._tell_notices(telemetry is not None)
         self._report_health(started)
 
     def _pose_at(self, when: float) -> Telemetry | None:
@@ -305,6 +332,13 @@ class MissionRunner:
         self.state, actions = step(self.state, event, self.mission)
         if isinstance(event, GcsCommand) and isinstance(event.command, StartMission) and self.state.mission:
             self.report.start(self.state.mission.mission_id or self.state.mission.prompt)
+            self.notices.set("start", None)  # a start went through: an earlier refusal no longer holds
+            self.notices.search_accepted()
+            self._start_coverage()
+        elif self.coverage is not None and before.mode in ACTIVE and self.state.mode not in ACTIVE:
+            self.coverage.stop()  # aborted or stopped: the figures stay, no more views
+        if isinstance(event, Telemetry) and self.coverage is not None and self.state.mode in ACTIVE:
+            self.coverage.update(event)
         if _operator_started(event, self.state) and commanding(self.state):
             # A mission or an operator's track box the behaviour accepted may fly the vehicle once the
             # pilot or GCS selects GUIDED/OFFBOARD; asking for that mode itself is the behaviour's
@@ -417,13 +451,16 @@ class MissionRunner:
                 f"CANDIDATE {report.status.upper()} {report.candidate_id}{where}", SEVERITY["info"]
             )
         if self.session is not None:
-            self.session.update(self._status(report))
+            self.session.update(self._status())
 
     def _report_find(self, report: ReportCandidate) -> None:
         """A confirmed candidate is a find: announced to the GCS once (QGC pops it up), its position sent
         again with every later confirmed report, and carried by every status report (`find`)."""
         new = self.report.find_of(report.candidate_id) is None
-        crop = self._candidate_crop(report.candidate_id or "tracked", report.box).get("crop_jpeg_b64")
+        in_view = self.state.target is not None and self.state.target.candidate_id == report.candidate_id
+        crop = self._candidate_crop(report.candidate_id or "tracked", report.box, in_view).get(
+            "crop_jpeg_b64"
+        )
         prompt = self.state.mission.prompt if self.state.mission is not None else ""
         find = self.report.record_find(report, prompt, crop)
         if find is None:
@@ -442,9 +479,12 @@ class MissionRunner:
         else:
             self.vehicle.send_find_position(find.lat, find.lon, find.sigma_m, find.slant_range_m)
 
-    def _status(self, report: ReportCandidate | None = None) -> dict[str, Any]:
+    def _status(self) -> dict[str, Any]:
         state = self.state
         status: dict[str, Any] = {"state": state.mode.value, **self.report.fields(state, self._search())}
+        notice = self.notices.current()
+        if notice:
+            status["reason"] = notice  # what keeps it from its job before why it is in its state
         if state.mission is not None:
             status["prompt"] = state.mission.prompt
             if state.mission.mission_id:
@@ -453,33 +493,46 @@ class MissionRunner:
             status["position"] = [state.telemetry.lat_deg, state.telemetry.lon_deg]
             status["altitude_m"] = state.telemetry.height_agl
         # The candidate awaiting the supervisor rides every report while it waits, whatever happens to the
-        # track (a short loss, a re-acquisition): the page keeps it and its Confirm button.
-        target = awaiting_decision(state)
-        candidate = report if report is not None and report.status != "confirmed" else None
-        if candidate is None and target is not None:
-            candidate = ReportCandidate(
-                target.candidate_id,
-                target.justification,
-                target.verdict,
-                target.position,
-                target.box,
-                "awaiting",
-            )
-        if candidate is not None:
-            awaiting: dict[str, Any] = {
-                "candidate_id": candidate.candidate_id or "tracked",
-                "box": list(candidate.box.xyxy()),
-                "verdict": candidate.verdict.value,
-                "justification": candidate.justification[:2000],
-            }
-            if candidate.position is not None:
-                awaiting["position"] = [candidate.position.lat_deg, candidate.position.lon_deg]
-            awaiting.update(self._candidate_crop(awaiting["candidate_id"], candidate.box))
+        # track (a short loss, a re-acquisition, the survey flying on): the page keeps it and its Confirm button.
+        awaiting = self._awaiting()
+        if awaiting is not None:
             status["awaiting"] = awaiting
         return status
 
+    def _awaiting(self) -> dict[str, Any] | None:
+        """The candidate awaiting the supervisor's decision: the tracked one (also while it is lost), else
+        one the search gave up before a decision (`State.pending`, out of view: its crop from when it was)."""
+        state = self.state
+        target = awaiting_decision(state)
+        if target is None:
+            return None
+        tracked = target is state.target
+        awaiting: dict[str, Any] = {
+            "candidate_id": target.candidate_id or "tracked",
+            "box": list(target.box.xyxy()),
+            "verdict": target.verdict.value,
+            "justification": target.justification[:2000],
+        }
+        position = target.position if tracked else target.fix
+        if position is not None:
+            awaiting["position"] = [position.lat_deg, position.lon_deg]
+        in_view = state.mode is MissionState.AWAITING_SUPERVISOR
+        awaiting.update(self._candidate_crop(awaiting["candidate_id"], target.box, in_view))
+        return awaiting
+
+    def _start_coverage(self) -> None:
+        """A search along the autopilot's mission covers the mission's area; on the spot there is none."""
+        if self.coverage is None:
+            return
+        if self.state.along_mission and self.state.mode in ACTIVE:
+            self.coverage.start()
+            self._coverage_told = (-float("inf"), 0)
+        else:
+            self.coverage.stop()
+
     def _search(self) -> dict[str, Any] | None:
-        """The status report's `search`: where the autopilot's mission stands (mode, item, item count)."""
+        """The status report's `search`: where the autopilot's mission stands (mode, item, item count) and,
+        along it, the search area and the share of it seen."""
         t = self.state.telemetry
         if self.state.mission is None or t is None:
             return None
@@ -488,7 +541,24 @@ class MissionRunner:
             search["mission_item"] = t.mission_item
         if t.mission_items is not None:
             search["mission_items"] = t.mission_items
+        covered = self.coverage.report() if self.coverage is not None else None
+        if covered is not None:
+            search.update(covered)
+            self._tell_coverage(float(covered["coverage"]))
         return search
+
+    def _tell_coverage(self, share: float) -> None:
+        """The share seen to the GCS: NAMED_VALUE_FLOAT `coverage` (0..1) once a second, and a status line at
+        every tenth of the area."""
+        now = self.clock()
+        last, tenths = self._coverage_told
+        if now - last < 1.0:
+            return
+        self.vehicle.send_value("coverage", share)
+        reached = int(share * 10.0 + 1e-9)
+        if reached > tenths:
+            self.vehicle.send_status(f"COVERAGE {reached * 10}% of the search area", SEVERITY["info"])
+        self._coverage_told = (now, max(tenths, reached))
 
     def _video(self, frame: Frame, result: TrackResult) -> None:
         box = result.box if result.trusted else None
@@ -498,14 +568,17 @@ class MissionRunner:
             except Exception:  # a full disk or a codec error must not stop the flight
                 log.exception("video frame not recorded")
 
-    def _candidate_crop(self, candidate_id: str, box: Box) -> dict[str, Any]:
-        """The supervisor's crop of this candidate from the newest frame, encoded once per candidate."""
-        if self._crop is None or self._crop[0] != candidate_id:
-            crop = candidate_crop(self._latest.image, box) if self._latest is not None else None
+    def _candidate_crop(self, candidate_id: str, box: Box, in_view: bool = True) -> dict[str, Any]:
+        """The supervisor's crop of this candidate from the newest frame, encoded once per candidate (and only
+        while it is in view: a candidate out of view keeps the crop it had, or has none)."""
+        if candidate_id not in self._crops:
+            if not in_view or self._latest is None:
+                return {}
+            crop = candidate_crop(self._latest.image, box)
             if crop is None:
                 return {}
-            self._crop = (candidate_id, crop)
-        return self._crop[1]
+            self._crops = {**dict(list(self._crops.items())[-(MAX_CROPS - 1) :]), candidate_id: crop}
+        return self._crops[candidate_id]
 
     def _report_track(self, result: TrackResult) -> None:
         cam = self.mission.camera
@@ -550,6 +623,21 @@ class MissionRunner:
             self.vehicle.report_backend_ok(max(times))
         if self.session is not None:
             self.session.update(self._status())
+
+    def _tell_notices(self, heard: bool) -> None:
+        """Each change of what the operator must know, once: in the journal and on the GCS."""
+        self.notices.autopilot_heard(heard)
+        for topic, text in self.notices.changes():
+            if text is not None:
+                log.warning("%s", text)
+                # With no autopilot there is no GCS link to tell; a refused start the GCS heard already.
+                if topic not in ("autopilot", "start"):
+                    self.vehicle.send_status(text, SEVERITY["warning"])
+            elif topic == "autopilot":
+                log.info("autopilot heard on %s", self.notices.autopilot_address)
+            elif topic in ("backend", "auth"):
+                log.info("the back-end at %s answers", self.notices.backend_url)
+                self.vehicle.send_status("back-end answers", SEVERITY["info"])
 
     def _report_health(self, started: float) -> None:
         end = self.clock()

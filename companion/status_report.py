@@ -19,7 +19,6 @@ from behaviors.actions import ReportCandidate
 from behaviors.detection import Detection
 from behaviors.geometry import Box
 from behaviors.mission import MissionState, State
-from cloudtrack.api_client import KEYFRAME_MAX_WIDTH
 
 MAX_CANDIDATE_IDS = 10_000
 MAX_FINDS = 100
@@ -57,10 +56,16 @@ class Find:
 class StatusReport:
     """The mission's progress, finds and tracked box; one owner (the main loop), not thread-safe."""
 
-    def __init__(self, image_size: tuple[int, int], wall_clock: Callable[[], float] = time.time) -> None:
-        # Boxes go to the back-end in the pixels of the keyframe as sent (downscaled to KEYFRAME_MAX_WIDTH).
+    def __init__(
+        self,
+        image_size: tuple[int, int],
+        keyframe_max_width: int = 640,
+        wall_clock: Callable[[], float] = time.time,
+    ) -> None:
+        # Boxes go to the back-end in the pixels of the keyframe as sent: downscaled to
+        # `[backend] max_keyframe_width` (cloudtrack.api_client.encode_keyframe).
         self._image_size = image_size
-        self._keyframe_scale = min(1.0, KEYFRAME_MAX_WIDTH / max(1, image_size[0]))
+        self._keyframe_scale = min(1.0, keyframe_max_width / max(1, image_size[0]))
         self._wall_clock = wall_clock
         self._mission_id: str | None = None
         self.keyframes = 0

@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import secrets
 import shutil
 import signal
@@ -36,16 +37,33 @@ from behaviors.geometry import Box, iou
 from sitl.camera_render import FrameTruth, RenderedFrame, TruthBox, VehiclePose
 from sitl.camera_server import CameraServer, PoseFollower
 from sitl.fault_proxy import FaultProxy
+from sitl.flight_stack import (
+    REAL_AUTOPILOTS,
+    FlightStack,
+    PoseSource,
+    find_flight_stack,
+    start_flight_stack,
+)
 from sitl.metrics import (
     FOLLOW_STATES,
     FrameSample,
+    PoseSample,
     SetpointSample,
     TimedEvent,
     distance_coasted,
+    estimate_error,
     following_intervals,
     summarise,
 )
-from sitl.scenarios import COASTING_FAULTS, TAKEOVER_MODE, Scenario, ScriptedGcs, VehicleOutcome, assess
+from sitl.scenarios import (
+    COASTING_FAULTS,
+    MISSION_MODE,
+    TAKEOVER_MODE,
+    Scenario,
+    ScriptedGcs,
+    VehicleOutcome,
+    assess,
+)
 from sitl.simulated_detector import DetectorNoise, SimulatedPersonDetector
 from sitl.video_overlay import OverlayState, VideoWriter, draw_overlay
 
@@ -57,6 +75,8 @@ STANDOFF_M = 12.0
 VIDEO_DELAY_FRAMES = 20
 VEHICLE_ORIGINS = ((0.0, 0.0), (0.0, -8.0))  # where each vehicle's home lies in the world (north, east)
 HOME_ALT_M = 488.0
+HOME_LAT, HOME_LON = 47.397742, 8.545594  # the world's origin (PX4's SIH default home)
+FOUND_TEXT = re.compile(r"FOUND (-?\d+\.\d+),(-?\d+\.\d+) \+-(\d+(?:\.\d+)?)m")  # VehicleLink.announce_find
 GUID_TIMEOUT_S = 1.0  # what docs/operations.md recommends; the mock and the real SITL both run with it
 FLOOD_SENDERS = 200
 FLY_TO_OFFSET_M = (0.0, 15.0)  # the GCS "fly to" target, from where the vehicle is (north, east)
@@ -80,7 +100,12 @@ class RunOptions:
     vlm_latency_s: float = 2.0
     startup_timeout_s: float = 90.0
     arducopter_binary: Path | None = None  # None: sitl.arducopter_sitl.default_binary()
-    speedup: float = 5.0  # the real SITL's speed-up while it boots and takes off (the mission runs at 1)
+    px4_package: Path | None = None  # None: sitl.px4_sitl.default_package()
+    speedup: float = 5.0  # ArduCopter's speed-up while it boots and takes off (the mission runs at 1)
+    companion_settings: tuple[str, ...] = ()  # more `--set section.key=value` for the companion
+    # A real autopilot already running and airborne (tests share one PX4 this way): the runner resets it
+    # for the scenario (`FlightStack.reset`) instead of starting one, and leaves it running afterwards.
+    flight_stack: FlightStack | None = None
 
 
 @dataclass(frozen=True)
@@ -98,7 +123,7 @@ class _Vehicle:
     index: int
     vehicle_id: str
     autopilot: Any
-    follower: PoseFollower
+    follower: PoseSource
     camera: CameraServer
     proxy: FaultProxy
     gcs: ScriptedGcs
@@ -127,6 +152,9 @@ class _Vehicle:
     stall_resumed: float | None = None  # monotonic time of SIGCONT
     fly_to: tuple[float, tuple[float, float], tuple[float, float]] | None = None  # (t, from, to) world n/e
     flood: dict[str, int] = field(default_factory=dict)
+    # The back-end's view of the vehicle (search scenarios): (time, status) as the supervisor page polls it.
+    statuses: list[tuple[float, dict[str, Any]]] = field(default_factory=list)
+    survey: dict[str, Any] = field(default_factory=dict)  # the plan the pilot uploaded
 
 
 def default_tracker(model_dir: Path) -> str:
@@ -140,9 +168,7 @@ def default_tracker(model_dir: Path) -> str:
         return "csrt"
 
 
-def _home(
-    origin: tuple[float, float], lat0: float = 47.397742, lon0: float = 8.545594
-) -> tuple[float, float]:
+def _home(origin: tuple[float, float], lat0: float = HOME_LAT, lon0: float = HOME_LON) -> tuple[float, float]:
     lat = lat0 + math.degrees(origin[0] / EARTH_RADIUS)
     lon = lon0 + math.degrees(origin[1] / (EARTH_RADIUS * math.cos(math.radians(lat0))))
     return lat, lon
@@ -162,11 +188,15 @@ class ScenarioRun:
         self.camera = CameraModel.from_hfov(640, 480, 70.0, MOUNT_PITCH_DEG, stabilised=True)
         self.model_dir = resolve_model_dir(options.model_dir)
         self.tracker = options.tracker or default_tracker(self.model_dir)
-        self.arducopter: Path | None = None
-        if self.personality == "arducopter":
-            from sitl.arducopter_sitl import find_binary
-
-            self.arducopter = find_binary(options.arducopter_binary)  # never a silent fall-back to the mock
+        self.flight_stack: Path | None = None  # the real autopilot's binary or package
+        self.shared = options.flight_stack
+        if self.shared is not None:
+            self.personality = self.shared.name
+            if scenario.vehicles != 1:
+                raise ValueError(f"{scenario.name} flies {scenario.vehicles} vehicles: one shared autopilot")
+        elif self.real:
+            override = options.arducopter_binary if self.personality == "arducopter" else options.px4_package
+            self.flight_stack = find_flight_stack(self.personality, override)  # never the mock instead
         # A temp work dir is removed after the run (--work-dir keeps one).
         self._own_work = options.work_dir is None
         self.work = options.work_dir or Path(tempfile.mkdtemp(prefix=f"cloudtrack-sim-{scenario.name}-"))
@@ -182,10 +212,12 @@ class ScenarioRun:
         self._t_mission: float | None = None
         self._flood_threads: list[Any] = []
         self._stopping = False
+        self._supervisor_token = secrets.token_hex(16)
+        self._last_poll = -math.inf
 
     @property
     def real(self) -> bool:
-        return self.personality == "arducopter"
+        return self.personality in REAL_AUTOPILOTS
 
     # ----------------------------------------------------------------------------------------- helpers
     def now(self) -> float:
@@ -213,7 +245,7 @@ class ScenarioRun:
             self._vlm = VlmEmulator(latency_s=self.options.vlm_latency_s).start()
             vlm = VlmConfig(base_url=self._vlm.base_url)
         config = BackendConfig(
-            auth=AuthConfig(tokens=self.tokens, supervisor_token=secrets.token_hex(16)),
+            auth=AuthConfig(tokens=self.tokens, supervisor_token=self._supervisor_token),
             verifier=VerifierConfig(kind=self.options.verifier),
             vlm=vlm,
             sessions=SessionConfig(sqlite_path=":memory:"),  # each run starts with nothing remembered
@@ -230,11 +262,14 @@ class ScenarioRun:
         origin = VEHICLE_ORIGINS[index % len(VEHICLE_ORIGINS)]
         vid = f"drone-{index + 1}"
         udp_port = _free_udp_port() if self.scenario.companion_listens else None
+        follower: Any
         if self.real:
-            autopilot, gcs, camera_url = self._start_arducopter(vid, origin, udp_port)
+            autopilot = self._start_real(vid, origin, udp_port)
+            gcs = autopilot.gcs
+            follower = autopilot.camera_pose(origin)
         else:
             autopilot, gcs, camera_url = self._start_mock(origin, udp_port)
-        follower = PoseFollower(camera_url, origin=origin).start()
+            follower = PoseFollower(camera_url, origin=origin).start()
         camera = CameraServer(
             self.world, self.camera, follower.pose, fps=30.0, frame_id_base=index << FRAME_ID_BITS
         )
@@ -260,16 +295,21 @@ class ScenarioRun:
 
     def _start_mock(self, origin: tuple[float, float], udp_port: int | None) -> tuple[Any, ScriptedGcs, str]:
         from sitl.autopilot import AutopilotOptions, SimulatedAutopilot
+        from sitl.autopilot_mission import MissionOptions
 
         lat, lon = _home(origin)
+        survey = self.scenario.survey
         options = AutopilotOptions(
             personality=self.personality,
             start_height_m=ALTITUDE_M,
             home_lat=lat,
             home_lon=lon,
             guid_timeout_s=GUID_TIMEOUT_S,
+            # The waypoint speed (WPNAV_SPEED / MPC_XY_CRUISE) the survey is flown at, after a resume too.
+            mission=MissionOptions(speed_m_s=survey.speed_m_s if survey is not None else None),
         )
-        links = {name: "udpin:127.0.0.1:0" for name in ("gcs", "companion", "camera")}
+        # "ground": a second ground station's link, for `cloudtrack-gcs survey` (the operator's laptop).
+        links = {name: "udpin:127.0.0.1:0" for name in ("gcs", "companion", "camera", "ground")}
         if udp_port is not None:
             links["companion"] = f"udpout:127.0.0.1:{udp_port}"  # the companion listens (udpin)
         autopilot = SimulatedAutopilot(options, links)
@@ -277,30 +317,31 @@ class ScenarioRun:
         gcs = ScriptedGcs(f"udpout:127.0.0.1:{autopilot.link_port('gcs')}").start()
         return autopilot, gcs, f"udpout:127.0.0.1:{autopilot.link_port('camera')}"
 
-    def _start_arducopter(
-        self, vid: str, origin: tuple[float, float], udp_port: int | None
-    ) -> tuple[Any, ScriptedGcs, str]:
-        from sitl.arducopter_sitl import ArduCopterSitl, RealAutopilot
-
-        assert self.arducopter is not None
+    def _start_real(self, vid: str, origin: tuple[float, float], udp_port: int | None) -> FlightStack:
+        if self.shared is not None:
+            self.shared.reuse(udp_port)
+            self.progress(f"{vid}: {self.shared.describe()}, used before")
+            return self.shared
+        assert self.flight_stack is not None
         lat, lon = _home(origin)
-        sitl = ArduCopterSitl(
-            self.arducopter,
-            self.work / f"{vid}-arducopter",
-            (lat, lon, HOME_ALT_M, 0.0),
-            speedup=self.options.speedup,
-        ).start()
-        self.progress(
-            f"{vid}: ArduCopter SITL {self.arducopter} (pid {sitl.process.pid if sitl.process else '?'}, "
-            f"instance {sitl.instance}, speed-up {self.options.speedup:g} until airborne)"
+        survey = self.scenario.survey
+        # AUTO flies at WPNAV_SPEED (cm/s) after a resume: a DO_CHANGE_SPEED before the break-off no longer holds.
+        params = (
+            {"WPNAV_SPEED": survey.speed_m_s * 100.0}
+            if survey is not None and self.personality == "arducopter"
+            else {}
         )
-        try:
-            gcs = ScriptedGcs(f"tcp:127.0.0.1:{sitl.ports.gcs}").start()
-            autopilot = RealAutopilot(sitl, gcs, udp_port)
-        except Exception:
-            sitl.stop()
-            raise
-        return autopilot, gcs, f"tcp:127.0.0.1:{sitl.ports.camera}"
+        autopilot = start_flight_stack(
+            self.personality,
+            self.flight_stack,
+            self.work / f"{vid}-{self.personality}",
+            (lat, lon, HOME_ALT_M),
+            udp_port,
+            speedup=self.options.speedup,
+            extra_params=params,
+        )
+        self.progress(f"{vid}: {autopilot.describe()}")
+        return autopilot
 
     def _start_companion(self, v: _Vehicle) -> None:
         v.events_path.unlink(missing_ok=True)  # a work dir may be reused: only this run's events count
@@ -310,12 +351,14 @@ class ScenarioRun:
             f"camera.mount_pitch_deg={MOUNT_PITCH_DEG}",
             "camera.hfov_deg=70.0",
             f"mavlink.connection={self._companion_link(v)}",
+            f"mavlink.target_system={v.autopilot.system_id if self.real else 1}",
             f"backend.url={v.proxy.url}",
             f"tracker.name={self.tracker}",
             f"tracker.model_dir={self.model_dir}",
             f"behavior.standoff_m={STANDOFF_M}",
             f"recording.dir={self.work / 'records'}",
             *self.scenario.companion_settings,
+            *self.options.companion_settings,
         ]
         cmd = [
             sys.executable,
@@ -455,7 +498,9 @@ class ScenarioRun:
 
     def _send_start(self, v: _Vehicle, mission_id: int) -> None:
         v.start_sent = (self.now(), mission_id)
-        v.gcs.start_mission(self.scenario.prompt, mission_id=mission_id)
+        v.gcs.start_mission(
+            self.scenario.prompt, mission_id=mission_id, allow_engage=self.scenario.allow_engage
+        )
 
     def _resend_start(self, v: _Vehicle) -> None:
         """A GCS operator repeats a start that the companion did not take (lost on a lossy link)."""
@@ -503,13 +548,11 @@ class ScenarioRun:
             self.fault_times[fault.kind] = self.now()
             self.say(f"FAULT {fault.kind} on {v.vehicle_id}")
             if fault.kind == "takeover":
-                v.autopilot.set_mode(TAKEOVER_MODE[self.personality], source="pilot")
+                v.autopilot.set_mode(self._takeover_mode(v), source="pilot")
             elif fault.kind == "rc_takeover":
                 self.fault_times["takeover"] = self.now()
                 if self.real:
-                    from sitl.arducopter_sitl import RC_LOITER_PWM
-
-                    v.autopilot.rc_mode_switch(RC_LOITER_PWM, "LOITER")
+                    v.autopilot.rc_takeover()
                 else:
                     from sitl.autopilot import RC_MODE_SWITCH_PWM
 
@@ -539,14 +582,20 @@ class ScenarioRun:
                 v.pending_decision = None
                 self._send_start(v, 2)
 
+    def _takeover_mode(self, v: _Vehicle) -> str:
+        return str(v.autopilot.takeover_mode) if self.real else TAKEOVER_MODE[self.personality]
+
     def _fly_to(self, v: _Vehicle) -> None:
         """The GCS takes the vehicle back: GUIDED, then a position target 15 m east of where it is."""
         pose = v.follower.pose()
         here = (pose.north, pose.east)
         there = (here[0] + FLY_TO_OFFSET_M[0], here[1] + FLY_TO_OFFSET_M[1])
-        v.gcs.set_mode(4)  # GUIDED on ArduCopter
-        time.sleep(0.1)
-        v.gcs.fly_to(there[0] - v.origin[0], there[1] - v.origin[1], pose.down)
+        if self.real:
+            v.autopilot.gcs_fly_to(there[0] - v.origin[0], there[1] - v.origin[1], pose.down)
+        else:
+            v.gcs.set_mode(4)  # GUIDED on ArduCopter
+            time.sleep(0.1)
+            v.gcs.fly_to(there[0] - v.origin[0], there[1] - v.origin[1], pose.down)
         v.fly_to = (self.now(), here, there)
         self.say(
             f"{v.vehicle_id}: GCS fly-to ({there[0]:.1f}, {there[1]:.1f}) from ({here[0]:.1f}, {here[1]:.1f})"
@@ -612,6 +661,11 @@ class ScenarioRun:
         if len(self.faults_done) < len(self.scenario.faults):
             return False
         t_confirm = self.vehicles[0].confirmations[0][0]
+        if self.scenario.survey is not None and "rejected_never_again" in self.scenario.checks:
+            # A survey meets the look-alike and the described person in either order: both must be decided.
+            if not all(v.rejections for v in self.vehicles):
+                return False
+            t_confirm = max(t_confirm, *(v.rejections[0][0] for v in self.vehicles))
         last_fault = max((f.after_confirm_s for f in self.scenario.faults), default=0.0)
         return self.now() >= t_confirm + max(self.scenario.follow_s, last_fault + 4.0)
 
@@ -632,11 +686,15 @@ class ScenarioRun:
         self.vehicles = [self._start_vehicle(i, backend_url) for i in range(s.vehicles)]
         for v in self.vehicles:
             self._start_companion(v)
-        if self.real:
+        if self.shared is not None:  # the GCS brings it back while the companion starts
+            took = self.shared.return_home(ALTITUDE_M, self.progress)
+            self.progress(f"drone-1: back over home in HOLD after {took:.1f} s")
+        elif self.real:
             for v in self.vehicles:  # the pilot arms and takes off; the companion never does
                 took = v.autopilot.fly_up(ALTITUDE_M, progress=self.progress)
                 self.progress(
-                    f"{v.vehicle_id}: airborne at {ALTITUDE_M:g} m in GUIDED after {took:.1f} s, SITL at real time"
+                    f"{v.vehicle_id}: airborne at {ALTITUDE_M:g} m in {v.autopilot.mode_name()} after "
+                    f"{took:.1f} s, SITL at real time"
                 )
         deadline = time.monotonic() + self.options.startup_timeout_s
         while not all(v.ready for v in self.vehicles):
@@ -653,6 +711,9 @@ class ScenarioRun:
                     "companions not ready in time:\n" + "\n".join(self._log_tail(v) for v in self.vehicles)
                 )
             time.sleep(0.1)
+        if s.survey is not None:
+            for v in self.vehicles:
+                self._fly_survey(v)
         if self.options.video_out is not None:
             self.video = VideoWriter(self.options.video_out, 30.0, (self.camera.width, self.camera.height))
         self.epoch = time.monotonic()
@@ -667,6 +728,7 @@ class ScenarioRun:
                 self._supervise(v)
                 self._resend_start(v)
             self._faults()
+            self._poll_statuses()
             time.sleep(0.05)
         end_t = self.now()
         for t in self._flood_threads:
@@ -676,6 +738,140 @@ class ScenarioRun:
             for e in self._read_events(v):
                 self._handle_event(v, e)
         return self._results(end_t)
+
+    # ------------------------------------------------------------------------------------------ survey
+    def _fly_survey(self, v: _Vehicle, timeout_s: float = 30.0) -> None:
+        """As the operator and the pilot would: upload the survey over the scenario's area with
+        `cloudtrack-gcs survey` (a second ground station's link, the camera and safety sections of the
+        companion's configuration), then select AUTO (ArduPilot) / Mission (PX4); returns once the autopilot
+        flies it."""
+        spec = self.scenario.survey
+        assert spec is not None
+        (s_n, w_e), (n_n, e_e) = spec.area_ne
+        o_n, o_e = v.origin  # the area is given from the vehicle's home; the world is from the first home
+        centre = _home((o_n + (s_n + n_n) / 2.0, o_e + (w_e + e_e) / 2.0))
+        vehicle_config = self.work / f"{v.vehicle_id}-survey.toml"
+        vehicle_config.write_text(
+            f"[camera]\nhfov_deg = {math.degrees(2 * math.atan(self.camera.cx / self.camera.fx)):.6f}\n"
+            f"mount_pitch_deg = {MOUNT_PITCH_DEG}\nsearch_range_m = {spec.search_range_m}\n"
+        )
+        for msg_id, hz in ((0, 10.0), (42, 4.0)):  # HEARTBEAT (modes), MISSION_CURRENT (the item flown)
+            v.gcs.request_interval(msg_id, hz)
+        cmd = [
+            sys.executable, "-m", "gcs.cli", "--connect", self._ground_url(v), "--timeout", "15",
+            "survey", "--centre", f"{centre[0]:.7f},{centre[1]:.7f}", "--size", f"{e_e - w_e:g}x{n_n - s_n:g}",
+            "--altitude", f"{spec.altitude_m:g}", "--overlap", f"{spec.overlap:g}", "--speed",
+            f"{spec.speed_m_s:g}", "--companion-config", str(vehicle_config),
+        ]  # fmt: skip
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=120, env=dict(os.environ))
+        lines = [line.strip() for line in (done.stdout + done.stderr).splitlines() if line.strip()]
+        for line in lines:
+            self.progress(f"{v.vehicle_id}: cloudtrack-gcs survey: {line}")
+        if done.returncode != 0:
+            raise RuntimeError(
+                f"{v.vehicle_id}: cloudtrack-gcs survey exited {done.returncode}: {lines[-1:]}"
+            )
+        v.survey = {"command": " ".join(cmd[2:]), "output": lines}
+        mode = MISSION_MODE[self.personality]
+        v.autopilot.set_mode(mode, source="pilot")
+        deadline = time.monotonic() + timeout_s
+        while not (v.gcs.modes and v.gcs.modes[-1][1] == _custom_mode(self.personality, mode)):
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"{v.vehicle_id}: the autopilot did not enter {mode} for the survey")
+            time.sleep(0.1)
+        time.sleep(0.5)  # the companion's telemetry shows the mission flying before the mission starts
+        self.progress(f"{v.vehicle_id}: the pilot switched to {mode}: flying the survey")
+
+    def _ground_url(self, v: _Vehicle) -> str:
+        """Where a second ground station (the operator's laptop) connects to the vehicle's autopilot."""
+        if self.real:
+            return f"tcp:127.0.0.1:{v.autopilot.sitl.ports.ground}"
+        return f"udpout:127.0.0.1:{v.autopilot.link_port('ground')}"
+
+    def _poll_statuses(self) -> None:
+        """The back-end's status of each vehicle, twice a second, as the supervisor page sees it (search
+        scenarios: coverage and the find come from there)."""
+        if self.scenario.survey is None or self._backend is None or self.now() - self._last_poll < 0.5:
+            return
+        import requests
+
+        self._last_poll = self.now()
+        for v in self.vehicles:
+            try:
+                r = requests.get(
+                    f"{self._backend.url}/v1/vehicles/{v.vehicle_id}/status",
+                    headers={"Authorization": f"Bearer {self._supervisor_token}"},
+                    timeout=1.0,
+                )
+            except requests.RequestException:
+                continue
+            if r.status_code == 200:
+                v.statuses.append((self.now(), r.json()))
+
+    def _mission_breaks(self, v: _Vehicle) -> list[dict[str, Any]]:
+        """Every time the autopilot left its mission after the start, and where it resumed: from its own
+        HEARTBEAT and MISSION_CURRENT on the GCS link (the autopilot's account, not the companion's)."""
+        epoch = self.epoch or 0.0
+        auto = _custom_mode(self.personality, MISSION_MODE[self.personality])
+        currents = list(v.gcs.mission_currents)
+        breaks: list[dict[str, Any]] = []
+        in_mission: bool | None = None
+        for t, mode, _ in list(v.gcs.modes):
+            now_in = mode == auto
+            if in_mission is True and not now_in and t >= epoch:
+                before = [seq for tc, seq in currents if tc <= t]
+                breaks.append(
+                    {
+                        "left_t": round(t - epoch, 2),
+                        "left_at": before[-1] if before else None,
+                        "resumed_at": None,
+                    }
+                )
+            elif in_mission is False and now_in and breaks and breaks[-1]["resumed_at"] is None:
+                after = [seq for tc, seq in currents if tc > t + 0.1]
+                breaks[-1]["resumed_t"] = round(t - epoch, 2)
+                breaks[-1]["resumed_at"] = after[0] if after else None
+            in_mission = now_in
+        return breaks
+
+    def _search_metrics(self, v: _Vehicle, confirm_t: float | None) -> dict[str, Any]:
+        """Time to find, coverage and the find's position error at the find, the mission's break-offs and
+        resumes, and what the companion sent the autopilot during the search."""
+        out: dict[str, Any] = {"survey": v.survey, "mission_breaks": self._mission_breaks(v)}
+        out["time_to_find_s"] = None if confirm_t is None else round(confirm_t, 2)
+        sighted = [t for t, pid in v.proposals if pid == self.world.target_id]
+        out["time_to_first_sighting_s"] = round(sighted[0], 2) if sighted else None
+        after = [st for t, st in v.statuses if confirm_t is not None and t >= confirm_t and st.get("find")]
+        coverage = [
+            (st.get("search") or {}).get("coverage")
+            for t, st in v.statuses
+            if confirm_t is not None and t >= confirm_t
+        ]
+        out["coverage_at_find"] = next((c for c in coverage if c is not None), None)
+        last = v.statuses[-1][1] if v.statuses else {}
+        out["coverage_at_end"] = (last.get("search") or {}).get("coverage")
+        out["geolocation_error_m"] = None
+        if after and confirm_t is not None:
+            find = after[0]["find"]
+            lat, lon = find["position"]
+            north = math.radians(lat - _home((0.0, 0.0))[0]) * EARTH_RADIUS
+            east = (
+                math.radians(lon - _home((0.0, 0.0))[1])
+                * EARTH_RADIUS
+                * math.cos(math.radians(_home((0.0, 0.0))[0]))
+            )
+            tn, te, _ = self.world.person(self.world.target_id).state_at(confirm_t)
+            out["find"] = {k: find.get(k) for k in ("candidate_id", "position", "sigma_m", "confirmed_by")}
+            out["geolocation_error_m"] = round(math.hypot(north - tn, east - te), 2)
+        commands = getattr(v.autopilot, "commands", None)
+        if commands is not None:
+            epoch = self.epoch or 0.0
+            setpoints = [
+                sp for sp in list(v.autopilot.setpoints) if sp.link == "companion" and sp.time >= epoch
+            ]
+            modes = [c for c in list(commands) if c[1] == "companion" and c[2] == 176 and c[0] >= epoch]
+            out["companion_commands"] = {"setpoints": len(setpoints), "mode_commands": len(modes)}
+        return out
 
     def _log_tail(self, v: _Vehicle, lines: int = 25) -> str:
         try:
@@ -719,7 +915,8 @@ class ScenarioRun:
                     self._write_video_frame(v)
             self.video.close()
         for v in self.vehicles:
-            for stop in (v.gcs.stop, v.follower.stop, v.proxy.stop, v.autopilot.close):
+            parts = (v.gcs.stop, v.follower.stop, v.proxy.stop, v.autopilot.close)
+            for stop in parts if self.shared is None else (v.proxy.stop,):
                 try:
                     stop()
                 except Exception as exc:  # tear everything down even if one part is already broken
@@ -829,9 +1026,7 @@ class ScenarioRun:
             if self.real:
                 # The real autopilot changes mode some time after the pilot's action (the RC switch is
                 # debounced for 200 ms); the stop latency counts from the HEARTBEAT that reported the change.
-                from sitl.arducopter_sitl import ARDUCOPTER_MODES
-
-                wanted = ARDUCOPTER_MODES[TAKEOVER_MODE[self.personality]]
+                wanted = v.autopilot.custom_mode(v.autopilot.takeover_mode)
                 seen = [
                     t - epoch
                     for t, mode, _ in list(v.gcs.modes)
@@ -864,7 +1059,9 @@ class ScenarioRun:
         )
         metrics["frames_rendered"] = len(v.frames)
         # ArduCopter flies a setpoint only in GUIDED, PX4 only in OFFBOARD: those are the accepted ones.
-        active = "OFFBOARD" if self.personality == "px4" else "GUIDED"
+        active = (
+            v.autopilot.offboard_mode if self.real else "OFFBOARD" if self.personality == "px4" else "GUIDED"
+        )
         metrics["setpoints_accepted"] = sum(
             1 for sp in list(v.autopilot.setpoints) if sp.link == "companion" and sp.mode == active
         )
@@ -875,6 +1072,10 @@ class ScenarioRun:
             if kind in COASTING_FAULTS
         }
         metrics.update(self._fault_metrics(v, setpoints))
+        metrics.update(self._position_metrics(v, end_t))
+        if self.scenario.survey is not None:
+            found = [t for t, pid in v.confirmations if pid == target]
+            metrics.update(self._search_metrics(v, found[0] if found else None))
         return VehicleOutcome(
             metrics=metrics,
             confirmations=tuple(t for t, _ in v.confirmations),
@@ -924,9 +1125,60 @@ class ScenarioRun:
                     "speed_m_s": round(after[0].horizontal_speed, 3),
                 }
             )
+        if self.real and "stall" in self.fault_times:
+            out["autopilot_during_stall"] = self._autopilot_during_stall(v)
         if v.flood:
             out["flood"] = dict(v.flood)
         return out
+
+    def _position_metrics(self, v: _Vehicle, end_t: float) -> dict[str, Any]:
+        """The find's geolocation error: the FOUND position the GCS heard against where the target truly was
+        then. Where the camera renders the truth rather than the autopilot's estimate (PX4's SIH), also how
+        far the estimate the companion flies on was from the truth during the mission."""
+        out: dict[str, Any] = {}
+        epoch = self.epoch or 0.0
+        found = next(
+            ((t, m) for t, text in list(v.gcs.statustexts) if (m := FOUND_TEXT.search(text)) is not None),
+            None,
+        )
+        if found is not None:
+            t, match = found
+            north, east = _world(float(match[1]), float(match[2]))
+            tn, te, _ = self.world.person(self.world.target_id).state_at(t - epoch)
+            out["geolocation_error_m"] = round(math.hypot(north - tn, east - te), 2)
+            out["find_sigma_m"] = float(match[3])
+        history = getattr(v.follower, "history", None)
+        if history and v.gcs.estimates:
+            estimates = [
+                PoseSample(t - epoch, *_world(lat, lon), HOME_ALT_M - alt, heading)
+                for t, lat, lon, alt, heading in list(v.gcs.estimates)
+                if 0.0 <= t - epoch <= end_t
+            ]
+            truth = [
+                PoseSample(t - epoch, p.north, p.east, p.down, math.degrees(p.yaw))
+                for t, p in list(history)
+                if -1.0 <= t - epoch <= end_t + 1.0
+            ]
+            out["estimate_error"] = estimate_error(estimates, truth)
+        return out
+
+    def _autopilot_during_stall(self, v: _Vehicle) -> dict[str, Any]:
+        """What the real autopilot did while the companion was frozen: its first mode change (PX4 leaves
+        OFFBOARD after COM_OF_LOSS_T; ArduCopter stays in GUIDED and stops after GUID_TIMEOUT) and what it
+        told the GCS."""
+        epoch = self.epoch or 0.0
+        t_stall = self.fault_times["stall"]
+        t_resume = self.fault_times.get("resume", math.inf)
+        modes = [(t - epoch, m) for t, m, _ in list(v.gcs.modes)]
+        before = [m for t, m in modes if t < t_stall]
+        change = next(((t, m) for t, m in modes if t >= t_stall and before and m != before[-1]), None)
+        return {
+            "mode_before": v.autopilot.mode_of(before[-1]) if before else None,
+            "mode_change": None
+            if change is None
+            else {"mode": v.autopilot.mode_of(change[1]), "after_s": round(change[0] - t_stall, 3)},
+            "texts": [text for t, text in v.gcs.statustexts if t_stall <= t - epoch <= t_resume][:10],
+        }
 
     def _results(self, end_t: float) -> dict[str, Any]:
         s = self.scenario
@@ -978,6 +1230,23 @@ class ScenarioRun:
     def _sample(self, f: _Seen) -> FrameSample:
         tn, te, _ = self.world.person(self.world.target_id).state_at(f.time_s)
         return FrameSample(f.time_s, f.pose.north, f.pose.east, tn, te, None)
+
+
+def _world(lat: float, lon: float) -> tuple[float, float]:
+    """World north/east (metres) of a latitude/longitude: the inverse of `_home`."""
+    north = math.radians(lat - HOME_LAT) * EARTH_RADIUS
+    east = math.radians(lon - HOME_LON) * EARTH_RADIUS * math.cos(math.radians(HOME_LAT))
+    return north, east
+
+
+def _custom_mode(personality: str, name: str) -> int:
+    """HEARTBEAT.custom_mode of a mode, as the GCS sees it (ArduCopter's number; PX4 main << 16 | sub << 24)."""
+    from sitl.autopilot import ARDUCOPTER_MODES, PX4_MODES
+
+    if personality == "px4":
+        main, sub = PX4_MODES[name]
+        return (main << 16) | (sub << 24)
+    return ARDUCOPTER_MODES[name]
 
 
 def _free_udp_port() -> int:

@@ -228,3 +228,32 @@ def distractor_world(
             )
         )
     return World(seed, tuple(people), tuple(blocks), target_id="target")
+
+
+# The search scenario's area: a survey of 100 m (north) x 60 m (east) whose south edge lies 10 m north of
+# the vehicle's home. Nobody stands within 55 m of home, beyond the camera's view from there (pitch -40 deg
+# at 10 m sees the ground out to 45 m), so only a survey finds them.
+SEARCH_AREA_NE = ((10.0, -30.0), (110.0, 30.0))  # south-west and north-east corners (north, east), metres
+
+
+def search_world(seed: int) -> World:
+    """The search scenario's world: across the area, the described person (green shirt, black trousers,
+    strolling slowly on the spot), a look-alike (green shirt, blue trousers, standing) the supervisor must
+    reject, and people of the same class in other colours, lying, sitting and walking. With the scenario's
+    survey (lanes 20 m apart at east -20, 0 and 20, the first flown north) the look-alike and, 30 m further
+    on, the described person lie close enough to the first lane to be judged (the local verifier judges a
+    rendered person out to about 12 m from 10 m up), so the look-alike is met first; the find comes early in
+    the survey to keep the flight short for CI.
+    """
+    people = (
+        Person("target", "green", "black", "standing", ((90.0, -17.0), (90.0, -14.0)), 0.4, loop=True),
+        Person("decoy", "green", "blue", "standing", ((60.0, -18.0),)),
+        Person("person-1", "red", "gray", "lying", ((45.0, 8.0),)),
+        Person("person-2", "blue", "gray", "standing", ((106.0, -26.0), (106.0, -14.0)), 0.8, loop=True),
+        Person("person-3", "purple", "gray", "sitting", ((58.0, 26.0),)),
+    )
+    blocks = (
+        Block("vehicle", 95.0, 18.0, 4.5, 1.9, 1.5, colour=(60, 60, 180)),
+        Block("vehicle", 30.0, -24.0, 4.5, 1.9, 1.5, colour=(170, 170, 170)),
+    )
+    return World(seed, people, blocks, target_id="target")

@@ -52,6 +52,23 @@ def test_arducopter_follow(models_dir: Path, tmp_path: Path) -> None:
     assert (tmp_path / "follow.json").stat().st_size > 0
 
 
+def test_arducopter_search(models_dir: Path, tmp_path: Path) -> None:
+    """Issue 27 on the real ArduCopter: `cloudtrack-gcs survey` uploads the survey over a second ground link,
+    the pilot flies it in AUTO (WPNAV_SPEED 5 m/s), the look-alike is rejected and AUTO resumes at the item
+    it broke off at (the autopilot's own MISSION_CURRENT), the described person is found within 3 m."""
+    _, m = _fly("search", models_dir, tmp_path, json_out=tmp_path / "search.json")
+    assert m["rejected"] == ["decoy"] and m["confirmed"][:1] == ["target"]
+    breaks = m["mission_breaks"]
+    assert breaks and breaks[0]["resumed_at"] == breaks[0]["left_at"] is not None
+    assert m["geolocation_error_m"] is not None and m["geolocation_error_m"] <= 3.0
+    assert m["coverage_at_find"] is not None and 0.0 < m["coverage_at_find"] < 1.0
+    assert m["survey"]["output"][-1].startswith("uploaded 7 items, read back and checked")
+    print(
+        f"arducopter search: time to find {m['time_to_find_s']} s, coverage at the find "
+        f"{m['coverage_at_find']}, geolocation error {m['geolocation_error_m']} m, break-offs {breaks}"
+    )
+
+
 def test_arducopter_takeover_mode_change(models_dir: Path, tmp_path: Path) -> None:
     results, m = _fly("takeover", models_dir, tmp_path)
     assert "takeover" in results["faults"]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import base64
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -12,7 +13,6 @@ import numpy as np
 import pytest
 import requests
 
-from behaviors.actions import ReportCandidate
 from behaviors.detection import Verdict
 from behaviors.geometry import Box
 from behaviors.mission import MissionState
@@ -59,8 +59,6 @@ def test_noise_is_squeezed_under_the_budget_and_bad_boxes_give_none() -> None:
 
 def _runner_awaiting(image: np.ndarray, box: Box) -> tuple[MissionRunner, dict[str, Any]]:
     """The loop's status for a candidate report (only the behaviour state and the newest frame are read)."""
-    from dataclasses import replace
-
     from behaviors.mission import initial_state
 
     config = MissionConfig()
@@ -70,10 +68,10 @@ def _runner_awaiting(image: np.ndarray, box: Box) -> tuple[MissionRunner, dict[s
         initial_state(config),
         mode=MissionState.AWAITING_SUPERVISOR,
         mission=StartMission("a person in a green shirt", mission_id="m1"),
+        target=_target("c7", box),
     )
     runner._latest = Frame(7, time.monotonic(), image)
-    report = ReportCandidate("c7", "green shirt", Verdict.YES, None, box, "awaiting")
-    return runner, runner._status(report)
+    return runner, runner._status()
 
 
 def test_status_carries_the_crop_once_encoded_per_candidate(sequence_dirs: list[Path]) -> None:
@@ -83,10 +81,24 @@ def test_status_carries_the_crop_once_encoded_per_candidate(sequence_dirs: list[
     assert awaiting["candidate_id"] == "c7" and _decode(awaiting["crop_jpeg_b64"]).size > 0
     # the next report of the same candidate reuses the encoded crop, even from a newer (black) frame
     runner._latest = Frame(8, time.monotonic(), np.zeros_like(image))
-    again = runner._status(ReportCandidate("c7", "green shirt", Verdict.YES, None, box, "reverified"))
+    again = runner._status()
     assert again["awaiting"]["crop_jpeg_b64"] is awaiting["crop_jpeg_b64"]
-    other = runner._status(ReportCandidate("c8", "green shirt", Verdict.YES, None, box, "awaiting"))
+    runner.state = replace(runner.state, target=_target("c8", box))
+    other = runner._status()
+    assert other["awaiting"]["candidate_id"] == "c8"
     assert other["awaiting"]["crop_jpeg_b64"] != awaiting["crop_jpeg_b64"]
+    # Out of view, still awaiting a decision (the survey flew on): the crop it had, never the new frame's.
+    runner.state = replace(runner.state, mode=MissionState.SEARCHING, target=None, pending=_target("c7", box))
+    pending = runner._status()["awaiting"]
+    assert pending["candidate_id"] == "c7" and pending["crop_jpeg_b64"] is awaiting["crop_jpeg_b64"]
+    runner.state = replace(runner.state, pending=_target("c9", box))
+    assert "crop_jpeg_b64" not in runner._status()["awaiting"]
+
+
+def _target(cid: str, box: Box) -> Any:
+    from behaviors.mission import Target
+
+    return Target(cid, "green shirt", Verdict.YES, box, 7, 0.0)
 
 
 @pytest.mark.timeout(60)

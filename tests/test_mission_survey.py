@@ -504,3 +504,46 @@ def test_hand_back_to_mission_is_not_sent_without_a_break_off() -> None:
     _, actions = step(state, TimerTick(4.5), CFG)
     assert not any(isinstance(a, (ResumeMission, TrackerInit)) for a in actions)
     assert TrackerStop("acquire timeout") in actions
+
+
+def test_the_memories_keep_the_best_estimate_not_the_last() -> None:
+    """A surveying drone flies away from a find: the track's last estimates come from the view's far edge
+    and drift. The found memory (and the rejection memory) keep the estimate with the smallest error."""
+    config = replace(CFG, on_confirm=ConfirmAction.SURVEY)
+    state = reach(S.AWAITING_SUPERVISOR, engage=False, config=config)  # locked at the standoff, 12 m
+    assert state.target is not None and state.target.position is not None
+    near = state.target.position
+    state, _ = run(state, [tracked(1.25, box_at(45.0, u=620.0))], config)  # the far edge, 45 m off
+    assert state.target is not None and state.target.position is not None
+    assert state.target.position.sigma_m > near.sigma_m and state.target.fix == near
+    state, _ = run(state, [cmd(1.3, ConfirmCandidate(by="gcs")), TimerTick(1.4)], config)
+    assert state.mode is S.SEARCHING and state.found.entries[-1].position == near
+    # Seen again where it was confirmed, under another id: not proposed again.
+    answer = BackendAnswer(1.6, state.queries[-1][0], 60, (candidate(AT_STANDOFF, "c9"),), pose=auto(1.2))
+    assert step(state, answer, config)[0].mode is S.SEARCHING
+
+
+@pytest.mark.parametrize("decision", ["confirm", "reject"])
+def test_a_reported_candidate_out_of_view_still_awaits_the_supervisor(decision: str) -> None:
+    """Looking only, the survey flies past a candidate before the supervisor decides: it is given up after
+    `lost_looking_s` (the search goes on) but keeps awaiting the decision, which still counts."""
+    state = reach(S.AWAITING_SUPERVISOR, engage=False)
+    state, _ = run(state, [tracked(1.3, None, ok=False)])
+    assert state.mode is S.LOST
+    state, _ = run(state, [TimerTick(1.3 + CFG.lost_looking_s - 0.1)])
+    assert state.mode is S.LOST  # not yet
+    state, actions = run(state, [TimerTick(1.3 + CFG.lost_looking_s + 0.1)])
+    assert state.mode is S.SEARCHING and state.pending is not None and state.pending.candidate_id == "c1"
+    assert not any(isinstance(a, COMMANDS) for a in actions)
+    if decision == "confirm":
+        state, actions = step(state, cmd(5.0, ConfirmCandidate("c1", by="supervisor page")), CFG)
+        report = [a for a in actions if isinstance(a, ReportCandidate)]
+        assert report and report[0].status == "confirmed" and report[0].confirmed_by == "supervisor page"
+        assert report[0].position is not None and state.found.entries[-1].candidate_id == "c1"
+    else:
+        state, actions = step(state, cmd(5.0, RejectCandidate()), CFG)
+        assert kinds(actions) == ["RememberRejection", "GcsMessage"] and state.rejections.entries
+    assert state.mode is S.SEARCHING and state.pending is None
+    # Decided once: a second decision finds nothing awaiting.
+    _, actions = step(state, cmd(5.1, ConfirmCandidate("c1")), CFG)
+    assert kinds(actions) == ["GcsMessage"]

@@ -187,6 +187,48 @@ def test_flood(models_dir: Path, tmp_path: Path) -> None:
     assert m["flood"]["setpoints"] == 0
 
 
+def _search_checks(m: dict[str, Any]) -> None:
+    """The search scenario's common outcome: the look-alike rejected and never proposed again, the described
+    person confirmed, the figures of the find in the JSON."""
+    assert m["rejected"] == ["decoy"] and m["confirmed"][:1] == ["target"]
+    rejected_at = m["proposed"].index("decoy")
+    assert "decoy" not in m["proposed"][rejected_at + 1 :]
+    assert m["time_to_find_s"] is not None and m["time_to_find_s"] > 0
+    assert m["coverage_at_find"] is not None and 0.0 < m["coverage_at_find"] < 1.0
+    assert m["survey"]["output"][-1].startswith("uploaded 7 items, read back and checked")
+
+
+@pytest.mark.slow
+def test_search(models_dir: Path, tmp_path: Path) -> None:
+    """Issue 27: the survey uploaded with `cloudtrack-gcs survey` is flown in AUTO; the look-alike is proposed,
+    the companion takes the vehicle, the supervisor rejects it and the mission resumes at the item it broke
+    off at; the described person is found, followed and confirmed within 3 m of where they are."""
+    results = _run("search", models_dir, tmp_path, json_out=tmp_path / "search.json")
+    m = results["vehicles"]["drone-1"]
+    _search_checks(m)
+    breaks = m["mission_breaks"]
+    assert breaks[0]["resumed_at"] == breaks[0]["left_at"] is not None  # the autopilot's own MISSION_CURRENT
+    assert m["geolocation_error_m"] <= 3.0
+    assert m["find"]["confirmed_by"] == "gcs"
+    assert m["setpoints_accepted"] == m["setpoints_received"] > 0  # flown only in GUIDED
+    print(
+        f"search: time to find {m['time_to_find_s']} s, coverage at the find {m['coverage_at_find']}, "
+        f"geolocation error {m['geolocation_error_m']} m, break-offs {breaks}"
+    )
+
+
+@pytest.mark.slow
+def test_search_without_engage_sends_nothing(models_dir: Path, tmp_path: Path) -> None:
+    """Issue 27: started without allow-engage, the search only reports: the look-alike and the described person
+    are put to the supervisor while the survey flies on, and the autopilot receives no setpoint and no mode
+    command from the companion during the whole search (counted on the mock's companion link)."""
+    results = _run("search-no-engage", models_dir, tmp_path)
+    m = results["vehicles"]["drone-1"]
+    _search_checks(m)
+    assert m["companion_commands"] == {"setpoints": 0, "mode_commands": 0}
+    assert m["mission_breaks"] == []  # the autopilot flew its mission throughout
+
+
 def test_sim_cli_lists_scenarios_and_has_help(capsys: pytest.CaptureFixture[str]) -> None:
     assert sim_main(["list"]) == 0
     listed = capsys.readouterr().out
@@ -300,21 +342,30 @@ def test_backend_session_reports_status_and_delivers_supervisor_decisions(tmp_pa
             session.close()
 
 
-def test_arducopter_missing_binary_says_where_to_put_it(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+@pytest.mark.parametrize(
+    ("autopilot", "option", "where", "variable"),
+    [
+        ("arducopter", "--arducopter-binary", "../shared/sitl/arducopter", "CLOUDTRACK_ARDUCOPTER"),
+        ("px4-sitl", "--px4-package", "../shared/sitl/px4", "CLOUDTRACK_PX4"),
+    ],
+)
+def test_real_autopilot_missing_says_where_to_put_it(
+    autopilot: str,
+    option: str,
+    where: str,
+    variable: str,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    """`--autopilot arducopter` without the binary: exit 2 and where to put it; never the mock instead."""
+    """`--autopilot arducopter|px4-sitl` without the binary: exit 2 and where to put it; never the mock instead."""
     import tempfile
 
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))  # where a run would make its work dir
-    code = sim_main(
-        ["run", "follow", "--autopilot", "arducopter", "--arducopter-binary", str(tmp_path / "nope")]
-    )
+    code = sim_main(["run", "follow", "--autopilot", autopilot, option, str(tmp_path / "nope")])
     err = capsys.readouterr().err
     assert code == 2
-    assert (
-        "../shared/sitl/arducopter" in err and "--arducopter-binary" in err and "CLOUDTRACK_ARDUCOPTER" in err
-    )
+    assert where in err and option in err and variable in err and "mock" in err
     assert not list(tmp_path.glob("cloudtrack-sim-*"))  # nothing left behind
 
 
@@ -373,7 +424,7 @@ def test_sim_help_describes_every_flag(capsys: pytest.CaptureFixture[str]) -> No
     for argv, expected in (
         (["bench", "--help"], ("frames to render", "image width", "image height")),
         (["camera", "--help"], ("--world-start", "MISSION n STARTED")),
-        (["run", "--help"], ("--arducopter-binary", "--speedup", "arducopter")),
+        (["run", "--help"], ("--arducopter-binary", "--speedup", "arducopter", "px4-sitl", "--px4-package")),
     ):
         with pytest.raises(SystemExit):
             sim_main(argv)

@@ -36,7 +36,7 @@ def following(mode: MissionState = MissionState.AWAITING_SUPERVISOR) -> State:
 
 def test_fields_validate_against_the_back_ends_model() -> None:
     clock = iter([1_764_000_000.5, 1_764_000_999.0])
-    report = StatusReport((1280, 720), wall_clock=lambda: next(clock))
+    report = StatusReport((1280, 720), 640, wall_clock=lambda: next(clock))
     report.start("7")
     report.on_answer((Detection(BOX, 0.9, candidate_id="c1"), Detection(BOX, 0.8, candidate_id="c3")))
     report.on_answer((Detection(BOX, 0.9, candidate_id="c3"),))
