@@ -80,7 +80,7 @@ $(WORDNET):
 # SITL, browser) one at a time, as their timings were measured.
 pytest: install $(CHROMIUM) $(REDIS_SERVER) $(NGINX) $(WORDNET)
 	$(BIN)/python -m pytest -m "not slow" -n $(CHECK_WORKERS)
-	$(BIN)/python -m pytest -m slow
+	$(BIN)/python -m pytest -m slow --durations=40
 
 test: lint format-check types pytest
 

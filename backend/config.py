@@ -92,7 +92,10 @@ class AuthConfig(ConfigSection):
 class DetectorConfig(ConfigSection):
     kind: DetectorKind = "yolox"
     model_dir: str = ""  # empty: $CLOUDTRACK_MODEL_DIR, then the user cache
-    score_threshold: float = Field(0.3, ge=0, le=1)
+    # 0.2: the detector proposes, the verifier judges; a target never proposed can never be chosen. YOLOX-nano
+    # scores targets between its classes (a van, a bag COCO has no class for) 0.2-0.3: recall at 0.2 rises in
+    # every size class for about one more box per keyframe to verify (docs/benchmarks.md, "Back-end detection").
+    score_threshold: float = Field(0.2, ge=0, le=1)
     nms_threshold: float = Field(0.45, gt=0, le=1)
     # onnxruntime intra-op threads per detection (0: all cores). One thread and `sessions.detector_concurrency`
     # detections in parallel uses the cores best under load; more threads lower one frame's latency on an idle CPU.

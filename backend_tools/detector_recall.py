@@ -25,6 +25,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from backend.config import DetectorConfig
 from backend.detectors.interface import SupersetDetector
 from backend.supersets import superset_from_prompt
 from behaviors.geometry import Box, iou
@@ -78,14 +79,14 @@ def _number(text: str) -> bool:
 
 def build_variant(spec: str, model_dir: Path, int8_model: Path | None, threads: int) -> SupersetDetector:
     """'fp32', 'int8', 'fp32+tiles3', 'fp32+tiles2+score0.2' ... -> the detector (tiles as in `[detector]
-    tiles`, the score threshold as `[detector] score_threshold`, default 0.3)."""
+    tiles`, the score threshold as `[detector] score_threshold`, default the back-end's)."""
     from backend.detectors.tiling import TiledDetector
     from backend.detectors.yolox import YoloxDetector
     from cloudtrack.model_store import require
 
     precision, *options = spec.split("+")
     tiling = next((o for o in options if o.startswith("tiles")), "")
-    score = next((o for o in options if o.startswith("score")), "score0.3")
+    score = next((o for o in options if o.startswith("score")), f"score{DetectorConfig().score_threshold}")
     if any(not o.startswith(("tiles", "score")) for o in options) or not _number(score[5:]):
         raise ValueError(f"variant {spec!r}: expected fp32 or int8, then +tilesN and/or +scoreX")
     fp32 = require("yolox", model_dir)["yolox_nano.onnx"]
@@ -187,7 +188,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--variants",
         default="fp32",
-        help="comma-separated: fp32, int8, each optionally +tilesN and +scoreX (default fp32; score 0.3)",
+        help="comma-separated: fp32, int8, each optionally +tilesN and +scoreX (default fp32; score: the "
+        "back-end's [detector] score_threshold)",
     )
     parser.add_argument(
         "--int8-model", type=Path, help="int8 model (default: <model-dir>/yolox_nano/yolox_nano_int8.onnx)"

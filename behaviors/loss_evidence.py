@@ -33,10 +33,10 @@ _EPS = 1e-9
 class LossEvidenceSettings:
     persistence_s: float = 1.0  # seconds of evidence to untrust on a weak signal alone, and to re-trust
     weak_signals: frozenset[str] = WEAK_SIGNALS
-    # False: a weak signal alone is no evidence at all (only a strong one, or two weak ones together,
-    # untrust the track): for targets the weak signals were not measured on (`[tracker]
-    # loss_model_classes`), where their alarms on the dev set were as often on target as off it.
-    weak_alone: bool = True
+    # False: the weak signals are no evidence at all, alone or together (only a geometric one untrusts the
+    # track): for targets they were not measured on (`[tracker] loss_model_classes`), where their alarms
+    # on the dev set were as often on the target as off it.
+    weigh_weak: bool = True
 
     def __post_init__(self) -> None:
         if self.persistence_s < 0:
@@ -67,12 +67,15 @@ def judge_frame(
     limit = settings.persistence_s
     dt = 0.0 if state.time_s is None else max(0.0, time_s - state.time_s)
     weak = [name for name in fired if name in settings.weak_signals]
+    if not settings.weigh_weak:
+        fired = [name for name in fired if name not in settings.weak_signals]
+        weak = []
     strong = len(weak) < len(fired) or len(weak) >= 2
     if strong:
         # Name what is wrong with the box itself when a geometric signal fired.
         reason = next((name for name in fired if name not in settings.weak_signals), fired[0])
         return LossEvidence(limit, reason, time_s)
-    if weak and settings.weak_alone:
+    if weak:
         evidence = min(limit, state.evidence_s + dt)
         lost = evidence >= limit - _EPS or bool(state.reason)
         return LossEvidence(evidence, weak[0] if lost else "", time_s)

@@ -41,12 +41,29 @@ class ReadableFormatter(logging.Formatter):
         return hide_url_secrets(super().format(record))  # a password in a URL never reaches a log
 
 
+class CurrentStderrHandler(logging.StreamHandler):  # type: ignore[type-arg]
+    """Writes to whatever `sys.stderr` is at the time of the record, not the stream it was when set up: a
+    process that swaps stderr (a test's capture, a daemon's redirect) and closes the old one would otherwise
+    turn every later log line into a slow "Logging error" traceback on the thread that logged."""
+
+    def __init__(self) -> None:
+        logging.Handler.__init__(self)
+
+    @property
+    def stream(self) -> Any:
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, _value: Any) -> None:
+        pass  # always the current stderr
+
+
 def setup_logging(level: str = "INFO", json_lines: bool = False) -> None:
     """Configure the root logger once; later calls replace the handler (tests, subcommands)."""
     root = logging.getLogger()
     for handler in list(root.handlers):
         root.removeHandler(handler)
-    handler = logging.StreamHandler(sys.stderr)
+    handler = CurrentStderrHandler()
     handler.setFormatter(JsonLinesFormatter() if json_lines else ReadableFormatter())
     root.addHandler(handler)
     root.setLevel(level.upper())

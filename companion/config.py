@@ -49,7 +49,7 @@ class TrackerConfig(ConfigSection):
     max_aspect_change: float = Field(2.0, gt=1, le=100)  # width/height change since (re)init: "collapsed"
     # Target classes (the candidate's detector label) the weak loss signals were measured on: for any other
     # target (a car turning under the camera, an animal, a ball) "collapsed" skips its aspect test and a
-    # weak signal alone never untrusts the track (docs/tracking.md, "Loss evidence that is not
+    # weak signal never untrusts the track, alone or with another (docs/tracking.md, "Loss evidence that is not
     # person-shaped").
     loss_model_classes: list[str] = Field(default_factory=lambda: ["person"], max_length=100)
     # What a re-detection answer may do (docs/tracking.md): "verified" moves the track only when a candidate

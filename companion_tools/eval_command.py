@@ -424,6 +424,19 @@ def _print_acquisition(
         right = sum(a.chosen_iou is not None and a.chosen_iou >= 0.5 for a in chosen_all)
         if final or chosen_all:
             print(f"first {what} on the described target: {right} of {len(chosen_all)}")
+    print("the first verified choice per sequence: verdict and what was judged; then what nothing judged")
+    for r in results:
+        picked = next((a for a in r.acquisition if a.chosen_iou is not None and a.final), None)
+        if picked is None:
+            print(f"  {r.sequence}: none chosen")
+            continue
+        where = {True: "fits", False: "does not fit", None: "not judged"}[picked.placement]
+        on_target = (picked.chosen_iou or 0.0) >= 0.5
+        print(
+            f"  {r.sequence} (keyframe {picked.frame_id}, {'target' if on_target else 'OTHER'}): "
+            f"{picked.verdict or '-'}, placement {where}: {picked.justification or '-'}; not judged: "
+            f"{'; '.join(picked.unjudged) or '-'}"
+        )
     print(
         f"ceiling: the ground-truth-initialised run's IoU from the frame the first answer can arrive "
         f"({delay_s:g} s after the first frame) over all frames: what a perfect acquirer could reach "

@@ -156,6 +156,12 @@ class AcquisitionKeyframe:
     target_found: bool  # some candidate is the described target (IoU >= ON_TARGET_IOU with ground truth)
     chosen_iou: float | None  # the chosen candidate's IoU with ground truth; None when none was chosen
     final: bool = True  # false: the fast stage's answer (see EvalSettings.early_frames)
+    # What the back-end said about the chosen candidate: its verdict with the judged words' results, where
+    # it stands (placement), and the description's words nothing judged.
+    verdict: str = ""
+    justification: str = ""
+    placement: bool | None = None
+    unjudged: tuple[str, ...] = ()
 
 
 @dataclass
@@ -404,6 +410,10 @@ def evaluate_sequence(
                 truth is not None and any(iou(d.start_box, truth) >= ON_TARGET_IOU for d in found),
                 (iou(picked.start_box, truth) if truth is not None else 0.0) if picked is not None else None,
                 final,
+                picked.verdict.value if picked is not None else "",
+                picked.justification if picked is not None else "",
+                picked.placement_ok if picked is not None else None,
+                picked.unjudged if picked is not None else (),
             )
         )
 
@@ -666,7 +676,7 @@ def signal_table(
         weighing = evidence_settings
         if kind:  # as the front-end weighs the signals for a class outside `loss_model_classes`
             signals = replace(signals, hold_aspect=kind in config.loss_model_classes)
-            weighing = replace(evidence_settings, weak_alone=kind in config.loss_model_classes)
+            weighing = replace(evidence_settings, weigh_weak=kind in config.loss_model_classes)
         detector = LossDetector(signals)
         native_gt = ground_truth_for(seq, settings)
         evidence = LossEvidence()

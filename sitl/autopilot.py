@@ -279,11 +279,11 @@ class SimulatedAutopilot:
             self._position_target = None
             if name in ("GUIDED", "OFFBOARD"):
                 self._velocity_target = VelocityCommand()
-            log.info("mode %s (by %s)", name, source)
             if self.is_ardupilot:  # ArduCopter announces a new mode at once on every link (conformance suite)
                 for link in self._links.values():
                     if not link.down:
                         self._send_message(link, mavlink.MAVLINK_MSG_ID_HEARTBEAT, now)
+            log.info("mode %s (by %s)", name, source)  # after the announcement: a slow log never delays it
         return True
 
     def _px4_stream_alive(self, now: float) -> bool:

@@ -139,7 +139,22 @@ def test_a_superset_scores_the_chance_of_any_of_its_classes_and_keeps_one_box_pe
     both = split.detect(image, ["vehicle", "bag"])
     assert [d.label for d in both] == ["motorbike"]
     split._session = _OneRowModel(0.9, {"person": 0.9, "backpack": 0.5}, copies=2)  # type: ignore[assignment]
-    assert sorted(d.label for d in split.detect(image, ["person", "bag"])) == ["backpack", "person"]
+    # A bag is a stand-in (every inanimate class): what is likely a person is no bag.
+    assert [d.label for d in split.detect(image, ["person", "bag"])] == ["person"]
+
+
+def test_a_stand_in_superset_scores_an_object_that_is_none_of_the_classes_outside_it(
+    detector: YoloxDetector,
+) -> None:
+    """A plastic bag is none of COCO's classes: every class output is low, so as "any thing" it would score
+    next to nothing; as an object that is not a person, an animal or a vehicle it scores its objectness."""
+    image = np.zeros((416, 416, 3), np.uint8)
+    split = YoloxDetector.__new__(YoloxDetector)
+    split.__dict__.update(detector.__dict__)
+    split._session = _OneRowModel(0.5, {"frisbee": 0.05, "person": 0.02})  # type: ignore[assignment]
+    (bag,) = split.detect(image, ["bag"])
+    assert bag.score == pytest.approx(0.5 * 0.98, abs=1e-3) and bag.label == "frisbee"
+    assert split.detect(image, ["frisbee"]) == []  # the class itself: 0.5 x 0.05
 
 
 def test_rejects_non_bgr_input(detector: YoloxDetector) -> None:
@@ -150,7 +165,8 @@ def test_rejects_non_bgr_input(detector: YoloxDetector) -> None:
 def test_superset_mapping_and_clear_error_for_unmapped() -> None:
     assert coco_classes_for("person") == ("person",)
     assert "truck" in coco_classes_for("vehicle")
-    assert coco_classes_for("Truck") == ("truck",)
+    assert coco_classes_for("Truck") == ("truck", "car")  # distant trucks are cars to YOLOX
+    assert coco_classes_for("bus") == ("bus", "truck", "car")
     assert coco_classes_for("life raft") == ("boat",)
     with pytest.raises(UnknownSupersetError, match="'life buoy'.*nearest known classes"):
         coco_classes_for("life buoy")

@@ -1,7 +1,9 @@
 from __future__ import annotations
 
+import io
 import json
 import logging
+import sys
 
 import pytest
 
@@ -26,4 +28,19 @@ def test_readable_by_default_and_level_filter(capsys: pytest.CaptureFixture[str]
     log.error("shown")
     err = capsys.readouterr().err
     assert "hidden" not in err and "ERROR" in err and "cloudtrack.test: shown" in err
+    setup_logging("INFO")
+
+
+def test_lines_go_to_the_stderr_of_the_moment_not_a_closed_one(monkeypatch: pytest.MonkeyPatch) -> None:
+    # A stderr swapped and closed after set-up (a test's capture) once made every later line a "Logging
+    # error" traceback that stalled the logging thread for 600 ms (a mock autopilot's mode change).
+    first = io.StringIO()
+    monkeypatch.setattr(sys, "stderr", first)
+    setup_logging("INFO")
+    first.close()
+    second = io.StringIO()
+    monkeypatch.setattr(sys, "stderr", second)
+    logging.getLogger("cloudtrack.test").warning("after the swap")
+    assert "cloudtrack.test: after the swap" in second.getvalue()
+    monkeypatch.undo()
     setup_logging("INFO")

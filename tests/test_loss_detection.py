@@ -104,9 +104,9 @@ def test_the_front_end_models_a_persons_shape_and_look_for_people_only() -> None
     image = np.zeros((120, 160, 3), np.uint8)
     frontend.feed(Frame(1, 0.0, image))
     frontend.start(1, Box(10, 10, 20, 40), "car")
-    assert frontend.loss.settings.hold_aspect is False and frontend.evidence.weak_alone is False
+    assert frontend.loss.settings.hold_aspect is False and frontend.evidence.weigh_weak is False
     frontend.start(1, Box(10, 10, 20, 40), "person")
-    assert frontend.loss.settings.hold_aspect is True and frontend.evidence.weak_alone is True
+    assert frontend.loss.settings.hold_aspect is True and frontend.evidence.weigh_weak is True
 
 
 def test_trackers_without_a_score_never_fire_the_score_signal(person) -> None:  # type: ignore[no-untyped-def]

@@ -52,13 +52,14 @@ def test_loss_evidence_table(name: str, frames: list[tuple[str, ...]], fps: floa
     assert run(frames, fps) == expected, name
 
 
-def test_a_weak_signal_alone_is_no_evidence_for_a_target_it_was_not_measured_on() -> None:
-    """`weak_alone` False (a car, a bird, a ball: `[tracker] loss_model_classes`): a weak signal alone,
-    however long, untrusts nothing; two together or a strong one still do."""
-    objects = LossEvidenceSettings(persistence_s=1.0, weak_signals=WEAK, weak_alone=False)
+def test_weak_signals_are_no_evidence_for_a_target_they_were_not_measured_on() -> None:
+    """`weigh_weak` False (a car, a bird, a ball: `[tracker] loss_model_classes`): weak signals, alone or
+    together and however long, untrust nothing; a geometric one still does."""
+    objects = LossEvidenceSettings(persistence_s=1.0, weak_signals=WEAK, weigh_weak=False)
     assert run([S] * 30, settings=objects) == "." * 30
-    assert run([("score", "appearance"), Q], settings=objects) == "ss"
+    assert run([("score", "appearance")] * 3, settings=objects) == "..."
     assert run([J, Q], settings=objects) == "jj"
+    assert run([("jump", "score")], settings=objects) == "j"  # the geometric one names it
     # While lost a weak alarm no longer holds the account up: 1 s after the loss it is trusted again.
     assert run([L] + [A] * 11, settings=objects) == "l" * 10 + ".."
 

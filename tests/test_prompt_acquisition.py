@@ -244,7 +244,9 @@ def test_prompt_ceiling_counts_frames_from_the_first_possible_answer() -> None:
 def test_prompt_table_prints_ratio_ceiling_and_first_choice(capsys: pytest.CaptureFixture[str]) -> None:
     reference = [_result("seq_a", [0.8] * 10), _result("seq_b", [0.6] * 30)]
     prompted = [_result("seq_a", [0.0] * 4 + [0.8] * 6, 0.4), _result("seq_b", [0.0] * 30)]
-    prompted[0].acquisition = [AcquisitionKeyframe(1, 3, 2, 1, True, 0.7)]
+    prompted[0].acquisition = [
+        AcquisitionKeyframe(1, 3, 2, 1, True, 0.7, True, "yes", "dark 85% of the object", True, ("sedan",))
+    ]
     # seq_b: the fast stage's early answer chose the target, the final verdicts someone else.
     prompted[1].acquisition = [
         AcquisitionKeyframe(1, 2, 3, 1, True, 0.9, final=False),
@@ -260,6 +262,9 @@ def test_prompt_table_prints_ratio_ceiling_and_first_choice(capsys: pytest.Captu
     assert figures["ratio"] == pytest.approx((4.8 / 40) / (26.0 / 40))
     assert "first verified boxes on the described target: 1 of 2" in out
     assert "first early starts on the described target: 1 of 1" in out
+    # What was chosen, what was judged and what was not, per sequence.
+    assert "seq_a (keyframe 1, target): yes, placement fits: dark 85% of the object; not judged: sedan" in out
+    assert "seq_b (keyframe 1, OTHER): -, placement not judged: -; not judged: -" in out
 
 
 def test_prompt_detection_keeps_the_detector_box_without_a_verifier_extent() -> None:

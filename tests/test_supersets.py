@@ -299,7 +299,7 @@ def test_supersets_user_given_superset_takes_any_word_for_a_class() -> None:
     assert coco_classes_for("lorries") == SUPERSET_TO_COCO["vehicle"] or "truck" in coco_classes_for(
         "lorries"
     )
-    assert coco_classes_for("Truck") == ("truck",)
+    assert coco_classes_for("Truck") == ("truck", "car")
 
 
 def test_supersets_unmapped_prompt_gives_its_head_phrase_and_the_error_names_nearest_classes() -> None:

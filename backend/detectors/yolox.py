@@ -16,7 +16,7 @@ import numpy as np
 import onnxruntime as ort
 
 from backend.detectors.nms import nms
-from backend.supersets import COCO_CLASSES, coco_classes_for
+from backend.supersets import COCO_CLASSES, coco_classes_for, is_stand_in
 from behaviors.detection import Detection
 from behaviors.geometry import Box
 
@@ -72,6 +72,7 @@ class YoloxDetector:
         if image_bgr.ndim != 3 or image_bgr.shape[2] != 3:
             raise ValueError(f"expected a BGR image H x W x 3, got shape {image_bgr.shape}")
         groups = {name: [COCO_CLASSES.index(c) for c in coco_classes_for(name)] for name in classes}
+        stand_ins = {tuple(groups[name]) for name in classes if is_stand_in(name)}
         blob, ratio = self.preprocess(image_bgr)
         raw = self._session.run(None, {self.input_name: blob})[0][0]
         # score <= objectness: drop weak rows before any other work.
@@ -86,17 +87,25 @@ class YoloxDetector:
         xyxy = np.clip(xyxy, 0, [w, h, w, h])
         detections: list[Detection] = []
         for wanted in dict.fromkeys(tuple(g) for g in groups.values()):
-            detections += self._superset(xyxy, raw, list(wanted))
+            detections += self._superset(xyxy, raw, list(wanted), wanted in stand_ins)
         return sorted(detections, key=lambda d: -d.score)
 
-    def _superset(self, xyxy: np.ndarray, raw: np.ndarray, wanted: list[int]) -> list[Detection]:
+    def _superset(
+        self, xyxy: np.ndarray, raw: np.ndarray, wanted: list[int], stand_in: bool = False
+    ) -> list[Detection]:
         """One superset's boxes: score = objectness x the chance that the object is any of its classes
         (YOLOX's class outputs are independent sigmoids, and a thing between two of them, a pick-up between
-        car and truck or a plastic bag between frisbee and ball, splits its probability among them), one
-        NMS over the superset (the same object under two of its classes is one candidate), labelled with
-        its likeliest class."""
+        car and truck, splits its probability among them), one NMS over the superset (the same object under
+        two of its classes is one candidate), labelled with its likeliest class. A stand-in superset (a bag,
+        which COCO has no class for: `backend.supersets.is_stand_in`) scores objectness x the chance that
+        the object is none of the classes outside it (not a person, an animal or a vehicle): its own class
+        outputs are all low for a thing that is none of them."""
         probabilities = raw[:, 5:][:, wanted]
-        scores = raw[:, 4] * (1.0 - np.prod(1.0 - probabilities, axis=1))
+        if stand_in:
+            outside = [i for i in range(len(COCO_CLASSES)) if i not in set(wanted)]
+            scores = raw[:, 4] * np.prod(1.0 - raw[:, 5:][:, outside], axis=1)
+        else:
+            scores = raw[:, 4] * (1.0 - np.prod(1.0 - probabilities, axis=1))
         mask = scores >= self.score_threshold
         if not mask.any():
             return []

@@ -242,12 +242,12 @@ class TrackingFrontend:
     def start(self, keyframe_id: int, box: Box, kind: str = "") -> bool:
         """Track `box` as seen in frame `keyframe_id` (a new target: the appearance model restarts). `kind`
         is the target's class (the candidate's detector label): for a class outside `loss_model_classes`
-        (the classes the weak loss signals were measured on: people) the aspect test is off and a weak
-        signal alone untrusts nothing ("" keeps the settings as they are)."""
+        (the classes the weak loss signals were measured on: people) the aspect test is off and the weak
+        signals untrust nothing ("" keeps the settings as they are)."""
         if kind and self.loss_model_classes is not None:
             modelled = kind in self.loss_model_classes
             self.loss.settings = replace(self.loss.settings, hold_aspect=modelled)
-            self.evidence = replace(self.evidence, weak_alone=modelled)
+            self.evidence = replace(self.evidence, weigh_weak=modelled)
         keyframe = self.ring.get(keyframe_id)
         self._anchor = appearance_histogram(keyframe.image, box) if keyframe is not None else None
         self._confirmed_look = None
