@@ -33,7 +33,7 @@ from backend.find_export import find_report
 from backend.images import ImageError
 from backend.pipeline import Pipeline
 from backend.request_limits import RequestLimits
-from backend.routers import detection, finds, health, missions, supervisor, vehicles
+from backend.routers import detection, finds, health, missions, prompt_check, supervisor, vehicles
 from backend.security_headers import SecurityHeaders
 from backend.service_lifecycle import lifecycle_router
 from backend.sessions import SessionStore
@@ -132,12 +132,22 @@ def create_app(
     app.state.scheduler = FairScheduler(s.detector_concurrency, s.max_queued_per_vehicle)
     app.state.supervisor_view = SupervisorView(store, map_tiles=config.supervisor.map_tiles)
     app.state.started = time.time()
+
+    def refused(path: str, status: int, detail: str) -> None:
+        # A configured vehicle refused on its own path (/v1/vehicles/<id>/...) cannot report: the page says so.
+        parts = path.split("/")
+        if len(parts) > 3 and parts[1:3] == ["v1", "vehicles"] and parts[3] in config.auth.tokens:
+            app.state.supervisor_view.note_auth_failure(
+                parts[3], f"the back-end refused this vehicle's token ({status}: {detail})"
+            )
+
     app.add_middleware(
         RequestLimits,
         server=config.server,
         auth=config.auth,
         sessions=config.sessions,
         rate_hit=store.state.rate_hit,
+        on_refused=refused,
     )
     tiles = urlsplit(config.supervisor.map_tiles)
     app.add_middleware(
@@ -163,6 +173,7 @@ def create_app(
     for router in (
         health.router,
         detection.router,
+        prompt_check.router,
         missions.router,
         finds.router,
         vehicles.router,

@@ -97,20 +97,9 @@ Credentials = Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)]
 
 
 def authenticated(request: Request, settings: Settings, _credentials: Credentials) -> Principal:
-    """A vehicle or the supervisor; 401 for a missing, malformed or unknown token.
-
-    A refusal on a configured vehicle's own path (its status, its decisions) is told to the supervisor's
-    view: that vehicle cannot report, so the page shows why in its place."""
+    """A vehicle or the supervisor; 401 for a missing, malformed or unknown token."""
     # The header is parsed here, not from `_credentials`, so that a malformed one gets backend.auth's answer.
-    try:
-        return principal_for(settings.auth, request.headers.get("authorization"))
-    except HTTPException as exc:
-        vehicle_id = request.path_params.get("vehicle_id")
-        if vehicle_id in settings.auth.tokens:
-            get_supervisor_view(request).note_auth_failure(
-                vehicle_id, f"the back-end refused this vehicle's token ({exc.status_code}: {exc.detail})"
-            )
-        raise
+    return principal_for(settings.auth, request.headers.get("authorization"))
 
 
 Caller = Annotated[Principal, Depends(authenticated)]

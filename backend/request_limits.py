@@ -124,7 +124,11 @@ class RequestLimits:
         auth: AuthConfig,
         sessions: SessionConfig,
         rate_hit: RateCheck,
+        on_refused: Callable[[str, int, str], None] | None = None,
     ) -> None:
+        """`on_refused(path, status, detail)` hears each refused credential (the supervisor's view shows a
+        vehicle whose token is refused, since that vehicle cannot report)."""
+        self.on_refused = on_refused
         self.app = app
         self.server = server
         self.auth = auth
@@ -156,6 +160,8 @@ class RequestLimits:
         try:
             principal = principal_for(self.auth, raw.decode("latin-1") if raw is not None else None)
         except HTTPException as exc:
+            if self.on_refused is not None:
+                self.on_refused(scope["path"], exc.status_code, str(exc.detail))
             await self._refuse(send, exc.status_code, str(exc.detail), dict(exc.headers or {}))
             return False
         if principal.vehicle_id is None:

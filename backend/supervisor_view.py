@@ -30,6 +30,7 @@ from backend.sessions import SessionStore
 _STATUS = {"confirm": "confirmed", "reject": "rejected"}
 TRACK_SHOWN = 300  # points of the track the page draws (the download has them all)
 AUTH_ERROR_KEEP_S = 60.0
+SNAPSHOT_REUSE_S = 1.0
 
 
 def _shown(track: list[list[float]]) -> list[list[float]]:
@@ -71,11 +72,14 @@ class SupervisorView:
         self._first_seen: dict[tuple[str, str], float] = {}
         self._auth_errors: dict[str, tuple[str, float]] = {}
         self._lock = threading.Lock()
+        self._build_lock = threading.Lock()
+        self._cached: tuple[int, float, SupervisorSnapshot] | None = None
 
     def note_auth_failure(self, vehicle_id: str, reason: str) -> None:
         """A request for this vehicle was refused its credentials (401/403): shown on its card for a while."""
         with self._lock:
             self._auth_errors[vehicle_id] = (reason, self._clock())
+            self._cached = None
 
     def _auth_error(self, vehicle_id: str, now: float) -> str | None:
         with self._lock:
@@ -88,6 +92,18 @@ class SupervisorView:
             return noted[0]
 
     def snapshot(self) -> SupervisorSnapshot:
+        """The fleet now. Every open page's stream asks on every change: one build serves them all until the
+        store changes again (or a second passes, for the ages)."""
+        with self._build_lock:
+            version = self.store.state.version()
+            cached = self._cached
+            if cached is not None and cached[0] == version and self._clock() - cached[1] < SNAPSHOT_REUSE_S:
+                return cached[2]
+            built = self._build()
+            self._cached = (version, self._clock(), built)
+            return built
+
+    def _build(self) -> SupervisorSnapshot:
         now = self._clock()
         vehicles = []
         waiting: set[tuple[str, str]] = set()

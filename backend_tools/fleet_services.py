@@ -210,6 +210,7 @@ class BackendProcess:
             env=env,
             stdout=subprocess.DEVNULL,
             stderr=self._log,
+            cwd=source_tree,  # `python -m` puts its working directory first: there, that tree is found first
         )
 
     def log_tail(self) -> str:

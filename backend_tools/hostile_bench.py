@@ -2,7 +2,7 @@
 
 A real `cloudtrack-backend serve` (default configuration, SQLite store on disk). Vehicle A sends real
 keyframes the companion's way (one every 0.5 s, at most 4 out) first alone, then while vehicle B's token
-sends `count` hostile requests of every kind issue 31 found, and while `slow_clients` connections trickle
+(from its own process) sends `count` hostile requests of every kind issue 31 found, and while `slow_clients` connections trickle
 header lines. Printed: A's p95 alone and beside B (and their ratio, goal <= 1.5), /health's p95 alone and
 beside B, every status code B got (no 5xx), and the server's RSS before and after (goal +50 MB).
 B's token gets a rate quota high enough that every hostile request reaches the check meant for it (the
@@ -13,11 +13,13 @@ from __future__ import annotations
 
 import base64
 import json
+import multiprocessing
 import socket
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -143,8 +145,12 @@ def _trickle(port: int, stop: threading.Event, closed: list[float]) -> None:
         closed.append(time.monotonic() - started)
 
 
-def _hostile_requests(url: str, count: int) -> Iterator[tuple[str, requests.Response | None]]:
+def _send_hostile(url: str, count: int) -> tuple[dict[str, dict[str, int]], float]:
+    """Vehicle B's hostile requests, in their own process (the measuring client's GIL stays A's):
+    the status codes by kind and the seconds they took."""
     kinds = hostile_kinds()
+    by_kind: dict[str, dict[str, int]] = {}
+    started = time.monotonic()
     with requests.Session() as http:
         http.headers["Authorization"] = f"Bearer {TOKENS['vehicle-b']}"
         for i in range(count):
@@ -157,9 +163,12 @@ def _hostile_requests(url: str, count: int) -> Iterator[tuple[str, requests.Resp
                     kind.method, url + kind.path, data=kind.data if kind.files else body,
                     files=kind.files, headers=headers, timeout=60,
                 )  # fmt: skip
+                code = str(answer.status_code)
             except requests.RequestException:
-                answer = None
-            yield kind.kind, answer
+                code = "no answer"
+            counts = by_kind.setdefault(kind.kind, {})
+            counts[code] = counts.get(code, 0) + 1
+    return by_kind, time.monotonic() - started
 
 
 def hostile_run(
@@ -203,28 +212,27 @@ def hostile_run(
             for w in workers:
                 w.join()
             rss_before = server.rss_bytes()
-            say(f"  vehicle A beside {count} hostile requests and {slow_clients} slow clients ...")
-            beside = Phase()
-            stop = threading.Event()
-            closed: list[float] = []
-            workers = [
-                threading.Thread(target=_vehicle_a, args=(server.url, jpegs, stop, beside)),
-                threading.Thread(target=_health, args=(server.url, stop, beside)),
-                *(threading.Thread(target=_trickle, args=(port, stop, closed)) for _ in range(slow_clients)),
-            ]
-            for w in workers:
-                w.start()
-            started = time.monotonic()
-            by_kind: dict[str, dict[str, int]] = {}
-            for kind, answer in _hostile_requests(server.url, count):
-                code = str(answer.status_code) if answer is not None else "no answer"
-                counts = by_kind.setdefault(kind, {})
-                counts[code] = counts.get(code, 0) + 1
-            hostile_s = time.monotonic() - started
-            time.sleep(max(0.0, solo_s - hostile_s))  # A's phase at least as long as its solo one
-            stop.set()
-            for w in workers:
-                w.join()
+            with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as sender:
+                sender.submit(_send_hostile, server.url, 0).result()  # started and imported before A's phase
+                say(f"  vehicle A beside {count} hostile requests and {slow_clients} slow clients ...")
+                beside = Phase()
+                stop = threading.Event()
+                closed: list[float] = []
+                workers = [
+                    threading.Thread(target=_vehicle_a, args=(server.url, jpegs, stop, beside)),
+                    threading.Thread(target=_health, args=(server.url, stop, beside)),
+                    *(
+                        threading.Thread(target=_trickle, args=(port, stop, closed))
+                        for _ in range(slow_clients)
+                    ),
+                ]
+                for w in workers:
+                    w.start()
+                by_kind, hostile_s = sender.submit(_send_hostile, server.url, count).result()
+                time.sleep(max(0.0, solo_s - hostile_s))  # A's phase at least as long as its solo one
+                stop.set()
+                for w in workers:
+                    w.join()
             rss_after = server.rss_bytes()
     solo_p95, beside_p95 = solo.p95(solo.latencies), beside.p95(beside.latencies)
     server_errors = sum(

@@ -29,8 +29,16 @@ from urllib3.fields import RequestField
 
 from behaviors.detection import Detection, Verdict
 from behaviors.geometry import Box
-from cloudtrack.api_models import Decision, DetectResponse, HealthResponse, Rejection, VehicleStatus
+from cloudtrack.api_models import (
+    Decision,
+    DetectResponse,
+    HealthResponse,
+    PromptCheckAnswer,
+    Rejection,
+    VehicleStatus,
+)
 from cloudtrack.config_files import hide_url_secrets
+from cloudtrack.connection_errors import connection_cause
 
 T = TypeVar("T")
 
@@ -41,10 +49,13 @@ class BackendError(Exception):
     """The back-end did not answer usefully. `status` is the HTTP status (None: no HTTP answer);
     `retryable` says whether the same request may succeed later (timeouts, 429, 5xx, connection)."""
 
-    def __init__(self, message: str, status: int | None = None, retryable: bool = False) -> None:
+    def __init__(
+        self, message: str, status: int | None = None, retryable: bool = False, detail: str = ""
+    ) -> None:
         super().__init__(message)
         self.status = status
         self.retryable = retryable
+        self.detail = detail or message  # the back-end's own words (its `detail`), for a person
 
 
 @dataclass(frozen=True)
@@ -130,11 +141,13 @@ class BackendClient:
             raise BackendError(
                 f"back-end {hide_url_secrets(self.url)}: no answer within {self.timeout_s:.1f} s",
                 retryable=True,
+                detail=f"no answer within {self.timeout_s:.1f} s",
             ) from exc
         except requests.RequestException as exc:
             # The message may reach the GCS and the flight record: never a password of the URL.
+            cause = connection_cause(exc)
             raise BackendError(
-                hide_url_secrets(f"back-end {self.url} unreachable: {exc}"), retryable=True
+                hide_url_secrets(f"back-end {self.url} unreachable: {cause}"), retryable=True, detail=cause
             ) from exc
         if response.status_code >= 400:
             try:
@@ -143,7 +156,10 @@ class BackendClient:
                 detail = response.text[:300]
             retryable = response.status_code == 429 or response.status_code >= 500
             raise BackendError(
-                f"back-end {path}: HTTP {response.status_code}: {detail}", response.status_code, retryable
+                f"back-end {path}: HTTP {response.status_code}: {detail}",
+                response.status_code,
+                retryable,
+                detail if isinstance(detail, str) else "; ".join(str(d.get("msg", d)) for d in detail)[:300],
             )
         try:
             return reply.validate_json(response.content)
@@ -255,6 +271,11 @@ class BackendClient:
     def health(self) -> HealthResponse:
         return self._call("GET", "/health", _HEALTH)
 
+    def check_prompt(self, prompt: str, superset: str | None = None) -> PromptCheckAnswer:
+        """Whether the back-end would search for `prompt` (BackendError 422 with its reason when not)."""
+        body = {"prompt": prompt, "superset": superset or None}
+        return self._call("POST", "/v1/prompts/check", _PROMPT_CHECK, json=body)
+
     def report_status(self, state: str, vehicle_id: str | None = None, **fields: Any) -> VehicleStatus:
         """POST the companion's state (and `awaiting` candidate, see cloudtrack.api_models.VehicleStatusIn)."""
         vehicle = vehicle_id or self.vehicle_id
@@ -314,6 +335,7 @@ def _multipart(jpeg: bytes, meta_json: str) -> tuple[bytes, str]:
 
 _DETECT = TypeAdapter(DetectResponse)
 _HEALTH = TypeAdapter(HealthResponse)
+_PROMPT_CHECK = TypeAdapter(PromptCheckAnswer)
 _STATUS = TypeAdapter(VehicleStatus)
 _REJECTION = TypeAdapter(Rejection)
 _DECISIONS = TypeAdapter(list[Decision])

@@ -94,6 +94,18 @@ class DetectMeta(ApiModel):
         return value
 
 
+class PromptCheck(ApiModel):
+    """`POST /v1/prompts/check`: would the back-end search for this prompt?"""
+
+    prompt: str = Field(min_length=1, max_length=500)
+    superset: str | None = Field(None, min_length=1, max_length=64)
+
+
+class PromptCheckAnswer(ApiModel):
+    superset: str = Field(description="the detector class the search will look for")
+    detector: str
+
+
 class Candidate(ApiModel):
     candidate_id: str = CANDIDATE_ID
     box: list[float] = Field(description="[x1, y1, x2, y2] in the sent image's pixels")

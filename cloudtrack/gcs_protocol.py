@@ -80,6 +80,7 @@ MAV_RESULT_TEMPORARILY_REJECTED = int(mavlink.MAV_RESULT_TEMPORARILY_REJECTED)
 MAV_RESULT_DENIED = int(mavlink.MAV_RESULT_DENIED)
 MAV_RESULT_UNSUPPORTED = int(mavlink.MAV_RESULT_UNSUPPORTED)
 MAV_RESULT_FAILED = int(mavlink.MAV_RESULT_FAILED)
+MAV_RESULT_IN_PROGRESS = int(mavlink.MAV_RESULT_IN_PROGRESS)
 MAV_SEVERITY_CRITICAL = int(mavlink.MAV_SEVERITY_CRITICAL)
 MAV_SEVERITY_WARNING = int(mavlink.MAV_SEVERITY_WARNING)
 MAV_SEVERITY_NOTICE = int(mavlink.MAV_SEVERITY_NOTICE)
@@ -207,6 +208,29 @@ def value_name(name: str) -> bytes:
 
 
 # ------------------------------------------------------------------------------ companion handler
+@dataclass(frozen=True)
+class StartVerdict:
+    """Whether a mission start may go ahead (the back-end can search for its prompt), and why not; or, for
+    an accepted start, what the operator should know (the back-end did not answer: the search waits)."""
+
+    accepted: bool
+    reason: str = ""
+
+
+# Asked before a start is delivered: the verdict, or None while it is being found out (`done()` is called
+# once, from another thread, when it is known; a start asked again meanwhile gets None without a new call).
+StartGate = Callable[[StartMission, Callable[[], None]], "StartVerdict | None"]
+REASON_CHARS = 200  # a refusal's reason on the GCS: four STATUSTEXT chunks at most
+
+
+def clip_reason(text: str, limit: int = REASON_CHARS) -> str:
+    """A reason short enough for the GCS, cut at a word."""
+    text = " ".join(text.split())
+    if len(text) <= limit:
+        return text
+    return text[: limit - 1].rsplit(" ", 1)[0] + "…"
+
+
 class GcsReplies(Protocol):
     """Where the handler delivers commands and sends replies; VehicleLink implements it."""
 
@@ -234,8 +258,10 @@ class GcsProtocol:
         image_size: Callable[[], tuple[int, int]],
         replies: GcsReplies,
         allowed_systems: frozenset[int] = frozenset({255}),
+        start_gate: StartGate | None = None,
     ):
         self._allowed = allowed_systems
+        self._start_gate = start_gate
         self._last_refusal_log = -math.inf
         self.refused = 0
         self._system = system_id
@@ -298,6 +324,16 @@ class GcsProtocol:
         if command is None and cmd not in (CMD_STATUS, CMD_REQUEST_MESSAGE, CMD_REQUEST_CAMERA_INFORMATION):
             self._replies.ack(msg, MAV_RESULT_UNSUPPORTED)
             return
+        verdict: StartVerdict | None = None
+        if isinstance(command, StartMission) and self._start_gate is not None:
+            start = command
+            verdict = self._start_gate(start, lambda: self._start_decided(msg, start))
+            if verdict is None:  # being asked: the final answer follows (MAVLink's long-running command)
+                self._replies.ack(msg, MAV_RESULT_IN_PROGRESS)
+                return
+            if not verdict.accepted:
+                self._refuse_start(msg, verdict.reason)
+                return
         if command is not None:
             self._replies.deliver(command)  # before the ACK: whoever sees the ACK can rely on delivery
         self._replies.ack(msg, MAV_RESULT_ACCEPTED)
@@ -306,9 +342,34 @@ class GcsProtocol:
         elif cmd in (CMD_REQUEST_MESSAGE, CMD_REQUEST_CAMERA_INFORMATION):
             self._replies.camera_information(self._image_size(), msg.target_component)
         elif isinstance(command, StartMission):
-            superset = f" ({command.superset})" if command.superset else ""
-            self._replies.status(f"MISSION {command.mission_id} STARTED: {command.prompt}{superset}")
+            self._started(command, verdict)
+            return
         log.info("GCS command %s accepted: %s", name, command)
+
+    def _start_decided(self, msg: Any, start: StartMission) -> None:
+        """The gate's verdict on a start answered IN_PROGRESS: the final COMMAND_ACK, and the start itself."""
+        assert self._start_gate is not None
+        verdict = self._start_gate(start, lambda: None)
+        if verdict is None:
+            return
+        if not verdict.accepted:
+            self._refuse_start(msg, verdict.reason)
+            return
+        self._replies.deliver(start)
+        self._replies.ack(msg, MAV_RESULT_ACCEPTED)
+        self._started(start, verdict)
+
+    def _refuse_start(self, msg: Any, reason: str) -> None:
+        log.warning("GCS start refused: %s", reason)
+        self._replies.ack(msg, MAV_RESULT_DENIED)
+        self._replies.status(f"START REFUSED: {clip_reason(reason)}", MAV_SEVERITY_WARNING)
+
+    def _started(self, start: StartMission, verdict: StartVerdict | None = None) -> None:
+        superset = f" ({start.superset})" if start.superset else ""
+        self._replies.status(f"MISSION {start.mission_id} STARTED: {start.prompt}{superset}")
+        if verdict is not None and verdict.reason:
+            self._replies.status(clip_reason(verdict.reason), MAV_SEVERITY_WARNING)
+        log.info("GCS command start accepted: %s", start)
 
     def _decode(self, msg: Any) -> MissionCommand | None:
         cmd, p = msg.command, (msg.param1, msg.param2, msg.param3, msg.param4)

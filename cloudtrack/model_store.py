@@ -17,6 +17,8 @@ from enum import Enum
 from pathlib import Path
 from urllib.parse import urlsplit
 
+from cloudtrack.connection_errors import connection_cause
+
 MODEL_DIR_ENV = "CLOUDTRACK_MODEL_DIR"
 # The help of the one --model-dir flag every command that loads weights takes.
 MODEL_DIR_HELP = "folder of weight files (default: $CLOUDTRACK_MODEL_DIR, then ~/.cache/cloudtrack/models)"
@@ -296,7 +298,7 @@ def _http_fetch(url: str, destination: Path) -> None:
                     bar.update(len(chunk))
     except requests.ConnectionError as exc:
         raise ModelError(
-            f"cannot reach {host} to download {url} ({_cause(exc)}): this machine looks offline. Connect it "
+            f"cannot reach {host} to download {url} ({connection_cause(exc)}): this machine looks offline. Connect it "
             f"to the internet, or use weights you already have: --model-dir DIR or {MODEL_DIR_ENV}=DIR "
             "(e.g. ../shared/models), or copy the files into the model directory"
         ) from None
@@ -307,18 +309,3 @@ def _http_fetch(url: str, destination: Path) -> None:
             f"{url} answered {exc.response.status_code if exc.response is not None else '?'}; "
             "the upstream file may have moved"
         ) from None
-
-
-def _cause(exc: BaseException) -> str:
-    """The innermost reason of a requests/urllib3 connection error, in a few words."""
-    text = str(exc)
-    for marker, words in (
-        ("NameResolutionError", "name resolution failed"),
-        ("Name or service not known", "name resolution failed"),
-        ("Temporary failure in name resolution", "name resolution failed"),
-        ("Connection refused", "connection refused"),
-        ("Network is unreachable", "network unreachable"),
-    ):
-        if marker in text:
-            return words
-    return "connection failed"

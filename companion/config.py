@@ -92,6 +92,9 @@ class BackendConfig(ConfigSection):
     timeout_s: float = Field(5.0, gt=0, le=120)
     superset: str = ""  # empty: derived from the prompt by the back-end
     status_interval_s: float = Field(1.0, gt=0, le=60)  # status post + supervisor decisions poll
+    # A GCS start waits this long for the back-end to say it can search for the prompt (DENIED with its
+    # reason when it cannot); no answer in time: the start goes ahead and the search waits. 0: no check.
+    start_check_s: float = Field(3.0, ge=0, le=30)
 
 
 class MavlinkConfig(ConfigSection):

@@ -61,6 +61,7 @@ from behaviors.track_result import TrackResult
 from cloudtrack.service_notify import Notifier
 from companion.cloud.backend_worker import BackendWorker
 from companion.cloud.candidate_crop import candidate_crop
+from companion.operator_notices import OperatorNotices
 from companion.safety_watchdog import BACKEND_UNREACHABLE, HEARTBEAT_LOST, SafetyEvent
 from companion.status_report import StatusReport
 from companion.vision.frame_sources import Frame, FrameSource
@@ -217,6 +218,7 @@ class MissionRunner:
         wall_clock: Callable[[], float] = time.time,
         keyframe_max_width: int = 640,  # [backend] max_keyframe_width: the status's boxes are in its pixels
         coverage: SearchCoverageLike | None = None,
+        notices: OperatorNotices | None = None,
     ) -> None:
         # One policy for flight and eval: with the front-end's "verified" policy ([tracker] reinit_policy)
         # the mission hands it every answer for the track instead of choosing a re-init box itself.
@@ -229,6 +231,9 @@ class MissionRunner:
         self.settings = settings
         self.observers = list(observers)
         self.notifier = notifier
+        # Why it cannot do its job right now (waiting for the autopilot or the back-end, a refused token or
+        # prompt): said once per change in the journal and on the GCS, carried by every status report.
+        self.notices = notices or OperatorNotices()
         self.clock = clock
         self.video_sinks = list(video_sinks)  # `(image, tracked box, state)` for every frame (record video)
         self.state = initial_state(mission)
@@ -309,6 +314,7 @@ class MissionRunner:
         if frame is not None:
             self._video(frame, result)
         self._feed_watchdogs(now)
+        self._tell_notices(telemetry is not None)
         self._report_health(started)
 
     def _pose_at(self, when: float) -> Telemetry | None:
@@ -326,6 +332,8 @@ class MissionRunner:
         self.state, actions = step(self.state, event, self.mission)
         if isinstance(event, GcsCommand) and isinstance(event.command, StartMission) and self.state.mission:
             self.report.start(self.state.mission.mission_id or self.state.mission.prompt)
+            self.notices.set("start", None)  # a start went through: an earlier refusal no longer holds
+            self.notices.search_accepted()
             self._start_coverage()
         elif self.coverage is not None and before.mode in ACTIVE and self.state.mode not in ACTIVE:
             self.coverage.stop()  # aborted or stopped: the figures stay, no more views
@@ -474,6 +482,9 @@ class MissionRunner:
     def _status(self) -> dict[str, Any]:
         state = self.state
         status: dict[str, Any] = {"state": state.mode.value, **self.report.fields(state, self._search())}
+        notice = self.notices.current()
+        if notice:
+            status["reason"] = notice  # what keeps it from its job before why it is in its state
         if state.mission is not None:
             status["prompt"] = state.mission.prompt
             if state.mission.mission_id:
@@ -612,6 +623,21 @@ class MissionRunner:
             self.vehicle.report_backend_ok(max(times))
         if self.session is not None:
             self.session.update(self._status())
+
+    def _tell_notices(self, heard: bool) -> None:
+        """Each change of what the operator must know, once: in the journal and on the GCS."""
+        self.notices.autopilot_heard(heard)
+        for topic, text in self.notices.changes():
+            if text is not None:
+                log.warning("%s", text)
+                # With no autopilot there is no GCS link to tell; a refused start the GCS heard already.
+                if topic not in ("autopilot", "start"):
+                    self.vehicle.send_status(text, SEVERITY["warning"])
+            elif topic == "autopilot":
+                log.info("autopilot heard on %s", self.notices.autopilot_address)
+            elif topic in ("backend", "auth"):
+                log.info("the back-end at %s answers", self.notices.backend_url)
+                self.vehicle.send_status("back-end answers", SEVERITY["info"])
 
     def _report_health(self, started: float) -> None:
         end = self.clock()

@@ -12,6 +12,7 @@ import logging
 import signal
 import sys
 from dataclasses import replace
+from functools import partial
 from pathlib import Path
 from typing import IO, Any
 
@@ -145,7 +146,24 @@ def run(args: argparse.Namespace) -> int:
         )
         observers.append(record)
 
-    link = VehicleLink(config.mavlink, config.safety, (cam.width, cam.height))
+    from companion.operator_notices import OperatorNotices
+
+    notices = OperatorNotices(config.mavlink.connection, config.backend.url)
+    start_gate = None
+    if config.backend.start_check_s > 0:
+        from companion.cloud.start_check import StartCheck
+
+        checker = BackendClient(
+            config.backend.url,
+            config.backend.token,
+            config.backend.start_check_s,
+            vehicle_id=config.vehicle.id,
+        )
+        start_gate = StartCheck(
+            checker,
+            on_verdict=lambda v: notices.set("start", None if v.accepted else f"start refused: {v.reason}"),
+        )
+    link = VehicleLink(config.mavlink, config.safety, (cam.width, cam.height), start_gate=start_gate)
     client = BackendClient(
         config.backend.url,
         config.backend.token,
@@ -155,7 +173,21 @@ def run(args: argparse.Namespace) -> int:
         vehicle_id=config.vehicle.id,
         on_keyframe=record.keyframe if record is not None else None,
     )
-    session = BackendSession(client, period_s=config.backend.status_interval_s)
+
+    def backend_result(request: str, error: BaseException | None) -> None:
+        if error is None:
+            notices.backend_answered()
+        else:
+            notices.backend_failed(error, request)
+
+    session = BackendSession(
+        client, period_s=config.backend.status_interval_s, on_result=partial(backend_result, "status")
+    )
+    worker = BackendWorker(
+        _QueryService(client),
+        max_in_flight=config.backend.max_requests_in_flight,
+        on_result=partial(backend_result, "search"),
+    )
     from companion.search_coverage import SearchCoverage
 
     coverage = SearchCoverage(
@@ -165,7 +197,6 @@ def run(args: argparse.Namespace) -> int:
         lambda: link.autopilot_kind.value if link.autopilot_kind is not None else None,
         (config.mavlink.target_system, config.mavlink.source_component),
     )
-    worker = BackendWorker(_QueryService(client), max_in_flight=config.backend.max_requests_in_flight)
     settings = LoopSettings(
         frame_stale_s=config.safety.frame_stale_s, loop_stall_s=config.safety.loop_stall_s
     )
@@ -182,6 +213,7 @@ def run(args: argparse.Namespace) -> int:
         video_sinks=[record.video_frame] if record is not None and rec.video else [],
         keyframe_max_width=config.backend.max_keyframe_width,
         coverage=coverage,
+        notices=notices,
     )
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: runner.request_stop())

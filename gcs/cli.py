@@ -15,7 +15,6 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
-from cloudtrack.autopilot_modes import detect_autopilot, mode_name
 from cloudtrack.gcs_protocol import (
     CMD_ABORT,
     CMD_CAMERA_TRACK_RECTANGLE,
@@ -26,14 +25,16 @@ from cloudtrack.gcs_protocol import (
     COMMAND_NAMES,
     MAV_RESULT_ACCEPTED,
     MAV_RESULT_FAILED,
+    MAV_RESULT_IN_PROGRESS,
     PROMPT_PAYLOAD_TYPE,
     encode_prompt,
 )
 from cloudtrack.mavlink_connection import MavlinkEndpoint, mavlink, parse_connection
 from cloudtrack.mavlink_signing import parse_signing_key
-from gcs import survey_command
+from gcs import survey_command, watch_command
 
 EXIT_REFUSED, EXIT_TIMEOUT = 1, 3
+IN_PROGRESS_WAIT_S = 35.0  # the companion's start check is at most [backend] start_check_s (30 s)
 RESULT_NAMES = {
     0: "ACCEPTED",
     1: "TEMPORARILY_REJECTED",
@@ -148,16 +149,23 @@ class GcsSession:
         return len(payloads), sum(len(p) - 4 for p in payloads)
 
     def command(self, command: int, params: Sequence[float], resend: Any = None) -> int:
-        """Send COMMAND_LONG until its COMMAND_ACK arrives; the MAV_RESULT."""
+        """Send COMMAND_LONG until its COMMAND_ACK arrives; the MAV_RESULT. An IN_PROGRESS answer (the
+        companion asks the back-end before a start) stops the resending and waits for the final one."""
         p = list(params) + [0.0] * (7 - len(params))
         deadline = time.monotonic() + self.args.timeout
         confirmation = 0
+        in_progress = False
         while time.monotonic() < deadline:
-            self.endpoint.send(
-                partial(
-                    _command_long, target=self.target, command=command, confirmation=confirmation, params=p
+            if not in_progress:
+                self.endpoint.send(
+                    partial(
+                        _command_long,
+                        target=self.target,
+                        command=command,
+                        confirmation=confirmation,
+                        params=p,
+                    )
                 )
-            )
             resend_at = time.monotonic() + 1.0
             while time.monotonic() < min(resend_at, deadline):
                 msg = self.endpoint.receive(timeout=0.2)
@@ -169,7 +177,15 @@ class GcsSession:
                     and msg.command == command
                     and (msg.get_srcSystem(), msg.get_srcComponent()) == self.target
                 ):
-                    return int(msg.result)
+                    if msg.result != MAV_RESULT_IN_PROGRESS:
+                        return int(msg.result)
+                    if not in_progress:
+                        in_progress = True
+                        name = COMMAND_NAMES.get(command, str(command))
+                        print(f"{name}: in progress (the companion asks the back-end)", flush=True)
+                        deadline = max(deadline, time.monotonic() + IN_PROGRESS_WAIT_S)
+            if in_progress:
+                continue
             confirmation = min(confirmation + 1, 255)
             self.heartbeat()
             if resend is not None:
@@ -183,12 +199,19 @@ class GcsSession:
 
     def show(self, msg: Any, quiet: bool = False) -> str | None:
         """A readable line for a message from the vehicle, printed unless `quiet`; None for others."""
+        text = self.join_statustext(msg) if msg.get_type() == "STATUSTEXT" else None
+        line = self.describe(msg, text)
+        if line is not None and not quiet:
+            print(line, flush=True)
+        return line
+
+    def describe(self, msg: Any, text: str | None = None) -> str | None:
+        """A readable line for a message (`text`: a STATUSTEXT's joined line, None while chunks wait)."""
         mtype = msg.get_type()
         line = None
         src = f"{msg.get_srcSystem()}/{msg.get_srcComponent()}"
         if mtype == "STATUSTEXT":
-            line = self._statustext(msg)
-            line = f"[{src}] {line}" if line is not None else None
+            line = f"[{src}] {text}" if text is not None else None
         elif mtype == "NAMED_VALUE_FLOAT":
             line = f"[{src}] {msg.name} = {msg.value:.3f}"
         elif mtype == "CAMERA_TRACKING_IMAGE_STATUS":
@@ -199,11 +222,10 @@ class GcsSession:
                 )
             else:
                 line = f"[{src}] tracking idle"
-        if line is not None and not quiet:
-            print(line, flush=True)
         return line
 
-    def _statustext(self, msg: Any) -> str | None:
+    def join_statustext(self, msg: Any) -> str | None:
+        """A STATUSTEXT's whole line once its last chunk is in (MAVLink 2 chunks share a non-zero id)."""
         text = bytes(msg.text, "utf-8") if isinstance(msg.text, str) else bytes(msg.text)
         text_id = getattr(msg, "id", 0)
         if not text_id:
@@ -267,19 +289,38 @@ def _start(session: GcsSession, args: argparse.Namespace) -> int:
         resend_prompt()
         result = session.command(CMD_START, params)
     code = _report("start", result)
-    if code == 0:
-        session.wait_status(2.0)
+    session.wait_status(2.0)  # the companion's line: MISSION n STARTED, or why it refused the start
     return code
 
 
 def _simple(command: int, params: Sequence[float] = ()) -> Any:
     def run(session: GcsSession, args: argparse.Namespace) -> int:
-        code = _report(COMMAND_NAMES[command], session.command(command, params or _candidate(args)))
-        if code == 0 and command == CMD_STATUS:
-            session.wait_status(2.0)
-        return code
+        return _report(COMMAND_NAMES[command], session.command(command, params or _candidate(args)))
 
     return run
+
+
+def _status(session: GcsSession, args: argparse.Namespace) -> int:
+    """The companion's status line (it repeats it on MAV_CMD_USER_5) and what the link shows for a moment:
+    tracking, the autopilot's mode, finds."""
+    result = session.command(CMD_STATUS, [0.0])
+    if result != MAV_RESULT_ACCEPTED:
+        return _report("status", result)
+    summary = watch_command.WatchSummary(session.target[0], every_s=0.0)
+    line = None
+    deadline = time.monotonic() + args.listen
+    while time.monotonic() < deadline:
+        msg = session.endpoint.receive(timeout=0.1)
+        if msg is None:
+            continue
+        text = session.join_statustext(msg) if msg.get_type() == "STATUSTEXT" else None
+        if text is not None and msg.get_srcComponent() == session.target[1] and line is None:
+            line = text
+        summary.feed(msg, text)
+    companion = f"{session.target[0]}/{session.target[1]}"
+    print(f"companion {companion}: {line if line is not None else '(no status line heard)'}", flush=True)
+    print(summary.line().replace("[summary]", "link:", 1), flush=True)
+    return 0 if line is not None else EXIT_TIMEOUT
 
 
 def _candidate(args: argparse.Namespace) -> list[float]:
@@ -292,35 +333,6 @@ def _track_box(session: GcsSession, args: argparse.Namespace) -> int:
         print("error: track-box needs normalised corners 0..1 with X1 < X2 and Y1 < Y2", file=sys.stderr)
         return 2
     return _report("track-box", session.command(CMD_CAMERA_TRACK_RECTANGLE, [x1, y1, x2, y2]))
-
-
-def _watch(session: GcsSession, args: argparse.Namespace) -> int:
-    deadline = time.monotonic() + args.duration if args.duration > 0 else float("inf")
-    last_heartbeat = 0.0
-    mode = ""
-    try:
-        while time.monotonic() < deadline:
-            if time.monotonic() - last_heartbeat >= 1.0:
-                session.heartbeat()
-                last_heartbeat = time.monotonic()
-            msg = session.endpoint.receive(timeout=0.2)
-            if msg is None:
-                continue
-            if (
-                msg.get_type() == "HEARTBEAT"
-                and msg.get_srcSystem() == session.target[0]
-                and msg.get_srcComponent() == 1
-            ):
-                kind = detect_autopilot(msg.autopilot)
-                new_mode = mode_name(kind, msg.custom_mode, msg.type) if kind else str(msg.custom_mode)
-                if new_mode != mode:
-                    mode = new_mode
-                    print(f"[autopilot] mode {mode}", flush=True)
-                continue
-            session.show(msg)
-    except KeyboardInterrupt:
-        pass
-    return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -410,11 +422,14 @@ def build_parser() -> argparse.ArgumentParser:
     abort.set_defaults(func=_simple(CMD_ABORT, [0.0]))
     status = sub.add_parser(
         "status",
-        help="ask the companion to repeat its latest status line",
+        help="print the companion's status line and what the link shows (tracking, mode, finds)",
         epilog="example:\n  cloudtrack-gcs status",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    status.set_defaults(func=_simple(CMD_STATUS, [0.0]))
+    status.add_argument(
+        "--listen", type=float, default=2.0, metavar="S", help="listen this long after the answer (default 2)"
+    )
+    status.set_defaults(func=_status)
     box = sub.add_parser(
         "track-box", help="track what is inside a box (MAV_CMD_CAMERA_TRACK_RECTANGLE, normalised 0..1)",
         epilog="example:\n  cloudtrack-gcs track-box 0.40 0.30 0.55 0.70", formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -425,18 +440,14 @@ def build_parser() -> argparse.ArgumentParser:
     box.set_defaults(func=_track_box)
     watch = sub.add_parser(
         "watch",
-        help="print status, candidates and target position as they arrive",
-        epilog="example:\n  cloudtrack-gcs watch --duration 60",
+        help="print what the vehicle says, summarised, and forward its finds to a TAK map",
+        description=watch_command.__doc__.split("\n\n")[1] if watch_command.__doc__ else None,
+        epilog="examples:\n  cloudtrack-gcs watch --duration 60\n"
+        "  cloudtrack-gcs watch --cot-url udp://239.2.3.1:6969     # finds to the ATAK devices on this network",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    watch.add_argument(
-        "--duration",
-        type=float,
-        default=0.0,
-        metavar="S",
-        help="stop after S seconds (default: until Ctrl-C)",
-    )
-    watch.set_defaults(func=_watch)
+    watch_command.add_arguments(watch)
+    watch.set_defaults(func=watch_command.run_watch)
     survey_command.add_parser(sub)
     return parser
 

@@ -342,21 +342,30 @@ def test_backend_session_reports_status_and_delivers_supervisor_decisions(tmp_pa
             session.close()
 
 
-def test_arducopter_missing_binary_says_where_to_put_it(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+@pytest.mark.parametrize(
+    ("autopilot", "option", "where", "variable"),
+    [
+        ("arducopter", "--arducopter-binary", "../shared/sitl/arducopter", "CLOUDTRACK_ARDUCOPTER"),
+        ("px4-sitl", "--px4-package", "../shared/sitl/px4", "CLOUDTRACK_PX4"),
+    ],
+)
+def test_real_autopilot_missing_says_where_to_put_it(
+    autopilot: str,
+    option: str,
+    where: str,
+    variable: str,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    """`--autopilot arducopter` without the binary: exit 2 and where to put it; never the mock instead."""
+    """`--autopilot arducopter|px4-sitl` without the binary: exit 2 and where to put it; never the mock instead."""
     import tempfile
 
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))  # where a run would make its work dir
-    code = sim_main(
-        ["run", "follow", "--autopilot", "arducopter", "--arducopter-binary", str(tmp_path / "nope")]
-    )
+    code = sim_main(["run", "follow", "--autopilot", autopilot, option, str(tmp_path / "nope")])
     err = capsys.readouterr().err
     assert code == 2
-    assert (
-        "../shared/sitl/arducopter" in err and "--arducopter-binary" in err and "CLOUDTRACK_ARDUCOPTER" in err
-    )
+    assert where in err and option in err and variable in err and "mock" in err
     assert not list(tmp_path.glob("cloudtrack-sim-*"))  # nothing left behind
 
 
@@ -415,7 +424,7 @@ def test_sim_help_describes_every_flag(capsys: pytest.CaptureFixture[str]) -> No
     for argv, expected in (
         (["bench", "--help"], ("frames to render", "image width", "image height")),
         (["camera", "--help"], ("--world-start", "MISSION n STARTED")),
-        (["run", "--help"], ("--arducopter-binary", "--speedup", "arducopter")),
+        (["run", "--help"], ("--arducopter-binary", "--speedup", "arducopter", "px4-sitl", "--px4-package")),
     ):
         with pytest.raises(SystemExit):
             sim_main(argv)

@@ -73,7 +73,12 @@ def start_mission(ground: MavlinkEndpoint) -> None:
         for payload in chunks:
             ground.send(partial(_tunnel, target=(1, 191), payload=payload))
         ground.send(lambda m: m.command_long_send(1, 191, CMD_START, 0, 3, len(chunks), 0, length, 0, 0, 0))
-        ack = receive_until(ground, lambda m: m.get_type() == "COMMAND_ACK" and m.command == CMD_START, 2.0)
+        ack = receive_until(
+            ground,
+            # IN_PROGRESS first while the companion asks the back-end about the prompt; then the answer.
+            lambda m: m.get_type() == "COMMAND_ACK" and m.command == CMD_START and m.result != 5,
+            5.0,
+        )
         if ack is not None:
             assert ack.result == 0, ack
             return

@@ -26,6 +26,14 @@ from behaviors.geometry import Box
 router = APIRouter(tags=["detection"])
 
 
+def resolve_superset(prompt: str, superset: str | None) -> str:
+    """The detector class a request searches for: its own, else the one its prompt names; 422 for none."""
+    found = (superset or superset_from_prompt(prompt) or "").strip().lower()
+    if not found:
+        raise HTTPException(422, "the prompt names no known class; set 'superset' (e.g. \"person\")")
+    return found
+
+
 @router.post("/v1/detect", response_model=DetectResponse, responses=ERROR_RESPONSES)
 async def detect(
     principal: Caller,
@@ -49,9 +57,7 @@ async def detect(
         # The app's handler answers it as every 422: the first few errors and their count.
         raise RequestValidationError([{**e, "loc": ("meta", *e["loc"])} for e in errors]) from None
     require_vehicle_access(principal, fields.vehicle_id)
-    superset = (fields.superset or superset_from_prompt(fields.prompt) or "").strip().lower()
-    if not superset:
-        raise HTTPException(422, "the prompt names no known class; set 'superset' (e.g. \"person\")")
+    superset = resolve_superset(fields.prompt, fields.superset)
     data = await image.read()
     check_size(data, settings.server.max_image_pixels)  # a bomb is refused by its header, undecoded
     await run_in_threadpool(sessions.open_mission, fields.vehicle_id, fields.mission_id)

@@ -46,8 +46,15 @@ class SessionClient(Protocol):
 
 class BackendSession:
     def __init__(
-        self, client: SessionClient, period_s: float = 1.0, clock: Callable[[], float] = time.monotonic
+        self,
+        client: SessionClient,
+        period_s: float = 1.0,
+        clock: Callable[[], float] = time.monotonic,
+        on_result: Callable[[BaseException | None], None] | None = None,
     ) -> None:
+        """`on_result(None)` after each round that reached the back-end, `on_result(error)` after one that
+        failed (the operator's notices say why, once; nothing is logged per round)."""
+        self._on_result = on_result
         self._client = client
         self._period = period_s
         self._clock = clock
@@ -99,6 +106,11 @@ class BackendSession:
                 self._round()
             except Exception as exc:  # unreachable, refused, malformed: the watchdog sees last_success age
                 log.debug("back-end session round failed: %s", exc)
+                if self._on_result is not None:
+                    self._on_result(exc)
+            else:
+                if self._on_result is not None:
+                    self._on_result(None)
 
     def _round(self) -> None:
         with self._lock:

@@ -84,7 +84,11 @@ class BackendWorker:
         service: DetectionService,
         clock: Callable[[], float] = time.monotonic,
         max_in_flight: int = 1,
+        on_result: Callable[[BaseException | None], None] | None = None,
     ) -> None:
+        """`on_result(None)` after each answer, `on_result(error)` after each failure (the operator's
+        notices say why, once)."""
+        self._on_result = on_result
         if max_in_flight < 1:
             raise ValueError("max_in_flight must be at least 1")
         self._service = service
@@ -190,9 +194,13 @@ class BackendWorker:
                     self._last_error = f"{type(exc).__name__}: {exc}"
                     self._in_flight -= 1
                     self._cond.notify_all()
-                log.warning("back-end request for frame %d failed: %s", request.frame_id, exc)
+                log.debug("back-end request for frame %d failed: %s", request.frame_id, exc)
+                if self._on_result is not None:
+                    self._on_result(exc)
                 continue
             self._post(request, detections, final=final, done=True)
+            if self._on_result is not None:
+                self._on_result(None)
 
     def _post(self, request: _Request, detections: list[Detection], final: bool, done: bool = False) -> None:
         now = self._clock()
