@@ -217,7 +217,7 @@ SCENARIOS: dict[str, Scenario] = {
             "resumes where it broke off, the described person is found, followed and confirmed",
             world="search",
             survey=SurveySpec(),
-            follow_s=5.0,
+            follow_s=3.0,  # followed from the lock to the confirmation; 3 s more for the find's status reports
             max_s=150.0,
             miss_rate=0.0,
             companion_settings=(f"camera.search_range_m={SurveySpec().search_range_m}",),

@@ -191,8 +191,8 @@ def _search_checks(m: dict[str, Any]) -> None:
     """The search scenario's common outcome: the look-alike rejected and never proposed again, the described
     person confirmed, the figures of the find in the JSON."""
     assert m["rejected"] == ["decoy"] and m["confirmed"][:1] == ["target"]
-    rejected_at = m["proposed"].index("decoy")
-    assert "decoy" not in m["proposed"][rejected_at + 1 :]
+    # Never proposed again after the rejection: the scenario's `rejected_never_again` check (by time; a
+    # re-initialisation on the look-alike before the decision is listed in `proposed` too).
     assert m["time_to_find_s"] is not None and m["time_to_find_s"] > 0
     assert m["coverage_at_find"] is not None and 0.0 < m["coverage_at_find"] < 1.0
     assert m["survey"]["output"][-1].startswith("uploaded 7 items, read back and checked")
