@@ -1183,7 +1183,7 @@ class ScenarioRun:
     def _results(self, end_t: float) -> dict[str, Any]:
         s = self.scenario
         outcomes = [self._outcome(v, end_t) for v in self.vehicles]
-        failures = assess(s, outcomes, self.fault_times)
+        failures = assess(s, outcomes, self.fault_times, self.personality)
         outcome = "pass" if not failures else "fail"
         results: dict[str, Any] = {
             "scenario": s.name,

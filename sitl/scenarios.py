@@ -118,6 +118,17 @@ FLY_TO_MIN_PROGRESS_M = (
     5.0  # after an abort the GCS's "fly to" must move the vehicle at least this far in 8 s
 )
 STALL_MAX_COAST_M = 4.0  # GUID_TIMEOUT 1 s at the follow speeds: about 2.6 m measured at 1.5 m/s (issue 13)
+# PX4 holds later and brakes more gently: HOLD 1.0-1.3 s after the last setpoint (COM_OF_LOSS_T 0.5 s plus the
+# failsafe's own detection, measured on the real PX4), then MPC_ACC_HOR 3 m/s^2. At the companion's speed limit
+# ([safety] max_speed_m_s 3): 3 m/s x 1.3 s + 3^2 / (2 x 3) m = 5.4 m. Measured 2.3-4.5 m.
+PX4_STALL_MAX_COAST_M = 5.5
+
+
+def stall_max_coast_m(autopilot: str) -> float:
+    """How far the vehicle may coast after the companion froze: the autopilot's own setpoint-loss failsafe
+    (the mock's PX4 personality holds at once after its offboard loss, so it keeps the tighter bound)."""
+    return PX4_STALL_MAX_COAST_M if autopilot == "px4-sitl" else STALL_MAX_COAST_M
+
 
 # The issue's bound: hold within 1 s of a back-end outage or a link drop. The product's defaults
 # (backend_lost_s 10 s, heartbeat_timeout_s 2 s, status every 1 s) suit real uplinks that stall for
@@ -298,14 +309,18 @@ class VehicleOutcome:
 
 
 def assess(
-    scenario: Scenario, outcomes: Sequence[VehicleOutcome], fault_times: dict[str, float]
+    scenario: Scenario,
+    outcomes: Sequence[VehicleOutcome],
+    fault_times: dict[str, float],
+    autopilot: str | None = None,
 ) -> list[str]:
-    """The failed checks with the reason, empty when the scenario passed."""
+    """The failed checks with the reason, empty when the scenario passed (`autopilot`: the one flown, if not
+    the scenario's own personality)."""
     failures: list[str] = []
     for i, o in enumerate(outcomes):
         name = f"vehicle {i + 1}"
         m = o.metrics
-        failures += _fault_checks(scenario, name, m, o, fault_times)
+        failures += _fault_checks(scenario, name, m, o, fault_times, autopilot or scenario.autopilot)
         if "confirmed_target" in scenario.checks and (not o.confirmed_ids or o.confirmed_ids[0] != "target"):
             failures.append(
                 f"{name}: the right person was not confirmed (confirmed: {list(o.confirmed_ids)})"
@@ -390,7 +405,12 @@ def _search_checks(scenario: Scenario, name: str, m: dict[str, Any]) -> list[str
 
 
 def _fault_checks(
-    scenario: Scenario, name: str, m: dict[str, Any], o: VehicleOutcome, fault_times: dict[str, float]
+    scenario: Scenario,
+    name: str,
+    m: dict[str, Any],
+    o: VehicleOutcome,
+    fault_times: dict[str, float],
+    autopilot: str,
 ) -> list[str]:
     failures: list[str] = []
     if "fly_to_moves" in scenario.checks:
@@ -402,10 +422,9 @@ def _fault_checks(
             )
     if "stall_coast" in scenario.checks:
         coasted = m.get("coasted_m", {}).get("stall")
-        if coasted is None or coasted > STALL_MAX_COAST_M:
-            failures.append(
-                f"{name}: coasted {coasted} m after the companion froze, limit {STALL_MAX_COAST_M:g} m"
-            )
+        limit = stall_max_coast_m(autopilot)
+        if coasted is None or coasted > limit:
+            failures.append(f"{name}: coasted {coasted} m after the companion froze, limit {limit:g} m")
     if "stall_reported" in scenario.checks and not m.get("stall_reported"):
         failures.append(
             f"{name}: the GCS was not told that the companion had stalled (heard after the resume: "

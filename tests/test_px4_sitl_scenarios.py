@@ -20,7 +20,7 @@ import pytest
 
 from sitl.px4_sitl import COM_OF_LOSS_T_S, RealPx4
 from sitl.scenario_runner import RunOptions, run_scenario
-from sitl.scenarios import FLY_TO_MIN_PROGRESS_M, SCENARIOS, STALL_MAX_COAST_M
+from sitl.scenarios import FLY_TO_MIN_PROGRESS_M, SCENARIOS, STALL_MAX_COAST_M, stall_max_coast_m
 
 pytestmark = [pytest.mark.slow, pytest.mark.shares_px4]
 LINKS = {"pymavlink": (), "mavsdk": ("mavlink.use_mavsdk=true",)}
@@ -83,7 +83,7 @@ def test_px4_sitl_safety_set(
         assert m["flood"]["senders"] == 200
         assert m["flood"]["setpoints"] == 0
     if "stall" in faults:
-        assert m["coasted_m"]["stall"] <= STALL_MAX_COAST_M
+        assert m["coasted_m"]["stall"] <= stall_max_coast_m("px4-sitl")
         # PX4 took its offboard-loss failsafe (COM_OBL_RC_ACT Hold) about COM_OF_LOSS_T after the freeze,
         # and said so.
         during = m["autopilot_during_stall"]

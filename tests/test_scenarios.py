@@ -16,7 +16,7 @@ import pytest
 
 from sitl.cli import main as sim_main
 from sitl.scenario_runner import RunOptions, run_scenario
-from sitl.scenarios import SCENARIOS
+from sitl.scenarios import PX4_STALL_MAX_COAST_M, SCENARIOS, STALL_MAX_COAST_M, stall_max_coast_m
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -482,3 +482,14 @@ def test_follow_with_a_slow_hosted_vlm(models_dir: Path, tmp_path: Path) -> None
     # The emulated VLM says "yes" to bystanders too ("if in doubt"): the early track on the target stays,
     # and the supervisor is never shown anyone else.
     assert m["rejected"] == [], m["rejected"]
+
+
+@pytest.mark.parametrize(
+    ("autopilot", "limit"),
+    [("ardupilot", STALL_MAX_COAST_M), ("arducopter", STALL_MAX_COAST_M), ("px4", STALL_MAX_COAST_M),
+     ("px4-sitl", PX4_STALL_MAX_COAST_M)],
+)  # fmt: skip
+def test_the_coast_after_a_freeze_is_bounded_by_the_autopilots_own_failsafe(
+    autopilot: str, limit: float
+) -> None:
+    assert stall_max_coast_m(autopilot) == limit
