@@ -33,11 +33,11 @@ from typing import Any
 
 from sitl.camera_server import PoseFollower
 from sitl.companion_bridge import BridgedSetpoint, CompanionBridge
+from sitl.shared_sitl import shared_sitl_path
 
 log = logging.getLogger(__name__)
 
 BINARY_ENV = "CLOUDTRACK_ARDUCOPTER"
-REPO_ROOT = Path(__file__).resolve().parents[1]
 GUID_TIMEOUT_S = 1.0  # docs/operations.md: a frozen companion coasts 1 s, not the default 3 s
 TELEMETRY_HZ = 10  # MAVn_POSITION / EXTRA1 / EXTRA2 on the companion's and the camera's ports
 # ArduCopter 4.5+ names its stream-rate parameters MAVn_* (n = SERIALn-1 + 1); SRn_* no longer exist.
@@ -63,10 +63,7 @@ class ArduCopterNotFound(RuntimeError):
 
 def default_binary() -> Path:
     """$CLOUDTRACK_ARDUCOPTER, else $CLOUDTRACK_SHARED/sitl/arducopter, else ../shared/sitl/arducopter."""
-    if os.environ.get(BINARY_ENV):
-        return Path(os.environ[BINARY_ENV])
-    shared = os.environ.get("CLOUDTRACK_SHARED")
-    return (Path(shared) if shared else REPO_ROOT.parent / "shared") / "sitl" / "arducopter"
+    return shared_sitl_path(BINARY_ENV, "arducopter")
 
 
 def find_binary(override: Path | None = None) -> Path:

@@ -52,11 +52,11 @@ from pymavlink import mavutil
 from sitl.autopilot import PX4_MODES
 from sitl.camera_render import VehiclePose
 from sitl.companion_bridge import BridgedSetpoint, CompanionBridge
+from sitl.shared_sitl import shared_sitl_path
 
 log = logging.getLogger(__name__)
 
 PACKAGE_ENV = "CLOUDTRACK_PX4"
-REPO_ROOT = Path(__file__).resolve().parents[1]
 AIRFRAME = 10040  # 10040_sihsim_quadx
 INSTANCES = range(1, 10)
 EARTH_RADIUS = 6_378_137.0
@@ -71,10 +71,7 @@ class Px4NotFound(RuntimeError):
 
 def default_package() -> Path:
     """$CLOUDTRACK_PX4, else $CLOUDTRACK_SHARED/sitl/px4, else ../shared/sitl/px4 beside the repository."""
-    if os.environ.get(PACKAGE_ENV):
-        return Path(os.environ[PACKAGE_ENV])
-    shared = os.environ.get("CLOUDTRACK_SHARED")
-    return (Path(shared) if shared else REPO_ROOT.parent / "shared") / "sitl" / "px4"
+    return shared_sitl_path(PACKAGE_ENV, "px4")
 
 
 def find_package(override: Path | None = None) -> Path:
