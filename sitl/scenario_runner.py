@@ -1106,6 +1106,12 @@ class ScenarioRun:
             out["fly_to_progress_m"] = round(
                 start - closest, 2
             )  # how far it got toward the GCS target in 8 s
+            # The companion must have let go: no setpoint of its own while the GCS flies the vehicle.
+            out["setpoints_during_fly_to"] = sum(1 for sp in setpoints if sp.t >= t0)
+        if "abort" in self.fault_times:
+            t_abort = self.fault_times["abort"]
+            # The explicit zero-velocity stop (and one more in flight at most), then silence.
+            out["setpoints_after_abort"] = sum(1 for sp in setpoints if sp.t >= t_abort + 0.05)
         if v.stall_resumed is not None:
             resumed = v.stall_resumed - (self.epoch or 0.0)
             texts = [(t - (self.epoch or 0.0), text) for t, text in v.gcs.statustexts]

@@ -136,6 +136,9 @@ def stall_max_coast_m(autopilot: str) -> float:
 # + GET decisions) must succeed every 0.2 s; 0.7 s without one is an outage. The autopilot sends HEARTBEAT
 # at 10 Hz on request, so 0.6 s of silence is a dropped link.
 HOLD_WITHIN_S = 1.0
+# After a GCS abort: the companion's last setpoints in flight before it read the command, its explicit stop,
+# then silence (the mode and the vehicle belong to the GCS).
+ABORT_MAX_SETPOINTS = 3
 OUTAGE_SETTINGS = ("safety.backend_lost_s=0.7", "backend.status_interval_s=0.2")
 LINK_DROP_SETTINGS = ("safety.heartbeat_timeout_s=0.6",)
 
@@ -212,7 +215,7 @@ SCENARIOS: dict[str, Scenario] = {
             "must go there (the companion has let go)",
             faults=(Fault("abort", 5.0), Fault("fly_to", 7.0)),
             follow_s=12.0,
-            checks=("confirmed_target", "fly_to_moves"),
+            checks=("confirmed_target", "silent_after_abort", "fly_to_moves"),
         ),
         Scenario(
             "stall",
@@ -419,6 +422,15 @@ def _fault_checks(
             failures.append(
                 f"{name}: after the abort the GCS fly-to moved the vehicle {progress} m toward its "
                 f"target, needs >= {FLY_TO_MIN_PROGRESS_M:g} m (the companion still holds it?)"
+            )
+        during = m.get("setpoints_during_fly_to")
+        if during:
+            failures.append(f"{name}: the companion sent {during} setpoints while the GCS flew the vehicle")
+    if "silent_after_abort" in scenario.checks:
+        after = m.get("setpoints_after_abort")
+        if after is None or after > ABORT_MAX_SETPOINTS:
+            failures.append(
+                f"{name}: {after} setpoints after the abort, allowed {ABORT_MAX_SETPOINTS} (the stop, then silence)"
             )
     if "stall_coast" in scenario.checks:
         coasted = m.get("coasted_m", {}).get("stall")

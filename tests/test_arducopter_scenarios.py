@@ -19,7 +19,7 @@ from typing import Any
 import pytest
 
 from sitl.scenario_runner import RunOptions, run_scenario
-from sitl.scenarios import FLY_TO_MIN_PROGRESS_M, SCENARIOS, STALL_MAX_COAST_M
+from sitl.scenarios import ABORT_MAX_SETPOINTS, FLY_TO_MIN_PROGRESS_M, SCENARIOS, STALL_MAX_COAST_M
 
 pytestmark = pytest.mark.slow
 
@@ -84,6 +84,7 @@ def test_arducopter_takeover_rc_override(models_dir: Path, tmp_path: Path) -> No
 def test_arducopter_abort_then_gcs_fly_to_moves_the_vehicle(models_dir: Path, tmp_path: Path) -> None:
     _, m = _fly("abort-flyto", models_dir, tmp_path)
     assert m["fly_to_progress_m"] >= FLY_TO_MIN_PROGRESS_M
+    assert m["setpoints_after_abort"] <= ABORT_MAX_SETPOINTS and m["setpoints_during_fly_to"] == 0
 
 
 def test_arducopter_companion_stall(models_dir: Path, tmp_path: Path) -> None:

@@ -16,7 +16,13 @@ import pytest
 
 from sitl.cli import main as sim_main
 from sitl.scenario_runner import RunOptions, run_scenario
-from sitl.scenarios import PX4_STALL_MAX_COAST_M, SCENARIOS, STALL_MAX_COAST_M, stall_max_coast_m
+from sitl.scenarios import (
+    ABORT_MAX_SETPOINTS,
+    PX4_STALL_MAX_COAST_M,
+    SCENARIOS,
+    STALL_MAX_COAST_M,
+    stall_max_coast_m,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -173,6 +179,7 @@ def test_takeover_rc(models_dir: Path, tmp_path: Path) -> None:
 def test_abort_then_gcs_fly_to(models_dir: Path, tmp_path: Path) -> None:
     m = _run("abort-flyto", models_dir, tmp_path)["vehicles"]["drone-1"]
     assert m["fly_to_progress_m"] >= 5.0
+    assert m["setpoints_after_abort"] <= ABORT_MAX_SETPOINTS and m["setpoints_during_fly_to"] == 0
 
 
 @pytest.mark.slow
