@@ -1189,6 +1189,9 @@ class ScenarioRun:
     def _results(self, end_t: float) -> dict[str, Any]:
         s = self.scenario
         outcomes = [self._outcome(v, end_t) for v in self.vehicles]
+        for v, o in zip(self.vehicles, outcomes, strict=True):
+            o.metrics["companion_stop_s"] = None if v.stop_s is None else round(v.stop_s, 3)
+            o.metrics["companion_exit_code"] = v.process.returncode if v.process is not None else None
         failures = assess(s, outcomes, self.fault_times, self.personality)
         outcome = "pass" if not failures else "fail"
         results: dict[str, Any] = {
@@ -1210,8 +1213,6 @@ class ScenarioRun:
             o.metrics["confirmed"] = list(o.confirmed_ids)
             o.metrics["rejected"] = [pid for _, pid in o.rejected_ids]
             o.metrics["proposed"] = [pid for _, pid in o.proposals]
-            o.metrics["companion_stop_s"] = None if v.stop_s is None else round(v.stop_s, 3)
-            o.metrics["companion_exit_code"] = v.process.returncode if v.process is not None else None
             results["vehicles"][v.vehicle_id] = o.metrics
         if self.options.json_out is not None:
             self.options.json_out.parent.mkdir(parents=True, exist_ok=True)

@@ -234,6 +234,8 @@ def test_colour_namer_remembers_a_region_boundedly_and_hands_out_copies(
     first["red"] = 0.0  # the caller's copy, not the remembered one
     assert namer.shares(red)["red"] == 1.0 and calls == [10]
     assert namer.shares(red[:5])["red"] == 1.0 and calls == [10, 5]  # same pixels, another region
-    namer.shares(srgb_to_lab(np.full((10, 3), (200, 30, 35), np.uint8)))  # blue: the least recent (ten red) goes
+    namer.shares(
+        srgb_to_lab(np.full((10, 3), (200, 30, 35), np.uint8))
+    )  # blue: the least recent (ten red) goes
     assert namer.shares(red[:5])["red"] == 1.0 and len(calls) == 3
     assert namer.shares(red)["red"] == 1.0 and len(calls) == 4

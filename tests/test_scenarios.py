@@ -102,15 +102,6 @@ def _flight_record_checks(records: Path) -> None:
 
 
 @pytest.mark.slow
-def test_reject(models_dir: Path, tmp_path: Path) -> None:
-    m = _run("reject", models_dir, tmp_path)["vehicles"]["drone-1"]
-    assert m["rejected"] == ["decoy"]
-    first_target = m["proposed"].index("target")
-    assert "decoy" not in m["proposed"][first_target:]  # never proposed again after the rejection
-    assert m["confirmed"][:1] == ["target"]
-
-
-@pytest.mark.slow
 def test_occlusion(models_dir: Path, tmp_path: Path) -> None:
     m = _run("occlusion", models_dir, tmp_path)["vehicles"]["drone-1"]
     start, end = m["occlusion_s"]
