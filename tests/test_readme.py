@@ -3,18 +3,22 @@
 The block marked `<!-- readme-test: setup -->` (activate .venv, point CLOUDTRACK_MODEL_DIR at the shared
 weights) runs first in the same shell, as a user would type it. A fast check parses every command of the
 marked blocks with the real argument parsers (a renamed flag fails here, in `make check`); the slow test
-runs them (minutes: eval, benches and a closed-loop scenario).
+runs them (minutes: eval, benches and closed-loop scenarios). What a command writes that is also a test's
+evidence (the eval on every shared sequence, `OUTPUT_CHECKS`) is checked from its output, not run twice.
 """
 
 from __future__ import annotations
 
 import importlib
+import json
 import os
 import re
 import shlex
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -95,6 +99,27 @@ def test_readme_offline_block_runs_as_written(index: int) -> None:
             f"--- the failing command and its stderr\n{result.stderr[last + 1 :][-6000:]}",
             pytrace=False,
         )
+    for output, check in OUTPUT_CHECKS.items():
+        if output in block:
+            check(json.loads((REPO / output).read_text()))
+
+
+def _eval_keeps_the_bare_tracker(report: dict[str, Any]) -> None:
+    """The eval on every shared sequence (defaults, bare tracker beside them in the same run): no
+    re-initialisation takes the box off the target, and the product is not below the bare tracker."""
+    run = report["runs"][0]
+    assert run["policy"] == "verified"
+    assert all(s["reinit_outcomes"].get("target->other", 0) == 0 for s in run["sequences"]), [
+        (s["name"], s["reinit_outcomes"]) for s in run["sequences"]
+    ]
+    assert run["overall"]["miou"] >= run["bare"]["overall"]["miou"]
+    assert run["overall"]["frames"] == run["bare"]["overall"]["frames"]
+    assert len(run["sequences"]) == len([p for p in SEQUENCES.iterdir() if (p / "groundtruth.txt").is_file()])
+
+
+# What a README command writes that is also a test's evidence: run once, as the user would, and checked here.
+SEQUENCES = REPO.parent / "shared" / "data" / "sequences"
+OUTPUT_CHECKS: dict[str, Callable[[dict[str, Any]], None]] = {"out/eval.json": _eval_keeps_the_bare_tracker}
 
 
 _PS4 = "+README: "
