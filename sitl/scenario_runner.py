@@ -34,6 +34,7 @@ from typing import Any
 
 from behaviors.camera_model import CameraModel
 from behaviors.geometry import Box, iou
+from cloudtrack.autopilot_modes import AutopilotKind, set_mode_params
 from sitl.camera_render import FrameTruth, RenderedFrame, TruthBox, VehiclePose
 from sitl.camera_server import CameraServer, PoseFollower
 from sitl.fault_proxy import FaultProxy
@@ -602,12 +603,14 @@ class ScenarioRun:
         )
 
     def _flood(self, v: _Vehicle) -> None:
-        """200 one-datagram UDP senders at the companion's port; each then listens for what comes back."""
+        """200 one-datagram UDP senders at the companion's port (a GCS heartbeat, garbage, or a forged
+        autopilot heartbeat in the pilot's takeover mode); each then listens for what comes back."""
         import threading
 
         assert v.companion_udp_port is not None, "the flood scenario needs the companion listening on UDP"
         from pymavlink import mavutil
 
+        forged = self._forged_takeover_heartbeat(v)
         socks = []
         for i in range(FLOOD_SENDERS):
             s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -617,7 +620,8 @@ class ScenarioRun:
             hb = mav.heartbeat_encode(
                 mavutil.mavlink.MAV_TYPE_GCS, mavutil.mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0
             )
-            s.sendto(hb.pack(mav) if i % 2 == 0 else os.urandom(40), ("127.0.0.1", v.companion_udp_port))
+            datagram = (hb.pack(mav), os.urandom(40), forged)[i % 3]
+            s.sendto(datagram, ("127.0.0.1", v.companion_udp_port))
             socks.append(s)
         v.flood = {"senders": FLOOD_SENDERS, "datagrams": 0, "setpoints": 0}
 
@@ -648,6 +652,27 @@ class ScenarioRun:
         t = threading.Thread(target=listen, name="flood-listener", daemon=True)
         t.start()
         self._flood_threads.append(t)
+
+    def _forged_takeover_heartbeat(self, v: _Vehicle) -> bytes:
+        """The autopilot's own system id announcing the pilot's takeover mode, from a stranger's socket: a
+        companion that believed it would stop following (the flood check sees that)."""
+        from pymavlink import mavutil
+
+        px4 = "px4" in self.personality
+        kind = AutopilotKind.PX4 if px4 else AutopilotKind.ARDUPILOT
+        params = set_mode_params(kind, self._takeover_mode(v))
+        custom = int(params.custom_mode)
+        if px4:  # PX4 packs main mode in bits 16-23, sub mode in 24-31
+            custom = (int(params.custom_mode) << 16) | (int(params.custom_sub_mode) << 24)
+        mav = mavutil.mavlink.MAVLink(None, srcSystem=getattr(v.autopilot, "system_id", 1), srcComponent=1)
+        heartbeat = mav.heartbeat_encode(
+            mavutil.mavlink.MAV_TYPE_QUADROTOR,
+            mavutil.mavlink.MAV_AUTOPILOT_PX4 if px4 else mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+            mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED | mavutil.mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+            custom,
+            mavutil.mavlink.MAV_STATE_ACTIVE,
+        )
+        return bytes(heartbeat.pack(mav))
 
     def _finished(self) -> bool:
         if any(v.process is not None and v.process.poll() is not None for v in self.vehicles):

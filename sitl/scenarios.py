@@ -256,8 +256,8 @@ SCENARIOS: dict[str, Scenario] = {
         ),
         Scenario(
             "flood",
-            "200 UDP senders hit the companion's MAVLink port mid-follow: it keeps following and "
-            "sends them nothing",
+            "200 UDP senders hit the companion's MAVLink port mid-follow (garbage, GCS heartbeats, the "
+            "autopilot's heartbeat forged in the takeover mode): it keeps following and sends them nothing",
             faults=(Fault("flood", 4.0),),
             follow_s=12.0,
             companion_listens=True,

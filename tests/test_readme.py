@@ -117,9 +117,22 @@ def _eval_keeps_the_bare_tracker(report: dict[str, Any]) -> None:
     assert len(run["sequences"]) == len([p for p in SEQUENCES.iterdir() if (p / "groundtruth.txt").is_file()])
 
 
+def _sitl_mission_replays_identically(report: dict[str, Any]) -> None:
+    """The closed-loop `reject` flight (real companion process, mock autopilot, rendered camera, real
+    back-end, scripted supervisor) recorded itself; replayed, every decision is made the same way."""
+    assert report["steps"] > 100 and report["differences"] == [], report["differences"][:5]
+    from companion.flight_record import read_events
+
+    kinds = {e.get("kind") for e in read_events(REPO / report["folder"])}  # the folder as the README named it
+    assert {"supervisor_decision", "backend_answer"} <= kinds, kinds
+
+
 # What a README command writes that is also a test's evidence: run once, as the user would, and checked here.
 SEQUENCES = REPO.parent / "shared" / "data" / "sequences"
-OUTPUT_CHECKS: dict[str, Callable[[dict[str, Any]], None]] = {"out/eval.json": _eval_keeps_the_bare_tracker}
+OUTPUT_CHECKS: dict[str, Callable[[dict[str, Any]], None]] = {
+    "out/eval.json": _eval_keeps_the_bare_tracker,
+    "out/replay.json": _sitl_mission_replays_identically,
+}
 
 
 _PS4 = "+README: "
