@@ -127,11 +127,30 @@ def _sitl_mission_replays_identically(report: dict[str, Any]) -> None:
     assert {"supervisor_decision", "backend_answer"} <= kinds, kinds
 
 
+def _fleet_bench_ran_every_part(report: dict[str, Any]) -> None:
+    """The back-end bench as the README runs it (real servers, the VLM emulator at 1.0 s): k crops checked
+    concurrently take about one answer's time, one after another at least k answers; every fleet request
+    answered; two replicas lose no rejection and no decision when one is killed."""
+    t_f = report["t_f"]
+    k, latency = t_f["k"], t_f["latency_s"]
+    assert t_f["concurrent"]["candidates"] == t_f["sequential"]["candidates"] == [k] * 3
+    assert t_f["sequential"]["t_f_s"] > k * latency > t_f["concurrent"]["t_f_s"]
+    assert [row["vehicles"] for row in report["fleet"]] == [1, 4, 16]
+    assert all(row["errors"] == 0 and row["requests"] >= row["vehicles"] for row in report["fleet"])
+    assert all(row["bytes_per_request"] < 100_000 for row in report["fleet"])
+    replicas = report["replicas"]
+    assert replicas["replicas_1"]["errors"] == 0 and replicas["replicas_2"]["errors"] == 0
+    failover = replicas["failover"]
+    assert failover["acknowledged_rejections"] >= 2 and failover["acknowledged_decisions"] >= 2
+    assert failover["lost_rejections"] == 0 and failover["lost_decisions"] == 0
+
+
 # What a README command writes that is also a test's evidence: run once, as the user would, and checked here.
 SEQUENCES = REPO.parent / "shared" / "data" / "sequences"
 OUTPUT_CHECKS: dict[str, Callable[[dict[str, Any]], None]] = {
     "out/eval.json": _eval_keeps_the_bare_tracker,
     "out/replay.json": _sitl_mission_replays_identically,
+    "out/bench.json": _fleet_bench_ran_every_part,
 }
 
 
