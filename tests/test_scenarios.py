@@ -109,9 +109,10 @@ def test_occlusion(models_dir: Path, tmp_path: Path) -> None:
     assert m["reinits"] >= 1
 
 
-# The fault scenarios (link-drop, takeover-rc, abort-flyto, stall, flood) fly on the real ArduCopter and the real
-# PX4 in CI (tests/test_arducopter_scenarios.py, tests/test_px4_sitl_scenarios.py), with the same checks; the mock
-# flies the rest, and the takeover as the quick guard of its 200 ms bound. `cloudtrack-sim run` flies any of them.
+# The fault scenarios (link-drop, takeover-rc, abort-flyto, stall, flood) and the follow on PX4 fly on the real
+# ArduCopter and the real PX4 in CI (tests/test_arducopter_scenarios.py, tests/test_px4_sitl_scenarios.py), with
+# the same checks; the mock flies the rest, and the takeover as the quick guard of its 200 ms bound.
+# `cloudtrack-sim run SCENARIO` flies any of them on the mock.
 @pytest.mark.slow
 def test_takeover(models_dir: Path, tmp_path: Path) -> None:
     results = _run("takeover", models_dir, tmp_path)
@@ -129,13 +130,6 @@ def test_backend_outage(models_dir: Path, tmp_path: Path) -> None:
     assert holds, m["safety_events"]
     print(f"hold {holds[0] - down:.2f} s after the back-end cut")
     assert holds[0] - down <= 1.0  # the bound, from the moment of the cut
-
-
-@pytest.mark.slow
-def test_follow_px4(models_dir: Path, tmp_path: Path) -> None:
-    results = _run("follow-px4", models_dir, tmp_path)
-    assert results["autopilot"] == "px4"
-    _follow_checks(results["vehicles"]["drone-1"])
 
 
 @pytest.mark.slow
