@@ -11,9 +11,8 @@ serial ports, laid out as on a real flight controller:
     SERIAL5  a second ground station (MAVLink 2): the operator's laptop running `cloudtrack-gcs survey`
              (SERIAL3 and SERIAL4 are the SITL's simulated GPS receivers)
 
-`CompanionBridge` relays the companion's UDP datagrams to SERIAL2's TCP stream and back. It records every
-SET_POSITION_TARGET_LOCAL_NED the companion sends (the metrics' "setpoints received") and can cut the
-link both ways, the real-autopilot counterpart of the mock's `set_link_down`.
+`sitl.companion_bridge.CompanionBridge` relays the companion's UDP datagrams to SERIAL2's TCP stream and
+back, records the companion's setpoints and cuts the link on demand.
 
 The binary exits when its parent dies, so a crashed runner never leaves it flying.
 """
@@ -26,19 +25,19 @@ import os
 import shutil
 import socket
 import subprocess
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from pymavlink import mavutil
+from sitl.camera_server import PoseFollower
+from sitl.companion_bridge import BridgedSetpoint, CompanionBridge
+from sitl.shared_sitl import shared_sitl_path
 
 log = logging.getLogger(__name__)
 
 BINARY_ENV = "CLOUDTRACK_ARDUCOPTER"
-REPO_ROOT = Path(__file__).resolve().parents[1]
 GUID_TIMEOUT_S = 1.0  # docs/operations.md: a frozen companion coasts 1 s, not the default 3 s
 TELEMETRY_HZ = 10  # MAVn_POSITION / EXTRA1 / EXTRA2 on the companion's and the camera's ports
 # ArduCopter 4.5+ names its stream-rate parameters MAVn_* (n = SERIALn-1 + 1); SRn_* no longer exist.
@@ -64,10 +63,7 @@ class ArduCopterNotFound(RuntimeError):
 
 def default_binary() -> Path:
     """$CLOUDTRACK_ARDUCOPTER, else $CLOUDTRACK_SHARED/sitl/arducopter, else ../shared/sitl/arducopter."""
-    if os.environ.get(BINARY_ENV):
-        return Path(os.environ[BINARY_ENV])
-    shared = os.environ.get("CLOUDTRACK_SHARED")
-    return (Path(shared) if shared else REPO_ROOT.parent / "shared") / "sitl" / "arducopter"
+    return shared_sitl_path(BINARY_ENV, "arducopter")
 
 
 def find_binary(override: Path | None = None) -> Path:
@@ -230,123 +226,6 @@ class ArduCopterSitl:
         shutil.rmtree(self.work_dir, ignore_errors=True)
 
 
-@dataclass(frozen=True)
-class BridgedSetpoint:
-    """One SET_POSITION_TARGET_LOCAL_NED the companion sent to the real autopilot (as `ReceivedSetpoint`)."""
-
-    time: float
-    link: str
-    frame: int
-    type_mask: int
-    vx: float
-    vy: float
-    vz: float
-    yaw_rate: float
-    mode: str
-
-
-class CompanionBridge:
-    """UDP (companion side) <-> TCP (SITL SERIAL2), recording the companion's setpoints; `cut()` drops both ways.
-
-    `companion_port` None: the companion sends to us (`udpout:` to `udp_port`) and we answer its address;
-    a port: the companion listens there (`udpin:`) and we send to it, as a flight controller's UDP output.
-    """
-
-    def __init__(self, sitl_port: int, mode_of: Callable[[], str], companion_port: int | None = None) -> None:
-        self._tcp = socket.create_connection(("127.0.0.1", sitl_port), timeout=5.0)
-        self._tcp.settimeout(0.2)
-        self._udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self._udp.bind(("127.0.0.1", 0))
-        self._udp.settimeout(0.2)
-        self.udp_port = int(self._udp.getsockname()[1])
-        self._peer: tuple[str, int] | None = ("127.0.0.1", companion_port) if companion_port else None
-        self._mode_of = mode_of
-        self._parser = mavutil.mavlink.MAVLink(None)
-        self._parser.robust_parsing = True
-        self.setpoints: list[BridgedSetpoint] = []
-        self._down = threading.Event()
-        self._stop = threading.Event()
-        self._threads = [
-            threading.Thread(target=self._up, name="bridge-up", daemon=True),
-            threading.Thread(target=self._downlink, name="bridge-down", daemon=True),
-        ]
-
-    def start(self) -> CompanionBridge:
-        for t in self._threads:
-            t.start()
-        return self
-
-    def set_down(self, down: bool) -> None:
-        if down:
-            self._down.set()
-        else:
-            self._down.clear()
-
-    def _up(self) -> None:
-        """Companion -> autopilot."""
-        while not self._stop.is_set():
-            try:
-                data, addr = self._udp.recvfrom(65535)
-            except TimeoutError:
-                continue
-            except OSError:
-                return
-            if self._peer is None or self._peer[1] != addr[1]:
-                if self._peer is None:
-                    self._peer = addr
-                else:
-                    continue  # only the companion's own address speaks to the autopilot through us
-            if self._down.is_set():
-                continue
-            now = time.monotonic()
-            try:
-                msgs = self._parser.parse_buffer(data) or []
-            except Exception:  # the bridge only observes; the autopilot judges the bytes
-                msgs = []
-            for m in msgs:
-                if m.get_type() == "SET_POSITION_TARGET_LOCAL_NED":
-                    self.setpoints.append(
-                        BridgedSetpoint(
-                            now,
-                            "companion",
-                            m.coordinate_frame,
-                            m.type_mask,
-                            m.vx,
-                            m.vy,
-                            m.vz,
-                            m.yaw_rate,
-                            self._mode_of(),
-                        )
-                    )
-            try:
-                self._tcp.sendall(data)
-            except OSError:
-                return
-
-    def _downlink(self) -> None:
-        """Autopilot -> companion (TCP is a byte stream: forwarded in chunks, MAVLink framing survives)."""
-        while not self._stop.is_set():
-            try:
-                data = self._tcp.recv(65536)
-            except TimeoutError:
-                continue
-            except OSError:
-                return
-            if not data:
-                return
-            if self._down.is_set() or self._peer is None:
-                continue
-            with contextlib.suppress(OSError):
-                self._udp.sendto(data, self._peer)
-
-    def close(self) -> None:
-        self._stop.set()
-        for t in self._threads:
-            t.join(timeout=2)
-        for s in (self._tcp, self._udp):
-            s.close()
-
-
 class RealAutopilot:
     """The real SITL behind the interface the scenario runner uses for the mock (`SimulatedAutopilot`).
 
@@ -354,19 +233,57 @@ class RealAutopilot:
     through the companion: arming, take-off, mode changes and the RC override are the pilot's.
     """
 
+    name = "arducopter"
+    system_id = 1
+    offboard_mode = "GUIDED"
+    takeover_mode = "LOITER"
+
     def __init__(self, sitl: ArduCopterSitl, gcs: Any, companion_port: int | None = None) -> None:
         self.sitl = sitl
         self.gcs = gcs
         self.mode_history: list[tuple[float, str, str]] = []
-        self.bridge = CompanionBridge(sitl.ports.companion, self.mode_name, companion_port).start()
+        serial2 = socket.create_connection(("127.0.0.1", sitl.ports.companion), timeout=5.0)
+        self.bridge = CompanionBridge(serial2, self.mode_name, companion_port).start()
+
+    def reuse(self, companion_port: int | None) -> None:
+        raise NotImplementedError("the scenarios start a fresh ArduCopter SITL for each run")
+
+    def return_home(self, height_m: float, progress: Callable[[str], None] = print) -> float:
+        raise NotImplementedError("the scenarios start a fresh ArduCopter SITL for each run")
+
+    def describe(self) -> str:
+        pid = self.sitl.process.pid if self.sitl.process else "?"
+        return (
+            f"ArduCopter SITL {self.sitl.binary} (pid {pid}, instance {self.sitl.instance}, "
+            f"speed-up {self.sitl.speedup:g} until airborne)"
+        )
+
+    def camera_pose(self, origin: tuple[float, float]) -> PoseFollower:
+        """SERIAL1, a spare output, followed like `cloudtrack-sim camera --autopilot-url` does."""
+        return PoseFollower(f"tcp:127.0.0.1:{self.sitl.ports.camera}", origin=origin).start()
+
+    def custom_mode(self, name: str) -> int:
+        return ARDUCOPTER_MODES[name]
+
+    def rc_takeover(self) -> None:
+        """The pilot flips the flight-mode switch (channel 5) to LOITER."""
+        self.rc_mode_switch(RC_LOITER_PWM, "LOITER")
+
+    def gcs_fly_to(self, north: float, east: float, down: float) -> None:
+        """GUIDED, then a LOCAL_NED position target (Mission Planner's "fly to here")."""
+        self.gcs.set_mode(ARDUCOPTER_MODES["GUIDED"])
+        time.sleep(0.1)
+        self.gcs.fly_to(north, east, down)
 
     @property
     def setpoints(self) -> list[BridgedSetpoint]:
         return self.bridge.setpoints
 
     def mode_name(self) -> str:
-        number = self.gcs.mode()
-        return next((n for n, v in ARDUCOPTER_MODES.items() if v == number), str(number))
+        return self.mode_of(self.gcs.mode())
+
+    def mode_of(self, custom_mode: int | None) -> str:
+        return next((n for n, v in ARDUCOPTER_MODES.items() if v == custom_mode), str(custom_mode))
 
     def set_mode(self, name: str, source: str = "pilot") -> bool:
         self.mode_history.append((time.monotonic(), name, source))
@@ -434,3 +351,24 @@ class RealAutopilot:
     def close(self) -> None:
         self.bridge.close()
         self.sitl.stop()
+
+
+def start_arducopter(
+    binary: Path,
+    work_dir: Path,
+    home: tuple[float, float, float],
+    companion_port: int | None,
+    speedup: float = 5.0,
+    extra_params: dict[str, float] | None = None,
+) -> RealAutopilot:
+    """The binary in `work_dir`, its scripted GCS on SERIAL0 and the companion's bridge to SERIAL2."""
+    from sitl.scenarios import ScriptedGcs
+
+    lat, lon, alt = home
+    sitl = ArduCopterSitl(binary, work_dir, (lat, lon, alt, 0.0), speedup, extra_params).start()
+    try:
+        gcs = ScriptedGcs(f"tcp:127.0.0.1:{sitl.ports.gcs}").start()
+        return RealAutopilot(sitl, gcs, companion_port)
+    except Exception:
+        sitl.stop()
+        raise

@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from pymavlink import mavutil
+from pymavlink.dialects.v20 import development
 
 from cloudtrack.mavlink_connection import mavlink, receive_message, use_mavlink2
 from sitl.autopilot_mission import AutopilotMission, MissionOptions
@@ -57,6 +58,9 @@ PX4_MODES = {
     "MISSION": (4, 4), "RTL": (4, 5), "LAND": (4, 6), "OFFBOARD": (6, 0),
 }  # fmt: skip
 PERSONALITIES = ("ardupilot", "px4")
+MSG_ID_CURRENT_MODE = development.MAVLINK_MSG_ID_CURRENT_MODE  # PX4 1.16; not in the ardupilotmega dialect
+PX4_STANDARD_MODES = {"POSCTL": 1}  # CURRENT_MODE.standard_mode (MAV_STANDARD_MODE), as PX4 1.16 reports
+PX4_CURRENT_MODE_PERIOD_S = 0.6
 # ArduCopter's flight-mode switch (FLTMODE_CH 5) with the shipped SITL copter.parm's FLTMODE1..6, and the
 # PWM each slot ends at (RC_Channel: <=1230, <=1360, <=1490, <=1620, <=1749, above). CIRCLE and STABILIZE are
 # not flown here; they stay unmapped.
@@ -75,6 +79,7 @@ POSITION_IGNORE = 0b111
 VELOCITY_IGNORE = 0b111000
 YAW_IGNORE = 1024
 YAW_RATE_IGNORE = 2048
+PX4_VELOCITY_FRAMES = {mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_BODY_NED}  # what PX4 1.16 flies
 BODY_FRAMES = {
     mavlink.MAV_FRAME_BODY_NED,
     mavlink.MAV_FRAME_BODY_OFFSET_NED,
@@ -86,6 +91,7 @@ PX4_DEFAULT_INTERVALS = {  # seconds; what PX4's onboard MAVLink instance stream
     mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 0.1,
     mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 0.1,
     mavlink.MAVLINK_MSG_ID_SYS_STATUS: 1.0,
+    MSG_ID_CURRENT_MODE: 2.0,
 }
 ARDUPILOT_DEFAULT_INTERVALS = {mavlink.MAVLINK_MSG_ID_HEARTBEAT: 1.0}
 EARTH_RADIUS = 6_378_137.0
@@ -162,6 +168,10 @@ class SimulatedAutopilot:
         self.state = VehicleState(down=-options.start_height_m, yaw=math.radians(options.start_yaw_deg))
         self.armed = True
         self.mode = "GUIDED" if self.is_ardupilot else "POSCTL"
+        # PX4: the mode the pilot, the GCS or the companion asked for; a failsafe holds in another one until
+        # its cause clears (setpoints coming back after an offboard loss), then returns to this one.
+        self._intended_mode = self.mode
+        self._px4_failsafe = False
         self.mode_history: list[tuple[float, str, str]] = []
         self.setpoints: list[ReceivedSetpoint] = []
         self.statustexts: list[str] = []
@@ -271,6 +281,9 @@ class SimulatedAutopilot:
                 "Mode change to AUTO failed: init failed" if self.is_ardupilot else "No valid mission"
             )
             return False
+        self._px4_failsafe = source == "failsafe"
+        if not self._px4_failsafe:
+            self._intended_mode = name
         if name != self.mode:
             if self.mode == mission_mode:
                 self.mission.stop()
@@ -283,6 +296,10 @@ class SimulatedAutopilot:
                 for link in self._links.values():
                     if not link.down:
                         self._send_message(link, mavlink.MAVLINK_MSG_ID_HEARTBEAT, now)
+            else:  # PX4 sends CURRENT_MODE on a change to the links that stream it (its HEARTBEAT waits)
+                for link in self._links.values():
+                    if not link.down and MSG_ID_CURRENT_MODE in link.intervals:
+                        self._send_message(link, MSG_ID_CURRENT_MODE, now)
             log.info("mode %s (by %s)", name, source)  # after the announcement: a slow log never delays it
         return True
 
@@ -329,6 +346,10 @@ class SimulatedAutopilot:
             )
         elif mtype == "COMMAND_LONG":
             self._on_command(link, msg)
+        elif (
+            mtype == "COMMAND_INT" and msg.command == mavlink.MAV_CMD_DO_REPOSITION and not self.is_ardupilot
+        ):
+            self._reposition(link, msg)
         elif mtype == "SET_POSITION_TARGET_LOCAL_NED":
             self._on_setpoint(link, msg)
         elif mtype == "RC_CHANNELS_OVERRIDE" and self.is_ardupilot:
@@ -397,12 +418,15 @@ class SimulatedAutopilot:
         if len(self.commands) > 20000:
             del self.commands[:10000]
         if cmd == mavlink.MAV_CMD_DO_SET_MODE:
+            if not self.is_ardupilot:  # PX4 1.16 answers twice: ACCEPTED at once, then the outcome
+                self._ack(link, msg, mavlink.MAV_RESULT_ACCEPTED)
             name = self._mode_from_numbers(msg.param2, msg.param3)
             if (
                 name is None
             ):  # ArduCopter 4.7 answers FAILED to a mode number it does not have (conformance suite)
+                # PX4 1.16 accepts a main mode it does not have (the second ACK too) and changes nothing.
                 self._ack(
-                    link, msg, mavlink.MAV_RESULT_FAILED if self.is_ardupilot else mavlink.MAV_RESULT_DENIED
+                    link, msg, mavlink.MAV_RESULT_FAILED if self.is_ardupilot else mavlink.MAV_RESULT_ACCEPTED
                 )
                 return
             ok = self._try_set_mode(name, who)
@@ -413,6 +437,9 @@ class SimulatedAutopilot:
             self._ack(link, msg, mavlink.MAV_RESULT_ACCEPTED if ok else refused)
         elif cmd == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
             msg_id, interval_us = int(msg.param1), msg.param2
+            if msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT and not self.is_ardupilot:
+                self._ack(link, msg, mavlink.MAV_RESULT_FAILED)  # PX4's HEARTBEAT stays at 1 Hz
+                return
             if interval_us < 0:
                 link.intervals.pop(msg_id, None)
             elif interval_us == 0:
@@ -423,6 +450,8 @@ class SimulatedAutopilot:
                     link.intervals.pop(msg_id, None)
             else:
                 link.intervals[msg_id] = interval_us / 1e6
+                if msg_id == MSG_ID_CURRENT_MODE:  # PX4 1.16: about 1.7 Hz however fast, and on a change
+                    link.intervals[msg_id] = max(link.intervals[msg_id], PX4_CURRENT_MODE_PERIOD_S)
             link.next_due.pop(msg_id, None)
             self._ack(link, msg, mavlink.MAV_RESULT_ACCEPTED)
         elif cmd == mavlink.MAV_CMD_REQUEST_MESSAGE:
@@ -442,6 +471,20 @@ class SimulatedAutopilot:
         else:
             self._ack(link, msg, mavlink.MAV_RESULT_UNSUPPORTED)
 
+    def _reposition(self, link: _Link, msg: mavutil.mavlink.MAVLink_message) -> None:
+        """PX4's MAV_CMD_DO_REPOSITION (a GCS's "go to location"): HOLD, flying to the point."""
+        o = self.options
+        north = math.radians(msg.x / 1e7 - o.home_lat) * EARTH_RADIUS
+        east = math.radians(msg.y / 1e7 - o.home_lon) * EARTH_RADIUS * math.cos(math.radians(o.home_lat))
+        relative = msg.frame in (
+            mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT,
+            mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+        )
+        down = -msg.z if relative else o.home_alt_m - msg.z
+        self._try_set_mode("HOLD", f"{link.name} {msg.get_srcSystem()}/{msg.get_srcComponent()}")
+        self._position_target = (north, east, down if math.isfinite(down) else self.state.down)
+        self._ack(link, msg, mavlink.MAV_RESULT_ACCEPTED)
+
     def _on_setpoint(self, link: _Link, msg: mavutil.mavlink.MAVLink_message) -> None:
         now = self._clock()
         self.setpoints.append(
@@ -453,8 +496,12 @@ class SimulatedAutopilot:
         if len(self.setpoints) > 20000:
             del self.setpoints[:10000]
         active = "GUIDED" if self.is_ardupilot else "OFFBOARD"
+        if not self.is_ardupilot and msg.coordinate_frame not in PX4_VELOCITY_FRAMES:
+            return  # PX4 1.16 flies LOCAL_NED and BODY_NED only; other frames are no offboard signal either
         if not self.is_ardupilot:
             self._last_setpoint_time = now  # PX4 counts the stream in any mode (needed before OFFBOARD)
+            if self._px4_failsafe and self._intended_mode == "OFFBOARD" and self._px4_stream_alive(now):
+                self._try_set_mode("OFFBOARD", "failsafe cleared")  # PX4 1.16 goes back on its own
         if self.mode != active:
             return  # ArduPilot ignores setpoints outside GUIDED; PX4 only flies them in OFFBOARD
         self._last_setpoint_time = now
@@ -508,9 +555,9 @@ class SimulatedAutopilot:
             # reached.
             position_held = self.is_ardupilot and self._position_target is not None
             if now - self._last_setpoint_time > timeout and not position_held:
-                if not self.is_ardupilot:
+                if not self.is_ardupilot:  # COM_OBL_RC_ACT Hold; back to OFFBOARD when setpoints return
                     self._try_set_mode("HOLD", "failsafe")
-                    self._status("Offboard setpoints lost: switching to HOLD")
+                    self._status("Failsafe activated")
                 return VelocityCommand()  # ArduCopter GUIDED: brake once GUID_TIMEOUT runs out
             cmd = self._velocity_target
             if self._position_target is not None:
@@ -534,6 +581,9 @@ class SimulatedAutopilot:
             return VelocityCommand(-s.north / dist * speed, -s.east / dist * speed, 0.0, 0.0)
         if self.mode == "LAND":
             return VelocityCommand(0.0, 0.0, self.options.land_speed_m_s, 0.0)
+        if self.mode == "HOLD" and self._position_target is not None:  # PX4's reposition
+            n, e, d = self._position_target
+            return VelocityCommand((n - s.north) * 0.8, (e - s.east) * 0.8, (d - s.down) * 0.8, 0.0)
         if self.mode in ("AUTO", "MISSION"):
             cmd = self.mission.command(s, self._broadcast, self._status)
             if math.hypot(cmd.vn, cmd.ve) > 0.5:  # WP_YAW_BEHAVIOR 2 / MPC_YAW_MODE 0: face the way it flies
@@ -583,7 +633,16 @@ class SimulatedAutopilot:
                 mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA if self.is_ardupilot else mavlink.MAV_AUTOPILOT_PX4
             )
             status = mavlink.MAV_STATE_ACTIVE if self.armed else mavlink.MAV_STATE_STANDBY
+            if self._px4_failsafe:
+                status = mavlink.MAV_STATE_CRITICAL
             mav.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, autopilot, base, self._custom_mode(), status)
+        elif msg_id == MSG_ID_CURRENT_MODE and not self.is_ardupilot:
+            main, sub = PX4_MODES[self._intended_mode]
+            mav.send(
+                development.MAVLink_current_mode_message(
+                    PX4_STANDARD_MODES.get(self.mode, 0), self._custom_mode(), main << 16 | sub << 24
+                )
+            )
         elif msg_id == mavlink.MAVLINK_MSG_ID_ATTITUDE:
             mav.attitude_send(boot_ms, s.roll, s.pitch, s.yaw, 0.0, 0.0, s.yaw_rate)
         elif msg_id == mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED:

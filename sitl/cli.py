@@ -11,6 +11,7 @@ from pathlib import Path
 
 from cloudtrack.command_line import add_command_modules, new_parser, run
 from sitl.autopilot import PERSONALITIES
+from sitl.flight_stack import REAL_AUTOPILOTS
 from sitl.scenarios import SCENARIOS
 
 EXAMPLES = """\
@@ -21,6 +22,7 @@ examples:
   cloudtrack-sim run reject --seed 3 --json out/reject.json
   cloudtrack-sim run follow --autopilot px4 --tracker vit --model-dir ../shared/models
   cloudtrack-sim run follow --autopilot arducopter --json out/follow-arducopter.json
+  cloudtrack-sim run follow --autopilot px4-sitl --json out/follow-px4.json
   cloudtrack-sim autopilot --autopilot px4 --gcs udpout:127.0.0.1:14550
   cloudtrack-sim camera --autopilot-url udpin:0.0.0.0:14551 --backend-port 8080
   cloudtrack-sim bench
@@ -40,9 +42,10 @@ def _add_run(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     run.add_argument("scenario", choices=sorted(SCENARIOS), metavar="SCENARIO", help=", ".join(SCENARIOS))
     run.add_argument(
         "--autopilot",
-        choices=(*PERSONALITIES, "arducopter"),
-        help="override the scenario's autopilot: a mock personality (ardupilot, px4) or 'arducopter', "
-        "the real ArduCopter SITL binary (see --arducopter-binary)",
+        choices=(*PERSONALITIES, *REAL_AUTOPILOTS),
+        help="override the scenario's autopilot: a mock personality (ardupilot, px4), 'arducopter', "
+        "the real ArduCopter SITL binary (see --arducopter-binary), or 'px4-sitl', the real PX4 with SIH "
+        "physics (see --px4-package)",
     )
     run.add_argument(
         "--arducopter-binary",
@@ -53,13 +56,29 @@ def _add_run(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         "is an error, never a fall-back to the mock",
     )
     run.add_argument(
+        "--px4-package",
+        type=Path,
+        metavar="DIR",
+        help="the PX4 SITL package (bin/px4, etc/) for --autopilot px4-sitl (default: $CLOUDTRACK_PX4, else "
+        "$CLOUDTRACK_SHARED/sitl/px4, else ../shared/sitl/px4); a missing package is an error, never a "
+        "fall-back to the mock",
+    )
+    run.add_argument(
         "--speedup",
         type=float,
         default=5.0,
         metavar="X",
         help="with --autopilot arducopter: SITL speed-up while it boots, arms and takes off (default 5); "
         "the mission itself always runs at 1, since the world, the camera and the companion run in "
-        "wall-clock time",
+        "wall-clock time (PX4 takes its speed factor only at start-up, so px4-sitl always runs at 1)",
+    )
+    run.add_argument(
+        "--companion-set",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help="one more companion setting, as `cloudtrack-companion run --set` takes it (repeatable), e.g. "
+        "mavlink.use_mavsdk=true to fly PX4 through MAVSDK",
     )
     run.add_argument("--seed", type=int, default=1, help="world seed (default 1)")
     run.add_argument("--json", type=Path, metavar="OUT", help="write the metrics JSON here")
@@ -110,6 +129,8 @@ def _run(args: argparse.Namespace) -> int:
         verifier=args.verifier,
         vlm_latency_s=args.vlm_latency_s,
         arducopter_binary=args.arducopter_binary,
+        px4_package=args.px4_package,
+        companion_settings=tuple(args.companion_set),
         speedup=args.speedup,
     )
     try:

@@ -200,3 +200,48 @@ def distance_coasted(
                 break
         travelled += math.dist(a[1:], b[1:])
     return travelled
+
+
+@dataclass(frozen=True)
+class PoseSample:
+    """Where the vehicle was (world metres, down from home, heading in degrees) at time t."""
+
+    t: float
+    north: float
+    east: float
+    down: float
+    heading_deg: float
+
+
+def estimate_error(
+    estimates: Sequence[PoseSample], truth: Sequence[PoseSample], max_gap_s: float = 0.1
+) -> dict[str, float] | None:
+    """How far the autopilot's estimate was from the truth (each estimate against the nearest truth sample in
+    time, within `max_gap_s`; both sorted by time): horizontal mean, p95 and max (m), vertical max (m), heading
+    mean and max (deg). None without a single pair."""
+    if not truth:
+        return None
+    horizontal: list[float] = []
+    vertical: list[float] = []
+    heading: list[float] = []
+    j = 0
+    for e in estimates:
+        while j + 1 < len(truth) and abs(truth[j + 1].t - e.t) <= abs(truth[j].t - e.t):
+            j += 1
+        p = truth[j]
+        if abs(p.t - e.t) > max_gap_s:
+            continue
+        horizontal.append(math.hypot(e.north - p.north, e.east - p.east))
+        vertical.append(abs(e.down - p.down))
+        heading.append(abs(math.remainder(e.heading_deg - p.heading_deg, 360.0)))
+    if not horizontal:
+        return None
+    return {
+        "horizontal_mean_m": round(sum(horizontal) / len(horizontal), 2),
+        "horizontal_p95_m": round(percentile(horizontal, 95), 2),
+        "horizontal_max_m": round(max(horizontal), 2),
+        "vertical_max_m": round(max(vertical), 2),
+        "heading_mean_deg": round(sum(heading) / len(heading), 1),
+        "heading_max_deg": round(max(heading), 1),
+        "samples": len(horizontal),
+    }

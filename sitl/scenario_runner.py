@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import secrets
 import shutil
 import signal
@@ -36,12 +37,21 @@ from behaviors.geometry import Box, iou
 from sitl.camera_render import FrameTruth, RenderedFrame, TruthBox, VehiclePose
 from sitl.camera_server import CameraServer, PoseFollower
 from sitl.fault_proxy import FaultProxy
+from sitl.flight_stack import (
+    REAL_AUTOPILOTS,
+    FlightStack,
+    PoseSource,
+    find_flight_stack,
+    start_flight_stack,
+)
 from sitl.metrics import (
     FOLLOW_STATES,
     FrameSample,
+    PoseSample,
     SetpointSample,
     TimedEvent,
     distance_coasted,
+    estimate_error,
     following_intervals,
     summarise,
 )
@@ -65,6 +75,8 @@ STANDOFF_M = 12.0
 VIDEO_DELAY_FRAMES = 20
 VEHICLE_ORIGINS = ((0.0, 0.0), (0.0, -8.0))  # where each vehicle's home lies in the world (north, east)
 HOME_ALT_M = 488.0
+HOME_LAT, HOME_LON = 47.397742, 8.545594  # the world's origin (PX4's SIH default home)
+FOUND_TEXT = re.compile(r"FOUND (-?\d+\.\d+),(-?\d+\.\d+) \+-(\d+(?:\.\d+)?)m")  # VehicleLink.announce_find
 GUID_TIMEOUT_S = 1.0  # what docs/operations.md recommends; the mock and the real SITL both run with it
 FLOOD_SENDERS = 200
 FLY_TO_OFFSET_M = (0.0, 15.0)  # the GCS "fly to" target, from where the vehicle is (north, east)
@@ -88,7 +100,12 @@ class RunOptions:
     vlm_latency_s: float = 2.0
     startup_timeout_s: float = 90.0
     arducopter_binary: Path | None = None  # None: sitl.arducopter_sitl.default_binary()
-    speedup: float = 5.0  # the real SITL's speed-up while it boots and takes off (the mission runs at 1)
+    px4_package: Path | None = None  # None: sitl.px4_sitl.default_package()
+    speedup: float = 5.0  # ArduCopter's speed-up while it boots and takes off (the mission runs at 1)
+    companion_settings: tuple[str, ...] = ()  # more `--set section.key=value` for the companion
+    # A real autopilot already running and airborne (tests share one PX4 this way): the runner resets it
+    # for the scenario (`FlightStack.reset`) instead of starting one, and leaves it running afterwards.
+    flight_stack: FlightStack | None = None
 
 
 @dataclass(frozen=True)
@@ -106,7 +123,7 @@ class _Vehicle:
     index: int
     vehicle_id: str
     autopilot: Any
-    follower: PoseFollower
+    follower: PoseSource
     camera: CameraServer
     proxy: FaultProxy
     gcs: ScriptedGcs
@@ -151,9 +168,7 @@ def default_tracker(model_dir: Path) -> str:
         return "csrt"
 
 
-def _home(
-    origin: tuple[float, float], lat0: float = 47.397742, lon0: float = 8.545594
-) -> tuple[float, float]:
+def _home(origin: tuple[float, float], lat0: float = HOME_LAT, lon0: float = HOME_LON) -> tuple[float, float]:
     lat = lat0 + math.degrees(origin[0] / EARTH_RADIUS)
     lon = lon0 + math.degrees(origin[1] / (EARTH_RADIUS * math.cos(math.radians(lat0))))
     return lat, lon
@@ -173,11 +188,15 @@ class ScenarioRun:
         self.camera = CameraModel.from_hfov(640, 480, 70.0, MOUNT_PITCH_DEG, stabilised=True)
         self.model_dir = resolve_model_dir(options.model_dir)
         self.tracker = options.tracker or default_tracker(self.model_dir)
-        self.arducopter: Path | None = None
-        if self.personality == "arducopter":
-            from sitl.arducopter_sitl import find_binary
-
-            self.arducopter = find_binary(options.arducopter_binary)  # never a silent fall-back to the mock
+        self.flight_stack: Path | None = None  # the real autopilot's binary or package
+        self.shared = options.flight_stack
+        if self.shared is not None:
+            self.personality = self.shared.name
+            if scenario.vehicles != 1:
+                raise ValueError(f"{scenario.name} flies {scenario.vehicles} vehicles: one shared autopilot")
+        elif self.real:
+            override = options.arducopter_binary if self.personality == "arducopter" else options.px4_package
+            self.flight_stack = find_flight_stack(self.personality, override)  # never the mock instead
         # A temp work dir is removed after the run (--work-dir keeps one).
         self._own_work = options.work_dir is None
         self.work = options.work_dir or Path(tempfile.mkdtemp(prefix=f"cloudtrack-sim-{scenario.name}-"))
@@ -198,7 +217,7 @@ class ScenarioRun:
 
     @property
     def real(self) -> bool:
-        return self.personality == "arducopter"
+        return self.personality in REAL_AUTOPILOTS
 
     # ----------------------------------------------------------------------------------------- helpers
     def now(self) -> float:
@@ -243,11 +262,14 @@ class ScenarioRun:
         origin = VEHICLE_ORIGINS[index % len(VEHICLE_ORIGINS)]
         vid = f"drone-{index + 1}"
         udp_port = _free_udp_port() if self.scenario.companion_listens else None
+        follower: Any
         if self.real:
-            autopilot, gcs, camera_url = self._start_arducopter(vid, origin, udp_port)
+            autopilot = self._start_real(vid, origin, udp_port)
+            gcs = autopilot.gcs
+            follower = autopilot.camera_pose(origin)
         else:
             autopilot, gcs, camera_url = self._start_mock(origin, udp_port)
-        follower = PoseFollower(camera_url, origin=origin).start()
+            follower = PoseFollower(camera_url, origin=origin).start()
         camera = CameraServer(
             self.world, self.camera, follower.pose, fps=30.0, frame_id_base=index << FRAME_ID_BITS
         )
@@ -295,34 +317,31 @@ class ScenarioRun:
         gcs = ScriptedGcs(f"udpout:127.0.0.1:{autopilot.link_port('gcs')}").start()
         return autopilot, gcs, f"udpout:127.0.0.1:{autopilot.link_port('camera')}"
 
-    def _start_arducopter(
-        self, vid: str, origin: tuple[float, float], udp_port: int | None
-    ) -> tuple[Any, ScriptedGcs, str]:
-        from sitl.arducopter_sitl import ArduCopterSitl, RealAutopilot
-
-        assert self.arducopter is not None
+    def _start_real(self, vid: str, origin: tuple[float, float], udp_port: int | None) -> FlightStack:
+        if self.shared is not None:
+            self.shared.reuse(udp_port)
+            self.progress(f"{vid}: {self.shared.describe()}, used before")
+            return self.shared
+        assert self.flight_stack is not None
         lat, lon = _home(origin)
         survey = self.scenario.survey
         # AUTO flies at WPNAV_SPEED (cm/s) after a resume: a DO_CHANGE_SPEED before the break-off no longer holds.
-        params = {"WPNAV_SPEED": survey.speed_m_s * 100.0} if survey is not None else {}
-        sitl = ArduCopterSitl(
-            self.arducopter,
-            self.work / f"{vid}-arducopter",
-            (lat, lon, HOME_ALT_M, 0.0),
+        params = (
+            {"WPNAV_SPEED": survey.speed_m_s * 100.0}
+            if survey is not None and self.personality == "arducopter"
+            else {}
+        )
+        autopilot = start_flight_stack(
+            self.personality,
+            self.flight_stack,
+            self.work / f"{vid}-{self.personality}",
+            (lat, lon, HOME_ALT_M),
+            udp_port,
             speedup=self.options.speedup,
             extra_params=params,
-        ).start()
-        self.progress(
-            f"{vid}: ArduCopter SITL {self.arducopter} (pid {sitl.process.pid if sitl.process else '?'}, "
-            f"instance {sitl.instance}, speed-up {self.options.speedup:g} until airborne)"
         )
-        try:
-            gcs = ScriptedGcs(f"tcp:127.0.0.1:{sitl.ports.gcs}").start()
-            autopilot = RealAutopilot(sitl, gcs, udp_port)
-        except Exception:
-            sitl.stop()
-            raise
-        return autopilot, gcs, f"tcp:127.0.0.1:{sitl.ports.camera}"
+        self.progress(f"{vid}: {autopilot.describe()}")
+        return autopilot
 
     def _start_companion(self, v: _Vehicle) -> None:
         v.events_path.unlink(missing_ok=True)  # a work dir may be reused: only this run's events count
@@ -332,12 +351,14 @@ class ScenarioRun:
             f"camera.mount_pitch_deg={MOUNT_PITCH_DEG}",
             "camera.hfov_deg=70.0",
             f"mavlink.connection={self._companion_link(v)}",
+            f"mavlink.target_system={v.autopilot.system_id if self.real else 1}",
             f"backend.url={v.proxy.url}",
             f"tracker.name={self.tracker}",
             f"tracker.model_dir={self.model_dir}",
             f"behavior.standoff_m={STANDOFF_M}",
             f"recording.dir={self.work / 'records'}",
             *self.scenario.companion_settings,
+            *self.options.companion_settings,
         ]
         cmd = [
             sys.executable,
@@ -527,13 +548,11 @@ class ScenarioRun:
             self.fault_times[fault.kind] = self.now()
             self.say(f"FAULT {fault.kind} on {v.vehicle_id}")
             if fault.kind == "takeover":
-                v.autopilot.set_mode(TAKEOVER_MODE[self.personality], source="pilot")
+                v.autopilot.set_mode(self._takeover_mode(v), source="pilot")
             elif fault.kind == "rc_takeover":
                 self.fault_times["takeover"] = self.now()
                 if self.real:
-                    from sitl.arducopter_sitl import RC_LOITER_PWM
-
-                    v.autopilot.rc_mode_switch(RC_LOITER_PWM, "LOITER")
+                    v.autopilot.rc_takeover()
                 else:
                     from sitl.autopilot import RC_MODE_SWITCH_PWM
 
@@ -563,14 +582,20 @@ class ScenarioRun:
                 v.pending_decision = None
                 self._send_start(v, 2)
 
+    def _takeover_mode(self, v: _Vehicle) -> str:
+        return str(v.autopilot.takeover_mode) if self.real else TAKEOVER_MODE[self.personality]
+
     def _fly_to(self, v: _Vehicle) -> None:
         """The GCS takes the vehicle back: GUIDED, then a position target 15 m east of where it is."""
         pose = v.follower.pose()
         here = (pose.north, pose.east)
         there = (here[0] + FLY_TO_OFFSET_M[0], here[1] + FLY_TO_OFFSET_M[1])
-        v.gcs.set_mode(4)  # GUIDED on ArduCopter
-        time.sleep(0.1)
-        v.gcs.fly_to(there[0] - v.origin[0], there[1] - v.origin[1], pose.down)
+        if self.real:
+            v.autopilot.gcs_fly_to(there[0] - v.origin[0], there[1] - v.origin[1], pose.down)
+        else:
+            v.gcs.set_mode(4)  # GUIDED on ArduCopter
+            time.sleep(0.1)
+            v.gcs.fly_to(there[0] - v.origin[0], there[1] - v.origin[1], pose.down)
         v.fly_to = (self.now(), here, there)
         self.say(
             f"{v.vehicle_id}: GCS fly-to ({there[0]:.1f}, {there[1]:.1f}) from ({here[0]:.1f}, {here[1]:.1f})"
@@ -661,11 +686,15 @@ class ScenarioRun:
         self.vehicles = [self._start_vehicle(i, backend_url) for i in range(s.vehicles)]
         for v in self.vehicles:
             self._start_companion(v)
-        if self.real:
+        if self.shared is not None:  # the GCS brings it back while the companion starts
+            took = self.shared.return_home(ALTITUDE_M, self.progress)
+            self.progress(f"drone-1: back over home in HOLD after {took:.1f} s")
+        elif self.real:
             for v in self.vehicles:  # the pilot arms and takes off; the companion never does
                 took = v.autopilot.fly_up(ALTITUDE_M, progress=self.progress)
                 self.progress(
-                    f"{v.vehicle_id}: airborne at {ALTITUDE_M:g} m in GUIDED after {took:.1f} s, SITL at real time"
+                    f"{v.vehicle_id}: airborne at {ALTITUDE_M:g} m in {v.autopilot.mode_name()} after "
+                    f"{took:.1f} s, SITL at real time"
                 )
         deadline = time.monotonic() + self.options.startup_timeout_s
         while not all(v.ready for v in self.vehicles):
@@ -886,7 +915,8 @@ class ScenarioRun:
                     self._write_video_frame(v)
             self.video.close()
         for v in self.vehicles:
-            for stop in (v.gcs.stop, v.follower.stop, v.proxy.stop, v.autopilot.close):
+            parts = (v.gcs.stop, v.follower.stop, v.proxy.stop, v.autopilot.close)
+            for stop in parts if self.shared is None else (v.proxy.stop,):
                 try:
                     stop()
                 except Exception as exc:  # tear everything down even if one part is already broken
@@ -996,9 +1026,7 @@ class ScenarioRun:
             if self.real:
                 # The real autopilot changes mode some time after the pilot's action (the RC switch is
                 # debounced for 200 ms); the stop latency counts from the HEARTBEAT that reported the change.
-                from sitl.arducopter_sitl import ARDUCOPTER_MODES
-
-                wanted = ARDUCOPTER_MODES[TAKEOVER_MODE[self.personality]]
+                wanted = v.autopilot.custom_mode(v.autopilot.takeover_mode)
                 seen = [
                     t - epoch
                     for t, mode, _ in list(v.gcs.modes)
@@ -1031,7 +1059,9 @@ class ScenarioRun:
         )
         metrics["frames_rendered"] = len(v.frames)
         # ArduCopter flies a setpoint only in GUIDED, PX4 only in OFFBOARD: those are the accepted ones.
-        active = "OFFBOARD" if self.personality == "px4" else "GUIDED"
+        active = (
+            v.autopilot.offboard_mode if self.real else "OFFBOARD" if self.personality == "px4" else "GUIDED"
+        )
         metrics["setpoints_accepted"] = sum(
             1 for sp in list(v.autopilot.setpoints) if sp.link == "companion" and sp.mode == active
         )
@@ -1042,6 +1072,7 @@ class ScenarioRun:
             if kind in COASTING_FAULTS
         }
         metrics.update(self._fault_metrics(v, setpoints))
+        metrics.update(self._position_metrics(v, end_t))
         if self.scenario.survey is not None:
             found = [t for t, pid in v.confirmations if pid == target]
             metrics.update(self._search_metrics(v, found[0] if found else None))
@@ -1094,14 +1125,65 @@ class ScenarioRun:
                     "speed_m_s": round(after[0].horizontal_speed, 3),
                 }
             )
+        if self.real and "stall" in self.fault_times:
+            out["autopilot_during_stall"] = self._autopilot_during_stall(v)
         if v.flood:
             out["flood"] = dict(v.flood)
         return out
 
+    def _position_metrics(self, v: _Vehicle, end_t: float) -> dict[str, Any]:
+        """The find's geolocation error: the FOUND position the GCS heard against where the target truly was
+        then. Where the camera renders the truth rather than the autopilot's estimate (PX4's SIH), also how
+        far the estimate the companion flies on was from the truth during the mission."""
+        out: dict[str, Any] = {}
+        epoch = self.epoch or 0.0
+        found = next(
+            ((t, m) for t, text in list(v.gcs.statustexts) if (m := FOUND_TEXT.search(text)) is not None),
+            None,
+        )
+        if found is not None:
+            t, match = found
+            north, east = _world(float(match[1]), float(match[2]))
+            tn, te, _ = self.world.person(self.world.target_id).state_at(t - epoch)
+            out["geolocation_error_m"] = round(math.hypot(north - tn, east - te), 2)
+            out["find_sigma_m"] = float(match[3])
+        history = getattr(v.follower, "history", None)
+        if history and v.gcs.estimates:
+            estimates = [
+                PoseSample(t - epoch, *_world(lat, lon), HOME_ALT_M - alt, heading)
+                for t, lat, lon, alt, heading in list(v.gcs.estimates)
+                if 0.0 <= t - epoch <= end_t
+            ]
+            truth = [
+                PoseSample(t - epoch, p.north, p.east, p.down, math.degrees(p.yaw))
+                for t, p in list(history)
+                if -1.0 <= t - epoch <= end_t + 1.0
+            ]
+            out["estimate_error"] = estimate_error(estimates, truth)
+        return out
+
+    def _autopilot_during_stall(self, v: _Vehicle) -> dict[str, Any]:
+        """What the real autopilot did while the companion was frozen: its first mode change (PX4 leaves
+        OFFBOARD after COM_OF_LOSS_T; ArduCopter stays in GUIDED and stops after GUID_TIMEOUT) and what it
+        told the GCS."""
+        epoch = self.epoch or 0.0
+        t_stall = self.fault_times["stall"]
+        t_resume = self.fault_times.get("resume", math.inf)
+        modes = [(t - epoch, m) for t, m, _ in list(v.gcs.modes)]
+        before = [m for t, m in modes if t < t_stall]
+        change = next(((t, m) for t, m in modes if t >= t_stall and before and m != before[-1]), None)
+        return {
+            "mode_before": v.autopilot.mode_of(before[-1]) if before else None,
+            "mode_change": None
+            if change is None
+            else {"mode": v.autopilot.mode_of(change[1]), "after_s": round(change[0] - t_stall, 3)},
+            "texts": [text for t, text in v.gcs.statustexts if t_stall <= t - epoch <= t_resume][:10],
+        }
+
     def _results(self, end_t: float) -> dict[str, Any]:
         s = self.scenario
         outcomes = [self._outcome(v, end_t) for v in self.vehicles]
-        failures = assess(s, outcomes, self.fault_times)
+        failures = assess(s, outcomes, self.fault_times, self.personality)
         outcome = "pass" if not failures else "fail"
         results: dict[str, Any] = {
             "scenario": s.name,
@@ -1148,6 +1230,13 @@ class ScenarioRun:
     def _sample(self, f: _Seen) -> FrameSample:
         tn, te, _ = self.world.person(self.world.target_id).state_at(f.time_s)
         return FrameSample(f.time_s, f.pose.north, f.pose.east, tn, te, None)
+
+
+def _world(lat: float, lon: float) -> tuple[float, float]:
+    """World north/east (metres) of a latitude/longitude: the inverse of `_home`."""
+    north = math.radians(lat - HOME_LAT) * EARTH_RADIUS
+    east = math.radians(lon - HOME_LON) * EARTH_RADIUS * math.cos(math.radians(HOME_LAT))
+    return north, east
 
 
 def _custom_mode(personality: str, name: str) -> int:

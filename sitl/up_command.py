@@ -278,7 +278,7 @@ class LocalStack:
                 "",
                 "In another shell (source .venv/bin/activate), as the ground station:",
                 f'  cloudtrack-gcs {connect} start --prompt "{self.scenario.prompt}" --superset person{engage}',
-                f"  cloudtrack-gcs {connect} watch --duration 30",
+                f"  cloudtrack-gcs {connect} watch --until-candidate   # until a candidate awaits you",
                 f"  cloudtrack-gcs {connect} status",
                 f"  cloudtrack-gcs {connect} confirm        # the candidate awaiting the supervisor",
                 f"  cloudtrack-gcs {connect} abort",

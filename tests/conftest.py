@@ -6,7 +6,9 @@ Missing data fails the run loudly: a skipped test proves nothing.
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -58,3 +60,59 @@ def sequence_dirs(sequences_dir: Path) -> list[Path]:
     dirs = sorted(p for p in sequences_dir.iterdir() if (p / "groundtruth.txt").is_file())
     assert len(dirs) >= 5, f"expected five sequences in {sequences_dir}, found {len(dirs)}"
     return dirs
+
+
+class SharedPx4:
+    """One real PX4 (SIH) airborne at 10 m over the scenarios' home, shared by the tests marked `shares_px4`
+    (its conformance half and its scenario flights): CI pays for one boot and take-off, not one per module.
+    Started by the first test that asks for it, stopped as soon as the next test is not marked `shares_px4`
+    (`pytest_runtest_teardown` below), so it never flies under another module's timings."""
+
+    def __init__(self, work: Path) -> None:
+        self.work = work
+        self.vehicle: Any = None
+
+    def get(self) -> Any:
+        if self.vehicle is None:
+            from sitl.px4_sitl import find_package, start_px4
+            from sitl.scenario_runner import ALTITUDE_M, HOME_ALT_M, _home
+
+            lat, lon = _home((0.0, 0.0))
+            vehicle = start_px4(find_package(), self.work, (lat, lon, HOME_ALT_M), None)
+            try:
+                took = vehicle.fly_up(ALTITUDE_M)
+            except Exception:
+                vehicle.gcs.stop()
+                vehicle.close()
+                raise
+            print(f"px4 airborne after {took:.1f} s ({vehicle.describe()})")
+            self.vehicle = vehicle
+        return self.vehicle
+
+    def close(self) -> None:
+        vehicle, self.vehicle = self.vehicle, None
+        if vehicle is not None:
+            vehicle.gcs.stop()
+            vehicle.close()
+
+
+_SHARED_PX4_KEY = pytest.StashKey[SharedPx4]()
+
+
+@pytest.fixture(scope="session")
+def shared_px4(
+    request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
+) -> Iterator[SharedPx4]:
+    holder = SharedPx4(tmp_path_factory.mktemp("px4-sitl"))
+    request.config.stash[_SHARED_PX4_KEY] = holder
+    try:
+        yield holder
+    finally:
+        holder.close()
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_runtest_teardown(item: pytest.Item, nextitem: pytest.Item | None) -> None:
+    holder = item.config.stash.get(_SHARED_PX4_KEY, None)
+    if holder is not None and (nextitem is None or nextitem.get_closest_marker("shares_px4") is None):
+        holder.close()

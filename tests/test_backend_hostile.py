@@ -15,6 +15,7 @@ import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import cv2
@@ -24,6 +25,7 @@ from fastapi.testclient import TestClient
 
 import backend.images
 import backend.routers.detection
+from backend import request_limits
 from backend.app import create_app
 from backend.config import load_backend_config
 from backend.serving import BackgroundServer
@@ -145,7 +147,12 @@ def test_hostile_mission_flood_hits_the_quota_with_retry_after(client: TestClien
     assert int(refused.headers["Retry-After"]) > 0 and "live missions" in refused.json()["detail"]
 
 
-def test_hostile_request_rate_quota_answers_429_with_retry_after(models_dir: Path) -> None:
+def test_hostile_request_rate_quota_answers_429_with_retry_after(
+    models_dir: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The quota counts per fixed window of the wall clock: eight requests that straddle a window's edge
+    # would start a fresh count half-way. The clock stands still here, at a window's start.
+    monkeypatch.setattr(request_limits, "time", SimpleNamespace(time=lambda: 120.0, monotonic=time.monotonic))
     app = create_app(
         backend_config(models_dir, "sessions.rate_limit_requests=5", "sessions.rate_limit_window_s=60")
     )

@@ -14,12 +14,14 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import pytest
 import requests
 from fastapi.testclient import TestClient
 
+from backend import request_limits
 from backend.app import create_app
 from backend.serving import BackgroundServer
 from cloudtrack.api_models import Rejection
@@ -120,7 +122,12 @@ def test_hostile_detect_meta_errors_are_summarised(client: TestClient, sequences
     assert answer.json()["error_count"] == 25
 
 
-def test_hostile_validation_failures_count_towards_the_rate_limit(models_dir: Path) -> None:
+def test_hostile_validation_failures_count_towards_the_rate_limit(
+    models_dir: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The quota counts per fixed window of the wall clock: eight requests that straddle a window's edge
+    # would start a fresh count half-way. The clock stands still here, at a window's start.
+    monkeypatch.setattr(request_limits, "time", SimpleNamespace(time=lambda: 120.0, monotonic=time.monotonic))
     app = create_app(
         backend_config(models_dir, "sessions.rate_limit_requests=5", "sessions.rate_limit_window_s=60")
     )

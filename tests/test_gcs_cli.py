@@ -71,15 +71,17 @@ def test_watch_prints_status_values_and_target(capsys: pytest.CaptureFixture[str
         reporter = threading.Thread(target=companion_reports, daemon=True)
         reporter.start()
         try:
-            assert gcs_cli.main(_gcs_args(sim, "watch", "--duration", "2.5")) == 0
+            assert gcs_cli.main(_gcs_args(sim, "watch", "--duration", "2.5", "--every", "1")) == 0
         finally:
             stop.set()
             reporter.join()
         out = capsys.readouterr().out
         assert "[autopilot] mode GUIDED" in out
-        assert "[1/191] CANDIDATE 2: yes, gray shirt lying; confirm?" in out
-        assert "[1/191] dist_m = 12.500" in out
-        assert "[1/100] target at (0.550, 0.375) box (0.500, 0.250)-(0.600, 0.500)" in out
+        assert out.count("[1/191] CANDIDATE 2: yes, gray shirt lying; confirm?") == 1  # repeats summarised
+        assert "[1/100] tracking: target at (0.55, 0.38)" in out
+        summaries = [line for line in out.splitlines() if line.startswith("[summary] ")]
+        assert summaries and "target at (0.55, 0.38)" in summaries[-1] and "dist_m=12.5" in summaries[-1]
+        assert "last: CANDIDATE 2: yes, gray shirt lying; confirm? (x" in summaries[-1]
 
 
 @pytest.mark.slow

@@ -9,6 +9,7 @@ import socket
 import subprocess
 import sys
 import time
+from typing import Any
 
 import pytest
 
@@ -115,6 +116,59 @@ def test_stream_requests_cover_every_decoded_message() -> None:
     assert ids == {0, 1, 30, 32, 33, 42}
     assert dict(stream_intervals_us(10.0))[30] == 100_000
     assert dict(stream_intervals_us(10.0))[42] == 500_000  # the item changes at waypoints only
+    # PX4 refuses a HEARTBEAT rate (FAILED, stays at 1 Hz): its mode comes from CURRENT_MODE (436) too.
+    px4 = dict(stream_intervals_us(10.0, AutopilotKind.PX4))
+    assert px4[436] == 100_000 and 436 not in dict(stream_intervals_us(10.0, AutopilotKind.ARDUPILOT))
+
+
+def _frames(system: int = 4) -> tuple[Any, Any]:
+    """(an ardupilotmega parser, as the link decodes, and a development-dialect encoder that knows CURRENT_MODE)."""
+    from pymavlink.dialects.v20 import ardupilotmega, development
+
+    return ardupilotmega.MAVLink(None), development.MAVLink(None, srcSystem=system, srcComponent=1)
+
+
+PX4_HOLD, PX4_OFFBOARD, PX4_POSCTL = 4 << 16 | 3 << 24, 6 << 16, 3 << 16
+
+
+@pytest.mark.parametrize(
+    ("custom", "intended", "crc_ok", "system", "expected"),
+    [
+        (PX4_POSCTL, PX4_POSCTL, True, 4, ("POSCTL", False)),  # the pilot's switch, seen at once
+        (PX4_HOLD, PX4_OFFBOARD, True, 4, ("HOLD", True)),  # offboard lost: a failsafe chose HOLD
+        (PX4_HOLD, 0, True, 4, ("HOLD", False)),  # intended mode not reported
+        (PX4_OFFBOARD, PX4_OFFBOARD, True, 4, ("OFFBOARD", False)),  # no change: still a sign of life
+        (PX4_POSCTL, PX4_POSCTL, False, 4, None),  # bad CRC: not a mode report
+        (PX4_POSCTL, PX4_POSCTL, True, 9, None),  # another system's
+    ],
+)
+def test_px4_current_mode_updates_the_mode_between_heartbeats(
+    custom: int, intended: int, crc_ok: bool, system: int, expected: tuple[str, bool] | None
+) -> None:
+    from companion.mavlink.telemetry_decoder import TelemetryDecoder
+
+    parser, encoder = _frames()
+    decoder = TelemetryDecoder(4)
+    heartbeat = encoder.heartbeat_encode(2, 12, 129, PX4_OFFBOARD, 4).pack(encoder)
+    assert decoder.feed(parser.decode(bytearray(heartbeat)), 1.0) is not None
+    sender = _frames(system)[1]
+    frame = bytearray(sender.current_mode_encode(0, custom, intended).pack(sender))
+    if not crc_ok:
+        frame[-1] ^= 0xFF
+    report = decoder.feed(parser.decode(frame), 1.1)  # the link's dialect leaves it UNKNOWN_436
+    assert (None if report is None else (report.mode, report.failsafe)) == expected
+    assert decoder.heartbeat is not None and decoder.heartbeat.armed
+
+
+def test_heartbeat_system_status_critical_is_a_failsafe() -> None:
+    from companion.mavlink.telemetry_decoder import TelemetryDecoder
+
+    parser, encoder = _frames()
+    decoder = TelemetryDecoder(4)
+    for status, failsafe in ((4, False), (5, True)):  # MAV_STATE_ACTIVE, MAV_STATE_CRITICAL
+        frame = encoder.heartbeat_encode(2, 12, 129, PX4_HOLD, status).pack(encoder)
+        hb = decoder.feed(parser.decode(bytearray(frame)), 1.0)
+        assert hb is not None and hb.failsafe is failsafe
 
 
 @pytest.mark.parametrize("personality", ["ardupilot", "px4"])

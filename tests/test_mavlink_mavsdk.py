@@ -135,3 +135,56 @@ def test_mavsdk_listens_on_nothing_and_is_the_vehicles_onboard_component() -> No
     finally:
         for closing in (link, sim, plain_link, plain_sim):
             closing.close()
+
+
+def test_relay_holds_mavsdks_setpoints_after_a_takeover() -> None:
+    """MAVSDK re-sends its last setpoint until PX4's 1 Hz HEARTBEAT tells it OFFBOARD ended; the companion
+    learns it within 100 ms and closes the relay to MAVSDK's setpoints (and only those)."""
+    from pymavlink.dialects.v20 import ardupilotmega
+
+    from companion.mavlink.mavsdk_relay import MavsdkRelay
+
+    sent: list[Any] = []
+
+    class Endpoint:
+        def send(self, build: Any, component: int | None = None) -> bool:
+            build(Recorder())
+            return True
+
+    class Recorder:
+        def send(self, msg: Any) -> None:
+            sent.append(msg.get_type())
+
+    mav = ardupilotmega.MAVLink(None, srcSystem=1, srcComponent=191)
+    setpoint = mav.set_position_target_local_ned_encode(
+        0, 1, 1, 8, 0, 0, 0, 0, 1.0, 0, 0, 0, 0, 0, 0, 0
+    ).pack(mav)
+    status = mav.statustext_encode(6, b"hello").pack(mav)
+    zero = mav.set_position_target_local_ned_encode(0, 1, 1, 8, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0).pack(mav)
+    relay = MavsdkRelay(Endpoint())  # type: ignore[arg-type]
+    relay.note_setpoint((1.0, 0.0, 0.0, 0.0))
+    relay.from_mavsdk(setpoint)
+    relay.setpoints_allowed = False  # VehicleLink: the pilot took over
+    relay.from_mavsdk(setpoint)
+    relay.from_mavsdk(status)
+    relay.setpoints_allowed = True  # a mission enabled offboard again
+    relay.from_mavsdk(setpoint)
+    assert sent == ["SET_POSITION_TARGET_LOCAL_NED", "STATUSTEXT", "SET_POSITION_TARGET_LOCAL_NED"]
+    assert relay.setpoints_dropped == 1
+
+    # After a freeze MAVSDK's timer re-sends the pre-freeze setpoint first: older than the bound, dropped; and
+    # still dropped once the watchdog's zero has been handed to MAVSDK but not yet taken in (11 ms on PX4).
+    now = [100.0]
+    sent.clear()
+    fresh = MavsdkRelay(Endpoint(), max_setpoint_age_s=0.5, clock=lambda: now[0])  # type: ignore[arg-type]
+    fresh.from_mavsdk(setpoint)  # nothing handed yet
+    fresh.note_setpoint((1.0, 0.0, 0.0, 0.0))
+    now[0] = 100.4
+    fresh.from_mavsdk(setpoint)
+    now[0] = 103.4  # three seconds frozen
+    fresh.from_mavsdk(setpoint)
+    fresh.note_setpoint((0.0, 0.0, 0.0, 0.0))  # the watchdog's zero
+    fresh.from_mavsdk(setpoint)  # MAVSDK's re-send of the pre-freeze command
+    fresh.from_mavsdk(zero)
+    assert sent == ["SET_POSITION_TARGET_LOCAL_NED", "SET_POSITION_TARGET_LOCAL_NED"]
+    assert fresh.setpoints_dropped == 3

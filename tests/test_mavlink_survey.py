@@ -129,7 +129,6 @@ def test_a_pilot_switch_to_auto_while_the_companion_flies_is_a_takeover() -> Non
         assert late == []
 
 
-@pytest.mark.slow  # flies 3 lanes in real time (9 s)
 def test_the_search_area_comes_from_the_autopilots_mission_and_coverage_grows() -> None:
     camera = CameraModel.from_hfov(640, 480, 70.0, -40.0, stabilised=True)
     with surveying("ardupilot") as (_, link, first), MainLoop(link):
@@ -148,7 +147,7 @@ def test_the_search_area_comes_from_the_autopilots_mission_and_coverage_grows() 
         assert max(easts) - min(easts) == pytest.approx(30.0, abs=0.5)
         assert report["coverage"] < 0.3
         seen = []
-        while flying_item(link) != first + 3 and len(seen) < 300:
+        while flying_item(link) != first + 2 and len(seen) < 300:  # the first lane flown (4 s)
             t = link.telemetry()
             if t is not None:
                 coverage.update(t)
@@ -157,7 +156,9 @@ def test_the_search_area_comes_from_the_autopilots_mission_and_coverage_grows() 
         coverage.update(link.telemetry())  # type: ignore[arg-type]
         time.sleep(1.1)  # the report is recomputed once a second
         later = coverage.report()
-        assert later is not None and later["coverage"] > report["coverage"] + 0.2
+        assert later is not None
+        print(f"coverage {report['coverage']:.3f} at the start, {later['coverage']:.3f} after the first lane")
+        assert later["coverage"] > report["coverage"] + 0.2
         assert 1 <= len(later["covered"]) <= 20
 
 

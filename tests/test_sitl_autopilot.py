@@ -137,10 +137,17 @@ def test_setpoint_frame_and_type_mask_are_honoured() -> None:
         assert wait_for(lambda: sim.snapshot().yaw_rate > 0.45, 3.0)
 
 
+def _px4_mode_outcome(link: MavlinkEndpoint, *params: float):  # type: ignore[no-untyped-def]
+    """DO_SET_MODE on PX4 1.16 is answered twice (conformance suite): ACCEPTED at once, then the outcome."""
+    first = command(link, 176, *params)
+    assert first.result == 0
+    return receive_until(link, lambda m: m.get_type() == "COMMAND_ACK" and m.command == 176, 3.0)
+
+
 @pytest.mark.slow
 def test_px4_offboard_needs_a_stream_and_falls_back_to_hold() -> None:
     with autopilot("px4", offboard_loss_s=0.5) as sim, companion(sim) as link:
-        ack = command(link, 176, 1, 6, 0)  # OFFBOARD with no setpoints yet
+        ack = _px4_mode_outcome(link, 1, 6, 0)  # OFFBOARD with no setpoints yet
         assert ack.result == 1 and sim.mode == "POSCTL"  # TEMPORARILY_REJECTED
         stop = threading.Event()
 
@@ -151,7 +158,7 @@ def test_px4_offboard_needs_a_stream_and_falls_back_to_hold() -> None:
         streamer = threading.Thread(target=stream, daemon=True)
         streamer.start()
         time.sleep(1.0)
-        assert command(link, 176, 1, 6, 0).result == 0 and sim.mode == "OFFBOARD"
+        assert _px4_mode_outcome(link, 1, 6, 0).result == 0 and sim.mode == "OFFBOARD"
         assert wait_for(lambda: sim.snapshot().vn > 0.9, 3.0)
         stop.set()
         streamer.join()

@@ -23,7 +23,16 @@ from sitl.frame_transport import (
     encode_frame,
     parse_url,
 )
-from sitl.metrics import FrameSample, SetpointSample, TimedEvent, last_setpoint_after, percentile, summarise
+from sitl.metrics import (
+    FrameSample,
+    PoseSample,
+    SetpointSample,
+    TimedEvent,
+    estimate_error,
+    last_setpoint_after,
+    percentile,
+    summarise,
+)
 from sitl.simulated_detector import DetectorNoise, SimulatedPersonDetector
 from sitl.world import CLOTHING, Person, distractor_world
 
@@ -234,3 +243,32 @@ def test_metrics_summary() -> None:
     assert last_setpoint_after(setpoints, 5.0) == pytest.approx(2.0 + 59 / 15 - 5.0)
     assert last_setpoint_after(setpoints, 100.0) is None
     assert percentile([1.0, 2.0, 3.0, 4.0], 50) == 2.5
+
+
+@pytest.mark.parametrize(
+    ("estimates", "truth", "expected"),
+    [
+        # 3 m east and 1 m high, heading 350 against 10: 20 degrees (wrapped), at every matched sample
+        (
+            [PoseSample(0.0, 0.0, 3.0, -11.0, 350.0), PoseSample(1.0, 0.0, 3.0, -11.0, 350.0)],
+            [PoseSample(0.02, 0.0, 0.0, -10.0, 10.0), PoseSample(0.98, 0.0, 0.0, -10.0, 10.0)],
+            {
+                "horizontal_mean_m": 3.0,
+                "horizontal_max_m": 3.0,
+                "vertical_max_m": 1.0,
+                "heading_max_deg": 20.0,
+            },
+        ),
+        # an estimate with no truth within 0.1 s is not scored
+        ([PoseSample(5.0, 1.0, 0.0, 0.0, 0.0)], [PoseSample(0.0, 0.0, 0.0, 0.0, 0.0)], None),
+        ([], [], None),
+    ],
+)
+def test_estimate_error_against_the_nearest_truth(
+    estimates: list[PoseSample], truth: list[PoseSample], expected: dict[str, float] | None
+) -> None:
+    result = estimate_error(estimates, truth)
+    if expected is None:
+        assert result is None
+    else:
+        assert result is not None and {k: result[k] for k in expected} == expected

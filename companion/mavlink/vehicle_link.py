@@ -179,7 +179,7 @@ class VehicleLink:
         if self._camera_component:
             self._endpoint.add_identity(self._camera_component)
         if self._cfg.use_mavsdk:
-            self._relay = MavsdkRelay(self._endpoint)
+            self._relay = MavsdkRelay(self._endpoint, self._setpoint_max_age, self._clock)
             ids = (self._cfg.target_system, self._cfg.source_component)
             self._mavsdk = MavsdkOffboard(self._relay, *ids)
         self._watchdog.seen(LOOP_STALLED)
@@ -196,6 +196,8 @@ class VehicleLink:
         """Explicit stop and hold if we are flying the vehicle, then shut the threads and the link."""
         if self._endpoint is not None and self._enabled:
             self.release_offboard("companion link closing")
+        if self._mavsdk is not None:
+            self._mavsdk.wait_idle(2.5)  # its stop needs the reader below for PX4's COMMAND_ACK
         self._stop.set()
         self._watchdog.close()
         for thread in self._threads:
@@ -266,6 +268,7 @@ class VehicleLink:
         with self._lock:
             self._enabled = True
             self._release = None  # a new mission ends the letting-go of the last one
+            self._allow_mavsdk_setpoints(True)
 
     def request_offboard(self) -> None:
         """The operator allowed engagement: ask for GUIDED, or OFFBOARD after >= 1 s of setpoints (PX4)."""
@@ -273,6 +276,7 @@ class VehicleLink:
             self._enabled = True
             self._engage = True
             self._release = None
+            self._allow_mavsdk_setpoints(True)
 
     def release_offboard(self, reason: str) -> None:
         """Let go: explicit zero, the hold mode requested if we were flying it, then silence (bounded).
@@ -671,8 +675,11 @@ class VehicleLink:
                         self._mission_messages.append(msg)
                         self._mission_arrived.notify_all()
                     hb = self._decoder.feed(msg, now)
-                    if hb is not None:
+                    if hb is not None or self._from_autopilot(msg):
+                        # Any message from the autopilot proves the link: PX4's HEARTBEAT is fixed at 1 Hz
+                        # (gaps up to 1.3 s measured), too slow for a limit under a second.
                         self._watchdog.seen(HEARTBEAT_LOST, now)
+                    if hb is not None:
                         event = self._on_heartbeat(hb, now)
                 if event is not None:
                     self._record(event)
@@ -708,13 +715,25 @@ class VehicleLink:
         # Someone else took the vehicle: stop streaming at once and say why.
         self._enabled = self._engage = False
         self._stream_since = None
-        detail = f"{previous} -> {hb.mode} by pilot or GCS"
+        self._allow_mavsdk_setpoints(False)  # MAVSDK would re-send until PX4's next 1 Hz HEARTBEAT
+        detail = f"{previous} -> {hb.mode} by {'the autopilot failsafe' if hb.failsafe else 'pilot or GCS'}"
         log.warning("offboard control ended: %s", detail)
         return SafetyEvent(now, "mode_change", "offboard_ended", detail, by_other_party=True, mode=hb.mode)
 
+    def _from_autopilot(self, msg: Any) -> bool:
+        return bool(
+            msg.get_srcSystem() == self._cfg.target_system
+            and msg.get_srcComponent() == 1
+            and msg.get_type() != "BAD_DATA"
+        )
+
+    def _allow_mavsdk_setpoints(self, allowed: bool) -> None:
+        if self._relay is not None:
+            self._relay.setpoints_allowed = allowed
+
     def _request_streams(self) -> None:
         target = self._cfg.target_system
-        for msg_id, interval in stream_intervals_us(self._cfg.telemetry_rate_hz):
+        for msg_id, interval in stream_intervals_us(self._cfg.telemetry_rate_hz, self.autopilot_kind):
             self.endpoint.send(
                 partial(_set_message_interval, target=target, msg_id=msg_id, interval_us=interval)
             )
