@@ -29,7 +29,7 @@ from backend.appearance import descriptor
 from backend.crops import crop_box, margin_crop
 from backend.detectors.interface import SupersetDetector
 from backend.scene import SceneQuery, judge_scene, read_description, unjudged_words
-from backend.supersets import UnknownSupersetError, coco_classes_for
+from backend.supersets import UnknownSupersetError, mapped_coco_classes
 from backend.verifiers.cascade import fast_stage
 from backend.verifiers.interface import Verifier, VerifierAnswer, VerifierError, VerifierTimeout
 from behaviors.detection import Detection, Verdict
@@ -67,18 +67,11 @@ def _belongs(detection: Detection, name: str) -> bool:
     an open-vocabulary detector, which labels boxes with the phrase they matched)."""
     if detection.label == name:
         return True
-    try:
-        return detection.label in coco_classes_for(name)
-    except UnknownSupersetError:
-        return False
+    return detection.label in (mapped_coco_classes(name) or ())
 
 
 def _mapped(name: str) -> bool:
-    try:
-        coco_classes_for(name)
-    except UnknownSupersetError:
-        return False
-    return True
+    return mapped_coco_classes(name) is not None
 
 
 REFERENCE_CHECKS = 5  # objects of a named kind checked against their own description, best scored first

@@ -23,9 +23,8 @@ from dataclasses import dataclass
 
 from backend.supersets import (
     STAND_INS,
-    UnknownSupersetError,
-    coco_classes_for,
     head_phrase,
+    mapped_coco_classes,
     superset_from_prompt,
     vocabulary,
     words,
@@ -130,10 +129,8 @@ class SceneQuery:
 
 def _classes(name: str) -> frozenset[str]:
     """The COCO classes a name stands for; for a name with none (an open-vocabulary one), itself."""
-    try:
-        return frozenset(coco_classes_for(name))
-    except UnknownSupersetError:
-        return frozenset({name})
+    mapped = mapped_coco_classes(name)
+    return frozenset({name} if mapped is None else mapped)
 
 
 def _possessor_and_head(phrase: str) -> tuple[str | None, str]:

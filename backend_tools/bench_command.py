@@ -95,7 +95,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
         action="append",
         default=[],
         metavar="SECTION.KEY=VALUE",
-        help="also measure the server with this setting first, as 'before' (repeatable)",
+        help="also measure the server with this setting first (repeatable; e.g. verifier.kind=none: the "
+        "service without its verifier), named by its settings, or 'before' with --baseline-tree",
     )
     capacity.add_argument(
         "--baseline-tree",
@@ -351,9 +352,11 @@ def _capacity(args: argparse.Namespace, model_dir: Path, sequences: Path) -> int
     from backend_tools.capacity_bench import CapacitySettings, Configuration, capacity_report, print_capacity
 
     settings = CapacitySettings(rate_hz=args.rate, p95_bound_s=args.p95_bound, trial_s=args.trial_s)
-    before = args.baseline or args.baseline_tree
-    configurations = [Configuration("before", tuple(args.baseline), args.baseline_tree)] if before else []
-    configurations.append(Configuration("after" if before else "defaults"))
+    # Another tree is "before" and this one "after"; settings alone are named (e.g. verifier.kind=none beside
+    # the defaults: what the verifier costs).
+    first = "before" if args.baseline_tree else " ".join(args.baseline)
+    configurations = [Configuration(first, tuple(args.baseline), args.baseline_tree)] if first else []
+    configurations.append(Configuration("after" if args.baseline_tree else "defaults"))
     try:
         require("yolox", model_dir)
         say(f"[capacity] {args.rate:g} keyframes/s per vehicle, p95 <= {args.p95_bound:g} s ...")

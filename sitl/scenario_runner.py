@@ -34,6 +34,7 @@ from typing import Any
 
 from behaviors.camera_model import CameraModel
 from behaviors.geometry import Box, iou
+from cloudtrack.autopilot_modes import AutopilotKind, set_mode_params
 from sitl.camera_render import FrameTruth, RenderedFrame, TruthBox, VehiclePose
 from sitl.camera_server import CameraServer, PoseFollower
 from sitl.fault_proxy import FaultProxy
@@ -602,12 +603,14 @@ class ScenarioRun:
         )
 
     def _flood(self, v: _Vehicle) -> None:
-        """200 one-datagram UDP senders at the companion's port; each then listens for what comes back."""
+        """200 one-datagram UDP senders at the companion's port (a GCS heartbeat, garbage, or a forged
+        autopilot heartbeat in the pilot's takeover mode); each then listens for what comes back."""
         import threading
 
         assert v.companion_udp_port is not None, "the flood scenario needs the companion listening on UDP"
         from pymavlink import mavutil
 
+        forged = self._forged_takeover_heartbeat(v)
         socks = []
         for i in range(FLOOD_SENDERS):
             s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -617,7 +620,8 @@ class ScenarioRun:
             hb = mav.heartbeat_encode(
                 mavutil.mavlink.MAV_TYPE_GCS, mavutil.mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0
             )
-            s.sendto(hb.pack(mav) if i % 2 == 0 else os.urandom(40), ("127.0.0.1", v.companion_udp_port))
+            datagram = (hb.pack(mav), os.urandom(40), forged)[i % 3]
+            s.sendto(datagram, ("127.0.0.1", v.companion_udp_port))
             socks.append(s)
         v.flood = {"senders": FLOOD_SENDERS, "datagrams": 0, "setpoints": 0}
 
@@ -648,6 +652,27 @@ class ScenarioRun:
         t = threading.Thread(target=listen, name="flood-listener", daemon=True)
         t.start()
         self._flood_threads.append(t)
+
+    def _forged_takeover_heartbeat(self, v: _Vehicle) -> bytes:
+        """The autopilot's own system id announcing the pilot's takeover mode, from a stranger's socket: a
+        companion that believed it would stop following (the flood check sees that)."""
+        from pymavlink import mavutil
+
+        px4 = "px4" in self.personality
+        kind = AutopilotKind.PX4 if px4 else AutopilotKind.ARDUPILOT
+        params = set_mode_params(kind, self._takeover_mode(v))
+        custom = int(params.custom_mode)
+        if px4:  # PX4 packs main mode in bits 16-23, sub mode in 24-31
+            custom = (int(params.custom_mode) << 16) | (int(params.custom_sub_mode) << 24)
+        mav = mavutil.mavlink.MAVLink(None, srcSystem=getattr(v.autopilot, "system_id", 1), srcComponent=1)
+        heartbeat = mav.heartbeat_encode(
+            mavutil.mavlink.MAV_TYPE_QUADROTOR,
+            mavutil.mavlink.MAV_AUTOPILOT_PX4 if px4 else mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+            mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED | mavutil.mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+            custom,
+            mavutil.mavlink.MAV_STATE_ACTIVE,
+        )
+        return bytes(heartbeat.pack(mav))
 
     def _finished(self) -> bool:
         if any(v.process is not None and v.process.poll() is not None for v in self.vehicles):
@@ -1111,6 +1136,12 @@ class ScenarioRun:
             out["fly_to_progress_m"] = round(
                 start - closest, 2
             )  # how far it got toward the GCS target in 8 s
+            # The companion must have let go: no setpoint of its own while the GCS flies the vehicle.
+            out["setpoints_during_fly_to"] = sum(1 for sp in setpoints if sp.t >= t0)
+        if "abort" in self.fault_times:
+            t_abort = self.fault_times["abort"]
+            # The explicit zero-velocity stop (and one more in flight at most), then silence.
+            out["setpoints_after_abort"] = sum(1 for sp in setpoints if sp.t >= t_abort + 0.05)
         if v.stall_resumed is not None:
             resumed = v.stall_resumed - (self.epoch or 0.0)
             texts = [(t - (self.epoch or 0.0), text) for t, text in v.gcs.statustexts]
@@ -1188,6 +1219,9 @@ class ScenarioRun:
     def _results(self, end_t: float) -> dict[str, Any]:
         s = self.scenario
         outcomes = [self._outcome(v, end_t) for v in self.vehicles]
+        for v, o in zip(self.vehicles, outcomes, strict=True):
+            o.metrics["companion_stop_s"] = None if v.stop_s is None else round(v.stop_s, 3)
+            o.metrics["companion_exit_code"] = v.process.returncode if v.process is not None else None
         failures = assess(s, outcomes, self.fault_times, self.personality)
         outcome = "pass" if not failures else "fail"
         results: dict[str, Any] = {
@@ -1209,8 +1243,6 @@ class ScenarioRun:
             o.metrics["confirmed"] = list(o.confirmed_ids)
             o.metrics["rejected"] = [pid for _, pid in o.rejected_ids]
             o.metrics["proposed"] = [pid for _, pid in o.proposals]
-            o.metrics["companion_stop_s"] = None if v.stop_s is None else round(v.stop_s, 3)
-            o.metrics["companion_exit_code"] = v.process.returncode if v.process is not None else None
             results["vehicles"][v.vehicle_id] = o.metrics
         if self.options.json_out is not None:
             self.options.json_out.parent.mkdir(parents=True, exist_ok=True)

@@ -21,6 +21,7 @@ from typing import Any, Literal
 from pymavlink import mavutil
 
 from cloudtrack.mavlink_connection import use_mavlink2
+from cloudtrack.vehicle_config import SafetyConfig
 from sitl.world import SEARCH_AREA_NE, Person, World, distractor_world, search_world
 
 log = logging.getLogger(__name__)
@@ -141,6 +142,12 @@ def stall_max_coast_m(autopilot: str) -> float:
 # + GET decisions) must succeed every 0.2 s; 0.7 s without one is an outage. The autopilot sends HEARTBEAT
 # at 10 Hz on request, so 0.6 s of silence is a dropped link.
 HOLD_WITHIN_S = 1.0
+MAX_SPEED_M_S = SafetyConfig().max_speed_m_s  # the [safety] limit the scenarios fly with (the default)
+COMPANION_STOP_S = 2.0  # SIGTERM to a stopped process
+SETPOINT_RATE_HZ = (12.0, 18.0)  # streamed at [mavlink] setpoint_rate_hz = 15
+# After a GCS abort: the companion's last setpoints in flight before it read the command, its explicit stop,
+# then silence (the mode and the vehicle belong to the GCS).
+ABORT_MAX_SETPOINTS = 3
 OUTAGE_SETTINGS = ("safety.backend_lost_s=0.7", "backend.status_interval_s=0.2")
 LINK_DROP_SETTINGS = ("safety.heartbeat_timeout_s=0.6",)
 
@@ -151,7 +158,7 @@ SCENARIOS: dict[str, Scenario] = {
             "follow",
             "follow a person in a green shirt walking at 1.5 m/s among distractors",
             companion_settings=("recording.video=true",),
-            checks=("confirmed_target", "in_view", "standoff"),
+            checks=("confirmed_target", "in_view", "standoff", "setpoint_rate"),
         ),
         Scenario(
             "reject",
@@ -217,7 +224,7 @@ SCENARIOS: dict[str, Scenario] = {
             "must go there (the companion has let go)",
             faults=(Fault("abort", 5.0), Fault("fly_to", 7.0)),
             follow_s=12.0,
-            checks=("confirmed_target", "fly_to_moves"),
+            checks=("confirmed_target", "silent_after_abort", "fly_to_moves"),
         ),
         Scenario(
             "stall",
@@ -254,8 +261,8 @@ SCENARIOS: dict[str, Scenario] = {
         ),
         Scenario(
             "flood",
-            "200 UDP senders hit the companion's MAVLink port mid-follow: it keeps following and "
-            "sends them nothing",
+            "200 UDP senders hit the companion's MAVLink port mid-follow (garbage, GCS heartbeats, the "
+            "autopilot's heartbeat forged in the takeover mode): it keeps following and sends them nothing",
             faults=(Fault("flood", 4.0),),
             follow_s=12.0,
             companion_listens=True,
@@ -325,6 +332,7 @@ def assess(
     for i, o in enumerate(outcomes):
         name = f"vehicle {i + 1}"
         m = o.metrics
+        failures += _companion_checks(scenario, name, m, autopilot or scenario.autopilot)
         failures += _fault_checks(scenario, name, m, o, fault_times, autopilot or scenario.autopilot)
         if "confirmed_target" in scenario.checks and (not o.confirmed_ids or o.confirmed_ids[0] != "target"):
             failures.append(
@@ -409,6 +417,31 @@ def _search_checks(scenario: Scenario, name: str, m: dict[str, Any]) -> list[str
     return failures
 
 
+def _companion_checks(scenario: Scenario, name: str, m: dict[str, Any], autopilot: str) -> list[str]:
+    """What every run must show of the companion itself: within the speed limit, and on SIGTERM setpoints
+    stopped, the GCS told and the process gone within COMPANION_STOP_S with a clean exit."""
+    failures: list[str] = []
+    speed = m.get("max_commanded_speed_m_s")
+    if speed is not None and speed > MAX_SPEED_M_S + 1e-6:
+        failures.append(f"{name}: commanded {speed} m/s, the [safety] limit is {MAX_SPEED_M_S:g} m/s")
+    stop, code = m.get("companion_stop_s"), m.get("companion_exit_code")
+    if "companion_exit_code" in m and (code != 0 or stop is None or stop >= COMPANION_STOP_S):
+        failures.append(f"{name}: the companion stopped in {stop} s with exit status {code}")
+    if "setpoint_rate" in scenario.checks:
+        rate = m.get("setpoint_rate_hz")
+        low, high = SETPOINT_RATE_HZ
+        if rate is None or not low <= rate <= high:
+            failures.append(f"{name}: setpoints at {rate} Hz while following, needs {low:g}-{high:g} Hz")
+        # ArduPilot flies a setpoint only in GUIDED: the companion streams only once it has the mode (PX4
+        # needs a stream before OFFBOARD, so it is not asked there).
+        if "px4" not in autopilot and m.get("setpoints_accepted") != m.get("setpoints_received"):
+            failures.append(
+                f"{name}: {m.get('setpoints_received')} setpoints sent, {m.get('setpoints_accepted')} "
+                "of them in GUIDED"
+            )
+    return failures
+
+
 def _fault_checks(
     scenario: Scenario,
     name: str,
@@ -424,6 +457,15 @@ def _fault_checks(
             failures.append(
                 f"{name}: after the abort the GCS fly-to moved the vehicle {progress} m toward its "
                 f"target, needs >= {FLY_TO_MIN_PROGRESS_M:g} m (the companion still holds it?)"
+            )
+        during = m.get("setpoints_during_fly_to")
+        if during:
+            failures.append(f"{name}: the companion sent {during} setpoints while the GCS flew the vehicle")
+    if "silent_after_abort" in scenario.checks:
+        after = m.get("setpoints_after_abort")
+        if after is None or after > ABORT_MAX_SETPOINTS:
+            failures.append(
+                f"{name}: {after} setpoints after the abort, allowed {ABORT_MAX_SETPOINTS} (the stop, then silence)"
             )
     if "stall_coast" in scenario.checks:
         coasted = m.get("coasted_m", {}).get("stall")

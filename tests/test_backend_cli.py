@@ -159,51 +159,6 @@ def test_serve_refuses_a_bad_configuration(capsys: pytest.CaptureFixture[str]) -
     assert "cloudtrack-sim" in capsys.readouterr().err
 
 
-@pytest.mark.slow
-def test_bench_runs_servers_and_emulator(
-    models_dir: Path, shared_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
-) -> None:
-    out = tmp_path / "bench.json"
-    code = main(
-        [
-            "bench",
-            "--latency",
-            "0.3",
-            "--candidates",
-            "3",
-            "--vehicles",
-            "1",
-            "3",
-            "--requests",
-            "2",
-            "--replica-vehicles",
-            "2",
-            "--model-dir",
-            str(models_dir),
-            "--data",
-            str(shared_dir),
-            "--json",
-            str(out),
-        ]
-    )
-    captured = capsys.readouterr()
-    assert code == 0, captured.err
-    # Progress as it goes, on stderr: a part announces itself before it runs.
-    assert "[1/4]" in captured.err and "[3/4] fleet of 3 vehicles" in captured.err and "[4/4]" in captured.err
-    report = json.loads(out.read_text())
-    assert report["t_f"]["concurrent"]["candidates"] == [3, 3, 3]
-    assert report["t_f"]["sequential"]["t_f_s"] > 3 * 0.3  # one after another: at least k x L
-    assert [row["vehicles"] for row in report["fleet"]] == [1, 3]
-    assert all(row["errors"] == 0 and row["requests"] == 2 * row["vehicles"] for row in report["fleet"])
-    assert all(row["bytes_per_request"] < 100_000 for row in report["fleet"])
-    assert "concurrent / sequential" in captured.out and "p95 2 replicas / 1 replica" in captured.out
-    replicas = report["replicas"]
-    assert replicas["replicas_1"]["errors"] == 0 and replicas["replicas_2"]["errors"] == 0
-    failover = replicas["failover"]
-    assert failover["acknowledged_rejections"] >= 2 and failover["acknowledged_decisions"] >= 2
-    assert failover["lost_rejections"] == 0 and failover["lost_decisions"] == 0
-
-
 def test_service_install_writes_the_backends_unit(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     unit_dir, config_dir = tmp_path / "units", tmp_path / "etc"
     assert main(["service", "install", "--unit-dir", str(unit_dir), "--config-dir", str(config_dir)]) == 0

@@ -217,3 +217,25 @@ def test_verifier_table_new_ahead_of_hsv_on_every_attribute(
     for attribute, scores in attributes.items():
         assert scores["local"].f1() > scores["local-hsv"].f1(), attribute
     assert int(result["body_found"]) >= 0.8 * int(result["persons"])  # type: ignore[call-overload]
+
+
+def test_colour_namer_remembers_a_region_boundedly_and_hands_out_copies(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from backend.verifiers import colour_names
+
+    monkeypatch.setattr(colour_names, "SHARES_CACHE", 2)
+    namer = ColourNamer()
+    calls: list[int] = []
+    name_pixels = namer._name_pixels
+    monkeypatch.setattr(namer, "_name_pixels", lambda lab: calls.append(len(lab)) or name_pixels(lab))
+    red = srgb_to_lab(np.full((10, 3), (35, 30, 200), np.uint8))
+    first = namer.shares(red)
+    first["red"] = 0.0  # the caller's copy, not the remembered one
+    assert namer.shares(red)["red"] == 1.0 and calls == [10]
+    assert namer.shares(red[:5])["red"] == 1.0 and calls == [10, 5]  # same pixels, another region
+    namer.shares(
+        srgb_to_lab(np.full((10, 3), (200, 30, 35), np.uint8))
+    )  # blue: the least recent (ten red) goes
+    assert namer.shares(red[:5])["red"] == 1.0 and len(calls) == 3
+    assert namer.shares(red)["red"] == 1.0 and len(calls) == 4

@@ -3,18 +3,22 @@
 The block marked `<!-- readme-test: setup -->` (activate .venv, point CLOUDTRACK_MODEL_DIR at the shared
 weights) runs first in the same shell, as a user would type it. A fast check parses every command of the
 marked blocks with the real argument parsers (a renamed flag fails here, in `make check`); the slow test
-runs them (minutes: eval, benches and a closed-loop scenario).
+runs them (minutes: eval, benches and closed-loop scenarios). What a command writes that is also a test's
+evidence (the eval on every shared sequence, `OUTPUT_CHECKS`) is checked from its output, not run twice.
 """
 
 from __future__ import annotations
 
 import importlib
+import json
 import os
 import re
 import shlex
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -95,6 +99,59 @@ def test_readme_offline_block_runs_as_written(index: int) -> None:
             f"--- the failing command and its stderr\n{result.stderr[last + 1 :][-6000:]}",
             pytrace=False,
         )
+    for output, check in OUTPUT_CHECKS.items():
+        if output in block:
+            check(json.loads((REPO / output).read_text()))
+
+
+def _eval_keeps_the_bare_tracker(report: dict[str, Any]) -> None:
+    """The eval on every shared sequence (defaults, bare tracker beside them in the same run): no
+    re-initialisation takes the box off the target, and the product is not below the bare tracker."""
+    run = report["runs"][0]
+    assert run["policy"] == "verified"
+    assert all(s["reinit_outcomes"].get("target->other", 0) == 0 for s in run["sequences"]), [
+        (s["name"], s["reinit_outcomes"]) for s in run["sequences"]
+    ]
+    assert run["overall"]["miou"] >= run["bare"]["overall"]["miou"]
+    assert run["overall"]["frames"] == run["bare"]["overall"]["frames"]
+    assert len(run["sequences"]) == len([p for p in SEQUENCES.iterdir() if (p / "groundtruth.txt").is_file()])
+
+
+def _sitl_mission_replays_identically(report: dict[str, Any]) -> None:
+    """The closed-loop `reject` flight (real companion process, mock autopilot, rendered camera, real
+    back-end, scripted supervisor) recorded itself; replayed, every decision is made the same way."""
+    assert report["steps"] > 100 and report["differences"] == [], report["differences"][:5]
+    from companion.flight_record import read_events
+
+    kinds = {e.get("kind") for e in read_events(REPO / report["folder"])}  # the folder as the README named it
+    assert {"supervisor_decision", "backend_answer"} <= kinds, kinds
+
+
+def _fleet_bench_ran_every_part(report: dict[str, Any]) -> None:
+    """The back-end bench as the README runs it (real servers, the VLM emulator at 1.0 s): k crops checked
+    concurrently take about one answer's time, one after another at least k answers; every fleet request
+    answered; two replicas lose no rejection and no decision when one is killed."""
+    t_f = report["t_f"]
+    k, latency = t_f["k"], t_f["latency_s"]
+    assert t_f["concurrent"]["candidates"] == t_f["sequential"]["candidates"] == [k] * 3
+    assert t_f["sequential"]["t_f_s"] > k * latency > t_f["concurrent"]["t_f_s"]
+    assert [row["vehicles"] for row in report["fleet"]] == [1, 4, 16]
+    assert all(row["errors"] == 0 and row["requests"] >= row["vehicles"] for row in report["fleet"])
+    assert all(row["bytes_per_request"] < 100_000 for row in report["fleet"])
+    replicas = report["replicas"]
+    assert replicas["replicas_1"]["errors"] == 0 and replicas["replicas_2"]["errors"] == 0
+    failover = replicas["failover"]
+    assert failover["acknowledged_rejections"] >= 2 and failover["acknowledged_decisions"] >= 2
+    assert failover["lost_rejections"] == 0 and failover["lost_decisions"] == 0
+
+
+# What a README command writes that is also a test's evidence: run once, as the user would, and checked here.
+SEQUENCES = REPO.parent / "shared" / "data" / "sequences"
+OUTPUT_CHECKS: dict[str, Callable[[dict[str, Any]], None]] = {
+    "out/eval.json": _eval_keeps_the_bare_tracker,
+    "out/replay.json": _sitl_mission_replays_identically,
+    "out/bench.json": _fleet_bench_ran_every_part,
+}
 
 
 _PS4 = "+README: "

@@ -8,8 +8,11 @@ colours toward grey). `calibrate` makes that table; the verifier loads the store
 
 from __future__ import annotations
 
+import hashlib
 import json
+import threading
 import warnings
+from collections import OrderedDict
 from collections.abc import Collection, Iterable, Mapping
 from pathlib import Path
 
@@ -32,6 +35,9 @@ PROTOTYPES_PATH = Path(__file__).with_name("colour_prototypes.json")
 SHADE_AND_SUN = (0.35, 2.0)
 ACHROMATIC = {"black", "white", "gray"}
 MAX_PIXELS = 800  # pixels judged per region: an even subsample keeps a crop in a few ms
+# Regions whose shares a namer remembers: CIEDE2000 against every prototype is ~10 ms a region, and one
+# region is named again for each colour a prompt gives it and for each prompt a study judges it on.
+SHARES_CACHE = 512
 
 
 WHITE_PERCENTILE = 97.0  # of the crop's brightest channel per pixel: taken as the scene's white
@@ -83,6 +89,8 @@ class ColourNamer:
         self.names = list(table)
         self._owner = np.array([i for i, name in enumerate(self.names) for _ in table[name]])
         self._labs = np.array([v for name in self.names for v in table[name]], np.float64)
+        self._remembered: OrderedDict[bytes, dict[str, float]] = OrderedDict()
+        self._lock = threading.Lock()
 
     @classmethod
     def load(cls, path: Path = PROTOTYPES_PATH) -> ColourNamer:
@@ -97,6 +105,23 @@ class ColourNamer:
         """Share of pixels whose nearest prototype is each name, plus "dark" (L* < DARK_L)."""
         if len(lab) == 0:
             return {}
+        pixels = np.ascontiguousarray(lab, np.float64)
+        digest = hashlib.blake2b(repr(pixels.shape).encode(), digest_size=16)
+        digest.update(pixels.tobytes())
+        key = digest.digest()
+        with self._lock:
+            known = self._remembered.get(key)
+            if known is not None:
+                self._remembered.move_to_end(key)
+                return dict(known)  # a copy: the caller may change it
+        result = self._name_pixels(pixels)
+        with self._lock:
+            self._remembered[key] = result
+            if len(self._remembered) > SHARES_CACHE:
+                self._remembered.popitem(last=False)
+        return dict(result)
+
+    def _name_pixels(self, lab: np.ndarray) -> dict[str, float]:
         distance = np.asarray(colour.delta_E(lab[:, None, :], self._labs[None, :, :], method="CIE 2000"))
         nearest = self._owner[np.argmin(distance, axis=1)]
         counts = np.bincount(nearest, minlength=len(self.names)) / len(lab)
