@@ -2,7 +2,7 @@
 
 Each test runs `cloudtrack-sim run SCENARIO --autopilot arducopter`'s code path: the runner starts the
 binary in its own working directory (wiped parameters, GUID_TIMEOUT 1 s, MAVn_* stream rates), the scripted
-pilot arms it and takes off to 10 m over the GCS link at SITL speed-up 5, then the mission runs at real
+pilot arms it and takes off to 10 m over the GCS link at SITL speed-up 10, then the mission runs at real
 time with the real companion process, the rendered camera and the real back-end. `pytest -k arducopter`
 selects them; about 25-50 s each on a 2-core machine. The follow itself is the README's
 `cloudtrack-sim run follow --autopilot arducopter`, run as written by `tests/test_readme.py`: its exit

@@ -156,7 +156,7 @@ def _mock() -> Vehicle:
 def _arducopter(work: Path) -> Vehicle:
     from sitl.arducopter_sitl import ArduCopterSitl, RealAutopilot, find_binary
 
-    sitl = ArduCopterSitl(find_binary(), work, (47.397742, 8.545594, 488.0, 0.0), speedup=5.0).start()
+    sitl = ArduCopterSitl(find_binary(), work, (47.397742, 8.545594, 488.0, 0.0), speedup=10.0).start()
     gcs = ScriptedGcs(f"tcp:127.0.0.1:{sitl.ports.gcs}").start()
     real = RealAutopilot(sitl, gcs)
     try:
