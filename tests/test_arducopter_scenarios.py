@@ -50,6 +50,11 @@ def test_arducopter_search(models_dir: Path, tmp_path: Path) -> None:
     it broke off at (the autopilot's own MISSION_CURRENT), the described person is found within 3 m."""
     _, m = _fly("search", models_dir, tmp_path, json_out=tmp_path / "search.json")
     assert m["rejected"] == ["decoy"] and m["confirmed"][:1] == ["target"]
+    assert m["time_to_find_s"] is not None and m["time_to_find_s"] > 0
+    assert m["find"]["confirmed_by"] == "gcs"
+    # Flown only in GUIDED, none in AUTO: at most one setpoint crosses the hand-back's mode change (seen: 298 of
+    # 299, the last one in flight as AUTO took over).
+    assert m["setpoints_received"] > 0 and m["setpoints_received"] - m["setpoints_accepted"] <= 1
     breaks = m["mission_breaks"]
     assert breaks and breaks[0]["resumed_at"] == breaks[0]["left_at"] is not None
     assert m["geolocation_error_m"] is not None and m["geolocation_error_m"] <= 3.0
