@@ -40,6 +40,13 @@ GLOBAL_FRAMES = frozenset(
         FRAME_GLOBAL_TERRAIN_ALT_INT,
     )
 )
+# A global frame and its _INT twin (the same place, integer coordinates): PX4 answers a MISSION_ITEM_INT
+# download with the _INT frame whichever was uploaded.
+INT_FRAMES = {
+    FRAME_GLOBAL: FRAME_GLOBAL_INT,
+    FRAME_GLOBAL_RELATIVE_ALT: FRAME_GLOBAL_RELATIVE_ALT_INT,
+    FRAME_GLOBAL_TERRAIN_ALT: FRAME_GLOBAL_TERRAIN_ALT_INT,
+}
 # Navigation commands that fly to the item's latitude/longitude (a take-off's position is optional).
 POSITION_COMMANDS = frozenset(
     (NAV_WAYPOINT, NAV_LOITER_UNLIM, NAV_LOITER_TURNS, NAV_LOITER_TIME, NAV_LAND, NAV_LOITER_TO_ALT,

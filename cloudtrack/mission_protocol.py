@@ -35,7 +35,7 @@ from dataclasses import dataclass
 from functools import partial
 from typing import Any, Protocol
 
-from behaviors.mission_items import FRAME_GLOBAL, NAV_WAYPOINT, MissionItem
+from behaviors.mission_items import FRAME_GLOBAL, INT_FRAMES, NAV_WAYPOINT, MissionItem
 
 MISSION_TYPE_MISSION = 0
 MAV_MISSION_ACCEPTED = 0
@@ -407,13 +407,17 @@ def _current(msg: Any) -> MissionCurrent:
 def positions_match(a: Sequence[MissionItem], b: Sequence[MissionItem]) -> bool:
     """The same commands, and the same places and altitudes for those that fly somewhere: what a read-back
     checks (an autopilot may store other parameters with less precision, drop those its vehicle ignores, or
-    report a DO_ command's frame differently: ArduPilot answers MISSION with GLOBAL)."""
+    report a DO_ command's frame differently: ArduPilot answers MISSION with GLOBAL; or a global frame as its
+    _INT twin: PX4 answers GLOBAL_RELATIVE_ALT_INT for GLOBAL_RELATIVE_ALT)."""
     return len(a) == len(b) and all(
         x.command == y.command
         and x.has_position == y.has_position
         and (
             not x.has_position
-            or ((x.frame, x.x, x.y) == (y.frame, y.x, y.y) and math.isclose(x.z, y.z, abs_tol=0.01))
+            or (
+                (INT_FRAMES.get(x.frame, x.frame), x.x, x.y) == (INT_FRAMES.get(y.frame, y.frame), y.x, y.y)
+                and math.isclose(x.z, y.z, abs_tol=0.01)
+            )
         )
         for x, y in zip(a, b, strict=True)
     )

@@ -251,6 +251,10 @@ class RealAutopilot:
     def return_home(self, height_m: float, progress: Callable[[str], None] = print) -> float:
         raise NotImplementedError("the scenarios start a fresh ArduCopter SITL for each run")
 
+    def ground_url(self) -> str:
+        """SERIAL5 (MAVLink 2): the operator's laptop running `cloudtrack-gcs survey`."""
+        return f"tcp:127.0.0.1:{self.sitl.ports.ground}"
+
     def describe(self) -> str:
         pid = self.sitl.process.pid if self.sitl.process else "?"
         return (

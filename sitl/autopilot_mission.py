@@ -26,12 +26,14 @@ ArduCopter (AP_Mission, MissionItemProtocol_Waypoints)
   every item, DO_CHANGE_SPEED included; STATUSTEXT "Mission: 2 WP", "Reached command #2";
 - at the end it holds where the last waypoint put it, still in AUTO.
 
-PX4 (navigator, MavlinkMissionManager; not yet held to the real PX4)
+PX4 (navigator, MavlinkMissionManager; what the real PX4 1.16 SIH showed is marked measured)
 - items start at 0; an upload goes into a spare slot and replaces the mission only when complete, so a
   failed upload leaves the old mission whole; items are asked for with MISSION_REQUEST_INT;
 - clearing is allowed at any time; Mission mode needs a mission;
+- a download (MISSION_REQUEST_INT) answers a global item in its _INT frame (GLOBAL_RELATIVE_ALT comes back as
+  GLOBAL_RELATIVE_ALT_INT; measured on the real PX4 1.16);
 - re-entering Mission mode continues at the item it left, at the speed of the last DO_CHANGE_SPEED before
-  it (PX4 replays them; it goes back one waypoint only when the mission triggers a camera by distance, which
+  it (measured: a 2.5 m/s survey flew 2.3-2.4 m/s after HOLD and Mission again, not MPC_XY_CRUISE's 5; PX4 replays them; it goes back one waypoint only when the mission triggers a camera by distance, which
   a video search does not); MISSION_CURRENT is also sent when the item changes, PAUSED once interrupted.
 
 Both fly NAV_WAYPOINT along the straight line from the previous waypoint (or from where AUTO began) at the
@@ -45,7 +47,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 from behaviors.mission_items import (
@@ -53,6 +55,7 @@ from behaviors.mission_items import (
     FRAME_GLOBAL,
     FRAME_MISSION,
     GLOBAL_FRAMES,
+    INT_FRAMES,
     NAV_LAND,
     NAV_LOITER_TIME,
     NAV_LOITER_UNLIM,
@@ -307,6 +310,8 @@ class AutopilotMission:
                 )  # fmt: skip
             )
         else:
+            if not self.ardupilot:  # PX4 answers a global item in its _INT frame, whichever was uploaded
+                item = replace(item, frame=INT_FRAMES.get(item.frame, item.frame))
             reply(lambda m: send_item(m, peer, seq, item))
 
     def tick(self, now: float, reply_on: Callable[[str], Send], status: Status) -> None:

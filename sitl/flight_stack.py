@@ -66,6 +66,10 @@ class FlightStack(Protocol):
 
     def set_link_down(self, name: str, down: bool) -> None: ...
 
+    def ground_url(self) -> str:
+        """Where a second ground station (the operator's laptop: `cloudtrack-gcs survey`) connects."""
+        ...
+
     def fly_up(
         self, height_m: float, timeout_s: float = 90.0, progress: Callable[[str], None] = print
     ) -> float:

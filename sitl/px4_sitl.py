@@ -10,6 +10,8 @@ and friends through PATH).
 Instance N (1-9, whichever is free) fixes every port (UDP, loopback):
 
     GCS link      PX4 18570+N; sends to the first local sender it hears, and to 14550 until then
+    ground link   PX4 18590+N -> 18600+N: a second GCS link (the operator's laptop: `cloudtrack-gcs survey`
+                  listens on 18600+N, `udpin`), started on first use
     onboard link  PX4 14580+N -> 14540+N: the companion, through `CompanionBridge`, which binds 14540+N
     SIH display   PX4 19450+N -> 19410+N: HIL_STATE_QUATERNION, SIH's ground truth, for the camera
 
@@ -63,6 +65,9 @@ EARTH_RADIUS = 6_378_137.0
 COM_OF_LOSS_T_S = 0.5  # docs/operations.md: offboard lost after 0.5 s of no setpoints
 PX4_HOLD = 5  # COM_OBL_RC_ACT: Hold
 RETURN_SPEED_M_S = 8.0  # the GCS's reposition back over home between scenarios
+# The ground link's bytes/s (a telemetry radio's order): a mission upload needs little, and at the GCS link's
+# 4 MB/s its streams would take CPU from the real-time SIH and the camera for nothing.
+GROUND_LINK_RATE = 20_000
 
 
 class Px4NotFound(RuntimeError):
@@ -110,6 +115,14 @@ class Px4Ports:
         return 18570 + self.instance
 
     @property
+    def ground(self) -> int:
+        return 18590 + self.instance
+
+    @property
+    def ground_remote(self) -> int:
+        return 18600 + self.instance
+
+    @property
     def onboard(self) -> int:
         return 14580 + self.instance
 
@@ -124,7 +137,7 @@ class Px4Ports:
     @property
     def px4_binds(self) -> tuple[int, ...]:
         n = self.instance
-        return (18570 + n, 14580 + n, 14280 + n, 13030 + n, 19450 + n)
+        return (18570 + n, 18590 + n, 14580 + n, 14280 + n, 13030 + n, 19450 + n)
 
     @property
     def system_id(self) -> int:
@@ -161,7 +174,7 @@ def _reserve_instance() -> tuple[Px4Ports, socket.socket, socket.socket]:
         ports = Px4Ports(INSTANCES[(start + k) % len(INSTANCES)])
         if Path(f"/tmp/px4_lock-{ports.instance}").exists() and not _udp_free(ports.gcs):
             continue  # a PX4 of that instance is running
-        if not all(_udp_free(p) for p in ports.px4_binds):
+        if not all(_udp_free(p) for p in (*ports.px4_binds, ports.ground_remote)):
             continue
         onboard = _udp_socket(ports.onboard_remote)
         truth = _udp_socket(ports.truth)
@@ -171,8 +184,8 @@ def _reserve_instance() -> tuple[Px4Ports, socket.socket, socket.socket]:
             if s is not None:
                 s.close()
     raise RuntimeError(
-        "no free PX4 SITL instance (1-9): each needs UDP 18570+N, 14580+N, 14280+N, 13030+N, 19450+N, "
-        "14540+N and 19410+N free; `pgrep -a px4` shows running ones"
+        "no free PX4 SITL instance (1-9): each needs UDP 18570+N, 18590+N, 18600+N, 14580+N, 14280+N, 13030+N, "
+        "19450+N, 14540+N and 19410+N free; `pgrep -a px4` shows running ones"
     )
 
 
@@ -272,6 +285,25 @@ class Px4Sitl:
                 preexec_fn=_die_with_parent,
             )
         return self
+
+    def start_ground_link(self) -> int:
+        """A sixth MAVLink instance (PX4 SITL's most) in the GCS's normal mode, as a second telemetry radio:
+        PX4 binds 18590+N and sends to 127.0.0.1:18600+N, where the ground station listens. PX4 answers only
+        the first address it hears from, so a ground station that sends from a fixed port (`udpin`) can
+        come and go, as QGroundControl does on 14550. Needs the running PX4 (`mavlink` talks to its daemon);
+        returns the port the ground station listens on."""
+        self.check_running()
+        done = subprocess.run(
+            [str(self.work_dir / "bin" / "px4-mavlink"), "--instance", str(self.instance), "start", "-u",
+             str(self.ports.ground), "-o", str(self.ports.ground_remote), "-r", str(GROUND_LINK_RATE)],
+            cwd=self.work_dir, env=self.environment(), capture_output=True, text=True, timeout=10,
+        )  # fmt: skip
+        if done.returncode != 0:
+            raise RuntimeError(
+                f"px4 (instance {self.instance}) did not start its ground link on UDP {self.ports.ground} "
+                f"(exit {done.returncode}):\n{self.log_tail()}"
+            )
+        return self.ports.ground_remote
 
     def check_running(self) -> None:
         if self.process is not None and self.process.poll() is not None:
@@ -429,6 +461,7 @@ class RealPx4:
         self.bridge = CompanionBridge(sitl.take_onboard_socket(), self.mode_name, companion_port).start()
         self.truth = GroundTruthPose(sitl.take_truth_socket(), sitl.home, (0.0, 0.0)).start()
         self.gcs.hold_sticks()
+        self._ground_port: int | None = None
 
     @property
     def setpoints(self) -> list[BridgedSetpoint]:
@@ -479,6 +512,13 @@ class RealPx4:
         if name != "companion":
             raise ValueError(f"only the companion's link can be cut on the real autopilot, not {name!r}")
         self.bridge.set_down(down)
+
+    def ground_url(self) -> str:
+        """The second GCS link (started on first use, once PX4 answers its GCS: booted)."""
+        if self._ground_port is None:
+            self.claim_gcs_link()
+            self._ground_port = self.sitl.start_ground_link()
+        return f"udpin:127.0.0.1:{self._ground_port}"
 
     def claim_gcs_link(self, timeout_s: float = 20.0) -> float:
         """Speak to PX4's GCS port until it answers us (it answers only its first local partner)."""

@@ -783,7 +783,8 @@ class ScenarioRun:
         for msg_id, hz in ((0, 10.0), (42, 4.0)):  # HEARTBEAT (modes), MISSION_CURRENT (the item flown)
             v.gcs.request_interval(msg_id, hz)
         cmd = [
-            sys.executable, "-m", "gcs.cli", "--connect", self._ground_url(v), "--timeout", "15",
+            sys.executable, "-m", "gcs.cli", "--connect", self._ground_url(v), "--timeout", "15", "--system",
+            str(v.autopilot.system_id if self.real else 1),
             "survey", "--centre", f"{centre[0]:.7f},{centre[1]:.7f}", "--size", f"{e_e - w_e:g}x{n_n - s_n:g}",
             "--altitude", f"{spec.altitude_m:g}", "--overlap", f"{spec.overlap:g}", "--speed",
             f"{spec.speed_m_s:g}", "--companion-config", str(vehicle_config),
@@ -800,17 +801,21 @@ class ScenarioRun:
         mode = MISSION_MODE[self.personality]
         v.autopilot.set_mode(mode, source="pilot")
         deadline = time.monotonic() + timeout_s
-        while not (v.gcs.modes and v.gcs.modes[-1][1] == _custom_mode(self.personality, mode)):
+        while not (v.gcs.modes and v.gcs.modes[-1][1] == self._mode_number(v, mode)):
             if time.monotonic() > deadline:
                 raise RuntimeError(f"{v.vehicle_id}: the autopilot did not enter {mode} for the survey")
             time.sleep(0.1)
         time.sleep(0.5)  # the companion's telemetry shows the mission flying before the mission starts
         self.progress(f"{v.vehicle_id}: the pilot switched to {mode}: flying the survey")
 
+    def _mode_number(self, v: _Vehicle, name: str) -> int:
+        """HEARTBEAT.custom_mode of a mode, as the GCS sees it."""
+        return int(v.autopilot.custom_mode(name)) if self.real else _custom_mode(self.personality, name)
+
     def _ground_url(self, v: _Vehicle) -> str:
         """Where a second ground station (the operator's laptop) connects to the vehicle's autopilot."""
         if self.real:
-            return f"tcp:127.0.0.1:{v.autopilot.sitl.ports.ground}"
+            return str(v.autopilot.ground_url())
         return f"udpout:127.0.0.1:{v.autopilot.link_port('ground')}"
 
     def _poll_statuses(self) -> None:
@@ -837,7 +842,7 @@ class ScenarioRun:
         """Every time the autopilot left its mission after the start, and where it resumed: from its own
         HEARTBEAT and MISSION_CURRENT on the GCS link (the autopilot's account, not the companion's)."""
         epoch = self.epoch or 0.0
-        auto = _custom_mode(self.personality, MISSION_MODE[self.personality])
+        auto = self._mode_number(v, MISSION_MODE[self.personality])
         currents = list(v.gcs.mission_currents)
         breaks: list[dict[str, Any]] = []
         in_mission: bool | None = None

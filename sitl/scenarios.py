@@ -113,7 +113,12 @@ class Scenario:
 
 
 TAKEOVER_MODE = {"ardupilot": "LOITER", "arducopter": "LOITER", "px4": "POSCTL"}
-MISSION_MODE = {"ardupilot": "AUTO", "arducopter": "AUTO", "px4": "MISSION"}  # the pilot's survey mode
+MISSION_MODE = {
+    "ardupilot": "AUTO",
+    "arducopter": "AUTO",
+    "px4": "MISSION",
+    "px4-sitl": "MISSION",
+}  # the pilot's survey mode
 FIND_MAX_ERROR_M = 3.0  # the reported position of the find against the truth
 FLY_TO_MIN_PROGRESS_M = (
     5.0  # after an abort the GCS's "fly to" must move the vehicle at least this far in 8 s
