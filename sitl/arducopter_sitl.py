@@ -362,7 +362,7 @@ def start_arducopter(
     work_dir: Path,
     home: tuple[float, float, float],
     companion_port: int | None,
-    speedup: float = 5.0,
+    speedup: float = 10.0,
     extra_params: dict[str, float] | None = None,
 ) -> RealAutopilot:
     """The binary in `work_dir`, its scripted GCS on SERIAL0 and the companion's bridge to SERIAL2."""

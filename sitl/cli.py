@@ -66,9 +66,9 @@ def _add_run(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     run.add_argument(
         "--speedup",
         type=float,
-        default=5.0,
+        default=10.0,
         metavar="X",
-        help="with --autopilot arducopter: SITL speed-up while it boots, arms and takes off (default 5); "
+        help="with --autopilot arducopter: SITL speed-up while it boots, arms and takes off (default 10); "
         "the mission itself always runs at 1, since the world, the camera and the companion run in "
         "wall-clock time (PX4 takes its speed factor only at start-up, so px4-sitl always runs at 1)",
     )

@@ -102,7 +102,7 @@ class RunOptions:
     startup_timeout_s: float = 90.0
     arducopter_binary: Path | None = None  # None: sitl.arducopter_sitl.default_binary()
     px4_package: Path | None = None  # None: sitl.px4_sitl.default_package()
-    speedup: float = 5.0  # ArduCopter's speed-up while it boots and takes off (the mission runs at 1)
+    speedup: float = 10.0  # ArduCopter's speed-up while it boots and takes off (the mission runs at 1)
     companion_settings: tuple[str, ...] = ()  # more `--set section.key=value` for the companion
     # A real autopilot already running and airborne (tests share one PX4 this way): the runner resets it
     # for the scenario (`FlightStack.reset`) instead of starting one, and leaves it running afterwards.

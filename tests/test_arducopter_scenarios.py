@@ -2,7 +2,7 @@
 
 Each test runs `cloudtrack-sim run SCENARIO --autopilot arducopter`'s code path: the runner starts the
 binary in its own working directory (wiped parameters, GUID_TIMEOUT 1 s, MAVn_* stream rates), the scripted
-pilot arms it and takes off to 10 m over the GCS link at SITL speed-up 5, then the mission runs at real
+pilot arms it and takes off to 10 m over the GCS link at SITL speed-up 10, then the mission runs at real
 time with the real companion process, the rendered camera and the real back-end. `pytest -k arducopter`
 selects them; about 25-50 s each on a 2-core machine. The follow itself is the README's
 `cloudtrack-sim run follow --autopilot arducopter`, run as written by `tests/test_readme.py`: its exit
@@ -50,6 +50,11 @@ def test_arducopter_search(models_dir: Path, tmp_path: Path) -> None:
     it broke off at (the autopilot's own MISSION_CURRENT), the described person is found within 3 m."""
     _, m = _fly("search", models_dir, tmp_path, json_out=tmp_path / "search.json")
     assert m["rejected"] == ["decoy"] and m["confirmed"][:1] == ["target"]
+    assert m["time_to_find_s"] is not None and m["time_to_find_s"] > 0
+    assert m["find"]["confirmed_by"] == "gcs"
+    # Flown only in GUIDED, none in AUTO: at most one setpoint crosses the hand-back's mode change (seen: 298 of
+    # 299, the last one in flight as AUTO took over).
+    assert m["setpoints_received"] > 0 and m["setpoints_received"] - m["setpoints_accepted"] <= 1
     breaks = m["mission_breaks"]
     assert breaks and breaks[0]["resumed_at"] == breaks[0]["left_at"] is not None
     assert m["geolocation_error_m"] is not None and m["geolocation_error_m"] <= 3.0

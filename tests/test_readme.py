@@ -135,7 +135,7 @@ def _fleet_bench_ran_every_part(report: dict[str, Any]) -> None:
     k, latency = t_f["k"], t_f["latency_s"]
     assert t_f["concurrent"]["candidates"] == t_f["sequential"]["candidates"] == [k] * 3
     assert t_f["sequential"]["t_f_s"] > k * latency > t_f["concurrent"]["t_f_s"]
-    assert [row["vehicles"] for row in report["fleet"]] == [1, 4, 16]
+    assert [row["vehicles"] for row in report["fleet"]] == [1, 4]
     assert all(row["errors"] == 0 and row["requests"] >= row["vehicles"] for row in report["fleet"])
     assert all(row["bytes_per_request"] < 100_000 for row in report["fleet"])
     replicas = report["replicas"]
