@@ -179,7 +179,14 @@ def test_reasons_a_prompt_the_back_end_cannot_search_for_is_refused_with_the_nea
             "START REFUSED: the back-end cannot search for this: superset 'orange life buoy' has no COCO"
             in (refused.stdout)
         )
-        reason = wait(lambda: snapshot_reason(backend.url)["reason"], 15, "the page's reason", log)
+        # The page shows the companion's latest reason: its start-up one ("waiting for the autopilot's
+        # HEARTBEAT") until the next status report carries the refusal.
+        reason = wait(
+            lambda: (r := snapshot_reason(backend.url)["reason"]).startswith("start refused") and r,
+            15,
+            "the refusal on the page",
+            log,
+        )
         assert reason.startswith(
             "start refused: the back-end cannot search for this: superset 'orange life buoy'"
         )
