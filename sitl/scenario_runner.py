@@ -34,7 +34,6 @@ from typing import Any
 
 from behaviors.camera_model import CameraModel
 from behaviors.geometry import Box, iou
-from cloudtrack.autopilot_modes import AutopilotKind, set_mode_params
 from sitl.camera_render import FrameTruth, RenderedFrame, TruthBox, VehiclePose
 from sitl.camera_server import CameraServer, PoseFollower
 from sitl.fault_proxy import FaultProxy
@@ -659,11 +658,7 @@ class ScenarioRun:
         from pymavlink import mavutil
 
         px4 = "px4" in self.personality
-        kind = AutopilotKind.PX4 if px4 else AutopilotKind.ARDUPILOT
-        params = set_mode_params(kind, self._takeover_mode(v))
-        custom = int(params.custom_mode)
-        if px4:  # PX4 packs main mode in bits 16-23, sub mode in 24-31
-            custom = (int(params.custom_mode) << 16) | (int(params.custom_sub_mode) << 24)
+        custom = self._mode_number(v, self._takeover_mode(v))
         mav = mavutil.mavlink.MAVLink(None, srcSystem=getattr(v.autopilot, "system_id", 1), srcComponent=1)
         heartbeat = mav.heartbeat_encode(
             mavutil.mavlink.MAV_TYPE_QUADROTOR,
