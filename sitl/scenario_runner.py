@@ -59,6 +59,7 @@ from sitl.scenarios import (
     COASTING_FAULTS,
     MISSION_MODE,
     TAKEOVER_MODE,
+    Fault,
     Scenario,
     ScriptedGcs,
     VehicleOutcome,
@@ -535,13 +536,16 @@ class ScenarioRun:
             v.decision_sent = (self.now(), action)
         self.say(f"{v.vehicle_id}: supervisor {action}s {pid}")
 
+    def _fault_due(self, fault: Fault) -> float:
+        """When `fault` is due in scenario seconds (infinity until its confirmation happened)."""
+        confirmations = self.vehicles[0].confirmations
+        if len(confirmations) < fault.confirmation:
+            return math.inf
+        return confirmations[fault.confirmation - 1][0] + fault.after_confirm_s
+
     def _faults(self) -> None:
-        lead = self.vehicles[0]
-        if not lead.confirmations:
-            return
-        t_confirm = lead.confirmations[0][0]
         for i, fault in enumerate(self.scenario.faults):
-            if i in self.faults_done or self.now() < t_confirm + fault.after_confirm_s:
+            if i in self.faults_done or self.now() < self._fault_due(fault):
                 continue
             self.faults_done.add(i)
             v = self.vehicles[fault.vehicle]
@@ -686,8 +690,8 @@ class ScenarioRun:
             if not all(v.rejections for v in self.vehicles):
                 return False
             t_confirm = max(t_confirm, *(v.rejections[0][0] for v in self.vehicles))
-        last_fault = max((f.after_confirm_s for f in self.scenario.faults), default=0.0)
-        return self.now() >= t_confirm + max(self.scenario.follow_s, last_fault + 4.0)
+        last_fault = max((self._fault_due(f) for f in self.scenario.faults), default=t_confirm)
+        return self.now() >= max(t_confirm + self.scenario.follow_s, last_fault + 4.0)
 
     # ---------------------------------------------------------------------------------------------- run
     def run(self) -> dict[str, Any]:
@@ -1075,6 +1079,7 @@ class ScenarioRun:
             (self.camera.width, self.camera.height),
             end_t,
             outcome="pending",
+            frozen=self._frozen(v, end_t),
         )
         metrics["last_setpoint_after_takeover_s"] = None if late is None else round(late, 3)
         if mode_seen_after is not None:
@@ -1193,6 +1198,16 @@ class ScenarioRun:
             out["estimate_error"] = estimate_error(estimates, truth)
         return out
 
+    def _frozen(self, v: _Vehicle, end_t: float) -> list[tuple[float, float]]:
+        """When `v`'s companion process was stopped (the `stall` fault until its `resume`)."""
+        stalled = (
+            any(f.kind == "stall" and self.vehicles[f.vehicle] is v for f in self.scenario.faults)
+            and "stall" in self.fault_times
+        )
+        if not stalled:
+            return []
+        return [(self.fault_times["stall"], self.fault_times.get("resume", end_t))]
+
     def _autopilot_during_stall(self, v: _Vehicle) -> dict[str, Any]:
         """What the real autopilot did while the companion was frozen: its first mode change (PX4 leaves
         OFFBOARD after COM_OF_LOSS_T; ArduCopter stays in GUIDED and stops after GUID_TIMEOUT) and what it
@@ -1203,11 +1218,27 @@ class ScenarioRun:
         modes = [(t - epoch, m) for t, m, _ in list(v.gcs.modes)]
         before = [m for t, m in modes if t < t_stall]
         change = next(((t, m) for t, m in modes if t >= t_stall and before and m != before[-1]), None)
+        # PX4 times its offboard loss from the last setpoint it had, which is up to a setpoint period before
+        # the freeze.
+        last_setpoint = max(
+            (
+                sp.time - epoch
+                for sp in list(v.autopilot.setpoints)
+                if sp.link == "companion" and sp.time - epoch <= t_stall
+            ),
+            default=None,
+        )
         return {
             "mode_before": v.autopilot.mode_of(before[-1]) if before else None,
             "mode_change": None
             if change is None
-            else {"mode": v.autopilot.mode_of(change[1]), "after_s": round(change[0] - t_stall, 3)},
+            else {
+                "mode": v.autopilot.mode_of(change[1]),
+                "after_s": round(change[0] - t_stall, 3),
+                "after_last_setpoint_s": None
+                if last_setpoint is None
+                else round(change[0] - last_setpoint, 3),
+            },
             "texts": [text for t, text in v.gcs.statustexts if t_stall <= t - epoch <= t_resume][:10],
         }
 

@@ -46,11 +46,14 @@ COASTING_FAULTS = ("takeover", "backend_down", "link_down", "abort", "stall")
 
 @dataclass(frozen=True)
 class Fault:
-    """Something the scenario does to the system, `after_confirm_s` after the first confirmation."""
+    """Something the scenario does to the system, `after_confirm_s` after the lead vehicle's
+    `confirmation`-th confirmation (a fault that must find the companion confirmed again after an earlier
+    fault waits for that confirmation rather than for a time that a slow re-approach can overrun)."""
 
     kind: FaultKind
     after_confirm_s: float
     vehicle: int = 0
+    confirmation: int = 1
 
 
 @dataclass(frozen=True)
@@ -288,12 +291,13 @@ SCENARIOS: dict[str, Scenario] = {
         ),
         Scenario(
             "link-drop-takeover",
-            "`link-drop` (down 2-6 s, the GCS restarts the mission at 7 s), then the pilot's RC takeover at 14 s",
+            "`link-drop` (down 2-6 s, the GCS restarts the mission at 7 s), then the pilot's RC takeover 2 s"
+            " after the supervisor confirmed the target again",
             faults=(
                 Fault("link_down", 2.0),
                 Fault("link_up", 6.0),
                 Fault("restart", 7.0),
-                Fault("rc_takeover", 14.0),
+                Fault("rc_takeover", 2.0, confirmation=2),
             ),
             follow_s=16.0,
             companion_settings=LINK_DROP_SETTINGS,

@@ -92,6 +92,8 @@ def test_mode_change_by_gcs_stops_setpoints_within_200_ms(
         time.sleep(0.3)
         ack = set_mode_from_gcs(ground, *mode_numbers)  # chosen by someone else
         assert ack is not None and ack.result == 0
+        # PX4 answers ACCEPTED before it changes mode (then the outcome): wait for the change itself.
+        assert wait_for(lambda: any(mode == theirs for _, mode, _ in sim.mode_history), 2.0)
         changed_at = next(t for t, mode, _ in sim.mode_history if mode == theirs)
         time.sleep(1.0)
         late = [s for s in sim.setpoints if s.time > changed_at + 0.2]

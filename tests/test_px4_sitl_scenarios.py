@@ -88,12 +88,15 @@ def test_px4_sitl_safety_set(
         assert m["flood"]["setpoints"] == 0
     if "stall" in faults:
         assert m["coasted_m"]["stall"] <= stall_max_coast_m("px4-sitl")
-        # PX4 took its offboard-loss failsafe (COM_OBL_RC_ACT Hold) about COM_OF_LOSS_T after the freeze,
-        # and said so.
+        # PX4 took its offboard-loss failsafe (COM_OBL_RC_ACT Hold) about COM_OF_LOSS_T after the last
+        # setpoint it had before the freeze, and said so.
         during = m["autopilot_during_stall"]
         assert during["mode_before"] == "OFFBOARD", during
         assert during["mode_change"]["mode"] == "HOLD", during
-        assert COM_OF_LOSS_T_S <= during["mode_change"]["after_s"] <= COM_OF_LOSS_T_S + 1.5, during
+        assert COM_OF_LOSS_T_S <= during["mode_change"]["after_last_setpoint_s"] <= COM_OF_LOSS_T_S + 1.5, (
+            during
+        )
+        assert during["mode_change"]["after_s"] <= COM_OF_LOSS_T_S + 1.5, during
         assert any("Failsafe" in text for text in during["texts"]), during
         # The GCS learns the cause from the companion: it stalled, and offboard ended by the failsafe.
         assert m["stall_reported"] is not None, m["statustexts_after_resume"]

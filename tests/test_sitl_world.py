@@ -245,6 +245,37 @@ def test_metrics_summary() -> None:
     assert percentile([1.0, 2.0, 3.0, 4.0], 50) == 2.5
 
 
+def test_frozen_seconds_count_in_neither_view_nor_standoff() -> None:
+    """A stopped companion still reads "following"; the target walking off then is the coast's to judge."""
+    events = [TimedEvent(0.0, "state", {"state": "following"})]
+    # 13 m off (12 m standoff) and centred, but 20 m off and out of view from 2 s to 3 s.
+    frames = [
+        FrameSample(
+            t / 10,
+            0.0,
+            0.0,
+            20.0 if 20 <= t <= 30 else 13.0,
+            0.0,
+            None if 20 <= t <= 30 else Box.from_center(320, 240, 10, 30),
+            1.0,
+        )
+        for t in range(0, 50)
+    ]
+    plain = summarise(frames, [], events, standoff_m=12.0, image_size=(640, 480), end_t=5.0, outcome="ok")
+    frozen = summarise(
+        frames,
+        [],
+        events,
+        standoff_m=12.0,
+        image_size=(640, 480),
+        end_t=5.0,
+        outcome="ok",
+        frozen=[(2.0, 3.0)],
+    )
+    assert plain["standoff_rmse_m"] > 3.0 and plain["target_in_view_ratio"] < 0.8
+    assert frozen["standoff_rmse_m"] == 1.0 and frozen["target_in_view_ratio"] == 1.0
+
+
 @pytest.mark.parametrize(
     ("estimates", "truth", "expected"),
     [
