@@ -70,6 +70,15 @@ class PilotTakeover:
     mode: str = ""
 
 
+@dataclass(frozen=True)
+class CompanionHold:
+    """A companion watchdog (stale frames, a stalled main loop) stopped the vehicle and asked for the hold
+    mode itself: the mode change that follows is the companion's own, not a pilot's takeover."""
+
+    time_s: float
+    reason: str
+
+
 Event = (
     TrackResult
     | BackendAnswer
@@ -79,4 +88,5 @@ Event = (
     | BackendUnreachable
     | AutopilotLinkLost
     | PilotTakeover
+    | CompanionHold
 )

@@ -41,6 +41,7 @@ from behaviors.events import (
     AutopilotLinkLost,
     BackendAnswer,
     BackendUnreachable,
+    CompanionHold,
     Event,
     GcsCommand,
     PilotTakeover,
@@ -215,6 +216,10 @@ def step(state: State, event: Event, config: MissionConfig) -> Result:
         return _abort(state, "autopilot link lost")
     if isinstance(event, PilotTakeover):
         return _abort(state, f"pilot takeover {event.mode}".strip())
+    if isinstance(event, CompanionHold):
+        # The watchdog has stopped the vehicle and told the GCS why; the hold mode it asked for is ours, and
+        # the next setpoint asks for the offboard mode again where the mission allows it (as after any Hold).
+        return (replace(state, holding=True), ()) if commanding(state) else (state, ())
     if isinstance(event, GcsCommand):
         return _command(state, event, config)
     if isinstance(event, Telemetry):

@@ -45,6 +45,7 @@ from behaviors.events import (
     AutopilotLinkLost,
     BackendAnswer,
     BackendUnreachable,
+    CompanionHold,
     Event,
     GcsCommand,
     PilotTakeover,
@@ -62,7 +63,13 @@ from cloudtrack.service_notify import Notifier
 from companion.cloud.backend_worker import BackendWorker
 from companion.cloud.candidate_crop import candidate_crop
 from companion.operator_notices import OperatorNotices
-from companion.safety_watchdog import BACKEND_UNREACHABLE, HEARTBEAT_LOST, SafetyEvent
+from companion.safety_watchdog import (
+    BACKEND_UNREACHABLE,
+    HEARTBEAT_LOST,
+    LOOP_STALLED,
+    STALE_FRAMES,
+    SafetyEvent,
+)
 from companion.status_report import StatusReport
 from companion.vision.frame_sources import Frame, FrameSource
 
@@ -279,7 +286,9 @@ class MissionRunner:
         self.vehicle.kick()
         frame = self.frames.read(timeout_s=self.settings.frame_wait_s)
         now = self.clock()
-        events: list[Event] = []
+        # The watchdogs' events first: a hold mode they asked for must be known as ours before telemetry
+        # shows the offboard mode gone (else it reads as a pilot's takeover).
+        events: list[Event] = self._safety_events()
         telemetry = self.vehicle.telemetry()
         if telemetry is not None and (
             self.state.telemetry is None or telemetry.time_s > self.state.telemetry.time_s
@@ -288,7 +297,6 @@ class MissionRunner:
             self._poses.append(telemetry)
         commands = self.vehicle.commands() + (self.session.commands() if self.session is not None else [])
         events.extend(GcsCommand(now, cmd) for cmd in commands)
-        events.extend(self._safety_events())
         if frame is not None:
             self._latest = frame
             self.stats.frames += 1
@@ -697,6 +705,8 @@ def behavior_event(ev: SafetyEvent) -> Event | None:
         return BackendAnswer(ev.time_s, PROBE_QUERY_ID, -1, ())
     if ev.by_other_party:
         return PilotTakeover(ev.time_s, ev.mode)
+    if ev.reason in (STALE_FRAMES, LOOP_STALLED) and ev.action == "stop":
+        return CompanionHold(ev.time_s, ev.reason)
     return None
 
 

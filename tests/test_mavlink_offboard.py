@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import time
+from typing import Any
 
 import pytest
 
-from behaviors.events import PilotTakeover
+from behaviors.events import AutopilotLinkLost, CompanionHold, PilotTakeover
 from behaviors.setpoint import Setpoint
 from companion.mavlink.offboard import (
     MAV_FRAME_BODY_NED,
@@ -14,6 +15,7 @@ from companion.mavlink.offboard import (
     TYPE_MASK_VELOCITY_YAW_RATE,
 )
 from companion.mission_runner import behavior_event
+from companion.safety_watchdog import HEARTBEAT_LOST, LOOP_STALLED, STALE_FRAMES, SafetyEvent
 from tests.mavlink_harness import (
     MainLoop,
     autopilot,
@@ -203,3 +205,21 @@ def test_release_stops_streaming_after_an_explicit_zero() -> None:
         assert (
             sim.mode == "LOITER"
         )  # let go: the hold mode (LOITER for ardupilot_hold = guided_zero), then silence
+
+
+@pytest.mark.parametrize(
+    ("event", "expected"),
+    [
+        (SafetyEvent(1.0, STALE_FRAMES, "stop"), CompanionHold(1.0, STALE_FRAMES)),
+        (SafetyEvent(1.0, LOOP_STALLED, "stop"), CompanionHold(1.0, LOOP_STALLED)),
+        (SafetyEvent(1.0, STALE_FRAMES, "cleared"), None),
+        (SafetyEvent(1.0, HEARTBEAT_LOST, "stop"), AutopilotLinkLost(1.0)),
+        (SafetyEvent(1.0, "mode_change", "offboard_ended", "OFFBOARD -> HOLD (requested)"), None),
+        (
+            SafetyEvent(1.0, "mode_change", "offboard_ended", "x", by_other_party=True, mode="POSCTL"),
+            PilotTakeover(1.0, "POSCTL"),
+        ),
+    ],
+)
+def test_the_behaviour_hears_a_watchdogs_own_hold_apart_from_a_takeover(event: Any, expected: Any) -> None:
+    assert behavior_event(event) == expected

@@ -30,6 +30,7 @@ from behaviors.events import (
     AutopilotLinkLost,
     BackendAnswer,
     BackendUnreachable,
+    CompanionHold,
     Event,
     GcsCommand,
     PilotTakeover,
@@ -609,6 +610,26 @@ def test_resuming_after_a_hold_asks_for_offboard_again_when_allowed() -> None:
     state, actions = step(state, tracked(2.2, FAR), config)
     assert state.mode is S.FOLLOWING
     assert kinds(actions) == ["GcsMessage", "RequestMode", "SendSetpoint"]
+
+
+@pytest.mark.parametrize("reason", ["stale_frames", "main_loop_stalled"])
+def test_a_watchdogs_own_hold_is_not_a_pilot_takeover_and_following_resumes(reason: str) -> None:
+    """PX4: the companion's stale-frame (or stalled-loop) stop asks for HOLD itself; telemetry then shows
+    the offboard mode gone, which is ours, not the pilot's; with frames back it asks for OFFBOARD again."""
+    state = reach(S.FOLLOWING, allow_engage=True)
+    state, actions = step(state, CompanionHold(1.2, reason), CFG)
+    assert actions == () and state.holding and state.mode is S.FOLLOWING
+    state, actions = step(state, telemetry(1.3, offboard=False), CFG)
+    assert state.mode is S.FOLLOWING and actions == ()
+    state, actions = step(state, tracked(1.4, FAR), CFG)
+    assert state.mode is S.FOLLOWING and "RequestMode" in kinds(actions) and not state.holding
+    # Without the watchdog's word the same telemetry is the pilot taking over.
+    state = reach(S.FOLLOWING, allow_engage=True)
+    state, actions = step(state, telemetry(1.3, offboard=False), CFG)
+    assert state.mode is S.ABORTED and "ReleaseControl" in kinds(actions)
+    # Not commanding (no mission): nothing to note.
+    idle = reach(S.IDLE)
+    assert step(idle, CompanionHold(0.5, reason), CFG) == (replace(idle, now_s=0.5), ())
 
 
 def test_backend_unreachable_stops_motion_until_it_answers() -> None:
