@@ -105,6 +105,8 @@ _JUDGED = frozenset(
 )
 _MAX_QUERIES_IN_FLIGHT = 8  # answers to older queries are dropped as stale
 _REVERIFY_MIN_IOU = 0.2
+# A hold mode we asked for shows in the autopilot's heartbeat within this (as the link's own window).
+HOLD_SHOWS_WITHIN_S = 5.0
 
 
 @dataclass(frozen=True)
@@ -158,6 +160,7 @@ class State:
     backend_down: bool = False
     mode_requested: FlightMode | None = None  # the last mode we asked for
     holding: bool = False  # a Hold was sent; the next setpoint first asks for the offboard mode again
+    held_at_s: float | None = None  # when the last hold of ours began (its mode may show after a resume)
     control: ControlState = ControlState()
     rejections: RejectionMemory = RejectionMemory()
     reason: str = ""  # why the current mode was entered
@@ -219,7 +222,7 @@ def step(state: State, event: Event, config: MissionConfig) -> Result:
     if isinstance(event, CompanionHold):
         # The watchdog has stopped the vehicle and told the GCS why; the hold mode it asked for is ours, and
         # the next setpoint asks for the offboard mode again where the mission allows it (as after any Hold).
-        return (replace(state, holding=True), ()) if commanding(state) else (state, ())
+        return (_hold(state), ()) if commanding(state) else (state, ())
     if isinstance(event, GcsCommand):
         return _command(state, event, config)
     if isinstance(event, Telemetry):
@@ -503,7 +506,10 @@ def _telemetry(state: State, telemetry: Telemetry) -> Result:
     # Leaving offboard is expected after our own hold (PX4 HOLD, ArduPilot BRAKE/LOITER) or mode request
     # (the mission handed back included); then only the link's PilotTakeover event, which knows what it
     # asked for, reports a takeover.
-    our_request = state.holding or state.mode_requested not in (None, FlightMode.OFFBOARD)
+    # A hold of ours shows within a few seconds, possibly after setpoints resumed and asked for the offboard
+    # mode again (PX4's HOLD after a watchdog's stop); the link knows that HOLD too.
+    recent_hold = state.held_at_s is not None and state.now_s - state.held_at_s <= HOLD_SHOWS_WITHIN_S
+    our_request = state.holding or recent_hold or state.mode_requested not in (None, FlightMode.OFFBOARD)
     if (
         commanding(state)
         and previous is not None
@@ -722,7 +728,7 @@ def _backend_down(state: State, event: BackendUnreachable) -> Result:
     msg = GcsMessage(f"back-end unreachable {event.reason}".strip()[:50], "warning")
     if commanding(state):
         # Watchdog rule: motion ends with a stop then hold; setpoints resume once the back-end answers.
-        return replace(new, holding=True), (Hold("back-end unreachable"), msg)
+        return _hold(new), (Hold("back-end unreachable"), msg)
     return new, (msg,)
 
 
@@ -796,7 +802,7 @@ def _lost_tick(state: State, target: Target, config: MissionConfig) -> Result:
     actions: list[Action] = []
     # Looking only (along the mission, not engaged): nothing to hold or request.
     if commanding(state) and state.lost_stage == 0 and elapsed >= config.lost_hold_after_s:
-        state = replace(state, lost_stage=1, holding=True)
+        state = replace(_hold(state), lost_stage=1)
         actions.append(Hold("target lost"))
     if commanding(state) and state.lost_stage == 1 and elapsed >= config.lost_action_after_s:
         state = replace(state, lost_stage=2)
@@ -877,6 +883,11 @@ def _scan(state: State, config: MissionConfig) -> Result:
         *engage,
         SendSetpoint(apply_limits(Setpoint(yaw_rate=config.search_yaw_rate), config.limits, height)),
     )
+
+
+def _hold(state: State) -> State:
+    """The vehicle is being held on our request: the offboard mode leaving next is ours."""
+    return replace(state, holding=True, held_at_s=state.now_s)
 
 
 def _resume_from_hold(state: State) -> Result:

@@ -9,11 +9,15 @@ import pytest
 
 from behaviors.events import AutopilotLinkLost, CompanionHold, PilotTakeover
 from behaviors.setpoint import Setpoint
+from cloudtrack.vehicle_config import SafetyConfig
+from companion.config import MavlinkConfig
 from companion.mavlink.offboard import (
     MAV_FRAME_BODY_NED,
     MAV_FRAME_BODY_OFFSET_NED,
     TYPE_MASK_VELOCITY_YAW_RATE,
 )
+from companion.mavlink.telemetry_decoder import AutopilotHeartbeat, AutopilotKind
+from companion.mavlink.vehicle_link import VehicleLink
 from companion.mission_runner import behavior_event
 from companion.safety_watchdog import HEARTBEAT_LOST, LOOP_STALLED, STALE_FRAMES, SafetyEvent
 from tests.mavlink_harness import (
@@ -223,3 +227,24 @@ def test_release_stops_streaming_after_an_explicit_zero() -> None:
 )
 def test_the_behaviour_hears_a_watchdogs_own_hold_apart_from_a_takeover(event: Any, expected: Any) -> None:
     assert behavior_event(event) == expected
+
+
+@pytest.mark.parametrize(("shown", "ours"), [("HOLD", True), ("POSCTL", False)])
+def test_a_hold_we_asked_for_stays_ours_after_we_asked_for_offboard_again(shown: str, ours: bool) -> None:
+    """PX4 on a loaded machine: a watchdog's stop asks for HOLD, frames come back and OFFBOARD is asked for
+    again, and only then does PX4's HOLD show: it is ours. A mode we never asked for is someone else's."""
+    link = VehicleLink(MavlinkConfig(connection="udpin:127.0.0.1:0"), SafetyConfig())
+    try:
+        now = time.monotonic()
+        link._streams_requested_at = now  # nobody to ask for streams here
+        with link._lock:
+            link._enabled = True
+            assert (
+                link._on_heartbeat(AutopilotHeartbeat(AutopilotKind.PX4, "OFFBOARD", True, now), now) is None
+            )
+            link._note_mode_request("HOLD")
+            link._note_mode_request("OFFBOARD")
+            event = link._on_heartbeat(AutopilotHeartbeat(AutopilotKind.PX4, shown, True, now), now + 0.3)
+        assert event is not None and event.by_other_party is not ours, event
+    finally:
+        link.close()

@@ -37,7 +37,7 @@ from behaviors.events import (
     TimerTick,
 )
 from behaviors.geometry import Box
-from behaviors.mission import MissionState, State, initial_state, redetect_roi, step
+from behaviors.mission import HOLD_SHOWS_WITHIN_S, MissionState, State, initial_state, redetect_roi, step
 from behaviors.mission_commands import (
     AbortMission,
     ConfirmCandidate,
@@ -630,6 +630,20 @@ def test_a_watchdogs_own_hold_is_not_a_pilot_takeover_and_following_resumes(reas
     # Not commanding (no mission): nothing to note.
     idle = reach(S.IDLE)
     assert step(idle, CompanionHold(0.5, reason), CFG) == (replace(idle, now_s=0.5), ())
+
+
+def test_our_hold_that_shows_only_after_the_resume_is_still_ours() -> None:
+    """PX4 on a loaded machine: the watchdog's HOLD shows in telemetry after frames came back and the mission
+    asked for OFFBOARD again; it is still ours. Past the window, offboard ending is the pilot's again."""
+    state = reach(S.FOLLOWING, allow_engage=True)
+    state, _ = step(state, CompanionHold(1.2, "stale_frames"), CFG)
+    state, actions = step(state, tracked(1.3, FAR), CFG)  # frames back: following resumes
+    assert "SendSetpoint" in kinds(actions) and not state.holding
+    state, actions = step(state, telemetry(1.5, offboard=False), CFG)
+    assert state.mode is S.FOLLOWING and actions == ()
+    state, _ = step(state, telemetry(1.2 + HOLD_SHOWS_WITHIN_S + 0.5, offboard=True), CFG)
+    state, actions = step(state, telemetry(1.2 + HOLD_SHOWS_WITHIN_S + 0.6, offboard=False), CFG)
+    assert state.mode is S.ABORTED and "ReleaseControl" in kinds(actions)
 
 
 def test_backend_unreachable_stops_motion_until_it_answers() -> None:

@@ -155,7 +155,10 @@ class VehicleLink:
         self._engage = False  # and may select GUIDED/OFFBOARD itself
         self._mode = ""
         self._stream_since: float | None = None
-        self._mode_request: tuple[str, float] | None = None
+        self._mode_request: tuple[str, float] | None = None  # the latest, for the retry
+        # Every mode we asked for, when: a HOLD we asked for stays ours when OFFBOARD was asked for after it
+        # but before the autopilot's HOLD showed (a watchdog's stop, then the mission's resume).
+        self._own_requests: dict[str, float] = {}
         self._streams_requested_at = -math.inf
         self._last_heartbeat_sent = -math.inf
         self._last_tracking_sent = -math.inf
@@ -296,7 +299,7 @@ class VehicleLink:
             log.warning("letting go: %s", reason)
             if self._mavsdk is not None and kind is AutopilotKind.PX4:
                 with self._lock:
-                    self._mode_request = ("HOLD", self._clock())
+                    self._note_mode_request("HOLD")
                 self._mavsdk.stop(reason)  # zero, then HOLD; MAVSDK would keep re-sending otherwise
                 return
             mode = self._release_mode(kind)
@@ -601,7 +604,7 @@ class VehicleLink:
             self.status(f"MODE {name} UNAVAILABLE", MAV_SEVERITY_WARNING)
             return
         with self._lock:
-            self._mode_request = (name, self._clock())
+            self._note_mode_request(name)
         log.info("requesting mode %s", name)
         if self._mavsdk is not None and kind is AutopilotKind.PX4 and name == "OFFBOARD":
             self._mavsdk.start_offboard()
@@ -613,6 +616,12 @@ class VehicleLink:
                 params.base_mode, params.custom_mode, params.custom_sub_mode, 0, 0, 0, 0,
             )
         )  # fmt: skip
+
+    def _note_mode_request(self, name: str) -> None:
+        """Remember a mode we asked for (lock held)."""
+        now = self._clock()
+        self._mode_request = (name, now)
+        self._own_requests[name] = now
 
     def _stop_and_hold(self, reason: str) -> None:
         """The explicit stop: zero velocity now, then ArduPilot's configured hold or PX4 HOLD."""
@@ -629,7 +638,7 @@ class VehicleLink:
             return  # the pilot or another mode has the vehicle; we were not commanding it
         if self._mavsdk is not None and kind is AutopilotKind.PX4:
             with self._lock:
-                self._mode_request = ("HOLD", self._clock())
+                self._note_mode_request("HOLD")
             self._mavsdk.stop(
                 reason
             )  # zero, then offboard stop (HOLD): MAVSDK would keep re-sending otherwise
@@ -703,11 +712,8 @@ class VehicleLink:
         ours = offboard_mode(hb.kind)
         if previous == hb.mode or previous != ours:
             return None
-        requested = (
-            self._mode_request is not None
-            and self._mode_request[0] == hb.mode
-            and (now - self._mode_request[1] < OWN_MODE_CHANGE_WINDOW_S)
-        )
+        asked_at = self._own_requests.get(hb.mode)
+        requested = asked_at is not None and now - asked_at < OWN_MODE_CHANGE_WINDOW_S
         if requested:
             return SafetyEvent(now, "mode_change", "offboard_ended", f"{previous} -> {hb.mode} (requested)")
         if not self._enabled:  # we were not flying it (e.g. the autopilot going on from our RTL to LAND)
