@@ -246,15 +246,26 @@ def read_timecode(image: np.ndarray, width: int | None = None) -> int:
     return value
 
 
-def _coverage(polys: list[tuple[np.ndarray, tuple[int, int, int]]]) -> float:
+# The most mask pixels `unoccluded_area` fills: a person right under or beside a low camera projects to tens
+# of thousands of pixels across, and a mask that size (hundreds of megabytes, up to a second of the render
+# thread) stalled the camera stream. Larger outlines are counted on a coarser grid, scaled back.
+_COVERAGE_MAX_PX = 1 << 21
+
+
+def unoccluded_area(polys: list[tuple[np.ndarray, tuple[int, int, int]]]) -> float:
     """Pixels a person's parts would cover with nothing in front and no image border."""
     allpix = np.round(np.vstack([p for p, _ in polys])).astype(np.int32)
     x0, y0 = allpix.min(axis=0)
     x1, y1 = allpix.max(axis=0)
-    mask = np.zeros((int(y1 - y0) + 1, int(x1 - x0) + 1), np.uint8)
+    span = (float(x1 - x0) + 1.0) * (float(y1 - y0) + 1.0)
+    scale = min(1.0, (_COVERAGE_MAX_PX / span) ** 0.5)
+    mask = np.zeros((int((y1 - y0) * scale) + 1, int((x1 - x0) * scale) + 1), np.uint8)
     for pix, _ in polys:
-        cv2.fillConvexPoly(mask, cv2.convexHull(np.round(pix).astype(np.int32) - [x0, y0]), 1)
-    return float(np.count_nonzero(mask))
+        pts = np.round(pix).astype(np.int32) - [x0, y0]
+        if scale < 1.0:
+            pts = np.round(pts * scale).astype(np.int32)
+        cv2.fillConvexPoly(mask, cv2.convexHull(pts), 1)
+    return float(np.count_nonzero(mask)) / (scale * scale)
 
 
 class Renderer:
@@ -340,7 +351,7 @@ class Renderer:
                 cv2.fillConvexPoly(image, cv2.convexHull(pts), colour, lineType=cv2.LINE_AA)
                 cv2.fillConvexPoly(ids, cv2.convexHull(pts), label)
             if label != 255:
-                areas[label] = _coverage(polys)
+                areas[label] = unoccluded_area(polys)
 
         truth: list[TruthBox] = []
         for _, label, polys in items:

@@ -68,6 +68,15 @@ RETURN_SPEED_M_S = 8.0  # the GCS's reposition back over home between scenarios
 # The ground link's bytes/s (a telemetry radio's order): a mission upload needs little, and at the GCS link's
 # 4 MB/s its streams would take CPU from the real-time SIH and the camera for nothing.
 GROUND_LINK_RATE = 20_000
+# What PX4's GCS link streams at ~45 Hz that the runner never reads (its own setpoint echo, attitude twice,
+# the motors, the attitude target): stopped once the link is claimed.
+GCS_STREAMS_UNREAD = (
+    mavutil.mavlink.MAVLINK_MSG_ID_POSITION_TARGET_LOCAL_NED,
+    mavutil.mavlink.MAVLINK_MSG_ID_ATTITUDE,
+    mavutil.mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION,
+    mavutil.mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW,
+    mavutil.mavlink.MAVLINK_MSG_ID_ATTITUDE_TARGET,
+)
 
 
 class Px4NotFound(RuntimeError):
@@ -536,6 +545,18 @@ class RealPx4:
             time.sleep(0.05)
         return time.monotonic() - started
 
+    def _quiet_gcs_link(self) -> None:
+        """PX4's GCS link streams about 330 messages a second (six at ~45 Hz); the runner's Python process,
+        which also renders and streams the camera, decodes every one. It reads positions at 10 Hz and
+        nothing of the rest: about 40 a second remain."""
+        for msg_id in GCS_STREAMS_UNREAD:
+            self.gcs.stop_stream(msg_id)
+        for msg_id in (
+            mavutil.mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
+            mavutil.mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
+        ):
+            self.gcs.request_interval(msg_id, 10.0)
+
     def fly_up(
         self, height_m: float, timeout_s: float = 90.0, progress: Callable[[str], None] = print
     ) -> float:
@@ -544,6 +565,7 @@ class RealPx4:
         started = time.monotonic()
         deadline = started + timeout_s
         self.claim_gcs_link()
+        self._quiet_gcs_link()
         last_try = 0.0
         while not (g.modes and g.modes[-1][2]):  # armed
             self.sitl.check_running()

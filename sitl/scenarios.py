@@ -609,6 +609,10 @@ class ScriptedGcs:
     def request_interval(self, msg_id: int, hz: float) -> None:
         self._command(mavutil.mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, 1e6 / hz, component=1)
 
+    def stop_stream(self, msg_id: int) -> None:
+        """MAV_CMD_SET_MESSAGE_INTERVAL -1: the autopilot stops sending `msg_id` on this link."""
+        self._command(mavutil.mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, -1, component=1)
+
     def set_mode(self, custom_mode: int, sub_mode: int = 0) -> None:
         """MAV_CMD_DO_SET_MODE: ArduPilot's mode number, or PX4's main and sub mode."""
         self._command(

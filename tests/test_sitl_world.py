@@ -14,7 +14,7 @@ import pytest
 from behaviors.camera_model import CameraModel
 from behaviors.geometry import Box
 from companion.vision.frame_sources import open_source
-from sitl.camera_render import Projector, Renderer, VehiclePose, read_timecode
+from sitl.camera_render import Projector, Renderer, VehiclePose, read_timecode, unoccluded_area
 from sitl.camera_server import CameraServer
 from sitl.frame_transport import (
     HEADER,
@@ -303,3 +303,13 @@ def test_estimate_error_against_the_nearest_truth(
         assert result is None
     else:
         assert result is not None and {k: result[k] for k in expected} == expected
+
+
+@pytest.mark.parametrize("side", [10.0, 99.0, 3000.0, 40000.0])
+def test_a_persons_unoccluded_area_is_counted_at_any_size(side: float) -> None:
+    """A person right beside a low camera projects to tens of thousands of pixels across: counted on a
+    coarser grid (a full-size mask took up to a second and stalled the camera stream)."""
+    square = np.array([[0.0, 0.0], [side, 0.0], [side, side], [0.0, side]])
+    overlapping = [(square, (0, 0, 0)), (square + side / 2, (0, 0, 0))]  # two parts, a quarter shared
+    exact = 1.75 * side * side
+    assert unoccluded_area(overlapping) == pytest.approx(exact, rel=0.25 if side < 50 else 0.01)
