@@ -265,7 +265,7 @@ def unoccluded_area(polys: list[tuple[np.ndarray, tuple[int, int, int]]]) -> flo
         if scale < 1.0:
             pts = np.round(pts * scale).astype(np.int32)
         cv2.fillConvexPoly(mask, cv2.convexHull(pts), 1)
-    return float(np.count_nonzero(mask)) / (scale * scale)
+    return float(np.count_nonzero(mask)) / float(scale * scale)
 
 
 class Renderer:
