@@ -229,10 +229,15 @@ def test_the_behaviour_hears_a_watchdogs_own_hold_apart_from_a_takeover(event: A
     assert behavior_event(event) == expected
 
 
-@pytest.mark.parametrize(("shown", "ours"), [("HOLD", True), ("POSCTL", False)])
-def test_a_hold_we_asked_for_stays_ours_after_we_asked_for_offboard_again(shown: str, ours: bool) -> None:
+@pytest.mark.parametrize(
+    ("shown", "failsafe", "ours"), [("HOLD", False, True), ("POSCTL", False, False), ("HOLD", True, False)]
+)
+def test_a_hold_we_asked_for_stays_ours_after_we_asked_for_offboard_again(
+    shown: str, failsafe: bool, ours: bool
+) -> None:
     """PX4 on a loaded machine: a watchdog's stop asks for HOLD, frames come back and OFFBOARD is asked for
-    again, and only then does PX4's HOLD show: it is ours. A mode we never asked for is someone else's."""
+    again, and only then does PX4's HOLD show: it is ours. A mode we never asked for is someone else's, and
+    so is PX4's failsafe HOLD (offboard lost while the companion was frozen), though we asked for HOLD too."""
     link = VehicleLink(MavlinkConfig(connection="udpin:127.0.0.1:0"), SafetyConfig())
     try:
         now = time.monotonic()
@@ -244,7 +249,9 @@ def test_a_hold_we_asked_for_stays_ours_after_we_asked_for_offboard_again(shown:
             )
             link._note_mode_request("HOLD")
             link._note_mode_request("OFFBOARD")
-            event = link._on_heartbeat(AutopilotHeartbeat(AutopilotKind.PX4, shown, True, now), now + 0.3)
+            event = link._on_heartbeat(
+                AutopilotHeartbeat(AutopilotKind.PX4, shown, True, now, failsafe=failsafe), now + 0.3
+            )
         assert event is not None and event.by_other_party is not ours, event
     finally:
         link.close()

@@ -13,7 +13,7 @@ selects them (with the conformance and parameter tests).
 The area search on PX4 (`cloudtrack-sim run search --autopilot px4-sitl`) is not in this set: it failed in CI
 (2026-11-26) on camera stalls, now found and fixed (a person beside the low camera made the renderer fill a
 mask of hundreds of megabytes: `sitl.camera_render.unoccluded_area`; 0 stale-frame stops in the flights since, 1-4 a flight
-before). It still fails 5 of 7 flights on this machine for another reason: the local verifier answers
+before). It still fails 6 of 8 flights on this machine for another reason: the local verifier answers
 "uncertain" (boxes 13-25 px) or once "no" for the look-alike 2 m beside the first lane, so it passes unproposed
 and the described person is found from the second lane; docs/sitl.md has the runs.
 """

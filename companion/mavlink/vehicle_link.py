@@ -713,7 +713,9 @@ class VehicleLink:
         if previous == hb.mode or previous != ours:
             return None
         asked_at = self._own_requests.get(hb.mode)
-        requested = asked_at is not None and now - asked_at < OWN_MODE_CHANGE_WINDOW_S
+        # The autopilot's failsafe (PX4's offboard loss: HOLD with OFFBOARD still intended) is never our hold,
+        # even where we asked for the same mode: PX4 would fly OFFBOARD again once setpoints resume.
+        requested = not hb.failsafe and asked_at is not None and now - asked_at < OWN_MODE_CHANGE_WINDOW_S
         if requested:
             return SafetyEvent(now, "mode_change", "offboard_ended", f"{previous} -> {hb.mode} (requested)")
         if not self._enabled:  # we were not flying it (e.g. the autopilot going on from our RTL to LAND)
