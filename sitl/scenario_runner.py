@@ -1088,6 +1088,17 @@ class ScenarioRun:
             None if occlusion is None else [round(occlusion[0], 2), round(occlusion[1], 2)]
         )
         metrics["frames_rendered"] = len(v.frames)
+        # Whether the search moved on a cascade's early (local) answer rather than waiting for its final one.
+        first_yes = next(
+            (
+                e
+                for e in v.events
+                if e.get("kind") == "answer"
+                and any(c.get("verdict") == "yes" for c in e.get("candidates", []))
+            ),
+            None,
+        )
+        metrics["first_candidate_early"] = None if first_yes is None else not first_yes.get("final", True)
         # ArduCopter flies a setpoint only in GUIDED, PX4 only in OFFBOARD: those are the accepted ones.
         active = (
             v.autopilot.offboard_mode if self.real else "OFFBOARD" if self.personality == "px4" else "GUIDED"

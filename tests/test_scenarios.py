@@ -111,7 +111,10 @@ def test_occlusion_with_a_slow_hosted_vlm(models_dir: Path, tmp_path: Path) -> N
     assert m["confirmed"][:1] == ["target"]
     assert m["reinits"] >= 1
     assert m["time_to_first_candidate_s"] is not None and m["time_to_verified_candidate_s"] is not None
-    assert m["time_to_verified_candidate_s"] - m["time_to_first_candidate_s"] >= 1.5  # moved before the VLM
+    # Moved before the VLM: the first "yes" was the local stage's early answer, the VLM's verdict came later
+    # (not a whole 2 s later where the VLM said yes to an earlier keyframe the local stage was uncertain of).
+    assert m["first_candidate_early"] is True
+    assert m["time_to_verified_candidate_s"] > m["time_to_first_candidate_s"]
     # The emulated VLM says "yes" to bystanders too ("if in doubt"): the early track on the target stays,
     # and the supervisor is never shown anyone else.
     assert m["rejected"] == [], m["rejected"]
