@@ -993,7 +993,8 @@ class ScenarioRun:
                     events.append(TimedEvent(t, "confirmed"))
             elif kind == "answer" and any(c.get("verdict") == "yes" for c in e.get("candidates", [])):
                 if not any(x.kind == "candidate" for x in events):
-                    events.append(TimedEvent(t, "candidate"))  # the first "yes", early or final
+                    # the first "yes", early (a cascade's local answer) or final
+                    events.append(TimedEvent(t, "candidate", {"early": not e.get("final", True)}))
                 if e.get("final", True) and not any(x.kind == "verified" for x in events):
                     events.append(TimedEvent(t, "verified"))  # the final verifier's first "yes"
             elif kind == "reinit":
@@ -1089,16 +1090,9 @@ class ScenarioRun:
         )
         metrics["frames_rendered"] = len(v.frames)
         # Whether the search moved on a cascade's early (local) answer rather than waiting for its final one.
-        first_yes = next(
-            (
-                e
-                for e in v.events
-                if e.get("kind") == "answer"
-                and any(c.get("verdict") == "yes" for c in e.get("candidates", []))
-            ),
-            None,
+        metrics["first_candidate_early"] = next(
+            (x.detail["early"] for x in events if x.kind == "candidate"), None
         )
-        metrics["first_candidate_early"] = None if first_yes is None else not first_yes.get("final", True)
         # ArduCopter flies a setpoint only in GUIDED, PX4 only in OFFBOARD: those are the accepted ones.
         active = (
             v.autopilot.offboard_mode if self.real else "OFFBOARD" if self.personality == "px4" else "GUIDED"
