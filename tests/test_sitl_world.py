@@ -12,7 +12,9 @@ import numpy as np
 import pytest
 
 from behaviors.camera_model import CameraModel
+from behaviors.geolocation import latlon_to_offset, offset_to_latlon
 from behaviors.geometry import Box
+from behaviors.survey_planner import SurveySettings, plan_survey, rectangle
 from companion.vision.frame_sources import open_source
 from sitl.camera_render import Projector, Renderer, VehiclePose, read_timecode, unoccluded_area
 from sitl.camera_server import CameraServer
@@ -33,8 +35,10 @@ from sitl.metrics import (
     percentile,
     summarise,
 )
+from sitl.scenario_runner import MOUNT_PITCH_DEG
+from sitl.scenarios import SurveySpec
 from sitl.simulated_detector import DetectorNoise, SimulatedPersonDetector
-from sitl.world import CLOTHING, Person, distractor_world
+from sitl.world import CLOTHING, Person, distractor_world, search_world
 
 CAMERA = CameraModel.from_hfov(640, 480, 70.0, -45.0)
 BEHIND = VehiclePose(8.0, 0.0, -10.0)  # 12 m behind the target's start, 10 m up, facing north
@@ -313,3 +317,30 @@ def test_a_persons_unoccluded_area_is_counted_at_any_size(side: float) -> None:
     overlapping = [(square, (0, 0, 0)), (square + side / 2, (0, 0, 0))]  # two parts, a quarter shared
     exact = 1.75 * side * side
     assert unoccluded_area(overlapping) == pytest.approx(exact, rel=0.25 if side < 50 else 0.01)
+
+
+@pytest.mark.parametrize("drift", [(0.0, 0.0), (0.6, 0.6), (-0.6, 0.6), (1.0, -1.0), (0.0, 1.5)])
+def test_the_search_survey_meets_the_look_alike_first_whatever_the_take_off_drift(
+    drift: tuple[float, float],
+) -> None:
+    """The planner begins at the lane end nearest the vehicle: from anywhere within 1.5 m of home (the real PX4
+    drifted 0.6 m in its take-off) the first lane is the west one, which passes the look-alike and then the
+    described person within the verifier's reach."""
+    home = (47.397742, 8.545594)
+    spec = SurveySpec()
+    (s_n, w_e), (n_n, e_e) = spec.area_ne
+    settings = SurveySettings(
+        altitude_m=spec.altitude_m, overlap=spec.overlap,
+        camera=CameraModel.from_hfov(640, 480, 70.0, MOUNT_PITCH_DEG, stabilised=True),
+        search_range_m=spec.search_range_m, min_altitude_m=5.0, max_altitude_m=60.0,
+        start=offset_to_latlon(*home, *drift),
+    )  # fmt: skip
+    area = rectangle(offset_to_latlon(*home, (s_n + n_n) / 2, (w_e + e_e) / 2), e_e - w_e, n_n - s_n)
+    plan = plan_survey(area, settings)
+    first, second = (latlon_to_offset(*home, *p) for p in plan.waypoints[:2])
+    assert plan.lanes == 3 and second[0] > first[0]  # flown north
+    world = search_world(1)
+    for name in ("decoy", "target"):
+        person = next(p for p in world.people if p.person_id == name)
+        off_lane = [abs(east - first[1]) for _, east in person.waypoints]
+        assert max(off_lane) <= 7.0, (name, first)
