@@ -10,12 +10,7 @@ faults (`flood-stall`, `link-drop-takeover` in sitl/scenarios.py) and the two of
 pymavlink one and `mavlink.use_mavsdk` (MAVSDK 4 in process), share them out (`FLIGHTS`). `pytest -k px4_sitl`
 selects them (with the conformance and parameter tests).
 
-The area search on PX4 (`cloudtrack-sim run search --autopilot px4-sitl`) is not in this set: it failed in CI
-(2026-11-26) on camera stalls, now found and fixed (a person beside the low camera made the renderer fill a
-mask of hundreds of megabytes: `sitl.camera_render.unoccluded_area`; 0 stale-frame stops in the flights since, 1-4 a flight
-before). It still fails 6 of 8 flights on this machine for another reason: the local verifier answers
-"uncertain" (boxes 13-25 px) or once "no" for the look-alike 2 m beside the first lane, so it passes unproposed
-and the described person is found from the second lane; docs/sitl.md has the runs.
+The area search (`test_px4_sitl_search`) flies on the same PX4 after them.
 """
 
 from __future__ import annotations
@@ -119,3 +114,21 @@ def test_px4_sitl_safety_set(
         assert m["last_setpoint_after_takeover_s"] is not None and m["last_setpoint_after_takeover_s"] <= 0.2
     if "fly_to" in faults:
         assert m["fly_to_progress_m"] >= FLY_TO_MIN_PROGRESS_M
+
+
+def test_px4_sitl_search(px4: RealPx4, models_dir: Path, tmp_path: Path) -> None:
+    """Issue 29's area search on the real PX4: `cloudtrack-gcs survey` uploads the survey over PX4's second GCS
+    link (`RealPx4.ground_url`), the pilot flies it in Mission (its DO_CHANGE_SPEED 5 m/s, which PX4 keeps after
+    a resume), the companion takes OFFBOARD for the look-alike, the supervisor rejects it and Mission resumes
+    at the item it broke off at (PX4's own MISSION_CURRENT on the GCS link), the described person is found."""
+    _, m = _fly("search", px4, "pymavlink", models_dir, tmp_path, json_out=tmp_path / "search.json")
+    assert m["survey"]["output"][-1].startswith("uploaded 7 items, read back and checked")
+    assert m["rejected"] == ["decoy"] and m["confirmed"][:1] == ["target"]
+    breaks = m["mission_breaks"]
+    assert breaks and breaks[0]["resumed_at"] == breaks[0]["left_at"] is not None, breaks
+    assert m["geolocation_error_m"] is not None and m["geolocation_error_m"] <= 3.0
+    assert m["coverage_at_find"] is not None and 0.0 < m["coverage_at_find"] < 1.0
+    print(
+        f"px4 search: time to find {m['time_to_find_s']} s, coverage at the find {m['coverage_at_find']}, "
+        f"geolocation error {m['geolocation_error_m']} m, break-offs {breaks}"
+    )
