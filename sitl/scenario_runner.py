@@ -29,6 +29,7 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import partial
+from itertools import pairwise
 from pathlib import Path
 from typing import Any
 
@@ -1100,6 +1101,11 @@ class ScenarioRun:
         metrics["setpoints_accepted"] = sum(
             1 for sp in list(v.autopilot.setpoints) if sp.link == "companion" and sp.mode == active
         )
+        # Each time the vehicle leaves that mode (the companion's own hold or hand-back, a pilot's takeover)
+        # one setpoint can already be on its way: the companion learns the new mode from the next HEARTBEAT.
+        number = self._mode_number(v, active)
+        modes = [mode for _, mode, _ in list(v.gcs.modes)]
+        metrics["left_active_mode"] = sum(1 for a, b in pairwise(modes) if a == number != b)
         track = [(f.time_s, f.pose.north, f.pose.east) for f in v.frames]
         metrics["coasted_m"] = {
             kind: round(distance_coasted(track, t), 2)

@@ -48,7 +48,10 @@ def _outcome(**changes: Any) -> VehicleOutcome:
         ("follow", "ardupilot", {"companion_stop_s": 2.5}, "stopped in 2.5 s"),
         ("follow", "ardupilot", {"companion_stop_s": None}, "stopped in None s"),
         ("follow", "ardupilot", {"setpoint_rate_hz": 9.0}, "setpoints at 9.0 Hz"),
-        ("follow", "arducopter", {"setpoints_accepted": 290}, "290 of them in GUIDED"),
+        ("follow", "arducopter", {"setpoints_accepted": 290}, "290 of them in GUIDED (0 departures"),
+        ("follow", "ardupilot", {"setpoints_accepted": 299, "left_active_mode": 1}, None),  # one in flight
+        ("follow", "ardupilot", {"setpoints_accepted": 298, "left_active_mode": 1}, "298 of them in GUIDED"),
+        ("follow", "ardupilot", {"setpoints_accepted": 290, "left_active_mode": 1}, "290 of them in GUIDED"),
         ("follow", "px4", {"setpoints_accepted": 290}, None),  # PX4 needs a stream before OFFBOARD
         ("follow", "px4-sitl", {"setpoints_accepted": 290}, None),
         ("follow", "arducopter", {"standoff_rmse_m": 3.3}, "standoff RMSE 3.3 m, needs <= 3 m"),
