@@ -125,13 +125,17 @@ def summarise(
     outcome: str,
     min_visible: float = 0.3,
     frozen: Sequence[tuple[float, float]] = (),
+    unflown: Sequence[tuple[float, float]] = (),
 ) -> dict[str, Any]:
     """The metrics JSON of one vehicle's run (numbers rounded for reading; nan becomes None). `frozen`:
     intervals in which the companion process was stopped; its state still reads "following" there, but
-    nothing of its control ran, so they count in neither the view nor the standoff (the coast measures them)."""
+    nothing of its control ran, so they count in neither the view nor the standoff (the coast measures them).
+    `unflown`: intervals in which the autopilot was not in the mode that flies the companion's setpoints (PX4
+    grants OFFBOARD only after a second of them), which count in neither for the same reason."""
     states = [e for e in events if e.kind == "state"]
     follow = following_intervals(states, end_t)
-    in_follow = [f for f in frames if _inside(f.t, follow) and not _inside(f.t, frozen)]
+    excluded = [*frozen, *unflown]
+    in_follow = [f for f in frames if _inside(f.t, follow) and not _inside(f.t, excluded)]
     w, h = image_size
     seen = [
         f

@@ -1082,6 +1082,7 @@ class ScenarioRun:
             end_t,
             outcome="pending",
             frozen=self._frozen(v, end_t),
+            unflown=self._unflown(v, end_t),
         )
         metrics["last_setpoint_after_takeover_s"] = None if late is None else round(late, 3)
         if mode_seen_after is not None:
@@ -1218,6 +1219,26 @@ class ScenarioRun:
         if not stalled:
             return []
         return [(self.fault_times["stall"], self.fault_times.get("resume", end_t))]
+
+    def _unflown(self, v: _Vehicle, end_t: float) -> list[tuple[float, float]]:
+        """When `v`'s autopilot was not in the mode that flies the companion's setpoints (GUIDED, OFFBOARD), as
+        its HEARTBEATs on the GCS link show."""
+        epoch = self.epoch or 0.0
+        active = self._mode_number(
+            v,
+            v.autopilot.offboard_mode if self.real else "OFFBOARD" if self.personality == "px4" else "GUIDED",
+        )
+        intervals: list[tuple[float, float]] = []
+        since: float | None = None  # start of the current interval outside the active mode
+        for t, mode, _ in list(v.gcs.modes):
+            if mode != active and since is None:
+                since = t - epoch
+            elif mode == active and since is not None:
+                intervals.append((since, t - epoch))
+                since = None
+        if since is not None:
+            intervals.append((since, end_t))
+        return intervals
 
     def _autopilot_during_stall(self, v: _Vehicle) -> dict[str, Any]:
         """What the real autopilot did while the companion was frozen: its first mode change (PX4 leaves

@@ -278,6 +278,9 @@ def test_frozen_seconds_count_in_neither_view_nor_standoff() -> None:
     )
     assert plain["standoff_rmse_m"] > 3.0 and plain["target_in_view_ratio"] < 0.8
     assert frozen["standoff_rmse_m"] == 1.0 and frozen["target_in_view_ratio"] == 1.0
+    # The same for seconds the autopilot was not yet flying the companion's setpoints (PX4 before OFFBOARD).
+    unflown = summarise(frames, [], events, 12.0, (640, 480), end_t=5.0, outcome="ok", unflown=[(2.0, 3.0)])
+    assert unflown["standoff_rmse_m"] == 1.0 and unflown["target_in_view_ratio"] == 1.0
 
 
 @pytest.mark.parametrize(
