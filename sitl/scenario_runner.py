@@ -1096,9 +1096,7 @@ class ScenarioRun:
             (x.detail["early"] for x in events if x.kind == "candidate"), None
         )
         # ArduCopter flies a setpoint only in GUIDED, PX4 only in OFFBOARD: those are the accepted ones.
-        active = (
-            v.autopilot.offboard_mode if self.real else "OFFBOARD" if self.personality == "px4" else "GUIDED"
-        )
+        active = self._flying_mode(v)
         metrics["setpoints_accepted"] = sum(
             1 for sp in list(v.autopilot.setpoints) if sp.link == "companion" and sp.mode == active
         )
@@ -1220,14 +1218,17 @@ class ScenarioRun:
             return []
         return [(self.fault_times["stall"], self.fault_times.get("resume", end_t))]
 
+    def _flying_mode(self, v: _Vehicle) -> str:
+        """The mode in which `v`'s autopilot flies the companion's setpoints: GUIDED, or OFFBOARD on PX4."""
+        return str(
+            v.autopilot.offboard_mode if self.real else "OFFBOARD" if self.personality == "px4" else "GUIDED"
+        )
+
     def _unflown(self, v: _Vehicle, end_t: float) -> list[tuple[float, float]]:
         """When `v`'s autopilot was not in the mode that flies the companion's setpoints (GUIDED, OFFBOARD), as
         its HEARTBEATs on the GCS link show."""
         epoch = self.epoch or 0.0
-        active = self._mode_number(
-            v,
-            v.autopilot.offboard_mode if self.real else "OFFBOARD" if self.personality == "px4" else "GUIDED",
-        )
+        active = self._mode_number(v, self._flying_mode(v))
         intervals: list[tuple[float, float]] = []
         since: float | None = None  # start of the current interval outside the active mode
         for t, mode, _ in list(v.gcs.modes):
