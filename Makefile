@@ -82,13 +82,19 @@ pytest: install $(CHROMIUM) $(REDIS_SERVER) $(NGINX) $(WORDNET)
 	$(BIN)/python -m pytest -m "not slow" -n $(CHECK_WORKERS)
 	$(BIN)/python -m pytest -m slow --durations=40
 
+# Every test without the slow mark with mypy beside them (its output printed after theirs); fails if either
+# does. $(1): extra pytest options.
+define fast_tests_beside_mypy
+@mkdir -p .mypy_cache; $(BIN)/mypy > .mypy_cache/check.out 2>&1 & types=$$!; \
+$(BIN)/python -m pytest $(1) -m "not slow" -n $(CHECK_WORKERS); tests=$$?; \
+wait $$types; typed=$$?; echo "mypy:"; cat .mypy_cache/check.out; \
+test $$tests -eq 0 && test $$typed -eq 0
+endef
+
 # CI: as `pytest`, with mypy (cold in a fresh clone: ~40 s of CPU) beside the fast tests as in `check`,
 # never beside the slow ones, whose real-time flights were timed without it.
 test: lint format-check $(CHROMIUM) $(REDIS_SERVER) $(NGINX) $(WORDNET)
-	@mkdir -p .mypy_cache; $(BIN)/mypy > .mypy_cache/check.out 2>&1 & types=$$!; \
-	$(BIN)/python -m pytest -m "not slow" -n $(CHECK_WORKERS); tests=$$?; \
-	wait $$types; typed=$$?; echo "mypy:"; cat .mypy_cache/check.out; \
-	test $$tests -eq 0 && test $$typed -eq 0
+	$(call fast_tests_beside_mypy,)
 	$(BIN)/python -m pytest -m slow --durations=40
 
 # The developer's inner loop: lint, types and every test without the slow mark (closed-loop scenarios,
@@ -100,10 +106,7 @@ CHECK_WORKERS ?= 4
 
 check: install
 	$(BIN)/ruff check .
-	@mkdir -p .mypy_cache; $(BIN)/mypy > .mypy_cache/check.out 2>&1 & types=$$!; \
-	$(BIN)/python -m pytest -q -m "not slow" -n $(CHECK_WORKERS); tests=$$?; \
-	wait $$types; typed=$$?; echo "mypy:"; cat .mypy_cache/check.out; \
-	test $$tests -eq 0 && test $$typed -eq 0
+	$(call fast_tests_beside_mypy,-q)
 
 demo: $(BIN)/.installed-demo
 	$(BIN)/cloudtrack-sim run follow --video out/demo.mp4 --plot out/demo.png --json out/demo.json
