@@ -68,7 +68,7 @@ REAL: dict[str, Any] = {
     "offboard_after_a_stream": {"acks": [ACCEPTED, ACCEPTED], "mode": "OFFBOARD"},
     "offboard_loss": {
         "left_offboard_for": "HOLD",
-        "after_com_of_loss_t": True,  # 0.5 s (+ one 10 Hz CURRENT_MODE period)
+        "after_com_of_loss_t": True,  # 0.5 s (+ CURRENT_MODE's report of it)
         "intended_mode": "OFFBOARD",  # the failsafe's mode, not the one asked for
         "system_status_critical": True,
         "told_the_gcs": True,  # STATUSTEXT "Failsafe activated"
@@ -79,7 +79,9 @@ REAL: dict[str, Any] = {
     # CURRENT_MODE asked for at 10 Hz comes at 1.7 Hz, and within 0.11 s of a mode change (below).
     "current_mode": {"at_the_requested_10_hz": False, "at_least_1_hz": True},
     "disabled_after_minus_one": True,
-    "mode_change_seen": {"current_mode_within_0_2_s": True, "heartbeat_within_0_2_s": False},
+    # CURRENT_MODE is sent on the change (0.11 s idle, 0.21 s once under CI's load); HEARTBEAT only on its 1 Hz
+    # beat (0.2-1.0 s): whether a beat falls within 0.2 s is chance, so only "by the next beat" is compared.
+    "mode_change_seen": {"current_mode_within_0_4_s": True, "heartbeat_within_1_5_s": True},
     # (course, mode while streaming): PX4 flies velocities in LOCAL_NED and BODY_NED only; a stream in the
     # other body frames is no offboard signal, so it falls into its offboard-loss failsafe.
     "course_deg": {
@@ -397,7 +399,8 @@ def test_what_happens_after_com_of_loss_t(vehicle: Px4Link) -> None:
         "left_offboard_for": None
         if left is None
         else next((n for n in MODES if custom_mode(n) == left[1].custom_mode), "?"),
-        "after_com_of_loss_t": left is not None and 0.4 <= left[0] - stopped <= 0.75,
+        # COM_OF_LOSS_T 0.5 s plus CURRENT_MODE's report of it (0.11 s idle, up to 0.4 s under load)
+        "after_com_of_loss_t": left is not None and 0.4 <= left[0] - stopped <= 0.9,
         "intended_mode": None
         if current is None
         else next((n for n in MODES if custom_mode(n) == current.intended_custom_mode), "?"),
@@ -451,7 +454,7 @@ def test_how_soon_a_mode_change_shows(vehicle: Px4Link) -> None:
     for name in ("POSCTL", "HOLD"):
         sent = time.monotonic()
         vehicle.gcs.set_mode(*MODES[name])
-        time.sleep(1.5)
+        time.sleep(1.6)  # past the next 1 Hz HEARTBEAT
         for kind in delays:
             seen = [t for t, m in vehicle.since(sent, kind) if m.custom_mode == custom_mode(name)]
             delays[kind].append(round(seen[0] - sent, 3) if seen else math.inf)
@@ -460,8 +463,8 @@ def test_how_soon_a_mode_change_shows(vehicle: Px4Link) -> None:
         vehicle,
         "mode_change_seen",
         {
-            "current_mode_within_0_2_s": max(delays["CURRENT_MODE"]) < 0.2,
-            "heartbeat_within_0_2_s": max(delays["HEARTBEAT"]) < 0.2,
+            "current_mode_within_0_4_s": max(delays["CURRENT_MODE"]) < 0.4,
+            "heartbeat_within_1_5_s": max(delays["HEARTBEAT"]) < 1.5,
         },
     )
 
