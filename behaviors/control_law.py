@@ -41,8 +41,7 @@ class ControlGains:
     filter_time_constant_s: float = 0.15
     max_accel_m_s2: float = 2.0
     max_yaw_accel: float = math.radians(90.0)  # rad/s^2
-    altitude_kp: float = 0.5  # m/s per m below the altitude floor, or away from the height being held
-    altitude_dead_band_m: float = 0.5  # the held height's tolerance: the autopilot's own noise is not chased
+    altitude_kp: float = 0.5  # m/s per m below the altitude floor
     target_height_m: float = 1.7  # a standing person, for the box-height fallback
     integral_leak_s: float = 1.0  # time constant of the integrals' decay inside the dead bands
     nominal_dt_s: float = 1.0 / 15.0  # first step, before two times are known
@@ -59,9 +58,6 @@ class ControlState:
     yaw_integral: float = 0.0
     forward_integral: float = 0.0
     output: Setpoint = Setpoint()
-    # The height the law keeps: the first one inside the altitude band while following this target. Not
-    # every autopilot holds it under velocity setpoints (PX4's OFFBOARD does not: docs/control-law.md).
-    hold_height_m: float | None = None
 
 
 @dataclass(frozen=True)
@@ -163,9 +159,7 @@ def follow_step(
     if not _inputs_valid(camera, telemetry, box, time_s) or (
         state.time_s is not None and time_s < state.time_s
     ):
-        return Setpoint.zero(), ControlState(
-            time_s=time_s if math.isfinite(time_s) else None, hold_height_m=state.hold_height_m
-        )
+        return Setpoint.zero(), ControlState(time_s=time_s if math.isfinite(time_s) else None)
 
     fresh = state.time_s is None
     dt = gains.nominal_dt_s if fresh or state.time_s is None else min(time_s - state.time_s, gains.max_dt_s)
@@ -210,17 +204,11 @@ def follow_step(
 
     down = 0.0
     height = telemetry.height_agl
-    hold = state.hold_height_m
-    if hold is None and limits.min_altitude <= height <= limits.max_altitude:
-        hold = height
     if _MIN_HEIGHT_FOR_FOOT_M <= height < limits.min_altitude:
         # Climb back into the band, but only when airborne: from the ground this would be a take-off.
         down = -gains.altitude_kp * (limits.min_altitude - height)
     elif height > limits.max_altitude and goal.descent_allowed:
         down = gains.altitude_kp * (height - limits.max_altitude)
-    elif hold is not None and height >= _MIN_HEIGHT_FOR_FOOT_M:
-        # Back to the held height; `apply_limits` lets it descend only towards a confirmed target.
-        down = gains.altitude_kp * _dead_band(height - hold, gains.altitude_dead_band_m)
 
     prev = state.output
     step_h = gains.max_accel_m_s2 * dt
@@ -235,4 +223,4 @@ def follow_step(
         _slew(yaw_rate, prev.yaw_rate, gains.max_yaw_accel * dt),
     )
     out = apply_limits(wanted, limits, height, goal.descent_allowed)
-    return out, ControlState(time_s, yaw_filtered, dist_filtered, yaw_integral, forward_integral, out, hold)
+    return out, ControlState(time_s, yaw_filtered, dist_filtered, yaw_integral, forward_integral, out)

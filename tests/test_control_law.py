@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 
-import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
@@ -247,32 +246,6 @@ def test_climbs_back_into_the_altitude_band_but_never_descends_unconfirmed() -> 
     high = Telemetry(0.0, height_agl=70.0)
     assert run(box, high, FollowGoal(12.0), GAINS, LIMITS, 3)[-1].down == 0.0
     assert run(box, high, FollowGoal(12.0, descent_allowed=True), GAINS, LIMITS, 3)[-1].down > 0
-
-
-@pytest.mark.parametrize(
-    ("heights", "confirmed", "down"),
-    [
-        ((10.0, 10.0, 10.0), False, 0.0),  # held
-        ((10.0, 10.4, 9.6), False, 0.0),  # inside the dead band: the autopilot's noise
-        ((10.0, 8.0), False, -0.75),  # sank 2 m: climbs back at altitude_kp x (2 - 0.5)
-        ((10.0, 12.0), False, 0.0),  # climbed: no descent towards an unconfirmed target...
-        ((10.0, 12.0), True, 0.75),  # ...a confirmed one: back down
-        ((10.0, math.nan, 8.0), False, -0.75),  # an invalid step keeps the held height
-        ((3.0, 8.0, 6.0), False, -0.75),  # held from the first height inside the band (8 m), not 3 m
-        ((70.0, 50.0), False, 0.0),  # above the ceiling nothing was held; 50 m is then the height to keep
-        ((12.0, 10.0), False, -0.75),  # the first height counts, not the latest
-    ],
-)
-def test_keeps_the_height_following_began_at(
-    heights: tuple[float, ...], confirmed: bool, down: float
-) -> None:
-    box = box_with_foot(CAM.cx, 300.0)
-    state, sp = ControlState(), Setpoint.zero()
-    for i, height in enumerate(heights):
-        t = i * 0.05
-        goal = FollowGoal(12.0, descent_allowed=confirmed)
-        sp, state = follow_step(box, CAM, Telemetry(t, height_agl=height), goal, GAINS, LIMITS, state, t)
-    assert math.isclose(sp.down, down, abs_tol=1e-9)
 
 
 def test_orbit_adds_sideways_speed_and_lateral_term_moves_towards_the_target() -> None:
