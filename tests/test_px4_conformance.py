@@ -35,10 +35,8 @@ VELOCITY_ONLY = 0b0000_0101_1100_0111  # position, acceleration and yaw ignored;
 VELOCITY_AND_YAW = 0b0000_1001_1100_0111  # velocity and yaw angle used, yaw rate ignored
 # A fresh-clone CI run once saw HOLD's second DO_SET_MODE ACK later than 1 s (the mode itself had changed).
 LATE_ACK_S = 2.0
-STOPPED_M_S, SETTLE_MAX_S = (
-    0.15,
-    6.0,
-)  # settled: under this speed over the last half second, waiting at most this
+STOPPED_M_S = 0.15  # settled: the mean velocity over the last half second under this (SIH's hover wanders)
+SETTLE_MAX_S = 6.0  # ...waiting at most this long for it
 FAILED, UNSUPPORTED, ACCEPTED, TEMPORARILY_REJECTED, DENIED = 4, 3, 0, 1, 2
 
 
@@ -301,9 +299,8 @@ def _compare(v: Px4Link, name: str, answer: Any) -> None:
 
 
 def _stopped(track: list[tuple[float, Any]], t0: float, t1: float) -> bool:
-    """Every LOCAL_POSITION_NED over [t0, t1] under `STOPPED_M_S` (none seen: not known to be stopped)."""
-    speeds = [math.hypot(m.vx, m.vy) for t, m in track if t0 <= t <= t1]
-    return bool(speeds) and max(speeds) < STOPPED_M_S
+    """The mean velocity over [t0, t1] under `STOPPED_M_S` (nothing seen: not known to be stopped)."""
+    return any(t0 <= t <= t1 for t, _ in track) and _course(track, t0, t1)[1] < STOPPED_M_S
 
 
 def _course(track: list[tuple[float, Any]], t0: float, t1: float) -> tuple[float, float]:
