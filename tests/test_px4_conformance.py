@@ -239,6 +239,7 @@ class Px4Link:
     def offboard(self) -> None:
         """OFFBOARD, stopped, facing north (after a 1 s stream, as the companion does)."""
         self.hold(1.0)
+        self.setpoint(mavlink.MAV_FRAME_LOCAL_NED, VELOCITY_AND_YAW)  # one more right before the request
         self.send_command(mavlink.MAV_CMD_DO_SET_MODE, 1, *MODES["OFFBOARD"])
         self.hold(1.5)
         assert self.mode() == "OFFBOARD", self.mode()
@@ -352,6 +353,8 @@ def test_offboard_entry_without_and_with_a_setpoint_stream(vehicle: Px4Link) -> 
         "offboard_without_stream",
         {"acks": acks, "mode": refused_mode, "mode_once_the_stream_runs": vehicle.mode()},
     )
+    # One more setpoint right before the request: a stall of this thread must not read as the stream's end.
+    vehicle.setpoint(mavlink.MAV_FRAME_LOCAL_NED, VELOCITY_AND_YAW)
     sent = vehicle.send_command(mavlink.MAV_CMD_DO_SET_MODE, 1, *MODES["OFFBOARD"])
     vehicle.hold(1.5)
     acks = [
