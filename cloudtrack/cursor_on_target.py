@@ -30,7 +30,7 @@ import warnings
 import xml.etree.ElementTree as ET
 from collections import deque
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import datetime, timedelta, timezone
 from typing import Any
 
 log = logging.getLogger(__name__)
@@ -93,6 +93,10 @@ def find_event(find: FindReport, callsign: str = "CloudTrack", stale_s: float = 
         detail=detail,
         callsign=f"FOUND: {find.prompt}"[:80],
     )
+    # pytak reads the clock once per attribute: one instant for all three, so stale - start is stale_s exactly.
+    now = datetime.now(timezone.utc)
+    for name, moment in (("time", now), ("start", now), ("stale", now + timedelta(seconds=int(stale_s)))):
+        event.set(name, moment.strftime(pytak.W3C_XML_DATETIME))
     return bytes(pytak.serialize_cot(event))
 
 
