@@ -99,6 +99,8 @@ TRACKING = frozenset(
         MissionState.LOST,
     }
 )
+# A candidate in view and not yet decided: what the vehicle may be taken from its mission for.
+IN_VIEW = frozenset({MissionState.ACQUIRING, MissionState.FOLLOWING, MissionState.AWAITING_SUPERVISOR})
 # States whose back-end answers the "verified" policy judges (see `_judging`).
 _JUDGED = frozenset(
     {MissionState.FOLLOWING, MissionState.AWAITING_SUPERVISOR, MissionState.CONFIRMED, MissionState.LOST}
@@ -522,7 +524,15 @@ def _telemetry(state: State, telemetry: Telemetry) -> Result:
         new = replace(new, mode_requested=None)
         if previous is None or not previous.mission_active:
             item, left = _item(telemetry.mission_item), _item(state.break_off_item)
-            return new, (GcsMessage(f"MISSION RESUMED at item {item} (left at {left})"),)
+            resumed = GcsMessage(f"MISSION RESUMED at item {item} (left at {left})")
+            if new.mode in IN_VIEW and new.target is not None:
+                # A candidate the search found while the mission was being handed back: the vehicle is the
+                # mission's again only now, so it is taken for the candidate now (stopped, as `_acquire`
+                # stops it, until the follow law's next setpoint).
+                new, take = _take_control(new, "candidate")
+                stop: tuple[Action, ...] = (SendSetpoint(Setpoint.zero()),) if take else ()
+                return new, (resumed, *take, *stop)
+            return new, (resumed,)
     return new, ()
 
 

@@ -36,6 +36,7 @@ from behaviors.mission_commands import (
     TrackRectangle,
 )
 from behaviors.mission_config import ConfirmAction, MissionConfig, SearchMode
+from behaviors.setpoint import Setpoint
 from behaviors.telemetry import Telemetry
 from tests.test_mission import AT_STANDOFF, CFG, FAR, HEIGHT, PROMPT, box_at, candidate, cmd, kinds, tracked
 from tests.test_mission import reach as spot_reach
@@ -345,6 +346,28 @@ def test_reject_hands_the_vehicle_back_at_the_break_off_item_and_sees_it_resume(
     assert actions == (GcsMessage(f"MISSION RESUMED at item {BREAK_OFF} (left at {BREAK_OFF})"),)
     _, actions = step(state, TimerTick(2.5), CFG)
     assert kinds(actions) == ["BackendQuery"]
+
+
+def test_a_candidate_found_while_the_mission_is_handed_back_takes_the_vehicle_once_it_flies_it() -> None:
+    """The search's next answer can come before the autopilot shows the mission again (the real PX4: a
+    candidate 0.1 s after the rejection, MISSION shown 0.3 s later). The vehicle is not the mission's yet,
+    so it is not taken then; once the mission shows, it is, at the item the mission is on: before, the
+    candidate was only looked at while the survey flew on, lost from view, and confirmed while lost."""
+    state, _ = step(reach(S.REJECTED), TimerTick(1.4), CFG)
+    assert state.mode_requested is FlightMode.MISSION
+    query = state.queries[-1][0]
+    state, actions = step(state, BackendAnswer(1.45, query, 40, (candidate(FAR, "c2"),)), CFG)
+    assert state.mode is S.ACQUIRING and not state.engaged
+    assert not any(isinstance(a, COMMANDS) for a in actions)
+    state, actions = step(state, auto(1.5, item=BREAK_OFF + 1), CFG)
+    assert actions == (
+        GcsMessage(f"MISSION RESUMED at item {BREAK_OFF + 1} (left at {BREAK_OFF})"),
+        RequestMode(FlightMode.OFFBOARD, "candidate"),
+        GcsMessage(f"LEFT MISSION at item {BREAK_OFF + 1}: candidate"),
+        SendSetpoint(Setpoint.zero()),
+    )
+    assert state.engaged and state.break_off_item == BREAK_OFF + 1 and commanding(state)
+    assert state.mode is S.ACQUIRING and state.target is not None and state.target.candidate_id == "c2"
 
 
 def test_the_pilot_choosing_a_mode_meanwhile_is_left_alone() -> None:
