@@ -61,6 +61,7 @@ from behaviors.query_region import around, redetect_region
 from behaviors.rejection_memory import RejectedTarget, RejectionMemory
 from behaviors.safety_limits import apply_limits
 from behaviors.setpoint import Setpoint
+from behaviors.target_fix import KeptFix, kept_fix
 from behaviors.telemetry import Telemetry
 from behaviors.track_result import TrackResult
 
@@ -136,13 +137,14 @@ class Target:
     operator_selected: bool = False
     early: EarlyStart | None = None  # started before the final verdicts (never reported to the supervisor)
     confirmed_by: str = ""  # who confirmed it ("supervisor page", "gcs"), once confirmed
-    # The estimate with the smallest error the track had: where the memories (rejected, found) place the
-    # person. The latest estimate can be the worst (the view's far edge as a survey flies away).
-    best_position: GeoEstimate | None = None
+    # Where a find and the memories (rejected, found) place the person: the freshest estimate nearly as good
+    # as the track's best (`behaviors.target_fix`). The latest can be the worst (the view's far edge as a
+    # survey flies away); the best alone is of a place a walking person has left.
+    kept: KeptFix = KeptFix()
 
     @property
     def fix(self) -> GeoEstimate | None:
-        return self.best_position or self.position
+        return self.kept.estimate or self.position
 
 
 @dataclass(frozen=True)
@@ -441,7 +443,7 @@ def _command(state: State, event: GcsCommand, config: MissionConfig) -> Result:
         ):
             pending = state.pending
             if pending is not None and cmd.candidate_id in ("", pending.candidate_id):
-                # Out of view by now: the find is where it was seen best; the search goes on.
+                # Out of view by now: the find is where the track placed it (`Target.fix`); the search goes on.
                 decided = replace(pending, confirmed_by=cmd.by)
                 new = _remember_found(replace(state, pending=None), decided)
                 return new, (
@@ -548,15 +550,13 @@ def _track(state: State, result: TrackResult, config: MissionConfig) -> Result:
         return _start_lost(state, f"tracker lost ({result.lost_reason or 'failed'})", config)
 
     position = locate_box(config.camera, state.telemetry, result.box) if state.telemetry else None
-    best = target.best_position
-    if position is not None and (best is None or position.sigma_m <= best.sigma_m):
-        best = position
+    kept = kept_fix(target.kept, position) if position is not None else target.kept
     target = replace(
         target,
         box=result.box,
         last_seen_s=result.time_s,
         position=position or target.position,
-        best_position=best,
+        kept=kept,
     )
     state = replace(state, target=target)
     actions: list[Action] = []
@@ -1001,7 +1001,7 @@ def _position(
 
 
 def _report(target: Target, status: str) -> ReportCandidate:
-    # A confirmation reports the best estimate the track had (a passing survey's last one can be poor).
+    # A confirmation reports the fix the track kept (a passing survey's last estimate can be poor, its best stale).
     return ReportCandidate(
         target.candidate_id,
         target.justification,

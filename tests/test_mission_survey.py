@@ -546,6 +546,24 @@ def test_the_memories_keep_the_best_estimate_not_the_last() -> None:
     assert step(state, answer, config)[0].mode is S.SEARCHING
 
 
+def test_a_followed_person_who_walked_on_is_reported_where_they_are() -> None:
+    """The drone follows the person 10 m on before the supervisor confirms, keeping its standoff: the
+    estimates stay as good as the first, so the find is the latest, not the first (before, the smallest
+    sigma won: a supervisor deciding after 10 s got the follow scenario's find 15 m from the person)."""
+    state = reach(S.AWAITING_SUPERVISOR)
+    assert state.target is not None and state.target.position is not None
+    first = state.target.position
+    lat, lon = offset_to_latlon(47.0, 8.0, 10.0, 0.0)
+    moved = Telemetry(1.25, lat, lon, HEIGHT, mode="GUIDED", offboard_active=True, mission_item=BREAK_OFF)
+    state, _ = run(state, [moved, tracked(1.28, box_at(CFG.standoff_m + 2.0))])  # a little behind
+    assert state.target is not None and state.target.position is not None
+    latest = state.target.position
+    assert first.sigma_m < latest.sigma_m < 1.5 * first.sigma_m and latest.lat_deg > first.lat_deg
+    state, actions = run(state, [cmd(1.3, ConfirmCandidate(by="gcs"))])
+    report = next(a for a in actions if isinstance(a, ReportCandidate))
+    assert report.status == "confirmed" and report.position == latest
+
+
 @pytest.mark.parametrize("decision", ["confirm", "reject"])
 def test_a_reported_candidate_out_of_view_still_awaits_the_supervisor(decision: str) -> None:
     """Looking only, the survey flies past a candidate before the supervisor decides: it is given up after

@@ -1,0 +1,37 @@
+"""Which of a track's ground estimates a find and the memories report: the freshest of the good ones.
+
+Every tracked frame gives a ground estimate with a one-sigma error (`behaviors.geolocation`). The latest
+can be the worst (a surveying drone flying away sees the person at the view's far edge, where the errors
+also exceed their first-order sigma), so an estimate much worse than the track's best is never taken. But
+the best alone is stale: a person walks on while the drone follows and the supervisor decides, and the
+estimate from the drone's closest look is of a place they left (the follow scenario with a supervisor
+deciding after 10 s reported its find 15 m from the walking person, with a sigma of 0.8 m). So the kept
+estimate is the latest whose sigma is within `FRESHER_WITHIN` of the smallest the track has had: while the
+drone keeps its standoff the estimates stay that good and the find follows the person.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from behaviors.geolocation import GeoEstimate
+
+FRESHER_WITHIN = 1.5  # a later estimate with at most this many times the best sigma is as good, and fresher
+
+
+@dataclass(frozen=True)
+class KeptFix:
+    """The estimate to report, and the smallest sigma the track has had."""
+
+    estimate: GeoEstimate | None = None
+    best_sigma_m: float = math.inf
+
+
+def kept_fix(kept: KeptFix, latest: GeoEstimate) -> KeptFix:
+    """After `latest`: it is kept when its sigma is within `FRESHER_WITHIN` of the track's best, else the
+    estimate kept before stays."""
+    best = min(kept.best_sigma_m, latest.sigma_m)
+    if kept.estimate is None or latest.sigma_m <= FRESHER_WITHIN * best:
+        return KeptFix(latest, best)
+    return KeptFix(kept.estimate, best)
