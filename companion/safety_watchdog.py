@@ -8,7 +8,8 @@ Five conditions, each armed by its first report (a watchdog cannot go stale on s
 - `main_loop_stalled`: the main loop has not called `kick()` for `loop_stall_s`.
 
 The thread checks every `check_period_s`, independently of the main loop, so a hung main loop is caught
-(and a frozen process too: a gap in the watchdog's own checks longer than `loop_stall_s` counts as a stall):
+(and a frozen process too: a gap in the watchdog's checks longer than `loop_stall_s` counts as a stall; the
+setpoint streamer checks too before each setpoint, so after a freeze whichever thread runs first stops):
 on the rising edge of a condition it calls `on_trip(reason)` (the link sends an explicit zero-velocity
 stop, then the configured hold) and on the falling edge `on_clear(reason)`. A condition trips at most
 `threshold + check_period_s` after its input went silent.
@@ -111,8 +112,8 @@ class SafetyWatchdog:
         if self._thread is not None:
             self._thread.join(timeout=2.0)
 
-    def check(self) -> None:
-        """One pass: trip new conditions, clear recovered ones."""
+    def check(self) -> float:
+        """One pass: trip new conditions, clear recovered ones. Returns the time it checked at."""
         now = self._clock()
         with self._lock:
             stale = stale_conditions(self._last_seen, self._limits, now)
@@ -130,6 +131,7 @@ class SafetyWatchdog:
         for reason in sorted(cleared):
             log.info("watchdog: %s recovered", reason)
             self._on_clear(reason, now)
+        return now
 
     def _run(self) -> None:
         while not self._stop.wait(self._period):

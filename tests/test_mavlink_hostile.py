@@ -213,6 +213,50 @@ def test_stale_setpoint_never_reaches_the_autopilot_after_the_streamer_freezes()
         assert wait_for(lambda: sim.snapshot().vn > 1.0, 5.0)  # and following resumes once the loop does
 
 
+def test_a_whole_process_freeze_stops_the_vehicle_even_when_the_streamer_wakes_before_the_watchdog() -> None:
+    """SIGSTOP freezes every thread; on SIGCONT the order they run in is the scheduler's. Seen on the real PX4
+    in CI: the main loop ran first and set a fresh command from its pre-freeze view, the streamer sent it
+    (1.56 m/s, 11 ms after the resume) before the watchdog's thread had noticed the freeze."""
+    safety = {"loop_stall_s": 0.5}
+    with autopilot("ardupilot") as sim, vehicle_link(sim, safety=safety) as link, MainLoop(link) as loop:
+        _fly(sim, link)
+        dog_check, stream_once = link._watchdog.check, link._stream_once
+        frozen, thawed_streamer, thawed_dog = threading.Event(), threading.Event(), threading.Event()
+        parked: set[str] = set()
+
+        def park(name: str, until: threading.Event) -> None:
+            if threading.current_thread().name == name and frozen.is_set():
+                parked.add(name)
+                until.wait(5.0)
+
+        def watchdog_check() -> float:
+            park("safety-watchdog", thawed_dog)
+            return dog_check()
+
+        def streamer_once(*args: Any) -> None:
+            park("mavlink-streamer", thawed_streamer)
+            stream_once(*args)
+
+        link._watchdog.check = watchdog_check  # type: ignore[method-assign]
+        link._stream_once = streamer_once  # type: ignore[method-assign]
+        loop.paused.set()
+        frozen.set()  # the whole companion stops at its next step
+        assert wait_for(lambda: parked == {"safety-watchdog", "mavlink-streamer"}, 3.0), parked
+        time.sleep(1.0)  # twice the stall bound
+        resumed = time.monotonic()
+        loop.paused.clear()  # the main loop runs first: a fresh 1.5 m/s command
+        assert wait_for(lambda: link._setpoint_time > resumed, 2.0)
+        released = time.monotonic()
+        thawed_streamer.set()  # then the streamer, the watchdog's thread still asleep
+        time.sleep(0.3)
+        after = [s for s in _ours(sim) if s.time >= released]
+        print(f"\nafter the freeze, first setpoints: {[round(s.vx, 2) for s in after[:5]]} m/s")
+        assert after and after[0].vx == 0.0, [s.vx for s in after[:5]]  # the stop first; then the loop's call
+        assert any(e.reason == "main_loop_stalled" and e.action == "stop" for e in link.safety_events())
+        frozen.clear()
+        thawed_dog.set()
+
+
 def test_stale_altitude_holds() -> None:
     with (
         autopilot("ardupilot") as sim,

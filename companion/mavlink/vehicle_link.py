@@ -756,16 +756,18 @@ class VehicleLink:
             if next_tick < now - period:  # fell far behind (machine stalled): restart the schedule
                 next_tick = now
             try:
-                self._stream_once(now)
+                self._stream_once()
             except Exception:
                 log.exception("setpoint streaming failed")
             self._stop.wait(max(0.0, next_tick - self._clock()))
 
-    def _stream_once(self, now: float) -> None:
+    def _stream_once(self) -> None:
         # Deciding and sending happen under the offboard lock, so a stop from the watchdog thread can
-        # never be followed by a setpoint decided before it.
+        # never be followed by a setpoint decided before it. The watchdog's check runs here first: after a
+        # freeze of the whole process the main loop may set a fresh command (from a pre-freeze frame) before
+        # the watchdog's own thread runs, and the freeze must stop the vehicle before any command goes out.
         with self._offboard_lock:
-            self._stream_once_locked(now)
+            self._stream_once_locked(self._watchdog.check())
 
     def _stream_once_locked(self, now: float) -> None:
         hb = self._decoder.heartbeat
@@ -798,7 +800,9 @@ class VehicleLink:
                     setpoint = Setpoint.zero()  # the main loop's command is too old to fly: hold instead
                 elif streaming:
                     setpoint = apply_limits(self._setpoint, self._limits, height, self._descent_allowed)
-                    computed_at = self._setpoint_time
+                    # Its age at sending counts from the earlier of its computing and this decision: a freeze
+                    # between the two leaves a command that the encoder drops.
+                    computed_at = min(self._setpoint_time, now)
                 prestreamed = kind is AutopilotKind.ARDUPILOT or (
                     self._stream_since is not None and now - self._stream_since >= PX4_MIN_PRESTREAM_S
                 )
