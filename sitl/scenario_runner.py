@@ -57,6 +57,7 @@ from sitl.metrics import (
     following_intervals,
     summarise,
 )
+from sitl.pause_monitor import PauseMonitor
 from sitl.scenarios import (
     COASTING_FAULTS,
     MISSION_MODE,
@@ -206,6 +207,7 @@ class ScenarioRun:
         self.work.mkdir(parents=True, exist_ok=True)
         self.vehicles: list[_Vehicle] = []
         self.epoch: float | None = None
+        self._pauses = PauseMonitor()
         self.fault_times: dict[str, float] = {}
         self.faults_done: set[int] = set()
         self.video: VideoWriter | None = None
@@ -703,10 +705,12 @@ class ScenarioRun:
         # failed on the harness's pause, not the companion's. The objects that exist before the flight are
         # left out of collection while it runs.
         gc.freeze()
+        self._pauses.start()
         try:
             return self._run()
         finally:
             self._teardown()
+            self._pauses.stop()
             gc.unfreeze()
 
     def _run(self) -> dict[str, Any]:
@@ -1290,6 +1294,13 @@ class ScenarioRun:
             o.metrics["companion_stop_s"] = None if v.stop_s is None else round(v.stop_s, 3)
             o.metrics["companion_exit_code"] = v.process.returncode if v.process is not None else None
         failures = assess(s, outcomes, self.fault_times, self.personality)
+        pauses = [(p.began - (self.epoch or 0.0), p.length_s) for p in self._pauses.pauses()]
+        if failures:
+            failures += [
+                f"the runner itself paused {length:.2f} s at {at:.1f} s (its camera, autopilot bridge and "
+                f"pilot with it): what failed may be the harness's pause, not the companion"
+                for at, length in pauses
+            ]
         outcome = "pass" if not failures else "fail"
         results: dict[str, Any] = {
             "scenario": s.name,
@@ -1302,6 +1313,7 @@ class ScenarioRun:
             "failures": failures,
             "duration_s": round(end_t, 2),
             "faults": {k: round(t, 2) for k, t in self.fault_times.items()},
+            "runner_pauses": [{"at_s": round(at, 2), "length_s": length} for at, length in pauses],
             "vehicles": {},
             "work_dir": None if self._own_work else str(self.work),
         }
