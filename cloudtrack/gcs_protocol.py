@@ -194,9 +194,12 @@ class PromptAssembler:
 
 # --------------------------------------------------------------------------------- status helpers
 def statustext_chunks(text: str) -> list[tuple[bytes, int]]:
-    """STATUSTEXT pieces of at most 50 bytes with their chunk_seq (MAVLink 2 long-text rule)."""
+    """STATUSTEXT pieces of at most 50 bytes with their chunk_seq (MAVLink 2 long-text rule). A receiver
+    knows the last chunk by its null terminator, so a long text of exactly 50k bytes ends with an empty one."""
     data = text.encode("utf-8")[: STATUSTEXT_BYTES * 20]
     pieces = [data[i : i + STATUSTEXT_BYTES] for i in range(0, max(len(data), 1), STATUSTEXT_BYTES)]
+    if len(pieces) > 1 and len(pieces[-1]) == STATUSTEXT_BYTES:
+        pieces.append(b"")
     return [(p, i) for i, p in enumerate(pieces)]
 
 

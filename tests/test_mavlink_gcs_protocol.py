@@ -71,6 +71,16 @@ def test_long_status_is_split_into_linked_chunks() -> None:
     assert [seq for _, seq in chunks] == [0, 1] and all(len(c) <= 50 for c, _ in chunks)
 
 
+@pytest.mark.parametrize(("length", "pieces"), [(1, [1]), (50, [50]), (51, [50, 1]), (100, [50, 50, 0])])
+def test_a_long_status_ends_with_a_short_chunk_the_receiver_can_tell(length: int, pieces: list[int]) -> None:
+    """A receiver takes the chunk without 50 bytes (a null terminator) as the last (`GcsSession.join_statustext`):
+    a 100-byte line needs an empty third chunk, or the GCS would wait for the rest forever; one chunk alone
+    (id 0) needs none."""
+    chunks = statustext_chunks("x" * length)
+    assert [len(c) for c, _ in chunks] == pieces and [seq for _, seq in chunks] == list(range(len(pieces)))
+    assert b"".join(c for c, _ in chunks) == b"x" * length
+
+
 def _send_prompt(ground, mission_id: int, superset: str, prompt: str) -> tuple[int, int]:  # type: ignore[no-untyped-def]
     payloads = encode_prompt(mission_id, superset, prompt)
     for payload in payloads:
