@@ -6,6 +6,7 @@ streamed by the link only while the autopilot is in the mode that accepts them.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from enum import Enum
 
@@ -135,6 +136,7 @@ class ReportCandidate:
     box: Box
     status: str  # "awaiting", "reverified" or "confirmed"
     confirmed_by: str = ""  # with "confirmed": who confirmed ("supervisor page", "gcs")
+    position_s: float = math.nan  # when `position` was observed (event time): how old it is
 
 
 @dataclass(frozen=True)

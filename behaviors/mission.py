@@ -141,10 +141,16 @@ class Target:
     # as the track's best (`behaviors.target_fix`). The latest can be the worst (the view's far edge as a
     # survey flies away); the best alone is of a place a walking person has left.
     kept: KeptFix = KeptFix()
+    position_s: float = math.nan  # when `position` was observed (event time; the keyframe's pose, a frame)
 
     @property
     def fix(self) -> GeoEstimate | None:
         return self.kept.estimate or self.position
+
+    @property
+    def fix_s(self) -> float:
+        """When `fix` was observed (event time): a find's age on the rescuers' map."""
+        return self.kept.time_s if self.kept.estimate is not None else self.position_s
 
 
 @dataclass(frozen=True)
@@ -550,12 +556,13 @@ def _track(state: State, result: TrackResult, config: MissionConfig) -> Result:
         return _start_lost(state, f"tracker lost ({result.lost_reason or 'failed'})", config)
 
     position = locate_box(config.camera, state.telemetry, result.box) if state.telemetry else None
-    kept = kept_fix(target.kept, position) if position is not None else target.kept
+    kept = kept_fix(target.kept, position, result.time_s) if position is not None else target.kept
     target = replace(
         target,
         box=result.box,
         last_seen_s=result.time_s,
         position=position or target.position,
+        position_s=result.time_s if position is not None else target.position_s,
         kept=kept,
     )
     state = replace(state, target=target)
@@ -630,6 +637,7 @@ def _acquire(state: State, det: Detection, position: GeoEstimate | None, answer:
         position,
         det.signature,
         early=early,
+        position_s=answer.pose.time_s if answer.pose is not None else answer.time_s,
     )
     # Along the mission the vehicle is taken from it now (when allowed): at survey speed the candidate
     # would be out of view before the tracker has locked on.
@@ -1010,4 +1018,5 @@ def _report(target: Target, status: str) -> ReportCandidate:
         target.box,
         status,
         target.confirmed_by if status == "confirmed" else "",
+        target.fix_s if status == "confirmed" else target.position_s,
     )

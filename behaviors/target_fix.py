@@ -7,7 +7,9 @@ the best alone is stale: a person walks on while the drone follows and the super
 estimate from the drone's closest look is of a place they left (the follow scenario with a supervisor
 deciding after 10 s reported its find 15 m from the walking person, with a sigma of 0.8 m). So the kept
 estimate is the latest whose sigma is within `FRESHER_WITHIN` of the smallest the track has had: while the
-drone keeps its standoff the estimates stay that good and the find follows the person.
+drone keeps its standoff the estimates stay that good and the find follows the person. Whichever is kept,
+its time goes with it: a rescuer must know how old a position is (a person seen well a minute ago may have
+walked on).
 """
 
 from __future__ import annotations
@@ -22,16 +24,17 @@ FRESHER_WITHIN = 1.5  # a later estimate with at most this many times the best s
 
 @dataclass(frozen=True)
 class KeptFix:
-    """The estimate to report, and the smallest sigma the track has had."""
+    """The estimate to report, when it was observed (event time, s), and the smallest sigma the track has had."""
 
     estimate: GeoEstimate | None = None
     best_sigma_m: float = math.inf
+    time_s: float = math.nan
 
 
-def kept_fix(kept: KeptFix, latest: GeoEstimate) -> KeptFix:
-    """After `latest`: it is kept when its sigma is within `FRESHER_WITHIN` of the track's best, else the
-    estimate kept before stays."""
+def kept_fix(kept: KeptFix, latest: GeoEstimate, time_s: float) -> KeptFix:
+    """After `latest`, observed at `time_s`: it is kept when its sigma is within `FRESHER_WITHIN` of the
+    track's best, else the estimate kept before stays, with its own time."""
     best = min(kept.best_sigma_m, latest.sigma_m)
     if kept.estimate is None or latest.sigma_m <= FRESHER_WITHIN * best:
-        return KeptFix(latest, best)
-    return KeptFix(kept.estimate, best)
+        return KeptFix(latest, best, time_s)
+    return KeptFix(kept.estimate, best, kept.time_s)

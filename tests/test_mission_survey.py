@@ -535,12 +535,16 @@ def test_the_memories_keep_the_best_estimate_not_the_last() -> None:
     config = replace(CFG, on_confirm=ConfirmAction.SURVEY)
     state = reach(S.AWAITING_SUPERVISOR, engage=False, config=config)  # locked at the standoff, 12 m
     assert state.target is not None and state.target.position is not None
-    near = state.target.position
+    near, near_s = state.target.position, state.target.position_s
     state, _ = run(state, [tracked(1.25, box_at(45.0, u=620.0))], config)  # the far edge, 45 m off
     assert state.target is not None and state.target.position is not None
     assert state.target.position.sigma_m > near.sigma_m and state.target.fix == near
-    state, _ = run(state, [cmd(1.3, ConfirmCandidate(by="gcs")), TimerTick(1.4)], config)
+    assert state.target.position_s == 1.25 and state.target.fix_s == near_s < 1.25
+    state, actions = run(state, [cmd(1.3, ConfirmCandidate(by="gcs")), TimerTick(1.4)], config)
     assert state.mode is S.SEARCHING and state.found.entries[-1].position == near
+    # The find says when that estimate was seen, not when it was confirmed or last tracked.
+    report = next(a for a in actions if isinstance(a, ReportCandidate) and a.status == "confirmed")
+    assert report.position == near and report.position_s == near_s
     # Seen again where it was confirmed, under another id: not proposed again.
     answer = BackendAnswer(1.6, state.queries[-1][0], 60, (candidate(AT_STANDOFF, "c9"),), pose=auto(1.2))
     assert step(state, answer, config)[0].mode is S.SEARCHING
@@ -561,7 +565,7 @@ def test_a_followed_person_who_walked_on_is_reported_where_they_are() -> None:
     assert first.sigma_m < latest.sigma_m < 1.5 * first.sigma_m and latest.lat_deg > first.lat_deg
     state, actions = run(state, [cmd(1.3, ConfirmCandidate(by="gcs"))])
     report = next(a for a in actions if isinstance(a, ReportCandidate))
-    assert report.status == "confirmed" and report.position == latest
+    assert report.status == "confirmed" and report.position == latest and report.position_s == 1.28
 
 
 @pytest.mark.parametrize("decision", ["confirm", "reject"])
@@ -581,6 +585,7 @@ def test_a_reported_candidate_out_of_view_still_awaits_the_supervisor(decision: 
         report = [a for a in actions if isinstance(a, ReportCandidate)]
         assert report and report[0].status == "confirmed" and report[0].confirmed_by == "supervisor page"
         assert report[0].position is not None and state.found.entries[-1].candidate_id == "c1"
+        assert report[0].position_s < 1.3  # from before it went out of view, and says so
     else:
         state, actions = step(state, cmd(5.0, RejectCandidate()), CFG)
         assert kinds(actions) == ["RememberRejection", "GcsMessage"] and state.rejections.entries

@@ -33,17 +33,29 @@ def test_the_freshest_estimate_nearly_as_good_as_the_best(
 ) -> None:
     kept = KeptFix()
     estimates = [at(float(i), s) for i, s in enumerate(sigmas)]
-    for estimate in estimates:
-        kept = kept_fix(kept, estimate)
+    for i, estimate in enumerate(estimates):
+        kept = kept_fix(kept, estimate, 100.0 + i)
     assert kept.estimate == estimates[reported], why
+    assert kept.time_s == 100.0 + reported, "the kept estimate's own time goes with it"
     assert kept.best_sigma_m == min(sigmas)
 
 
 def test_a_followed_walking_person_is_reported_where_they_are() -> None:
     """Followed at the standoff (sigma 0.6-0.75 m, the best 0.5 m from the drone's closest look) while they
     walk 1.5 m/s for 10 s: the find is the last estimate, not the one 15 m back."""
-    kept = kept_fix(KeptFix(), at(0.0, 0.5))
+    kept = kept_fix(KeptFix(), at(0.0, 0.5), 0.0)
     for step in range(1, 101):
-        kept = kept_fix(kept, at(0.15 * step, 0.75 if step % 2 else 0.6))
+        kept = kept_fix(kept, at(0.15 * step, 0.75 if step % 2 else 0.6), 0.1 * step)
     assert kept.estimate is not None and kept.estimate.north_m == pytest.approx(15.0)
+    assert kept.time_s == pytest.approx(10.0)
     assert FRESHER_WITHIN * 0.5 >= 0.75
+
+
+def test_a_survey_flying_away_keeps_the_good_estimate_and_its_age() -> None:
+    """Seen well at t = 5 s, then only at the view's far edge as the survey flies on: the find stays the
+    good estimate, and says it is from t = 5 s, not from the last frame."""
+    kept = kept_fix(KeptFix(), at(0.0, 0.5), 5.0)
+    for step in range(1, 30):
+        kept = kept_fix(kept, at(0.5 * step, 0.5 + 0.2 * step), 5.0 + 0.1 * step)
+    assert kept.estimate is not None and kept.estimate.north_m == pytest.approx(0.5)
+    assert kept.time_s == pytest.approx(5.1)
