@@ -1,6 +1,7 @@
 """A mission's finds for the rescuers' own tools: GeoJSON (RFC 7946) and KML (simplekml), each with the finds
-(points: time, prompt, who confirmed, sigma), the drone's track (a line) and the search and covered areas
-(polygons); and a find as the `cloudtrack.cursor_on_target.FindReport` a TAK map takes.
+(points: time, when the position was seen, prompt, who confirmed, sigma), the drone's track (a line) and
+the search and covered areas (polygons); and a find as the `cloudtrack.cursor_on_target.FindReport` a TAK
+map takes.
 
 GeoJSON positions are [lon, lat] and exterior rings run counter-clockwise (RFC 7946 section 3.1.6), so
 strict readers accept them; a ring is closed here when the vehicle sent it open.
@@ -15,7 +16,7 @@ from typing import Any
 import simplekml
 
 from backend.schemas import MissionMap, StoredFind
-from cloudtrack.cursor_on_target import FindReport
+from cloudtrack.cursor_on_target import FindReport, seen_text
 
 
 def find_report(find: StoredFind) -> FindReport:
@@ -29,6 +30,7 @@ def find_report(find: StoredFind) -> FindReport:
         confirmed_by=find.confirmed_by,
         vehicle_id=find.vehicle_id,
         mission_id=find.mission_id,
+        seen_at=find.seen_at,
     )
 
 
@@ -58,6 +60,7 @@ def find_properties(find: StoredFind) -> dict[str, Any]:
         "mission_id": find.mission_id,
         "candidate_id": find.candidate_id,
         "time": _iso(find.time),
+        "seen_at": _iso(find.seen_at) if find.seen_at is not None else None,
         "prompt": find.prompt,
         "confirmed_by": find.confirmed_by,
         "sigma_m": find.sigma_m,
@@ -133,6 +136,7 @@ def kml_text(finds: list[StoredFind], maps: dict[tuple[str, str], MissionMap], t
             coords=[(find.position[1], find.position[0])],
             description=(
                 f"{find.prompt}\nconfirmed by {find.confirmed_by}; {sigma}\n"
+                f"{seen_text(find.time, find.seen_at)}\n"
                 f"{find.vehicle_id}, mission {find.mission_id}, candidate {find.candidate_id}"
             ),
         )

@@ -124,6 +124,7 @@ class FindView(ApiModel):
     position: LatLon
     sigma_m: float | None
     time: float
+    seen_at: float | None = None  # when the position was observed (Unix s); None: not known
     prompt: str
     confirmed_by: str
     crop_url: str | None

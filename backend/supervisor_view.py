@@ -49,6 +49,7 @@ def find_view(find: StoredFind) -> FindView:
         position=LatLon(lat=find.position[0], lon=find.position[1]),
         sigma_m=find.sigma_m,
         time=find.time,
+        seen_at=find.seen_at,
         prompt=find.prompt,
         confirmed_by=find.confirmed_by,
         crop_url=(

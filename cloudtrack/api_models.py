@@ -300,6 +300,13 @@ class Find(ApiModel):
         ge=0.0, le=100_000.0, description="1-sigma horizontal uncertainty (m); null: not known"
     )
     time: float = Field(ge=0.0, le=2**34, description="Unix time of the confirmation (s)")
+    seen_at: float | None = Field(
+        None,
+        ge=0.0,
+        le=2**34,
+        description="Unix time the position was observed (s): a person seen well a minute before the "
+        "confirmation may have moved on since; null: not known",
+    )
     prompt: str = Field("", max_length=500)
     confirmed_by: str = Field(max_length=64, description='"supervisor page", "gcs" or the operator\'s name')
     crop_jpeg_b64: str | None = Field(

@@ -11,7 +11,8 @@ The event: type `a-n-G` (a neutral ground point: the person found, not a team me
 person confirmed it; its place is an estimate), uid `cloudtrack-find-<vehicle>-<mission>-<candidate>`
 (stable: a refined position moves the same marker), `ce` the find's 1-sigma error in metres (9999999,
 CoT's "unknown", when not known), callsign `FOUND: <prompt>`, and remarks saying who found whom, when,
-and who confirmed it.
+who confirmed it, and when the position was seen (a find reported where the track last saw the person
+well can be minutes old).
 
 Sending never blocks the caller and never loses a find to a passing outage: events wait in a bounded
 queue and a background thread retries until the endpoint takes them (oldest dropped beyond
@@ -54,6 +55,19 @@ class FindReport:
     confirmed_by: str
     vehicle_id: str
     mission_id: str
+    seen_at: float | None = None  # Unix seconds when the position was observed; None: not known
+
+
+def seen_text(confirmed_at: float, seen_at: float | None) -> str:
+    """How old a find's position is, for a person reading the map: a rescuer walks to where the person was."""
+    if seen_at is None:
+        return "when the position was seen is not known"
+    when = datetime.fromtimestamp(seen_at, timezone.utc).strftime("%H:%M:%S UTC")
+    gap = confirmed_at - seen_at
+    if abs(gap) < 1.0:
+        return f"position as seen at {when}, at the confirmation"
+    span = f"{abs(gap):.0f} s" if abs(gap) < 120.0 else f"{abs(gap) / 60.0:.0f} min"
+    return f"position as seen at {when}, {span} {'before' if gap > 0 else 'after'} the confirmation"
 
 
 def find_uid(find: FindReport) -> str:
@@ -79,7 +93,8 @@ def find_event(find: FindReport, callsign: str = "CloudTrack", stale_s: float = 
         detail,
         [
             f"{find.prompt!r} found by {find.vehicle_id} (mission {find.mission_id}, candidate "
-            f"{find.candidate_id}) at {when}, confirmed by {find.confirmed_by}; {sigma}. Sent by {callsign}."
+            f"{find.candidate_id}) at {when}, confirmed by {find.confirmed_by}; {sigma}; "
+            f"{seen_text(find.time, find.seen_at)}. Sent by {callsign}."
         ],
     )
     event = pytak.cot_event(

@@ -117,7 +117,14 @@ class VehicleLink(Protocol):
     def send_value(self, name: str, value: float) -> None: ...
 
     def announce_find(
-        self, lat: float, lon: float, sigma_m: float, slant_range_m: float, prompt: str, confirmed_by: str
+        self,
+        lat: float,
+        lon: float,
+        sigma_m: float,
+        slant_range_m: float,
+        prompt: str,
+        confirmed_by: str,
+        seen_before_s: float | None = None,
     ) -> None: ...
 
     def send_find_position(self, lat: float, lon: float, sigma_m: float, slant_range_m: float) -> None: ...
@@ -470,19 +477,27 @@ class MissionRunner:
             "crop_jpeg_b64"
         )
         prompt = self.state.mission.prompt if self.state.mission is not None else ""
-        find = self.report.record_find(report, prompt, crop)
+        find = self.report.record_find(report, prompt, crop, now_s=self.state.now_s)
         if find is None:
             self.vehicle.send_status(
                 f"FOUND {report.candidate_id}: position unknown (no telemetry)", SEVERITY["critical"]
             )
             return
         if new:
+            seen_before = find.time - find.seen_at if find.seen_at is not None else None
             log.warning(
-                "FOUND %s at %.7f,%.7f +-%.1f m (confirmed by %s)",
+                "FOUND %s at %.7f,%.7f +-%.1f m (confirmed by %s; position seen %s s before)",
                 find.candidate_id, find.lat, find.lon, find.sigma_m, find.confirmed_by,
+                "?" if seen_before is None else f"{seen_before:.1f}",
             )  # fmt: skip
             self.vehicle.announce_find(
-                find.lat, find.lon, find.sigma_m, find.slant_range_m, find.prompt, find.confirmed_by
+                find.lat,
+                find.lon,
+                find.sigma_m,
+                find.slant_range_m,
+                find.prompt,
+                find.confirmed_by,
+                seen_before,
             )
         else:
             self.vehicle.send_find_position(find.lat, find.lon, find.sigma_m, find.slant_range_m)

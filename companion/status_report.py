@@ -38,6 +38,7 @@ class Find:
     confirmed_by: str
     slant_range_m: float  # camera to the person when confirmed (CAMERA_TRACKING_GEO_STATUS.dist)
     crop_jpeg_b64: str | None = None
+    seen_at: float | None = None  # Unix seconds when the reported position was observed; None: not known
 
     def fields(self) -> dict[str, Any]:
         out: dict[str, Any] = {
@@ -48,6 +49,8 @@ class Find:
             "prompt": self.prompt[:500],
             "confirmed_by": (self.confirmed_by or "supervisor")[:64],
         }
+        if self.seen_at is not None:
+            out["seen_at"] = round(self.seen_at, 3)
         if self.crop_jpeg_b64:
             out["crop_jpeg_b64"] = self.crop_jpeg_b64
         return out
@@ -100,22 +103,28 @@ class StatusReport:
     def find_of(self, candidate_id: str) -> Find | None:
         return next((f for f in self.finds if f.candidate_id == candidate_id), None)
 
-    def record_find(self, report: ReportCandidate, prompt: str, crop_jpeg_b64: str | None) -> Find | None:
-        """A confirmed report: the find (new, or its position updated). None without a position."""
+    def record_find(
+        self, report: ReportCandidate, prompt: str, crop_jpeg_b64: str | None, *, now_s: float
+    ) -> Find | None:
+        """A confirmed report: the find (new, or its position updated). None without a position. `now_s` is
+        the mission's event clock now: the position's age (`report.position_s`) becomes a Unix time."""
         position = report.position
         if position is None or not all(math.isfinite(v) for v in (position.lat_deg, position.lon_deg)):
             return None
         old = self.find_of(report.candidate_id)
+        wall = self._wall_clock()
+        age = now_s - report.position_s
         find = Find(
             report.candidate_id,
             position.lat_deg,
             position.lon_deg,
             position.sigma_m if math.isfinite(position.sigma_m) else 100_000.0,
-            old.time if old is not None else self._wall_clock(),
+            old.time if old is not None else wall,
             prompt,
             old.confirmed_by if old is not None else report.confirmed_by,
             position.slant_range_m,
             old.crop_jpeg_b64 if old is not None and old.crop_jpeg_b64 else crop_jpeg_b64,
+            wall - max(0.0, age) if math.isfinite(age) else None,
         )
         if old is not None:
             self.finds[self.finds.index(old)] = find

@@ -28,7 +28,7 @@ from cloudtrack.mavlink_connection import mavlink
 REPEAT_S = 10.0
 SAME_FIND_M = 5.0
 _FOUND = re.compile(r"^FOUND (-?\d+(?:\.\d+)?),(-?\d+(?:\.\d+)?) \+-(\d+(?:\.\d+)?)m$")
-_FOUND_TEXT = re.compile(r"^FOUND: (.*) \(confirmed by (.*)\)$")
+_FOUND_TEXT = re.compile(r"^FOUND: (.*) \(confirmed by (.*?)(?:; seen (\d+) s before)?\)$")
 _AWAITING = re.compile(r"^CANDIDATE (?:AWAITING|REVERIFIED) (\S+)")
 
 
@@ -41,6 +41,7 @@ class HeardFind:
     time: float
     prompt: str = ""
     confirmed_by: str = ""
+    seen_at: float | None = None  # when the position was observed (Unix s); None: not known
 
 
 def _metres(a: tuple[float, float], b: tuple[float, float]) -> float:
@@ -119,7 +120,14 @@ class WatchSummary:
             lines += self._find(src, lat, lon, sigma, quiet=True)
         described = _FOUND_TEXT.match(text)
         if described and self.finds:
-            last = replace(self.finds[-1], prompt=described.group(1), confirmed_by=described.group(2))
+            # The announcement says how long before the confirmation the position was seen (no words: at it).
+            before = float(described.group(3) or 0.0)
+            last = replace(
+                self.finds[-1],
+                prompt=described.group(1),
+                confirmed_by=described.group(2),
+                seen_at=self.finds[-1].time - before,
+            )
             self.finds[-1] = last
             self.changed_finds.append(last)
         return lines
@@ -142,7 +150,8 @@ class WatchSummary:
         for i, known in enumerate(self.finds):
             if _metres((known.lat, known.lon), (lat, lon)) <= SAME_FIND_M:
                 if (known.lat, known.lon, known.sigma_m) != (lat, lon, sigma):
-                    self.finds[i] = replace(known, lat=lat, lon=lon, sigma_m=sigma)
+                    # A find moves only to the track's newest estimate (behaviors.target_fix): seen about now.
+                    self.finds[i] = replace(known, lat=lat, lon=lon, sigma_m=sigma, seen_at=self._wall())
                     self.changed_finds.append(self.finds[i])
                 return []
         find = HeardFind(len(self.finds) + 1, lat, lon, sigma, self._wall())
@@ -266,4 +275,5 @@ def _report(find: HeardFind, system: int) -> FindReport:
         confirmed_by=find.confirmed_by or "unknown",
         vehicle_id=f"system-{system}",
         mission_id="mavlink",
+        seen_at=find.seen_at,
     )

@@ -902,9 +902,17 @@ class ScenarioRun:
                 * EARTH_RADIUS
                 * math.cos(math.radians(_home((0.0, 0.0))[0]))
             )
-            tn, te, _ = self.world.person(self.world.target_id).state_at(confirm_t)
+            person = self.world.person(self.world.target_id)
+            tn, te, _ = person.state_at(confirm_t)
             out["find"] = {k: find.get(k) for k in ("candidate_id", "position", "sigma_m", "confirmed_by")}
             out["geolocation_error_m"] = round(math.hypot(north - tn, east - te), 2)
+            if find.get("seen_at") is not None:
+                # How old the find's position is, and its error against where the person was then: the
+                # estimate's own error, apart from how far the person has walked since.
+                age = float(find["time"]) - float(find["seen_at"])
+                sn, se, _ = person.state_at(max(0.0, confirm_t - age))
+                out["find"]["seen_before_confirm_s"] = round(age, 2)
+                out["geolocation_error_at_seen_m"] = round(math.hypot(north - sn, east - se), 2)
         commands = getattr(v.autopilot, "commands", None)
         if commands is not None:
             epoch = self.epoch or 0.0

@@ -23,7 +23,7 @@ from fastapi.testclient import TestClient
 from fastkml import kml
 
 from backend.app import create_app
-from cloudtrack.cursor_on_target import COT_TYPE, CotSender, FindReport, find_event, find_uid
+from cloudtrack.cursor_on_target import COT_TYPE, CotSender, FindReport, find_event, find_uid, seen_text
 from tests.backend_fixtures import SUPERVISOR, auth, backend_config
 
 HOME = (47.3977, 8.5456)
@@ -33,9 +33,11 @@ FIND = {
     "position": [47.39781, 8.54567],
     "sigma_m": 2.5,
     "time": 1732200000.5,
+    "seen_at": 1732199955.5,  # the position is 45 s older than the confirmation
     "prompt": "an injured man in a gray shirt",
     "confirmed_by": "gcs",
 }
+SEEN = "position as seen at 14:39:15 UTC, 45 s before the confirmation"
 
 
 class TakStandIn:
@@ -181,11 +183,12 @@ def test_geojson_download_holds_finds_track_and_areas(client_factory: Any) -> No
     assert vehicle_find["geometry"]["coordinates"] == [FIND["position"][1], FIND["position"][0]]  # [lon, lat]
     expected = {
         "sigma_m": 2.5, "confirmed_by": "gcs", "prompt": FIND["prompt"], "time": "2024-11-21T14:40:00Z",
-        "vehicle_id": "drone-1", "mission_id": "m-7",
+        "seen_at": "2024-11-21T14:39:15Z", "vehicle_id": "drone-1", "mission_id": "m-7",
     }  # fmt: skip
     assert {k: vehicle_find["properties"][k] for k in expected} == expected
     page_find = finds["c-9"]["properties"]
     assert page_find["confirmed_by"] == "supervisor page" and page_find["sigma_m"] is None
+    assert page_find["seen_at"] is None  # made at the page's confirm: the vehicle's own find says when
     (track,) = by_kind["track"]
     assert track["geometry"]["type"] == "LineString" and len(track["geometry"]["coordinates"]) == 6
     (area,) = by_kind["search_area"]
@@ -223,7 +226,8 @@ def test_kml_download_holds_finds_track_and_areas(client_factory: Any) -> None:
         (pytest.approx(x), pytest.approx(y)) for x, y in points
     ]
     assert any(
-        "confirmed by gcs" in (p.description or "") and "±2.5 m" in p.description for p in found.values()
+        "confirmed by gcs" in (p.description or "") and "±2.5 m" in p.description and SEEN in p.description
+        for p in found.values()
     )
     assert len(placemarks["track"].geometry.coords) == 6
     assert len(placemarks["search area"].geometry.exterior.coords) == 5
@@ -249,6 +253,7 @@ def _assert_find_event(message: Any, candidate: str = "c-17") -> None:
     assert event.ce == pytest.approx(2.5)
     assert event.detail.contact.callsign == f"FOUND: {FIND['prompt']}"
     assert "confirmed by gcs" in event.detail.xmlDetail and "drone-1" in event.detail.xmlDetail
+    assert SEEN in event.detail.xmlDetail  # the rescuers' map says how old the position is
 
 
 @pytest.mark.parametrize("kind", ["tcp", "udp"])
@@ -348,4 +353,21 @@ def test_cursor_on_target_event_is_what_takproto_reads() -> None:
     assert (event.lat, event.lon, event.ce) == (pytest.approx(-33.8568), pytest.approx(151.2153), 4.0)
     assert event.how == "h-e" and event.staleTime - event.startTime == 600_000
     assert "Team Alpha" in event.detail.xmlDetail and "2024-11-21 14:40:00 UTC" in event.detail.xmlDetail
+    assert "when the position was seen is not known" in event.detail.xmlDetail
     json.dumps(str(message))  # printable
+
+
+@pytest.mark.parametrize(
+    ("seen_at", "text"),
+    [
+        (None, "when the position was seen is not known"),
+        (1732200000.0, "position as seen at 14:40:00 UTC, at the confirmation"),
+        (1732199999.5, "position as seen at 14:39:59 UTC, at the confirmation"),
+        (1732199955.0, "position as seen at 14:39:15 UTC, 45 s before the confirmation"),
+        (1732199881.0, "position as seen at 14:38:01 UTC, 119 s before the confirmation"),
+        (1732199700.0, "position as seen at 14:35:00 UTC, 5 min before the confirmation"),
+        (1732200030.0, "position as seen at 14:40:30 UTC, 30 s after the confirmation"),
+    ],
+)
+def test_a_find_says_how_old_its_position_is(seen_at: float | None, text: str) -> None:
+    assert seen_text(1732200000.0, seen_at) == text

@@ -17,6 +17,7 @@ from contextlib import contextmanager
 
 import pytest
 
+from cloudtrack.gcs_protocol import statustext_chunks
 from cloudtrack.mavlink_connection import MavlinkEndpoint
 from tests.test_finds_export import TakStandIn
 
@@ -66,7 +67,7 @@ def fake_vehicle(
                 1.2: "CANDIDATE AWAITING c17 at 47.397812,8.545612",
                 1.4: "CANDIDATE AWAITING c17 at 47.397812,8.545612",
                 2.5: "FOUND 47.397812,8.545612 +-2.5m",
-                2.6: "FOUND: a man in a red jacket (confirmed by gcs)",
+                2.6: "FOUND: a man in a red jacket (confirmed by gcs; seen 45 s before)",
             }
         )
         next_heartbeat = 0.0
@@ -75,9 +76,16 @@ def fake_vehicle(
             if t >= next_heartbeat:
                 as_component(1, lambda: conn.mav.heartbeat_send(2, 3, 217, 4, 4))  # ArduCopter, GUIDED
                 next_heartbeat += 1.0
-            for at in [a for a in timeline if a <= t]:
-                text = timeline.pop(at).encode()
-                as_component(191, lambda text=text: conn.mav.statustext_send(6, text.ljust(50, b"\0")[:50]))
+            for n, at in enumerate([a for a in timeline if a <= t]):
+                chunks = statustext_chunks(timeline.pop(at))  # a line over 50 bytes goes as linked chunks
+                text_id = (n + 1) * int(len(chunks) > 1)
+                for piece, seq in chunks:
+                    as_component(
+                        191,
+                        lambda piece=piece, seq=seq, text_id=text_id: conn.mav.statustext_send(
+                            6, piece, text_id, seq
+                        ),
+                    )
             as_component(
                 100,
                 lambda: conn.mav.camera_tracking_image_status_send(
@@ -127,6 +135,11 @@ def test_watch_summarises_and_forwards_the_find_as_cursor_on_target() -> None:
     assert event.ce == pytest.approx(2.5) and event.uid == "cloudtrack-find-system-1-mavlink-find-1"
     callsigns = [m.cotEvent.detail.contact.callsign for m in messages]
     assert "FOUND: a man in a red jacket" in callsigns
+    # The announcement said the position was seen 45 s before the confirmation: so does the TAK map.
+    described = next(
+        m for m in messages if m.cotEvent.detail.contact.callsign == "FOUND: a man in a red jacket"
+    )
+    assert "45 s before the confirmation" in described.cotEvent.detail.xmlDetail
 
 
 def test_watch_verbose_prints_every_message() -> None:

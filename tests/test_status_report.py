@@ -22,9 +22,9 @@ BOX = Box(300, 200, 40, 90)
 
 
 def confirmed(
-    cid: str = "c3", by: str = "supervisor page", position: GeoEstimate = POSITION
+    cid: str = "c3", by: str = "supervisor page", position: GeoEstimate = POSITION, seen_s: float = 90.0
 ) -> ReportCandidate:
-    return ReportCandidate(cid, "green shirt", Verdict.YES, position, BOX, "confirmed", by)
+    return ReportCandidate(cid, "green shirt", Verdict.YES, position, BOX, "confirmed", by, seen_s)
 
 
 def following(mode: MissionState = MissionState.AWAITING_SUPERVISOR) -> State:
@@ -42,7 +42,8 @@ def test_fields_validate_against_the_back_ends_model() -> None:
     report.on_answer((Detection(BOX, 0.9, candidate_id="c3"),))
     report.on_rejection()
     report.on_keyframe(4711, Box(-20, 100, 100, 200))  # partly outside the image: clamped
-    assert report.record_find(confirmed(), "a person in green", "QUJD") is not None
+    # Confirmed at event time 100 s, the position seen at 90 s: 10 s old.
+    assert report.record_find(confirmed(), "a person in green", "QUJD", now_s=100.0) is not None
     search = {"mode": "GUIDED", "mission_item": 7, "mission_items": 24}
     fields = report.fields(following(), search)
     status = VehicleStatusIn(state="AWAITING_SUPERVISOR", **fields)
@@ -58,10 +59,14 @@ def test_fields_validate_against_the_back_ends_model() -> None:
     assert find is not None and find.candidate_id == "c3" and find.position == [47.3977, 8.5456]
     assert find.time == 1_764_000_000.5 and find.confirmed_by == "supervisor page" and find.sigma_m == 1.3
     assert find.prompt == "a person in green" and find.crop_jpeg_b64 == "QUJD"
-    # A later confirmed report moves the find; its time, who and crop stay.
+    assert find.seen_at == 1_764_000_000.5 - 10.0
+    # A later confirmed report moves the find; its time, who and crop stay; its position's time is new.
     moved = replace(POSITION, lat_deg=47.39775)
-    again = report.record_find(confirmed(by="gcs", position=moved), "a person in green", None)
+    again = report.record_find(
+        confirmed(by="gcs", position=moved, seen_s=120.0), "a person in green", None, now_s=120.5
+    )
     assert again is not None and again.lat == 47.39775 and again.time == 1_764_000_000.5
+    assert again.seen_at == 1_764_000_999.0 - 0.5
     assert (
         again.confirmed_by == "supervisor page" and again.crop_jpeg_b64 == "QUJD" and len(report.finds) == 1
     )
@@ -79,7 +84,7 @@ def test_no_box_while_searching_and_counters_begin_again_with_a_new_mission() ->
     report.start("8")
     assert report.fields(following(), None)["progress"] == {"keyframes": 0, "candidates": 0, "rejected": 0}
     no_position = confirmed(position=replace(POSITION, lat_deg=math.nan))
-    assert report.record_find(no_position, "p", None) is None and "find" not in report.fields(
+    assert report.record_find(no_position, "p", None, now_s=1.0) is None and "find" not in report.fields(
         following(), None
     )
 
@@ -87,12 +92,17 @@ def test_no_box_while_searching_and_counters_begin_again_with_a_new_mission() ->
 def test_the_find_reaches_the_gcs_as_a_popup_and_a_geo_status() -> None:
     with autopilot("ardupilot", start_height_m=10.0) as sim, vehicle_link(sim) as link, gcs(sim) as ground:
         link.kick()
-        link.announce_find(47.397851, 8.545712, 1.25, 14.0, "a person in a green shirt", "gcs")
+        link.announce_find(47.397851, 8.545712, 1.25, 14.0, "a person in a green shirt", "gcs", 45.2)
         text = receive_until(ground, lambda m: m.get_type() == "STATUSTEXT" and m.text.startswith("FOUND "))
         assert text is not None and text.text == "FOUND 47.397851,8.545712 +-1.2m" and text.severity == 2
         assert len(text.text) <= 50
         detail = receive_until(ground, lambda m: m.get_type() == "STATUSTEXT" and m.text.startswith("FOUND:"))
         assert detail is not None and "green shirt" in detail.text
+        # The position's age, in the line's second chunk (66 bytes: two linked STATUSTEXTs).
+        rest = receive_until(
+            ground, lambda m: m.get_type() == "STATUSTEXT" and m.id == detail.id != 0 and m.chunk_seq == 1
+        )
+        assert rest is not None and (detail.text + rest.text).endswith("(confirmed by gcs; seen 45 s before)")
         geo = receive_until(ground, lambda m: m.get_type() == "CAMERA_TRACKING_GEO_STATUS")
         assert geo is not None and (geo.lat, geo.lon) == (473978510, 85457120)
         assert geo.get_srcComponent() == 100 and geo.h_acc == 1.25 and geo.dist == 14.0

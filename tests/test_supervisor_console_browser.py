@@ -12,6 +12,7 @@ import base64
 import http.server
 import json
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -206,10 +207,22 @@ def test_console_shows_live_keyframe_map_and_finds_offline(
         expect(find).to_have_count(1)
         expect(find.locator(".where")).to_contain_text("47.398080, 8.545980")
         expect(find.locator(".who")).to_have_text("confirmed by supervisor page")
+        expect(find.locator(".seen")).to_have_text("when the position was seen is not known")  # made here
         _loaded(page, 'section[data-vehicle="drone-1"] li.find img.crop')
-        # ... and stays when the vehicle has moved on to its next candidate's search.
+        # ... and stays when the vehicle has moved on to its next candidate's search, its own find (seen 45 s
+        # before the confirmation: the survey had flown on) replacing the page's.
+        now = time.time()
+        own = {
+            "candidate_id": awaiting["candidate_id"],
+            "position": [47.39808, 8.54598],
+            "sigma_m": 1.5,
+            "time": now,
+            "seen_at": now - 45.0,
+            "prompt": PROMPT,
+            "confirmed_by": "supervisor page",
+        }
         moved = {"mission_id": "m-12", "state": "SEARCHING", "prompt": PROMPT, "position": [47.3981, 8.5462],
-                 "reason": "survey resumed at item 4"}  # fmt: skip
+                 "reason": "survey resumed at item 4", "find": own}  # fmt: skip
         assert (
             httpx.post(f"{url}/v1/vehicles/drone-1/status", json=moved, headers=DRONE, timeout=10).status_code
             == 200
@@ -217,6 +230,7 @@ def test_console_shows_live_keyframe_map_and_finds_offline(
         expect(card.locator(".state")).to_have_text("SEARCHING")
         expect(card.locator("article.candidate")).to_have_count(0)
         expect(find).to_have_count(1)
+        expect(find.locator(".seen")).to_contain_text("45 s before the confirmation")
         assert the_map.locator("path.find-mark").count() == 1
         page.screenshot(path=str(SCREENSHOT), full_page=True)
         print(f"screenshot: {SCREENSHOT}")

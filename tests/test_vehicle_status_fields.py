@@ -38,6 +38,7 @@ FULL: dict[str, Any] = {
         "position": [47.39781, 8.54567],
         "sigma_m": 2.5,
         "time": 1732200000.5,
+        "seen_at": 1732199955.0,
         "prompt": "an injured man in a gray shirt",
         "confirmed_by": "supervisor page",
     },

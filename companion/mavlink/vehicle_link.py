@@ -420,13 +420,24 @@ class VehicleLink:
         self.endpoint.send(lambda m: m.named_value_float_send(boot_ms, encoded, float(value)))
 
     def announce_find(
-        self, lat: float, lon: float, sigma_m: float, slant_range_m: float, prompt: str, confirmed_by: str
+        self,
+        lat: float,
+        lon: float,
+        sigma_m: float,
+        slant_range_m: float,
+        prompt: str,
+        confirmed_by: str,
+        seen_before_s: float | None = None,
     ) -> None:
         """A confirmed find: STATUSTEXT at CRITICAL, which QGroundControl pops up (`FOUND <lat>,<lon>
-        +-<sigma>m`, at most 50 bytes), a second line with the prompt and who confirmed, and the position as
-        CAMERA_TRACKING_GEO_STATUS."""
+        +-<sigma>m`, at most 50 bytes), a second line with the prompt, who confirmed and, when the position
+        was seen a second or more before the confirmation, how long before (`; seen 45 s before`), and the
+        position as CAMERA_TRACKING_GEO_STATUS (which has no time field)."""
         self.send_status(f"FOUND {lat:.6f},{lon:.6f} +-{min(sigma_m, 9999.0):.1f}m", MAV_SEVERITY_CRITICAL)
-        self.status(f"FOUND: {prompt} (confirmed by {confirmed_by or 'supervisor'})", MAV_SEVERITY_INFO)
+        seen = ""
+        if seen_before_s is not None and math.isfinite(seen_before_s) and seen_before_s >= 1.0:
+            seen = f"; seen {min(seen_before_s, 99_999.0):.0f} s before"
+        self.status(f"FOUND: {prompt} (confirmed by {confirmed_by or 'supervisor'}{seen})", MAV_SEVERITY_INFO)
         self.send_find_position(lat, lon, sigma_m, slant_range_m)
 
     def send_find_position(self, lat: float, lon: float, sigma_m: float, slant_range_m: float) -> None:
