@@ -60,7 +60,7 @@ class FindReport:
 
 def seen_text(confirmed_at: float, seen_at: float | None) -> str:
     """How old a find's position is, for a person reading the map: a rescuer walks to where the person was."""
-    if seen_at is None:
+    if seen_at is None or not 0.0 <= seen_at <= 2**34:  # None, NaN or out of any clock's range
         return "when the position was seen is not known"
     when = datetime.fromtimestamp(seen_at, timezone.utc).strftime("%H:%M:%S UTC")
     gap = confirmed_at - seen_at

@@ -28,7 +28,7 @@ from cloudtrack.mavlink_connection import mavlink
 REPEAT_S = 10.0
 SAME_FIND_M = 5.0
 _FOUND = re.compile(r"^FOUND (-?\d+(?:\.\d+)?),(-?\d+(?:\.\d+)?) \+-(\d+(?:\.\d+)?)m$")
-_FOUND_TEXT = re.compile(r"^FOUND: (.*) \(confirmed by (.*?)(?:; seen (\d+) s before)?\)$")
+_FOUND_TEXT = re.compile(r"^FOUND: (.*) \(confirmed by (.*?)(?:; seen (\d{1,5}) s before)?\)$")
 _AWAITING = re.compile(r"^CANDIDATE (?:AWAITING|REVERIFIED) (\S+)")
 
 

@@ -361,6 +361,8 @@ def test_cursor_on_target_event_is_what_takproto_reads() -> None:
     ("seen_at", "text"),
     [
         (None, "when the position was seen is not known"),
+        (float("nan"), "when the position was seen is not known"),
+        (-float("inf"), "when the position was seen is not known"),
         (1732200000.0, "position as seen at 14:40:00 UTC, at the confirmation"),
         (1732199999.5, "position as seen at 14:39:59 UTC, at the confirmation"),
         (1732199955.0, "position as seen at 14:39:15 UTC, 45 s before the confirmation"),

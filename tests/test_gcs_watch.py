@@ -16,9 +16,11 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 
 import pytest
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from cloudtrack.gcs_protocol import statustext_chunks
 from cloudtrack.mavlink_connection import MavlinkEndpoint
+from gcs.watch_command import WatchSummary
 from tests.test_finds_export import TakStandIn
 
 TRACKING_HZ = 10.0
@@ -170,3 +172,33 @@ def test_watch_until_candidate_exits_1_when_none_came() -> None:
         )
     assert done.returncode == 1, done.stdout + done.stderr
     assert done.stdout.splitlines()[-1].endswith("no candidate awaits the supervisor"), done.stdout
+
+
+def _statustext(text: str) -> object:
+    msg = mavlink.MAVLink_statustext_message(6, text.encode(), 0, 0)
+    msg._header = mavlink.MAVLink_header(msg.id, srcSystem=1, srcComponent=191)
+    return msg
+
+
+@pytest.mark.parametrize(
+    ("line", "confirmed_by", "seen_at"),
+    [
+        ("FOUND: a man in red (confirmed by gcs)", "gcs", 1000.0),  # no words: seen at the confirmation
+        ("FOUND: a man in red (confirmed by gcs; seen 45 s before)", "gcs", 955.0),
+        # A sender's absurd age is not a time: the words stay part of who confirmed, the age unknown as given.
+        (
+            "FOUND: a man in red (confirmed by gcs; seen 999999999999 s before)",
+            "gcs; seen 999999999999 s before",
+            1000.0,
+        ),
+    ],
+)
+def test_watch_reads_how_old_the_finds_position_is(line: str, confirmed_by: str, seen_at: float) -> None:
+    summary = WatchSummary(1, wall_clock=lambda: 1000.0)
+    found = "FOUND 47.397812,8.545612 +-2.5m"
+    summary.feed(_statustext(found), found)
+    summary.feed(_statustext(line), line)
+    (find,) = summary.finds
+    assert find.confirmed_by == confirmed_by and find.seen_at == seen_at
+    summary.feed(_statustext("FOUND 47.397830,8.545612 +-2.0m"), "FOUND 47.397830,8.545612 +-2.0m")
+    assert len(summary.finds) == 1 and summary.finds[0].sigma_m == 2.0  # moved 2 m: the same find
