@@ -346,6 +346,7 @@ class SessionStore:
                     position=same.position,
                     sigma_m=None,  # the vehicle's own find, when it comes, says how sure it is
                     time=record.created_at,
+                    seen_at=same.seen_at,
                     prompt=(current.prompt if current else None) or "",
                     confirmed_by=decision.operator or "supervisor",
                     crop_jpeg_b64=same.crop_jpeg_b64,

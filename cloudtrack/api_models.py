@@ -249,6 +249,9 @@ class AwaitingCandidate(ApiModel):
         None, description="[x1, y1, x2, y2] of the candidate inside the crop; default: all of it"
     )
     position: LatLonPoint | None = Field(None, description="[lat, lon] estimate")
+    seen_at: float | None = Field(
+        None, ge=0.0, le=2**34, description="Unix time the position was observed (s); null: not known"
+    )
 
 
 SEARCH_AREA_MAX_VERTICES = 200

@@ -539,6 +539,10 @@ class MissionRunner:
         position = target.position if tracked else target.fix
         if position is not None:
             awaiting["position"] = [position.lat_deg, position.lon_deg]
+            # How old it is: a Confirm on the page makes the find from it before the vehicle's own arrives.
+            seen_at = self.report.wall_time(target.position_s if tracked else target.fix_s, state.now_s)
+            if seen_at is not None:
+                awaiting["seen_at"] = round(seen_at, 3)
         in_view = state.mode is MissionState.AWAITING_SUPERVISOR
         awaiting.update(self._candidate_crop(awaiting["candidate_id"], target.box, in_view))
         return awaiting

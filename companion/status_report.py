@@ -100,6 +100,13 @@ class StatusReport:
         """A keyframe went to the back-end; `box` is the trusted track on it (None: nothing tracked)."""
         self._keyframe = (frame_id, box)
 
+    def wall_time(self, event_s: float, now_s: float, wall: float | None = None) -> float | None:
+        """The Unix time of `event_s` on the mission's event clock, whose now is `now_s`; None: not known."""
+        age = now_s - event_s
+        if not math.isfinite(age):
+            return None
+        return (self._wall_clock() if wall is None else wall) - max(0.0, age)
+
     def find_of(self, candidate_id: str) -> Find | None:
         return next((f for f in self.finds if f.candidate_id == candidate_id), None)
 
@@ -113,7 +120,6 @@ class StatusReport:
             return None
         old = self.find_of(report.candidate_id)
         wall = self._wall_clock()
-        age = now_s - report.position_s
         find = Find(
             report.candidate_id,
             position.lat_deg,
@@ -124,7 +130,7 @@ class StatusReport:
             old.confirmed_by if old is not None else report.confirmed_by,
             position.slant_range_m,
             old.crop_jpeg_b64 if old is not None and old.crop_jpeg_b64 else crop_jpeg_b64,
-            wall - max(0.0, age) if math.isfinite(age) else None,
+            self.wall_time(report.position_s, now_s, wall),
         )
         if old is not None:
             self.finds[self.finds.index(old)] = find

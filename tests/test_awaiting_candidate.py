@@ -14,11 +14,13 @@ import pytest
 
 from behaviors.actions import ReportCandidate
 from behaviors.detection import Verdict
+from behaviors.geolocation import GeoEstimate
 from behaviors.geometry import Box
 from behaviors.mission import MissionState, Target, awaiting_decision, initial_state, step
 from behaviors.mission_commands import StartMission
 from behaviors.mission_config import MissionConfig
 from behaviors.track_result import TrackResult
+from cloudtrack.api_models import AwaitingCandidate
 from companion.mission_runner import MissionRunner
 from companion.vision.frame_sources import Frame
 
@@ -76,3 +78,19 @@ def test_awaiting_every_status_carries_the_candidate_through_a_loss() -> None:
     assert "awaiting" not in runner._status()
     runner.state = _state(MissionState.SEARCHING, target=None)
     assert "awaiting" not in runner._status()
+
+
+def test_awaiting_candidate_says_how_old_its_position_is() -> None:
+    """The page's Confirm makes the find from the awaiting candidate before the vehicle's own arrives: it
+    carries when its position was seen (tracked: the latest; out of view: the kept fix)."""
+    none: Any = None
+    runner = MissionRunner(CONFIG, none, none, none, none, wall_clock=lambda: 1_000.0)
+    runner._latest = Frame(7, time.monotonic(), np.zeros((480, 640, 3), dtype=np.uint8))
+    seen = GeoEstimate(47.0, 8.0, 10.0, 0.0, 10.0, 14.0, 1.0)
+    target = replace(TARGET, position=seen, position_s=0.5)
+    runner.state = _state(MissionState.AWAITING_SUPERVISOR, target=target)  # now_s 2.0
+    awaiting = runner._status()["awaiting"]
+    assert awaiting["position"] == [47.0, 8.0] and awaiting["seen_at"] == 998.5
+    assert AwaitingCandidate.model_validate(awaiting).seen_at == 998.5
+    runner.state = _state(MissionState.AWAITING_SUPERVISOR, target=replace(TARGET, position=seen))
+    assert "seen_at" not in runner._status()["awaiting"]  # observed when is not known: not said

@@ -142,7 +142,12 @@ def _fly_and_find(client: TestClient, crop_b64: str | None = None) -> None:
             },
         }
         assert client.post("/v1/vehicles/drone-1/status", headers=auth(), json=status).status_code == 200
-    awaiting = {"candidate_id": "c-9", "box": [1.0, 2.0, 30.0, 60.0], "position": [47.3980, 8.5462]}
+    awaiting = {
+        "candidate_id": "c-9",
+        "box": [1.0, 2.0, 30.0, 60.0],
+        "position": [47.3980, 8.5462],
+        "seen_at": 1732199990.0,
+    }
     if crop_b64:
         awaiting["crop_jpeg_b64"] = crop_b64
     body = {
@@ -188,7 +193,7 @@ def test_geojson_download_holds_finds_track_and_areas(client_factory: Any) -> No
     assert {k: vehicle_find["properties"][k] for k in expected} == expected
     page_find = finds["c-9"]["properties"]
     assert page_find["confirmed_by"] == "supervisor page" and page_find["sigma_m"] is None
-    assert page_find["seen_at"] is None  # made at the page's confirm: the vehicle's own find says when
+    assert page_find["seen_at"] == "2024-11-21T14:39:50Z"  # made at the page's confirm, from the candidate
     (track,) = by_kind["track"]
     assert track["geometry"]["type"] == "LineString" and len(track["geometry"]["coordinates"]) == 6
     (area,) = by_kind["search_area"]
