@@ -7,6 +7,7 @@ import argparse
 import json
 import sys
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 
 from cloudtrack.command_line import add_command_modules, new_parser, run
@@ -106,6 +107,13 @@ def _add_run(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         help="with --verifier cascade: the emulated hosted VLM's answer time (default 2)",
     )
     run.add_argument(
+        "--supervisor-delay-s",
+        type=float,
+        metavar="S",
+        help="the scripted supervisor decides this long after a candidate is reported (default: the "
+        "scenario's, 1 s); longer, a survey looking only flies on and the find's position ages",
+    )
+    run.add_argument(
         "--work-dir",
         type=Path,
         help="keep companion logs, event files, flight records and the SITL's "
@@ -133,10 +141,14 @@ def _run(args: argparse.Namespace) -> int:
         companion_settings=tuple(args.companion_set),
         speedup=args.speedup,
     )
+    scenario = SCENARIOS[args.scenario]
+    if args.supervisor_delay_s is not None:
+        if not 0.0 <= args.supervisor_delay_s <= 600.0:
+            print(f"--supervisor-delay-s must be 0-600 s, not {args.supervisor_delay_s:g}", file=sys.stderr)
+            return 2
+        scenario = replace(scenario, supervisor_delay_s=args.supervisor_delay_s)
     try:
-        results = run_scenario(
-            SCENARIOS[args.scenario], options, progress=lambda line: print(line, flush=True)
-        )
+        results = run_scenario(scenario, options, progress=lambda line: print(line, flush=True))
     except (RuntimeError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

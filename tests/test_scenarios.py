@@ -199,6 +199,9 @@ def test_sim_cli_lists_scenarios_and_has_help(capsys: pytest.CaptureFixture[str]
     with pytest.raises(SystemExit) as exc:
         sim_main(["run", "no-such-scenario"])
     assert exc.value.code == 2
+    # A supervisor delay out of range is refused before anything starts, with the range.
+    assert sim_main(["run", "search-no-engage", "--supervisor-delay-s", "-1"]) == 2
+    assert "--supervisor-delay-s must be 0-600 s, not -1" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize(
