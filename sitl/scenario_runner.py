@@ -480,6 +480,10 @@ class ScenarioRun:
                 f"{e.get('verdict')}: {e.get('justification', '')[:40]}",
                 v.overlay.box,
             )
+            if e.get("status") == "confirmed" and v.state == "lost":
+                # Confirmed while the track was lost: the companion reports the find from the track's kept
+                # estimate and re-detects ("CONFIRMED while lost"); its state stays LOST, but it is a find.
+                v.confirmations.append((t, v.judged))
             if e.get("status") == "awaiting" and v.pending_decision is None:
                 # The box is the tracker's on one frame; judge that frame (its track event came first in
                 # the log), not the one rendered at the report's time: a companion lagging under load reports
