@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from pydantic import ValidationError
 
 from behaviors.actions import ReportCandidate
 from behaviors.detection import Verdict
@@ -94,3 +95,9 @@ def test_awaiting_candidate_says_how_old_its_position_is() -> None:
     assert AwaitingCandidate.model_validate(awaiting).seen_at == 998.5
     runner.state = _state(MissionState.AWAITING_SUPERVISOR, target=replace(TARGET, position=seen))
     assert "seen_at" not in runner._status()["awaiting"]  # observed when is not known: not said
+
+
+@pytest.mark.parametrize("seen_at", [-1.0, 2.0**35, float("nan"), float("inf")])
+def test_awaiting_candidate_refuses_a_seen_at_no_clock_gives(seen_at: float) -> None:
+    with pytest.raises(ValidationError, match="seen_at"):
+        AwaitingCandidate.model_validate({"candidate_id": "c-1", "box": [1, 2, 3, 4], "seen_at": seen_at})

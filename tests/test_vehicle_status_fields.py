@@ -110,6 +110,8 @@ SQUARE = [[47.0, 8.0], [47.0, 8.1], [47.1, 8.1], [47.1, 8.0]]
         ("find.candidate_id", "../../etc", "candidate_id"),
         ("find.confirmed_by", "x" * 65, "confirmed_by"),
         ("find.time", -5.0, "time"),
+        ("find.seen_at", -5.0, "seen_at"),
+        ("find.seen_at", 1e300, "seen_at"),
     ],
 )
 def test_out_of_range_status_fields_are_422_naming_the_field(
@@ -127,6 +129,8 @@ def test_out_of_range_status_fields_are_422_naming_the_field(
         b'{"state": "x", "search": {"coverage": Infinity}}',
         b'{"state": "x", "find": {"candidate_id": "c", "position": [47, NaN], "sigma_m": 1, "time": 1, '
         b'"confirmed_by": "gcs"}}',
+        b'{"state": "x", "find": {"candidate_id": "c", "position": [47, 8], "sigma_m": 1, "time": 1, '
+        b'"seen_at": NaN, "confirmed_by": "gcs"}}',
     ],
 )
 def test_non_finite_status_fields_are_422(client: TestClient, body: bytes) -> None:
