@@ -125,6 +125,7 @@ class FindView(ApiModel):
     sigma_m: float | None
     time: float
     seen_at: float | None = None  # when the position was observed (Unix s); None: not known
+    seen: str = ""  # the same for a person: "position as seen at 14:39:15 UTC, 45 s before the confirmation"
     prompt: str
     confirmed_by: str
     crop_url: str | None

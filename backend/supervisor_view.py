@@ -26,6 +26,7 @@ from backend.schemas import (
     VehicleView,
 )
 from backend.sessions import SessionStore
+from cloudtrack.cursor_on_target import seen_text
 
 _STATUS = {"confirm": "confirmed", "reject": "rejected"}
 TRACK_SHOWN = 300  # points of the track the page draws (the download has them all)
@@ -50,6 +51,7 @@ def find_view(find: StoredFind) -> FindView:
         sigma_m=find.sigma_m,
         time=find.time,
         seen_at=find.seen_at,
+        seen=seen_text(find.time, find.seen_at),
         prompt=find.prompt,
         confirmed_by=find.confirmed_by,
         crop_url=(

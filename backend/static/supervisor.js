@@ -136,16 +136,6 @@ function formatTime(unix) {
   return `${date.toISOString().slice(0, 19).replace("T", " ")} UTC`;
 }
 
-// How old a find's position is (as cloudtrack.cursor_on_target.seen_text says it on the TAK map and in KML).
-function seenText(confirmedAt, seenAt) {
-  if (seenAt === null || seenAt === undefined) return "when the position was seen is not known";
-  const when = `${new Date(seenAt * 1000).toISOString().slice(11, 19)} UTC`;
-  const gap = confirmedAt - seenAt;
-  if (Math.abs(gap) < 1) return `position as seen at ${when}, at the confirmation`;
-  const span = Math.abs(gap) < 120 ? `${Math.abs(gap).toFixed(0)} s` : `${(Math.abs(gap) / 60).toFixed(0)} min`;
-  return `position as seen at ${when}, ${span} ${gap > 0 ? "before" : "after"} the confirmation`;
-}
-
 function svg(tag, attributes = {}, parent = null) {
   const node = document.createElementNS(SVG, tag);
   for (const [name, value] of Object.entries(attributes)) node.setAttribute(name, value);
@@ -403,7 +393,7 @@ function renderFinds(card, vehicle) {
     }
     $(".where", item).textContent = formatPosition(find.position, find.sigma_m);
     $(".when", item).textContent = formatTime(find.time);
-    $(".seen", item).textContent = seenText(find.time, find.seen_at);
+    $(".seen", item).textContent = find.seen; // how old the position is, worded as on the TAK map
     $(".who", item).textContent = `confirmed by ${find.confirmed_by}`;
     $(".what", item).textContent = `${find.prompt} (mission ${find.mission_id})`;
     showCrop(item, find.crop_url, find.crop_box);
