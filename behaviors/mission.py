@@ -36,6 +36,7 @@ from behaviors.candidate_selection import (
     settle_early_choice,
 )
 from behaviors.control_law import ControlState, FollowGoal, estimate_distance, follow_step
+from behaviors.decision_guard import DecisionGuard, observe, too_new
 from behaviors.detection import Detection, Verdict
 from behaviors.events import (
     AutopilotLinkLost,
@@ -190,6 +191,8 @@ class State:
     # A candidate put to the supervisor that the search gave up (out of view, the survey flew on) before a
     # decision: it keeps awaiting one while the search goes on (confirm: a find; reject: remembered).
     pending: Target | None = None
+    # Which candidate a decision naming none (the GCS's candidate 0) would apply to, and since when.
+    undirected: DecisionGuard = DecisionGuard()
 
 
 Result = tuple[State, tuple[Action, ...]]
@@ -220,8 +223,24 @@ def awaiting_decision(state: State) -> Target | None:
     return state.target if waiting else state.pending
 
 
+def undirected_candidate(state: State) -> Target | None:
+    """What a decision naming no candidate (the GCS's candidate 0) is for: the one awaiting the supervisor,
+    else the one tracked."""
+    awaiting = awaiting_decision(state)
+    if awaiting is None and state.mode in TRACKING:
+        return state.target
+    return awaiting
+
+
 def step(state: State, event: Event, config: MissionConfig) -> Result:
     """The next state and the actions to execute, in order, for one event."""
+    new, actions = _step(state, event, config)
+    undirected = undirected_candidate(new)
+    guard = observe(new.undirected, undirected.candidate_id if undirected else "", new.now_s)
+    return (new if guard is new.undirected else replace(new, undirected=guard)), actions
+
+
+def _step(state: State, event: Event, config: MissionConfig) -> Result:
     if not math.isfinite(event.time_s):
         return state, (GcsMessage("ignored event with a non-finite time", "warning"),)
     state = replace(state, now_s=max(state.now_s, event.time_s))
@@ -440,6 +459,14 @@ def _command(state: State, event: GcsCommand, config: MissionConfig) -> Result:
             "operator stop",
         )
         return new, (ReleaseControl("operator stop"), *stop, *msg)
+    if isinstance(cmd, ConfirmCandidate | RejectCandidate) and not cmd.candidate_id:
+        undirected = undirected_candidate(state)
+        if undirected is not None:
+            if too_new(state.undirected, state.now_s, config.gcs_decision_guard_s):
+                verb = "CONFIRM" if isinstance(cmd, ConfirmCandidate) else "REJECT"
+                text = f"{verb} REFUSED: {undirected.candidate_id} is new, press again"
+                return state, (GcsMessage(text, "warning"),)
+            cmd = replace(cmd, candidate_id=undirected.candidate_id)
     if isinstance(cmd, ConfirmCandidate):
         current = state.target
         if (

@@ -91,6 +91,9 @@ class MissionConfig:
     rejection_radius_m: float = 5.0
     # A GCS track rectangle skips the supervisor's confirmation ([safety] gcs_track_confirms).
     operator_box_confirms: bool = False
+    # A GCS decision for "the candidate awaiting" this soon after another came to await is refused: it was
+    # pressed for the one before ([safety] gcs_decision_guard_s; behaviors.decision_guard).
+    gcs_decision_guard_s: float = 0.75
     signature_threshold: float = 0.95
 
     @classmethod
@@ -162,6 +165,7 @@ class MissionConfig:
             redetect_roi_scale=_float(behavior, "redetect_roi_scale", d.redetect_roi_scale),
             redetect_full_frame_s=_float(behavior, "redetect_full_frame_s", d.redetect_full_frame_s),
             operator_box_confirms=_bool(safety, "gcs_track_confirms", d.operator_box_confirms),
+            gcs_decision_guard_s=_float(safety, "gcs_decision_guard_s", d.gcs_decision_guard_s),
         )
 
 

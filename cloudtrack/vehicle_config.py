@@ -67,6 +67,9 @@ class SafetyConfig(ConfigSection):
     telemetry_stale_s: float = Field(1.0, gt=0, le=10)  # older altitude/position counts as missing: hold
     setpoint_max_age_s: float = Field(0.5, gt=0, le=5)  # older setpoints are never sent (zero instead)
     gcs_track_confirms: bool = False  # may a GCS track rectangle skip the supervisor's confirmation?
+    # A GCS confirm/reject of "the candidate awaiting" (candidate 0) this soon after another came to await
+    # is refused ("press again"): it was pressed for the one before.
+    gcs_decision_guard_s: float = Field(0.75, ge=0, le=10)
 
     @model_validator(mode="after")
     def _altitude_band(self) -> SafetyConfig:
