@@ -10,6 +10,7 @@ import argparse
 import os
 import sys
 import time
+from collections import deque
 from collections.abc import Sequence
 from functools import partial
 from pathlib import Path
@@ -118,6 +119,8 @@ class GcsSession:
                 allow_unsigned_callback=lambda _mav, msg_id: msg_id != mavlink.MAVLINK_MSG_ID_COMMAND_ACK,
             )  # fmt: skip
         self._statustexts: dict[int, list[bytes]] = {}
+        # The companion's lines heard while waiting for an ACK: a reply may overtake it.
+        self.heard: deque[str] = deque(maxlen=16)
 
     def close(self) -> None:
         self.endpoint.close()
@@ -171,7 +174,9 @@ class GcsSession:
                 msg = self.endpoint.receive(timeout=0.2)
                 if msg is None:
                     continue
-                self.show(msg, quiet=True)
+                text = self.join_statustext(msg) if msg.get_type() == "STATUSTEXT" else None
+                if text is not None and msg.get_srcComponent() == self.target[1]:
+                    self.heard.append(text)
                 if (
                     msg.get_type() == "COMMAND_ACK"
                     and msg.command == command
@@ -197,11 +202,11 @@ class GcsSession:
             EXIT_TIMEOUT,
         )
 
-    def show(self, msg: Any, quiet: bool = False) -> str | None:
-        """A readable line for a message from the vehicle, printed unless `quiet`; None for others."""
+    def show(self, msg: Any) -> str | None:
+        """A readable line for a message from the vehicle, printed; None for others."""
         text = self.join_statustext(msg) if msg.get_type() == "STATUSTEXT" else None
         line = self.describe(msg, text)
-        if line is not None and not quiet:
+        if line is not None:
             print(line, flush=True)
         return line
 
@@ -293,9 +298,48 @@ def _start(session: GcsSession, args: argparse.Namespace) -> int:
     return code
 
 
-def _simple(command: int, params: Sequence[float] = ()) -> Any:
+def _simple(command: int, params: Sequence[float]) -> Any:
     def run(session: GcsSession, args: argparse.Namespace) -> int:
-        return _report(COMMAND_NAMES[command], session.command(command, params or _candidate(args)))
+        return _report(COMMAND_NAMES[command], session.command(command, params))
+
+    return run
+
+
+DECISION_ANSWER_WAIT_S = 2.0
+# The mission's answers to a confirm or reject (docs/gcs-protocol.md, "Status lines").
+DECIDED = ("CONFIRMED", "REJECTED", "confirmed ", "rejected ", "FOUND")
+
+
+def _decision(command: int) -> Any:
+    """Confirm or reject, then the mission's answer: the ACK says only that the command was delivered, and
+    the mission may still refuse it (a candidate 0 pressed just as another came to await: "press again")."""
+
+    def run(session: GcsSession, args: argparse.Namespace) -> int:
+        name = COMMAND_NAMES[command]
+        session.heard.clear()
+        code = _report(name, session.command(command, _candidate(args)))
+        if code:
+            return code
+
+        def answer(text: str) -> int | None:
+            print(f"[{session.target[0]}/{session.target[1]}] {text}", flush=True)
+            if text.startswith((f"{name.upper()} REFUSED", f"{name}: ")):
+                print(f"error: {name} refused by the mission: {text}", file=sys.stderr, flush=True)
+                return EXIT_REFUSED
+            return 0 if text.startswith(DECIDED) else None
+
+        for early in session.heard:
+            if (decided := answer(early)) is not None:
+                return decided
+        deadline = time.monotonic() + DECISION_ANSWER_WAIT_S
+        while time.monotonic() < deadline:
+            msg = session.endpoint.receive(timeout=0.1)
+            if msg is None or msg.get_srcComponent() != session.target[1] or msg.get_type() != "STATUSTEXT":
+                continue
+            text = session.join_statustext(msg)
+            if text is not None and (decided := answer(text)) is not None:
+                return decided
+        return 0
 
     return run
 
@@ -412,7 +456,7 @@ def build_parser() -> argparse.ArgumentParser:
             default=0,
             help="candidate number (default 0: the one awaiting the supervisor)",
         )
-        p.set_defaults(func=_simple(command))
+        p.set_defaults(func=_decision(command))
     abort = sub.add_parser(
         "abort",
         help="end the mission: the companion stops and holds",

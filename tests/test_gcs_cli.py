@@ -35,6 +35,37 @@ def test_start_ack_status_round_trip_through_the_autopilot() -> None:
         ]
 
 
+@pytest.mark.parametrize(
+    ("reply", "code"),
+    [
+        ("CONFIRM REFUSED: c2 is new, press again", 1),
+        ("confirm: no such candidate", 1),
+        ("CONFIRMED: supervisor confirmed", 0),
+    ],
+)
+def test_confirm_prints_the_missions_answer_and_exits_1_when_it_refused(
+    reply: str, code: int, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The ACK says only that the confirm was delivered; the mission may refuse it (candidate 0 pressed as
+    another came to await). The line may overtake the ACK: it is kept while the ACK is awaited."""
+    import threading
+
+    with autopilot("ardupilot") as sim, vehicle_link(sim) as link, MainLoop(link):
+
+        def mission_answers() -> None:
+            if wait_for(lambda: len(link._commands) >= 1):
+                link.send_status(reply, 4)
+
+        answering = threading.Thread(target=mission_answers, daemon=True)
+        answering.start()
+        assert gcs_cli.main(_gcs_args(sim, "confirm")) == code
+        answering.join()
+        out, err = capsys.readouterr()
+        assert "confirm: ACCEPTED" in out and f"[1/191] {reply}" in out
+        assert (f"error: confirm refused by the mission: {reply}" in err) is (code == 1)
+        assert link.commands() == [ConfirmCandidate("", by="gcs")]
+
+
 @pytest.mark.slow
 def test_supervisor_commands_and_track_box(capsys: pytest.CaptureFixture[str]) -> None:
     with autopilot("px4") as sim, vehicle_link(sim) as link, MainLoop(link):
