@@ -47,7 +47,6 @@ from sitl.flight_stack import (
     start_flight_stack,
 )
 from sitl.metrics import (
-    FOLLOW_STATES,
     FrameSample,
     PoseSample,
     SetpointSample,
@@ -140,7 +139,9 @@ class _Vehicle:
     state: str = ""
     overlay: OverlayState = field(default_factory=OverlayState)
     decided: set[str] = field(default_factory=set)
-    pending_decision: tuple[float, str, str] | None = None  # (due time, action, person id)
+    pending_decision: tuple[float, str, str, str] | None = None  # (due time, action, person id, candidate id)
+    # The candidate the companion last put to the supervisor, until it is decided: what candidate 0 means.
+    awaiting_id: str = ""
     decision_sent: tuple[float, str] | None = None  # (when, action) of a decision the companion has not taken
     confirmations: list[tuple[float, str]] = field(default_factory=list)
     rejections: list[tuple[float, str]] = field(default_factory=list)
@@ -455,6 +456,7 @@ class ScenarioRun:
             v.ready = True
         elif kind == "command" and e.get("command") == "StartMission":
             v.start_sent = None
+            v.awaiting_id = ""
         elif kind == "state":
             v.state = str(e.get("state", ""))
             v.overlay = OverlayState(v.state, str(e.get("prompt", "")), v.overlay.verdict, v.overlay.box)
@@ -480,18 +482,28 @@ class ScenarioRun:
                 f"{e.get('verdict')}: {e.get('justification', '')[:40]}",
                 v.overlay.box,
             )
-            if e.get("status") == "confirmed" and v.state == "lost":
-                # Confirmed while the track was lost: the companion reports the find from the track's kept
-                # estimate and re-detects ("CONFIRMED while lost"); its state stays LOST, but it is a find.
-                v.confirmations.append((t, v.judged))
-            if e.get("status") == "awaiting" and v.pending_decision is None:
-                # The box is the tracker's on one frame; judge that frame (its track event came first in
-                # the log), not the one rendered at the report's time: a companion lagging under load reports
-                # boxes of frames rendered well before.
-                pid = self._person_at(v, e.get("box"), t, self._frame_of(v, e.get("box")))
-                action = "confirm" if pid == self.world.target_id else "reject"
-                v.pending_decision = (self.now() + self.scenario.supervisor_delay_s, action, pid)
-                self.say(f"{v.vehicle_id}: supervisor sees {pid} ({e.get('verdict')}), will {action}")
+            cid = str(e.get("candidate_id", ""))
+            if e.get("status") == "confirmed":
+                if v.state != "confirmed":
+                    # Confirmed while the track was lost ("CONFIRMED while lost": the find is the track's kept
+                    # estimate, and it re-detects), or after the search left it (out of view, the survey flew
+                    # on): the state is not CONFIRMED, but it is a find.
+                    v.confirmations.append((t, v.judged))
+                if cid == v.awaiting_id:
+                    v.awaiting_id = ""
+            if e.get("status") == "awaiting":
+                v.awaiting_id = cid
+                if v.pending_decision is None or v.pending_decision[3] != cid:
+                    # A new candidate (a decision due on the one before is dropped: candidate 0 now means
+                    # this one). The box is the tracker's on one frame; judge that frame (its track event
+                    # came first in the log), not the one rendered at the report's time: a companion lagging
+                    # under load reports boxes of frames rendered well before.
+                    pid = self._person_at(v, e.get("box"), t, self._frame_of(v, e.get("box")))
+                    action = "confirm" if pid == self.world.target_id else "reject"
+                    v.pending_decision = (self.now() + self.scenario.supervisor_delay_s, action, pid, cid)
+                    self.say(f"{v.vehicle_id}: supervisor sees {pid} ({e.get('verdict')}), will {action}")
+        elif kind == "RememberRejection" and e.get("candidate_id") == v.awaiting_id:
+            v.awaiting_id = ""
         elif kind == "hold":
             self.say(f"{v.vehicle_id}: HOLD ({e.get('reason')})")
         elif kind == "safety" and e.get("action") == "stop":
@@ -530,9 +542,12 @@ class ScenarioRun:
             v.decision_sent = (self.now(), action)
         if v.pending_decision is None or self.now() < v.pending_decision[0]:
             return
-        _, action, pid = v.pending_decision
+        _, action, pid, cid = v.pending_decision
         v.pending_decision = None
-        if v.state not in FOLLOW_STATES and v.state != "lost":
+        if cid != v.awaiting_id or v.state in ("idle", "aborted"):
+            # Decided meanwhile (the page, a retry), or the mission ended. A candidate the search left
+            # before the decision still awaits it: candidate 0 means it until another is put to the
+            # supervisor, so the decision is sent whatever the vehicle does now.
             return
         if action == "confirm":
             v.judged = pid

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -402,7 +403,8 @@ def test_scenario_supervisor_repeats_a_decision_the_companion_did_not_take(tmp_p
     assert run._frame_of(v, [10.0, 20.0, 30.0, 60.0]) == 7 and run._frame_of(v, [1.0, 2.0, 3.0, 4.0]) == -1
 
     run._handle_event(v, {"kind": "state", "t": 0.0, "state": "awaiting_supervisor"})
-    v.pending_decision = (run.now() - 0.1, "confirm", "target")
+    v.awaiting_id = "c1"
+    v.pending_decision = (run.now() - 0.1, "confirm", "target", "c1")
     run._supervise(v)
     run._supervise(v)
     assert sent == ["confirm"]  # not again at once
@@ -414,6 +416,68 @@ def test_scenario_supervisor_repeats_a_decision_the_companion_did_not_take(tmp_p
     assert v.decision_sent is None  # taken: nothing left to repeat
     run._supervise(v)
     assert sent == ["confirm", "confirm"] and v.decision_sent is None
+    run._teardown()
+
+
+def test_scenario_supervisor_decides_late_on_the_candidate_it_judged(tmp_path: Path) -> None:
+    """The scripted supervisor decides on the candidate it saw: a decision due after the search left that
+    candidate (looking only, out of view: it still awaits) is sent while the vehicle searches, and counts as
+    a find when the companion reports it confirmed; a decision due on a candidate another has replaced
+    (candidate 0 now means the other) is dropped, and the new one is judged afresh."""
+    from types import SimpleNamespace
+    from typing import cast
+
+    from behaviors.geometry import Box
+    from sitl.camera_render import TruthBox
+    from sitl.scenario_runner import ScenarioRun, _Seen, _Vehicle
+
+    run = ScenarioRun(
+        SCENARIOS["search-no-engage"],
+        RunOptions(tracker="csrt", work_dir=tmp_path / "w"),
+        progress=lambda _: None,
+    )
+    sent: list[str] = []
+    gcs = SimpleNamespace(confirm=lambda: sent.append("confirm"), reject=lambda: sent.append("reject"))
+    nothing = cast(Any, None)
+    v = _Vehicle(0, "drone-1", nothing, nothing, nothing, nothing, cast(Any, gcs), tmp_path, tmp_path)
+    run.epoch = 0.0
+    target, decoy = Box(100.0, 100.0, 20.0, 50.0), Box(400.0, 100.0, 20.0, 50.0)
+    truth = (
+        TruthBox(run.world.target_id, target, 1.0, 0.0, 0.0, "gray"),
+        TruthBox("decoy", decoy, 1.0, 5.0, 0.0, "red"),
+    )
+    v.frames = [_Seen(7, run._world_t(time.monotonic()), truth, cast(Any, None))]
+    v.track_boxes = {7: target}
+
+    def report(status: str, cid: str, box: Box | None = None) -> None:
+        entry = {"kind": "candidate_report", "t": time.monotonic(), "status": status, "candidate_id": cid}
+        run._handle_event(v, {**entry, "verdict": "yes", "box": list(box.xywh()) if box else None})
+
+    run._handle_event(v, {"kind": "state", "t": time.monotonic(), "state": "awaiting_supervisor"})
+    report("awaiting", "c1", target)
+    assert v.pending_decision is not None and v.pending_decision[1:] == ("confirm", run.world.target_id, "c1")
+    # Out of view: the search went on before the decision was due; c1 still awaits it.
+    run._handle_event(v, {"kind": "state", "t": time.monotonic(), "state": "searching"})
+    v.pending_decision = (run.now() - 0.1, *v.pending_decision[1:])
+    run._supervise(v)
+    assert sent == ["confirm"] and v.decision_sent is None  # no repeat: the state shows nothing awaiting
+    report("confirmed", "c1", target)  # the companion: "confirmed c1", the find where the track saw it best
+    assert [pid for _, pid in v.confirmations] == [run.world.target_id] and v.awaiting_id == ""
+
+    # A decision due on c2 (the decoy) after c3 came to await: dropped, c3 judged anew.
+    v.track_boxes = {7: decoy}
+    report("awaiting", "c2", decoy)
+    assert v.pending_decision is not None and v.pending_decision[1:] == ("reject", "decoy", "c2")
+    v.track_boxes = {7: target}
+    report("awaiting", "c3", target)
+    assert v.pending_decision is not None and v.pending_decision[1:] == ("confirm", run.world.target_id, "c3")
+    report("awaiting", "c3", target)  # c3 seen again: the same decision stays due
+    assert v.pending_decision[3] == "c3"
+    # Decided meanwhile elsewhere (rejected at the page): nothing is sent.
+    run._handle_event(v, {"kind": "RememberRejection", "t": time.monotonic(), "candidate_id": "c3"})
+    v.pending_decision = (run.now() - 0.1, *v.pending_decision[1:])
+    run._supervise(v)
+    assert sent == ["confirm"] and v.pending_decision is None
     run._teardown()
 
 
