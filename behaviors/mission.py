@@ -107,6 +107,7 @@ IN_VIEW = frozenset({MissionState.ACQUIRING, MissionState.FOLLOWING, MissionStat
 _JUDGED = frozenset(
     {MissionState.FOLLOWING, MissionState.AWAITING_SUPERVISOR, MissionState.CONFIRMED, MissionState.LOST}
 )
+MAX_PENDING = 4  # candidates awaiting a decision out of view; past it the oldest no longer awaits (said)
 _MAX_QUERIES_IN_FLIGHT = 8  # answers to older queries are dropped as stale
 _REVERIFY_MIN_IOU = 0.2
 # A hold mode we asked for shows in the autopilot's heartbeat within this (as the link's own window).
@@ -188,9 +189,10 @@ class State:
     break_off_item: int | None = None
     let_go: bool = False  # the companion let go on a confirmation (on_confirm = hold): it commands nothing
     found: RejectionMemory = RejectionMemory()  # confirmed finds the search went on from: not proposed again
-    # A candidate put to the supervisor that the search gave up (out of view, the survey flew on) before a
-    # decision: it keeps awaiting one while the search goes on (confirm: a find; reject: remembered).
-    pending: Target | None = None
+    # Candidates put to the supervisor that the search gave up (out of view, the survey flew on) before a
+    # decision, newest last: each keeps awaiting one while the search goes on (confirm: a find; reject:
+    # remembered). The newest is the one shown (`awaiting_decision`); once it is decided, the one before.
+    pending: tuple[Target, ...] = ()
     # Which candidate a decision naming none (the GCS's candidate 0) would apply to, and since when.
     undirected: DecisionGuard = DecisionGuard()
 
@@ -216,11 +218,32 @@ def commanding(state: State) -> bool:
 def awaiting_decision(state: State) -> Target | None:
     """The candidate the supervisor has still to decide on: while AWAITING_SUPERVISOR, and while LOST on the
     way back to it (a short loss of the track must not take the candidate off the supervisor's page); else
-    one the search gave up before a decision (`State.pending`: a survey flew on past it)."""
+    the newest the search gave up before a decision (`State.pending`: a survey flew on past it)."""
     waiting = state.mode is MissionState.AWAITING_SUPERVISOR or (
         state.mode is MissionState.LOST and state.resume is MissionState.AWAITING_SUPERVISOR
     )
-    return state.target if waiting else state.pending
+    if waiting:
+        return state.target
+    return state.pending[-1] if state.pending else None
+
+
+def _awaiting_id(state: State) -> str:
+    awaiting = awaiting_decision(state)
+    return awaiting.candidate_id if awaiting is not None else ""
+
+
+def _pending(state: State, candidate_id: str) -> Target | None:
+    """The candidate of that id among those awaiting a decision out of view."""
+    return next((p for p in state.pending if candidate_id and p.candidate_id == candidate_id), None)
+
+
+def _left_awaiting(state: State, target: Target) -> Result:
+    """`target` was given up before the supervisor decided: it awaits the decision with the others."""
+    others = tuple(p for p in state.pending if p.candidate_id != target.candidate_id)
+    kept = (*others, target)[-MAX_PENDING:]
+    dropped = others[: len(others) + 1 - len(kept)]
+    said = tuple(GcsMessage(f"no longer awaiting {p.candidate_id}: too many", "warning") for p in dropped)
+    return replace(state, pending=kept), said
 
 
 def undirected_candidate(state: State) -> Target | None:
@@ -235,6 +258,10 @@ def undirected_candidate(state: State) -> Target | None:
 def step(state: State, event: Event, config: MissionConfig) -> Result:
     """The next state and the actions to execute, in order, for one event."""
     new, actions = _step(state, event, config)
+    shown = awaiting_decision(new)
+    if shown is not None and shown is not new.target and shown.candidate_id != _awaiting_id(state):
+        # The one shown was decided and one left before it awaits again: say so (GCS and page).
+        actions = (*actions, _report(shown, "awaiting"))
     undirected = undirected_candidate(new)
     guard = observe(new.undirected, undirected.candidate_id if undirected else "", new.now_s)
     return (new if guard is new.undirected else replace(new, undirected=guard)), actions
@@ -354,10 +381,11 @@ def _confirm(state: State, by: str, config: MissionConfig) -> Result:
 def _reject(state: State, candidate_id: str) -> Result:
     target = state.target if state.mode in TRACKING else None
     if target is None or (candidate_id and candidate_id != target.candidate_id):
-        pending = state.pending
-        if pending is not None and candidate_id in ("", pending.candidate_id):
+        pending = _pending(state, candidate_id)
+        if pending is not None:
             entry = RejectedTarget(pending.candidate_id, pending.fix, pending.signature, state.now_s)
-            return replace(state, rejections=state.rejections.remember(entry), pending=None), (
+            rest = tuple(p for p in state.pending if p is not pending)
+            return replace(state, rejections=state.rejections.remember(entry), pending=rest), (
                 RememberRejection(pending.candidate_id, pending.fix, pending.signature),
                 GcsMessage(f"rejected {pending.candidate_id}"[:50]),
             )
@@ -408,7 +436,7 @@ def _command(state: State, event: GcsCommand, config: MissionConfig) -> Result:
             holding=False,
             early_refused=False,
             along_mission=_along_mission(state, config),
-            pending=None,
+            pending=(),
         )
         engage: tuple[Action, ...] = ()
         if not new.along_mission:  # on the spot: fly from the start (when allowed)
@@ -474,11 +502,12 @@ def _command(state: State, event: GcsCommand, config: MissionConfig) -> Result:
             or state.mode not in TRACKING
             or (cmd.candidate_id and cmd.candidate_id != current.candidate_id)
         ):
-            pending = state.pending
-            if pending is not None and cmd.candidate_id in ("", pending.candidate_id):
+            pending = _pending(state, cmd.candidate_id)
+            if pending is not None:
                 # Out of view by now: the find is where the track placed it (`Target.fix`); the search goes on.
                 decided = replace(pending, confirmed_by=cmd.by)
-                new = _remember_found(replace(state, pending=None), decided)
+                rest = tuple(p for p in state.pending if p is not pending)
+                new = _remember_found(replace(state, pending=rest), decided)
                 return new, (
                     _report(decided, "confirmed"),
                     GcsMessage(f"confirmed {decided.candidate_id}"[:50]),
@@ -840,10 +869,11 @@ def _lost_tick(state: State, target: Target, config: MissionConfig) -> Result:
     if _lost_ends_in_search(state) and elapsed >= give_up_s:
         if state.resume is MissionState.CONFIRMED:
             state = _remember_found(state, target)  # reported already; never proposed again
-        elif state.resume is MissionState.AWAITING_SUPERVISOR:
-            state = replace(state, pending=target)  # still awaits the supervisor's decision
+        said: tuple[Action, ...] = ()
+        if state.resume is MissionState.AWAITING_SUPERVISOR:
+            state, said = _left_awaiting(state, target)  # still awaits the supervisor's decision
         new, back = _start_search(state, "target not found again", config)
-        return new, (TrackerStop("lost: back to the search"), *back)
+        return new, (TrackerStop("lost: back to the search"), *said, *back)
     actions: list[Action] = []
     # Looking only (along the mission, not engaged): nothing to hold or request.
     if commanding(state) and state.lost_stage == 0 and elapsed >= config.lost_hold_after_s:

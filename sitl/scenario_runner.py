@@ -142,6 +142,7 @@ class _Vehicle:
     pending_decision: tuple[float, str, str, str] | None = None  # (due time, action, person id, candidate id)
     # The candidate the companion last put to the supervisor, until it is decided: what candidate 0 means.
     awaiting_id: str = ""
+    judgements: dict[str, tuple[str, str]] = field(default_factory=dict)  # candidate id -> (action, person)
     decision_sent: tuple[float, str] | None = None  # (when, action) of a decision the companion has not taken
     confirmations: list[tuple[float, str]] = field(default_factory=list)
     rejections: list[tuple[float, str]] = field(default_factory=list)
@@ -498,8 +499,12 @@ class ScenarioRun:
                     # this one). The box is the tracker's on one frame; judge that frame (its track event
                     # came first in the log), not the one rendered at the report's time: a companion lagging
                     # under load reports boxes of frames rendered well before.
-                    pid = self._person_at(v, e.get("box"), t, self._frame_of(v, e.get("box")))
-                    action = "confirm" if pid == self.world.target_id else "reject"
+                    # One put again out of view (left before a decision, once the one after it is decided)
+                    # has no box in view: the supervisor judges it as when it was.
+                    if v.state == "awaiting_supervisor" or cid not in v.judgements:
+                        pid = self._person_at(v, e.get("box"), t, self._frame_of(v, e.get("box")))
+                        v.judgements[cid] = ("confirm" if pid == self.world.target_id else "reject", pid)
+                    action, pid = v.judgements[cid]
                     v.pending_decision = (self.now() + self.scenario.supervisor_delay_s, action, pid, cid)
                     self.say(f"{v.vehicle_id}: supervisor sees {pid} ({e.get('verdict')}), will {action}")
         elif kind == "RememberRejection" and e.get("candidate_id") == v.awaiting_id:

@@ -88,10 +88,12 @@ def test_status_carries_the_crop_once_encoded_per_candidate(sequence_dirs: list[
     assert other["awaiting"]["candidate_id"] == "c8"
     assert other["awaiting"]["crop_jpeg_b64"] != awaiting["crop_jpeg_b64"]
     # Out of view, still awaiting a decision (the survey flew on): the crop it had, never the new frame's.
-    runner.state = replace(runner.state, mode=MissionState.SEARCHING, target=None, pending=_target("c7", box))
+    runner.state = replace(
+        runner.state, mode=MissionState.SEARCHING, target=None, pending=(_target("c7", box),)
+    )
     pending = runner._status()["awaiting"]
     assert pending["candidate_id"] == "c7" and pending["crop_jpeg_b64"] is awaiting["crop_jpeg_b64"]
-    runner.state = replace(runner.state, pending=_target("c9", box))
+    runner.state = replace(runner.state, pending=(_target("c9", box),))
     assert "crop_jpeg_b64" not in runner._status()["awaiting"]
 
 

@@ -123,7 +123,7 @@ def test_looking_only_a_press_for_the_candidate_left_behind_is_not_applied_to_th
     state, _ = run(
         state, [tracked(1.3, None, ok=False), TimerTick(1.3 + GUARDED.lost_looking_s + 0.1)], GUARDED
     )
-    assert state.mode is S.SEARCHING and state.pending is not None and state.pending.candidate_id == "c1"
+    assert state.mode is S.SEARCHING and [p.candidate_id for p in state.pending] == ["c1"]
     before = _next_candidate_awaiting(state, 5.0)
     assert before.undirected == DecisionGuard("c2", 4.8)  # looking only: put to the supervisor once tracked
     # While c2 is only being acquired, candidate 0 is still c1.
@@ -141,7 +141,7 @@ def test_looking_only_a_press_for_the_candidate_left_behind_is_not_applied_to_th
     assert refused.pending == before.pending and refused.mode is S.AWAITING_SUPERVISOR
     decided, _ = step(refused, cmd(4.8 + GUARD_S, ConfirmCandidate(by="gcs")), GUARDED)
     assert decided.target is not None and decided.target.confirmed_by == "gcs"
-    assert decided.pending is not None and decided.pending.candidate_id == "c1"
+    assert [p.candidate_id for p in decided.pending] == ["c1"]
 
 
 def test_the_guard_is_a_safety_setting_with_the_schema_default() -> None:

@@ -27,7 +27,15 @@ from behaviors.actions import (
 )
 from behaviors.events import BackendAnswer, BackendUnreachable, Event, PilotTakeover, TimerTick
 from behaviors.geolocation import offset_to_latlon
-from behaviors.mission import MissionState, State, commanding, initial_state, step
+from behaviors.mission import (
+    MAX_PENDING,
+    MissionState,
+    State,
+    awaiting_decision,
+    commanding,
+    initial_state,
+    step,
+)
 from behaviors.mission_commands import (
     AbortMission,
     ConfirmCandidate,
@@ -57,6 +65,52 @@ def auto(t: float, item: int = BREAK_OFF, north_m: float = 0.0) -> Telemetry:
 
 def guided(t: float, item: int = BREAK_OFF) -> Telemetry:
     return Telemetry(t, 47.0, 8.0, HEIGHT, mode="GUIDED", offboard_active=True, mission_item=item)
+
+
+def _seen_and_left(state: State, t: float, cid: str) -> tuple[State, list[Action]]:
+    """Looking only: the back-end's candidate `cid` at `t`, put to the supervisor, then out of view and given
+    up (the survey flies on) without a decision."""
+    answer = BackendAnswer(t, state.queries[-1][0], int(t * 30), (candidate(FAR, cid),))
+    give_up = TimerTick(t + 0.2 + CFG.lost_looking_s + 0.1)
+    state, actions = run(state, [answer, tracked(t + 0.1, FAR), tracked(t + 0.2, None, ok=False), give_up])
+    assert state.mode is S.SEARCHING and state.pending[-1].candidate_id == cid
+    return state, actions
+
+
+def test_candidates_left_before_a_decision_all_await_it_the_newest_shown_first() -> None:
+    """A supervisor slower than the survey: three candidates are left undecided. None is lost: the newest is
+    the one shown (the page, candidate 0); once it is decided the one before is put to the supervisor again
+    (GCS line and page), and the page decides any of them by id at any time."""
+    state = reach(S.SEARCHING, engage=False)
+    for k, cid in enumerate(("c1", "c2", "c3")):
+        state, actions = _seen_and_left(state, 1.0 + 3.0 * k, cid)
+    assert [p.candidate_id for p in state.pending] == ["c1", "c2", "c3"]
+    shown = awaiting_decision(state)
+    assert shown is not None and shown.candidate_id == "c3"
+    # The page rejects c1, naming it, while c3 is shown: c3 stays shown.
+    state, actions = step(state, cmd(20.0, RejectCandidate("c1")), CFG)
+    assert (
+        kinds(actions) == ["RememberRejection", "GcsMessage"]
+        and state.rejections.entries[-1].candidate_id == "c1"
+    )
+    # The GCS confirms the one shown (candidate 0): a find; c2 awaits again and is said to.
+    state, actions = step(state, cmd(21.0, ConfirmCandidate(by="gcs")), CFG)
+    reports = [(a.status, a.candidate_id) for a in actions if isinstance(a, ReportCandidate)]
+    assert reports == [("confirmed", "c3"), ("awaiting", "c2")]
+    assert [p.candidate_id for p in state.pending] == ["c2"] and state.found.entries[-1].candidate_id == "c3"
+    state, actions = step(state, cmd(22.0, RejectCandidate()), CFG)
+    assert state.pending == () and awaiting_decision(state) is None
+    assert not [a for a in actions if isinstance(a, ReportCandidate)]
+
+
+def test_at_most_max_pending_await_out_of_view_and_the_oldest_is_said_to_be_dropped() -> None:
+    state = reach(S.SEARCHING, engage=False)
+    said: list[str] = []
+    for k in range(MAX_PENDING + 1):
+        state, actions = _seen_and_left(state, 1.0 + 3.0 * k, f"c{k}")
+        said += [a.text for a in actions if isinstance(a, GcsMessage) and "no longer" in a.text]
+    assert [p.candidate_id for p in state.pending] == [f"c{k}" for k in range(1, MAX_PENDING + 1)]
+    assert said == ["no longer awaiting c0: too many"]
 
 
 def loiter(t: float) -> Telemetry:
@@ -406,8 +460,16 @@ def test_no_engage_no_command_ever() -> None:
         state, actions = run(state, events, config)
         out += actions
         t += 1.5
-    reports = [a.status for a in out if isinstance(a, ReportCandidate)]
-    assert reports == ["awaiting", "awaiting", "awaiting", "confirmed"]
+    reports = [(a.status, a.candidate_id) for a in out if isinstance(a, ReportCandidate)]
+    # c1, lost before a decision, still awaits one: once c2 is decided it is put to the supervisor again.
+    assert reports == [
+        ("awaiting", "c0"),
+        ("awaiting", "c1"),
+        ("awaiting", "c2"),
+        ("confirmed", "c2"),
+        ("awaiting", "c1"),
+    ]
+    assert [p.candidate_id for p in state.pending] == ["c1"]
     assert not [a for a in out if isinstance(a, COMMANDS)]
     assert state.mode is S.SEARCHING and len(state.found.entries) == 1 and len(state.rejections.entries) == 1
 
@@ -578,7 +640,7 @@ def test_a_reported_candidate_out_of_view_still_awaits_the_supervisor(decision: 
     state, _ = run(state, [TimerTick(1.3 + CFG.lost_looking_s - 0.1)])
     assert state.mode is S.LOST  # not yet
     state, actions = run(state, [TimerTick(1.3 + CFG.lost_looking_s + 0.1)])
-    assert state.mode is S.SEARCHING and state.pending is not None and state.pending.candidate_id == "c1"
+    assert state.mode is S.SEARCHING and [p.candidate_id for p in state.pending] == ["c1"]
     assert not any(isinstance(a, COMMANDS) for a in actions)
     if decision == "confirm":
         state, actions = step(state, cmd(5.0, ConfirmCandidate("c1", by="supervisor page")), CFG)
@@ -589,7 +651,7 @@ def test_a_reported_candidate_out_of_view_still_awaits_the_supervisor(decision: 
     else:
         state, actions = step(state, cmd(5.0, RejectCandidate()), CFG)
         assert kinds(actions) == ["RememberRejection", "GcsMessage"] and state.rejections.entries
-    assert state.mode is S.SEARCHING and state.pending is None
+    assert state.mode is S.SEARCHING and state.pending == ()
     # Decided once: a second decision finds nothing awaiting.
     _, actions = step(state, cmd(5.1, ConfirmCandidate("c1")), CFG)
     assert kinds(actions) == ["GcsMessage"]

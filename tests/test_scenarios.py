@@ -478,6 +478,10 @@ def test_scenario_supervisor_decides_late_on_the_candidate_it_judged(tmp_path: P
     v.pending_decision = (run.now() - 0.1, *v.pending_decision[1:])
     run._supervise(v)
     assert sent == ["confirm"] and v.pending_decision is None
+    # c2, left undecided, is put to the supervisor again out of view (no box there): judged as when it was.
+    run._handle_event(v, {"kind": "state", "t": time.monotonic(), "state": "searching"})
+    report("awaiting", "c2")
+    assert v.pending_decision is not None and v.pending_decision[1:] == ("reject", "decoy", "c2")
     run._teardown()
 
 
