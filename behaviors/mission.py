@@ -232,23 +232,6 @@ def _awaiting_id(state: State) -> str:
     return awaiting.candidate_id if awaiting is not None else ""
 
 
-def _settled(state: State) -> Result:
-    """Candidates awaiting a decision out of view that the supervisor has now decided under another id (the
-    same person, by place or look, as the memories match a new candidate): they no longer await."""
-    kept: list[Target] = []
-    actions: list[Action] = []
-    for p in state.pending:
-        rejected = state.rejections.matches(p.candidate_id, p.fix, p.signature)
-        same = rejected or state.found.matches(p.candidate_id, p.fix, p.signature)
-        if same is None:
-            kept.append(p)
-            continue
-        if rejected is not None:
-            actions.append(RememberRejection(p.candidate_id, p.fix, p.signature))
-        actions.append(GcsMessage(f"no longer awaiting {p.candidate_id}: the same as {same.candidate_id}"))
-    return replace(state, pending=tuple(kept)), tuple(actions)
-
-
 def _pending(state: State, candidate_id: str) -> Target | None:
     """The candidate of that id among those awaiting a decision out of view."""
     return next((p for p in state.pending if candidate_id and p.candidate_id == candidate_id), None)
@@ -275,9 +258,6 @@ def undirected_candidate(state: State) -> Target | None:
 def step(state: State, event: Event, config: MissionConfig) -> Result:
     """The next state and the actions to execute, in order, for one event."""
     new, actions = _step(state, event, config)
-    if new.pending and (new.rejections is not state.rejections or new.found is not state.found):
-        new, settled = _settled(new)
-        actions = (*actions, *settled)
     shown = awaiting_decision(new)
     if shown is not None and shown is not new.target and shown.candidate_id != _awaiting_id(state):
         # The one shown was decided and one left before it awaits again: say so (GCS and page).
