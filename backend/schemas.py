@@ -143,6 +143,12 @@ class VehicleView(ApiModel):
     heading_deg: float | None = None
     age_s: float = 0.0
     candidates: list[CandidateView]
+    awaiting_more: list[str] = Field(
+        default_factory=list, description="ids of further candidates awaiting a decision, oldest first"
+    )
+    dropped_undecided: list[str] = Field(
+        default_factory=list, description="ids of candidates dropped undecided this mission (too many waited)"
+    )
     progress: SearchProgress | None = None
     search: SearchStatus | None = None
     track: list[list[float]] = Field(default_factory=list, description="[[lat, lon], ...] of this mission")

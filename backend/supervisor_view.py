@@ -200,6 +200,8 @@ class SupervisorView:
             heading_deg=status.heading_deg,
             age_s=round(max(0.0, now - status.updated_at), 1),
             candidates=candidates,
+            awaiting_more=status.awaiting_more,
+            dropped_undecided=status.dropped_undecided,
             progress=status.progress,
             search=search,
             track=track,

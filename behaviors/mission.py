@@ -193,6 +193,9 @@ class State:
     # decision, newest last: each keeps awaiting one while the search goes on (confirm: a find; reject:
     # remembered). The newest is the one shown (`awaiting_decision`); once it is decided, the one before.
     pending: tuple[Target, ...] = ()
+    # Ids of candidates dropped from `pending` undecided (a fifth came), newest last, the last MAX_PENDING:
+    # the supervisor page says so, as the GCS heard it.
+    dropped_undecided: tuple[str, ...] = ()
     # Which candidate a decision naming none (the GCS's candidate 0) would apply to, and since when.
     undirected: DecisionGuard = DecisionGuard()
 
@@ -227,6 +230,13 @@ def awaiting_decision(state: State) -> Target | None:
     return state.pending[-1] if state.pending else None
 
 
+def awaiting_after(state: State) -> tuple[Target, ...]:
+    """The other candidates awaiting a decision, oldest first: each is put to the supervisor again once the
+    one shown (`awaiting_decision`) is decided, the newest first."""
+    shown = awaiting_decision(state)
+    return tuple(p for p in state.pending if p is not shown)
+
+
 def _awaiting_id(state: State) -> str:
     awaiting = awaiting_decision(state)
     return awaiting.candidate_id if awaiting is not None else ""
@@ -243,7 +253,8 @@ def _left_awaiting(state: State, target: Target) -> Result:
     kept = (*others, target)[-MAX_PENDING:]
     dropped = others[: len(others) + 1 - len(kept)]
     said = tuple(GcsMessage(f"no longer awaiting {p.candidate_id}: too many", "warning") for p in dropped)
-    return replace(state, pending=kept), said
+    gone = (*state.dropped_undecided, *(p.candidate_id for p in dropped))[-MAX_PENDING:]
+    return replace(state, pending=kept, dropped_undecided=gone), said
 
 
 def undirected_candidate(state: State) -> Target | None:
@@ -437,6 +448,7 @@ def _command(state: State, event: GcsCommand, config: MissionConfig) -> Result:
             early_refused=False,
             along_mission=_along_mission(state, config),
             pending=(),
+            dropped_undecided=(),
         )
         engage: tuple[Action, ...] = ()
         if not new.along_mission:  # on the spot: fly from the start (when allowed)

@@ -318,6 +318,10 @@ class Find(ApiModel):
     crop_box: PixelBox | None = Field(None, description="[x1, y1, x2, y2] of the person inside the crop")
 
 
+QUEUE_IDS_MAX = 16  # candidate ids in a status's awaiting_more / dropped_undecided (the companion keeps 4)
+CandidateId = Annotated[str, Field(pattern=IDENTIFIER)]
+
+
 class VehicleStatusIn(ApiModel):
     mission_id: str | None = Field(None, pattern=IDENTIFIER)
     state: str = Field(
@@ -327,6 +331,18 @@ class VehicleStatusIn(ApiModel):
     position: LatLonPoint | None = Field(None, description="[lat, lon] of the vehicle")
     altitude_m: float | None = Field(None, ge=-1000.0, le=100_000.0)
     awaiting: AwaitingCandidate | None = None
+    awaiting_more: list[CandidateId] = Field(
+        default_factory=list,
+        max_length=QUEUE_IDS_MAX,
+        description="other candidates awaiting a decision, oldest first: each is shown (`awaiting`) once the "
+        "one before it is decided",
+    )
+    dropped_undecided: list[CandidateId] = Field(
+        default_factory=list,
+        max_length=QUEUE_IDS_MAX,
+        description="candidates this mission dropped undecided, newest last: more awaited a decision than "
+        "the vehicle keeps",
+    )
     reason: str = Field(
         "",
         max_length=200,

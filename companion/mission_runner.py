@@ -52,7 +52,16 @@ from behaviors.events import (
     TimerTick,
 )
 from behaviors.geometry import Box
-from behaviors.mission import ACTIVE, MissionState, State, awaiting_decision, commanding, initial_state, step
+from behaviors.mission import (
+    ACTIVE,
+    MissionState,
+    State,
+    awaiting_after,
+    awaiting_decision,
+    commanding,
+    initial_state,
+    step,
+)
 from behaviors.mission_commands import MissionCommand, StartMission, TrackRectangle
 from behaviors.mission_config import MissionConfig
 from behaviors.reinit_policy import ReinitAction, ReinitDecision
@@ -520,6 +529,12 @@ class MissionRunner:
         awaiting = self._awaiting()
         if awaiting is not None:
             status["awaiting"] = awaiting
+        # The page says how many more wait behind it, and which a slow supervisor never got to decide.
+        more = [p.candidate_id for p in awaiting_after(state) if p.candidate_id]
+        if more:
+            status["awaiting_more"] = more
+        if state.dropped_undecided:
+            status["dropped_undecided"] = list(state.dropped_undecided)
         return status
 
     def _awaiting(self) -> dict[str, Any] | None:

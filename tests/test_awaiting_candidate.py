@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+import requests
 from pydantic import ValidationError
 
 from behaviors.actions import ReportCandidate
@@ -101,3 +102,57 @@ def test_awaiting_candidate_says_how_old_its_position_is() -> None:
 def test_awaiting_candidate_refuses_a_seen_at_no_clock_gives(seen_at: float) -> None:
     with pytest.raises(ValidationError, match="seen_at"):
         AwaitingCandidate.model_validate({"candidate_id": "c-1", "box": [1, 2, 3, 4], "seen_at": seen_at})
+
+
+def test_awaiting_status_says_who_waits_behind_the_one_shown_and_who_was_dropped() -> None:
+    """A supervisor slower than the survey: the page shows one candidate, and the status says the others
+    waiting behind it (oldest first) and which were dropped undecided; the API takes it, the page's
+    snapshot carries it."""
+    from backend.supervisor_view import SupervisorView
+    from cloudtrack.api_models import QUEUE_IDS_MAX, VehicleStatusIn
+
+    none: Any = None
+    runner = MissionRunner(CONFIG, none, none, none, none)
+    runner._latest = Frame(7, time.monotonic(), np.zeros((480, 640, 3), dtype=np.uint8))
+    left = tuple(replace(TARGET, candidate_id=f"c-{k}") for k in (3, 5, 8))
+    runner.state = replace(_state(MissionState.SEARCHING, target=None), pending=left, dropped_undecided=("c-1",))
+    status = runner._status()
+    assert status["awaiting"]["candidate_id"] == "c-8"
+    assert status["awaiting_more"] == ["c-3", "c-5"] and status["dropped_undecided"] == ["c-1"]
+    runner.state = replace(runner.state, mode=MissionState.AWAITING_SUPERVISOR, target=TARGET)  # in view
+    status = runner._status()
+    assert status["awaiting"]["candidate_id"] == "c-17" and status["awaiting_more"] == ["c-3", "c-5", "c-8"]
+    runner.state = _state(MissionState.AWAITING_SUPERVISOR)
+    assert {"awaiting_more", "dropped_undecided"}.isdisjoint(runner._status())  # none waits, none dropped
+    fields = {k: v for k, v in status.items() if k != "awaiting"}
+    checked = VehicleStatusIn.model_validate(fields)
+    assert checked.awaiting_more == ["c-3", "c-5", "c-8"] and checked.dropped_undecided == ["c-1"]
+    for bad in (["c/1"], ["x" * 65], [f"c-{k}" for k in range(QUEUE_IDS_MAX + 1)]):
+        with pytest.raises(ValidationError, match="awaiting_more"):
+            VehicleStatusIn.model_validate({**fields, "awaiting_more": bad})
+    # Through the real API to the page's snapshot.
+    from backend.app import create_app
+    from backend.config import AuthConfig, BackendConfig, SessionConfig
+    from backend.serving import BackgroundServer
+    from sitl.simulated_detector import SimulatedPersonDetector
+
+    config = BackendConfig(
+        auth=AuthConfig(tokens={"drone-1": "drone-1-token-0001"}, supervisor_token="supervisor-token-0001"),
+        sessions=SessionConfig(sqlite_path=":memory:"),
+    )
+    with BackgroundServer(create_app(config, detector=SimulatedPersonDetector(lambda fid: None))) as server:
+        posted = requests.post(
+            f"{server.url}/v1/vehicles/drone-1/status",
+            json={**fields, "awaiting": {"candidate_id": "c-17", "box": [300, 200, 330, 270]}},
+            headers={"Authorization": "Bearer drone-1-token-0001"},
+            timeout=5,
+        )
+        assert posted.status_code == 200, posted.text
+        snapshot = requests.get(
+            f"{server.url}/supervisor/api/state",
+            headers={"Authorization": "Bearer supervisor-token-0001"},
+            timeout=5,
+        ).json()
+    (vehicle,) = snapshot["vehicles"]
+    assert [c["id"] for c in vehicle["candidates"]] == ["c-17"]
+    assert vehicle["awaiting_more"] == ["c-3", "c-5", "c-8"] and vehicle["dropped_undecided"] == ["c-1"]

@@ -31,6 +31,7 @@ from behaviors.mission import (
     MAX_PENDING,
     MissionState,
     State,
+    awaiting_after,
     awaiting_decision,
     commanding,
     initial_state,
@@ -87,6 +88,7 @@ def test_candidates_left_before_a_decision_all_await_it_the_newest_shown_first()
     assert [p.candidate_id for p in state.pending] == ["c1", "c2", "c3"]
     shown = awaiting_decision(state)
     assert shown is not None and shown.candidate_id == "c3"
+    assert [p.candidate_id for p in awaiting_after(state)] == ["c1", "c2"]  # the page: "2 more awaiting"
     # The page rejects c1, naming it, while c3 is shown: c3 stays shown.
     state, actions = step(state, cmd(20.0, RejectCandidate("c1")), CFG)
     assert (
@@ -111,6 +113,15 @@ def test_at_most_max_pending_await_out_of_view_and_the_oldest_is_said_to_be_drop
         said += [a.text for a in actions if isinstance(a, GcsMessage) and "no longer" in a.text]
     assert [p.candidate_id for p in state.pending] == [f"c{k}" for k in range(1, MAX_PENDING + 1)]
     assert said == ["no longer awaiting c0: too many"]
+    assert state.dropped_undecided == ("c0",)  # the page says so too
+    # A candidate tracked and awaiting in view is shown before all those left out of view.
+    answer = BackendAnswer(40.0, state.queries[-1][0], 1200, (candidate(FAR, "c9"),))
+    state, _ = run(state, [answer, tracked(40.1, FAR)])
+    assert awaiting_decision(state) is state.target and state.target is not None
+    assert [p.candidate_id for p in awaiting_after(state)] == [f"c{k}" for k in range(1, MAX_PENDING + 1)]
+    # A new mission starts with none waiting and none dropped.
+    state, _ = run(state, [cmd(50.0, StartMission("a man in red", allow_engage=False))])
+    assert state.pending == () and state.dropped_undecided == () and awaiting_after(state) == ()
 
 
 def loiter(t: float) -> Telemetry:

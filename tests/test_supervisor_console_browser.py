@@ -148,7 +148,7 @@ def _fly(url: str, sequences_dir: Path) -> dict[str, Any]:
         }  # fmt: skip
         status.update(
             state="AWAITING_SUPERVISOR", reason="awaiting supervisor", awaiting=awaiting,
-            track_box=best["box"], frame_id=41,
+            track_box=best["box"], frame_id=41, awaiting_more=["c-91", "c-92"], dropped_undecided=["c-90"],
         )  # fmt: skip
         assert client.post("/v1/vehicles/drone-1/status", json=status).status_code == 200
     return awaiting
@@ -198,6 +198,11 @@ def test_console_shows_live_keyframe_map_and_finds_offline(
         candidate = card.locator(f'article[data-candidate="{awaiting["candidate_id"]}"]')
         _loaded(page, f'article[data-candidate="{awaiting["candidate_id"]}"] img.crop')
         assert candidate.locator(".crop-overlay rect").count() == 1
+        # The others waiting behind it (a supervisor slower than the survey), and one dropped undecided.
+        expect(card.locator(".queue")).to_have_text(
+            "2 more awaiting a decision, each shown once the one above is decided: c-91, c-92"
+        )
+        expect(card.locator(".dropped")).to_contain_text("Dropped undecided (too many awaited a decision): c-90.")
         SCREENSHOT.parent.mkdir(parents=True, exist_ok=True)
         page.screenshot(path=str(SCREENSHOT.with_name("supervisor-console-awaiting.png")), full_page=True)
         # Confirm: the find is listed, with its crop, and marked on the map ...
@@ -229,6 +234,8 @@ def test_console_shows_live_keyframe_map_and_finds_offline(
         )
         expect(card.locator(".state")).to_have_text("SEARCHING")
         expect(card.locator("article.candidate")).to_have_count(0)
+        expect(card.locator(".queue")).to_be_hidden()
+        expect(card.locator(".dropped")).to_be_hidden()
         expect(find).to_have_count(1)
         expect(find.locator(".seen")).to_contain_text("45 s before the confirmation")
         assert the_map.locator("path.find-mark").count() == 1

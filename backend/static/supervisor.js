@@ -376,6 +376,20 @@ function renderCandidates(card, vehicle) {
   for (const item of box.querySelectorAll("article.candidate")) {
     if (!seen.has(item.dataset.candidate)) item.remove();
   }
+  // The vehicle shows one undecided candidate at a time: say how many wait behind it, and which were
+  // dropped undecided because more waited than it keeps.
+  const more = vehicle.awaiting_more || [];
+  const queue = $(".queue", card);
+  queue.hidden = more.length === 0;
+  queue.textContent = more.length
+    ? `${more.length} more awaiting a decision, each shown once the one above is decided: ${more.join(", ")}`
+    : "";
+  const dropped = vehicle.dropped_undecided || [];
+  const gone = $(".dropped", card);
+  gone.hidden = dropped.length === 0;
+  gone.textContent = dropped.length
+    ? `Dropped undecided (too many awaited a decision): ${dropped.join(", ")}. Not rejected: the search proposes them again if it sees them again.`
+    : "";
 }
 
 function renderFinds(card, vehicle) {
