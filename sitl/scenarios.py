@@ -273,7 +273,7 @@ SCENARIOS: dict[str, Scenario] = {
             max_s=150.0,
             miss_rate=0.0,
             companion_settings=(f"camera.search_range_m={SurveySpec().search_range_m}",),
-            checks=("confirmed_target", "rejected_never_again", "no_commands"),
+            checks=("confirmed_target", "rejected_never_again", "no_commands", "find_position_at_seen"),
         ),
         Scenario(
             "flood",
@@ -413,6 +413,15 @@ def _search_checks(scenario: Scenario, name: str, m: dict[str, Any]) -> list[str
         if error is None or error > FIND_MAX_ERROR_M:
             failures.append(
                 f"{name}: the find was reported {error} m from the person, needs <= {FIND_MAX_ERROR_M:g} m"
+            )
+    if "find_position_at_seen" in scenario.checks:
+        # Looking only, the find is where the track last placed the person, maybe long before the decision:
+        # its error against where they were then (not how far they walked since).
+        error = m.get("geolocation_error_at_seen_m")
+        if error is None or error > FIND_MAX_ERROR_M:
+            failures.append(
+                f"{name}: the find was reported {error} m from where the person was when seen, needs <= "
+                f"{FIND_MAX_ERROR_M:g} m"
             )
     if "resumed_where_left" in scenario.checks:
         episodes = m.get("mission_breaks") or []

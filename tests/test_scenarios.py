@@ -173,6 +173,23 @@ def test_search_without_engage_sends_nothing(models_dir: Path, tmp_path: Path) -
     _search_checks(m)
     assert m["companion_commands"] == {"setpoints": 0, "mode_commands": 0}
     assert m["mission_breaks"] == []  # the autopilot flew its mission throughout
+    assert m["geolocation_error_at_seen_m"] <= 3.0  # the find where the person was when seen
+
+
+@pytest.mark.parametrize(
+    ("error", "failed"), [(0.4, False), (2.99, False), (3.01, True), (9.9, True), (None, True)]
+)
+def test_search_no_engage_checks_the_find_against_where_the_person_was_when_seen(
+    error: float | None, failed: bool
+) -> None:
+    from sitl.scenarios import _search_checks as checks
+
+    # 12 m from where they are at the decision: they walked on; only the error when seen counts.
+    no_commands = {"setpoints": 0, "mode_commands": 0}
+    m = {"geolocation_error_at_seen_m": error, "geolocation_error_m": 12.0, "companion_commands": no_commands}
+    failures = checks(SCENARIOS["search-no-engage"], "drone-1", m)
+    assert bool(failures) is failed, failures
+    assert all("when seen" in f for f in failures)
 
 
 def test_sim_cli_lists_scenarios_and_has_help(capsys: pytest.CaptureFixture[str]) -> None:
