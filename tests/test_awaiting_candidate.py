@@ -108,14 +108,15 @@ def test_awaiting_status_says_who_waits_behind_the_one_shown_and_who_was_dropped
     """A supervisor slower than the survey: the page shows one candidate, and the status says the others
     waiting behind it (oldest first) and which were dropped undecided; the API takes it, the page's
     snapshot carries it."""
-    from backend.supervisor_view import SupervisorView
     from cloudtrack.api_models import QUEUE_IDS_MAX, VehicleStatusIn
 
     none: Any = None
     runner = MissionRunner(CONFIG, none, none, none, none)
     runner._latest = Frame(7, time.monotonic(), np.zeros((480, 640, 3), dtype=np.uint8))
     left = tuple(replace(TARGET, candidate_id=f"c-{k}") for k in (3, 5, 8))
-    runner.state = replace(_state(MissionState.SEARCHING, target=None), pending=left, dropped_undecided=("c-1",))
+    runner.state = replace(
+        _state(MissionState.SEARCHING, target=None), pending=left, dropped_undecided=("c-1",)
+    )
     status = runner._status()
     assert status["awaiting"]["candidate_id"] == "c-8"
     assert status["awaiting_more"] == ["c-3", "c-5"] and status["dropped_undecided"] == ["c-1"]

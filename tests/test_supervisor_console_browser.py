@@ -202,7 +202,9 @@ def test_console_shows_live_keyframe_map_and_finds_offline(
         expect(card.locator(".queue")).to_have_text(
             "2 more awaiting a decision, each shown once the one above is decided: c-91, c-92"
         )
-        expect(card.locator(".dropped")).to_contain_text("Dropped undecided (too many awaited a decision): c-90.")
+        expect(card.locator(".dropped")).to_contain_text(
+            "Dropped undecided (too many awaited a decision): c-90."
+        )
         SCREENSHOT.parent.mkdir(parents=True, exist_ok=True)
         page.screenshot(path=str(SCREENSHOT.with_name("supervisor-console-awaiting.png")), full_page=True)
         # Confirm: the find is listed, with its crop, and marked on the map ...
