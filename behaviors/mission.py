@@ -107,6 +107,10 @@ IN_VIEW = frozenset({MissionState.ACQUIRING, MissionState.FOLLOWING, MissionStat
 _JUDGED = frozenset(
     {MissionState.FOLLOWING, MissionState.AWAITING_SUPERVISOR, MissionState.CONFIRMED, MissionState.LOST}
 )
+# Trusted-track states in which a loss signal starting to fire asks the back-end for evidence at once.
+_CHECKED_ON_ALARM = frozenset(
+    {MissionState.FOLLOWING, MissionState.AWAITING_SUPERVISOR, MissionState.CONFIRMED}
+)
 MAX_PENDING = 4  # candidates awaiting a decision out of view; past it the oldest no longer awaits (said)
 _MAX_QUERIES_IN_FLIGHT = 8  # answers to older queries are dropped as stale
 _REVERIFY_MIN_IOU = 0.2
@@ -624,7 +628,9 @@ def _track(state: State, result: TrackResult, config: MissionConfig) -> Result:
         return _start_lost(state, f"tracker lost ({result.lost_reason or 'failed'})", config)
 
     position = locate_box(config.camera, state.telemetry, result.box) if state.telemetry else None
-    kept = kept_fix(target.kept, position, result.time_s) if position is not None else target.kept
+    # A frame on which a loss signal fires may show something else than the target (a tracker sliding onto
+    # the background, trusted on an old confirmation): its estimate is never the find's.
+    kept = target.kept if position is None or result.alarm else kept_fix(target.kept, position, result.time_s)
     target = replace(
         target,
         box=result.box,
@@ -644,12 +650,14 @@ def _track(state: State, result: TrackResult, config: MissionConfig) -> Result:
         if state.mode is MissionState.AWAITING_SUPERVISOR:
             actions.append(_report(target, "awaiting"))  # the candidate again, for whoever missed it
 
-    if config.verified_reinit and state.mode is MissionState.FOLLOWING:
+    if config.verified_reinit and state.mode in _CHECKED_ON_ALARM:
         starting = bool(result.alarm) and not state.alarm
         state = replace(state, alarm=bool(result.alarm))
         if starting:
             # Evidence before a loss: a signal began to fire on the trusted track, ask now rather than at
-            # the next periodic check (the answer can confirm the track, re-frame it or show a rival).
+            # the next periodic check (the answer can confirm the track, re-frame it or show a rival). Also
+            # while the supervisor decides and after: no periodic check runs then, and the track gives the
+            # candidate's and the find's position.
             state, query = _track_check(state)
             actions.extend(query)
     state, setpoint = _follow(state, result.box, result.time_s, config)
@@ -683,8 +691,10 @@ def _answer(state: State, answer: BackendAnswer, config: MissionConfig) -> Resul
     if target is None or not answer.final:  # a fast stage's verdicts only ever start a search's track
         return state, ()
     state, actions = _answer_for_target(state, target, purpose, answer, config)
-    if config.verified_reinit and _judging(state, config) and answer.candidates:
-        # Every answer for the track goes to the front-end's policy, with what the mission refuses marked.
+    if config.verified_reinit and _judging(state, config):
+        # Every answer for the track goes to the front-end's policy, with what the mission refuses marked;
+        # one with no candidate too (as `eval` judges): nothing found on the track is evidence, and it ends
+        # the hold an older confirmation has over the track's own loss signals.
         refused = tuple(
             i for i, d in enumerate(answer.candidates) if _refused(state, target, d, config, answer.pose)
         )

@@ -963,6 +963,46 @@ def test_verified_following_asks_for_evidence_when_a_loss_signal_starts() -> Non
     assert not [a for a in actions if isinstance(a, BackendQuery)]
 
 
+@pytest.mark.parametrize("mode", [S.AWAITING_SUPERVISOR, S.CONFIRMED])
+def test_verified_asks_for_evidence_when_a_loss_signal_starts_while_deciding_and_after(
+    mode: MissionState,
+) -> None:
+    """No periodic check runs while the supervisor decides or after the confirmation, and the track gives
+    the candidate's and the find's position: a loss signal starting asks at once there too (a search flown
+    with a supervisor 20 s late followed the background 14 s on one old confirmation, its find 10.7 m off)."""
+    state = reach(mode, VERIFIED)
+    state, _ = step(state, tracked(5.0, FAR), VERIFIED)
+    sent = []
+    for t, alarm in [(5.03, "appearance"), (5.06, "appearance"), (5.1, "")]:
+        state, actions = step(state, TrackResult(int(t * 30), t, FAR, 0.9, True, "", alarm), VERIFIED)
+        sent.append([a.purpose for a in actions if isinstance(a, BackendQuery)])
+        assert state.mode is mode
+    assert sent == [[QueryPurpose.TRACK_CHECK], [], []]
+    # Its answer goes to the front-end's policy, one that found nothing too (nothing on the track is
+    # evidence; before, an empty answer was dropped and the old confirmation held).
+    query = state.queries[-1][0]
+    _, actions = step(state, BackendAnswer(5.2, query, 151, ()), VERIFIED)
+    assert actions == (JudgeCandidates(151, (), ()),)
+
+
+def test_a_frame_with_a_loss_signal_never_gives_the_find_its_position() -> None:
+    """The find is where the track placed the target on frames no loss signal doubted: a tracker sliding
+    onto the background while trusted (an old confirmation outweighing its alarm) gives estimates as sharp
+    as the target's, and the kept one was the background's."""
+    state = reach(S.AWAITING_SUPERVISOR, VERIFIED)
+    assert state.target is not None
+    box = state.target.box
+    state, _ = step(state, tracked(5.0, box), VERIFIED)
+    assert state.target is not None and state.target.fix is not None and state.target.fix_s == 5.0
+    good = state.target.fix
+    elsewhere = Box(box.x + 60, box.y, box.w, box.h)  # as sharp an estimate, metres away
+    state, _ = step(state, TrackResult(151, 5.03, elsewhere, 0.8, True, "", "appearance"), VERIFIED)
+    assert state.target is not None and state.target.fix == good and state.target.fix_s == 5.0
+    assert state.target.position != good and state.target.box == elsewhere  # still followed and shown
+    state, _ = step(state, tracked(5.06, box), VERIFIED)  # an undoubted frame: kept again
+    assert state.target is not None and state.target.fix_s == 5.06
+
+
 @pytest.mark.parametrize("mode", [S.FOLLOWING, S.LOST])
 def test_paper_policy_sends_no_track_checks_and_judges_nothing(mode: MissionState) -> None:
     state = reach(mode)

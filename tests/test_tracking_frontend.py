@@ -24,7 +24,7 @@ def crossing(sequences_dir: Path):  # type: ignore[no-untyped-def]
     seq = load_sequence(sequences_dir / SEQ)
     frames = [
         Frame(i + 1, i / seq.fps, cv2.imread(str(seq.path / "frames" / f"{i + 1:06d}.jpg")))
-        for i in range(30)
+        for i in range(45)
     ]
     return seq, frames
 
@@ -174,6 +174,11 @@ def test_verified_policy_withdraws_a_loss_a_candidate_on_the_track_confirms(
     # The detector's extent is learnt from the confirmation: a later detector box is converted to the tracker's.
     converted = fe.to_tracker_convention(detector_box)
     assert converted.w == pytest.approx(on_track.w) and converted.h == pytest.approx(on_track.h)
+    # The next answer found nothing on the track: the confirmation no longer holds, and the alarm that still
+    # fires untrusts the track once it has lasted loss_persistence_s again.
+    assert fe.apply_candidates(26, []) is None and fe.stats.decisions == {"confirm": 1, "keep": 1}
+    later = [fe.feed(frame) for frame in frames[26:45]]
+    assert not later[-1].trusted and later[-1].lost_reason == "appearance", [r.lost_reason for r in later]
 
 
 def test_a_track_outgrowing_its_detected_object_is_reframed_on_it(models_dir: Path, crossing) -> None:  # type: ignore[no-untyped-def]
