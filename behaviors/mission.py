@@ -107,10 +107,6 @@ IN_VIEW = frozenset({MissionState.ACQUIRING, MissionState.FOLLOWING, MissionStat
 _JUDGED = frozenset(
     {MissionState.FOLLOWING, MissionState.AWAITING_SUPERVISOR, MissionState.CONFIRMED, MissionState.LOST}
 )
-# Trusted-track states in which a loss signal starting to fire asks the back-end for evidence at once.
-_CHECKED_ON_ALARM = frozenset(
-    {MissionState.FOLLOWING, MissionState.AWAITING_SUPERVISOR, MissionState.CONFIRMED}
-)
 MAX_PENDING = 4  # candidates awaiting a decision out of view; past it the oldest no longer awaits (said)
 _MAX_QUERIES_IN_FLIGHT = 8  # answers to older queries are dropped as stale
 _REVERIFY_MIN_IOU = 0.2
@@ -148,6 +144,9 @@ class Target:
     # survey flies away); the best alone is of a place a walking person has left.
     kept: KeptFix = KeptFix()
     position_s: float = math.nan  # when `position` was observed (event time; the keyframe's pose, a frame)
+    # Re-acquired by the tracker alone after a loss, no answer since showing a candidate on the track: its
+    # frames may be of the background it slid onto, so they give the find no position (`kept` stays).
+    fix_held: bool = False
 
     @property
     def fix(self) -> GeoEstimate | None:
@@ -628,16 +627,19 @@ def _track(state: State, result: TrackResult, config: MissionConfig) -> Result:
         return _start_lost(state, f"tracker lost ({result.lost_reason or 'failed'})", config)
 
     position = locate_box(config.camera, state.telemetry, result.box) if state.telemetry else None
-    # A frame on which a loss signal fires may show something else than the target (a tracker sliding onto
-    # the background, trusted on an old confirmation): its estimate is never the find's.
-    kept = target.kept if position is None or result.alarm else kept_fix(target.kept, position, result.time_s)
+    # The find's position comes only from frames the evidence stands behind: not one on which a loss signal
+    # fires, nor any after a re-acquisition the back-end has not yet seen on the track (a tracker sliding
+    # onto the background gives estimates as sharp as the target's).
+    held = target.fix_held or state.mode is MissionState.LOST
+    doubted = position is None or bool(result.alarm) or held
     target = replace(
         target,
         box=result.box,
         last_seen_s=result.time_s,
         position=position or target.position,
         position_s=result.time_s if position is not None else target.position_s,
-        kept=kept,
+        kept=target.kept if doubted or position is None else kept_fix(target.kept, position, result.time_s),
+        fix_held=held,
     )
     state = replace(state, target=target)
     actions: list[Action] = []
@@ -650,14 +652,12 @@ def _track(state: State, result: TrackResult, config: MissionConfig) -> Result:
         if state.mode is MissionState.AWAITING_SUPERVISOR:
             actions.append(_report(target, "awaiting"))  # the candidate again, for whoever missed it
 
-    if config.verified_reinit and state.mode in _CHECKED_ON_ALARM:
+    if config.verified_reinit and state.mode is MissionState.FOLLOWING:
         starting = bool(result.alarm) and not state.alarm
         state = replace(state, alarm=bool(result.alarm))
         if starting:
             # Evidence before a loss: a signal began to fire on the trusted track, ask now rather than at
-            # the next periodic check (the answer can confirm the track, re-frame it or show a rival). Also
-            # while the supervisor decides and after: no periodic check runs then, and the track gives the
-            # candidate's and the find's position.
+            # the next periodic check (the answer can confirm the track, re-frame it or show a rival).
             state, query = _track_check(state)
             actions.extend(query)
     state, setpoint = _follow(state, result.box, result.time_s, config)
@@ -690,6 +690,9 @@ def _answer(state: State, answer: BackendAnswer, config: MissionConfig) -> Resul
         return _acquire(state, *chosen, answer)
     if target is None or not answer.final:  # a fast stage's verdicts only ever start a search's track
         return state, ()
+    if target.fix_held and state.mode in IN_VIEW | {MissionState.CONFIRMED} and _on_track(answer, target.box):
+        target = replace(target, fix_held=False)  # the back-end sees it where the tracker is: positions again
+        state = replace(state, target=target)
     state, actions = _answer_for_target(state, target, purpose, answer, config)
     if config.verified_reinit and _judging(state, config):
         # Every answer for the track goes to the front-end's policy, with what the mission refuses marked;
@@ -762,6 +765,15 @@ def _settle_early_start(
     return replace(state, target=verified, early_refused=False), (
         GcsMessage(f"verified {det.candidate_id}"[:50]),
     )
+
+
+def _on_track(answer: BackendAnswer, box: Box) -> Detection | None:
+    """The answer's candidate on the tracked box (the best overlap, at least `_REVERIFY_MIN_IOU`), unless
+    the verifier says it is not the described target."""
+    match = max(answer.candidates, key=lambda d: iou(d.box, box), default=None)
+    if match is None or iou(match.box, box) < _REVERIFY_MIN_IOU or match.verdict is Verdict.NO:
+        return None
+    return match
 
 
 def _answer_for_target(
@@ -868,7 +880,11 @@ def _tick(state: State, config: MissionConfig) -> Result:
             )
             return state, query
         if mode is MissionState.CONFIRMED and _report_due(state, config):
-            return replace(state, last_report_s=now), (_report(target, "confirmed"),)
+            state, report = replace(state, last_report_s=now), (_report(target, "confirmed"),)
+            if target.fix_held:  # re-acquired since: only an answer on the track moves the find again
+                state, query = _query(state, QueryPurpose.REVERIFY, _roi(target.box, config))
+                return state, (*report, *query)
+            return state, report
         if (
             mode is MissionState.FOLLOWING
             and config.verified_reinit
