@@ -631,7 +631,7 @@ def _track(state: State, result: TrackResult, config: MissionConfig) -> Result:
     # fires, nor any after a re-acquisition the back-end has not yet seen on the track (a tracker sliding
     # onto the background gives estimates as sharp as the target's).
     held = target.fix_held or state.mode is MissionState.LOST
-    doubted = position is None or bool(result.alarm) or held
+    doubted = bool(result.alarm) or held
     target = replace(
         target,
         box=result.box,
@@ -690,7 +690,12 @@ def _answer(state: State, answer: BackendAnswer, config: MissionConfig) -> Resul
         return _acquire(state, *chosen, answer)
     if target is None or not answer.final:  # a fast stage's verdicts only ever start a search's track
         return state, ()
-    if target.fix_held and state.mode in IN_VIEW | {MissionState.CONFIRMED} and _on_track(answer, target.box):
+    seen = _on_track(answer, target.box) if target.fix_held else None
+    if (
+        seen is not None
+        and seen.verdict is not Verdict.NO
+        and state.mode in IN_VIEW | {MissionState.CONFIRMED}
+    ):
         target = replace(target, fix_held=False)  # the back-end sees it where the tracker is: positions again
         state = replace(state, target=target)
     state, actions = _answer_for_target(state, target, purpose, answer, config)
@@ -768,12 +773,9 @@ def _settle_early_start(
 
 
 def _on_track(answer: BackendAnswer, box: Box) -> Detection | None:
-    """The answer's candidate on the tracked box (the best overlap, at least `_REVERIFY_MIN_IOU`), unless
-    the verifier says it is not the described target."""
+    """The answer's candidate on the tracked box: the best overlap, at least `_REVERIFY_MIN_IOU`."""
     match = max(answer.candidates, key=lambda d: iou(d.box, box), default=None)
-    if match is None or iou(match.box, box) < _REVERIFY_MIN_IOU or match.verdict is Verdict.NO:
-        return None
-    return match
+    return match if match is not None and iou(match.box, box) >= _REVERIFY_MIN_IOU else None
 
 
 def _answer_for_target(
@@ -783,9 +785,8 @@ def _answer_for_target(
         MissionState.AWAITING_SUPERVISOR,
         MissionState.CONFIRMED,
     ):
-        tracked = target.box
-        match = max(answer.candidates, key=lambda d: iou(d.box, tracked), default=None)
-        if match is None or iou(match.box, tracked) < _REVERIFY_MIN_IOU:
+        match = _on_track(answer, target.box)
+        if match is None:
             return state, (GcsMessage("re-verify: target not in keyframe", "warning"),)
         target = replace(
             target, verdict=match.verdict, justification=match.justification or target.justification
