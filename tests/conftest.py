@@ -87,6 +87,7 @@ class SharedPx4:
     def __init__(self, work: Path) -> None:
         self.work = work
         self.vehicle: Any = None
+        self.boots = 0
 
     def get(self) -> Any:
         if self.vehicle is None:
@@ -94,15 +95,26 @@ class SharedPx4:
             from sitl.scenario_runner import ALTITUDE_M, HOME_ALT_M, _home
 
             lat, lon = _home((0.0, 0.0))
-            vehicle = start_px4(find_package(), self.work, (lat, lon, HOME_ALT_M), None)
-            try:
-                took = vehicle.fly_up(ALTITUDE_M)
-            except Exception:
-                vehicle.gcs.stop()
-                vehicle.close()
-                raise
-            print(f"px4 airborne after {took:.1f} s ({vehicle.describe()})")
-            self.vehicle = vehicle
+            for boot in (1, 2):
+                # A pilot whose vehicle refuses to take off reboots it once: a fresh SIH once armed and then
+                # refused TAKEOFF ("battery warning", its position estimate 520 m off home right after boot),
+                # in 1 of about 40 CI runs, cause not found. The tests are of what follows the take-off.
+                self.boots += 1  # a fresh work directory each boot (parameters, dataman), as a scenario's
+                vehicle = start_px4(
+                    find_package(), self.work / f"boot-{self.boots}", (lat, lon, HOME_ALT_M), None
+                )
+                try:
+                    took = vehicle.fly_up(ALTITUDE_M)
+                except Exception as exc:
+                    vehicle.gcs.stop()
+                    vehicle.close()
+                    if boot == 2:
+                        raise
+                    print(f"px4 boot {boot} did not take off, booting a fresh one: {exc}")
+                    continue
+                print(f"px4 airborne after {took:.1f} s ({vehicle.describe()})")
+                self.vehicle = vehicle
+                break
         return self.vehicle
 
     def close(self) -> None:
