@@ -134,9 +134,14 @@ class ReportCandidate:
     verdict: Verdict
     position: GeoEstimate | None
     box: Box
-    status: str  # "awaiting", "reverified" or "confirmed"
+    # "awaiting" (the one the supervisor is shown: candidate 0), "queued" (awaits after it: seen beside the
+    # tracked one), "reverified" or "confirmed"
+    status: str
     confirmed_by: str = ""  # with "confirmed": who confirmed ("supervisor page", "gcs")
     position_s: float = math.nan  # when `position` was observed (event time): how old it is
+    # The keyframe `box` is in, for a candidate the tracker does not hold (its crop comes from there); -1: the
+    # tracked one, in the newest frame.
+    keyframe_id: int = -1
 
 
 @dataclass(frozen=True)

@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from behaviors.detection import Detection
+from behaviors.geometry import Box
 from behaviors.mission_commands import MissionCommand
 from behaviors.telemetry import Telemetry
 from behaviors.track_result import TrackResult
@@ -30,6 +31,9 @@ class BackendAnswer:
     candidates: tuple[Detection, ...] = ()
     final: bool = True  # false: the back-end's fast stage; the final verdicts on the keyframe follow
     pose: Telemetry | None = None
+    # The tracker's trusted box on that keyframe when it was sent (None: nothing tracked, or not known): which
+    # candidate is the tracked one, on the same frame.
+    track_box: Box | None = None
 
 
 @dataclass(frozen=True)
@@ -53,6 +57,15 @@ class BackendUnreachable:
 
     time_s: float
     reason: str = ""
+
+
+@dataclass(frozen=True)
+class RejectionShared:
+    """The back-end took the supervisor's rejection of `candidate_id` (stored before it answered): from the
+    next query on, its verifier judges every candidate against the rejected one's appearance."""
+
+    time_s: float
+    candidate_id: str
 
 
 @dataclass(frozen=True)
@@ -86,6 +99,7 @@ Event = (
     | GcsCommand
     | TimerTick
     | BackendUnreachable
+    | RejectionShared
     | AutopilotLinkLost
     | PilotTakeover
     | CompanionHold

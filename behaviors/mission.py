@@ -46,6 +46,7 @@ from behaviors.events import (
     Event,
     GcsCommand,
     PilotTakeover,
+    RejectionShared,
 )
 from behaviors.geolocation import GeoEstimate, locate_box
 from behaviors.geometry import Box, iou
@@ -303,6 +304,9 @@ def _step(state: State, event: Event, config: MissionConfig) -> Result:
         return _answer(state, event, config)
     if isinstance(event, BackendUnreachable):
         return _backend_down(state, event)
+    if isinstance(event, RejectionShared):
+        # Answers to the queries from the next one on were judged with it (`behaviors.rejection_memory`).
+        return replace(state, rejections=state.rejections.shared(event.candidate_id, state.next_query_id)), ()
     return _tick(state, config)  # TimerTick, the last kind of event
 
 
@@ -684,7 +688,7 @@ def _answer(state: State, answer: BackendAnswer, config: MissionConfig) -> Resul
         assert target is not None
         return _settle_early_start(state, target, early, answer, config)
     if purpose is QueryPurpose.SEARCH and state.mode is MissionState.SEARCHING:
-        chosen = _choose(state, answer.candidates, config, answer.pose)
+        chosen = _choose(state, answer.candidates, config, answer)
         if chosen is None:
             return state, ()
         return _acquire(state, *chosen, answer)
@@ -698,13 +702,15 @@ def _answer(state: State, answer: BackendAnswer, config: MissionConfig) -> Resul
     ):
         target = replace(target, fix_held=False)  # the back-end sees it where the tracker is: positions again
         state = replace(state, target=target)
+    if purpose is QueryPurpose.SEARCH and _searching_on(state):
+        return _propose_other(state, target, answer, config)
     state, actions = _answer_for_target(state, target, purpose, answer, config)
     if config.verified_reinit and _judging(state, config):
         # Every answer for the track goes to the front-end's policy, with what the mission refuses marked;
         # one with no candidate too (as `eval` judges): nothing found on the track is evidence, and it ends
         # the hold an older confirmation has over the track's own loss signals.
         refused = tuple(
-            i for i, d in enumerate(answer.candidates) if _refused(state, target, d, config, answer.pose)
+            i for i, d in enumerate(answer.candidates) if _refused(state, target, d, config, answer)
         )
         actions = (*actions, JudgeCandidates(answer.keyframe_id, answer.candidates, refused))
     return state, actions
@@ -748,7 +754,7 @@ def _settle_early_start(
     goes on when they accept no one."""
 
     def acceptable(candidates: Sequence[Detection]) -> Detection | None:
-        chosen = _choose(state, candidates, config, answer.pose)
+        chosen = _choose(state, candidates, config, answer)
         return chosen[0] if chosen is not None else None
 
     det, kept = settle_early_choice(answer.candidates, early.box, acceptable)
@@ -778,6 +784,60 @@ def _on_track(answer: BackendAnswer, box: Box) -> Detection | None:
     return match if match is not None and iou(match.box, box) >= _REVERIFY_MIN_IOU else None
 
 
+def _searching_on(state: State) -> bool:
+    """Looking only (along the mission, not engaged), a candidate awaiting the supervisor in view: the survey
+    flies on whatever the tracker holds, so the search goes on in the same keyframes. Others in view are put
+    to the supervisor too (`_propose_other`); before, one tracked at a time hid anyone seen beside it, and
+    the survey had flown past them by the time the track ended."""
+    return state.mode is MissionState.AWAITING_SUPERVISOR and state.along_mission and not state.engaged
+
+
+def _propose_other(state: State, target: Target, answer: BackendAnswer, config: MissionConfig) -> Result:
+    """A search answer while `_searching_on`: the best verified candidate that is not the tracked one (its box
+    on that keyframe, else where it stands), nor one already queued (by place: ids are per keyframe),
+    rejected or found, is queued for the supervisor after the tracked one (`State.pending`, placed from its
+    keyframe). The tracker stays on its candidate, and the front-end's policy is not given these answers:
+    the supervisor is deciding on that candidate."""
+    tracked_here = _on_track(answer, answer.track_box) if answer.track_box is not None else None
+    places = [(p.candidate_id, p.fix) for p in state.pending]
+    if answer.track_box is None:
+        places += [(target.candidate_id, target.position), (target.candidate_id, target.fix)]
+    known = RejectionMemory(
+        tuple(RejectedTarget(cid, at) for cid, at in places if at is not None),
+        radius_m=config.rejection_radius_m,
+        capacity=len(places) or 1,
+    )
+
+    def new_here(det: Detection) -> bool:
+        if det is tracked_here or _excluded(state, det, config, answer):
+            return False
+        position = _position(state, det, config, answer.pose)
+        return position is not None and known.matches(det.candidate_id, position) is None
+
+    det = select_first_acquisition(
+        answer.candidates, config.accept_uncertain, lambda d: d.box.is_valid() and new_here(d)
+    )
+    if det is None:
+        return state, ()
+    where = _position(state, det, config, answer.pose)
+    seen_s = answer.pose.time_s if answer.pose is not None else answer.time_s
+    other = Target(
+        det.candidate_id,
+        det.justification,
+        det.verdict,
+        det.start_box,
+        answer.keyframe_id,
+        answer.time_s,
+        where,
+        det.signature,
+        position_s=seen_s,
+    )
+    state, said = _left_awaiting(state, other)
+    # "queued", not "awaiting": a decision naming no candidate is still for the tracked one.
+    report = replace(_report(other, "queued"), keyframe_id=answer.keyframe_id)
+    return state, (report, *said)
+
+
 def _answer_for_target(
     state: State, target: Target, purpose: QueryPurpose, answer: BackendAnswer, config: MissionConfig
 ) -> Result:
@@ -799,7 +859,7 @@ def _answer_for_target(
         and not _given_up(state, config)
         and not config.verified_reinit  # the paper's policy: the mission picks the box itself
     ):
-        usable = [d for d in answer.candidates if not _refused(state, target, d, config, answer.pose)]
+        usable = [d for d in answer.candidates if not _refused(state, target, d, config, answer)]
         best = select_by_c_box(target.box, usable)
         gate = config.reinit_gate * (config.camera.width + config.camera.height)
         if best is None or c_box(target.box, best.box) > gate:
@@ -818,7 +878,7 @@ def _judging(state: State, config: MissionConfig) -> bool:
 
 
 def _refused(
-    state: State, target: Target, det: Detection, config: MissionConfig, pose: Telemetry | None = None
+    state: State, target: Target, det: Detection, config: MissionConfig, answer: BackendAnswer
 ) -> bool:
     """A candidate the mission would never re-initialise on. Away from the last box only a "yes" may re-find
     the target, however wide the query's region: anything less could be a distractor anywhere in view.
@@ -826,7 +886,7 @@ def _refused(
     others on anything but "no". The rejection memory (supervisor's rejections) is never re-found."""
     near = _centre_inside(det.box, _roi(target.box, config))
     return not _redetect_verdict_ok(det.verdict, near, target.operator_selected) or _excluded(
-        state, det, config, pose
+        state, det, config, answer
     )
 
 
@@ -880,6 +940,8 @@ def _tick(state: State, config: MissionConfig) -> Result:
                 replace(state, last_report_s=now), QueryPurpose.REVERIFY, _roi(target.box, config)
             )
             return state, query
+        if _searching_on(state) and _query_due(state, config.search_interval_s):
+            return _query(state, QueryPurpose.SEARCH, None)  # final verdicts only: no early answer
         if mode is MissionState.CONFIRMED and _report_due(state, config):
             state, report = replace(state, last_report_s=now), (_report(target, "confirmed"),)
             if target.fix_held:  # re-acquired since: only an answer on the track moves the find again
@@ -1072,27 +1134,27 @@ def _arrived(state: State, box: Box, config: MissionConfig) -> bool:
     return distance is not None and abs(distance.ground_m - config.standoff_m) <= config.arrive_tolerance_m
 
 
-def _excluded(state: State, det: Detection, config: MissionConfig, pose: Telemetry | None) -> bool:
+def _excluded(state: State, det: Detection, config: MissionConfig, answer: BackendAnswer) -> bool:
     """Rejected by the supervisor, or a find the search already went on from (by id, place or looks)."""
-    position = _position(state, det, config, pose)
+    position = _position(state, det, config, answer.pose)
     return any(
-        memory.matches(det.candidate_id, position, det.signature) is not None
+        memory.matches(det.candidate_id, position, det.signature, answer.query_id) is not None
         for memory in (state.rejections, state.found)
     )
 
 
 def _choose(
-    state: State, candidates: Sequence[Detection], config: MissionConfig, pose: Telemetry | None
+    state: State, candidates: Sequence[Detection], config: MissionConfig, answer: BackendAnswer
 ) -> tuple[Detection, GeoEstimate | None] | None:
     """A verified candidate not rejected or found before (`select_first_acquisition`), and where it stands."""
     best = select_first_acquisition(
         candidates,
         config.accept_uncertain,
-        lambda d: d.box.is_valid() and not _excluded(state, d, config, pose),
+        lambda d: d.box.is_valid() and not _excluded(state, d, config, answer),
     )
     if best is None:
         return None
-    return best, _position(state, best, config, pose)
+    return best, _position(state, best, config, answer.pose)
 
 
 def _position(

@@ -3,13 +3,19 @@
 A candidate matches a remembered rejection by the back-end's candidate id, by estimated ground position
 (within a radius widened by both estimates' uncertainty), or by appearance signature (cosine similarity
 of plain number vectors, e.g. colour histograms). Positions are compared in metres on a local tangent plane.
+
+The radius stands in for appearance, which the companion does not judge: anyone within it of a rejected
+person matched, so a described person standing 6 m from a rejected look-alike was never proposed (the
+back-end, judging appearance, said "yes" to them on every keyframe). Once the back-end holds the
+rejection (`RejectedTarget.shared_from_query`), appearance is its verifier's job on every answer to a later
+query, and position matches only as far as the estimates themselves say the same spot (two sigma).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from behaviors.geolocation import GeoEstimate, latlon_to_offset
 
@@ -20,6 +26,8 @@ class RejectedTarget:
     position: GeoEstimate | None = None
     signature: tuple[float, ...] = ()
     time_s: float = 0.0
+    # The first query whose answer the back-end judged with this rejection known (0: not known to hold it).
+    shared_from_query: int = 0
 
 
 @dataclass(frozen=True)
@@ -33,17 +41,34 @@ class RejectionMemory:
         entries = (*self.entries, target)[-self.capacity :]
         return RejectionMemory(entries, self.radius_m, self.signature_threshold, self.capacity)
 
+    def shared(self, candidate_id: str, from_query: int) -> RejectionMemory:
+        """The back-end holds the rejection of `candidate_id`: answers to `from_query` on were judged with it."""
+        entries = tuple(
+            replace(e, shared_from_query=from_query)
+            if candidate_id and e.candidate_id == candidate_id and not e.shared_from_query
+            else e
+            for e in self.entries
+        )
+        return replace(self, entries=entries)
+
     def matches(
         self,
         candidate_id: str = "",
         position: GeoEstimate | None = None,
         signature: Sequence[float] = (),
+        query_id: int = 0,
     ) -> RejectedTarget | None:
-        """The remembered rejection this candidate looks like, or None."""
+        """The remembered rejection this candidate looks like, or None. `query_id`: the query whose answer
+        the candidate is in (0: none, or not known)."""
         for entry in self.entries:
             if candidate_id and entry.candidate_id == candidate_id:
                 return entry
-            if position is not None and entry.position is not None and self._near(entry.position, position):
+            judged = bool(entry.shared_from_query) and query_id >= entry.shared_from_query
+            if (
+                position is not None
+                and entry.position is not None
+                and self._near(entry.position, position, 0.0 if judged else self.radius_m)
+            ):
                 return entry
             if (
                 signature
@@ -53,11 +78,11 @@ class RejectionMemory:
                 return entry
         return None
 
-    def _near(self, a: GeoEstimate, b: GeoEstimate) -> bool:
+    def _near(self, a: GeoEstimate, b: GeoEstimate, radius_m: float) -> bool:
         north, east = latlon_to_offset(a.lat_deg, a.lon_deg, b.lat_deg, b.lon_deg)
         sigma = math.hypot(a.sigma_m, b.sigma_m)
         # Two sigma of the combined error, but a very uncertain estimate cannot blank a whole area.
-        allowed = self.radius_m + min(2.0 * sigma, 2.0 * self.radius_m)
+        allowed = radius_m + min(2.0 * sigma, 2.0 * self.radius_m)
         return math.hypot(north, east) <= allowed
 
 

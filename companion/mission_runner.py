@@ -49,6 +49,7 @@ from behaviors.events import (
     Event,
     GcsCommand,
     PilotTakeover,
+    RejectionShared,
     TimerTick,
 )
 from behaviors.geometry import Box
@@ -150,6 +151,8 @@ class BackendSessionLike(Protocol):
 
     def commands(self) -> list[MissionCommand]: ...
 
+    def shared_rejections(self) -> list[str]: ...
+
     def last_success(self) -> float | None: ...
 
 
@@ -205,6 +208,7 @@ class LoopSettings:
 
 SEVERITY = {"info": 6, "warning": 4, "critical": 2}  # MAV_SEVERITY for the GCS
 MAX_CROPS = 8  # candidates' crops kept (a candidate awaiting a decision out of view keeps its crop)
+KEYFRAMES_KEPT = 8  # as many as the mission keeps queries in flight: an older answer is stale
 POSE_HISTORY = 400  # telemetry snapshots kept to locate a keyframe's candidates (40 s at 10 Hz)
 FOLLOWING_STATES = frozenset(
     {MissionState.FOLLOWING, MissionState.AWAITING_SUPERVISOR, MissionState.CONFIRMED}
@@ -267,6 +271,10 @@ class MissionRunner:
         self._ready = False
         self._pending_since: float | None = None  # oldest back-end request not answered yet
         self._crops: dict[str, dict[str, Any]] = {}  # candidate id -> its crop fields, encoded once
+        # The newest keyframes sent, by frame id: (image, the trusted track's box on it). A candidate the
+        # tracker does not hold is cropped from the keyframe the back-end found it in, and an answer says which
+        # of its candidates the tracker held on that frame.
+        self._keyframes: dict[int, tuple[Any, Box | None]] = {}
         self._poses: deque[Telemetry] = deque(maxlen=POSE_HISTORY)  # newest last
         self._result: TrackResult | None = None  # the tracker's result on the newest frame
         # Progress, finds and the tracked keyframe box for the status report.
@@ -311,8 +319,7 @@ class MissionRunner:
         ):
             events.append(telemetry)
             self._poses.append(telemetry)
-        commands = self.vehicle.commands() + (self.session.commands() if self.session is not None else [])
-        events.extend(GcsCommand(now, cmd) for cmd in commands)
+        events.extend(self._ground_events(now))
         if frame is not None:
             self._latest = frame
             self.stats.frames += 1
@@ -327,8 +334,11 @@ class MissionRunner:
             if query_id != PROBE_QUERY_ID and answer.final:
                 self.report.on_answer(answer.detections)
             pose = self._pose_at(answer.capture_time)
+            track_box = self._keyframes.get(answer.frame_id, (None, None))[1]
             events.append(
-                BackendAnswer(now, query_id, answer.frame_id, answer.detections, answer.final, pose)
+                BackendAnswer(
+                    now, query_id, answer.frame_id, answer.detections, answer.final, pose, track_box
+                )
             )
         if now - self._last_tick >= self.settings.tick_s:
             self._last_tick = now
@@ -435,9 +445,20 @@ class MissionRunner:
         self.backend.submit(frame.frame_id, frame.image, frame.capture_time, **fields)
         result = self._result
         tracked = result is not None and result.frame_id == frame.frame_id and result.trusted
-        self.report.on_keyframe(frame.frame_id, result.box if tracked and result is not None else None)
+        track_box = result.box if tracked and result is not None else None
+        self.report.on_keyframe(frame.frame_id, track_box)
+        recent = list(self._keyframes.items())[-(KEYFRAMES_KEPT - 1) :]
+        self._keyframes = {**dict(recent), frame.frame_id: (frame.image, track_box)}
         if self._pending_since is None:
             self._pending_since = self.clock()
+
+    def _ground_events(self, now: float) -> list[Event]:
+        """Commands from the GCS and the supervisor page, and the rejections the back-end has taken."""
+        commands = self.vehicle.commands() + (self.session.commands() if self.session is not None else [])
+        events: list[Event] = [GcsCommand(now, cmd) for cmd in commands]
+        if self.session is not None:
+            events.extend(RejectionShared(now, cid) for cid in self.session.shared_rejections())
+        return events
 
     def _tracker_init(self, action: TrackerInit) -> None:
         newest = self._latest.frame_id if self._latest is not None else 0
@@ -465,6 +486,9 @@ class MissionRunner:
                     on_reinit(reinit, self.state.now_s)
 
     def _report_candidate(self, report: ReportCandidate) -> None:
+        if report.keyframe_id >= 0:  # not the tracked one: cropped from its keyframe while that is kept
+            image = self._keyframes.get(report.keyframe_id, (None, None))[0]
+            self._candidate_crop(report.candidate_id, report.box, in_view=False, image=image)
         if report.status == "confirmed":
             self._report_find(report)
         else:
@@ -610,13 +634,17 @@ class MissionRunner:
             except Exception:  # a full disk or a codec error must not stop the flight
                 log.exception("video frame not recorded")
 
-    def _candidate_crop(self, candidate_id: str, box: Box, in_view: bool = True) -> dict[str, Any]:
-        """The supervisor's crop of this candidate from the newest frame, encoded once per candidate (and only
-        while it is in view: a candidate out of view keeps the crop it had, or has none)."""
+    def _candidate_crop(
+        self, candidate_id: str, box: Box, in_view: bool = True, image: Any = None
+    ) -> dict[str, Any]:
+        """The supervisor's crop of this candidate from `image`, else from the newest frame, encoded once per
+        candidate (and only while it is in view: a candidate out of view keeps the crop it had, or has none)."""
         if candidate_id not in self._crops:
-            if not in_view or self._latest is None:
+            if image is None and in_view and self._latest is not None:
+                image = self._latest.image
+            if image is None:
                 return {}
-            crop = candidate_crop(self._latest.image, box)
+            crop = candidate_crop(image, box)
             if crop is None:
                 return {}
             self._crops = {**dict(list(self._crops.items())[-(MAX_CROPS - 1) :]), candidate_id: crop}
@@ -826,6 +854,7 @@ def describe_action(action: Action, t: float) -> dict[str, Any]:
             "verdict": action.verdict.value,
             "box": _box(action.box),
             "justification": action.justification[:120],
+            **({"keyframe_id": action.keyframe_id} if action.keyframe_id >= 0 else {}),
         }
     if isinstance(action, BackendQuery):
         return {

@@ -492,6 +492,12 @@ class ScenarioRun:
                     v.confirmations.append((t, v.judged))
                 if cid == v.awaiting_id:
                     v.awaiting_id = ""
+            if e.get("status") == "queued" and cid not in v.judgements:
+                # Seen beside the tracked one, decided once it is the one shown: judged now, on its keyframe.
+                pid = self._person_at(v, e.get("box"), t, int(e.get("keyframe_id", -1)))
+                v.proposals.append((t, pid))
+                v.judgements[cid] = ("confirm" if pid == self.world.target_id else "reject", pid)
+                self.say(f"{v.vehicle_id}: queued candidate {cid} -> {pid}")
             if e.get("status") == "awaiting":
                 v.awaiting_id = cid
                 if v.pending_decision is None or v.pending_decision[3] != cid:

@@ -87,13 +87,13 @@ class Scenario:
     companion_settings: tuple[str, ...] = ()
     checks: tuple[str, ...] = field(default_factory=tuple)
     companion_listens: bool = False  # the companion's MAVLink link is udpin (the flood's target port)
-    world: Literal["follow", "search"] = "follow"
+    world: Literal["follow", "search", "search-beside"] = "follow"
     survey: SurveySpec | None = None  # the pilot flies this survey in AUTO before the mission starts
     allow_engage: bool = True  # the GCS's mission start lets the companion select GUIDED/OFFBOARD itself
 
     def build_world(self, seed: int) -> World:
-        if self.world == "search":
-            return search_world(seed)
+        if self.world in ("search", "search-beside"):
+            return search_world(seed, lookalike_beside=self.world == "search-beside")
         # The turn comes after the roof, so the occlusion happens on a straight stretch.
         turn_at = 20.0 if self.occluder_at_m is None else self.occluder_at_m + 10.0
         world = distractor_world(
@@ -264,9 +264,10 @@ SCENARIOS: dict[str, Scenario] = {
         ),
         Scenario(
             "search-no-engage",
-            "the search scenario started without allow-engage: candidates are only reported while the survey "
-            "flies on; no setpoint or mode command reaches the autopilot",
-            world="search",
+            "the search scenario started without allow-engage, the look-alike 6 m short of the described person: "
+            "candidates are only reported while the survey flies on, the one seen beside the tracked one queued "
+            "for the supervisor; no setpoint or mode command reaches the autopilot",
+            world="search-beside",
             survey=SurveySpec(),
             allow_engage=False,
             follow_s=3.0,
@@ -327,7 +328,7 @@ class VehicleOutcome:
     metrics: dict[str, Any]
     confirmations: tuple[float, ...]
     confirmed_ids: tuple[str, ...]  # person id the supervisor saw at each confirmation
-    proposals: tuple[tuple[float, str], ...]  # (time, person id) of every candidate the companion tracked
+    proposals: tuple[tuple[float, str], ...]  # (time, person id) of each candidate tracked or queued
     rejected_ids: tuple[tuple[float, str], ...]
     lost_intervals: tuple[tuple[float, float], ...]
     occlusion: tuple[float, float] | None  # when the target was hidden (visible < 0.2) after confirmation

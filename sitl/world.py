@@ -238,18 +238,20 @@ def distractor_world(
 SEARCH_AREA_NE = ((10.0, -28.0), (110.0, 32.0))  # south-west and north-east corners (north, east), metres
 
 
-def search_world(seed: int) -> World:
+def search_world(seed: int, lookalike_beside: bool = False) -> World:
     """The search scenario's world: across the area, the described person (green shirt, black trousers,
     strolling slowly on the spot), a look-alike (green shirt, blue trousers, standing) the supervisor must
     reject, and people of the same class in other colours, lying, sitting and walking. With the scenario's
     survey (lanes 20 m apart at east -18, 2 and 22, the first, nearest home, flown north) the look-alike and,
     30 m further on, the described person lie close enough to the first lane to be judged (the local verifier
     judges a rendered person out to about 12 m from 10 m up), so the look-alike is met first; the find comes
-    early in the survey to keep the flight short for CI.
+    early in the survey to keep the flight short for CI. `lookalike_beside`: the look-alike stands 6 m short
+    of the described person instead, so the survey sees both at once, the look-alike first.
     """
+    decoy_at = (84.0, -17.0) if lookalike_beside else (60.0, -16.0)
     people = (
         Person("target", "green", "black", "standing", ((90.0, -15.0), (90.0, -12.0)), 0.4, loop=True),
-        Person("decoy", "green", "blue", "standing", ((60.0, -16.0),)),
+        Person("decoy", "green", "blue", "standing", (decoy_at,)),
         Person("person-1", "red", "gray", "lying", ((45.0, 10.0),)),
         Person("person-2", "blue", "gray", "standing", ((106.0, -24.0), (106.0, -12.0)), 0.8, loop=True),
         Person("person-3", "purple", "gray", "sitting", ((58.0, 28.0),)),

@@ -14,7 +14,7 @@ import pytest
 import requests
 from pydantic import ValidationError
 
-from behaviors.actions import ReportCandidate
+from behaviors.actions import BackendQuery, QueryPurpose, ReportCandidate
 from behaviors.detection import Verdict
 from behaviors.geolocation import GeoEstimate
 from behaviors.geometry import Box
@@ -23,6 +23,7 @@ from behaviors.mission_commands import StartMission
 from behaviors.mission_config import MissionConfig
 from behaviors.track_result import TrackResult
 from cloudtrack.api_models import AwaitingCandidate
+from companion.cloud.candidate_crop import candidate_crop
 from companion.mission_runner import MissionRunner
 from companion.vision.frame_sources import Frame
 
@@ -80,6 +81,77 @@ def test_awaiting_every_status_carries_the_candidate_through_a_loss() -> None:
     assert "awaiting" not in runner._status()
     runner.state = _state(MissionState.SEARCHING, target=None)
     assert "awaiting" not in runner._status()
+
+
+def test_awaiting_a_candidate_seen_beside_the_tracked_one_is_cropped_from_its_keyframe() -> None:
+    """Looking only, the search proposes a person seen beside the tracked one (`behaviors.mission`,
+    `_propose_other`): the GCS hears it, and its crop is cut from the keyframe the back-end found it in (the
+    newest frame has moved on), kept until it is the one shown."""
+    none: Any = None
+    sent: list[int] = []
+    said: list[str] = []
+
+    class Backend:
+        def submit(self, frame_id: int, *args: Any, **fields: Any) -> None:
+            sent.append(frame_id)
+
+    class Vehicle:
+        def send_status(self, text: str, severity: int) -> None:
+            said.append(text)
+
+    backend: Any = Backend()
+    vehicle: Any = Vehicle()
+    runner = MissionRunner(CONFIG, none, none, vehicle, backend)
+    keyframe = np.random.default_rng(5).integers(0, 256, (480, 640, 3), dtype=np.uint8)
+    runner._latest = Frame(7, time.monotonic(), keyframe)
+    runner.state = _state(MissionState.AWAITING_SUPERVISOR)
+    runner._submit(BackendQuery(3, QueryPurpose.SEARCH, MISSION.prompt, "", None))
+    runner._latest = Frame(12, time.monotonic(), np.zeros_like(keyframe))  # the survey flew on
+    beside = Box(420, 180, 30, 70)
+    runner._report_candidate(
+        ReportCandidate("c-21", "green shirt", Verdict.YES, None, beside, "queued", keyframe_id=7)
+    )
+    assert sent == [7] and said == ["CANDIDATE QUEUED c-21"]
+    other = replace(TARGET, candidate_id="c-21", box=beside)
+    runner.state = replace(runner.state, pending=(other,))
+    assert runner._status()["awaiting_more"] == ["c-21"]
+    runner.state = replace(_state(MissionState.SEARCHING, target=None), pending=(other,))  # c-17 decided
+    shown = runner._status()["awaiting"]
+    expected = candidate_crop(keyframe, beside)
+    assert expected is not None and shown["candidate_id"] == "c-21"
+    assert shown["crop_jpeg_b64"] == expected["crop_jpeg_b64"]
+
+
+def test_a_rejection_the_back_end_took_reaches_the_rejection_memory() -> None:
+    """The session's word that the back-end holds a rejection becomes a `RejectionShared` event: the memory
+    entry then matches by place only within the estimates' own uncertainty (`behaviors.rejection_memory`)."""
+    from behaviors.mission_commands import RejectCandidate
+    from behaviors.rejection_memory import RejectedTarget
+
+    none: Any = None
+
+    class Vehicle:
+        def commands(self) -> list[Any]:
+            return []
+
+    class Session:
+        def commands(self) -> list[Any]:
+            return [RejectCandidate("c-5")]
+
+        def shared_rejections(self) -> list[str]:
+            return ["c-17"]
+
+    vehicle: Any = Vehicle()
+    session: Any = Session()
+    runner = MissionRunner(CONFIG, none, none, vehicle, none, session=session)
+    state = _state(MissionState.SEARCHING, target=None)
+    runner.state = replace(
+        state, rejections=state.rejections.remember(RejectedTarget("c-17")), next_query_id=9
+    )
+    events = runner._ground_events(3.0)
+    assert [type(e).__name__ for e in events] == ["GcsCommand", "RejectionShared"]
+    runner._handle(events[1])
+    assert runner.state.rejections.entries[0].shared_from_query == 9
 
 
 def test_awaiting_candidate_says_how_old_its_position_is() -> None:

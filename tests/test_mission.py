@@ -34,6 +34,7 @@ from behaviors.events import (
     Event,
     GcsCommand,
     PilotTakeover,
+    RejectionShared,
     TimerTick,
 )
 from behaviors.geometry import Box
@@ -804,6 +805,41 @@ def test_rejection_memory_matching_rules() -> None:
     for i in range(5):
         full = full.remember(RejectedTarget(f"c{i}"))
     assert [e.candidate_id for e in full.entries] == ["c2", "c3", "c4"]
+    # Once the back-end holds the rejection (answers to query 7 on), position matches only within two sigma
+    # of both estimates: appearance is the back-end's verifier's job. Id and signature still match.
+    shared = memory.shared("c1", 7)
+    assert shared.matches(position=at(6.0, 0.0), query_id=6) is not None  # an older query: radius
+    assert shared.matches(position=at(6.0, 0.0), query_id=7) is None
+    assert shared.matches(position=at(1.5, 0.0), query_id=7) is not None  # 2 sigma: 2.0 m
+    assert shared.matches("c1", query_id=9) is not None and shared.matches(signature=(1.0, 0.1)) is not None
+    assert shared.shared("c1", 12).entries[0].shared_from_query == 7  # taken once, the first time counts
+    assert memory.shared("c9", 7) == memory
+
+
+def test_a_person_beside_a_rejected_look_alike_is_proposed_once_the_back_end_holds_the_rejection() -> None:
+    """The companion's position rule stands in for appearance, which it does not judge: 6 m from a rejected
+    look-alike, the described person (a "yes" from the back-end, which judges appearance against the
+    rejection) was never proposed. Until the back-end holds the rejection the radius keeps the look-alike
+    from being proposed again under a new id; from the next query after it took the rejection, only the
+    estimates' own uncertainty places a candidate on the rejected one."""
+    state = rejected_then_searching()
+    rejected = state.rejections.entries[0]
+    assert rejected.candidate_id == "c1" and rejected.position is not None
+    beside = box_at(CFG.standoff_m + 6.0)
+    qid = state.queries[-1][0]
+    before = BackendAnswer(2.0, qid, 60, (candidate(beside, "c7"),))
+    assert step(state, before, CFG)[0].mode is S.SEARCHING  # within the radius: not proposed
+    state, actions = step(state, RejectionShared(2.1, "c1"), CFG)
+    assert actions == () and state.rejections.entries[0].shared_from_query == qid + 1
+    assert step(state, before, CFG)[0].mode is S.SEARCHING  # answered before the back-end held it
+    state, actions = run(state, [TimerTick(2.2)])
+    (query,) = [a for a in actions if isinstance(a, BackendQuery)]
+    new, actions = step(state, BackendAnswer(2.4, query.query_id, 66, (candidate(beside, "c8"),)), CFG)
+    assert new.mode is S.ACQUIRING
+    assert [a.candidate_id for a in actions if isinstance(a, TrackerInit)] == ["c8"]
+    # The look-alike itself, where it stood: still not proposed.
+    same = BackendAnswer(2.4, query.query_id, 66, (candidate(AT_STANDOFF, "c9"),))
+    assert step(state, same, CFG)[0].mode is S.SEARCHING
 
 
 def test_operator_target_is_re_found_whatever_the_verdict() -> None:

@@ -17,6 +17,7 @@ from behaviors.actions import (
     FlightMode,
     GcsMessage,
     Hold,
+    QueryPurpose,
     ReleaseControl,
     ReportCandidate,
     RequestMode,
@@ -25,6 +26,7 @@ from behaviors.actions import (
     TrackerInit,
     TrackerStop,
 )
+from behaviors.detection import Detection, Verdict
 from behaviors.events import BackendAnswer, BackendUnreachable, Event, PilotTakeover, TimerTick
 from behaviors.geolocation import offset_to_latlon
 from behaviors.mission import (
@@ -47,7 +49,19 @@ from behaviors.mission_commands import (
 from behaviors.mission_config import ConfirmAction, MissionConfig, SearchMode
 from behaviors.setpoint import Setpoint
 from behaviors.telemetry import Telemetry
-from tests.test_mission import AT_STANDOFF, CFG, FAR, HEIGHT, PROMPT, box_at, candidate, cmd, kinds, tracked
+from tests.test_mission import (
+    AT_STANDOFF,
+    CAM,
+    CFG,
+    FAR,
+    HEIGHT,
+    PROMPT,
+    box_at,
+    candidate,
+    cmd,
+    kinds,
+    tracked,
+)
 from tests.test_mission import reach as spot_reach
 
 S = MissionState
@@ -666,3 +680,94 @@ def test_a_reported_candidate_out_of_view_still_awaits_the_supervisor(decision: 
     # Decided once: a second decision finds nothing awaiting.
     _, actions = step(state, cmd(5.1, ConfirmCandidate("c1")), CFG)
     assert kinds(actions) == ["GcsMessage"]
+
+
+BESIDE = box_at(40.0, u=CAM.cx + 220.0)  # another person in the same keyframe, about 9 m from the tracked one
+
+
+def _search_beside(state: State, t: float, *dets: Detection) -> tuple[State, list[Action]]:
+    """The tracker still on its candidate, the tick at `t` sends the search's query (whole frame, final
+    verdicts only); the back-end answers `dets` on that keyframe."""
+    state, actions = run(state, [tracked(t - 0.05, AT_STANDOFF), TimerTick(t)])
+    (query,) = [a for a in actions if isinstance(a, BackendQuery)]
+    assert query.purpose is QueryPurpose.SEARCH and query.roi is None and not query.early_answer
+    return run(state, [BackendAnswer(t + 0.2, query.query_id, int(t * 30), dets)])
+
+
+def test_looking_only_the_search_goes_on_beside_the_candidate_awaiting_the_supervisor() -> None:
+    """Looking only, the survey flies on while the supervisor decides on the tracked candidate: the search
+    goes on in the same keyframes, and another verified person in view is queued for the supervisor after
+    it (placed and cropped from its keyframe; the GCS hears "queued": its candidate 0 is still the tracked
+    one). The tracker stays on the one being decided; ids are per keyframe, so the same people are known
+    again by place."""
+    state = reach(S.AWAITING_SUPERVISOR, engage=False)
+    state, actions = _search_beside(state, 1.7, candidate(AT_STANDOFF, "k1"), candidate(BESIDE, "c2"))
+    assert kinds(actions) == ["ReportCandidate"]  # no JudgeCandidates, no TrackerInit: the track stays
+    (report,) = actions
+    assert isinstance(report, ReportCandidate)
+    assert (report.candidate_id, report.status, report.keyframe_id) == ("c2", "queued", 51)
+    assert report.box == BESIDE and report.position is not None
+    assert state.mode is S.AWAITING_SUPERVISOR and state.target is not None
+    assert state.target.candidate_id == "c1" and awaiting_decision(state) is state.target
+    assert [p.candidate_id for p in awaiting_after(state)] == ["c2"]
+    # The next keyframes show both again under new ids, and a "no" and a third person under an "uncertain"
+    # the verifier judged: nobody new is proposed.
+    state, actions = _search_beside(
+        state,
+        2.3,
+        candidate(AT_STANDOFF, "k3"),
+        candidate(BESIDE, "k4"),
+        candidate(box_at(40.0, u=CAM.cx - 220.0), "k5", verdict=Verdict.NO),
+        candidate(box_at(60.0, u=CAM.cx - 200.0), "k6", verdict=Verdict.UNCERTAIN),
+    )
+    assert actions == [] and len(state.pending) == 1
+    # The supervisor rejects the one tracked: the one beside is put to the supervisor; confirmed, it is a
+    # find where its keyframe placed it.
+    state, actions = run(state, [cmd(3.0, RejectCandidate())])
+    shown = awaiting_decision(state)
+    assert shown is not None and shown.candidate_id == "c2"
+    assert [(a.status, a.candidate_id) for a in actions if isinstance(a, ReportCandidate)] == [
+        ("awaiting", "c2")
+    ]
+    state, actions = run(state, [TimerTick(3.1), cmd(3.2, ConfirmCandidate(by="supervisor page"))])
+    (find,) = [a for a in actions if isinstance(a, ReportCandidate) and a.status == "confirmed"]
+    assert find.candidate_id == "c2" and find.position == report.position
+    assert state.pending == () and state.found.entries[-1].candidate_id == "c2"
+
+
+def test_the_search_beside_the_tracked_candidate_only_looking_and_only_awaiting() -> None:
+    """Engaged, the camera is pointed at the candidate: no search beside it (the track checks stay). Looking
+    only, a person the supervisor rejected is not proposed beside; nor is anyone while the candidate is lost
+    (its re-detection runs), nor from the fast stage's early verdicts."""
+    engaged = reach(S.AWAITING_SUPERVISOR, engage=True)
+    _, actions = run(engaged, [guided(1.7), TimerTick(1.7)])
+    assert not [a for a in actions if isinstance(a, BackendQuery) and a.purpose is QueryPurpose.SEARCH]
+    state = reach(S.AWAITING_SUPERVISOR, engage=False)
+    state, _ = run(state, [cmd(1.5, RejectCandidate("c9"))])  # the page rejects someone by id
+    state, actions = _search_beside(state, 1.7, candidate(BESIDE, "c9"))
+    assert actions == [] and state.pending == ()
+    early_state, actions = run(state, [tracked(2.25, AT_STANDOFF), TimerTick(2.3)])
+    (query,) = [a for a in actions if isinstance(a, BackendQuery)]
+    early = BackendAnswer(2.4, query.query_id, 69, (candidate(BESIDE, "c3"),), final=False)
+    early_state, actions = run(early_state, [early])
+    assert actions == [] and early_state.pending == ()
+    lost, actions = run(state, [tracked(2.0, None, ok=False, reason="score"), TimerTick(2.6)])
+    assert lost.mode is S.LOST
+    assert {a.purpose for a in actions if isinstance(a, BackendQuery)} == {QueryPurpose.REDETECT}
+
+
+def test_the_tracked_candidate_is_known_by_its_box_on_the_keyframe_so_a_neighbour_is_queued() -> None:
+    """The tracker's box on the keyframe (`BackendAnswer.track_box`) says which candidate is the tracked one;
+    a person standing 3 m from it is queued. Without that box the tracked one is known by where it stands,
+    within the rejection radius, which hides such a neighbour."""
+    near = box_at(CFG.standoff_m + 3.0)
+    state = reach(S.AWAITING_SUPERVISOR, engage=False)
+    hidden, actions = _search_beside(state, 1.7, candidate(AT_STANDOFF, "k1"), candidate(near, "k2"))
+    assert actions == [] and hidden.pending == ()
+    state, actions = run(state, [tracked(1.65, AT_STANDOFF), TimerTick(1.7)])
+    (query,) = [a for a in actions if isinstance(a, BackendQuery)]
+    dets = (candidate(AT_STANDOFF, "k1"), candidate(near, "k2"))
+    state, actions = run(state, [BackendAnswer(1.9, query.query_id, 51, dets, track_box=AT_STANDOFF)])
+    assert [(a.candidate_id, a.status) for a in actions if isinstance(a, ReportCandidate)] == [
+        ("k2", "queued")
+    ]

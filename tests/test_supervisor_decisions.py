@@ -138,3 +138,32 @@ def _race(url: str, app: object, client: BackendClient, session: BackendSession)
         assert sorted(f["candidate_id"] for f in vehicle["finds"]) == confirmed
         assert all(f["confirmed_by"] == "supervisor page" for f in vehicle["finds"])
     print(json.dumps({"confirm wins": len(confirmed), "reject wins": ROUNDS - len(confirmed)}))
+
+
+def test_the_session_says_which_rejections_the_back_end_took(
+    backend: tuple[str, object], sequences_dir: Path
+) -> None:
+    """The companion's position rule for a rejection gives way once the back-end holds it (its verifier then
+    judges every candidate's appearance against it: `behaviors.rejection_memory`), so the session says which
+    rejections the back-end stored: one of a candidate it answered, not an id it never gave (refused)."""
+    import cv2
+
+    url, _ = backend
+    client = BackendClient(url, VEHICLE_TOKENS["drone-1"], vehicle_id="drone-1", mission_id="m-shared")
+    frame = sorted((sequences_dir / "uav123_group1_1" / "frames").iterdir())[0]
+    found = client.detect(cv2.imread(str(frame)), "a person")
+    assert found and found[0].candidate_id
+    session = BackendSession(client, period_s=0.05).start()
+    try:
+        session.update({"state": "AWAITING_SUPERVISOR", "mission_id": "m-shared"})
+        session.reject("never-given", None)
+        session.reject(found[0].candidate_id, (47.39, 8.54))
+        shared: list[str] = []
+        deadline = time.monotonic() + 10
+        while not shared and time.monotonic() < deadline:
+            shared += session.shared_rejections()
+            time.sleep(0.05)
+        time.sleep(0.2)  # a second round: nothing more
+        assert shared + session.shared_rejections() == [found[0].candidate_id]
+    finally:
+        session.close()

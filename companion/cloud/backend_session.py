@@ -62,6 +62,7 @@ class BackendSession:
         self._status: dict[str, Any] | None = None
         self._rejections: deque[tuple[str, tuple[float, float] | None, str | None]] = deque(maxlen=100)
         self._commands: deque[MissionCommand] = deque(maxlen=100)
+        self._shared: deque[str] = deque(maxlen=100)  # ids of rejections the back-end took, not yet told
         self._last_success: float | None = None
         self._after = 0
         self._primed = False  # decisions made before we started are history, not commands
@@ -90,6 +91,14 @@ class BackendSession:
         with self._lock:
             drained = list(self._commands)
             self._commands.clear()
+        return drained
+
+    def shared_rejections(self) -> list[str]:
+        """Candidate ids whose rejection the back-end has taken since the last call (it judges candidates
+        against them from then on)."""
+        with self._lock:
+            drained = list(self._shared)
+            self._shared.clear()
         return drained
 
     def last_success(self) -> float | None:
@@ -140,10 +149,12 @@ class BackendSession:
             if find_id is not None:
                 self._find_crop_sent = (find_id, self._clock())
         for candidate_id, position, mission in pending:
+            taken = False
             try:
                 self._client.reject(
                     candidate_id or None, position=position, reason="supervisor rejected", mission_id=mission
                 )
+                taken = True
             except Exception as exc:
                 if getattr(exc, "retryable", True):
                     raise  # unreachable or busy: the same rejection goes again next round
@@ -151,6 +162,8 @@ class BackendSession:
                 log.warning("back-end refused the rejection of %s: %s", candidate_id, exc)
             with self._lock:
                 self._rejections.popleft()
+                if taken and candidate_id:
+                    self._shared.append(candidate_id)
         decisions = self._client.decisions(after=self._after)
         with self._lock:
             for d in decisions:
