@@ -802,11 +802,7 @@ def _propose_other(state: State, target: Target, answer: BackendAnswer, config: 
     places = [(p.candidate_id, p.fix) for p in state.pending]
     if answer.track_box is None:
         places += [(target.candidate_id, target.position), (target.candidate_id, target.fix)]
-    known = RejectionMemory(
-        tuple(RejectedTarget(cid, at) for cid, at in places if at is not None),
-        radius_m=config.rejection_radius_m,
-        capacity=len(places) or 1,
-    )
+    known = _places(places, config)
 
     def new_here(det: Detection) -> bool:
         if det is tracked_here or _excluded(state, det, config, answer):
@@ -1143,15 +1139,28 @@ def _excluded(state: State, det: Detection, config: MissionConfig, answer: Backe
     )
 
 
+def _places(places: Sequence[tuple[str, GeoEstimate | None]], config: MissionConfig) -> RejectionMemory:
+    """Where candidates already put to the supervisor stand, matched as a rejection is before the back-end
+    holds it (by id, or within the radius): the back-end's ids are per keyframe."""
+    entries = tuple(RejectedTarget(cid, at) for cid, at in places if at is not None)
+    return RejectionMemory(entries, radius_m=config.rejection_radius_m, capacity=len(entries) or 1)
+
+
 def _choose(
     state: State, candidates: Sequence[Detection], config: MissionConfig, answer: BackendAnswer
 ) -> tuple[Detection, GeoEstimate | None] | None:
-    """A verified candidate not rejected or found before (`select_first_acquisition`), and where it stands."""
-    best = select_first_acquisition(
-        candidates,
-        config.accept_uncertain,
-        lambda d: d.box.is_valid() and not _excluded(state, d, config, answer),
-    )
+    """A verified candidate not rejected or found before (`select_first_acquisition`), nor already awaiting
+    a decision out of the tracker's hold (`State.pending`: seen again, it is not put to the supervisor
+    twice), and where it stands."""
+    queued = _places([(p.candidate_id, p.fix) for p in state.pending], config)
+
+    def eligible(d: Detection) -> bool:
+        if not d.box.is_valid() or _excluded(state, d, config, answer):
+            return False
+        position = _position(state, d, config, answer.pose)
+        return queued.matches(d.candidate_id, position) is None
+
+    best = select_first_acquisition(candidates, config.accept_uncertain, eligible)
     if best is None:
         return None
     return best, _position(state, best, config, answer.pose)

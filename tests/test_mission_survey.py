@@ -83,11 +83,17 @@ def guided(t: float, item: int = BREAK_OFF) -> Telemetry:
 
 
 def _seen_and_left(state: State, t: float, cid: str) -> tuple[State, list[Action]]:
-    """Looking only: the back-end's candidate `cid` at `t`, put to the supervisor, then out of view and given
-    up (the survey flies on) without a decision."""
+    """Looking only: the back-end's candidate `cid` at `t` (the survey 10 m further on for each second: a
+    person of their own), put to the supervisor, then out of view and given up without a decision."""
     answer = BackendAnswer(t, state.queries[-1][0], int(t * 30), (candidate(FAR, cid),))
     give_up = TimerTick(t + 0.2 + CFG.lost_looking_s + 0.1)
-    state, actions = run(state, [answer, tracked(t + 0.1, FAR), tracked(t + 0.2, None, ok=False), give_up])
+    events = [
+        auto(t - 0.05, north_m=10.0 * t),
+        answer,
+        tracked(t + 0.1, FAR),
+        tracked(t + 0.2, None, ok=False),
+    ]
+    state, actions = run(state, [*events, give_up])
     assert state.mode is S.SEARCHING and state.pending[-1].candidate_id == cid
     return state, actions
 
@@ -130,7 +136,7 @@ def test_at_most_max_pending_await_out_of_view_and_the_oldest_is_said_to_be_drop
     assert state.dropped_undecided == ("c0",)  # the page says so too
     # A candidate tracked and awaiting in view is shown before all those left out of view.
     answer = BackendAnswer(40.0, state.queries[-1][0], 1200, (candidate(FAR, "c9"),))
-    state, _ = run(state, [answer, tracked(40.1, FAR)])
+    state, _ = run(state, [auto(39.9, north_m=400.0), answer, tracked(40.1, FAR)])
     assert awaiting_decision(state) is state.target and state.target is not None
     assert [p.candidate_id for p in awaiting_after(state)] == [f"c{k}" for k in range(1, MAX_PENDING + 1)]
     # A new mission starts with none waiting and none dropped.
@@ -771,3 +777,19 @@ def test_the_tracked_candidate_is_known_by_its_box_on_the_keyframe_so_a_neighbou
     assert [(a.candidate_id, a.status) for a in actions if isinstance(a, ReportCandidate)] == [
         ("k2", "queued")
     ]
+
+
+def test_a_candidate_awaiting_a_decision_out_of_view_is_not_proposed_twice_when_seen_again() -> None:
+    """The back-end's ids are per keyframe: one already awaiting the supervisor (left undecided, or queued
+    beside another) and seen again where it was is not tracked and put to the supervisor a second time."""
+    state = reach(S.SEARCHING, engage=False)
+    state, _ = _seen_and_left(state, 1.0, "c1")
+    again = BackendAnswer(
+        4.0, state.queries[-1][0], 120, (candidate(FAR, "c5"),), pose=auto(3.9, north_m=10.0)
+    )
+    same, actions = run(state, [again])
+    assert same.mode is S.SEARCHING and not [a for a in actions if isinstance(a, TrackerInit)]
+    elsewhere = replace(again, pose=auto(3.9, north_m=40.0))
+    other, actions = run(state, [elsewhere])
+    assert other.mode is S.ACQUIRING
+    assert [a.candidate_id for a in actions if isinstance(a, TrackerInit)] == ["c5"]
