@@ -719,18 +719,7 @@ def _answer(state: State, answer: BackendAnswer, config: MissionConfig) -> Resul
 def _acquire(state: State, det: Detection, position: GeoEstimate | None, answer: BackendAnswer) -> Result:
     """Start tracking `det` from the answer's keyframe; on an early answer, provisionally."""
     early = None if answer.final else EarlyStart(answer.query_id, det.box, state.now_s)
-    picked = Target(
-        det.candidate_id,
-        det.justification,
-        det.verdict,
-        det.start_box,
-        answer.keyframe_id,
-        answer.time_s,
-        position,
-        det.signature,
-        early=early,
-        position_s=answer.pose.time_s if answer.pose is not None else answer.time_s,
-    )
+    picked = replace(_seen_in(answer, det, position), early=early)
     # Along the mission the vehicle is taken from it now (when allowed): at survey speed the candidate
     # would be out of view before the tracker has locked on.
     state, take = _take_control(replace(state, target=picked, control=ControlState()), "candidate")
@@ -743,6 +732,21 @@ def _acquire(state: State, det: Detection, position: GeoEstimate | None, answer:
     stop: tuple[Action, ...] = (SendSetpoint(Setpoint.zero()),) if commanding(new) else ()
     init = TrackerInit(det.box, answer.keyframe_id, det.candidate_id, label=det.label)
     return new, (*take, *stop, init, *msg)
+
+
+def _seen_in(answer: BackendAnswer, det: Detection, position: GeoEstimate | None) -> Target:
+    """The candidate `det` of `answer`, standing at `position` when its keyframe was captured."""
+    return Target(
+        det.candidate_id,
+        det.justification,
+        det.verdict,
+        det.start_box,
+        answer.keyframe_id,
+        answer.time_s,
+        position,
+        det.signature,
+        position_s=answer.pose.time_s if answer.pose is not None else answer.time_s,
+    )
 
 
 def _settle_early_start(
@@ -798,36 +802,14 @@ def _propose_other(state: State, target: Target, answer: BackendAnswer, config: 
     rejected or found, is queued for the supervisor after the tracked one (`State.pending`, placed from its
     keyframe). The tracker stays on its candidate, and the front-end's policy is not given these answers:
     the supervisor is deciding on that candidate."""
-    tracked_here = _on_track(answer, answer.track_box) if answer.track_box is not None else None
-    places = [(p.candidate_id, p.fix) for p in state.pending]
-    if answer.track_box is None:
-        places += [(target.candidate_id, target.position), (target.candidate_id, target.fix)]
-    known = _places(places, config)
-
-    def new_here(det: Detection) -> bool:
-        if det is tracked_here or _excluded(state, det, config, answer):
-            return False
-        position = _position(state, det, config, answer.pose)
-        return position is not None and known.matches(det.candidate_id, position) is None
-
-    det = select_first_acquisition(
-        answer.candidates, config.accept_uncertain, lambda d: d.box.is_valid() and new_here(d)
-    )
-    if det is None:
+    if answer.track_box is not None:
+        tracked, placed = _on_track(answer, answer.track_box), []
+    else:
+        tracked, placed = None, [(target.candidate_id, target.position), (target.candidate_id, target.fix)]
+    chosen = _choose(state, answer.candidates, config, answer, placed, tracked)
+    if chosen is None or chosen[1] is None:  # nowhere to place it: nothing to tell it apart by
         return state, ()
-    where = _position(state, det, config, answer.pose)
-    seen_s = answer.pose.time_s if answer.pose is not None else answer.time_s
-    other = Target(
-        det.candidate_id,
-        det.justification,
-        det.verdict,
-        det.start_box,
-        answer.keyframe_id,
-        answer.time_s,
-        where,
-        det.signature,
-        position_s=seen_s,
-    )
+    other = _seen_in(answer, *chosen)
     state, said = _left_awaiting(state, other)
     # "queued", not "awaiting": a decision naming no candidate is still for the tracked one.
     report = replace(_report(other, "queued"), keyframe_id=answer.keyframe_id)
@@ -1147,15 +1129,20 @@ def _places(places: Sequence[tuple[str, GeoEstimate | None]], config: MissionCon
 
 
 def _choose(
-    state: State, candidates: Sequence[Detection], config: MissionConfig, answer: BackendAnswer
+    state: State,
+    candidates: Sequence[Detection],
+    config: MissionConfig,
+    answer: BackendAnswer,
+    placed: Sequence[tuple[str, GeoEstimate | None]] = (),
+    tracked: Detection | None = None,
 ) -> tuple[Detection, GeoEstimate | None] | None:
     """A verified candidate not rejected or found before (`select_first_acquisition`), nor already awaiting
     a decision out of the tracker's hold (`State.pending`: seen again, it is not put to the supervisor
-    twice), and where it stands."""
-    queued = _places([(p.candidate_id, p.fix) for p in state.pending], config)
+    twice) or where `placed` stand, nor `tracked`; and where it stands."""
+    queued = _places([*((p.candidate_id, p.fix) for p in state.pending), *placed], config)
 
     def eligible(d: Detection) -> bool:
-        if not d.box.is_valid() or _excluded(state, d, config, answer):
+        if d is tracked or not d.box.is_valid() or _excluded(state, d, config, answer):
             return False
         position = _position(state, d, config, answer.pose)
         return queued.matches(d.candidate_id, position) is None
