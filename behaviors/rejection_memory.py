@@ -4,11 +4,9 @@ A candidate matches a remembered rejection by the back-end's candidate id, by es
 (within a radius widened by both estimates' uncertainty), or by appearance signature (cosine similarity
 of plain number vectors, e.g. colour histograms). Positions are compared in metres on a local tangent plane.
 
-The radius stands in for appearance, which the companion does not judge: anyone within it of a rejected
-person matched, so a described person standing 6 m from a rejected look-alike was never proposed (the
-back-end, judging appearance, said "yes" to them on every keyframe). Once the back-end holds the
-rejection (`RejectedTarget.shared_from_query`), appearance is its verifier's job on every answer to a later
-query, and position matches only as far as the estimates themselves say the same spot (two sigma).
+The radius stands in for appearance, which the companion does not judge, and so hides anyone standing near
+a rejected person. Once the back-end holds the rejection (`RejectedTarget.shared_from_query`) it judges
+appearance in every later answer, and position matches only within two sigma of both estimates.
 """
 
 from __future__ import annotations
