@@ -97,6 +97,9 @@ class CandidateView(ApiModel):
     id: str
     verdict: Literal["yes", "no", "uncertain"]
     justification: str
+    unjudged: list[str] = Field(
+        default_factory=list, description="what the back-end could not judge: for the supervisor to check"
+    )
     position: LatLon | None
     box: list[float]
     age_s: float = 0.0

@@ -150,6 +150,7 @@ class SupervisorView:
                     id=awaiting.candidate_id,
                     verdict=awaiting.verdict,
                     justification=awaiting.justification,
+                    unjudged=awaiting.unjudged,
                     position=LatLon(lat=awaiting.position[0], lon=awaiting.position[1])
                     if awaiting.position
                     else None,

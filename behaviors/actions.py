@@ -142,6 +142,8 @@ class ReportCandidate:
     # The keyframe `box` is in, for a candidate the tracker does not hold (its crop comes from there); -1: the
     # tracked one, in the newest frame.
     keyframe_id: int = -1
+    # What the back-end could not judge of the description for it: the supervisor checks that by eye.
+    unjudged: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)

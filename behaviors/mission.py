@@ -148,6 +148,9 @@ class Target:
     # Re-acquired by the tracker alone after a loss, no answer since showing a candidate on the track: its
     # frames may be of the background it slid onto, so they give the find no position (`kept` stays).
     fix_held: bool = False
+    # The description's words the back-end could not judge for this candidate ("minivan", "next to the pier
+    # (the pier: not located)"): what the supervisor must check by eye before confirming.
+    unjudged: tuple[str, ...] = ()
 
     @property
     def fix(self) -> GeoEstimate | None:
@@ -746,6 +749,7 @@ def _seen_in(answer: BackendAnswer, det: Detection, position: GeoEstimate | None
         position,
         det.signature,
         position_s=answer.pose.time_s if answer.pose is not None else answer.time_s,
+        unjudged=det.unjudged,
     )
 
 
@@ -776,6 +780,7 @@ def _settle_early_start(
         verdict=det.verdict,
         signature=det.signature or target.signature,
         early=None,
+        unjudged=det.unjudged,
     )
     return replace(state, target=verified, early_refused=False), (
         GcsMessage(f"verified {det.candidate_id}"[:50]),
@@ -827,7 +832,10 @@ def _answer_for_target(
         if match is None:
             return state, (GcsMessage("re-verify: target not in keyframe", "warning"),)
         target = replace(
-            target, verdict=match.verdict, justification=match.justification or target.justification
+            target,
+            verdict=match.verdict,
+            justification=match.justification or target.justification,
+            unjudged=match.unjudged if match.justification else target.unjudged,
         )
         status = "reverified" if state.mode is MissionState.AWAITING_SUPERVISOR else "confirmed"
         return replace(state, target=target, last_report_s=state.now_s), (_report(target, status),)
@@ -1173,4 +1181,5 @@ def _report(target: Target, status: str) -> ReportCandidate:
         status,
         target.confirmed_by if status == "confirmed" else "",
         target.fix_s if status == "confirmed" else target.position_s,
+        unjudged=target.unjudged,
     )

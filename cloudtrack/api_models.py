@@ -244,6 +244,12 @@ class AwaitingCandidate(ApiModel):
     box: PixelBox = Field(description="[x1, y1, x2, y2] in the keyframe")
     verdict: Literal["yes", "no", "uncertain"] = "yes"
     justification: str = Field("", max_length=2000)
+    unjudged: list[Annotated[str, Field(max_length=200)]] = Field(
+        default_factory=list,
+        max_length=32,
+        description="the description's words the back-end could not judge for this candidate: the supervisor "
+        "checks them by eye",
+    )
     crop_jpeg_b64: str | None = Field(None, max_length=CROP_B64_MAX_CHARS)
     crop_box: PixelBox | None = Field(
         None, description="[x1, y1, x2, y2] of the candidate inside the crop; default: all of it"

@@ -496,7 +496,8 @@ class MissionRunner:
             if report.position is not None:
                 where = f" at {report.position.lat_deg:.6f},{report.position.lon_deg:.6f}"
             self.vehicle.send_status(
-                f"CANDIDATE {report.status.upper()} {report.candidate_id}{where}", SEVERITY["info"]
+                f"CANDIDATE {report.status.upper()} {report.candidate_id}{where}{_not_checked(report.unjudged)}",
+                SEVERITY["info"],
             )
         if self.session is not None:
             self.session.update(self._status())
@@ -574,6 +575,7 @@ class MissionRunner:
             "box": list(target.box.xyxy()),
             "verdict": target.verdict.value,
             "justification": target.justification[:2000],
+            "unjudged": [word[:200] for word in target.unjudged[:32]],
         }
         position = target.position if tracked else target.fix
         if position is not None:
@@ -772,6 +774,20 @@ def behavior_event(ev: SafetyEvent) -> Event | None:
     return None
 
 
+NOT_CHECKED_CHARS = 150  # of the words nothing judged, on the GCS line (the page shows all of them)
+
+
+def _not_checked(unjudged: tuple[str, ...]) -> str:
+    """What the GCS line adds for a candidate: the description's words the back-end could not judge, which
+    the supervisor must check by eye before confirming ("; not checked: minivan")."""
+    if not unjudged:
+        return ""
+    words = "; ".join(unjudged)
+    if len(words) > NOT_CHECKED_CHARS:
+        words = words[: NOT_CHECKED_CHARS - 3].rstrip() + "..."
+    return f"; not checked: {words}"
+
+
 def _box(box: Any) -> list[float] | None:
     return None if box is None else [round(box.x, 1), round(box.y, 1), round(box.w, 1), round(box.h, 1)]
 
@@ -855,6 +871,7 @@ def describe_action(action: Action, t: float) -> dict[str, Any]:
             "box": _box(action.box),
             "justification": action.justification[:120],
             **({"keyframe_id": action.keyframe_id} if action.keyframe_id >= 0 else {}),
+            **({"unjudged": list(action.unjudged)} if action.unjudged else {}),
         }
     if isinstance(action, BackendQuery):
         return {

@@ -512,6 +512,32 @@ def test_awaiting_reports_once_then_reverifies_periodically() -> None:
     assert kinds(actions) == ["GcsMessage"]
 
 
+def test_the_words_the_back_end_could_not_judge_go_with_the_candidate_to_the_supervisor() -> None:
+    """What the back-end could not judge for the chosen candidate (a kind of car, a place it cannot locate)
+    is reported with it: the supervisor checks that by eye. A re-verification reports what its own answer
+    could not judge; a confirmation keeps it."""
+    state, _ = run(initial_state(CFG), [telemetry(0.0)])
+    state, actions = step(state, cmd(0.1, StartMission(PROMPT)), CFG)
+    unsure = ("injured", "next to the bicycle (the bicycle: not located)")
+    seen = replace(candidate(FAR), unjudged=unsure)
+    state, _ = run(state, [BackendAnswer(1.0, last_query(actions).query_id, 30, (seen,)), tracked(1.1, FAR)])
+    state, actions = step(state, tracked(1.2, AT_STANDOFF), CFG)
+    (report,) = [a for a in actions if isinstance(a, ReportCandidate)]
+    assert report.status == "awaiting" and report.unjudged == unsure
+    t, reverify = 1.2, None
+    while reverify is None:
+        t += 0.1
+        state, _ = step(state, tracked(t, AT_STANDOFF), CFG)
+        state, actions = step(state, TimerTick(t), CFG)
+        reverify = next((a for a in actions if isinstance(a, BackendQuery)), None)
+    again = replace(candidate(AT_STANDOFF, "c1-b"), unjudged=("injured",))
+    state, actions = step(state, BackendAnswer(t, reverify.query_id, 40, (again,)), CFG)
+    (report,) = [a for a in actions if isinstance(a, ReportCandidate)]
+    assert report.status == "reverified" and report.unjudged == ("injured",)
+    state, actions = step(state, cmd(t + 0.1, ConfirmCandidate()), CFG)
+    assert [a.unjudged for a in actions if isinstance(a, ReportCandidate)] == [("injured",)]
+
+
 @pytest.mark.parametrize("on_confirm", list(ConfirmAction))
 def test_confirmed_behaviours(on_confirm: ConfirmAction) -> None:
     config = replace(CFG, on_confirm=on_confirm)

@@ -101,7 +101,7 @@ def _backend(models_dir: Path, tiles: str = "") -> Any:
     config = BackendConfig(
         auth=AuthConfig(tokens=VEHICLE_TOKENS, supervisor_token=SUPERVISOR_TOKEN),
         detector=DetectorConfig(kind="yolox", model_dir=str(models_dir)),
-        verifier=VerifierConfig(kind="local-hsv"),
+        verifier=VerifierConfig(kind="local"),  # the default: it says what it could not judge
         sessions=SessionConfig(sqlite_path=":memory:"),
         supervisor=SupervisorConfig(map_tiles=tiles),
     )
@@ -143,7 +143,8 @@ def _fly(url: str, sequences_dir: Path) -> dict[str, Any]:
             assert client.post("/v1/vehicles/drone-1/status", json=status).status_code == 200
         awaiting = {
             "candidate_id": best["candidate_id"], "box": best["box"], "verdict": best["verdict"],
-            "justification": best["justification"], "position": [47.39808, 8.54598], "crop_box": crop_box,
+            "justification": best["justification"], "unjudged": best["unjudged"], "position": [47.39808, 8.54598],
+            "crop_box": crop_box,
             "crop_jpeg_b64": base64.b64encode(cv2.imencode(".jpg", crop)[1].tobytes()).decode(),
         }  # fmt: skip
         status.update(
@@ -198,6 +199,12 @@ def test_console_shows_live_keyframe_map_and_finds_offline(
         candidate = card.locator(f'article[data-candidate="{awaiting["candidate_id"]}"]')
         _loaded(page, f'article[data-candidate="{awaiting["candidate_id"]}"] img.crop')
         assert candidate.locator(".crop-overlay rect").count() == 1
+        # What the back-end could not judge of the description ("striped": no pattern is judged at this
+        # size; "man": the detector judged a person, not a man): the supervisor is told to check it.
+        assert {"striped", "man"} <= set(awaiting["unjudged"]), awaiting["unjudged"]
+        expect(candidate.locator(".unjudged")).to_be_visible()
+        expect(candidate.locator(".unjudged")).to_contain_text("Not checked by the machine")
+        expect(candidate.locator(".unjudged-words")).to_have_text("; ".join(awaiting["unjudged"]))
         # The others waiting behind it (a supervisor slower than the survey), and one dropped undecided.
         expect(card.locator(".queue")).to_have_text(
             "2 more awaiting a decision, each shown once the one above is decided: c-91, c-92"

@@ -367,6 +367,9 @@ function renderCandidates(card, vehicle) {
     $(".status", item).textContent = candidate.decided_by ? `${candidate.status} by ${candidate.decided_by}` : candidate.status;
     item.dataset.status = candidate.status;
     $(".justification", item).textContent = candidate.justification || "(no justification)";
+    const unjudged = candidate.unjudged || [];
+    $(".unjudged", item).hidden = unjudged.length === 0;
+    $(".unjudged-words", item).textContent = unjudged.join("; ");
     $(".position", item).textContent = formatPosition(candidate.position);
     const open = candidate.status === "awaiting";
     for (const button of item.querySelectorAll(".decide button")) button.disabled = !open || item.dataset.sent === "1";
