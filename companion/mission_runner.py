@@ -207,6 +207,7 @@ class LoopSettings:
 
 
 SEVERITY = {"info": 6, "warning": 4, "critical": 2}  # MAV_SEVERITY for the GCS
+NOT_CHECKED_CHARS = 150  # of the words nothing judged, on the GCS line (the page shows all of them)
 MAX_CROPS = 8  # candidates' crops kept (a candidate awaiting a decision out of view keeps its crop)
 KEYFRAMES_KEPT = 8  # as many as the mission keeps queries in flight: an older answer is stale
 POSE_HISTORY = 400  # telemetry snapshots kept to locate a keyframe's candidates (40 s at 10 Hz)
@@ -772,9 +773,6 @@ def behavior_event(ev: SafetyEvent) -> Event | None:
     if ev.reason in (STALE_FRAMES, LOOP_STALLED) and ev.action == "stop":
         return CompanionHold(ev.time_s, ev.reason)
     return None
-
-
-NOT_CHECKED_CHARS = 150  # of the words nothing judged, on the GCS line (the page shows all of them)
 
 
 def _not_checked(unjudged: tuple[str, ...]) -> str:
