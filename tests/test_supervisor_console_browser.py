@@ -2,8 +2,9 @@
 keyframe sent to /v1/detect shows live with its candidate boxes and the tracked box; the map is drawn from
 the positions alone (track, search area, covered area, candidate, finds) or over tiles from a configured
 loopback tile server; search progress and coverage, the reason for the state, the candidate's crop with
-its box drawn; a Confirm makes a find that stays in the list and on the map after the vehicle moves on.
-A screenshot is kept in out/test-artifacts/supervisor-console.png. Select: -k console.
+its box drawn and what the back-end could not judge of the description; a Confirm makes a find that stays
+in the list and on the map after the vehicle moves on. A screenshot is kept in
+out/test-artifacts/supervisor-console.png. Select: -k console.
 """
 
 from __future__ import annotations
