@@ -100,6 +100,7 @@ class CandidateView(ApiModel):
     unjudged: list[str] = Field(
         default_factory=list, description="what the back-end could not judge: for the supervisor to check"
     )
+    alike: int = Field(0, description="others the search could have taken as well (chosen by score alone)")
     position: LatLon | None
     box: list[float]
     age_s: float = 0.0

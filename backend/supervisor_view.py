@@ -151,6 +151,7 @@ class SupervisorView:
                     verdict=awaiting.verdict,
                     justification=awaiting.justification,
                     unjudged=awaiting.unjudged,
+                    alike=awaiting.alike,
                     position=LatLon(lat=awaiting.position[0], lon=awaiting.position[1])
                     if awaiting.position
                     else None,

@@ -144,6 +144,8 @@ class ReportCandidate:
     keyframe_id: int = -1
     # What the back-end could not judge of the description for it: the supervisor checks that by eye.
     unjudged: tuple[str, ...] = ()
+    # Others of its answer the search could have taken as well (told apart by the detector's score alone).
+    alike: int = 0
 
 
 @dataclass(frozen=True)

@@ -30,6 +30,29 @@ def select_first_acquisition(
     a "yes", unless the description's rank picks it alone (`Detection.singled_out`: "the cyclist in the
     blue shirt closest to the camera" whose dark blue shirt reads mostly black); it then comes right after
     a "yes" that fits too. A relation that several may satisfy ("between", "next to") only ranks."""
+    ranked = _start_ranks(candidates, accept_uncertain, eligible)
+    return min(ranked, key=lambda pair: pair[0])[1] if ranked else None
+
+
+def alike(
+    candidates: Sequence[Detection],
+    chosen: Detection,
+    accept_uncertain: bool,
+    eligible: Callable[[Detection], bool] = lambda d: d.box.is_valid(),
+) -> int:
+    """How many others `select_first_acquisition` could have started on as well: the same verdict and
+    placement as `chosen`, told apart by the detector's score alone. The supervisor should know that the
+    choice among them was no judgement (three white cars at the front, "minivan" judged by nothing)."""
+    ranked = _start_ranks(candidates, accept_uncertain, eligible)
+    mine = next((rank[:2] for rank, d in ranked if d is chosen), None)
+    return sum(1 for rank, d in ranked if d is not chosen and rank[:2] == mine)
+
+
+def _start_ranks(
+    candidates: Sequence[Detection], accept_uncertain: bool, eligible: Callable[[Detection], bool]
+) -> list[tuple[tuple[int, int, float], Detection]]:
+    """The candidates a search may start on, each with its rank (smallest first; see
+    `select_first_acquisition`)."""
     pool = [d for d in candidates if d.verdict is not Verdict.NO and eligible(d)]
     picked = [d for d in pool if d.singled_out and d.placement_ok is True]
     singled = picked[0] if len(picked) == 1 else None
@@ -43,7 +66,7 @@ def select_first_acquisition(
             return (0 if placement == 0 else 2, placement, -d.score)
         return (1 if d is singled else 3, placement, -d.score)
 
-    return min(may_start, key=rank, default=None)
+    return [(rank(d), d) for d in may_start]
 
 
 SAME_CANDIDATE_IOU = 0.5  # two answers about one keyframe name the same person when their boxes overlap this

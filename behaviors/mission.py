@@ -8,7 +8,7 @@ times arrive on the events. States and transitions are drawn and explained in do
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from enum import Enum
 
@@ -30,6 +30,7 @@ from behaviors.actions import (
     TrackerStop,
 )
 from behaviors.candidate_selection import (
+    alike,
     c_box,
     select_by_c_box,
     select_first_acquisition,
@@ -151,6 +152,9 @@ class Target:
     # The description's words the back-end could not judge for this candidate ("minivan", "next to the pier
     # (the pier: not located)"): what the supervisor must check by eye before confirming.
     unjudged: tuple[str, ...] = ()
+    # How many other candidates of the answer that proposed it the search could have taken as well (the same
+    # verdict and placement: told apart by the detector's score alone): the choice among them was a guess.
+    alike: int = 0
 
     @property
     def fix(self) -> GeoEstimate | None:
@@ -719,10 +723,12 @@ def _answer(state: State, answer: BackendAnswer, config: MissionConfig) -> Resul
     return state, actions
 
 
-def _acquire(state: State, det: Detection, position: GeoEstimate | None, answer: BackendAnswer) -> Result:
+def _acquire(
+    state: State, det: Detection, position: GeoEstimate | None, others: int, answer: BackendAnswer
+) -> Result:
     """Start tracking `det` from the answer's keyframe; on an early answer, provisionally."""
     early = None if answer.final else EarlyStart(answer.query_id, det.box, state.now_s)
-    picked = replace(_seen_in(answer, det, position), early=early)
+    picked = replace(_seen_in(answer, det, position, others), early=early)
     # Along the mission the vehicle is taken from it now (when allowed): at survey speed the candidate
     # would be out of view before the tracker has locked on.
     state, take = _take_control(replace(state, target=picked, control=ControlState()), "candidate")
@@ -737,8 +743,9 @@ def _acquire(state: State, det: Detection, position: GeoEstimate | None, answer:
     return new, (*take, *stop, init, *msg)
 
 
-def _seen_in(answer: BackendAnswer, det: Detection, position: GeoEstimate | None) -> Target:
-    """The candidate `det` of `answer`, standing at `position` when its keyframe was captured."""
+def _seen_in(answer: BackendAnswer, det: Detection, position: GeoEstimate | None, others: int = 0) -> Target:
+    """The candidate `det` of `answer`, standing at `position` when its keyframe was captured, chosen from
+    `others` alike."""
     return Target(
         det.candidate_id,
         det.justification,
@@ -750,6 +757,7 @@ def _seen_in(answer: BackendAnswer, det: Detection, position: GeoEstimate | None
         det.signature,
         position_s=answer.pose.time_s if answer.pose is not None else answer.time_s,
         unjudged=det.unjudged,
+        alike=others,
     )
 
 
@@ -771,8 +779,9 @@ def _settle_early_start(
             replace(state, early_refused=True), f"not verified: {target.candidate_id}", config
         )
         return new, (TrackerStop("early candidate not verified"), *actions)
+    others = alike(answer.candidates, det, config.accept_uncertain, _eligible(state, config, answer))
     if not kept:
-        return _acquire(state, det, _position(state, det, config, answer.pose), answer)
+        return _acquire(state, det, _position(state, det, config, answer.pose), others, answer)
     verified = replace(
         target,
         candidate_id=det.candidate_id,
@@ -781,6 +790,7 @@ def _settle_early_start(
         signature=det.signature or target.signature,
         early=None,
         unjudged=det.unjudged,
+        alike=others,
     )
     return replace(state, target=verified, early_refused=False), (
         GcsMessage(f"verified {det.candidate_id}"[:50]),
@@ -1143,10 +1153,27 @@ def _choose(
     answer: BackendAnswer,
     placed: Sequence[tuple[str, GeoEstimate | None]] = (),
     tracked: Detection | None = None,
-) -> tuple[Detection, GeoEstimate | None] | None:
+) -> tuple[Detection, GeoEstimate | None, int] | None:
     """A verified candidate not rejected or found before (`select_first_acquisition`), nor already awaiting
     a decision out of the tracker's hold (`State.pending`: seen again, it is not put to the supervisor
-    twice) or where `placed` stand, nor `tracked`; and where it stands."""
+    twice) or where `placed` stand, nor `tracked`; where it stands; and how many others it was chosen from
+    by the detector's score alone (`candidate_selection.alike`)."""
+    eligible = _eligible(state, config, answer, placed, tracked)
+    best = select_first_acquisition(candidates, config.accept_uncertain, eligible)
+    if best is None:
+        return None
+    others = alike(candidates, best, config.accept_uncertain, eligible)
+    return best, _position(state, best, config, answer.pose), others
+
+
+def _eligible(
+    state: State,
+    config: MissionConfig,
+    answer: BackendAnswer,
+    placed: Sequence[tuple[str, GeoEstimate | None]] = (),
+    tracked: Detection | None = None,
+) -> Callable[[Detection], bool]:
+    """Which of the answer's candidates `_choose` may take (see there)."""
     queued = _places([*((p.candidate_id, p.fix) for p in state.pending), *placed], config)
 
     def eligible(d: Detection) -> bool:
@@ -1155,10 +1182,7 @@ def _choose(
         position = _position(state, d, config, answer.pose)
         return queued.matches(d.candidate_id, position) is None
 
-    best = select_first_acquisition(candidates, config.accept_uncertain, eligible)
-    if best is None:
-        return None
-    return best, _position(state, best, config, answer.pose)
+    return eligible
 
 
 def _position(
@@ -1182,4 +1206,5 @@ def _report(target: Target, status: str) -> ReportCandidate:
         target.confirmed_by if status == "confirmed" else "",
         target.fix_s if status == "confirmed" else target.position_s,
         unjudged=target.unjudged,
+        alike=target.alike,
     )

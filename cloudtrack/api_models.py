@@ -20,6 +20,7 @@ CANDIDATE_ID = Field(
 )
 NOTE_MAX = 500  # one limit for a supervisor's note, on the API and on the page
 CROP_B64_MAX_CHARS = 400_000  # a crop in base64 (about 300 kB of JPEG); the route body limits follow it
+ALIKE_MAX = 1000  # others alike a candidate, as a status says it (a detect answer has at most a few dozen)
 PIXELS_MAX = 100_000  # no coordinate in pixels lies further out than this
 
 
@@ -249,6 +250,13 @@ class AwaitingCandidate(ApiModel):
         max_length=32,
         description="the description's words the back-end could not judge for this candidate: the supervisor "
         "checks them by eye",
+    )
+    alike: int = Field(
+        0,
+        ge=0,
+        le=ALIKE_MAX,
+        description="other candidates of the same answer the search could have taken as well (the same verdict "
+        "and placement): it was chosen among them by the detector's score alone",
     )
     crop_jpeg_b64: str | None = Field(None, max_length=CROP_B64_MAX_CHARS)
     crop_box: PixelBox | None = Field(

@@ -69,6 +69,7 @@ from behaviors.reinit_policy import ReinitAction, ReinitDecision
 from behaviors.setpoint import Setpoint
 from behaviors.telemetry import Telemetry
 from behaviors.track_result import TrackResult
+from cloudtrack.api_models import ALIKE_MAX
 from cloudtrack.service_notify import Notifier
 from companion.cloud.backend_worker import BackendWorker
 from companion.cloud.candidate_crop import candidate_crop
@@ -497,7 +498,8 @@ class MissionRunner:
             if report.position is not None:
                 where = f" at {report.position.lat_deg:.6f},{report.position.lon_deg:.6f}"
             self.vehicle.send_status(
-                f"CANDIDATE {report.status.upper()} {report.candidate_id}{where}{_not_checked(report.unjudged)}",
+                f"CANDIDATE {report.status.upper()} {report.candidate_id}{where}{_alike(report.alike)}"
+                f"{_not_checked(report.unjudged)}",
                 SEVERITY["info"],
             )
         if self.session is not None:
@@ -577,6 +579,7 @@ class MissionRunner:
             "verdict": target.verdict.value,
             "justification": target.justification[:2000],
             "unjudged": [word[:200] for word in target.unjudged[:32]],
+            "alike": min(target.alike, ALIKE_MAX),
         }
         position = target.position if tracked else target.fix
         if position is not None:
@@ -775,6 +778,12 @@ def behavior_event(ev: SafetyEvent) -> Event | None:
     return None
 
 
+def _alike(others: int) -> str:
+    """What the GCS line adds for a candidate chosen from others the search could have taken as well
+    (`behaviors.candidate_selection.alike`): the choice among them was the detector's score, no judgement."""
+    return f"; {others} others alike" if others > 0 else ""
+
+
 def _not_checked(unjudged: tuple[str, ...]) -> str:
     """What the GCS line adds for a candidate: the description's words the back-end could not judge, which
     the supervisor must check by eye before confirming ("; not checked: minivan")."""
@@ -870,6 +879,7 @@ def describe_action(action: Action, t: float) -> dict[str, Any]:
             "justification": action.justification[:120],
             **({"keyframe_id": action.keyframe_id} if action.keyframe_id >= 0 else {}),
             **({"unjudged": list(action.unjudged)} if action.unjudged else {}),
+            **({"alike": action.alike} if action.alike else {}),
         }
     if isinstance(action, BackendQuery):
         return {

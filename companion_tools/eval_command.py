@@ -424,7 +424,10 @@ def _print_acquisition(
         right = sum(a.chosen_iou is not None and a.chosen_iou >= 0.5 for a in chosen_all)
         if final or chosen_all:
             print(f"first {what} on the described target: {right} of {len(chosen_all)}")
-    print("the first verified choice per sequence: verdict and what was judged; then what nothing judged")
+    print(
+        "the first verified choice per sequence: verdict and what was judged; how many others fit as well "
+        "(the detector's score chose); then what nothing judged"
+    )
     for r in results:
         picked = next((a for a in r.acquisition if a.chosen_iou is not None and a.final), None)
         if picked is None:
@@ -434,8 +437,8 @@ def _print_acquisition(
         on_target = (picked.chosen_iou or 0.0) >= 0.5
         print(
             f"  {r.sequence} (keyframe {picked.frame_id}, {'target' if on_target else 'OTHER'}): "
-            f"{picked.verdict or '-'}, placement {where}: {picked.justification or '-'}; not judged: "
-            f"{'; '.join(picked.unjudged) or '-'}"
+            f"{picked.verdict or '-'}, placement {where}: {picked.justification or '-'}; "
+            f"{picked.alike} others alike; not judged: {'; '.join(picked.unjudged) or '-'}"
         )
     print(
         f"ceiling: the ground-truth-initialised run's IoU from the frame the first answer can arrive "

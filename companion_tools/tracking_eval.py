@@ -31,7 +31,7 @@ from typing import Any, Literal
 import cv2
 import numpy as np
 
-from behaviors.candidate_selection import select_first_acquisition, settle_early_choice
+from behaviors.candidate_selection import alike, select_first_acquisition, settle_early_choice
 from behaviors.detection import Detection, Verdict
 from behaviors.geometry import Box, iou
 from behaviors.loss_evidence import LossEvidence, judge_frame
@@ -162,6 +162,7 @@ class AcquisitionKeyframe:
     justification: str = ""
     placement: bool | None = None
     unjudged: tuple[str, ...] = ()
+    alike: int = 0  # others the search could have taken as well: the detector's score chose among them
 
 
 @dataclass
@@ -414,6 +415,7 @@ def evaluate_sequence(
                 picked.justification if picked is not None else "",
                 picked.placement_ok if picked is not None else None,
                 picked.unjudged if picked is not None else (),
+                alike(found, picked, settings.accept_uncertain) if picked is not None else 0,
             )
         )
 

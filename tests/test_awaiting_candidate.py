@@ -233,8 +233,9 @@ def test_awaiting_status_says_who_waits_behind_the_one_shown_and_who_was_dropped
 
 def test_what_the_back_end_could_not_judge_reaches_the_gcs_and_the_supervisor_page() -> None:
     """The candidate's unjudged words (a kind of car, a place nothing located) are what the supervisor must
-    check by eye: the GCS line names them (shortened past its bound) and the status carries them, through the
-    real API, to the page's snapshot. The API bounds them; a candidate with none adds nothing."""
+    check by eye, and how many others it was chosen from by score alone says the choice was no judgement:
+    the GCS line names both (the words shortened past their bound) and the status carries them, through the
+    real API, to the page's snapshot. The API bounds them; a candidate with neither adds nothing."""
     from backend.app import create_app
     from backend.config import AuthConfig, BackendConfig, SessionConfig
     from backend.serving import BackgroundServer
@@ -251,21 +252,27 @@ def test_what_the_back_end_could_not_judge_reaches_the_gcs_and_the_supervisor_pa
     runner = MissionRunner(CONFIG, none, none, vehicle, none)
     runner._latest = Frame(7, time.monotonic(), np.zeros((480, 640, 3), dtype=np.uint8))
     unsure = ("minivan", "at the far crosswalk (the crosswalk: not located)")
-    runner.state = _state(MissionState.AWAITING_SUPERVISOR, target=replace(TARGET, unjudged=unsure))
     report = ReportCandidate("c-17", "white", Verdict.YES, None, TARGET.box, "awaiting")
-    runner._report_candidate(replace(report, unjudged=unsure))
+    runner._report_candidate(replace(report, unjudged=unsure, alike=2))
     runner._report_candidate(report)
     runner._report_candidate(replace(report, unjudged=("x" * 40,) * 6))
     assert said[0] == (
-        "CANDIDATE AWAITING c-17; not checked: minivan; at the far crosswalk (the crosswalk: not located)"
+        "CANDIDATE AWAITING c-17; 2 others alike; not checked: minivan; at the far crosswalk "
+        "(the crosswalk: not located)"
     )
     assert said[1] == "CANDIDATE AWAITING c-17"
     assert len(said[2]) == len("CANDIDATE AWAITING c-17; not checked: ") + 150 and said[2].endswith("...")
+    runner.state = _state(MissionState.AWAITING_SUPERVISOR, target=replace(TARGET, unjudged=unsure, alike=2))
     awaiting = runner._status()["awaiting"]
-    assert awaiting["unjudged"] == list(unsure)
-    for bad in (["x" * 201], ["minivan"] * 33):
-        with pytest.raises(ValidationError, match="unjudged"):
-            AwaitingCandidate.model_validate({**awaiting, "unjudged": bad})
+    assert awaiting["unjudged"] == list(unsure) and awaiting["alike"] == 2
+    for field, bad in (
+        ("unjudged", ["x" * 201]),
+        ("unjudged", ["minivan"] * 33),
+        ("alike", -1),
+        ("alike", 1001),
+    ):
+        with pytest.raises(ValidationError, match=field):
+            AwaitingCandidate.model_validate({**awaiting, field: bad})
     config = BackendConfig(
         auth=AuthConfig(tokens={"drone-1": "drone-1-token-0001"}, supervisor_token="supervisor-token-0001"),
         sessions=SessionConfig(sqlite_path=":memory:"),
@@ -284,4 +291,4 @@ def test_what_the_back_end_could_not_judge_reaches_the_gcs_and_the_supervisor_pa
             timeout=5,
         ).json()
     ((candidate,),) = [v["candidates"] for v in snapshot["vehicles"]]
-    assert candidate["id"] == "c-17" and candidate["unjudged"] == list(unsure)
+    assert candidate["id"] == "c-17" and candidate["unjudged"] == list(unsure) and candidate["alike"] == 2

@@ -3,6 +3,7 @@ from __future__ import annotations
 import pytest
 
 from behaviors.candidate_selection import (
+    alike,
     c_box,
     select_by_c_box,
     select_by_score,
@@ -38,6 +39,39 @@ def test_first_acquisition_admits_an_uncertain_only_when_nothing_could_judge_it(
     candidates: list[Detection], accept_uncertain: bool, chosen: Detection | None
 ) -> None:
     assert select_first_acquisition(candidates, accept_uncertain) is chosen
+
+
+YES_2 = Detection(Box(240, 0, 10, 20), 0.6, verdict=Verdict.YES)
+YES_3 = Detection(Box(280, 0, 10, 20), 0.5, verdict=Verdict.YES)
+YES_FITS = Detection(Box(320, 0, 10, 20), 0.3, verdict=Verdict.YES, placement_ok=True)
+YES_NOT_PLACED = Detection(Box(360, 0, 10, 20), 0.8, verdict=Verdict.YES, placement_ok=False)
+SINGLED = Detection(Box(400, 0, 10, 20), 0.2, verdict=Verdict.UNCERTAIN, placement_ok=True, singled_out=True)
+
+
+@pytest.mark.parametrize(
+    ("candidates", "accept_uncertain", "chosen", "others"),
+    [
+        ([YES, YES_2, YES_3, UNSURE, NO], False, YES_2, 2),  # three "yes" told apart by score alone
+        ([YES, YES_2, YES_3, YES_FITS], False, YES_FITS, 0),  # the placement chose it
+        ([YES, YES_NOT_PLACED], False, YES, 0),  # the other does not fit where the description says
+        ([YES_NOT_PLACED, YES], False, YES, 0),
+        ([UNSURE, UNJUDGED, UNJUDGED_BEST], False, UNJUDGED_BEST, 1),  # nothing judged: the score chose
+        ([UNSURE, UNJUDGED], True, UNSURE, 1),  # both admitted, neither judged better
+        ([SINGLED, UNSURE], False, SINGLED, 0),  # the rank picks it alone
+        ([YES, YES_2, NO, NO_UNJUDGED], False, YES_2, 1),  # a "no" is never alike
+    ],
+)
+def test_alike_counts_the_others_the_search_could_have_taken_as_well(
+    candidates: list[Detection], accept_uncertain: bool, chosen: Detection, others: int
+) -> None:
+    assert select_first_acquisition(candidates, accept_uncertain) is chosen
+    assert alike(candidates, chosen, accept_uncertain) == others
+
+
+def test_alike_leaves_out_what_the_search_may_not_take() -> None:
+    """A candidate the mission refuses (rejected, found, already awaiting) is no alternative."""
+    refused = {id(YES_3)}
+    assert alike([YES, YES_2, YES_3], YES_2, False, lambda d: id(d) not in refused) == 1
 
 
 def test_c_box_is_l1_of_centres_and_sizes() -> None:

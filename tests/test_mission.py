@@ -538,6 +538,25 @@ def test_the_words_the_back_end_could_not_judge_go_with_the_candidate_to_the_sup
     assert [a.unjudged for a in actions if isinstance(a, ReportCandidate)] == [("injured",)]
 
 
+def test_a_candidate_chosen_among_look_alikes_says_how_many() -> None:
+    """Three people fit what the back-end judged, told apart by the detector's score alone: the report says
+    the choice had two others alike (the supervisor should know it was no judgement); one that the
+    description's placement singles out has none."""
+    state, _ = run(initial_state(CFG), [telemetry(0.0)])
+    state, actions = step(state, cmd(0.1, StartMission(PROMPT)), CFG)
+    qid = last_query(actions).query_id
+    three = (candidate(FAR, "c1", score=0.9), candidate(box_at(25, u=100), "c2", score=0.8),
+             candidate(box_at(25, u=540), "c3", score=0.7))  # fmt: skip
+    searching = state
+    state, _ = run(state, [BackendAnswer(1.0, qid, 30, three), tracked(1.1, FAR)])
+    _, actions = step(state, tracked(1.2, AT_STANDOFF), CFG)
+    (report,) = [a for a in actions if isinstance(a, ReportCandidate)]
+    assert (report.candidate_id, report.alike) == ("c1", 2)
+    placed = (three[0], replace(three[1], placement_ok=True), three[2])
+    state, _ = run(searching, [BackendAnswer(1.0, qid, 30, placed), tracked(1.1, placed[1].box)])
+    assert state.target is not None and (state.target.candidate_id, state.target.alike) == ("c2", 0)
+
+
 @pytest.mark.parametrize("on_confirm", list(ConfirmAction))
 def test_confirmed_behaviours(on_confirm: ConfirmAction) -> None:
     config = replace(CFG, on_confirm=on_confirm)

@@ -73,6 +73,7 @@ def test_another_candidate_the_final_verdicts_also_accept_is_no_reason_to_switch
     assert state.mode is S.FOLLOWING and state.target is not None
     assert state.target.candidate_id == "vlm1" and state.target.early is None
     assert not any(isinstance(a, TrackerInit) for a in actions)
+    assert state.target.alike == 1  # the bystander fits what was judged as well: the supervisor is told
 
 
 def test_another_final_choice_restarts_the_track_on_it_from_the_keyframe() -> None:
@@ -80,7 +81,7 @@ def test_another_final_choice_restarts_the_track_on_it_from_the_keyframe() -> No
     state, _ = step(state, tracked(0.5, FAR), CFG)
     state, actions = step(state, final(query, candidate(FAR, "a", Verdict.NO), candidate(OTHER, "b")), CFG)
     assert state.mode is S.ACQUIRING and state.target is not None
-    assert state.target.candidate_id == "b" and state.target.early is None
+    assert state.target.candidate_id == "b" and state.target.early is None and state.target.alike == 0
     assert [(a.box, a.keyframe_id) for a in actions if isinstance(a, TrackerInit)] == [(OTHER, 30)]
     assert isinstance(actions[0], SendSetpoint) and actions[0].setpoint == Setpoint.zero()
 

@@ -250,7 +250,7 @@ def test_prompt_table_prints_ratio_ceiling_and_first_choice(capsys: pytest.Captu
     # seq_b: the fast stage's early answer chose the target, the final verdicts someone else.
     prompted[1].acquisition = [
         AcquisitionKeyframe(1, 2, 3, 1, True, 0.9, final=False),
-        AcquisitionKeyframe(1, 3, 3, 1, True, 0.1),
+        AcquisitionKeyframe(1, 3, 3, 1, True, 0.1, alike=2),
     ]
     figures = _print_acquisition(prompted, reference, {"seq_a": 2, "seq_b": 2}, 0.2)
     out = capsys.readouterr().out
@@ -263,8 +263,11 @@ def test_prompt_table_prints_ratio_ceiling_and_first_choice(capsys: pytest.Captu
     assert "first verified boxes on the described target: 1 of 2" in out
     assert "first early starts on the described target: 1 of 1" in out
     # What was chosen, what was judged and what was not, per sequence.
-    assert "seq_a (keyframe 1, target): yes, placement fits: dark 85% of the object; not judged: sedan" in out
-    assert "seq_b (keyframe 1, OTHER): -, placement not judged: -; not judged: -" in out
+    assert (
+        "seq_a (keyframe 1, target): yes, placement fits: dark 85% of the object; 0 others alike; "
+        "not judged: sedan" in out
+    )
+    assert "seq_b (keyframe 1, OTHER): -, placement not judged: -; 2 others alike; not judged: -" in out
 
 
 def test_prompt_detection_keeps_the_detector_box_without_a_verifier_extent() -> None:

@@ -144,8 +144,8 @@ def _fly(url: str, sequences_dir: Path) -> dict[str, Any]:
             assert client.post("/v1/vehicles/drone-1/status", json=status).status_code == 200
         awaiting = {
             "candidate_id": best["candidate_id"], "box": best["box"], "verdict": best["verdict"],
-            "justification": best["justification"], "unjudged": best["unjudged"], "position": [47.39808, 8.54598],
-            "crop_box": crop_box,
+            "justification": best["justification"], "unjudged": best["unjudged"], "alike": 2,
+            "position": [47.39808, 8.54598], "crop_box": crop_box,
             "crop_jpeg_b64": base64.b64encode(cv2.imencode(".jpg", crop)[1].tobytes()).decode(),
         }  # fmt: skip
         status.update(
@@ -206,6 +206,11 @@ def test_console_shows_live_keyframe_map_and_finds_offline(
         expect(candidate.locator(".unjudged")).to_be_visible()
         expect(candidate.locator(".unjudged")).to_contain_text("Not checked by the machine")
         expect(candidate.locator(".unjudged-words")).to_have_text("; ".join(awaiting["unjudged"]))
+        # Chosen among others that fit as well (the mission counts them; two here): said, not hidden.
+        expect(candidate.locator(".alike")).to_have_text(
+            "2 other candidates in that view fit what was checked as well: this one was chosen by the "
+            "detector's score alone."
+        )
         # The others waiting behind it (a supervisor slower than the survey), and one dropped undecided.
         expect(card.locator(".queue")).to_have_text(
             "2 more awaiting a decision, each shown once the one above is decided: c-91, c-92"

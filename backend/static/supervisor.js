@@ -367,6 +367,11 @@ function renderCandidates(card, vehicle) {
     $(".status", item).textContent = candidate.decided_by ? `${candidate.status} by ${candidate.decided_by}` : candidate.status;
     item.dataset.status = candidate.status;
     $(".justification", item).textContent = candidate.justification || "(no justification)";
+    const alike = candidate.alike || 0;
+    $(".alike", item).hidden = alike === 0;
+    $(".alike", item).textContent = alike === 1
+      ? "1 other candidate in that view fits what was checked as well: this one was chosen by the detector's score alone."
+      : `${alike} other candidates in that view fit what was checked as well: this one was chosen by the detector's score alone.`;
     const unjudged = candidate.unjudged || [];
     $(".unjudged", item).hidden = unjudged.length === 0;
     $(".unjudged-words", item).textContent = unjudged.join("; ");
