@@ -204,28 +204,7 @@ def test_awaiting_status_says_who_waits_behind_the_one_shown_and_who_was_dropped
         with pytest.raises(ValidationError, match="awaiting_more"):
             VehicleStatusIn.model_validate({**fields, "awaiting_more": bad})
     # Through the real API to the page's snapshot.
-    from backend.app import create_app
-    from backend.config import AuthConfig, BackendConfig, SessionConfig
-    from backend.serving import BackgroundServer
-    from sitl.simulated_detector import SimulatedPersonDetector
-
-    config = BackendConfig(
-        auth=AuthConfig(tokens={"drone-1": "drone-1-token-0001"}, supervisor_token="supervisor-token-0001"),
-        sessions=SessionConfig(sqlite_path=":memory:"),
-    )
-    with BackgroundServer(create_app(config, detector=SimulatedPersonDetector(lambda fid: None))) as server:
-        posted = requests.post(
-            f"{server.url}/v1/vehicles/drone-1/status",
-            json={**fields, "awaiting": {"candidate_id": "c-17", "box": [300, 200, 330, 270]}},
-            headers={"Authorization": "Bearer drone-1-token-0001"},
-            timeout=5,
-        )
-        assert posted.status_code == 200, posted.text
-        snapshot = requests.get(
-            f"{server.url}/supervisor/api/state",
-            headers={"Authorization": "Bearer supervisor-token-0001"},
-            timeout=5,
-        ).json()
+    snapshot = _on_the_page({**fields, "awaiting": {"candidate_id": "c-17", "box": [300, 200, 330, 270]}})
     (vehicle,) = snapshot["vehicles"]
     assert [c["id"] for c in vehicle["candidates"]] == ["c-17"]
     assert vehicle["awaiting_more"] == ["c-3", "c-5", "c-8"] and vehicle["dropped_undecided"] == ["c-1"]
@@ -236,11 +215,6 @@ def test_what_the_back_end_could_not_judge_reaches_the_gcs_and_the_supervisor_pa
     check by eye, and how many others it was chosen from by score alone says the choice was no judgement:
     the GCS line names both (the words shortened past their bound) and the status carries them, through the
     real API, to the page's snapshot. The API bounds them; a candidate with neither adds nothing."""
-    from backend.app import create_app
-    from backend.config import AuthConfig, BackendConfig, SessionConfig
-    from backend.serving import BackgroundServer
-    from sitl.simulated_detector import SimulatedPersonDetector
-
     said: list[str] = []
 
     class Vehicle:
@@ -273,6 +247,17 @@ def test_what_the_back_end_could_not_judge_reaches_the_gcs_and_the_supervisor_pa
     ):
         with pytest.raises(ValidationError, match=field):
             AwaitingCandidate.model_validate({**awaiting, field: bad})
+    ((candidate,),) = [v["candidates"] for v in _on_the_page(runner._status())["vehicles"]]
+    assert candidate["id"] == "c-17" and candidate["unjudged"] == list(unsure) and candidate["alike"] == 2
+
+
+def _on_the_page(status: dict[str, Any]) -> Any:
+    """`status` posted by drone-1 to a real back-end on loopback, and the supervisor page's snapshot after it."""
+    from backend.app import create_app
+    from backend.config import AuthConfig, BackendConfig, SessionConfig
+    from backend.serving import BackgroundServer
+    from sitl.simulated_detector import SimulatedPersonDetector
+
     config = BackendConfig(
         auth=AuthConfig(tokens={"drone-1": "drone-1-token-0001"}, supervisor_token="supervisor-token-0001"),
         sessions=SessionConfig(sqlite_path=":memory:"),
@@ -280,15 +265,13 @@ def test_what_the_back_end_could_not_judge_reaches_the_gcs_and_the_supervisor_pa
     with BackgroundServer(create_app(config, detector=SimulatedPersonDetector(lambda fid: None))) as server:
         posted = requests.post(
             f"{server.url}/v1/vehicles/drone-1/status",
-            json=runner._status(),
+            json=status,
             headers={"Authorization": "Bearer drone-1-token-0001"},
             timeout=5,
         )
         assert posted.status_code == 200, posted.text
-        snapshot = requests.get(
+        return requests.get(
             f"{server.url}/supervisor/api/state",
             headers={"Authorization": "Bearer supervisor-token-0001"},
             timeout=5,
         ).json()
-    ((candidate,),) = [v["candidates"] for v in snapshot["vehicles"]]
-    assert candidate["id"] == "c-17" and candidate["unjudged"] == list(unsure) and candidate["alike"] == 2
