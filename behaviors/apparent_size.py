@@ -1,0 +1,112 @@
+"""How big a target would look in a keyframe: a box of the target's size, standing on flat ground at a place,
+projected into the camera from the vehicle's pose.
+
+The size is the one the detection curve is measured in (`behaviors/detection_curve.py`): sqrt(w * h) of
+the target's bounding box in keyframe pixels (camera pixels times the keyframe's downscale). The target is
+an upright box (`TargetShape`: a standing person is 1.7 x 0.5 x 0.3 m) or a flat one (a person lying down,
+0.3 m tall and 1.7 m long); its heading is unknown, so the size is the mean of the box turned along the
+line of sight and across it. The lens is the pinhole of the camera's intrinsics (distortion changes a
+target's size by a few per cent at the edges, well inside the curve's bins).
+
+Offsets are metres north and east of the point under the vehicle; attitude in radians as in
+`behaviors/geolocation.py` (yaw 0 = north, clockwise; a stabilised camera ignores roll and pitch).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+from behaviors.camera_model import CameraModel
+
+Posture = Literal["standing", "lying"]
+
+
+@dataclass(frozen=True)
+class TargetShape:
+    """The box a target fills: `height_m` up from the ground, `length_m` x `width_m` on it."""
+
+    height_m: float
+    length_m: float
+    width_m: float
+
+    @classmethod
+    def person(cls, posture: Posture = "standing", height_m: float = 1.7) -> TargetShape:
+        """A person of `height_m`: upright, or lying at full length."""
+        if posture == "lying":
+            return cls(0.3, height_m, 0.5)
+        return cls(height_m, 0.5, 0.3)
+
+
+def camera_frame(
+    camera: CameraModel, north: float, east: float, down: float, roll: float, pitch: float, yaw: float
+) -> tuple[float, float, float]:
+    """A NED offset from the camera in the camera's forward-right-down axes (the inverse of
+    `behaviors.geolocation.camera_ray_ned`)."""
+    c, s = math.cos(-yaw), math.sin(-yaw)
+    v = (c * north - s * east, s * north + c * east, down)
+    if not camera.stabilised:
+        c, s = math.cos(-pitch), math.sin(-pitch)
+        v = (c * v[0] + s * v[2], v[1], -s * v[0] + c * v[2])
+        c, s = math.cos(-roll), math.sin(-roll)
+        v = (v[0], c * v[1] - s * v[2], s * v[1] + c * v[2])
+    c, s = math.cos(-camera.mount_pitch), math.sin(-camera.mount_pitch)
+    return (c * v[0] + s * v[2], v[1], -s * v[0] + c * v[2])
+
+
+def _box_size_px(
+    camera: CameraModel,
+    height_m: float,
+    attitude: tuple[float, float, float],
+    north: float,
+    east: float,
+    shape: TargetShape,
+    along: bool,
+) -> float:
+    """sqrt(w * h) in camera pixels of the box at (north, east), its length along the line of sight
+    (`along`) or across it; 0 when any corner is behind the camera."""
+    bearing = math.atan2(east, north)
+    half_l, half_w = shape.length_m / 2, shape.width_m / 2
+    if not along:
+        half_l, half_w = half_w, half_l
+    cb, sb = math.cos(bearing), math.sin(bearing)
+    us, vs = [], []
+    for dl in (-half_l, half_l):
+        for dw in (-half_w, half_w):
+            n = north + dl * cb - dw * sb
+            e = east + dl * sb + dw * cb
+            for up in (0.0, shape.height_m):
+                f, r, d = camera_frame(camera, n, e, height_m - up, *attitude)
+                if f <= 1e-6:
+                    return 0.0
+                us.append(camera.fx * r / f)
+                vs.append(camera.fy * d / f)
+    return math.sqrt((max(us) - min(us)) * (max(vs) - min(vs)))
+
+
+def apparent_size_px(
+    camera: CameraModel,
+    height_m: float,
+    north: float,
+    east: float,
+    shape: TargetShape,
+    roll: float = 0.0,
+    pitch: float = 0.0,
+    yaw: float = 0.0,
+    keyframe_width: int = 640,
+) -> float:
+    """The target's size in keyframe pixels at (north, east) from the point under the vehicle, `height_m`
+    below the camera; 0 when its foot point is outside the image or behind the camera."""
+    if not all(math.isfinite(v) for v in (height_m, north, east, roll, pitch, yaw)) or height_m <= 0:
+        return 0.0
+    attitude = (roll, pitch, yaw)
+    f, r, d = camera_frame(camera, north, east, height_m, *attitude)
+    if f <= 1e-6:
+        return 0.0
+    u, v = camera.cx + camera.fx * r / f, camera.cy + camera.fy * d / f
+    if not (0 <= u < camera.width and 0 <= v < camera.height):
+        return 0.0
+    scale = min(1.0, keyframe_width / camera.width)
+    sizes = [_box_size_px(camera, height_m, attitude, north, east, shape, along) for along in (True, False)]
+    return scale * (sizes[0] + sizes[1]) / 2
