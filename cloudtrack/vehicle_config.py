@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from pathlib import Path
+from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
@@ -80,24 +81,45 @@ class SafetyConfig(ConfigSection):
         return self
 
 
+class SearchConfig(ConfigSection):
+    """What the search's probability-of-detection (POD) map is for (cloudtrack/pod_map.py): the companion lays
+    it in flight and the survey planner plans for it, so both read this section."""
+
+    # The class the map is for when the mission names no superset (the back-end then derives it).
+    target_class: str = Field("person", min_length=1, max_length=64)
+    # A person is found standing or lying; the curve was measured on upright people (docs/operations.md).
+    posture: Literal["standing", "lying"] = "standing"
+    target_height_m: float = Field(1.7, ge=0.3, le=3.0)  # a person's height (lying: their length)
+    target_pod: float = Field(0.8, gt=0, lt=1)  # the POD the operator plans for: the share at/above it
+    # A detection curve file of one's own (`cloudtrack-backend pod-curve`); empty: the shipped curve.
+    curve_file: str = ""
+    # A place not looked at for this long: the next look starts a new, independent pass.
+    pass_gap_s: float = Field(10.0, ge=1, le=600)
+
+
 class VehicleSections(BaseModel):
-    """The companion configuration's [camera] and [safety]; its other sections are not read here."""
+    """The companion configuration's [camera], [safety] and [search]; its other sections are not read here."""
 
     model_config = ConfigDict(extra="ignore", frozen=True)
     camera: CameraConfig = CameraConfig()
     safety: SafetyConfig = SafetyConfig()
+    search: SearchConfig = SearchConfig()
 
 
 def load_vehicle_sections(
     path: Path | None = None, environ: Mapping[str, str] | None = None
 ) -> VehicleSections:
-    """[camera] and [safety] as the companion reads them: defaults, then FILE (without one:
+    """[camera], [safety] and [search] as the companion reads them: defaults, then FILE (without one:
     /etc/cloudtrack/companion.toml, then $XDG_CONFIG_HOME/cloudtrack/companion.toml, where they exist), then
-    CLOUDTRACK_CAMERA__* / CLOUDTRACK_SAFETY__* variables; ConfigError if not allowed."""
+    CLOUDTRACK_CAMERA__* / CLOUDTRACK_SAFETY__* / CLOUDTRACK_SEARCH__* variables; ConfigError if not allowed."""
     import os
 
     full = os.environ if environ is None else environ
-    ours = {k: v for k, v in full.items() if k.startswith(("CLOUDTRACK_CAMERA__", "CLOUDTRACK_SAFETY__"))}
+    ours = {
+        k: v
+        for k, v in full.items()
+        if k.startswith(("CLOUDTRACK_CAMERA__", "CLOUDTRACK_SAFETY__", "CLOUDTRACK_SEARCH__"))
+    }
     return load_config(
         VehicleSections,
         path,

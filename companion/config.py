@@ -19,6 +19,7 @@ from behaviors.control_law import ControlGains
 from cloudtrack.config_files import ConfigSection, default_config_files, load_config
 from cloudtrack.vehicle_config import CameraConfig as CameraConfig  # re-exported: the companion imports
 from cloudtrack.vehicle_config import SafetyConfig as SafetyConfig  # every section from here
+from cloudtrack.vehicle_config import SearchConfig as SearchConfig
 
 TrackerName = Literal["nano", "vit", "dasiamrpn", "csrt", "kcf", "mil", "goturn"]
 
@@ -192,6 +193,7 @@ class CompanionConfig(ConfigSection):
     mavlink: MavlinkConfig = MavlinkConfig()
     safety: SafetyConfig = SafetyConfig()
     behavior: BehaviorConfig = BehaviorConfig()
+    search: SearchConfig = SearchConfig()
     control: ControlConfig = ControlConfig()
     recording: RecordingConfig = RecordingConfig()
 
