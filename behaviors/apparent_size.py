@@ -38,6 +38,26 @@ class TargetShape:
             return cls(0.3, height_m, 0.5)
         return cls(height_m, 0.5, 0.3)
 
+    @classmethod
+    def for_class(
+        cls, target_class: str, posture: Posture = "standing", height_m: float = 1.7
+    ) -> TargetShape:
+        """The box of a superset class: a person as `person`, else a typical one of the class (a person's
+        box for a class not listed, the smallest target a search looks for)."""
+        if target_class == "person":
+            return cls.person(posture, height_m)
+        return CLASS_SHAPES.get(target_class, cls.person(posture, height_m))
+
+
+CLASS_SHAPES: dict[str, TargetShape] = {
+    "car": TargetShape(1.5, 4.5, 1.8),
+    "truck": TargetShape(3.0, 8.0, 2.5),
+    "bus": TargetShape(3.0, 12.0, 2.5),
+    "motorcycle": TargetShape(1.2, 2.0, 0.8),
+    "bicycle": TargetShape(1.1, 1.8, 0.6),
+    "boat": TargetShape(1.5, 6.0, 2.5),
+}
+
 
 def camera_frame(
     camera: CameraModel, north: float, east: float, down: float, roll: float, pitch: float, yaw: float

@@ -158,13 +158,18 @@ class BackendSessionLike(Protocol):
 
 
 class SearchCoverageLike(Protocol):
-    """`companion.search_coverage.SearchCoverage`: the search area and the share of it seen."""
+    """`companion.search_coverage.SearchCoverage`: the search area, the share of it seen and its POD map,
+    from the keyframes the back-end analysed."""
 
-    def start(self) -> None: ...
+    pod_error: str
+
+    def start(self, target_class: str = "") -> None: ...
 
     def stop(self) -> None: ...
 
     def update(self, telemetry: Telemetry) -> None: ...
+
+    def add_look(self, pose: Telemetry, capture_time: float) -> None: ...
 
     def report(self) -> dict[str, Any] | None: ...
 
@@ -284,7 +289,9 @@ class MissionRunner:
             (mission.camera.width, mission.camera.height), keyframe_max_width, wall_clock
         )
         self.coverage = coverage
-        self._coverage_told = (-float("inf"), 0)  # (when the GCS last got the value, tenths announced)
+        # (when the GCS last got the value, tenths of the area seen and at the target POD announced)
+        self._coverage_told: tuple[float, int, int] = (-float("inf"), 0, 0)
+        self._pod_error_told = ""  # why there is no POD map, as last told
 
     # ------------------------------------------------------------------------------------------ control
     def request_stop(self) -> None:
@@ -336,6 +343,7 @@ class MissionRunner:
             if query_id != PROBE_QUERY_ID and answer.final:
                 self.report.on_answer(answer.detections)
             pose = self._pose_at(answer.capture_time)
+            self._lay_look(answer, pose)
             track_box = self._keyframes.get(answer.frame_id, (None, None))[1]
             events.append(
                 BackendAnswer(
@@ -352,6 +360,18 @@ class MissionRunner:
         self._feed_watchdogs(now)
         self._tell_notices(telemetry is not None)
         self._report_health(started)
+
+    def _lay_look(self, answer: Any, pose: Telemetry | None) -> None:
+        """A keyframe the back-end analysed whole (a final answer to a query without a region) is a look at
+        the search area from where it was captured; nothing else counts as searched."""
+        if (
+            self.coverage is not None
+            and pose is not None
+            and answer.final
+            and answer.fields.get("roi") is None
+            and self.state.mode in ACTIVE
+        ):
+            self.coverage.add_look(pose, answer.capture_time)
 
     def _pose_at(self, when: float) -> Telemetry | None:
         """The newest telemetry received at or before `when` (a keyframe's capture time); None if none is
@@ -596,9 +616,10 @@ class MissionRunner:
         """A search along the autopilot's mission covers the mission's area; on the spot there is none."""
         if self.coverage is None:
             return
-        if self.state.along_mission and self.state.mode in ACTIVE:
-            self.coverage.start()
-            self._coverage_told = (-float("inf"), 0)
+        if self.state.along_mission and self.state.mode in ACTIVE and self.state.mission is not None:
+            self.coverage.start(self.state.mission.superset)
+            self._coverage_told = (-float("inf"), 0, 0)
+            self._pod_error_told = ""
         else:
             self.coverage.stop()
 
@@ -616,21 +637,32 @@ class MissionRunner:
         covered = self.coverage.report() if self.coverage is not None else None
         if covered is not None:
             search.update(covered)
-            self._tell_coverage(float(covered["coverage"]))
+            pod = covered.get("pod")
+            self._tell_coverage(float(covered["coverage"]), pod)
         return search
 
-    def _tell_coverage(self, share: float) -> None:
+    def _tell_coverage(self, share: float, pod: dict[str, Any] | None) -> None:
         """The share seen to the GCS: NAMED_VALUE_FLOAT `coverage` (0..1) once a second, and a status line at
-        every tenth of the area."""
+        every tenth of the area seen or of the area at or above the target POD; once, why there is no POD
+        map."""
         now = self.clock()
-        last, tenths = self._coverage_told
+        last, tenths, pod_tenths = self._coverage_told
         if now - last < 1.0:
             return
         self.vehicle.send_value("coverage", share)
         reached = int(share * 10.0 + 1e-9)
-        if reached > tenths:
-            self.vehicle.send_status(f"COVERAGE {reached * 10}% of the search area", SEVERITY["info"])
-        self._coverage_told = (now, max(tenths, reached))
+        pod_share = float(pod["at_target"]) if pod is not None else 0.0
+        pod_reached = int(pod_share * 10.0 + 1e-9)
+        if reached > tenths or pod_reached > pod_tenths:
+            line = f"COVERAGE {reached * 10}% of the search area"
+            if pod is not None:
+                line += f"; {pod_share * 100:.0f}% at POD >= {float(pod['target_pod']):g}"
+            self.vehicle.send_status(line, SEVERITY["info"])
+        self._coverage_told = (now, max(tenths, reached), max(pod_tenths, pod_reached))
+        error = self.coverage.pod_error if self.coverage is not None else ""
+        if error and error != self._pod_error_told:
+            self.vehicle.send_status(f"NO POD MAP: {error}"[:200], SEVERITY["warning"])
+        self._pod_error_told = error
 
     def _video(self, frame: Frame, result: TrackResult) -> None:
         box = result.box if result.trusted else None

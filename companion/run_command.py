@@ -196,6 +196,9 @@ def run(args: argparse.Namespace) -> int:
         link.mission_link,
         lambda: link.autopilot_kind.value if link.autopilot_kind is not None else None,
         (config.mavlink.target_system, config.mavlink.source_component),
+        config.search,
+        config.backend.max_keyframe_width,
+        config.behavior.accept_uncertain,
     )
     settings = LoopSettings(
         frame_stale_s=config.safety.frame_stale_s, loop_stall_s=config.safety.loop_stall_s

@@ -129,13 +129,13 @@ def test_a_pilot_switch_to_auto_while_the_companion_flies_is_a_takeover() -> Non
         assert late == []
 
 
-def test_the_search_area_comes_from_the_autopilots_mission_and_coverage_grows() -> None:
+def test_the_search_area_comes_from_the_autopilots_mission_and_only_analysed_keyframes_count() -> None:
     camera = CameraModel.from_hfov(640, 480, 70.0, -40.0, stabilised=True)
     with surveying("ardupilot") as (_, link, first), MainLoop(link):
         kind = link.autopilot_kind
         assert kind is not None
         coverage = SearchCoverage(camera, 15.0, link.mission_link, lambda: kind.value, (1, 191))
-        coverage.start()
+        coverage.start("person")
         assert wait_for(lambda: coverage.report() is not None, 10.0), coverage.error
         report = coverage.report()
         assert report is not None
@@ -145,21 +145,62 @@ def test_the_search_area_comes_from_the_autopilots_mission_and_coverage_grows() 
         easts = [offset(lat, lon)[1] for lat, lon in area]
         assert max(norths) - min(norths) == pytest.approx(20.0, abs=0.5)
         assert max(easts) - min(easts) == pytest.approx(30.0, abs=0.5)
-        assert report["coverage"] < 0.3
-        seen = []
-        while flying_item(link) != first + 2 and len(seen) < 300:  # the first lane flown (4 s)
+        assert report["coverage"] == 0.0 and report["pod"]["mean"] == 0.0
+        poses = []
+        while flying_item(link) != first + 2 and len(poses) < 300:  # the first lane flown (2 s)
             t = link.telemetry()
             if t is not None:
-                coverage.update(t)
-            seen.append(t)
+                coverage.update(t)  # the camera pointed there, but nothing was analysed
+                poses.append(t)
             time.sleep(0.1)
-        coverage.update(link.telemetry())  # type: ignore[arg-type]
         time.sleep(1.1)  # the report is recomputed once a second
+        flown = coverage.report()
+        assert flown is not None and flown["coverage"] == 0.0 and flown["pod"]["looks"] == 0
+        for t in poses[::5]:  # every fifth pose's keyframe was analysed
+            coverage.add_look(t, t.time_s)
+        time.sleep(1.1)
         later = coverage.report()
         assert later is not None
-        print(f"coverage {report['coverage']:.3f} at the start, {later['coverage']:.3f} after the first lane")
-        assert later["coverage"] > report["coverage"] + 0.2
+        print(f"coverage {later['coverage']:.3f}, mean POD {later['pod']['mean']:.3f} after the first lane")
+        assert later["coverage"] > 0.2
         assert 1 <= len(later["covered"]) <= 20
+        # the looks that saw some of the area
+        assert 1 <= later["pod"]["looks"] <= len(poses[::5]) and later["pod"]["mean"] > 0.0
+
+
+def test_a_mission_replaced_mid_search_gets_its_own_map_within_seconds() -> None:
+    """A new survey uploaded while the search runs (here 10 m further north, one lane more) is picked up from
+    the autopilot's item count; the looks made so far are laid on it."""
+    camera = CameraModel.from_hfov(640, 480, 70.0, -40.0, stabilised=True)
+    with surveying("ardupilot") as (sim, link, first), MainLoop(link), gcs(sim) as ground:
+        coverage = SearchCoverage(camera, 15.0, link.mission_link, lambda: "ardupilot", (1, 191))
+        coverage.start("person")
+        assert wait_for(lambda: coverage.report() is not None, 10.0), coverage.error
+        old = coverage.report()
+        assert old is not None
+        t = link.telemetry()
+        assert t is not None
+        coverage.add_look(t, t.time_s)
+        lanes = [
+            waypoint(10 + n, e) for n, e in ((0, 0), (20, 0), (20, 10), (0, 10), (0, 20), (20, 20), (20, 30))
+        ]
+        client = MissionClient(ground, "ardupilot", source=(255, 190), timeouts=MissionTimeouts(0.3, 3))
+        client.upload(lanes)
+        uploaded = time.monotonic()
+
+        def new_area() -> bool:
+            snapshot = link.telemetry()
+            if snapshot is not None:
+                coverage.update(snapshot)  # what the main loop does with every telemetry sample
+            report = coverage.report()
+            return report is not None and report["area"] != old["area"]
+
+        assert wait_for(new_area, 5.0), coverage.error
+        print(f"new area mapped {time.monotonic() - uploaded:.2f} s after the upload")
+        report = coverage.report()
+        assert report is not None
+        assert min(offset(lat, lon)[0] for lat, lon in report["area"]) == pytest.approx(10.0, abs=0.5)
+        assert report["pod"]["looks"] == 1  # the look made before is laid on the new area too
 
 
 def offset(lat: float, lon: float) -> tuple[float, float]:
