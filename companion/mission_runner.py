@@ -654,14 +654,12 @@ class MissionRunner:
         pod_share = float(pod["at_target"]) if pod is not None else 0.0
         pod_reached = int(pod_share * 10.0 + 1e-9)
         if reached > tenths or pod_reached > pod_tenths:
-            line = f"COVERAGE {reached * 10}% of the search area"
-            if pod is not None:
-                line += f"; {pod_share * 100:.0f}% at POD >= {float(pod['target_pod']):g}"
-            self.vehicle.send_status(line, SEVERITY["info"])
+            at_pod = f"; {pod_share * 100:.0f}% at POD >= {float(pod['target_pod']):g}" if pod else ""
+            self.vehicle.send_status(f"COVERAGE {reached * 10}% of the search area{at_pod}", SEVERITY["info"])
         self._coverage_told = (now, max(tenths, reached), max(pod_tenths, pod_reached))
         error = self.coverage.pod_error if self.coverage is not None else ""
         if error and error != self._pod_error_told:
-            self.vehicle.send_status(f"NO POD MAP: {error}"[:200], SEVERITY["warning"])
+            self.vehicle.send_status(f"NO POD MAP: {error[:180]}", SEVERITY["warning"])
         self._pod_error_told = error
 
     def _video(self, frame: Frame, result: TrackResult) -> None:
