@@ -10,7 +10,15 @@ from __future__ import annotations
 import math
 from typing import Annotated, Literal
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
 IDENTIFIER = r"^[A-Za-z0-9_.-]{1,64}$"
 ID_FIELD = Field(pattern=IDENTIFIER, description="letters, digits, '_', '.', '-'; 1-64 characters")
@@ -281,6 +289,67 @@ class SearchProgress(ApiModel):
     rejected: int = Field(0, ge=0, le=2**31, description="candidates rejected (supervisor, GCS or memory)")
 
 
+POD_MAX_CELLS = 4096  # cloudtrack.pod_map.MAX_CELLS (a test holds them equal)
+POD_VALUES_MAX_CHARS = 4 * -(-POD_MAX_CELLS // 3)  # that many bytes in base64
+POD_CELL_M = (0.1, 5000.0)
+POD_EXTENT_MAX_M = 200_000.0  # a grid's longer side: far beyond any survey a vehicle flies
+
+
+class PodGrid(ApiModel):
+    """The search's probability-of-detection (POD) map: per place, the chance that the search would have found
+    the target there had it been there, from the keyframes the back-end analysed (`cloudtrack.pod_map`).
+    A north-up grid of square cells from its south-west corner; one byte a cell."""
+
+    target: str = Field(min_length=1, max_length=64, description='the target class it is for, e.g. "person"')
+    posture: str = Field(min_length=1, max_length=32, description='e.g. "standing", "lying"')
+    target_pod: float = Field(ge=0.0, le=1.0, description="the POD the operator plans for, e.g. 0.8")
+    origin: LatLonPoint = Field(description="[lat, lon] of the grid's south-west corner")
+    cell_m: float = Field(ge=POD_CELL_M[0], le=POD_CELL_M[1], description="a cell's side (m)")
+    rows: int = Field(ge=1, le=POD_MAX_CELLS, description="cells south to north")
+    cols: int = Field(
+        ge=1, le=POD_MAX_CELLS, description=f"cells west to east; rows * cols <= {POD_MAX_CELLS}"
+    )
+    values: str = Field(
+        min_length=4,
+        max_length=POD_VALUES_MAX_CHARS,
+        description="base64 of rows * cols bytes, row by row from the south-west: round(POD * 250), "
+        "255 outside the search area",
+    )
+    mean: float = Field(ge=0.0, le=1.0, description="mean POD over the area")
+    at_target: float = Field(ge=0.0, le=1.0, description="share of the area at or above target_pod")
+    looks: int = Field(ge=0, le=2**31, description="analysed keyframes laid on the map")
+
+    @field_validator("cols")
+    @classmethod
+    def _cells_bounded(cls, value: int, info: ValidationInfo) -> int:
+        rows = info.data.get("rows")
+        if rows is not None and rows * value > POD_MAX_CELLS:
+            raise ValueError(f"a POD grid holds at most {POD_MAX_CELLS} cells (rows * cols)")
+        cell = info.data.get("cell_m")
+        if rows is not None and cell is not None and max(rows, value) * cell > POD_EXTENT_MAX_M:
+            raise ValueError(f"a POD grid spans at most {POD_EXTENT_MAX_M / 1000:g} km")
+        return value
+
+    @field_validator("values")
+    @classmethod
+    def _values_decode(cls, value: str, info: ValidationInfo) -> str:
+        rows, cols = info.data.get("rows"), info.data.get("cols")
+        if rows is None or cols is None:
+            return value  # refused for rows / cols already
+        if len(value) != 4 * -(-(rows * cols) // 3):
+            raise ValueError(
+                f"a POD grid of {rows} x {cols} is {4 * -(-(rows * cols) // 3)} base64 characters"
+            )
+        # Here, not at the top: the grid code needs numpy, which the models' other users do without.
+        from cloudtrack.pod_map import decode_grid
+
+        try:
+            decode_grid({"rows": rows, "cols": cols, "values": value})
+        except (ValueError, TypeError) as exc:  # binascii.Error is a ValueError
+            raise ValueError(str(exc) if "POD" in str(exc) else "values is not base64") from None
+        return value
+
+
 class SearchStatus(ApiModel):
     """The area search: the polygon, how much of it the camera has seen, where the autopilot's mission is."""
 
@@ -299,6 +368,9 @@ class SearchStatus(ApiModel):
     mission_item: int | None = Field(None, ge=0, le=65535, description="the autopilot's current mission item")
     mission_items: int | None = Field(None, ge=0, le=65535, description="items in the autopilot's mission")
     mode: str = Field("", max_length=32, description='the autopilot\'s flight mode, e.g. "AUTO", "GUIDED"')
+    pod: PodGrid | None = Field(
+        None, description="the POD map of the area (null: the companion keeps none, e.g. no detection curve)"
+    )
 
     @field_validator("covered")
     @classmethod
@@ -334,6 +406,20 @@ class Find(ApiModel):
 
 QUEUE_IDS_MAX = 16  # candidate ids in a status's awaiting_more / dropped_undecided (the companion keeps 4)
 CandidateId = Annotated[str, Field(pattern=IDENTIFIER)]
+
+
+class KeyframeCounts(ApiModel):
+    """The companion's keyframes since the mission started, and its store for the back-end's outages."""
+
+    analysed: int = Field(
+        0, ge=0, le=10**9, description="keyframes whose final answer came back and were laid on the map"
+    )
+    stored: int = Field(0, ge=0, le=10**9, description="kept while the back-end was unreachable")
+    waiting: int = Field(0, ge=0, le=10**9, description="in the store now")
+    sent: int = Field(0, ge=0, le=10**9, description="stored ones sent after the link came back")
+    dropped: int = Field(
+        0, ge=0, le=10**9, description="stored ones dropped, oldest first, by the store's byte or age bound"
+    )
 
 
 class VehicleStatusIn(ApiModel):
@@ -373,6 +459,7 @@ class VehicleStatusIn(ApiModel):
     frame_id: int | None = Field(None, ge=0, le=2**53, description="the keyframe `track_box` refers to")
     progress: SearchProgress | None = None
     search: SearchStatus | None = None
+    keyframes: KeyframeCounts | None = None
     find: Find | None = Field(
         None, description="the mission's confirmed find, sent with every status while the mission holds it"
     )

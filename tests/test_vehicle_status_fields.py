@@ -59,6 +59,7 @@ def test_status_fields_are_stored_and_served_back(client: TestClient) -> None:
     for body in (response.json(), served, fleet[0]):
         assert {k: body[k] for k in FULL} == {
             **FULL,
+            "search": {**FULL["search"], "pod": None},
             "find": {**FULL["find"], "crop_jpeg_b64": None, "crop_box": None},
         }
     # Every new field is optional: an old companion's report still fits.
