@@ -56,6 +56,17 @@ class CurveBin:
         """Wilson score interval of the share (95 % by default); None without frames."""
         return wilson_interval(self.found(accept_uncertain), self.samples, z)
 
+    def counting(self, proposed: bool, verdict: str | None) -> CurveBin:
+        """This bin with one more frame: the target proposed or not, and the verifier's verdict on it
+        ("yes", "no", "uncertain"; None when not proposed)."""
+        return replace(
+            self,
+            samples=self.samples + 1,
+            proposed=self.proposed + proposed,
+            yes=self.yes + (proposed and verdict == "yes"),
+            uncertain=self.uncertain + (proposed and verdict == "uncertain"),
+        )
+
     def plus(self, other: CurveBin, sign: int = 1) -> CurveBin:
         return replace(
             self,
@@ -127,6 +138,11 @@ class DetectionCurve:
     def samples(self) -> int:
         return sum(b.samples for b in self.bins)
 
+    def share(self, accept_uncertain: bool = False) -> float:
+        """The share of all frames found, whatever their size (the size-blind figure); 0 without frames."""
+        found = sum(b.found(accept_uncertain) for b in self.bins)
+        return found / self.samples if self.samples else 0.0
+
     def to_dict(self) -> dict[str, Any]:
         return {
             "target_class": self.target_class,
@@ -163,12 +179,43 @@ class DetectionCurve:
             sequences.append(
                 (str(seq), tuple(_with_counts(name, b, row) for b, row in zip(bins, rows, strict=True)))
             )
+        if sequences:
+            # `without` subtracts a sequence's counts: counts that do not add up would turn negative there.
+            summed = _summed(bins, [rows for _, rows in sequences])
+            if [_counts(b) for b in summed] != [_counts(b) for b in bins]:
+                raise CurveError(f"{name}: the sequences' counts do not add up to the bins' counts")
         return cls(
             name,
             bins,
             tuple((str(k), str(v)) for k, v in config.items()),
             tuple(sequences),
         )
+
+
+def curve_from_sequences(
+    target_class: str,
+    per_sequence: Mapping[str, Sequence[CurveBin]],
+    configuration: Mapping[str, str] | None = None,
+) -> DetectionCurve:
+    """One class's curve from its sequences' bins (all with the same edges): the bins are their sums."""
+    rows = list(per_sequence.values())
+    if not rows:
+        raise CurveError(f"{target_class}: a curve needs at least one sequence")
+    bins = _summed(tuple(replace(b, samples=0, proposed=0, yes=0, uncertain=0) for b in rows[0]), rows)
+    return DetectionCurve(
+        target_class,
+        bins,
+        tuple((str(k), str(v)) for k, v in (configuration or {}).items()),
+        tuple((name, tuple(b)) for name, b in per_sequence.items()),
+    )
+
+
+def _summed(bins: Sequence[CurveBin], rows: Sequence[Sequence[CurveBin]]) -> tuple[CurveBin, ...]:
+    """The bins' edges with the rows' counts added up."""
+    total = [replace(b, samples=0, proposed=0, yes=0, uncertain=0) for b in bins]
+    for row in rows:
+        total = [t.plus(b) for t, b in zip(total, row, strict=True)]
+    return tuple(total)
 
 
 def _counts(b: CurveBin) -> list[int]:
