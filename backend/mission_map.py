@@ -1,5 +1,10 @@
-"""A mission's map from the vehicle's status reports: its track, decimated and bounded, and the search area
-and covered area it last reported. Pure functions over `backend.schemas.MissionMap`.
+"""A mission's map from the vehicle's status reports: its track, decimated and bounded, and the search area,
+covered area and POD map it last reported. Pure functions over `backend.schemas.MissionMap`.
+
+A status that reports another search area than the one kept means the mission's survey was replaced: the
+kept area is moved, with its covered area and POD map, to the mission's earlier areas (the last
+`EARLIER_AREAS_KEPT`), and the new area starts with what the status says of it. A status without a POD map
+keeps the one the area has (it says nothing of it); a new area starts without one.
 
 The track keeps a point when the vehicle has moved `min_step_m` from the last one kept (hovering adds
 nothing), and never more than `max_points`: when full, every other point of the older half is dropped, so
@@ -10,11 +15,12 @@ from __future__ import annotations
 
 import math
 
-from backend.schemas import MissionMap
+from backend.schemas import EarlierArea, MissionMap
 from cloudtrack.api_models import SearchStatus
 
 TRACK_MIN_STEP_M = 3.0
 TRACK_MAX_POINTS = 1000
+EARLIER_AREAS_KEPT = 8
 EARTH_RADIUS_M = 6_371_000.0
 
 
@@ -56,10 +62,30 @@ def updated_map(
         if track is not None:
             changes["track"] = track
     if search is not None:
-        if search.area and search.area != base.area:
-            changes["area"] = search.area
-        if search.covered != base.covered or search.coverage != base.coverage:
-            changes.update(covered=search.covered, coverage=search.coverage)
+        if search.area and base.area and search.area != base.area:
+            replaced = EarlierArea(
+                area=base.area,
+                covered=base.covered,
+                coverage=base.coverage,
+                pod=base.pod,
+                since=base.area_since,
+                replaced_at=time_s,
+            )
+            changes.update(
+                earlier=[*base.earlier, replaced][-EARLIER_AREAS_KEPT:],
+                area=search.area,
+                area_since=time_s,
+                covered=search.covered,
+                coverage=search.coverage,
+                pod=search.pod,
+            )
+        else:
+            if search.area and not base.area:
+                changes.update(area=search.area, area_since=time_s)
+            if search.covered != base.covered or search.coverage != base.coverage:
+                changes.update(covered=search.covered, coverage=search.coverage)
+            if search.pod is not None and search.pod != base.pod:
+                changes["pod"] = search.pod
     if not changes:
         return None
     return base.model_copy(update={**changes, "updated_at": time_s})

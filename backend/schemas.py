@@ -25,6 +25,7 @@ from cloudtrack.api_models import (
     HealthResponse,
     ModelNames,
     ModelsResponse,
+    PodGrid,
     Rejection,
     RejectionIn,
     SearchProgress,
@@ -54,8 +55,20 @@ class StoredFind(Find):
     )
 
 
+class EarlierArea(ApiModel):
+    """A search area the mission flew before its survey was replaced, and what was searched of it."""
+
+    area: list[list[float]]
+    covered: list[list[list[float]]] = Field(default_factory=list)
+    coverage: float | None = None
+    pod: PodGrid | None = None
+    since: float = Field(0.0, description="Unix time it was first reported (0: not known)")
+    replaced_at: float = Field(description="Unix time a status first reported another area")
+
+
 class MissionMap(ApiModel):
-    """A mission's map: the vehicle's track (decimated, bounded) and its search area and covered area."""
+    """A mission's map: the vehicle's track (decimated, bounded), its search area, covered area and POD map,
+    and the areas it searched before its survey was replaced (oldest first, the last few)."""
 
     track: list[list[float]] = Field(
         default_factory=list, description="[[lat, lon, unix time], ...], oldest first"
@@ -63,6 +76,9 @@ class MissionMap(ApiModel):
     area: list[list[float]] = Field(default_factory=list)
     covered: list[list[list[float]]] = Field(default_factory=list)
     coverage: float | None = None
+    pod: PodGrid | None = None
+    area_since: float = Field(0.0, description="Unix time the area was first reported (0: not known)")
+    earlier: list[EarlierArea] = Field(default_factory=list)
     updated_at: float = 0.0
 
 
@@ -185,6 +201,7 @@ __all__ = [
     "DecisionIn",
     "DetectMeta",
     "DetectResponse",
+    "EarlierArea",
     "ErrorResponse",
     "Find",
     "FindView",
@@ -197,6 +214,7 @@ __all__ = [
     "MissionMap",
     "ModelNames",
     "ModelsResponse",
+    "PodGrid",
     "Rejection",
     "RejectionIn",
     "SearchProgress",
