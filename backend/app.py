@@ -11,6 +11,7 @@ and in time and sets the browser-hardening headers, and the error answers shared
 from __future__ import annotations
 
 import os
+import re
 import time
 from collections.abc import AsyncIterator
 from concurrent.futures import ThreadPoolExecutor
@@ -45,6 +46,8 @@ from backend.verifiers.interface import Verifier
 from cloudtrack.cursor_on_target import CotSender, find_event
 
 _UNSET = object()
+# The routes a vehicle calls for itself, its id in the path: where a refused token is that vehicle's.
+VEHICLE_OWN_ROUTE = re.compile(r"^/v1/vehicles/([^/]+)/(?:status|decisions)$")
 
 
 def default_sqlite_path() -> Path:
@@ -133,12 +136,14 @@ def create_app(
     app.state.supervisor_view = SupervisorView(store, map_tiles=config.supervisor.map_tiles)
     app.state.started = time.time()
 
-    def refused(path: str, status: int, detail: str) -> None:
-        # A configured vehicle refused on its own path (/v1/vehicles/<id>/...) cannot report: the page says so.
-        parts = path.split("/")
-        if len(parts) > 3 and parts[1:3] == ["v1", "vehicles"] and parts[3] in config.auth.tokens:
+    def refused(path: str, detail: str) -> None:
+        # A bearer token nobody holds, on a route only a vehicle calls for itself (its status, its decisions):
+        # that vehicle's own token, wrong or rotated, so it cannot report and the page says so. No token, a
+        # route that does not exist or another vehicle's valid token (403, refused in the route) say nothing.
+        own = VEHICLE_OWN_ROUTE.match(path)
+        if own is not None and own.group(1) in config.auth.tokens:
             app.state.supervisor_view.note_auth_failure(
-                parts[3], f"the back-end refused this vehicle's token ({status}: {detail})"
+                own.group(1), f"the back-end refused this vehicle's token (401: {detail})"
             )
 
     app.add_middleware(
@@ -148,6 +153,7 @@ def create_app(
         sessions=config.sessions,
         rate_hit=store.state.rate_hit,
         on_refused=refused,
+        on_admitted=app.state.supervisor_view.clear_auth_failure,
     )
     tiles = urlsplit(config.supervisor.map_tiles)
     app.add_middleware(

@@ -17,6 +17,14 @@ from backend.config import AuthConfig
 CHALLENGE = {"WWW-Authenticate": "Bearer"}
 
 
+class UnknownTokenError(HTTPException):
+    """401 for a well-formed bearer token that matches nobody's (a wrong or rotated one), told apart from a
+    missing or malformed header: only this one can be a vehicle's own credentials gone wrong."""
+
+    def __init__(self) -> None:
+        super().__init__(401, "invalid bearer token", headers=CHALLENGE)
+
+
 @dataclass(frozen=True)
 class Principal:
     vehicle_id: str | None  # None for the supervisor
@@ -46,7 +54,7 @@ def principal_for(auth: AuthConfig, authorization: str | None) -> Principal:
     if auth.supervisor_token and hmac.compare_digest(token.encode(), auth.supervisor_token.encode()):
         match = Principal(None)
     if match is None:
-        raise HTTPException(401, "invalid bearer token", headers=CHALLENGE)
+        raise UnknownTokenError()
     return match
 
 

@@ -1,15 +1,21 @@
 """ASGI middleware bounding the work of every request before anything parses or validates it.
 
 In this order, each step refusing with a short JSON answer:
+0. One header parse for every layer: a header that takes one value (`SINGLE_VALUED`: Authorization,
+   Content-Type, Content-Length, Host) sent twice -> 400, so the limits here, the quota and the route
+   can never read two different values of it (Starlette reads the first, a dict of the list the last).
 1. The route's body limit (`route_limit`): a declared Content-Length over it -> 413 at once.
 2. Who is calling (/v1/ routes): a missing or unknown bearer token -> 401; a vehicle over its request-rate
    quota -> 429 with Retry-After. Counted here, before the body is read: a request that later fails
    validation still counts, so a flood of invalid posts is cut like any other.
 3. The body, read within `timeout_s` of the request's start (a client that stalls gets 408 and the
    connection is closed) and counted as it arrives (413 beyond the route's limit, chunked too).
-4. Its shape, before FastAPI parses it: a JSON body with more values, more keys in one object or deeper
-   nesting than `JsonLimits` allows, or a multipart body with more parts than the route takes -> 413.
-   The counts are made on the bytes first (C-speed), so a refused body is never parsed in Python.
+4. Its shape, before FastAPI parses it: on a route that takes JSON, any body but a multipart one is
+   bounded as JSON whatever its Content-Type says (one that is not JSON passes to the validator), so no
+   spelling of the header lets a body skip the limits: more values, more keys in one object or deeper
+   nesting than `JsonLimits` allows -> 413; a multipart body with more parts than the route takes -> 413.
+   The counts are made on the bytes first (C-speed), so a refused body is never parsed in Python, and a
+   body over `SHAPE_ON_LOOP_BYTES` is parsed for its shape on a worker thread, off the event loop.
 Only then does the app see the (buffered) body. What is left for FastAPI and pydantic is bounded by the
 route's limits, so no request holds the event loop for more than a few milliseconds; validation errors
 are summarised by `backend.app` (the first few and how many).
@@ -29,7 +35,7 @@ import anyio
 from fastapi import HTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from backend.auth import principal_for
+from backend.auth import UnknownTokenError, principal_for
 from backend.config import AuthConfig, ServerConfig, SessionConfig
 from cloudtrack.api_models import CROP_B64_MAX_CHARS
 
@@ -54,6 +60,9 @@ class RouteLimit:
 
 
 SMALL_BODY = 16_384  # a decision, a GET: nothing more to send
+SHAPE_ON_LOOP_BYTES = 32_768  # a smaller body's shape is checked on the event loop (well under 1 ms)
+# Headers a request carries once (RFC 9110): two of them would let two layers read two different values.
+SINGLE_VALUED = (b"authorization", b"content-type", b"content-length", b"host")
 DETECT_META = JsonLimits(max_values=100, max_keys=32, max_depth=3)  # the `meta` part of /v1/detect
 
 # (method, path pattern, limit); the first match wins, anything else gets SMALL_BODY.
@@ -111,6 +120,20 @@ def json_shape_problem(body: bytes | str, limits: JsonLimits) -> str | None:
     return None
 
 
+def request_headers(scope: Scope) -> dict[bytes, bytes] | str:
+    """The request's headers by lower-case name, read once for every layer; a one-line problem instead when
+    a header of `SINGLE_VALUED` comes twice."""
+    found: dict[bytes, bytes] = {}
+    for name, value in scope.get("headers") or []:
+        key = bytes(name).lower()
+        if key in found:
+            if key in SINGLE_VALUED:
+                return f"the request carries more than one {key.decode('latin-1')} header; send it once"
+            continue  # the first, as Starlette's Headers.get reads it
+        found[key] = bytes(value)
+    return found
+
+
 def _multipart_parts(body: bytes, content_type: bytes) -> int:
     boundary = re.search(rb"boundary=\"?([^\";]+)", content_type)
     return body.count(b"--" + boundary.group(1)) - 1 if boundary else 0
@@ -124,11 +147,15 @@ class RequestLimits:
         auth: AuthConfig,
         sessions: SessionConfig,
         rate_hit: RateCheck,
-        on_refused: Callable[[str, int, str], None] | None = None,
+        on_refused: Callable[[str, str], None] | None = None,
+        on_admitted: Callable[[str], None] | None = None,
     ) -> None:
-        """`on_refused(path, status, detail)` hears each refused credential (the supervisor's view shows a
-        vehicle whose token is refused, since that vehicle cannot report)."""
+        """`on_refused(path, detail)` hears each well-formed bearer token that matches nobody (a vehicle's
+        wrong or rotated token: the supervisor's view shows a vehicle that cannot report); a missing or
+        malformed header is nobody's credential and is not told. `on_admitted(vehicle_id)` hears each
+        request a vehicle's token was accepted for (its alarm, if any, is over)."""
         self.on_refused = on_refused
+        self.on_admitted = on_admitted
         self.app = app
         self.server = server
         self.auth = auth
@@ -153,19 +180,20 @@ class RequestLimits:
         )
         await send({"type": "http.response.body", "body": body})
 
-    async def _admitted(self, scope: Scope, send: Send) -> bool:
+    async def _admitted(self, scope: Scope, headers: dict[bytes, bytes], send: Send) -> bool:
         """Authentication and the vehicle's rate quota, from the headers alone."""
-        headers = dict(scope.get("headers") or [])
         raw = headers.get(b"authorization")
         try:
             principal = principal_for(self.auth, raw.decode("latin-1") if raw is not None else None)
         except HTTPException as exc:
-            if self.on_refused is not None:
-                self.on_refused(scope["path"], exc.status_code, str(exc.detail))
+            if isinstance(exc, UnknownTokenError) and self.on_refused is not None:
+                self.on_refused(scope["path"], str(exc.detail))
             await self._refuse(send, exc.status_code, str(exc.detail), dict(exc.headers or {}))
             return False
         if principal.vehicle_id is None:
             return True  # the supervisor has no rate quota
+        if self.on_admitted is not None:
+            self.on_admitted(principal.vehicle_id)
         s = self.sessions
         wait = await anyio.to_thread.run_sync(
             self.rate_hit, principal.vehicle_id, time.time(), s.rate_limit_requests, s.rate_limit_window_s
@@ -186,14 +214,17 @@ class RequestLimits:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
+        headers = request_headers(scope)
+        if isinstance(headers, str):
+            await self._refuse(send, 400, headers, {"Connection": "close"})
+            return
         limit = route_limit(scope["method"], scope["path"], self.server)
         too_large = f"request body exceeds the limit of {limit.max_bytes} bytes for this route"
-        headers = dict(scope.get("headers") or [])
         declared = headers.get(b"content-length")
         if declared is not None and (not declared.isdigit() or int(declared) > limit.max_bytes):
             await self._refuse(send, 413, too_large, {"Connection": "close"})
             return
-        if scope["path"].startswith("/v1/") and not await self._admitted(scope, send):
+        if scope["path"].startswith("/v1/") and not await self._admitted(scope, headers, send):
             return
         deadline = time.monotonic() + self.server.body_timeout_s
         chunks: list[bytes] = []
@@ -220,7 +251,11 @@ class RequestLimits:
             chunks.append(chunk)
             more = message.get("more_body", False)
         body = b"".join(chunks)
-        problem = self._shape_problem(body, headers.get(b"content-type", b""), limit)
+        content_type = headers.get(b"content-type", b"")
+        if len(body) > SHAPE_ON_LOOP_BYTES:
+            problem = await anyio.to_thread.run_sync(self._shape_problem, body, content_type, limit)
+        else:
+            problem = self._shape_problem(body, content_type, limit)
         if problem is not None:
             await self._refuse(send, 413, problem)
             return
@@ -236,9 +271,8 @@ class RequestLimits:
             if parts > limit.max_parts:
                 return f"the multipart body holds {parts} parts; this route takes at most {limit.max_parts}"
             return None
-        if limit.json is not None and (kind in (b"", b"application/json") or kind.endswith(b"+json")):
-            return json_shape_problem(body, limit.json)
-        return None
+        # Any other body of a JSON route is bounded as JSON: which types FastAPI parses is its business.
+        return json_shape_problem(body, limit.json) if limit.json is not None else None
 
 
 def _replay(body: bytes, receive: Receive) -> Receive:

@@ -4,8 +4,9 @@ track, and its finds, which stay.
 
 Built from the session store (the whole fleet, whichever replica answers); it remembers since when each
 candidate waits, and forgets a candidate as soon as nobody waits on it, so it stays as small as the fleet.
-Refused credentials are remembered here too (per process, for `AUTH_ERROR_KEEP_S`): a vehicle whose token
-the back-end refuses cannot report, so the page says so in its place.
+Refused credentials are remembered here too (per process, for `AUTH_ERROR_KEEP_S`, until the vehicle's own
+token is accepted again): a vehicle whose token the back-end refuses cannot report, so the page says so in
+its place.
 """
 
 from __future__ import annotations
@@ -83,6 +84,13 @@ class SupervisorView:
         with self._lock:
             self._auth_errors[vehicle_id] = (reason, self._clock())
             self._cached = None
+
+    def clear_auth_failure(self, vehicle_id: str) -> None:
+        """A request with this vehicle's token was accepted: whatever was refused before, its token works."""
+        if vehicle_id in self._auth_errors:  # read without the lock: called on every vehicle request
+            with self._lock:
+                if self._auth_errors.pop(vehicle_id, None) is not None:
+                    self._cached = None
 
     def _auth_error(self, vehicle_id: str, now: float) -> str | None:
         with self._lock:

@@ -103,7 +103,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
         type=Path,
         metavar="DIR",
         help="also measure the server run from this source tree first, as 'before' (e.g. `git worktree add "
-        "DIR COMMIT`): before and after in one run",
+        "DIR COMMIT`): before and after in one run (--capacity and --hostile)",
     )
     capacity.add_argument(
         "--rate", type=float, default=2.0, help="keyframes per second per vehicle (default 2: searching)"
@@ -377,10 +377,23 @@ def _hostile(args: argparse.Namespace, model_dir: Path, sequences: Path) -> int:
     try:
         require("yolox", model_dir)
         say(f"[hostile] {args.hostile_requests} hostile requests, {args.slow_clients} slow clients ...")
+        before = None
+        if args.baseline_tree:
+            say(f"[hostile] before: the server from {args.baseline_tree}")
+            before = hostile_run(
+                model_dir, sequences, args.hostile_requests, args.slow_clients, args.solo_s, say,
+                source_tree=args.baseline_tree,
+            )  # fmt: skip
+            say("[hostile] after: the server from this tree")
         report = hostile_run(model_dir, sequences, args.hostile_requests, args.slow_clients, args.solo_s, say)
     except (ConfigError, ModelError, ValueError, OSError, RuntimeError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    if before is not None:
+        print("Before:")
+        print_hostile(before)
+        print("After:")
+        report = {"before": before, **report}
     print_hostile(report)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)

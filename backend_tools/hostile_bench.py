@@ -1,26 +1,31 @@
 """`cloudtrack-backend bench --hostile`: one token's hostile requests beside another vehicle's search.
 
 A real `cloudtrack-backend serve` (default configuration, SQLite store on disk). Vehicle A sends real
-keyframes the companion's way (one every 0.5 s, at most 4 out) first alone, then while vehicle B's token
-(from its own process) sends `count` hostile requests of every kind issue 31 found, and while `slow_clients` connections trickle
-header lines. Printed: A's p95 alone and beside B (and their ratio, goal <= 1.5), /health's p95 alone and
-beside B, every status code B got (no 5xx), and the server's RSS before and after (goal +50 MB).
-B's token gets a rate quota high enough that every hostile request reaches the check meant for it (the
-default quota would refuse most with 429 before their bodies are read, which is the cheap case).
+keyframes the companion's way (one every 0.5 s, waiting for each answer) and a status every 0.5 s, in three
+phases: alone; while vehicle B's token (from its own process) sends `count` hostile requests of every kind
+issues 31 and 44 found and `slow_clients` connections trickle header lines; and while B runs issue 44's
+duplicate-header attack from `DUPLICATE_ATTACK_CONNECTIONS` connections without a pause (a status of 60,000
+keys with two Content-Type headers, the limits reading one and the route the other). Printed: A's detect
+and status p95 alone and in each phase (and their ratios, goal <= 1.5), /health's p95, every status code
+B got (no 5xx), and the server's RSS before and after (goal +50 MB). B's token gets a rate quota high
+enough that every hostile request reaches the check meant for it (the default quota would refuse most with
+429 before their bodies are read, which is the cheap case).
 """
 
 from __future__ import annotations
 
 import base64
+import contextlib
 import json
 import multiprocessing
 import socket
 import tempfile
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
+from http.client import HTTPConnection, HTTPException
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +37,10 @@ from backend_tools.capacity_bench import PROMPT, keyframes
 from backend_tools.fleet_services import BackendProcess
 
 TOKENS = {"vehicle-a": "hostile-bench-vehicle-a-token", "vehicle-b": "hostile-bench-vehicle-b-token"}
+DUPLICATE_ATTACK_CONNECTIONS = 3  # the issue's worst case: detect p95 6.1 s from three connections
+STATUS_B = "/v1/vehicles/vehicle-b/status"
+SIXTY_THOUSAND_KEYS = json.dumps({"state": "SEARCH", **{f"k{i}": 0 for i in range(60_000)}}).encode()
+DUPLICATE_CONTENT_TYPE = (("Content-Type", "application/json"), ("Content-Type", "text/plain"))
 
 
 def _header_bomb(width: int, height: int) -> bytes:
@@ -54,6 +63,7 @@ class Hostile:
     content_type: str = "application/json"
     files: dict[str, Any] | None = None
     data: dict[str, str] | None = None
+    raw_headers: tuple[tuple[str, str], ...] = ()  # sent as they are, repeats kept (over http.client)
 
 
 def hostile_kinds() -> list[Hostile]:
@@ -78,17 +88,93 @@ def hostile_kinds() -> list[Hostile]:
         Hostile("crop header 8700x8700", "POST", "/v1/missions/bombs/rejections",
                 json.dumps({"vehicle_id": "vehicle-b", "crop_jpeg_b64": crop_bomb}).encode()),
         Hostile("a new mission each time", "POST", status, b""),  # body made per request below
+        Hostile("duplicate Content-Type, 60000 keys", "POST", status, SIXTY_THOUSAND_KEYS,
+                raw_headers=(*DUPLICATE_CONTENT_TYPE, ("Authorization", f"Bearer {TOKENS['vehicle-b']}"))),
+        # The route would act as B while the quota counts A.
+        Hostile("duplicate Authorization", "POST", status, json.dumps({"state": "SEARCH"}).encode(),
+                raw_headers=(("Content-Type", "application/json"),
+                             ("Authorization", f"Bearer {TOKENS['vehicle-b']}"),
+                             ("Authorization", f"Bearer {TOKENS['vehicle-a']}"))),
     ]  # fmt: skip
+
+
+def raw_post(url: str, path: str, headers: tuple[tuple[str, str], ...], body: bytes) -> str:
+    """One POST with exactly these header lines (repeats kept): the status code, or "no answer"."""
+    host, port = url.removeprefix("http://").rsplit(":", 1)
+    conn = HTTPConnection(host, int(port), timeout=60)
+    try:
+        conn.putrequest("POST", path)
+        for name, value in (*headers, ("Content-Length", str(len(body)))):
+            conn.putheader(name, value)
+        conn.endheaders()
+        with contextlib.suppress(OSError):  # refused from its headers: the server closes on the body
+            conn.send(body)
+        return str(conn.getresponse().status)
+    except (OSError, HTTPException):
+        return "no answer"
+    finally:
+        conn.close()
 
 
 @dataclass
 class Phase:
     latencies: list[float] = field(default_factory=list)
+    statuses: list[float] = field(default_factory=list)
     health: list[float] = field(default_factory=list)
     codes: dict[str, int] = field(default_factory=dict)
 
     def p95(self, values: list[float]) -> float:
         return float(np.percentile(values, 95)) if values else float("nan")
+
+    def figures(self) -> dict[str, Any]:
+        return {
+            "keyframes": len(self.latencies),
+            "p50_s": float(np.median(self.latencies)) if self.latencies else float("nan"),
+            "p95_s": self.p95(self.latencies),
+            "statuses": len(self.statuses),
+            "status_p50_s": float(np.median(self.statuses)) if self.statuses else float("nan"),
+            "status_p95_s": self.p95(self.statuses),
+        }
+
+
+def _vehicle_a_status(url: str, stop: threading.Event, phase: Phase) -> None:
+    """Vehicle A's status every 0.5 s, as the companion reports (its position moving along)."""
+    with requests.Session() as http:
+        http.headers["Authorization"] = f"Bearer {TOKENS['vehicle-a']}"
+        step = 0
+        while not stop.is_set():
+            body = {"mission_id": "search", "state": "SEARCH", "prompt": PROMPT,
+                    "position": [47.0 + step * 1e-5, 8.0], "altitude_m": 40.0}  # fmt: skip
+            started = time.monotonic()
+            answer = http.post(f"{url}/v1/vehicles/vehicle-a/status", json=body, timeout=60)
+            code = f"A status {answer.status_code}"
+            phase.codes[code] = phase.codes.get(code, 0) + 1
+            if answer.status_code == 200:
+                phase.statuses.append(time.monotonic() - started)
+            step += 1
+            stop.wait(max(0.0, 0.5 - (time.monotonic() - started)))
+
+
+def _duplicate_attack(url: str, seconds: float, connections: int) -> dict[str, int]:
+    """Issue 44's attack, in its own process: `connections` threads each sending the duplicate-Content-Type
+    status of 60,000 keys back to back for `seconds`; the status codes."""
+    codes: dict[str, int] = {}
+    lock = threading.Lock()
+    deadline = time.monotonic() + seconds
+    head = (*DUPLICATE_CONTENT_TYPE, ("Authorization", f"Bearer {TOKENS['vehicle-b']}"))
+
+    def attack() -> None:
+        while time.monotonic() < deadline:
+            code = raw_post(url, STATUS_B, head, SIXTY_THOUSAND_KEYS)
+            with lock:
+                codes[code] = codes.get(code, 0) + 1
+
+    threads = [threading.Thread(target=attack) for _ in range(connections)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    return codes
 
 
 def _vehicle_a(url: str, jpegs: list[bytes], stop: threading.Event, phase: Phase) -> None:
@@ -158,14 +244,17 @@ def _send_hostile(url: str, count: int) -> tuple[dict[str, dict[str, int]], floa
             headers = {"Content-Type": kind.content_type} if kind.content_type else {}
             body = kind.body or (json.dumps({"mission_id": f"flood-{i}", "state": "SEARCH"}).encode()
                                  if kind.kind.startswith("a new mission") else b"")  # fmt: skip
-            try:
-                answer = http.request(
-                    kind.method, url + kind.path, data=kind.data if kind.files else body,
-                    files=kind.files, headers=headers, timeout=60,
-                )  # fmt: skip
-                code = str(answer.status_code)
-            except requests.RequestException:
-                code = "no answer"
+            if kind.raw_headers:
+                code = raw_post(url, kind.path, kind.raw_headers, body)
+            else:
+                try:
+                    answer = http.request(
+                        kind.method, url + kind.path, data=kind.data if kind.files else body,
+                        files=kind.files, headers=headers, timeout=60,
+                    )  # fmt: skip
+                    code = str(answer.status_code)
+                except requests.RequestException:
+                    code = "no answer"
             counts = by_kind.setdefault(kind.kind, {})
             counts[code] = counts.get(code, 0) + 1
     return by_kind, time.monotonic() - started
@@ -179,7 +268,9 @@ def hostile_run(
     solo_s: float,
     say: Callable[[str], None],
     extra_settings: tuple[str, ...] = (),
+    source_tree: Path | None = None,
 ) -> dict[str, Any]:
+    """The three phases against a server run from this code, or from `source_tree` (a "before")."""
     jpegs = keyframes(sequences)
     with tempfile.TemporaryDirectory(prefix="cloudtrack-hostile-") as folder:
         settings = [
@@ -188,7 +279,7 @@ def hostile_run(
             "sessions.rate_limit_requests=100000",  # every hostile request reaches its own check
             *extra_settings,
         ]
-        with BackendProcess(settings, TOKENS) as server:
+        with BackendProcess(settings, TOKENS, source_tree=source_tree) as server:
             port = int(server.url.rsplit(":", 1)[1])
             for _ in range(3):  # warm up: models loaded, first allocations made
                 requests.post(
@@ -200,17 +291,8 @@ def hostile_run(
                 )  # fmt: skip
             say(f"  vehicle A alone for {solo_s:g} s ...")
             solo = Phase()
-            stop = threading.Event()
-            workers = [
-                threading.Thread(target=_vehicle_a, args=(server.url, jpegs, stop, solo)),
-                threading.Thread(target=_health, args=(server.url, stop, solo)),
-            ]
-            for w in workers:
-                w.start()
-            time.sleep(solo_s)
-            stop.set()
-            for w in workers:
-                w.join()
+            with _vehicle_a_running(server.url, jpegs, solo):
+                time.sleep(solo_s)
             rss_before = server.rss_bytes()
             with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as sender:
                 sender.submit(_send_hostile, server.url, 0).result()  # started and imported before A's phase
@@ -218,27 +300,46 @@ def hostile_run(
                 beside = Phase()
                 stop = threading.Event()
                 closed: list[float] = []
-                workers = [
-                    threading.Thread(target=_vehicle_a, args=(server.url, jpegs, stop, beside)),
-                    threading.Thread(target=_health, args=(server.url, stop, beside)),
-                    *(
-                        threading.Thread(target=_trickle, args=(port, stop, closed))
-                        for _ in range(slow_clients)
-                    ),
+                trickling = [
+                    threading.Thread(target=_trickle, args=(port, stop, closed)) for _ in range(slow_clients)
                 ]
-                for w in workers:
-                    w.start()
-                by_kind, hostile_s = sender.submit(_send_hostile, server.url, count).result()
-                time.sleep(max(0.0, solo_s - hostile_s))  # A's phase at least as long as its solo one
-                stop.set()
-                for w in workers:
-                    w.join()
+                with _vehicle_a_running(server.url, jpegs, beside):
+                    for t in trickling:
+                        t.start()
+                    by_kind, hostile_s = sender.submit(_send_hostile, server.url, count).result()
+                    time.sleep(max(0.0, solo_s - hostile_s))  # A's phase at least as long as its solo one
+                    stop.set()
+                    for t in trickling:
+                        t.join()
+                say(
+                    f"  vehicle A beside the duplicate-header attack from {DUPLICATE_ATTACK_CONNECTIONS} "
+                    f"connections for {solo_s:g} s ..."
+                )
+                attacked = Phase()
+                with _vehicle_a_running(server.url, jpegs, attacked):
+                    attack_codes = sender.submit(
+                        _duplicate_attack, server.url, solo_s, DUPLICATE_ATTACK_CONNECTIONS
+                    ).result()
             rss_after = server.rss_bytes()
-    solo_p95, beside_p95 = solo.p95(solo.latencies), beside.p95(beside.latencies)
     server_errors = sum(
         n for counts in by_kind.values() for code, n in counts.items() if code.startswith("5")
     )
-    server_errors += sum(n for code, n in beside.codes.items() if code.startswith("A 5"))
+    server_errors += sum(n for code, n in attack_codes.items() if code.startswith("5"))
+    server_errors += sum(
+        n
+        for phase in (beside, attacked)
+        for code, n in phase.codes.items()
+        if code.split()[-1].startswith("5")
+    )
+    solo_figures = solo.figures()
+
+    def ratios(phase: Phase) -> dict[str, float]:
+        figures = phase.figures()
+        return {
+            "detect_p95_ratio": figures["p95_s"] / solo_figures["p95_s"],
+            "status_p95_ratio": figures["status_p95_s"] / solo_figures["status_p95_s"],
+        }
+
     return {
         "hostile_requests": count,
         "hostile_s": hostile_s,
@@ -247,11 +348,20 @@ def hostile_run(
         "slow_client_max_s": max(closed) if closed else float("nan"),
         "by_kind": by_kind,
         "vehicle_a": {
-            "solo": {"keyframes": len(solo.latencies), "p50_s": float(np.median(solo.latencies)), "p95_s": solo_p95},
-            "beside": {"keyframes": len(beside.latencies), "p50_s": float(np.median(beside.latencies)),
-                       "p95_s": beside_p95},
+            "solo": solo_figures,
+            "beside": beside.figures(),
             "codes": beside.codes,
-            "p95_ratio": beside_p95 / solo_p95,
+            "p95_ratio": ratios(beside)["detect_p95_ratio"],
+            "status_p95_ratio": ratios(beside)["status_p95_ratio"],
+        },
+        "duplicate_header_attack": {
+            "connections": DUPLICATE_ATTACK_CONNECTIONS,
+            "seconds": solo_s,
+            "answers": attack_codes,
+            "vehicle_a": attacked.figures(),
+            "codes": attacked.codes,
+            **ratios(attacked),
+            "health_p95_s": attacked.p95(attacked.health),
         },
         "health_p95_s": {"solo": solo.p95(solo.health), "beside": beside.p95(beside.health),
                          "max_beside": max(beside.health) if beside.health else float("nan")},
@@ -260,8 +370,28 @@ def hostile_run(
     }  # fmt: skip
 
 
+@contextlib.contextmanager
+def _vehicle_a_running(url: str, jpegs: list[bytes], phase: Phase) -> Iterator[None]:
+    """Vehicle A's keyframes and statuses and the /health probe, for as long as the block runs."""
+    stop = threading.Event()
+    workers = [
+        threading.Thread(target=_vehicle_a, args=(url, jpegs, stop, phase)),
+        threading.Thread(target=_vehicle_a_status, args=(url, stop, phase)),
+        threading.Thread(target=_health, args=(url, stop, phase)),
+    ]
+    for w in workers:
+        w.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        for w in workers:
+            w.join()
+
+
 def print_hostile(report: dict[str, Any]) -> None:
     a, h, r = report["vehicle_a"], report["health_p95_s"], report["rss_mb"]
+    d = report["duplicate_header_attack"]
     print(
         f"Hostile load: {report['hostile_requests']} requests from one token in {report['hostile_s']:.1f} s, "
         f"{report['slow_clients']} clients trickling header lines ({report['slow_clients_closed']} cut off by the "
@@ -271,8 +401,17 @@ def print_hostile(report: dict[str, Any]) -> None:
     for kind, codes in report["by_kind"].items():
         print(f"| {kind} | {', '.join(f'{n} x {code}' for code, n in sorted(codes.items()))} |")
     print(
-        f"Vehicle A (a keyframe every 0.5 s): p95 {a['solo']['p95_s']:.3f} s alone, {a['beside']['p95_s']:.3f} s "
-        f"beside the hostile token: ratio {a['p95_ratio']:.2f} (goal <= 1.5); answers {a['codes']}"
+        f"Vehicle A (a keyframe and a status every 0.5 s): detect p95 {a['solo']['p95_s']:.3f} s alone, "
+        f"{a['beside']['p95_s']:.3f} s beside the hostile token: ratio {a['p95_ratio']:.2f}; status p95 "
+        f"{a['solo']['status_p95_s']:.3f} s alone, {a['beside']['status_p95_s']:.3f} s beside: ratio "
+        f"{a['status_p95_ratio']:.2f} (goal <= 1.5); answers {a['codes']}"
+    )
+    attack = ", ".join(f"{n} x {code}" for code, n in sorted(d["answers"].items()))
+    print(
+        f"Duplicate-header attack ({d['connections']} connections, {d['seconds']:g} s: {attack}): vehicle A's "
+        f"detect p95 {d['vehicle_a']['p95_s']:.3f} s (ratio {d['detect_p95_ratio']:.2f}), status p95 "
+        f"{d['vehicle_a']['status_p95_s']:.3f} s (ratio {d['status_p95_ratio']:.2f}) (goal <= 1.5); "
+        f"/health p95 {1000 * d['health_p95_s']:.1f} ms; answers {d['codes']}"
     )
     print(
         f"/health p95 {1000 * h['solo']:.1f} ms alone, {1000 * h['beside']:.1f} ms beside (max "

@@ -290,8 +290,9 @@ def test_hostile_a_slow_but_complete_request_is_still_served(models_dir: Path) -
 def test_hostile_load_beside_a_search_answers_every_kind_without_a_5xx(
     models_dir: Path, sequences_dir: Path
 ) -> None:
-    """`cloudtrack-backend bench --hostile` in small: every hostile kind gets its refusal, the searching
-    vehicle every answer, the slow clients are cut by the server. No timing is asserted."""
+    """`cloudtrack-backend bench --hostile` in small: every hostile kind gets its refusal (issue 44's duplicate
+    headers a 400, also in the attack phase), the searching vehicle every answer, the slow clients are cut by
+    the server. No timing is asserted."""
     from backend_tools.hostile_bench import hostile_kinds, hostile_run
 
     kinds = hostile_kinds()
@@ -302,6 +303,11 @@ def test_hostile_load_beside_a_search_answers_every_kind_without_a_5xx(
     assert set(refusals) == {k.kind for k in kinds}
     for kind, codes in refusals.items():
         expected = {"200", "429"} if kind.startswith("a new mission") else {"413", "422"}
+        expected = {"400"} if kind.startswith("duplicate") else expected
         assert codes <= expected, (kind, codes)
-    assert set(report["vehicle_a"]["codes"]) == {"A 200"} and report["vehicle_a"]["beside"]["keyframes"] > 0
+    assert set(report["vehicle_a"]["codes"]) == {"A 200", "A status 200"}
+    assert report["vehicle_a"]["beside"]["keyframes"] > 0
+    attack = report["duplicate_header_attack"]
+    assert set(attack["answers"]) == {"400"} and set(attack["codes"]) == {"A 200", "A status 200"}, attack
+    assert attack["vehicle_a"]["keyframes"] > 0 and attack["vehicle_a"]["statuses"] > 0
     assert report["slow_clients_closed"] == 6  # by the server: the clients never stop on their own
