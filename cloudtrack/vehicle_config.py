@@ -1,10 +1,13 @@
-"""The vehicle's camera and motion limits: the [camera] and [safety] sections of the companion's configuration.
+"""The vehicle's camera and motion limits, and what its search is for: the [camera], [safety] and [search]
+sections of the companion's configuration, the keyframe timing of its [backend] section and the verdicts its
+[behavior] section counts as found.
 
 They live here, not in `companion/config.py`, because the ground tool reads them too: `cloudtrack-gcs survey`
-sizes its lanes from the camera's footprint and keeps the survey inside the altitude band. Defaults are
-mirrored in `config/companion.toml` (tests/test_config_defaults.py). `load_vehicle_sections` reads just these
-two sections from the companion's configuration file (and its CLOUDTRACK_CAMERA__* / CLOUDTRACK_SAFETY__*
-variables), as the companion would.
+sizes its lanes from the camera's footprint, keeps the survey inside the altitude band and near the vehicle,
+and plans for a probability of detection from the keyframes the companion will take (how often, how wide).
+Defaults are mirrored in `config/companion.toml` (tests/test_config_defaults.py). `load_vehicle_sections`
+reads just these from the companion's configuration file (and its CLOUDTRACK_<SECTION>__* variables), as
+the companion would.
 """
 
 from __future__ import annotations
@@ -34,6 +37,9 @@ class CameraConfig(ConfigSection):
     # The far edge of the ground the camera searches (coverage, and a survey's lane spacing): beyond it the
     # pixels are too coarse to find a person (at 640 px and 70 deg a 1.7 m person is 18 px tall at 50 m).
     search_range_m: float = Field(50.0, gt=1, le=2000)
+    # The shutter time a survey planned for a POD assumes (`cloudtrack-gcs survey --pod`): motion blur bounds
+    # its speed. 1/500 s is a small camera's daylight auto-exposure; set the longer one of dusk or shade.
+    exposure_s: float = Field(0.002, gt=0, le=1)
     # Lens calibration (OpenCV's model; companion/vision/camera_calibration.py). Empty: an ideal pinhole from
     # hfov_deg. Either a file (cv2.FileStorage YAML/XML/JSON, or a ROS camera_calibration YAML) or inline:
     # camera_matrix = [fx, 0, cx, 0, fy, cy, 0, 0, 1] at width x height, distortion = [k1, k2, p1, p2, k3].
@@ -71,6 +77,9 @@ class SafetyConfig(ConfigSection):
     # A GCS confirm/reject of "the candidate awaiting" (candidate 0) this soon after another came to await
     # is refused ("press again"): it was pressed for the one before.
     gcs_decision_guard_s: float = Field(0.75, ge=0, le=10)
+    # `cloudtrack-gcs survey` refuses an area farther than this from the vehicle (a typo, or latitude and
+    # longitude swapped, puts it in another country).
+    max_survey_distance_m: float = Field(3000.0, gt=0, le=100_000)
 
     @model_validator(mode="after")
     def _altitude_band(self) -> SafetyConfig:
@@ -97,29 +106,52 @@ class SearchConfig(ConfigSection):
     pass_gap_s: float = Field(10.0, ge=1, le=600)
 
 
+class KeyframeTiming(ConfigSection):
+    """The keys of the companion's [backend] section (`companion.config.BackendConfig` builds on this) that
+    say which keyframes the back-end sees while searching: the survey planner lays them as the map will."""
+
+    search_interval_s: float = Field(0.5, gt=0, le=60)  # queries while searching or lost
+    max_keyframe_width: int = Field(640, ge=64, le=4096)
+
+
+class _BackendKeyframes(KeyframeTiming):
+    model_config = ConfigDict(extra="ignore", frozen=True)  # the rest of [backend] is the companion's
+
+
+class VerdictPolicy(ConfigSection):
+    """The key of the companion's [behavior] section (`companion.config.BehaviorConfig` builds on this) that
+    says which verdicts count as found, on the map and so in the survey planner."""
+
+    accept_uncertain: bool = False  # may an "uncertain" verdict start tracking (after every "yes")
+
+
+class _BehaviorVerdicts(VerdictPolicy):
+    model_config = ConfigDict(extra="ignore", frozen=True)  # the rest of [behavior] is the companion's
+
+
 class VehicleSections(BaseModel):
-    """The companion configuration's [camera], [safety] and [search]; its other sections are not read here."""
+    """The companion configuration's [camera], [safety], [search], [backend]'s keyframe timing and
+    [behavior]'s verdict policy; its other sections and keys are not read here."""
 
     model_config = ConfigDict(extra="ignore", frozen=True)
     camera: CameraConfig = CameraConfig()
     safety: SafetyConfig = SafetyConfig()
     search: SearchConfig = SearchConfig()
+    backend: _BackendKeyframes = _BackendKeyframes()
+    behavior: _BehaviorVerdicts = _BehaviorVerdicts()
 
 
 def load_vehicle_sections(
     path: Path | None = None, environ: Mapping[str, str] | None = None
 ) -> VehicleSections:
-    """[camera], [safety] and [search] as the companion reads them: defaults, then FILE (without one:
+    """`VehicleSections` as the companion reads them: defaults, then FILE (without one:
     /etc/cloudtrack/companion.toml, then $XDG_CONFIG_HOME/cloudtrack/companion.toml, where they exist), then
-    CLOUDTRACK_CAMERA__* / CLOUDTRACK_SAFETY__* / CLOUDTRACK_SEARCH__* variables; ConfigError if not allowed."""
+    the CLOUDTRACK_<SECTION>__* variables of those sections; ConfigError if not allowed."""
     import os
 
     full = os.environ if environ is None else environ
-    ours = {
-        k: v
-        for k, v in full.items()
-        if k.startswith(("CLOUDTRACK_CAMERA__", "CLOUDTRACK_SAFETY__", "CLOUDTRACK_SEARCH__"))
-    }
+    prefixes = tuple(f"CLOUDTRACK_{name.upper()}__" for name in VehicleSections.model_fields)
+    ours = {k: v for k, v in full.items() if k.startswith(prefixes)}
     return load_config(
         VehicleSections,
         path,

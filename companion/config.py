@@ -18,6 +18,7 @@ from pydantic import Field, field_validator, model_validator
 from behaviors.control_law import ControlGains
 from cloudtrack.config_files import ConfigSection, default_config_files, load_config
 from cloudtrack.vehicle_config import CameraConfig as CameraConfig  # re-exported: the companion imports
+from cloudtrack.vehicle_config import KeyframeTiming, VerdictPolicy
 from cloudtrack.vehicle_config import SafetyConfig as SafetyConfig  # every section from here
 from cloudtrack.vehicle_config import SearchConfig as SearchConfig
 
@@ -79,17 +80,15 @@ class TrackerConfig(ConfigSection):
     )
 
 
-class BackendConfig(ConfigSection):
+class BackendConfig(KeyframeTiming):  # search_interval_s, max_keyframe_width: the survey planner's too
     url: str = "http://127.0.0.1:8080"
     token: str = ""  # prefer the environment variable CLOUDTRACK_BACKEND__TOKEN
     keyframe_interval_s: float = Field(1.0, gt=0, le=60)
-    search_interval_s: float = Field(0.5, gt=0, le=60)  # queries while searching or lost
     # A search moves on the back-end's fast stage and the final verdicts confirm, move or end that track.
     early_answer: bool = True
     # Keyframes out at once (companion.cloud.backend_worker): a 2 s VLM keeps the 0.5 s search rate with 4.
     max_requests_in_flight: int = Field(4, ge=1, le=8)
     jpeg_quality: int = Field(80, ge=10, le=100)
-    max_keyframe_width: int = Field(640, ge=64, le=4096)
     timeout_s: float = Field(5.0, gt=0, le=120)
     superset: str = ""  # empty: derived from the prompt by the back-end
     status_interval_s: float = Field(1.0, gt=0, le=60)  # status post + supervisor decisions poll
@@ -138,7 +137,7 @@ class MavlinkConfig(ConfigSection):
         return value
 
 
-class BehaviorConfig(ConfigSection):
+class BehaviorConfig(VerdictPolicy):  # accept_uncertain: the survey planner's too
     standoff_m: float = Field(12.0, gt=1, le=200)
     search_yaw_rate_deg_s: float = Field(0.0, ge=0, le=30)
     reverify_interval_s: float = Field(10.0, gt=0, le=600)
@@ -151,7 +150,6 @@ class BehaviorConfig(ConfigSection):
     lost_resume_after_s: float = Field(10.0, gt=0, le=600)  # along the mission: lost this long, fly on
     lost_looking_s: float = Field(2.0, gt=0, le=600)  # ... while only looking (not engaged)
     orbit_speed_m_s: float = Field(1.0, gt=0, le=10)
-    accept_uncertain: bool = False  # may an "uncertain" verdict start tracking (after every "yes")
     acquire_timeout_s: float = Field(3.0, gt=0, le=60)  # tracker must lock on this soon after init
     arrive_tolerance_m: float = Field(2.0, gt=0, le=50)  # this close to the standoff: ask the supervisor
     approach_timeout_s: float = Field(60.0, gt=0, le=3600)  # ask anyway after following this long
