@@ -1,7 +1,8 @@
 """A mission's finds for the rescuers' own tools: GeoJSON (RFC 7946) and KML (simplekml), each with the finds
-(points: time, when the position was seen, prompt, who confirmed, sigma), the drone's track (a line) and
-the search and covered areas (polygons); and a find as the `cloudtrack.cursor_on_target.FindReport` a TAK
-map takes.
+(points: time, when the position was seen, prompt, who confirmed, sigma), the drone's track (a line), the
+search and covered areas (polygons) and the POD map (polygons per band, `backend.pod_layers`), for the
+current search area and each earlier one of the mission (`area`: "current" / "earlier"); and a find as the
+`cloudtrack.cursor_on_target.FindReport` a TAK map takes. Building them is CPU work: off the event loop.
 
 GeoJSON positions are [lon, lat] and exterior rings run counter-clockwise (RFC 7946 section 3.1.6), so
 strict readers accept them; a ring is closed here when the vehicle sent it open.
@@ -15,7 +16,8 @@ from typing import Any
 
 import simplekml
 
-from backend.schemas import MissionMap, StoredFind
+from backend.pod_layers import geojson_features, kml_folder
+from backend.schemas import EarlierArea, MissionMap, StoredFind
 from cloudtrack.cursor_on_target import FindReport, seen_text
 
 
@@ -51,6 +53,14 @@ def _counter_clockwise(ring: list[list[float]]) -> list[list[float]]:
 
 def _lon_lat(points: list[list[float]]) -> list[list[float]]:
     return [[p[1], p[0]] for p in points]
+
+
+def searched_areas(mission_map: MissionMap) -> list[tuple[dict[str, Any], MissionMap | EarlierArea]]:
+    """The mission's search areas, the current one first, each with the properties that say which it is."""
+    areas: list[tuple[dict[str, Any], MissionMap | EarlierArea]] = [({"area": "current"}, mission_map)]
+    for earlier in reversed(mission_map.earlier):
+        areas.append(({"area": "earlier", "replaced_at": _iso(earlier.replaced_at)}, earlier))
+    return areas
 
 
 def find_properties(find: StoredFind) -> dict[str, Any]:
@@ -94,29 +104,32 @@ def geojson_document(
                     },
                 }
             )
-        if len(mission_map.area) >= 3:
-            features.append(
-                {
-                    "type": "Feature",
-                    "geometry": {
-                        "type": "Polygon",
-                        "coordinates": [_counter_clockwise(_lon_lat(mission_map.area))],
-                    },
-                    "properties": {"kind": "search_area", **owner},
-                }
-            )
-        rings = [r for r in mission_map.covered if len(r) >= 3]
-        if rings:
-            features.append(
-                {
-                    "type": "Feature",
-                    "geometry": {
-                        "type": "MultiPolygon",
-                        "coordinates": [[_counter_clockwise(_lon_lat(r))] for r in rings],
-                    },
-                    "properties": {"kind": "covered", **owner, "coverage": mission_map.coverage},
-                }
-            )
+        for which, searched in searched_areas(mission_map):
+            if len(searched.area) >= 3:
+                features.append(
+                    {
+                        "type": "Feature",
+                        "geometry": {
+                            "type": "Polygon",
+                            "coordinates": [_counter_clockwise(_lon_lat(searched.area))],
+                        },
+                        "properties": {"kind": "search_area", **owner, **which},
+                    }
+                )
+            rings = [r for r in searched.covered if len(r) >= 3]
+            if rings:
+                features.append(
+                    {
+                        "type": "Feature",
+                        "geometry": {
+                            "type": "MultiPolygon",
+                            "coordinates": [[_counter_clockwise(_lon_lat(r))] for r in rings],
+                        },
+                        "properties": {"kind": "covered", **owner, **which, "coverage": searched.coverage},
+                    }
+                )
+            if searched.pod is not None:
+                features.extend(geojson_features(searched.pod, {**owner, **which}))
     return {"type": "FeatureCollection", "name": title, "features": features}
 
 
@@ -149,15 +162,24 @@ def kml_text(finds: list[StoredFind], maps: dict[tuple[str, str], MissionMap], t
         if len(mission_map.track) >= 2:
             line = sub.newlinestring(name="track", coords=[(p[1], p[0]) for p in mission_map.track])
             line.style.linestyle.width = 2
-        if len(mission_map.area) >= 3:
-            area = sub.newpolygon(
-                name="search area", outerboundaryis=_counter_clockwise(_lon_lat(mission_map.area))
-            )
-            area.style.polystyle.fill = 0
-            area.style.linestyle.color = simplekml.Color.blue
-        for i, ring in enumerate(r for r in mission_map.covered if len(r) >= 3):
-            covered = sub.newpolygon(
-                name=f"covered {i + 1}", outerboundaryis=_counter_clockwise(_lon_lat(ring))
-            )
-            covered.style.polystyle.color = simplekml.Color.changealphaint(80, simplekml.Color.green)
+        for which, searched in searched_areas(mission_map):
+            # The current area's placemarks in the mission's folder; each earlier one in a folder of its own.
+            earlier = which["area"] == "earlier"
+            place = sub.newfolder(name=f"earlier area, replaced {which['replaced_at']}") if earlier else sub
+            if len(searched.area) >= 3:
+                area = place.newpolygon(
+                    name="earlier search area" if earlier else "search area",
+                    outerboundaryis=_counter_clockwise(_lon_lat(searched.area)),
+                )
+                area.style.polystyle.fill = 0
+                area.style.linestyle.color = simplekml.Color.blue
+            for i, ring in enumerate(r for r in searched.covered if len(r) >= 3):
+                covered = place.newpolygon(
+                    name=f"covered {i + 1}", outerboundaryis=_counter_clockwise(_lon_lat(ring))
+                )
+                covered.style.polystyle.color = simplekml.Color.changealphaint(80, simplekml.Color.green)
+            if searched.pod is not None:
+                owner = {"vehicle_id": vehicle, "mission_id": mission, **which}
+                name = "POD map, earlier area" if earlier else "POD map"
+                kml_folder(place, name, searched.pod, owner)
     return str(kml.kml())

@@ -1,4 +1,5 @@
-"""A mission's finds for the rescuers: GeoJSON and KML downloads with the track and the searched area.
+"""A mission's finds for the rescuers: GeoJSON and KML downloads with the track, the searched areas and their
+POD maps.
 
   GET /v1/missions/{m}/finds.geojson?vehicle_id=V     application/geo+json
   GET /v1/missions/{m}/finds.kml?vehicle_id=V         application/vnd.google-earth.kml+xml
@@ -10,6 +11,7 @@ naming its vehicle.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Annotated
 
 from fastapi import APIRouter, HTTPException, Query, status
@@ -46,6 +48,18 @@ def _gather(
     return sorted(finds, key=lambda f: f.time), maps
 
 
+def _document(
+    render: Callable[[list[StoredFind], dict[tuple[str, str], MissionMap], str], str],
+    sessions: SessionStore,
+    mission_id: str,
+    vehicle_id: str | None,
+) -> str:
+    """The download's text, on a worker thread: the POD map's polygons take a while to build (docs/backend.md
+    gives the time for a full grid)."""
+    finds, maps = _gather(sessions, mission_id, vehicle_id)
+    return render(finds, maps, f"CloudTrack mission {mission_id}")
+
+
 def _download(body: str, media_type: str, name: str) -> Response:
     headers = {"Content-Disposition": f'attachment; filename="{name}"', "Cache-Control": "no-store"}
     return Response(body, media_type=media_type, headers=headers)
@@ -60,9 +74,8 @@ async def finds_geojson(
     mission_id: MissionId, _: SupervisorCaller, sessions: Sessions, vehicle_id: VehicleQuery = None
 ) -> Response:
     """The mission's finds (points), the drone's track (a line) and the search and covered areas (polygons)."""
-    finds, maps = await run_in_threadpool(_gather, sessions, mission_id, vehicle_id)
-    title = f"CloudTrack mission {mission_id}"
-    return _download(geojson_text(finds, maps, title), "application/geo+json", f"{mission_id}-finds.geojson")
+    body = await run_in_threadpool(_document, geojson_text, sessions, mission_id, vehicle_id)
+    return _download(body, "application/geo+json", f"{mission_id}-finds.geojson")
 
 
 @router.get(
@@ -74,8 +87,5 @@ async def finds_kml(
     mission_id: MissionId, _: SupervisorCaller, sessions: Sessions, vehicle_id: VehicleQuery = None
 ) -> Response:
     """The same as KML (Google Earth, ATAK, QGIS, Mission Planner)."""
-    finds, maps = await run_in_threadpool(_gather, sessions, mission_id, vehicle_id)
-    title = f"CloudTrack mission {mission_id}"
-    return _download(
-        kml_text(finds, maps, title), "application/vnd.google-earth.kml+xml", f"{mission_id}-finds.kml"
-    )
+    body = await run_in_threadpool(_document, kml_text, sessions, mission_id, vehicle_id)
+    return _download(body, "application/vnd.google-earth.kml+xml", f"{mission_id}-finds.kml")
