@@ -69,6 +69,17 @@ class DetectReply:
     final: bool = True  # false: the fast stage's verdicts (asked with stage "early")
 
 
+@dataclass(frozen=True)
+class EncodedKeyframe:
+    """A keyframe as it goes on the wire: its JPEG bytes, the scale applied to the caller's pixels (<= 1)
+    and the caller's image size (width, height). The companion keeps keyframes this way through a back-end
+    outage (`companion.cloud.keyframe_store`) and sends them later as they are."""
+
+    jpeg: bytes
+    scale: float
+    size: tuple[int, int]
+
+
 def encode_keyframe(
     image: np.ndarray, max_width: int, jpeg_quality: int, max_bytes: int = 90_000
 ) -> tuple[bytes, float]:
@@ -124,6 +135,11 @@ class BackendClient:
         self._local = threading.local()
         self.last_reply: DetectReply | None = None
 
+    def encode(self, image: np.ndarray) -> EncodedKeyframe:
+        """The keyframe exactly as `detect` would send it."""
+        jpeg, scale = encode_keyframe(image, self.max_width, self.jpeg_quality, self.max_keyframe_bytes)
+        return EncodedKeyframe(jpeg, scale, (int(image.shape[1]), int(image.shape[0])))
+
     def _session(self) -> requests.Session:
         session = getattr(self._local, "session", None)
         if session is None:
@@ -171,7 +187,7 @@ class BackendClient:
 
     def detect_reply(
         self,
-        image: np.ndarray,
+        image: np.ndarray | EncodedKeyframe,
         prompt: str,
         superset: str | None = None,
         vehicle_id: str | None = None,
@@ -183,13 +199,15 @@ class BackendClient:
         stage: str = "final",
     ) -> DetectReply:
         """Send one keyframe; the full answer with timings and sizes. `stage` "early" asks for the fast
-        stage's verdicts (see `DetectMeta.stage`)."""
+        stage's verdicts (see `DetectMeta.stage`). An `EncodedKeyframe` goes as it is (it was recorded when
+        it was first tried)."""
         vehicle = vehicle_id or self.vehicle_id
         mission = mission_id or self.mission_id
         if not vehicle or not mission:
             raise ValueError("vehicle_id and mission_id are needed (per call or in the BackendClient)")
-        jpeg, scale = encode_keyframe(image, self.max_width, self.jpeg_quality, self.max_keyframe_bytes)
-        if self._on_keyframe is not None and frame_id is not None:
+        encoded = image if isinstance(image, EncodedKeyframe) else self.encode(image)
+        jpeg, scale = encoded.jpeg, encoded.scale
+        if self._on_keyframe is not None and frame_id is not None and encoded is not image:
             try:
                 self._on_keyframe(jpeg, int(frame_id))
             except OSError as exc:  # recording must never cost a query
@@ -247,7 +265,7 @@ class BackendClient:
 
     def detect(
         self,
-        image: np.ndarray,
+        image: np.ndarray | EncodedKeyframe,
         prompt: str,
         superset: str | None = None,
         vehicle_id: str | None = None,
@@ -262,7 +280,9 @@ class BackendClient:
             image, prompt, superset, vehicle_id, mission_id, frame_id, capture_time, roi, vehicle_position
         ).detections
 
-    def detect_early(self, image: np.ndarray, **fields: Any) -> tuple[list[Detection], bool]:
+    def detect_early(
+        self, image: np.ndarray | EncodedKeyframe, **fields: Any
+    ) -> tuple[list[Detection], bool]:
         """The fast stage's candidates for one keyframe and whether they are final (the back-end has no
         slower stage); as `detect` otherwise."""
         reply = self.detect_reply(image, stage="early", **fields)

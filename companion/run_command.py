@@ -59,7 +59,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
     parser.set_defaults(func=run)
 
 
-class _QueryService:
+class QueryService:
     """Lets the back-end worker carry the behaviour's query id: kept in the answer, not sent on the wire."""
 
     def __init__(self, client: Any) -> None:
@@ -184,7 +184,7 @@ def run(args: argparse.Namespace) -> int:
         client, period_s=config.backend.status_interval_s, on_result=partial(backend_result, "status")
     )
     worker = BackendWorker(
-        _QueryService(client),
+        QueryService(client),
         max_in_flight=config.backend.max_requests_in_flight,
         on_result=partial(backend_result, "search"),
     )

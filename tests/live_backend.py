@@ -32,9 +32,10 @@ def free_port() -> int:
 
 
 @contextmanager
-def serve(app: object) -> Iterator[str]:
-    """Any ASGI app on a loopback port, served by uvicorn in a thread; yields its base URL."""
-    port = free_port()
+def serve(app: object, port: int | None = None) -> Iterator[str]:
+    """Any ASGI app on a loopback port (`port`, else a free one), served by uvicorn in a thread; yields its
+    base URL. Served again on the same port, the same app is a back-end that went away and came back."""
+    port = port or free_port()
     # A short graceful-shutdown timeout: an open Server-Sent Event stream must not hold the test up.
     server = uvicorn.Server(
         uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", timeout_graceful_shutdown=1)  # type: ignore[arg-type]

@@ -11,6 +11,14 @@ stage (its local verifier, answered while a hosted VLM still thinks), posted wit
 full; a back-end without a slower stage answers the first in full and the second is not sent.
 `health()` gives what the "lost back-end" watchdog needs: time of the last success, consecutive failures
 and the last error.
+
+With a `KeyframeStore`, outages lose nothing: a keyframe submitted with its capture-time `pose` (a
+full-frame search keyframe) whose request fails for want of a back-end (refused, reset, timed out, 5xx,
+429; not a 4xx refusal of the request itself) is encoded on the failing thread and kept; while the
+back-end stays unreachable one request at a time tries the link and other such keyframes go straight into
+the store. Once a request succeeds again, stored keyframes are sent newest first, only when no live
+keyframe waits and never on the last free slot (with `max_in_flight` 1: on the one slot when no live
+keyframe waits); their answers come back marked `stored`, with the pose.
 """
 
 from __future__ import annotations
@@ -23,9 +31,13 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+import cv2
 import numpy as np
 
 from behaviors.detection import Detection
+from behaviors.telemetry import Telemetry
+from cloudtrack.api_client import BackendError, EncodedKeyframe
+from companion.cloud.keyframe_store import KeyframeStore, StoredKeyframe
 
 log = logging.getLogger(__name__)
 
@@ -38,9 +50,11 @@ class DetectionService(Protocol):
     error, bad answer).
     """
 
-    def detect(self, image: np.ndarray, **fields: Any) -> list[Detection]: ...
+    def detect(self, image: np.ndarray | EncodedKeyframe, **fields: Any) -> list[Detection]: ...
 
-    def detect_early(self, image: np.ndarray, **fields: Any) -> tuple[list[Detection], bool]:
+    def detect_early(
+        self, image: np.ndarray | EncodedKeyframe, **fields: Any
+    ) -> tuple[list[Detection], bool]:
         """As `detect` with the back-end's fast stage only; also whether the answer is final (no slower
         stage exists)."""
         ...
@@ -54,6 +68,10 @@ class BackendAnswer:
     latency_s: float  # submit to answer
     fields: dict[str, Any] = field(default_factory=dict)
     final: bool = True  # false: the fast stage's verdicts; the final answer to the same keyframe follows
+    pose: Telemetry | None = None  # the vehicle at capture time, as submitted
+    stored: bool = False  # the keyframe waited out a back-end outage in the store
+    # A stored keyframe's pixels (the caller's size) when its answer has candidates: the live ones are gone.
+    image: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -70,10 +88,23 @@ class WorkerHealth:
 @dataclass
 class _Request:
     frame_id: int
-    image: np.ndarray
+    image: np.ndarray | EncodedKeyframe
     capture_time: float
     fields: dict[str, Any]
     submitted_at: float
+    pose: Telemetry | None = None  # given: a full-frame search keyframe, kept through an outage
+    stored: StoredKeyframe | None = None  # sent from the store
+
+    @property
+    def storable(self) -> bool:
+        return self.pose is not None and self.stored is None and self.fields.get("roi") is None
+
+
+def unreachable(error: BaseException) -> bool:
+    """A failure for want of a back-end (the same request may succeed later), not a refusal of the request."""
+    if isinstance(error, BackendError):
+        return error.retryable
+    return isinstance(error, (ConnectionError, TimeoutError))
 
 
 class BackendWorker:
@@ -85,12 +116,22 @@ class BackendWorker:
         clock: Callable[[], float] = time.monotonic,
         max_in_flight: int = 1,
         on_result: Callable[[BaseException | None], None] | None = None,
+        store: KeyframeStore | None = None,
+        encode: Callable[[np.ndarray], EncodedKeyframe] | None = None,
     ) -> None:
         """`on_result(None)` after each answer, `on_result(error)` after each failure (the operator's
-        notices say why, once)."""
+        notices say why, once). `store` keeps keyframes through an outage, encoded by `encode` (the
+        client's own, `BackendClient.encode`, so a stored keyframe goes out as it would have)."""
         self._on_result = on_result
         if max_in_flight < 1:
             raise ValueError("max_in_flight must be at least 1")
+        if store is not None and encode is None:
+            raise ValueError("a keyframe store needs the client's encode")
+        self.store = store
+        self._encode = encode
+        self._unreachable = False  # the last request failed for want of a back-end, none succeeded since
+        # Slots a stored keyframe leaves free for live ones.
+        self._live_reserve = 1 if max_in_flight > 1 else 0
         self._service = service
         self._clock = clock
         self._cond = threading.Condition()
@@ -110,10 +151,18 @@ class BackendWorker:
         for thread in self._threads:
             thread.start()
 
-    def submit(self, frame_id: int, image: np.ndarray, capture_time: float, **fields: Any) -> bool:
+    def submit(
+        self,
+        frame_id: int,
+        image: np.ndarray,
+        capture_time: float,
+        pose: Telemetry | None = None,
+        **fields: Any,
+    ) -> bool:
         """Queue a keyframe; True if it goes out now, False if every slot is busy (it will still be sent
-        when one frees unless replaced by a newer keyframe)."""
-        request = _Request(frame_id, image, capture_time, dict(fields), self._clock())
+        when one frees unless replaced by a newer keyframe). `pose` (the vehicle at capture time) is given
+        for full-frame search keyframes: those are kept through an outage when there is a store."""
+        request = _Request(frame_id, image, capture_time, dict(fields), self._clock(), pose)
         with self._cond:
             if self._stopping:
                 return False
@@ -168,42 +217,102 @@ class BackendWorker:
     def _run(self) -> None:
         while True:
             with self._cond:
-                while not self._pending and not self._stopping:
+                request = self._next()
+                while request is None and not self._stopping:
                     self._cond.wait()
-                if self._stopping:
+                    request = self._next()
+                if request is None:
                     return
-                request = self._pending.popleft()
-                self._in_flight += 1
-            early = bool(request.fields.get("early_answer"))
-            fields = {k: v for k, v in request.fields.items() if k != "early_answer"}
-            final = not early
-            try:
-                if early:
-                    detections, final = self._service.detect_early(
-                        request.image, frame_id=request.frame_id, **fields
-                    )
-                    if not final:
-                        self._post(request, detections, final=False)
-                        detections = self._service.detect(request.image, frame_id=request.frame_id, **fields)
-                        final = True
-                else:
-                    detections = self._service.detect(request.image, frame_id=request.frame_id, **fields)
-            except Exception as exc:  # any back-end failure is reported, never raised into the loop
-                with self._cond:
-                    self._failures += 1
-                    self._last_error = f"{type(exc).__name__}: {exc}"
-                    self._in_flight -= 1
-                    self._cond.notify_all()
-                log.debug("back-end request for frame %d failed: %s", request.frame_id, exc)
-                if self._on_result is not None:
-                    self._on_result(exc)
+                # While the back-end is unreachable one request at a time tries the link; other search
+                # keyframes go into the store untried.
+                keep_untried = request.storable and self._unreachable and self._in_flight > 0
+                if not keep_untried:
+                    self._in_flight += 1
+            if keep_untried:
+                self._keep(request)
                 continue
+            try:
+                detections, final = self._ask(request)
+            except Exception as exc:  # any back-end failure is reported, never raised into the loop
+                self._failed(request, exc)
+                continue
+            if request.stored is not None and self.store is not None:
+                self.store.sent()
             self._post(request, detections, final=final, done=True)
             if self._on_result is not None:
                 self._on_result(None)
 
+    def _next(self) -> _Request | None:
+        """The work a free thread takes (under the lock): a live keyframe first; else, the link up and a slot
+        left for live ones, the newest stored keyframe."""
+        if self._stopping:
+            return None
+        if self._pending:
+            return self._pending.popleft()
+        link_up = self._last_success is not None and self._failures == 0
+        if self.store is None or not link_up or self._in_flight >= self.max_in_flight - self._live_reserve:
+            return None
+        kept = self.store.take_newest()
+        if kept is None:
+            return None
+        fields = {k: v for k, v in kept.fields.items() if k != "early_answer"}  # final verdicts only
+        return _Request(
+            kept.frame_id, kept.keyframe, kept.capture_time, fields, self._clock(), kept.pose, kept
+        )
+
+    def _ask(self, request: _Request) -> tuple[list[Detection], bool]:
+        """The final detections for a request (after posting the fast stage's, when asked for early)."""
+        fields = {k: v for k, v in request.fields.items() if k != "early_answer"}
+        if request.fields.get("early_answer"):
+            detections, final = self._service.detect_early(request.image, frame_id=request.frame_id, **fields)
+            if final:
+                return detections, True
+            self._post(request, detections, final=False)
+        return self._service.detect(request.image, frame_id=request.frame_id, **fields), True
+
+    def _failed(self, request: _Request, exc: BaseException) -> None:
+        gone = unreachable(exc)
+        if request.stored is not None and self.store is not None:
+            if gone:
+                self.store.put_back(request.stored)
+            else:
+                self.store.refused()
+                log.warning("stored keyframe %d refused by the back-end: %s", request.frame_id, exc)
+        elif gone and request.storable:
+            self._keep(request)
+        with self._cond:
+            self._failures += 1
+            self._last_error = f"{type(exc).__name__}: {exc}"
+            self._unreachable = gone
+            self._in_flight -= 1
+            self._cond.notify_all()
+        log.debug("back-end request for frame %d failed: %s", request.frame_id, exc)
+        if self._on_result is not None:
+            self._on_result(exc)
+
+    def _keep(self, request: _Request) -> None:
+        """Encode a search keyframe (on this thread, never the frame loop's) into the store."""
+        if self.store is None or self._encode is None or request.pose is None:
+            return
+        if isinstance(request.image, EncodedKeyframe):
+            encoded = request.image
+        else:
+            try:
+                encoded = self._encode(request.image)
+            except ValueError as exc:  # not an image the client could send either
+                log.warning("keyframe %d not stored: %s", request.frame_id, exc)
+                return
+        self.store.put(
+            StoredKeyframe(request.frame_id, request.capture_time, encoded, request.pose, request.fields)
+        )
+        with self._cond:
+            self._cond.notify_all()
+
     def _post(self, request: _Request, detections: list[Detection], final: bool, done: bool = False) -> None:
         now = self._clock()
+        image = None
+        if request.stored is not None and detections:  # for the supervisor's crop of its candidates
+            image = _decoded(request.stored.keyframe)
         answer = BackendAnswer(
             request.frame_id,
             request.capture_time,
@@ -211,6 +320,9 @@ class BackendWorker:
             now - request.submitted_at,
             request.fields,
             final,
+            request.pose,
+            request.stored is not None,
+            image,
         )
         with self._cond:
             self._answers.append(answer)
@@ -218,6 +330,17 @@ class BackendWorker:
             self._last_success = now
             self._failures = 0
             self._last_error = ""
+            self._unreachable = False
             if done:
                 self._in_flight -= 1
             self._cond.notify_all()
+
+
+def _decoded(keyframe: EncodedKeyframe) -> np.ndarray | None:
+    """A stored keyframe's pixels at the size it was captured (its candidates' boxes are in those)."""
+    image = cv2.imdecode(np.frombuffer(keyframe.jpeg, np.uint8), cv2.IMREAD_COLOR)
+    if image is None:
+        return None
+    if (image.shape[1], image.shape[0]) != keyframe.size:
+        image = cv2.resize(image, keyframe.size, interpolation=cv2.INTER_LINEAR)
+    return image
