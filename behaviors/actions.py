@@ -146,6 +146,8 @@ class ReportCandidate:
     unjudged: tuple[str, ...] = ()
     # Others of its answer the search could have taken as well (told apart by the detector's score alone).
     alike: int = 0
+    # Seen in a keyframe kept through a back-end outage: `position_s` says how long ago.
+    stored: bool = False
 
 
 @dataclass(frozen=True)

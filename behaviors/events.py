@@ -34,6 +34,9 @@ class BackendAnswer:
     # The tracker's trusted box on that keyframe when it was sent (None: nothing tracked, or not known): which
     # candidate is the tracked one, on the same frame.
     track_box: Box | None = None
+    # The keyframe waited out a back-end outage in the companion's store (`pose` is its capture-time pose):
+    # its query was forgotten when the back-end went down, and the person is long out of view.
+    stored: bool = False
 
 
 @dataclass(frozen=True)

@@ -155,6 +155,8 @@ class Target:
     # How many other candidates of the answer that proposed it the search could have taken as well (the same
     # verdict and placement: told apart by the detector's score alone): the choice among them was a guess.
     alike: int = 0
+    # Seen in a keyframe the companion kept through a back-end outage, analysed once it answered again.
+    stored: bool = False
 
     @property
     def fix(self) -> GeoEstimate | None:
@@ -281,12 +283,24 @@ def step(state: State, event: Event, config: MissionConfig) -> Result:
     """The next state and the actions to execute, in order, for one event."""
     new, actions = _step(state, event, config)
     shown = awaiting_decision(new)
-    if shown is not None and shown is not new.target and shown.candidate_id != _awaiting_id(state):
+    if (
+        shown is not None
+        and shown is not new.target
+        and shown.candidate_id != _awaiting_id(state)
+        and not _reported_awaiting(actions, shown)
+    ):
         # The one shown was decided and one left before it awaits again: say so (GCS and page).
         actions = (*actions, _report(shown, "awaiting"))
     undirected = undirected_candidate(new)
     guard = observe(new.undirected, undirected.candidate_id if undirected else "", new.now_s)
     return (new if guard is new.undirected else replace(new, undirected=guard)), actions
+
+
+def _reported_awaiting(actions: Sequence[Action], target: Target) -> bool:
+    return any(
+        isinstance(a, ReportCandidate) and a.status == "awaiting" and a.candidate_id == target.candidate_id
+        for a in actions
+    )
 
 
 def _step(state: State, event: Event, config: MissionConfig) -> Result:
@@ -687,6 +701,8 @@ def _answer(state: State, answer: BackendAnswer, config: MissionConfig) -> Resul
     if answer.final:  # an early answer leaves its query open for the final one
         state = replace(state, queries=tuple(q for q in state.queries if q[0] != answer.query_id))
     state = replace(state, backend_down=False)
+    if answer.stored:
+        return _from_store(state, answer, config)
     if purpose is None:
         return state, ()
     target = state.target
@@ -829,6 +845,26 @@ def _propose_other(state: State, target: Target, answer: BackendAnswer, config: 
     # "queued", not "awaiting": a decision naming no candidate is still for the tracked one.
     report = replace(_report(other, "queued"), keyframe_id=answer.keyframe_id)
     return state, (report, *said)
+
+
+def _from_store(state: State, answer: BackendAnswer, config: MissionConfig) -> Result:
+    """An answer to a keyframe the companion kept through a back-end outage: never a track's start (the
+    person is long out of view). The best verified candidate that is not rejected, found, already awaiting a
+    decision or the one tracked is placed from the keyframe's pose and awaits the supervisor out of view
+    (`State.pending`), said with how long ago it was seen; the supervisor decides on it as on any other."""
+    if state.mode not in ACTIVE or answer.pose is None or not answer.final:
+        return state, ()
+    target = state.target if state.mode in TRACKING else None
+    placed = (
+        [] if target is None else [(target.candidate_id, target.position), (target.candidate_id, target.fix)]
+    )
+    chosen = _choose(state, answer.candidates, config, answer, placed)
+    if chosen is None or chosen[1] is None:  # nowhere to place it: nothing to send anyone to
+        return state, ()
+    seen = replace(_seen_in(answer, *chosen), last_seen_s=answer.pose.time_s, stored=True)
+    state, said = _left_awaiting(state, seen)
+    status = "awaiting" if awaiting_decision(state) is seen else "queued"  # else after the one shown
+    return state, (replace(_report(seen, status), keyframe_id=answer.keyframe_id), *said)
 
 
 def _answer_for_target(
@@ -1207,4 +1243,5 @@ def _report(target: Target, status: str) -> ReportCandidate:
         target.fix_s if status == "confirmed" else target.position_s,
         unjudged=target.unjudged,
         alike=target.alike,
+        stored=target.stored,
     )
