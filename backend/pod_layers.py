@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from typing import Any
+from xml.sax.saxutils import escape
 
 from shapely.geometry import MultiPolygon, Polygon
 from shapely.geometry.base import BaseGeometry
@@ -54,8 +55,14 @@ def pod_layers(grid: PodGrid) -> list[PodLayer]:
     return [PodLayer(low, high, band_colour(low), shape) for low, high, shape in pod_bands(grid.model_dump())]
 
 
+def _words(text: str) -> str:
+    """A vehicle's class or posture name for a sentence: letters, digits, spaces and hyphens only (KML readers
+    render a description as HTML, and simplekml passes CDATA in one through unescaped)."""
+    return "".join(ch if ch.isalnum() or ch in " -" else "?" for ch in text)
+
+
 def meaning(grid: PodGrid) -> str:
-    return MEANING.format(target=f"{grid.posture} {grid.target}")
+    return MEANING.format(target=_words(f"{grid.posture} {grid.target}"))
 
 
 def _polygons(geometry: BaseGeometry) -> list[Polygon]:
@@ -135,4 +142,5 @@ def kml_folder(parent: Any, name: str, grid: PodGrid, owner: dict[str, Any]) -> 
         placemark.style.polystyle.outline = 0
         placemark.style.linestyle.color = _kml_colour(layer.colour, 1.0)
         for key, value in {**layer_properties(grid, layer), **owner}.items():
-            placemark.extendeddata.newdata(name=key, value="" if value is None else str(value))
+            # simplekml writes a Data value as given: escaped here, read back as sent.
+            placemark.extendeddata.newdata(name=key, value=escape("" if value is None else str(value)))

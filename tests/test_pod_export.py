@@ -166,3 +166,25 @@ def test_pod_export_kml_holds_each_areas_pod_folder_styled_by_band(
             bands[(low, high)] = polygons[0] if len(polygons) == 1 else MultiPolygon(polygons)
         assert len(fills) == len(bands) > 1  # one colour a band
         _assert_bands_match_the_grid(bands, report)
+
+
+def test_pod_export_a_hostile_target_name_is_text_in_both_documents(
+    flown: tuple[TestClient, dict[str, Any], dict[str, Any]],
+) -> None:
+    client = flown[0]
+    hostile = "<b>x</b> & <![CDATA[<script>]]>"
+    status = {
+        "mission_id": "m-hostile",
+        "state": "SEARCHING",
+        "search": {"area": AREA, "pod": {**pod_report(AREA, lanes=1), "target": hostile}},
+    }
+    assert client.post("/v1/vehicles/drone-1/status", headers=auth(), json=status).status_code == 200
+    supervisor = {"Authorization": f"Bearer {SUPERVISOR}"}
+    kml = client.get("/v1/missions/m-hostile/finds.kml", headers=supervisor)
+    root = ET.fromstring(kml.text)  # well-formed
+    targets = {d.findtext(f"{KML}value") for d in root.iter(f"{KML}Data") if d.get("name") == "target"}
+    assert targets == {hostile}  # read back as sent
+    descriptions = [d.text or "" for d in root.iter(f"{KML}description")]
+    assert descriptions and not any("<" in d for d in descriptions)  # no markup for a reader to render
+    features = client.get("/v1/missions/m-hostile/finds.geojson", headers=supervisor).json()["features"]
+    assert {f["properties"]["target"] for f in features if f["properties"]["kind"] == "pod"} == {hostile}
