@@ -23,6 +23,7 @@ from cloudtrack.api_models import (
     Find,
     GeoPoint,
     HealthResponse,
+    KeyframeCounts,
     ModelNames,
     ModelsResponse,
     PodGrid,
@@ -152,6 +153,31 @@ class FindView(ApiModel):
     crop_box: list[float] | None
 
 
+class PodBandView(ApiModel):
+    low: float
+    high: float
+    colour: str = Field(description='"#rrggbb", as the GeoJSON and KML downloads fill it')
+
+
+class PodView(ApiModel):
+    """The vehicle's POD map as the page draws it: the grid as reported, one cell's size in degrees (the grid
+    is north-up, so a cell's corners are the origin plus whole steps) and the legend."""
+
+    target: str
+    posture: str
+    target_pod: float
+    mean: float
+    at_target: float = Field(description="share of the area at or above target_pod")
+    looks: int
+    origin: list[float] = Field(description="[lat, lon] of the grid's south-west corner")
+    cell_deg: list[float] = Field(description="[north, east]: one cell's side in degrees of lat and lon")
+    rows: int
+    cols: int
+    values: str = Field(description="as in the status: base64, a byte a cell, 0-250 POD, 255 outside")
+    bands: list[PodBandView]
+    meaning: str = Field(description="what POD means, one sentence for the legend")
+
+
 class VehicleView(ApiModel):
     id: str
     state: str
@@ -170,7 +196,10 @@ class VehicleView(ApiModel):
         default_factory=list, description="ids of candidates dropped undecided this mission (too many waited)"
     )
     progress: SearchProgress | None = None
-    search: SearchStatus | None = None
+    search: SearchStatus | None = Field(None, description="as reported, less its POD map (`pod`)")
+    pod: PodView | None = None
+    earlier_areas: int = Field(0, description="search areas of this mission before its survey was replaced")
+    keyframes: KeyframeCounts | None = None
     track: list[list[float]] = Field(default_factory=list, description="[[lat, lon], ...] of this mission")
     keyframe: KeyframeView | None = None
     finds: list[FindView] = Field(default_factory=list, description="this vehicle's finds, oldest first")
@@ -208,13 +237,16 @@ __all__ = [
     "GeoPoint",
     "HealthResponse",
     "KeyframeCandidate",
+    "KeyframeCounts",
     "KeyframeRecord",
     "KeyframeView",
     "LatLon",
     "MissionMap",
     "ModelNames",
     "ModelsResponse",
+    "PodBandView",
     "PodGrid",
+    "PodView",
     "Rejection",
     "RejectionIn",
     "SearchProgress",

@@ -1,6 +1,6 @@
 """The supervisor page's view of the fleet: per vehicle its state and why, the newest keyframe with its boxes,
-the candidate it awaits (with the decision that stands on it), search progress and coverage, the mission's
-track, and its finds, which stay.
+the candidate it awaits (with the decision that stands on it), search progress and coverage, the POD map
+with its legend, the keyframes kept through outages, the mission's track, and its finds, which stay.
 
 Built from the session store (the whole fleet, whichever replica answers); it remembers since when each
 candidate waits, and forgets a candidate as soon as nobody waits on it, so it stays as small as the fleet.
@@ -15,11 +15,15 @@ import threading
 import time
 from collections.abc import Callable
 
+from backend.pod_layers import band_colour, meaning
 from backend.schemas import (
     CandidateView,
     FindView,
     KeyframeView,
     LatLon,
+    PodBandView,
+    PodGrid,
+    PodView,
     SearchStatus,
     StoredFind,
     SupervisorSnapshot,
@@ -27,7 +31,9 @@ from backend.schemas import (
     VehicleView,
 )
 from backend.sessions import SessionStore
+from cloudtrack.coverage import LocalFrame
 from cloudtrack.cursor_on_target import seen_text
+from cloudtrack.pod_map import BANDS
 
 _STATUS = {"confirm": "confirmed", "reject": "rejected"}
 TRACK_SHOWN = 300  # points of the track the page draws (the download has them all)
@@ -61,6 +67,17 @@ def find_view(find: StoredFind) -> FindView:
             else None
         ),
         crop_box=find.crop_box,
+    )
+
+
+def pod_view(grid: PodGrid) -> PodView:
+    """The grid as the page draws it: a cell's side in degrees (from the grid's own frame) and the legend."""
+    north, east = LocalFrame(*grid.origin).latlon(grid.cell_m, grid.cell_m)
+    return PodView(
+        **grid.model_dump(exclude={"cell_m"}),
+        cell_deg=[north - grid.origin[0], east - grid.origin[1]],
+        bands=[PodBandView(low=low, high=high, colour=band_colour(low)) for low, high in BANDS],
+        meaning=meaning(grid),
     )
 
 
@@ -188,17 +205,24 @@ class SupervisorView:
                 track_box=status.track_box if status.frame_id == record.frame_id else None,
             )
         search = status.search
+        grid = search.pod if search is not None else None
         track: list[list[float]] = []
+        earlier_areas = 0
         if status.mission_id is not None:
             mission_map = self.store.mission_map(vehicle_id, status.mission_id)
             if mission_map is not None:
                 track = _shown(mission_map.track)
+                earlier_areas = len(mission_map.earlier)
                 if search is None and (mission_map.area or mission_map.covered):
                     search = SearchStatus(
                         area=mission_map.area,
                         covered=mission_map.covered,
                         coverage=mission_map.coverage or 0.0,
                     )
+                if grid is None and search is not None and search.area in ([], mission_map.area):
+                    grid = mission_map.pod  # a status without the map says nothing of it: the area's stays
+        if search is not None and search.pod is not None:
+            search = search.model_copy(update={"pod": None})  # sent once, in `pod`
         return VehicleView(
             id=vehicle_id,
             state=status.state,
@@ -214,6 +238,9 @@ class SupervisorView:
             dropped_undecided=status.dropped_undecided,
             progress=status.progress,
             search=search,
+            pod=pod_view(grid) if grid is not None else None,
+            earlier_areas=earlier_areas,
+            keyframes=status.keyframes,
             track=track,
             keyframe=keyframe,
             finds=[find_view(f) for f in self.store.finds(vehicle_id)],

@@ -1,7 +1,8 @@
 // CloudTrack supervisor page: the operator's console per vehicle. The newest keyframe with the tracked and
 // candidate boxes, the state and why, search progress and coverage, the candidate awaiting a decision (its
 // crop with the box drawn) with Confirm / Reject, a map drawn from the positions themselves (no internet
-// needed; an optional tile layer from `[supervisor] map_tiles`), and the finds, which stay.
+// needed; an optional tile layer from `[supervisor] map_tiles`) with the POD map and its legend, and the
+// finds, which stay.
 // The token is a bearer token like the API's; it lives in this tab's sessionStorage only. Live updates are
 // Server-Sent Events read with fetch() so the token travels in a header, never in a URL (or a proxy log).
 // Everything that came from a vehicle or a VLM is inserted as text, never as HTML.
@@ -227,7 +228,19 @@ function renderProgress(card, vehicle) {
   const search = vehicle.search;
   const coverage = search ? search.coverage : null;
   $(".coverage-fill", card).style.width = `${Math.round((coverage || 0) * 100)}%`;
-  $(".coverage", card).textContent = coverage === null ? "coverage unknown" : `${(coverage * 100).toFixed(0)} % of the area seen`;
+  const pod = vehicle.pod;
+  const seen = coverage === null ? "coverage unknown" : `${(coverage * 100).toFixed(0)} % of the area seen`;
+  $(".coverage", card).textContent = pod
+    ? `${seen} · ${(pod.at_target * 100).toFixed(0)} % at POD ≥ ${pod.target_pod} · mean POD ${pod.mean.toFixed(2)}`
+    : seen;
+  // Keyframes the vehicle kept while the back-end was unreachable, once there were any.
+  const kept = vehicle.keyframes;
+  const keyframes = $(".keyframes", card);
+  keyframes.hidden = !(kept && kept.stored > 0);
+  keyframes.textContent = keyframes.hidden
+    ? ""
+    : `keyframes kept through a back-end outage: ${kept.stored} stored · ${kept.sent} sent · ${kept.dropped} dropped` +
+      (kept.waiting ? ` · ${kept.waiting} waiting` : "");
   const item = search && search.mission_item != null
     ? `mission item ${search.mission_item}${search.mission_items != null ? ` of ${search.mission_items}` : ""}`
     : "";
@@ -285,7 +298,12 @@ function renderMap(card, vehicle) {
   };
   if (mapTiles) drawTiles(map, scale, cx, cy, width, height);
   const path = (ring) => ring.map(project).map(([x, y], i) => `${i ? "L" : "M"}${x.toFixed(1)},${y.toFixed(1)}`).join(" ");
-  for (const ring of search.covered) if (ring.length > 2) svg("path", { d: `${path(ring)} Z`, class: "covered" }, map);
+  const pod = vehicle.pod;
+  if (pod) drawPod(map, pod, path);
+  renderLegend(card, pod);
+  // With a POD map the footprints are an outline: what the camera pointed at is not what was searched.
+  const covered = pod ? "covered outline" : "covered";
+  for (const ring of search.covered) if (ring.length > 2) svg("path", { d: `${path(ring)} Z`, class: covered }, map);
   if (search.area.length > 2) svg("path", { d: `${path(search.area)} Z`, class: "area" }, map);
   if (vehicle.track.length > 1) svg("path", { d: path(vehicle.track), class: "track" }, map);
   for (const candidate of candidates) {
@@ -307,7 +325,67 @@ function renderMap(card, vehicle) {
     svg("path", { d: "M0,-10 L6,7 L0,3 L-6,7 Z", transform: `translate(${x},${y}) rotate(${heading})`, class: "vehicle-mark" }, map);
   }
   drawScale(map, metresPerUnit / scale, height);
-  $(".map-info", card).textContent = mapTiles ? "map tiles from the configured tile server" : "drawn from the reported positions (no map tiles)";
+  const earlier = vehicle.earlier_areas || 0;
+  $(".map-info", card).textContent =
+    (mapTiles ? "map tiles from the configured tile server" : "drawn from the reported positions (no map tiles)") +
+    (earlier ? ` · ${earlier} earlier search area${earlier > 1 ? "s" : ""} of this mission in the downloads` : "");
+}
+
+// The POD grid: north-up cells from its south-west corner, one byte a cell (0-250 POD, 255 outside the
+// area). A row's neighbouring cells of one band are drawn as one shape; a place at POD 0 is left blank.
+function bandOf(pod, value) {
+  if (value === 0 || value > 250) return -1;
+  const p = value / 250;
+  const last = pod.bands.length - 1;
+  return pod.bands.findIndex((b, i) => p >= b.low && (p < b.high || (i === last && p <= b.high)));
+}
+
+function drawPod(map, pod, path) {
+  let cells;
+  try {
+    cells = Uint8Array.from(atob(pod.values), (c) => c.charCodeAt(0));
+  } catch {
+    return;
+  }
+  if (cells.length !== pod.rows * pod.cols) return;
+  const [lat0, lon0] = pod.origin;
+  const [dLat, dLon] = pod.cell_deg;
+  const layer = svg("g", { class: "pod" }, map);
+  for (let r = 0; r < pod.rows; r++) {
+    let c = 0;
+    while (c < pod.cols) {
+      const band = bandOf(pod, cells[r * pod.cols + c]);
+      let end = c + 1;
+      while (end < pod.cols && bandOf(pod, cells[r * pod.cols + end]) === band) end++;
+      if (band >= 0) {
+        const south = lat0 + r * dLat;
+        const north = south + dLat;
+        const west = lon0 + c * dLon;
+        const east = lon0 + end * dLon;
+        const shape = svg("path", { d: `${path([[south, west], [south, east], [north, east], [north, west]])} Z`, class: "pod-cell" }, layer);
+        shape.setAttribute("fill", pod.bands[band].colour);
+        shape.dataset.pod = pod.bands[band].low;
+      }
+      c = end;
+    }
+  }
+}
+
+function renderLegend(card, pod) {
+  const legend = $(".pod-legend", card);
+  legend.hidden = !pod;
+  if (!pod) return;
+  const list = $(".pod-bands", legend);
+  list.replaceChildren();
+  for (const band of pod.bands) {
+    const item = document.createElement("li");
+    const swatch = document.createElement("span");
+    swatch.className = "pod-swatch";
+    swatch.style.backgroundColor = band.colour;
+    item.append(swatch, `${Math.round(band.low * 100)}-${Math.round(band.high * 100)} %`);
+    list.appendChild(item);
+  }
+  $(".pod-meaning", legend).textContent = `${pod.meaning}. Target: ${pod.target_pod} for a ${pod.posture} ${pod.target}, from ${pod.looks} analysed keyframes.`;
 }
 
 function drawTiles(map, scale, cx, cy, width, height) {
@@ -424,7 +502,9 @@ function renderFinds(card, vehicle) {
     if (!seen.has(item.dataset.find)) item.remove();
   }
   const downloads = $(".downloads", card);
-  const missions = [...new Set(vehicle.finds.map((f) => f.mission_id))];
+  // The mission under way too (its track, areas and POD map for the ground teams), before any find.
+  const flying = vehicle.mission_id && (vehicle.search || vehicle.track.length) ? [vehicle.mission_id] : [];
+  const missions = [...new Set([...vehicle.finds.map((f) => f.mission_id), ...flying])];
   if (downloads.dataset.missions !== missions.join(",")) {
     downloads.dataset.missions = missions.join(",");
     downloads.replaceChildren();
