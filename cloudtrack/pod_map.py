@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 import shapely
 import shapely.affinity
-from shapely.geometry import MultiPolygon, Polygon, box
+from shapely.geometry import MultiPolygon, Polygon
 from shapely.geometry.base import BaseGeometry
 
 from behaviors.apparent_size import TargetShape, camera_frame
@@ -280,22 +280,25 @@ def pod_bands(report: Mapping[str, Any]) -> list[tuple[float, float, BaseGeometr
             mask = (grid > low if low == 0.0 else grid >= low) & ((grid <= high) if last else (grid < high))
         if not mask.any():
             continue
-        cells = [
-            box(c * cell, r * cell, (c + 1) * cell, (r + 1) * cell)
-            for r, c in zip(*np.nonzero(mask), strict=True)
-        ]
-        merged = shapely.union_all(cells).simplify(0.0)
+        rows, cols = np.nonzero(mask)
+        # The cells share their edges exactly, so the coverage union merges them (a general union of a full
+        # grid took seconds); simplify(0) drops the vertices left along straight edges.
+        cells = shapely.box(cols * cell, rows * cell, (cols + 1) * cell, (rows + 1) * cell)
+        merged = shapely.coverage_union_all(cells).simplify(0.0)
         out.append((low, high, _to_lonlat(merged, frame)))
     return out
 
 
 def _to_lonlat(geometry: BaseGeometry, frame: LocalFrame) -> BaseGeometry:
-    def polygon(p: Polygon) -> Polygon:
-        def ring(coords: Any) -> list[tuple[float, float]]:
-            return [frame.latlon(x, y)[::-1] for x, y in coords]
-
-        return Polygon(ring(p.exterior.coords), [ring(r.coords) for r in p.interiors])
-
-    parts = [geometry] if isinstance(geometry, Polygon) else list(getattr(geometry, "geoms", ()))
-    polygons = [polygon(p) for p in parts if isinstance(p, Polygon) and not p.is_empty]
+    """Metres east / north of the frame's origin as longitude / latitude: `LocalFrame.latlon` is linear, so
+    every vertex is mapped at once."""
+    lat0, lon0 = frame.latlon(0.0, 0.0)
+    span = 1000.0
+    lat_per_m = (frame.latlon(0.0, span)[0] - lat0) / span
+    lon_per_m = (frame.latlon(span, 0.0)[1] - lon0) / span
+    lonlat = shapely.transform(
+        geometry, lambda xy: np.column_stack([lon0 + xy[:, 0] * lon_per_m, lat0 + xy[:, 1] * lat_per_m])
+    )
+    parts = [lonlat] if isinstance(lonlat, Polygon) else list(getattr(lonlat, "geoms", ()))
+    polygons = [p for p in parts if isinstance(p, Polygon) and not p.is_empty]
     return polygons[0] if len(polygons) == 1 else MultiPolygon(polygons)
