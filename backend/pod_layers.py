@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from typing import Any
 from xml.sax.saxutils import escape
 
+import numpy as np
 from shapely.geometry import MultiPolygon, Polygon
 from shapely.geometry.base import BaseGeometry
 from shapely.geometry.polygon import orient
@@ -71,8 +72,9 @@ def _polygons(geometry: BaseGeometry) -> list[Polygon]:
     return [orient(p, 1.0) for p in parts if isinstance(p, Polygon) and not p.is_empty]
 
 
-def _ring(coords: Any) -> list[tuple[float, float]]:
-    return [(round(x, DIGITS), round(y, DIGITS)) for x, y in coords]
+def _ring(coords: Any) -> list[list[float]]:
+    rounded: list[list[float]] = np.round(np.asarray(coords), DIGITS).tolist()
+    return rounded
 
 
 def layer_properties(grid: PodGrid, layer: PodLayer) -> dict[str, Any]:
