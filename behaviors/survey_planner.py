@@ -9,13 +9,17 @@ Geometry: the polygon is laid on a local flat frame (metres north/east of its fi
 lanes run along `angle_deg` (clockwise from north; by default the direction that needs the fewest lanes).
 Across them the area is cut into equal bands no wider than the lane spacing, the camera's swath
 (`behaviors/camera_footprint.py`: the footprint at the survey altitude, cut at the search range) less the
-overlap; each band's lane runs through its middle, from where the band enters the polygon to where it
-leaves it, so the swath covers the band edge to edge. The lanes alternate direction and start at the end
+overlap (or a spacing given outright: the POD planner's, `behaviors/pod_planner.py`); each band's lane runs
+through its middle, from where the band enters the polygon to where it leaves it, so the swath covers the
+band edge to edge. The lanes alternate direction and start at the end
 nearest `start` (the vehicle, or the polygon's first corner). A concave polygon's lane is flown straight
 across a notch.
 
 Items, as QGroundControl plans them: NAV_TAKEOFF only when asked, DO_CHANGE_SPEED when a speed is given,
 then a NAV_WAYPOINT at each lane end, all at the survey altitude above home (MAV_FRAME_GLOBAL_RELATIVE_ALT).
+
+`distance_to_area_m` says how far a point (the vehicle) is from an area: the ground tool refuses one that
+is too far to be meant (a typo, or latitude and longitude swapped).
 """
 
 from __future__ import annotations
@@ -36,6 +40,8 @@ MAX_EXTENT_M = 10_000.0  # wider than a multicopter can survey in one flight: su
 MIN_AREA_M2 = 1.0
 MAX_LANES = 500
 MAX_LATITUDE = 85.0  # the flat local frame does not hold near the poles
+EARTH_RADIUS_M = 6_371_008.8  # mean radius: great-circle distances to an area far away
+NEAR_M = 50_000.0  # within this, distances are measured on the flat local frame (edges, not just corners)
 WAYPOINT_ACCEL_M_S2 = 2.5  # ArduCopter WPNAV_ACCEL's default: the time estimate's slow-down at each corner
 
 
@@ -56,6 +62,7 @@ class SurveySettings:
     angle_deg: float | None = None  # lane direction, clockwise from north; None: fewest lanes
     takeoff: bool = False
     start: LatLon | None = None  # begin at the lane end nearest this point (the vehicle)
+    spacing_m: float | None = None  # between lanes, at most the swath; None: the swath less the overlap
 
 
 @dataclass(frozen=True)
@@ -252,10 +259,23 @@ def leg_time_s(length_m: float, speed_m_s: float, accel_m_s2: float = WAYPOINT_A
     return 2.0 * math.sqrt(length_m / accel_m_s2)
 
 
+def lane_axes(corners: Sequence[LatLon], angle_deg: float | None = None) -> tuple[float, float]:
+    """The lanes' direction (`angle_deg`, or the one that needs the fewest lanes) and the polygon's width
+    across them in metres; `corners` as `check_polygon` returns them."""
+    local = _to_local(corners[0], corners)
+    angle = _fewest_lanes_angle(local) if angle_deg is None else angle_deg % 180.0
+    across = [p[1] for p in _rotate(local, angle)]
+    return angle, max(across) - min(across)
+
+
 def plan_survey(area: Sequence[LatLon], settings: SurveySettings) -> SurveyPlan:
     """The survey over `area` (corners as lat, lon); SurveyError with a one-line reason when it cannot be."""
+    return plan_checked(check_polygon(area), settings)
+
+
+def plan_checked(corners: tuple[LatLon, ...], settings: SurveySettings) -> SurveyPlan:
+    """`plan_survey` over corners `check_polygon` has checked (a planner trying many plans checks once)."""
     s = settings
-    corners = check_polygon(area)
     if not math.isfinite(s.altitude_m) or not s.min_altitude_m <= s.altitude_m <= s.max_altitude_m:
         raise SurveyError(
             f"altitude {s.altitude_m:g} m is outside the safety band {s.min_altitude_m:g}-{s.max_altitude_m:g} m "
@@ -274,6 +294,13 @@ def plan_survey(area: Sequence[LatLon], settings: SurveySettings) -> SurveyPlan:
             "([camera] mount_pitch_deg looks at or above the horizon?)"
         )
     spacing = swath * (1.0 - s.overlap)
+    if s.spacing_m is not None:
+        if not (math.isfinite(s.spacing_m) and 0.0 < s.spacing_m <= swath * (1.0 + 1e-9)):
+            raise SurveyError(
+                f"lanes {s.spacing_m:g} m apart leave gaps: the camera's swath is {swath:.1f} m at "
+                f"{s.altitude_m:g} m"
+            )
+        spacing = s.spacing_m
     origin = corners[0]
     local = _to_local(origin, corners)
     angle = _fewest_lanes_angle(local) if s.angle_deg is None else s.angle_deg % 180.0
@@ -308,3 +335,44 @@ def plan_survey(area: Sequence[LatLon], settings: SurveySettings) -> SurveyPlan:
         angle_deg=angle,
         area_m2=polygon_area(local),
     )
+
+
+# ------------------------------------------------------------------------------------------ distance
+def _great_circle_m(a: LatLon, b: LatLon) -> float:
+    lat1, lon1, lat2, lon2 = (math.radians(v) for v in (*a, *b))
+    h = math.sin((lat2 - lat1) / 2) ** 2 + math.cos(lat1) * math.cos(lat2) * math.sin((lon2 - lon1) / 2) ** 2
+    return 2 * EARTH_RADIUS_M * math.asin(min(1.0, math.sqrt(h)))
+
+
+def _to_segment_m(p: Point, a: Point, b: Point) -> float:
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    length2 = dx * dx + dy * dy
+    t = 0.0 if length2 == 0 else max(0.0, min(1.0, ((p[0] - a[0]) * dx + (p[1] - a[1]) * dy) / length2))
+    return math.dist(p, (a[0] + t * dx, a[1] + t * dy))
+
+
+def _inside(p: Point, polygon: Sequence[Point]) -> bool:
+    inside = False
+    for a, b in zip(polygon, [*polygon[1:], polygon[0]], strict=True):
+        if (a[1] > p[1]) != (b[1] > p[1]) and p[0] < a[0] + (p[1] - a[1]) * (b[0] - a[0]) / (b[1] - a[1]):
+            inside = not inside
+    return inside
+
+
+def distance_to_area_m(point: LatLon, corners: Sequence[LatLon]) -> float:
+    """How far `point` is from the area (0 inside it): to its nearest edge on the flat local frame around
+    `point` within `NEAR_M`, else the great-circle distance to its nearest corner."""
+    nearest = min(_great_circle_m(point, corner) for corner in corners)
+    if nearest > NEAR_M:
+        return nearest
+    local = _to_local(point, corners)
+    if _inside((0.0, 0.0), local):
+        return 0.0
+    return min(_to_segment_m((0.0, 0.0), a, b) for a, b in zip(local, [*local[1:], local[0]], strict=True))
+
+
+def swapped(corners: Sequence[LatLon]) -> tuple[LatLon, ...] | None:
+    """The corners with latitude and longitude exchanged, when they still make latitudes (|lon| <= 90)."""
+    if any(abs(lon) > 90 for _, lon in corners):
+        return None
+    return tuple((lon, lat) for lat, lon in corners)

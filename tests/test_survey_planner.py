@@ -16,9 +16,12 @@ from behaviors.survey_planner import (
     SurveyError,
     SurveySettings,
     check_polygon,
+    distance_to_area_m,
+    lane_axes,
     leg_time_s,
     plan_survey,
     rectangle,
+    swapped,
 )
 
 ORIGIN = (47.397742, 8.545594)
@@ -238,3 +241,38 @@ def test_too_many_lanes_is_refused() -> None:
 def test_bad_sizes_get_one_line_errors(width: float, height: float) -> None:
     with pytest.raises(SurveyError, match=r"^a survey size must be two positive lengths in metres, got "):
         rectangle(ORIGIN, width, height)
+
+
+# ------------------------------------------------------------------------------ spacing and distance
+def test_a_spacing_given_outright_lays_the_lanes() -> None:
+    plan = plan_survey(RECT, replace(SETTINGS, spacing_m=80 / 5))
+    assert (plan.lanes, plan.spacing_m) == (5, pytest.approx(16.0))
+    assert lane_axes(check_polygon(RECT)) == (90.0, pytest.approx(80.0))  # narrowest across north-south
+    assert lane_axes(check_polygon(RECT), 0.0) == (0.0, pytest.approx(120.0))
+
+
+@pytest.mark.parametrize("spacing", [28.1, 0.0, -3.0, math.nan])
+def test_a_spacing_that_leaves_gaps_is_refused(spacing: float) -> None:
+    with pytest.raises(SurveyError, match=r"leave gaps: the camera's swath is 28\.0 m at 20 m$"):
+        plan_survey(RECT, replace(SETTINGS, spacing_m=spacing))
+
+
+@pytest.mark.parametrize(
+    ("point", "expected_m"),
+    [
+        ((40.0, 60.0), 0.0),  # inside
+        ((40.0, 160.0), 40.0),  # east of the east edge
+        ((-30.0, -40.0), 50.0),  # off the south-west corner
+        ((120.0, 60.0), 40.0),
+    ],
+)
+def test_distance_to_an_area(point: tuple[float, float], expected_m: float) -> None:
+    assert distance_to_area_m(at(*point), RECT) == pytest.approx(expected_m, abs=0.01)
+
+
+def test_distance_to_an_area_far_away_is_the_great_circle_one() -> None:
+    zurich, swapped_area = (47.397742, 8.545594), [(8.5450, 47.3975), (8.5466, 47.3975), (8.5466, 47.3982)]
+    assert distance_to_area_m(zurich, swapped_area) == pytest.approx(5_660_000, rel=0.005)
+    assert swapped(swapped_area) == ((47.3975, 8.5450), (47.3975, 8.5466), (47.3982, 8.5466))
+    assert distance_to_area_m(zurich, swapped(swapped_area) or ()) < 100
+    assert swapped([(10.0, 120.0), (11.0, 120.0), (10.0, 121.0)]) is None  # 120 is no latitude
