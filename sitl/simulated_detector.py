@@ -5,12 +5,25 @@ It stands in for YOLOX in closed-loop scenarios so the back-end's real verificat
 frame is identified by the `frame_id` the companion sent (the SITL stream's own ids), else by the
 timecode strip (`sitl.camera_render.read_timecode`). When the back-end hands over only a region of the
 keyframe (a re-detection ROI), the region is placed in the frame by template matching against the
-frame's ground-truth thumbnail. Misses, jitter and false positives come from a generator seeded by
-(seed, frame id), so a run is repeatable.
+frame's ground-truth thumbnail. Jitter and false positives come from a generator seeded by (seed, frame
+id), so a run is repeatable.
+
+Misses come either at a fixed rate per person and keyframe (`DetectorNoise.miss_rate`, the follow
+scenarios'), or from the detection curve (`DetectorNoise.curve`, `behaviors/detection_curve.py`) at the
+size the person has in the keyframe (sqrt(w * h) of the truth box in keyframe pixels), dependent within a
+pass exactly as the companion's POD map assumes (`cloudtrack/pod_map.py`): one latent u ~ U(0, 1) per
+person and pass, the person reported in a keyframe when u < p(size), so a pass finds them with the
+probability of its best look; a person not looked at for `pass_gap_s` starts a new pass with a new u. A
+look, as for the map, is a keyframe showing the person within `look_range_m` of the vehicle (the
+companion's `[camera] search_range_m`); nobody farther is reported, since the map claims nothing there.
+The latent of a pass comes from (seed, person, pass number), so a run is repeatable given its keyframes.
 """
 
 from __future__ import annotations
 
+import math
+import threading
+import zlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -18,8 +31,10 @@ import cv2
 import numpy as np
 
 from behaviors.detection import Detection
+from behaviors.detection_curve import DetectionCurve
 from behaviors.geometry import Box
-from sitl.camera_render import THUMB_SCALE, FrameTruth, read_timecode
+from cloudtrack.pod_map import PASS_GAP_S
+from sitl.camera_render import THUMB_SCALE, FrameTruth, TruthBox, read_timecode
 
 TruthLookup = Callable[[int], "FrameTruth | None"]
 MIN_MATCH = 0.8  # normalised correlation below which a region is not placed (no boxes rather than wrong ones)
@@ -31,7 +46,26 @@ class DetectorNoise:
     jitter_px: float = 1.5  # standard deviation of each box edge, pixels
     false_positives: float = 0.2  # expected spurious boxes per frame (Poisson)
     min_visible: float = 0.4  # a person less visible than this is not detected
-    min_height_px: float = 8.0
+    min_height_px: float = 8.0  # (fixed rate only: the curve says how small a person is still found)
+    # The detection curve instead of `miss_rate` (see the module doc), with the map's rules for a pass.
+    curve: DetectionCurve | None = None
+    accept_uncertain: bool = False  # the curve's "found" as the companion's [behavior] accept_uncertain
+    pass_gap_s: float = PASS_GAP_S
+    look_range_m: float | None = None  # None: a person anywhere in the keyframe is looked at
+
+
+@dataclass
+class Pass:
+    """One pass of the curve-driven detector over a person: its latent, its looks and the best of them."""
+
+    number: int
+    latent: float
+    first_s: float
+    last_s: float
+    looks: int = 0
+    best: float = 0.0  # the curve's probability at the pass's best look
+    best_size_px: float = 0.0  # the person's size at that look
+    reported: int = 0  # keyframes the person was reported in
 
 
 class SimulatedPersonDetector:
@@ -46,6 +80,8 @@ class SimulatedPersonDetector:
         self._render_width = render_width
         self.noise = noise or DetectorNoise()
         self.seed = seed
+        self._passes: dict[str, list[Pass]] = {}
+        self._lock = threading.Lock()  # the back-end detects on several threads at once
 
     def detect(
         self, image_bgr: np.ndarray, classes: Sequence[str], frame_id: int | None = None
@@ -70,7 +106,9 @@ class SimulatedPersonDetector:
         n = self.noise
         out: list[Detection] = []
         for tb in record.truth:
-            if tb.visible < n.min_visible or tb.box.h < n.min_height_px or rng.random() < n.miss_rate:
+            if tb.visible < n.min_visible:
+                continue
+            if n.curve is None and (tb.box.h < n.min_height_px or rng.random() < n.miss_rate):
                 continue
             jit = rng.normal(0.0, n.jitter_px, 4)
             box = Box.from_xyxy(tb.box.x + jit[0], tb.box.y + jit[1], tb.box.x2 + jit[2], tb.box.y2 + jit[3])
@@ -78,6 +116,8 @@ class SimulatedPersonDetector:
             inside = box.clamped(w, h)
             if not inside.is_valid() or inside.area < 0.5 * box.area:
                 continue  # mostly outside the region: a detector would not see this person here
+            if n.curve is not None and not self._found(tb, record, scale):
+                continue
             # Like a real detector, more confident on bigger, unoccluded people.
             size = min(1.0, float(np.sqrt(tb.box.area)) / 40.0)
             score = 0.5 + 0.45 * size * tb.visible + rng.normal(0, 0.01)
@@ -88,6 +128,42 @@ class SimulatedPersonDetector:
             out.append(Detection(Box(float(x), float(y), float(bw), float(bh)), float(rng.uniform(0.3, 0.5))))
         out.sort(key=lambda d: -d.score)
         return out
+
+    def _found(self, tb: TruthBox, record: FrameTruth, scale: float) -> bool:
+        """Whether the curve-driven detector reports `tb` in this keyframe (see the module doc)."""
+        n = self.noise
+        assert n.curve is not None
+        pose = record.pose
+        if (
+            n.look_range_m is not None
+            and math.hypot(tb.north - pose.north, tb.east - pose.east) > n.look_range_m
+        ):
+            return False
+        size = math.sqrt(max(0.0, tb.box.w * tb.box.h)) * scale
+        p = n.curve.probability(size, n.accept_uncertain)
+        t = record.time_s
+        with self._lock:
+            passes = self._passes.setdefault(tb.person_id, [])
+            # Keyframes arrive out of order (several in flight, stored ones after an outage): a look within
+            # the gap of a pass's span, before or after it, belongs to that pass.
+            this = next((x for x in passes if x.first_s - n.pass_gap_s <= t <= x.last_s + n.pass_gap_s), None)
+            if this is None:
+                person = zlib.crc32(tb.person_id.encode())
+                latent = float(np.random.default_rng([self.seed, person, len(passes)]).random())
+                this = Pass(len(passes), latent, t, t)
+                passes.append(this)
+            this.first_s, this.last_s = min(this.first_s, t), max(this.last_s, t)
+            this.looks += 1
+            if p > this.best:
+                this.best, this.best_size_px = p, size
+            found = this.latent < p
+            this.reported += int(found)
+        return found
+
+    def passes(self, person_id: str) -> list[Pass]:
+        """The curve-driven detector's passes over a person so far (empty with a fixed miss rate)."""
+        with self._lock:
+            return list(self._passes.get(person_id, []))
 
     def _place(self, image_bgr: np.ndarray, record: FrameTruth) -> tuple[tuple[float, float], float] | None:
         """((x, y) offset in this image's pixels, scale from rendered to this image's pixels)."""

@@ -238,7 +238,67 @@ def distractor_world(
 SEARCH_AREA_NE = ((10.0, -28.0), (110.0, 32.0))  # south-west and north-east corners (north, east), metres
 
 
-def search_world(seed: int, lookalike_beside: bool = False) -> World:
+Place = Literal["fixed", "random"]
+SEARCH_CARS = (
+    Block("vehicle", 95.0, 20.0, 4.5, 1.9, 1.5, colour=(60, 60, 180)),
+    Block("vehicle", 30.0, -22.0, 4.5, 1.9, 1.5, colour=(170, 170, 170)),
+)
+# Random placement (`--place random`): nobody nearer the area's edge than this (the whole body inside the
+# area and its POD map), nobody nearer another person than PEOPLE_APART_M (two people a look-alike's width
+# apart would be one detection), nor nearer a parked car's centre than CAR_CLEAR_M (not under or in it).
+EDGE_MARGIN_M = 1.5
+PEOPLE_APART_M = 5.0
+CAR_CLEAR_M = 5.0
+RANDOM_POSTURES: tuple[Pose, ...] = ("standing", "lying")
+
+
+def search_world(seed: int, lookalike_beside: bool = False, place: Place = "fixed") -> World:
+    """The search scenario's world, the people where the scenario puts them (`place` "fixed") or anywhere in
+    the area (`place` "random": `random_search_world`)."""
+    if place == "random":
+        return random_search_world(seed)
+    return fixed_search_world(seed, lookalike_beside)
+
+
+def random_search_world(
+    seed: int, area_ne: tuple[tuple[float, float], tuple[float, float]] = SEARCH_AREA_NE
+) -> World:
+    """The search world's people placed anywhere in `area_ne` (uniformly, seeded), each standing still or
+    lying at a random heading: the described person (green shirt, black trousers), the look-alike (green
+    shirt, blue trousers) and three others in red, blue and purple. The parked cars stay where they are.
+    `extras` records the place and the described person's posture (the run's JSON reports them)."""
+    rng = np.random.default_rng([seed, 42])  # apart from the ground texture's stream of the same seed
+    (s_n, w_e), (n_n, e_e) = area_ne
+    dressed = (
+        ("target", "green", "black"),
+        ("decoy", "green", "blue"),
+        ("person-1", "red", "gray"),
+        ("person-2", "blue", "gray"),
+        ("person-3", "purple", "gray"),
+    )
+    spots: list[tuple[float, float]] = []
+    people: list[Person] = []
+    for person_id, shirt, trousers in dressed:
+        while True:
+            spot = (
+                float(rng.uniform(s_n + EDGE_MARGIN_M, n_n - EDGE_MARGIN_M)),
+                float(rng.uniform(w_e + EDGE_MARGIN_M, e_e - EDGE_MARGIN_M)),
+            )
+            clear_of_cars = all(math.dist(spot, (b.north, b.east)) >= CAR_CLEAR_M for b in SEARCH_CARS)
+            if clear_of_cars and all(math.dist(spot, other) >= PEOPLE_APART_M for other in spots):
+                break
+        spots.append(spot)
+        pose = RANDOM_POSTURES[int(rng.integers(len(RANDOM_POSTURES)))]
+        heading = float(rng.uniform(0.0, 2.0 * math.pi))
+        # Still (speed 0): a second point 1 cm away only gives a lying body its heading.
+        toward = (spot[0] + 0.01 * math.cos(heading), spot[1] + 0.01 * math.sin(heading))
+        people.append(Person(person_id, shirt, trousers, pose, (spot, toward)))
+    target = people[0]
+    extras = {"place": "random", "target_posture": target.pose}
+    return World(seed, tuple(people), SEARCH_CARS, target_id="target", extras=extras)
+
+
+def fixed_search_world(seed: int, lookalike_beside: bool = False) -> World:
     """The search scenario's world: across the area, the described person (green shirt, black trousers,
     strolling slowly on the spot), a look-alike (green shirt, blue trousers, standing) the supervisor must
     reject, and people of the same class in other colours, lying, sitting and walking. With the scenario's
@@ -256,8 +316,4 @@ def search_world(seed: int, lookalike_beside: bool = False) -> World:
         Person("person-2", "blue", "gray", "standing", ((106.0, -24.0), (106.0, -12.0)), 0.8, loop=True),
         Person("person-3", "purple", "gray", "sitting", ((58.0, 28.0),)),
     )
-    blocks = (
-        Block("vehicle", 95.0, 20.0, 4.5, 1.9, 1.5, colour=(60, 60, 180)),
-        Block("vehicle", 30.0, -22.0, 4.5, 1.9, 1.5, colour=(170, 170, 170)),
-    )
-    return World(seed, people, blocks, target_id="target")
+    return World(seed, people, SEARCH_CARS, target_id="target")
