@@ -95,6 +95,12 @@ class BackendConfig(KeyframeTiming):  # search_interval_s, max_keyframe_width: t
     # A GCS start waits this long for the back-end to say it can search for the prompt (DENIED with its
     # reason when it cannot); no answer in time: the start goes ahead and the search waits. 0: no check.
     start_check_s: float = Field(3.0, ge=0, le=30)
+    # While the back-end is unreachable, search keyframes are kept (JPEG, as sent: 25-55 KB each from the dev
+    # footage, at most 90 KB) and sent when it answers again, newest first (companion.cloud.keyframe_store);
+    # past either bound the oldest are dropped and counted. 64 MB holds 10-20 min of a 0.5 s search (6 min at
+    # 90 KB a keyframe): a 60 s outage needs at most 11 MB. 0 MB: none kept.
+    outage_store_mb: int = Field(64, ge=0, le=4096)
+    outage_store_max_age_s: float = Field(900.0, gt=0, le=86400)
 
 
 class MavlinkConfig(ConfigSection):

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import bisect
 import logging
+import math
 import threading
 import time
 from collections import deque
@@ -31,6 +32,7 @@ from behaviors.actions import (
     GcsMessage,
     Hold,
     JudgeCandidates,
+    QueryPurpose,
     ReleaseControl,
     RememberRejection,
     ReportCandidate,
@@ -73,6 +75,7 @@ from cloudtrack.api_models import ALIKE_MAX
 from cloudtrack.service_notify import Notifier
 from companion.cloud.backend_worker import BackendWorker
 from companion.cloud.candidate_crop import candidate_crop
+from companion.cloud.keyframe_store import KeyframeStore, StoreCounts
 from companion.operator_notices import OperatorNotices
 from companion.safety_watchdog import (
     BACKEND_UNREACHABLE,
@@ -253,6 +256,7 @@ class MissionRunner:
         keyframe_max_width: int = 640,  # [backend] max_keyframe_width: the status's boxes are in its pixels
         coverage: SearchCoverageLike | None = None,
         notices: OperatorNotices | None = None,
+        keyframe_store: KeyframeStore | None = None,  # the worker's, for the status's counts
     ) -> None:
         # One policy for flight and eval: with the front-end's "verified" policy ([tracker] reinit_policy)
         # the mission hands it every answer for the track instead of choosing a re-init box itself.
@@ -292,6 +296,9 @@ class MissionRunner:
         # (when the GCS last got the value, tenths of the area seen and at the target POD announced)
         self._coverage_told: tuple[float, int, int] = (-float("inf"), 0, 0)
         self._pod_error_told = ""  # why there is no POD map, as last told
+        self.keyframe_store = keyframe_store
+        self._analysed = 0  # keyframes of this mission analysed whole (laid on the search map)
+        self._store_base = StoreCounts()  # the store's counts when this mission started
 
     # ------------------------------------------------------------------------------------------ control
     def request_stop(self) -> None:
@@ -342,12 +349,22 @@ class MissionRunner:
             query_id = int(answer.fields.get("query_id", PROBE_QUERY_ID))
             if query_id != PROBE_QUERY_ID and answer.final:
                 self.report.on_answer(answer.detections)
-            pose = self._pose_at(answer.capture_time)
+            # A stored keyframe carries its own capture-time pose: the history here is only 40 s long.
+            pose = answer.pose if answer.stored else self._pose_at(answer.capture_time)
             self._lay_look(answer, pose)
-            track_box = self._keyframes.get(answer.frame_id, (None, None))[1]
+            track_box = None if answer.stored else self._keyframes.get(answer.frame_id, (None, None))[1]
+            if answer.stored and answer.image is not None:  # its candidates are cropped from it
+                self._keep_keyframe(answer.frame_id, answer.image, None)
             events.append(
                 BackendAnswer(
-                    now, query_id, answer.frame_id, answer.detections, answer.final, pose, track_box
+                    now,
+                    query_id,
+                    answer.frame_id,
+                    answer.detections,
+                    answer.final,
+                    pose,
+                    track_box,
+                    answer.stored,
                 )
             )
         if now - self._last_tick >= self.settings.tick_s:
@@ -365,13 +382,14 @@ class MissionRunner:
         """A keyframe the back-end analysed whole (a final answer to a query without a region) is a look at
         the search area from where it was captured; nothing else counts as searched."""
         if (
-            self.coverage is not None
-            and pose is not None
+            pose is not None
             and answer.final
             and answer.fields.get("roi") is None
             and self.state.mode in ACTIVE
         ):
-            self.coverage.add_look(pose, answer.capture_time)
+            self._analysed += 1
+            if self.coverage is not None:
+                self.coverage.add_look(pose, answer.capture_time)
 
     def _pose_at(self, when: float) -> Telemetry | None:
         """The newest telemetry received at or before `when` (a keyframe's capture time); None if none is
@@ -388,6 +406,9 @@ class MissionRunner:
         self.state, actions = step(self.state, event, self.mission)
         if isinstance(event, GcsCommand) and isinstance(event.command, StartMission) and self.state.mission:
             self.report.start(self.state.mission.mission_id or self.state.mission.prompt)
+            self._analysed = 0
+            if self.keyframe_store is not None:
+                self._store_base = self.keyframe_store.counts()
             self.notices.set("start", None)  # a start went through: an earlier refusal no longer holds
             self.notices.search_accepted()
             self._start_coverage()
@@ -464,15 +485,22 @@ class MissionRunner:
             fields["early_answer"] = True
         if self.state.mission is not None and self.state.mission.mission_id:
             fields["mission_id"] = self.state.mission.mission_id
-        self.backend.submit(frame.frame_id, frame.image, frame.capture_time, **fields)
+        # A search keyframe of the whole view goes with the pose it was captured from: kept through an
+        # outage, its answer comes back long after this loop's pose history has moved on.
+        search = query.purpose is QueryPurpose.SEARCH and query.roi is None
+        pose = (self._pose_at(frame.capture_time) or self.state.telemetry) if search else None
+        self.backend.submit(frame.frame_id, frame.image, frame.capture_time, pose=pose, **fields)
         result = self._result
         tracked = result is not None and result.frame_id == frame.frame_id and result.trusted
         track_box = result.box if tracked and result is not None else None
         self.report.on_keyframe(frame.frame_id, track_box)
-        recent = list(self._keyframes.items())[-(KEYFRAMES_KEPT - 1) :]
-        self._keyframes = {**dict(recent), frame.frame_id: (frame.image, track_box)}
+        self._keep_keyframe(frame.frame_id, frame.image, track_box)
         if self._pending_since is None:
             self._pending_since = self.clock()
+
+    def _keep_keyframe(self, frame_id: int, image: Any, track_box: Box | None) -> None:
+        recent = list(self._keyframes.items())[-(KEYFRAMES_KEPT - 1) :]
+        self._keyframes = {**dict(recent), frame_id: (image, track_box)}
 
     def _ground_events(self, now: float) -> list[Event]:
         """Commands from the GCS and the supervisor page, and the rejections the back-end has taken."""
@@ -518,12 +546,18 @@ class MissionRunner:
             if report.position is not None:
                 where = f" at {report.position.lat_deg:.6f},{report.position.lon_deg:.6f}"
             self.vehicle.send_status(
-                f"CANDIDATE {report.status.upper()} {report.candidate_id}{where}{_alike(report.alike)}"
-                f"{_not_checked(report.unjudged)}",
+                f"CANDIDATE {report.status.upper()} {report.candidate_id}{where}{self._seen_ago(report)}"
+                f"{_alike(report.alike)}{_not_checked(report.unjudged)}",
                 SEVERITY["info"],
             )
         if self.session is not None:
             self.session.update(self._status())
+
+    def _seen_ago(self, report: ReportCandidate) -> str:
+        """What the GCS line adds for a candidate seen in a keyframe kept through a back-end outage: how long
+        ago it was there ("; seen 23 s ago")."""
+        age = self.state.now_s - report.position_s
+        return f"; seen {max(0.0, age):.0f} s ago" if report.stored and math.isfinite(age) else ""
 
     def _report_find(self, report: ReportCandidate) -> None:
         """A confirmed candidate is a find: announced to the GCS once (QGC pops it up), its position sent
@@ -583,7 +617,20 @@ class MissionRunner:
             status["awaiting_more"] = more
         if state.dropped_undecided:
             status["dropped_undecided"] = list(state.dropped_undecided)
+        status["keyframes"] = self._keyframe_counts()
         return status
+
+    def _keyframe_counts(self) -> dict[str, int]:
+        """The status's `keyframes`, since the mission started: analysed whole, and the outage store's."""
+        now = self.keyframe_store.counts() if self.keyframe_store is not None else StoreCounts()
+        base = self._store_base
+        return {
+            "analysed": self._analysed,
+            "stored": now.stored - base.stored,
+            "waiting": now.waiting,
+            "sent": now.sent - base.sent,
+            "dropped": now.dropped - base.dropped,
+        }
 
     def _awaiting(self) -> dict[str, Any] | None:
         """The candidate awaiting the supervisor's decision: the tracked one (also while it is lost), else
@@ -847,6 +894,7 @@ def describe_event(event: Event) -> dict[str, Any] | None:
             "query_id": event.query_id,
             "keyframe_id": event.keyframe_id,
             "final": event.final,
+            **({"stored": True} if event.stored else {}),
             "candidates": [
                 {
                     "id": c.candidate_id,
@@ -910,6 +958,7 @@ def describe_action(action: Action, t: float) -> dict[str, Any]:
             **({"keyframe_id": action.keyframe_id} if action.keyframe_id >= 0 else {}),
             **({"unjudged": list(action.unjudged)} if action.unjudged else {}),
             **({"alike": action.alike} if action.alike else {}),
+            **({"stored": True, "seen_s": action.position_s} if action.stored else {}),
         }
     if isinstance(action, BackendQuery):
         return {

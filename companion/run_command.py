@@ -183,10 +183,17 @@ def run(args: argparse.Namespace) -> int:
     session = BackendSession(
         client, period_s=config.backend.status_interval_s, on_result=partial(backend_result, "status")
     )
+    store = None
+    if config.backend.outage_store_mb > 0:
+        from companion.cloud.keyframe_store import KeyframeStore
+
+        store = KeyframeStore(config.backend.outage_store_mb * 2**20, config.backend.outage_store_max_age_s)
     worker = BackendWorker(
         QueryService(client),
         max_in_flight=config.backend.max_requests_in_flight,
         on_result=partial(backend_result, "search"),
+        store=store,
+        encode=client.encode,
     )
     from companion.search_coverage import SearchCoverage
 
@@ -217,6 +224,7 @@ def run(args: argparse.Namespace) -> int:
         keyframe_max_width=config.backend.max_keyframe_width,
         coverage=coverage,
         notices=notices,
+        keyframe_store=store,
     )
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: runner.request_stop())

@@ -5,6 +5,7 @@ Select: -k outage."""
 
 from __future__ import annotations
 
+import re
 import socket
 import threading
 import time
@@ -18,11 +19,18 @@ import numpy as np
 from backend.app import create_app
 from backend.config import AuthConfig, BackendConfig, DetectorConfig, SessionConfig, VerifierConfig
 from behaviors.geometry import Box
+from behaviors.mission import MissionState
+from behaviors.mission_commands import StartMission
+from behaviors.mission_config import MissionConfig
 from behaviors.telemetry import Telemetry
+from behaviors.track_result import TrackResult
 from cloudtrack.api_client import BackendClient
+from cloudtrack.api_models import VehicleStatusIn
 from companion.cloud.backend_worker import BackendAnswer, BackendWorker
 from companion.cloud.keyframe_store import KeyframeStore, StoreCounts, StoredKeyframe
+from companion.mission_runner import MissionRunner
 from companion.run_command import QueryService
+from companion.vision.frame_sources import Frame
 from tests.backend_fixtures import frame
 from tests.live_backend import SUPERVISOR_TOKEN, VEHICLE_TOKENS, free_port, serve
 
@@ -268,5 +276,124 @@ def test_outage_with_a_single_slot_a_stored_keyframe_waits_for_the_live_ones() -
         for _ in range(3):
             service.gate.release()
         assert [a.frame_id for a in _answers(worker, 5)] == [1, 2, 102, 101, 100]
+    finally:
+        worker.close()
+
+
+class Camera:
+    """The frame source: `image` (switchable) with increasing ids, captured now."""
+
+    def __init__(self, image: np.ndarray) -> None:
+        self.image = image
+        self.frames = 0
+
+    def read(self, timeout_s: float) -> Frame:
+        time.sleep(min(timeout_s, 0.02))  # a 50 Hz camera
+        self.frames += 1
+        return Frame(self.frames, time.monotonic(), self.image)
+
+    def close(self) -> None:
+        pass
+
+
+class Frontend:
+    """No tracker runs while the search only looks: every frame's result is 'nothing tracked'."""
+
+    def feed(self, frame: Frame) -> TrackResult:
+        return TrackResult(frame.frame_id, frame.capture_time, None, 0.0, False, "idle")
+
+
+class Vehicle:
+    """The autopilot hovering on its survey mission (AUTO) 30 m up; the GCS's lines are kept."""
+
+    def __init__(self, *commands: Any) -> None:
+        self.commands_due = list(commands)
+        self.said: list[str] = []
+
+    def telemetry(self) -> Telemetry:
+        return Telemetry(
+            time.monotonic(), 47.3977, 8.5456, 30.0, mode="AUTO", mission_active=True, mission_item=3
+        )
+
+    def commands(self) -> list[Any]:
+        due, self.commands_due = self.commands_due, []
+        return due
+
+    def send_status(self, text: str, severity: int = 6) -> None:
+        self.said.append(text)
+
+    def safety_events(self) -> list[Any]:
+        return []
+
+    def __getattr__(self, name: str) -> Callable[..., None]:
+        return lambda *args, **kwargs: None  # kick, report_frame, report_backend_ok, report_tracking, ...
+
+
+def _drained(counts: dict[str, int]) -> bool:
+    return counts["sent"] == counts["stored"] and counts["analysed"] > counts["sent"]
+
+
+def looping(runner: MissionRunner, condition: Callable[[], Any]) -> Callable[[], Any]:
+    """`condition` after one more iteration of the companion's main loop."""
+
+    def after_an_iteration() -> Any:
+        runner.iterate()
+        return condition()
+
+    return after_an_iteration
+
+
+def test_outage_a_person_in_a_stored_keyframe_reaches_the_gcs_and_the_status(
+    models_dir: Path, sequences_dir: Path
+) -> None:
+    """The whole companion path with the real back-end: the survey flies over a person while the back-end
+    is down; once it is back the stored keyframes are analysed, and the person is put to the supervisor with
+    where they were and how long ago (the GCS line, the status's `awaiting`), the counts in the status."""
+    config = MissionConfig(accept_uncertain=True)  # the detector alone judges nothing: 'uncertain'
+    person = frame(sequences_dir, "uav123_person12_1", 1, size=(config.camera.width, config.camera.height))
+    app, port = _app(models_dir), free_port()
+    client = _client(port, timeout_s=10.0)
+    store = KeyframeStore(64 * 2**20, 900.0)
+    worker = BackendWorker(QueryService(client), max_in_flight=4, store=store, encode=client.encode)
+    camera, vehicle = Camera(person), Vehicle(StartMission(PROMPT, mission_id="m-outage"))
+    runner = MissionRunner(config, camera, Frontend(), vehicle, worker, keyframe_store=store)  # type: ignore[arg-type]
+    try:
+        _wait(looping(runner, lambda: store.counts().stored >= 3), "search keyframes stored")
+        assert runner.state.mode is MissionState.SEARCHING and runner.state.along_mission
+        camera.image = np.zeros_like(person)  # the survey has flown on: nobody in view now
+        with serve(app, port):
+            line = _wait(
+                looping(runner, lambda: next((s for s in vehicle.said if s.startswith("CANDIDATE")), None)),
+                "the candidate on the GCS",
+                60.0,
+            )
+            # Every stored keyframe sent and its answer taken by the loop (and the live ones since).
+            _wait(looping(runner, lambda: _drained(runner._keyframe_counts())), "the store sent and analysed")
+        assert runner.state.mode is MissionState.SEARCHING  # no track on a person long out of view
+        # The frame shows three people: each stored keyframe puts the best one not yet put to the supervisor.
+        lines = [s for s in vehicle.said if s.startswith("CANDIDATE")]
+        assert lines[0] == line and len(lines) == len(runner.state.pending)
+        for said, pending in zip(lines, runner.state.pending, strict=True):
+            match = re.fullmatch(
+                r"CANDIDATE AWAITING (\S+) at (-?[\d.]+),(-?[\d.]+); seen (\d+) s ago(;.*)?", said
+            )
+            assert match is not None, said
+            assert pending.stored and pending.candidate_id == match[1] and pending.position is not None
+            where = (round(pending.position.lat_deg, 6), round(pending.position.lon_deg, 6))
+            assert (float(match[2]), float(match[3])) == where
+            assert pending.position_s < runner.state.now_s and int(match[4]) >= 1
+        status = runner._status()
+        VehicleStatusIn.model_validate(status)  # the back-end's own schema takes it
+        shown = runner.state.pending[-1]
+        assert shown.position is not None
+        awaiting = status["awaiting"]
+        assert (
+            awaiting["candidate_id"] == shown.candidate_id and awaiting["crop_jpeg_b64"]
+        )  # from its keyframe
+        assert awaiting["position"] == [shown.position.lat_deg, shown.position.lon_deg]
+        age = runner.state.now_s - shown.position_s
+        assert abs(time.time() - age - awaiting["seen_at"]) < 1.0
+        counts = status["keyframes"]
+        assert counts["stored"] >= 3 and _drained(counts) and counts["waiting"] == counts["dropped"] == 0
     finally:
         worker.close()
