@@ -15,6 +15,7 @@ from typing import Literal
 from pydantic import Field, field_validator, model_validator
 
 from cloudtrack.config_files import ConfigSection, default_config_files, load_config
+from cloudtrack.cursor_on_target import check_url
 
 ENV_PREFIX = "CLOUDTRACK_BACKEND_"
 CONFIG_FILE_NAME = "backend.toml"  # looked up in /etc/cloudtrack/ and $XDG_CONFIG_HOME/cloudtrack/
@@ -201,7 +202,7 @@ class TakConfig(ConfigSection):
     def _scheme(cls, value: str) -> str:
         if value and not value.startswith(("tcp://", "udp://", "tls://")):
             raise ValueError("tak.url must start with tcp://, udp:// or tls:// (e.g. tcp://tak.local:8087)")
-        return value
+        return check_url(value) if value else value  # a port 0 or over 65535, a host that is no address
 
 
 class BackendConfig(ConfigSection):

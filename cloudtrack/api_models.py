@@ -20,6 +20,8 @@ from pydantic import (
     model_validator,
 )
 
+from cloudtrack.plain_text import without_controls
+
 IDENTIFIER = r"^[A-Za-z0-9_.-]{1,64}$"
 ID_FIELD = Field(pattern=IDENTIFIER, description="letters, digits, '_', '.', '-'; 1-64 characters")
 # Candidate ids become path segments of the supervisor page's URLs: the same safe alphabet, never '/'.
@@ -30,6 +32,11 @@ NOTE_MAX = 500  # one limit for a supervisor's note, on the API and on the page
 CROP_B64_MAX_CHARS = 400_000  # a crop in base64 (about 300 kB of JPEG); the route body limits follow it
 ALIKE_MAX = 1000  # others alike a candidate, as a status says it (a detect answer has at most a few dozen)
 PIXELS_MAX = 100_000  # no coordinate in pixels lies further out than this
+
+
+# Text a vehicle, a verifier or an operator wrote: control characters (those XML 1.0 forbids among them) are
+# stripped on the way in, so nothing the back-end stores or exports (page, KML, Cursor-on-Target) holds one.
+PlainText = Annotated[str, AfterValidator(without_controls)]
 
 
 class ApiModel(BaseModel):
@@ -63,10 +70,10 @@ class DetectMeta(ApiModel):
 
     vehicle_id: str = ID_FIELD
     mission_id: str = ID_FIELD
-    prompt: str = Field(
+    prompt: PlainText = Field(
         min_length=1, max_length=500, description='full description, e.g. "an injured man in a gray shirt"'
     )
-    superset: str | None = Field(
+    superset: PlainText | None = Field(
         None,
         min_length=1,
         max_length=64,
@@ -106,8 +113,8 @@ class DetectMeta(ApiModel):
 class PromptCheck(ApiModel):
     """`POST /v1/prompts/check`: would the back-end search for this prompt?"""
 
-    prompt: str = Field(min_length=1, max_length=500)
-    superset: str | None = Field(None, min_length=1, max_length=64)
+    prompt: PlainText = Field(min_length=1, max_length=500)
+    superset: PlainText | None = Field(None, min_length=1, max_length=64)
 
 
 class PromptCheckAnswer(ApiModel):
@@ -126,9 +133,9 @@ class Candidate(ApiModel):
         "a new track starts on it",
     )
     score: float = Field(description="detector confidence 0-1")
-    label: str = Field(description="detector class")
+    label: PlainText = Field(description="detector class")
     verdict: Literal["yes", "no", "uncertain"]
-    justification: str
+    justification: PlainText
     judged: bool = Field(
         True,
         description="false: nothing judged the description past the detector's class (no verifier, or it "
@@ -147,13 +154,13 @@ class Candidate(ApiModel):
         '"first in the queue") picks this candidate alone among those of its kind not ruled out, and it fits '
         'the rest of where the description places it: a search may start on it while its verdict is "uncertain"',
     )
-    unjudged: list[Annotated[str, Field(max_length=200)]] = Field(
+    unjudged: list[Annotated[PlainText, Field(max_length=200)]] = Field(
         default_factory=list,
         max_length=32,
         description='the description\'s words nothing judged for this candidate ("suv", "canopy roof", "next to '
         'the pier (the pier: not located)"): the verdict and placement hold for the rest only',
     )
-    verifier: str = Field(description='who decided: a verifier name, "none" or "rejection-memory"')
+    verifier: PlainText = Field(description='who decided: a verifier name, "none" or "rejection-memory"')
     t_verify: float
     previously_rejected: bool = Field(
         False, description="matches a candidate the supervisor rejected in this mission"
@@ -235,7 +242,7 @@ class RejectionIn(ApiModel):
         None, description="[x1, y1, x2, y2] of the candidate inside the crop; default: all of it"
     )
     position: LatLonPoint | None = Field(None, description="[lat, lon] of the candidate")
-    reason: str = Field("", max_length=500)
+    reason: PlainText = Field("", max_length=500)
 
 
 class Rejection(ApiModel):
@@ -244,7 +251,7 @@ class Rejection(ApiModel):
     vehicle_id: str
     candidate_id: str | None
     position: GeoPoint | None
-    reason: str
+    reason: PlainText
     created_at: float
 
 
@@ -252,8 +259,8 @@ class AwaitingCandidate(ApiModel):
     candidate_id: str = CANDIDATE_ID
     box: PixelBox = Field(description="[x1, y1, x2, y2] in the keyframe")
     verdict: Literal["yes", "no", "uncertain"] = "yes"
-    justification: str = Field("", max_length=2000)
-    unjudged: list[Annotated[str, Field(max_length=200)]] = Field(
+    justification: PlainText = Field("", max_length=2000)
+    unjudged: list[Annotated[PlainText, Field(max_length=200)]] = Field(
         default_factory=list,
         max_length=32,
         description="the description's words the back-end could not judge for this candidate: the supervisor "
@@ -300,8 +307,10 @@ class PodGrid(ApiModel):
     the target there had it been there, from the keyframes the back-end analysed (`cloudtrack.pod_map`).
     A north-up grid of square cells from its south-west corner; one byte a cell."""
 
-    target: str = Field(min_length=1, max_length=64, description='the target class it is for, e.g. "person"')
-    posture: str = Field(min_length=1, max_length=32, description='e.g. "standing", "lying"')
+    target: PlainText = Field(
+        min_length=1, max_length=64, description='the target class it is for, e.g. "person"'
+    )
+    posture: PlainText = Field(min_length=1, max_length=32, description='e.g. "standing", "lying"')
     target_pod: float = Field(ge=0.0, le=1.0, description="the POD the operator plans for, e.g. 0.8")
     origin: LatLonPoint = Field(description="[lat, lon] of the grid's south-west corner")
     cell_m: float = Field(ge=POD_CELL_M[0], le=POD_CELL_M[1], description="a cell's side (m)")
@@ -367,7 +376,9 @@ class SearchStatus(ApiModel):
     )
     mission_item: int | None = Field(None, ge=0, le=65535, description="the autopilot's current mission item")
     mission_items: int | None = Field(None, ge=0, le=65535, description="items in the autopilot's mission")
-    mode: str = Field("", max_length=32, description='the autopilot\'s flight mode, e.g. "AUTO", "GUIDED"')
+    mode: PlainText = Field(
+        "", max_length=32, description='the autopilot\'s flight mode, e.g. "AUTO", "GUIDED"'
+    )
     pod: PodGrid | None = Field(
         None, description="the POD map of the area (null: the companion keeps none, e.g. no detection curve)"
     )
@@ -396,8 +407,10 @@ class Find(ApiModel):
         description="Unix time the position was observed (s): a person seen well a minute before the "
         "confirmation may have moved on since; null: not known",
     )
-    prompt: str = Field("", max_length=500)
-    confirmed_by: str = Field(max_length=64, description='"supervisor page", "gcs" or the operator\'s name')
+    prompt: PlainText = Field("", max_length=500)
+    confirmed_by: PlainText = Field(
+        max_length=64, description='"supervisor page", "gcs" or the operator\'s name'
+    )
     crop_jpeg_b64: str | None = Field(
         None, max_length=CROP_B64_MAX_CHARS, description="the candidate's crop (JPEG)"
     )
@@ -424,10 +437,10 @@ class KeyframeCounts(ApiModel):
 
 class VehicleStatusIn(ApiModel):
     mission_id: str | None = Field(None, pattern=IDENTIFIER)
-    state: str = Field(
+    state: PlainText = Field(
         max_length=64, description="the companion's mission state, e.g. SEARCH, TRACK, AWAIT_SUPERVISOR"
     )
-    prompt: str | None = Field(None, max_length=500)
+    prompt: PlainText | None = Field(None, max_length=500)
     position: LatLonPoint | None = Field(None, description="[lat, lon] of the vehicle")
     altitude_m: float | None = Field(None, ge=-1000.0, le=100_000.0)
     awaiting: AwaitingCandidate | None = None
@@ -443,7 +456,7 @@ class VehicleStatusIn(ApiModel):
         description="candidates this mission dropped undecided, newest last: more awaited a decision than "
         "the vehicle keeps",
     )
-    reason: str = Field(
+    reason: PlainText = Field(
         "",
         max_length=200,
         description="why the companion is in its state: the mission's reason, a refusal, or what it waits for "
@@ -493,8 +506,8 @@ OPERATOR_MAX = 64
 class DecisionIn(ApiModel):
     candidate_id: str = CANDIDATE_ID
     action: Literal["confirm", "reject"]
-    note: str = Field("", max_length=NOTE_MAX)
-    operator: str = Field(
+    note: PlainText = Field("", max_length=NOTE_MAX)
+    operator: PlainText = Field(
         "", max_length=OPERATOR_MAX, description='who decides, e.g. "supervisor page" (default: "supervisor")'
     )
 

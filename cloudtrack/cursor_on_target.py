@@ -24,15 +24,21 @@ from __future__ import annotations
 import asyncio
 import configparser
 import contextlib
+import ipaddress
 import logging
+import re
+import socket
 import threading
 import time
 import warnings
 import xml.etree.ElementTree as ET
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from datetime import datetime, timedelta, timezone
 from typing import Any
+from urllib.parse import urlsplit
+
+from cloudtrack.plain_text import without_controls
 
 log = logging.getLogger(__name__)
 
@@ -83,8 +89,20 @@ def _pytak() -> Any:
 
 
 def find_event(find: FindReport, callsign: str = "CloudTrack", stale_s: float = 24 * 3600.0) -> bytes:
-    """The find as one CoT event (XML bytes)."""
+    """The find as one CoT event (XML bytes). Its text (the prompt, who confirmed it, the ids, the callsign)
+    was written by a vehicle or an operator: it goes in without the characters XML 1.0 forbids, so the
+    event is well-formed whatever they wrote, and as text (ElementTree escapes the markup)."""
     pytak = _pytak()
+
+    find = replace(
+        find,
+        candidate_id=without_controls(find.candidate_id),
+        prompt=without_controls(find.prompt),
+        confirmed_by=without_controls(find.confirmed_by),
+        vehicle_id=without_controls(find.vehicle_id),
+        mission_id=without_controls(find.mission_id),
+    )
+    callsign = without_controls(callsign)
 
     when = datetime.fromtimestamp(find.time, timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC")
     sigma = f"±{find.sigma_m:.1f} m" if find.sigma_m is not None else "accuracy unknown"
@@ -121,18 +139,50 @@ def parse_find_event(data: bytes) -> ET.Element:
 
 
 def check_url(url: str) -> str:
-    """`url` if it is one CotSender can use; ValueError with the allowed forms otherwise."""
-    scheme, sep, rest = url.partition("://")
-    host, _, port = rest.rpartition(":")
-    if not sep or scheme not in SCHEMES or not host or not port.isdigit():
+    """`url` if it is one CotSender can use; ValueError (one line: what is wrong, the allowed forms) otherwise.
+    Nothing is looked up: a back-end starting before its network keeps retrying (`resolve_url` checks that)."""
+    forms = "use tcp://host:port, udp://host:port or tls://host:port"
+    parts = urlsplit(url)
+    if "://" not in url or parts.scheme not in SCHEMES:
+        raise ValueError(f"not a Cursor-on-Target address: {url!r}; {forms}")
+    try:
+        port = parts.port
+    except ValueError:  # not a number, or over 65535
+        port = -1
+    if not parts.hostname or parts.username or parts.password or parts.path or parts.query or parts.fragment:
+        raise ValueError(f"not a Cursor-on-Target address: {url!r}; {forms}")
+    if port is None or not 1 <= port <= 65535:
+        raise ValueError(f"not a Cursor-on-Target address: {url!r}: the port must be 1-65535; {forms}")
+    if re.fullmatch(r"[0-9.]+", parts.hostname):
+        try:
+            ipaddress.IPv4Address(parts.hostname)
+        except ValueError:
+            raise ValueError(
+                f"not a Cursor-on-Target address: {url!r}: {parts.hostname} is no IPv4 address"
+            ) from None
+    return url
+
+
+def resolve_url(url: str) -> str:
+    """`url` once checked and its host looked up (ValueError, one line, for a host that does not resolve):
+    for a tool about to send, so that a typo is said before it runs, not as a find that never arrives."""
+    parts = urlsplit(check_url(url))
+    try:
+        socket.getaddrinfo(parts.hostname, parts.port)
+    except (OSError, UnicodeError) as exc:
         raise ValueError(
-            f"not a Cursor-on-Target address: {url!r}; use tcp://host:port, udp://host:port or tls://host:port"
-        )
+            f"cannot resolve the host of {url!r}: {getattr(exc, 'strerror', None) or exc}"
+        ) from None
     return url
 
 
 class CotSender:
-    """Sends CoT events to one endpoint from a background thread, retrying until delivered."""
+    """Sends CoT events to one endpoint from a background thread, retrying until delivered.
+
+    Delivered: written to the TCP or TLS connection the endpoint accepted (TAK answers nothing), or for UDP
+    handed to the network as a datagram, which nobody confirms (`confirms_delivery` is False). A caller
+    that wants to know tags its events (`send(event, tag)`) and takes the tags of those delivered since
+    (`take_delivered()`); `last_error` says why the others wait."""
 
     def __init__(
         self,
@@ -160,7 +210,9 @@ class CotSender:
                 }  # fmt: skip
             )
         self._retry_s = retry_s
-        self._queue: deque[bytes] = deque(maxlen=max_queued)
+        self.confirms_delivery = not url.startswith("udp://")
+        self._queue: deque[tuple[bytes, object]] = deque(maxlen=max_queued)
+        self._delivered: list[object] = []
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._lock = threading.Lock()
@@ -174,11 +226,17 @@ class CotSender:
         self._thread.start()
         return self
 
-    def send(self, event: bytes) -> None:
-        """Queue one event; returns at once."""
+    def send(self, event: bytes, tag: object = None) -> None:
+        """Queue one event; returns at once. A `tag` comes back from `take_delivered` once it went out."""
         with self._lock:
-            self._queue.append(event)
+            self._queue.append((event, tag))
         self._wake.set()
+
+    def take_delivered(self) -> list[object]:
+        """The tags of the events delivered since the last call, oldest first."""
+        with self._lock:
+            taken, self._delivered = self._delivered, []
+        return taken
 
     def pending(self) -> int:
         with self._lock:
@@ -213,11 +271,15 @@ class CotSender:
                 if writer is None:
                     _, writer = await asyncio.wait_for(pytak.protocol_factory(section), timeout=10)
                 with self._lock:
-                    event = self._queue[0]
-                await asyncio.wait_for(pytak.TXWorker(asyncio.Queue(), section, writer).send_data(event), 10)
+                    entry = self._queue[0]
+                await asyncio.wait_for(
+                    pytak.TXWorker(asyncio.Queue(), section, writer).send_data(entry[0]), 10
+                )
                 with self._lock:
-                    if self._queue and self._queue[0] is event:
+                    if self._queue and self._queue[0] is entry:
                         self._queue.popleft()
+                    if entry[1] is not None:
+                        self._delivered.append(entry[1])
                 self.sent += 1
                 self.last_error = ""
             except Exception as exc:  # refused, unreachable, TLS: keep the event, try again later

@@ -504,6 +504,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         signing_key(args)  # a key that cannot be read or parsed stops here, before any link opens
         if args.command == "start":
             encode_prompt(args.mission_id, args.superset, args.prompt)
+        if args.command == "watch":
+            watch_command.check_arguments(args)  # the TAK address and certificates, before watching
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -8,21 +8,26 @@ last status line); the 10 Hz tracking status and the numbers are never printed o
 prints every message, as before). `--until-candidate` stops once a candidate awaits the supervisor (the
 next thing to do is to decide). With `--cot-url`, each find heard is forwarded as a Cursor-on-Target
 event (`cloudtrack/cursor_on_target.py`) to ATAK devices on the ground station's own network or a TAK
-server: a site with no internet still gets the find on its map.
+server: a site with no internet still gets the find on its map. The address is checked and its host
+looked up before the link opens (`check_arguments`); a find is said "delivered" once the TCP/TLS
+connection took it, "sent, delivery not confirmed" for UDP, and `watch` exits 1 when a find heard was never
+delivered. A position off the globe (a STATUSTEXT `FOUND 999.0,-720.5 ...`) is said, not taken as a find.
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import os
 import re
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any
 
 from cloudtrack.autopilot_modes import detect_autopilot, mode_name
-from cloudtrack.cursor_on_target import CotSender, FindReport, check_url, find_event
+from cloudtrack.cursor_on_target import CotSender, FindReport, find_event, resolve_url
 from cloudtrack.mavlink_connection import mavlink
 
 REPEAT_S = 10.0
@@ -147,6 +152,10 @@ class WatchSummary:
         return []
 
     def _find(self, src: str, lat: float, lon: float, sigma: float | None, quiet: bool) -> list[str]:
+        if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
+            return [f"[{src}] not a find: {lat:g},{lon:g} is off the globe (lat -90..90, lon -180..180)"]
+        if sigma is not None and not (math.isfinite(sigma) and sigma >= 0.0):
+            sigma = None  # an accuracy that is no distance is not known
         for i, known in enumerate(self.finds):
             if _metres((known.lat, known.lon), (lat, lon)) <= SAME_FIND_M:
                 if (known.lat, known.lon, known.sigma_m) != (lat, lon, sigma):
@@ -215,21 +224,85 @@ def add_arguments(watch: argparse.ArgumentParser) -> None:
     watch.add_argument("--verbose", action="store_true", help="print every message, the 10 Hz tracking too")
     watch.add_argument(
         "--cot-url",
-        type=check_url,
         metavar="URL",
         help="forward each find heard as a Cursor-on-Target event: udp://239.2.3.1:6969 (ATAK devices on "
-        "this network), tcp://host:8087 or tls://host:8089 (a TAK server); default: none",
+        "this network), tcp://host:8087 or tls://host:8089 (a TAK server, with --tls-cert and --tls-key); "
+        "checked and its host looked up before watching; default: none",
     )
+    for flag, what in (
+        ("--tls-cert", "client certificate (PEM) a TAK server's tls:// port asks for"),
+        ("--tls-key", "the client certificate's private key (PEM)"),
+        ("--tls-ca", "CA certificate (PEM) the TAK server's certificate is checked against (default: none)"),
+    ):
+        watch.add_argument(flag, metavar="FILE", default="", help=f"with a tls:// --cot-url: the {what}")
     watch.add_argument(
         "--callsign", default="CloudTrack GCS", help="the sender's name in the event (default CloudTrack GCS)"
     )
 
 
+def check_arguments(args: argparse.Namespace) -> None:
+    """ValueError (one line) for a --cot-url or certificate that cannot work, before the link opens."""
+    tls_files = {"--tls-cert": args.tls_cert, "--tls-key": args.tls_key, "--tls-ca": args.tls_ca}
+    if not args.cot_url:
+        given = [flag for flag, path in tls_files.items() if path]
+        if given:
+            raise ValueError(f"{given[0]} is for a tls:// --cot-url, and none is given")
+        return
+    try:
+        resolve_url(args.cot_url)
+    except ValueError as exc:
+        raise ValueError(f"--cot-url: {exc}") from None
+    tls = args.cot_url.startswith("tls://")
+    if not tls:
+        given = [flag for flag, path in tls_files.items() if path]
+        if given:
+            raise ValueError(f"{given[0]} is for a tls:// --cot-url, not {args.cot_url}")
+        return
+    if not args.tls_cert or not args.tls_key:
+        raise ValueError(
+            "a tls:// --cot-url needs --tls-cert and --tls-key (the client certificate a TAK server asks for)"
+        )
+    for flag, path in tls_files.items():
+        if path and not os.access(path, os.R_OK):
+            raise ValueError(f"{flag} {path}: not a readable file")
+
+
+class _Delivery:
+    """What became of the finds sent: said once each, and which never went out."""
+
+    def __init__(self, sender: CotSender, url: str) -> None:
+        self.sender = sender
+        self.url = url
+        self.waiting: set[int] = set()
+        self._error = ""
+
+    def sent(self, number: int) -> None:
+        self.waiting.add(number)
+
+    def lines(self) -> list[str]:
+        lines = []
+        for number in self.sender.take_delivered():
+            self.waiting.discard(number)
+            if self.sender.confirms_delivery:
+                lines.append(f"[cot] find {number} delivered to {self.url}")
+            else:
+                lines.append(f"[cot] find {number} sent to {self.url}, delivery not confirmed (UDP)")
+        error = self.sender.last_error
+        if self.waiting and error and error != self._error:
+            lines.append(f"[cot] not delivered yet to {self.url}: {error}; retrying")
+        self._error = error
+        return lines
+
+
 def run_watch(session: Any, args: argparse.Namespace) -> int:
     summary = WatchSummary(session.target[0], args.every)
-    sender = CotSender(args.cot_url).start() if args.cot_url else None
+    sender = (
+        CotSender(args.cot_url, args.tls_cert, args.tls_key, args.tls_ca).start() if args.cot_url else None
+    )
+    delivery = _Delivery(sender, args.cot_url) if sender is not None else None
     deadline = time.monotonic() + args.duration if args.duration > 0 else float("inf")
     last_heartbeat = 0.0
+    result: int | None = None
     try:
         while time.monotonic() < deadline:
             if time.monotonic() - last_heartbeat >= 1.0:
@@ -247,17 +320,30 @@ def run_watch(session: Any, args: argparse.Namespace) -> int:
             for line in lines:
                 print(line, flush=True)
             for find in summary.take_changed_finds():
-                if sender is not None:
-                    sender.send(find_event(_report(find, session.target[0]), args.callsign))
-                    print(f"[cot] find {find.number} sent to {args.cot_url}", flush=True)
+                if sender is not None and delivery is not None:
+                    sender.send(find_event(_report(find, session.target[0]), args.callsign), find.number)
+                    delivery.sent(find.number)
+            for line in delivery.lines() if delivery is not None else []:
+                print(line, flush=True)
             if args.until_candidate and summary.awaiting is not None:
                 print(summary.line(), flush=True)
-                return 0
+                result = 0
+                break
     except KeyboardInterrupt:
         pass
     finally:
         if sender is not None:
             sender.close()
+    if delivery is not None:
+        for line in delivery.lines():
+            print(line, flush=True)
+        if delivery.waiting:
+            numbers = ", ".join(str(n) for n in sorted(delivery.waiting))
+            why = f": {sender.last_error}" if sender is not None and sender.last_error else ""
+            print(f"error: find {numbers} not delivered to {args.cot_url}{why}", file=sys.stderr, flush=True)
+            return 1
+    if result is not None:
+        return result
     if args.until_candidate:
         print(f"{summary.line()}; no candidate awaits the supervisor", flush=True)
         return 1

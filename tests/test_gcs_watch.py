@@ -7,13 +7,16 @@ events and a summary instead of the 10 Hz tracking status line by line, and forw
 from __future__ import annotations
 
 import math
+import re
 import socket
+import ssl
 import subprocess
 import sys
 import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
@@ -21,7 +24,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from cloudtrack.gcs_protocol import statustext_chunks
 from cloudtrack.mavlink_connection import MavlinkEndpoint
 from gcs.watch_command import WatchSummary
-from tests.test_finds_export import TakStandIn
+from tests.test_finds_export import TakStandIn, certificates  # noqa: F401 - the fixture, asked for by name
 
 TRACKING_HZ = 10.0
 
@@ -202,3 +205,106 @@ def test_watch_reads_how_old_the_finds_position_is(line: str, confirmed_by: str,
     assert find.confirmed_by == confirmed_by and find.seen_at == seen_at
     summary.feed(_statustext("FOUND 47.397830,8.545612 +-2.0m"), "FOUND 47.397830,8.545612 +-2.0m")
     assert len(summary.finds) == 1 and summary.finds[0].sigma_m == 2.0  # moved 2 m: the same find
+
+
+# Issue 44 item 7b: --cot-url checked before watching, "delivered" only when it was, no find off the globe.
+
+
+@pytest.mark.parametrize(
+    ("url", "said"),
+    [
+        ("udp://127.0.0.1:99999", "the port must be 1-65535"),
+        ("tcp://127.0.0.1:0", "the port must be 1-65535"),
+        ("tcp://no-such-host.invalid:8087", "cannot resolve the host"),
+        ("udp://256.256.256.256:6969", "256.256.256.256 is no IPv4 address"),
+        ("tcp//127.0.0.1:8087", "use tcp://host:port, udp://host:port or tls://host:port"),
+        ("tcp://127.0.0.1:8087/path", "use tcp://host:port"),
+        ("tls://127.0.0.1:8089", "needs --tls-cert and --tls-key"),
+    ],
+)
+def test_watch_refuses_a_cot_url_that_cannot_work_in_one_line_before_watching(url: str, said: str) -> None:
+    port = _free_udp_port()  # nobody talks there: the command must stop before it waits for a vehicle
+    exe = [sys.executable, "-m", "gcs.cli", "--connect", f"udpin:127.0.0.1:{port}", "--timeout", "10"]
+    done = subprocess.run([*exe, "watch", "--cot-url", url], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert done.stderr.count("\n") == 1 and done.stderr.startswith("error: "), done.stderr
+    assert said in done.stderr and "usage:" not in done.stderr, done.stderr
+    assert done.stdout == ""  # nothing watched (waiting for a vehicle would end in a timeout error instead)
+
+
+def test_watch_says_a_find_was_not_delivered_and_exits_1() -> None:
+    """No TAK server listens on the port: the find is never "sent", the reason is said, the exit is 1."""
+    port = _free_udp_port()
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        closed = probe.getsockname()[1]
+    exe = [sys.executable, "-m", "gcs.cli", "--connect", f"udpin:127.0.0.1:{port}", "--timeout", "10"]
+    with fake_vehicle(port, 5.0):
+        done = subprocess.run(
+            [*exe, "watch", "--duration", "4", "--cot-url", f"tcp://127.0.0.1:{closed}"],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+    assert done.returncode == 1, done.stdout + done.stderr
+    assert "find 1 at 47.397812,8.545612" in done.stdout
+    assert "sent" not in done.stdout and "delivered to" not in done.stdout, done.stdout
+    assert "[cot] not delivered yet to tcp://" in done.stdout, done.stdout
+    last = done.stderr.strip().splitlines()[-1]
+    assert last.startswith(f"error: find 1 not delivered to tcp://127.0.0.1:{closed}"), done.stderr
+
+
+def test_watch_delivers_a_find_over_tcp_as_a_well_formed_event_whatever_the_vehicle_wrote() -> None:
+    """Item 4 through `watch --cot-url`: control characters and markup in the vehicle's announcement."""
+    from lxml import etree
+
+    port = _free_udp_port()
+    texts = {
+        0.5: "FOUND 47.397812,8.545612 +-2.5m",
+        0.7: "FOUND: a man\x01 in a black & white <b>shirt</b> (confirmed by gcs\x0b]]>)",
+    }
+    with TakStandIn("tcp") as tak:
+        with fake_vehicle(port, 5.0, texts=texts):
+            lines = _gcs(port, "watch", "--duration", "4", "--cot-url", tak.url)
+        assert f"[cot] find 1 delivered to {tak.url}" in lines, lines
+        received = list(tak.received)
+    assert received
+    for data in received:
+        assert not re.search(b"[\x00-\x08\x0b\x0c\x0e-\x1f]", data), data
+        event = etree.fromstring(data, etree.XMLParser(recover=False))
+        assert {e.tag for e in event.iter()} <= {
+            "event",
+            "point",
+            "detail",
+            "contact",
+            "remarks",
+            "__group",
+            "track",
+        }
+    callsigns = [etree.fromstring(d).find("detail/contact").get("callsign") for d in received]
+    assert "FOUND: a man in a black & white <b>shirt</b>" in callsigns, callsigns
+
+
+def test_watch_takes_no_find_off_the_globe() -> None:
+    summary = WatchSummary(1, wall_clock=lambda: 1000.0)
+    for line in ("FOUND 999.0,-720.5 +-2.5m", "FOUND 47.0,-200.0 +-2.5m"):
+        said = summary.feed(_statustext(line), line)
+        assert any("off the globe" in s for s in said), said
+    assert summary.finds == [] and summary.take_changed_finds() == []
+
+
+def test_watch_delivers_a_find_over_tls_with_its_client_certificate(request: pytest.FixtureRequest) -> None:
+    folder: Path = request.getfixturevalue("certificates")  # made by the TAK server tests' CA
+    context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    context.load_cert_chain(folder / "server.pem", folder / "server.key")
+    context.load_verify_locations(folder / "ca.pem")
+    context.verify_mode = ssl.CERT_REQUIRED  # no client certificate, no connection
+    port = _free_udp_port()
+    with TakStandIn("tcp", tls=context) as tak:
+        url = f"tls://127.0.0.1:{tak.port}"
+        tls = ["--tls-cert", str(folder / "client.pem"), "--tls-key", str(folder / "client.key"),
+               "--tls-ca", str(folder / "ca.pem")]  # fmt: skip
+        with fake_vehicle(port, 5.0):
+            lines = _gcs(port, "watch", "--duration", "4", "--cot-url", url, *tls)
+        assert f"[cot] find 1 delivered to {url}" in lines, lines
+        assert tak.messages(1)
