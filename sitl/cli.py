@@ -9,11 +9,15 @@ import sys
 from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from cloudtrack.command_line import add_command_modules, new_parser, run
 from sitl.autopilot import PERSONALITIES
 from sitl.flight_stack import REAL_AUTOPILOTS
-from sitl.scenarios import SCENARIOS
+from sitl.scenarios import SCENARIOS, Scenario
+
+if TYPE_CHECKING:
+    from sitl.scenario_runner import RunOptions
 
 EXAMPLES = """\
 examples:
@@ -82,6 +86,20 @@ def _add_run(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         "mavlink.use_mavsdk=true to fly PX4 through MAVSDK",
     )
     run.add_argument("--seed", type=int, default=1, help="world seed (default 1)")
+    run.add_argument(
+        "--place",
+        choices=("fixed", "random"),
+        default="fixed",
+        help="the search scenario's people where the scenario puts them (fixed, default) or anywhere in the "
+        "survey area, standing or lying, seeded by the seed (random: the detector then misses as the "
+        "detection curve says and the survey is flown to its end, looking only)",
+    )
+    run.add_argument(
+        "--seeds",
+        metavar="N-M",
+        help="a batch: run the scenario once per seed (N-M or a comma list, one after another) and report "
+        "per seed and over all (with --place random: found, the POD at the person, their agreement)",
+    )
     run.add_argument("--json", type=Path, metavar="OUT", help="write the metrics JSON here")
     run.add_argument(
         "--video", type=Path, metavar="OUT.mp4", help="write the first vehicle's camera view with overlays"
@@ -95,10 +113,10 @@ def _add_run(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     )
     run.add_argument(
         "--verifier",
-        choices=("local", "none", "cascade"),
-        default="local",
-        help="back-end verifier on the rendered crops (default local person verifier; cascade: the local "
-        "one, then a VLM emulator on loopback answering --vlm-latency-s late)",
+        choices=("local", "local-hsv", "none", "cascade"),
+        help="back-end verifier on the rendered crops (default: the scenario's, the local person verifier; "
+        "with --place random local-hsv, the colour rules on the box, which judge every rendered posture and "
+        "size; cascade: the local one, then a VLM emulator on loopback answering --vlm-latency-s late)",
     )
     run.add_argument(
         "--vlm-latency-s",
@@ -124,6 +142,7 @@ def _add_run(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
 
 def _run(args: argparse.Namespace) -> int:
     from sitl.scenario_runner import RunOptions, run_scenario
+    from sitl.scenarios import placed
 
     options = RunOptions(
         autopilot=args.autopilot,
@@ -141,12 +160,18 @@ def _run(args: argparse.Namespace) -> int:
         companion_settings=tuple(args.companion_set),
         speedup=args.speedup,
     )
-    scenario = SCENARIOS[args.scenario]
+    try:
+        scenario = placed(SCENARIOS[args.scenario], args.place)
+    except ValueError as exc:
+        print(str(exc), file=sys.stderr)
+        return 2
     if args.supervisor_delay_s is not None:
         if not 0.0 <= args.supervisor_delay_s <= 600.0:
             print(f"--supervisor-delay-s must be 0-600 s, not {args.supervisor_delay_s:g}", file=sys.stderr)
             return 2
         scenario = replace(scenario, supervisor_delay_s=args.supervisor_delay_s)
+    if args.seeds is not None:
+        return _run_batch(args, scenario, options)
     try:
         results = run_scenario(scenario, options, progress=lambda line: print(line, flush=True))
     except (RuntimeError, OSError) as exc:
@@ -172,6 +197,39 @@ def _run(args: argparse.Namespace) -> int:
         if path is not None:
             print(f"  {label}: {path}")
     return 0 if results["outcome"] == "pass" else 1
+
+
+def _run_batch(args: argparse.Namespace, scenario: Scenario, options: RunOptions) -> int:
+    """`run --seeds`: one run per seed, one after another; the batch's JSON (runs, totals, each result)."""
+    from sitl.pod_batch import format_totals, parse_seeds, run_batch
+    from sitl.scenario_runner import run_scenario
+
+    try:
+        seeds = parse_seeds(args.seeds)
+    except ValueError as exc:
+        print(str(exc), file=sys.stderr)
+        return 2
+    if args.video is not None or args.plot is not None:
+        print("--video and --plot take one run: give --seed, not --seeds", file=sys.stderr)
+        return 2
+
+    def one(seed: int) -> dict[str, Any]:
+        work = None if options.work_dir is None else options.work_dir / f"seed-{seed}"
+        quiet = replace(options, seed=seed, json_out=None, work_dir=work)
+        return run_scenario(scenario, quiet, progress=lambda line: None)
+
+    print(
+        f"{scenario.name} (place {scenario.place}) over seeds {args.seeds}: one run after another", flush=True
+    )
+    batch = run_batch(one, seeds, progress=lambda line: print(line, flush=True))
+    verifier = options.verifier or scenario.verifier
+    batch = {"scenario": scenario.name, "place": scenario.place, "verifier": verifier, **batch}
+    print(format_totals(batch["totals"]))
+    if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(batch, indent=2))
+        print(f"  batch: {args.json}")
+    return 0 if all(line["outcome"] == "pass" for line in batch["runs"]) else 1
 
 
 def _list(args: argparse.Namespace) -> int:

@@ -28,7 +28,7 @@ import tempfile
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 from itertools import pairwise
 from pathlib import Path
@@ -83,6 +83,9 @@ FOUND_TEXT = re.compile(r"FOUND (-?\d+\.\d+),(-?\d+\.\d+) \+-(\d+(?:\.\d+)?)m") 
 GUID_TIMEOUT_S = 1.0  # what docs/operations.md recommends; the mock and the real SITL both run with it
 FLOOD_SENDERS = 200
 FLY_TO_OFFSET_M = (0.0, 15.0)  # the GCS "fly to" target, from where the vehicle is (north, east)
+# After the survey's end: the last keyframes' answers, the status laying them and a decision on a candidate
+# seen at the end (the supervisor's 1 s) still come in.
+SURVEY_END_GRACE_S = 5.0
 
 Progress = Callable[[str], None]
 
@@ -97,7 +100,7 @@ class RunOptions:
     tracker: str | None = None  # None: nano when its weights are installed, else csrt (no download)
     model_dir: Path | None = None
     work_dir: Path | None = None
-    verifier: str = "local"
+    verifier: str | None = None  # None: the scenario's (`Scenario.verifier`)
     # With verifier "vlm" or "cascade": an OpenAI-protocol emulator on loopback stands in for the hosted
     # VLM and answers this many seconds after each request.
     vlm_latency_s: float = 2.0
@@ -194,6 +197,7 @@ class ScenarioRun:
         self.camera = CameraModel.from_hfov(640, 480, 70.0, MOUNT_PITCH_DEG, stabilised=True)
         self.model_dir = resolve_model_dir(options.model_dir)
         self.tracker = options.tracker or default_tracker(self.model_dir)
+        self.verifier = options.verifier or scenario.verifier
         self.flight_stack: Path | None = None  # the real autopilot's binary or package
         self.shared = options.flight_stack
         if self.shared is not None:
@@ -215,6 +219,7 @@ class ScenarioRun:
         self.video: VideoWriter | None = None
         self.tokens = {f"drone-{i + 1}": secrets.token_hex(16) for i in range(scenario.vehicles)}
         self._backend: Any = None
+        self.detector: SimulatedPersonDetector | None = None
         self._vlm: Any = None
         self._t_mission: float | None = None
         self._flood_threads: list[Any] = []
@@ -248,21 +253,31 @@ class ScenarioRun:
         from backend_tools.vlm_emulator import VlmEmulator
 
         vlm = VlmConfig()
-        if self.options.verifier in ("vlm", "cascade"):
+        kind = self.verifier
+        if kind in ("vlm", "cascade"):
             self._vlm = VlmEmulator(latency_s=self.options.vlm_latency_s).start()
             vlm = VlmConfig(base_url=self._vlm.base_url)
         config = BackendConfig(
             auth=AuthConfig(tokens=self.tokens, supervisor_token=self._supervisor_token),
-            verifier=VerifierConfig(kind=self.options.verifier),
+            verifier=VerifierConfig(kind=kind),
             vlm=vlm,
             sessions=SessionConfig(sqlite_path=":memory:"),  # each run starts with nothing remembered
         )
         # The reject scenario needs the look-alike in the first keyframe: no random misses there.
         noise = DetectorNoise(miss_rate=self.scenario.miss_rate)
-        detector = SimulatedPersonDetector(
+        if self.scenario.detector_curve:
+            from cloudtrack.detection_curves import curve_for
+
+            survey = self.scenario.survey
+            noise = replace(
+                noise,
+                curve=curve_for("person"),
+                look_range_m=survey.search_range_m if survey is not None else None,
+            )
+        self.detector = SimulatedPersonDetector(
             self._truth_lookup, self.camera.width, noise, seed=self.options.seed
         )
-        self._backend = BackgroundServer(create_app(config, detector=detector)).start()
+        self._backend = BackgroundServer(create_app(config, detector=self.detector)).start()
         return str(self._backend.url)
 
     def _start_vehicle(self, index: int, backend_url: str) -> _Vehicle:
@@ -364,6 +379,7 @@ class ScenarioRun:
             f"tracker.model_dir={self.model_dir}",
             f"behavior.standoff_m={STANDOFF_M}",
             f"recording.dir={self.work / 'records'}",
+            *self._world_settings(),
             *self.scenario.companion_settings,
             *self.options.companion_settings,
         ]
@@ -383,6 +399,12 @@ class ScenarioRun:
         env.pop("NOTIFY_SOCKET", None)
         with open(v.log_path, "wb") as log_file:
             v.process = subprocess.Popen(cmd, stdout=log_file, stderr=subprocess.STDOUT, env=env)
+
+    def _world_settings(self) -> list[str]:
+        """The companion's POD map is for the described person's posture where the world chose it (a map for
+        someone standing says nothing of finding them lying)."""
+        posture = self.world.extras.get("target_posture")
+        return [f"search.posture={posture}"] if posture else []
 
     def _companion_link(self, v: _Vehicle) -> str:
         if v.companion_udp_port is not None:
@@ -714,6 +736,10 @@ class ScenarioRun:
         if self.now() > self.scenario.max_s:
             self.say("time limit reached")
             return True
+        if self.scenario.whole_survey:
+            done = [self._survey_completed(v) for v in self.vehicles]
+            ends = [t for t in done if t is not None]
+            return len(ends) == len(done) and self.now() >= max(ends) + SURVEY_END_GRACE_S
         if not all(v.confirmations for v in self.vehicles):
             return False
         if len(self.faults_done) < len(self.scenario.faults):
@@ -850,6 +876,11 @@ class ScenarioRun:
         time.sleep(0.5)  # the companion's telemetry shows the mission flying before the mission starts
         self.progress(f"{v.vehicle_id}: the pilot switched to {mode}: flying the survey")
 
+    def _survey_completed(self, v: _Vehicle) -> float | None:
+        """When the autopilot reported the survey complete (scenario seconds); None while it has not."""
+        at = v.gcs.mission_complete_at
+        return None if at is None or self.epoch is None or at < self.epoch else at - self.epoch
+
     def _mode_number(self, v: _Vehicle, name: str) -> int:
         """HEARTBEAT.custom_mode of a mode, as the GCS sees it."""
         return int(v.autopilot.custom_mode(name)) if self.real else _custom_mode(self.personality, name)
@@ -910,6 +941,7 @@ class ScenarioRun:
         """Time to find, coverage and the find's position error at the find, the mission's break-offs and
         resumes, and what the companion sent the autopilot during the search."""
         out: dict[str, Any] = {"survey": v.survey, "mission_breaks": self._mission_breaks(v)}
+        out["found"] = confirm_t is not None
         out["time_to_find_s"] = None if confirm_t is None else round(confirm_t, 2)
         sighted = [t for t, pid in v.proposals if pid == self.world.target_id]
         out["time_to_first_sighting_s"] = round(sighted[0], 2) if sighted else None
@@ -943,6 +975,8 @@ class ScenarioRun:
                 sn, se, _ = person.state_at(max(0.0, confirm_t - age))
                 out["find"]["seen_before_confirm_s"] = round(age, 2)
                 out["geolocation_error_at_seen_m"] = round(math.hypot(north - sn, east - se), 2)
+        out["survey_completed_s"] = self._survey_completed(v)
+        out.update(self._pod_metrics(v))
         commands = getattr(v.autopilot, "commands", None)
         if commands is not None:
             epoch = self.epoch or 0.0
@@ -951,6 +985,58 @@ class ScenarioRun:
             ]
             modes = [c for c in list(commands) if c[1] == "companion" and c[2] == 176 and c[0] >= epoch]
             out["companion_commands"] = {"setpoints": len(setpoints), "mode_commands": len(modes)}
+        return out
+
+    def _pod_metrics(self, v: _Vehicle) -> dict[str, Any]:
+        """The POD map the companion reported (`search.pod` of the statuses the back-end held): its mean, the
+        share of the area at POD >= 0.8 and the POD where the described person was, at the end and whenever
+        it changed; with the curve-driven detector, its own passes over the person (the model's POD there)."""
+        import numpy as np
+
+        from cloudtrack.pod_map import decode_grid, grid_value
+
+        person = self.world.person(self.world.target_id)
+        out: dict[str, Any] = {"pod_mean": None, "pod_share_at_0_8": None, "pod_at_target": None}
+        out["target"] = {"place": self.scenario.place, "posture": person.pose}
+        history: list[list[float]] = []
+        last: tuple[float, dict[str, Any]] | None = None
+        for t, status in v.statuses:
+            report = (status.get("search") or {}).get("pod")
+            if not report:
+                continue
+            n, e, _ = person.state_at(t)
+            value = grid_value(report, *_home((n, e)))
+            if value is not None and (not history or history[-1][1] != round(value, 4)):
+                history.append([round(t, 2), round(value, 4)])
+            last = (t, report)
+        out["pod_at_target_history"] = history
+        if last is not None:
+            t, report = last
+            grid = decode_grid(report)
+            inside = grid[~np.isnan(grid)]
+            n, e, _ = person.state_at(t)
+            at = grid_value(report, *_home((n, e)))
+            out["pod_mean"] = round(float(inside.mean()), 4)
+            out["pod_share_at_0_8"] = round(float(np.mean(inside >= 0.8 - 1e-9)), 4)
+            out["pod_at_target"] = None if at is None else round(at, 4)
+            out["pod_looks"] = report.get("looks")
+            out["pod_posture"] = report.get("posture")
+            out["target"].update(north=round(n, 2), east=round(e, 2))
+        if self.detector is not None and self.detector.noise.curve is not None:
+            passes = self.detector.passes(self.world.target_id)
+            out["detector_passes"] = [
+                {
+                    "from_s": round(x.first_s, 2),
+                    "to_s": round(x.last_s, 2),
+                    "looks": x.looks,
+                    "best_p": round(x.best, 4),
+                    "best_size_px": round(x.best_size_px, 1),
+                    "latent": round(x.latent, 4),
+                    "reported": x.reported,
+                }
+                for x in passes
+            ]
+            out["detector_pod_at_target"] = round(1.0 - math.prod(1.0 - x.best for x in passes), 4)
         return out
 
     def _log_tail(self, v: _Vehicle, lines: int = 25) -> str:
@@ -1345,7 +1431,9 @@ class ScenarioRun:
             "summary": s.summary,
             "autopilot": self.personality,
             "seed": self.options.seed,
+            "place": s.place,
             "tracker": self.tracker,
+            "verifier": self.verifier,
             "prompt": s.prompt,
             "outcome": outcome,
             "failures": failures,

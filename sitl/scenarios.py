@@ -15,14 +15,22 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 from pymavlink import mavutil
 
 from cloudtrack.mavlink_connection import use_mavlink2
 from cloudtrack.vehicle_config import SafetyConfig
-from sitl.world import SEARCH_AREA_NE, Person, World, distractor_world, search_world
+from sitl.world import (
+    SEARCH_AREA_NE,
+    Person,
+    Place,
+    World,
+    distractor_world,
+    random_search_world,
+    search_world,
+)
 
 log = logging.getLogger(__name__)
 
@@ -84,15 +92,26 @@ class Scenario:
     max_s: float = 75.0  # give up after this long since mission start
     supervisor_delay_s: float = 1.0
     miss_rate: float = 0.05  # the simulated detector's chance of missing a visible person in a keyframe
+    # Instead of miss_rate, the simulated detector misses as the shipped detection curve says (by size, one
+    # chance per pass: sitl/simulated_detector.py), within the survey's search range.
+    detector_curve: bool = False
     companion_settings: tuple[str, ...] = ()
     checks: tuple[str, ...] = field(default_factory=tuple)
     companion_listens: bool = False  # the companion's MAVLink link is udpin (the flood's target port)
     world: Literal["follow", "search", "search-beside"] = "follow"
     survey: SurveySpec | None = None  # the pilot flies this survey in AUTO before the mission starts
     allow_engage: bool = True  # the GCS's mission start lets the companion select GUIDED/OFFBOARD itself
+    place: Place = "fixed"  # the search world's people where the scenario puts them, or anywhere (random)
+    # Run until the survey is flown to its end (then a few seconds for the last keyframes' answers), found or
+    # not, rather than until the find.
+    whole_survey: bool = False
+    verifier: str = "local"  # the back-end's verifier unless the run names one (`--verifier`)
 
     def build_world(self, seed: int) -> World:
         if self.world in ("search", "search-beside"):
+            if self.place == "random":
+                assert self.survey is not None
+                return random_search_world(seed, self.survey.area_ne)
             return search_world(seed, lookalike_beside=self.world == "search-beside")
         # The turn comes after the roof, so the occlusion happens on a straight stretch.
         turn_at = 20.0 if self.occluder_at_m is None else self.occluder_at_m + 10.0
@@ -321,6 +340,41 @@ SCENARIOS: dict[str, Scenario] = {
 }
 
 
+# `--place random`: the search world's people anywhere in the area (sitl/world.py random_search_world), the
+# simulated detector missing as the detection curve says, and the survey flown to its end looking only (the
+# survey is not broken off for a candidate, so the map at the end is the whole survey's whether the person
+# was found or not: the POD at the person is comparable with the find). The survey is planned so the POD at
+# a place depends on where it lies between the lanes (docs/sitl.md).
+RANDOM_SURVEY = SurveySpec(altitude_m=15.0, search_range_m=22.0)
+RANDOM_PLACE_CHECKS = ("pod_reported", "survey_flown", "no_commands", "find_position_if_found")
+
+
+def placed(scenario: Scenario, place: Place) -> Scenario:
+    """`scenario` with the people placed as `place` says; ValueError for a scenario without the search world."""
+    if place == "fixed":
+        return scenario
+    if scenario.world != "search" or scenario.survey is None or scenario.faults:
+        raise ValueError(f"--place random places the search scenario's people, not {scenario.name}'s")
+    return replace(
+        scenario,
+        summary="the pilot flies a survey in AUTO over the search area with the people placed at random, "
+        "standing or lying; the detector misses as the detection curve says; the companion looks only, "
+        "to the survey's end",
+        place="random",
+        survey=RANDOM_SURVEY,
+        detector_curve=True,
+        allow_engage=False,
+        whole_survey=True,
+        max_s=300.0,
+        companion_settings=(f"camera.search_range_m={RANDOM_SURVEY.search_range_m}",),
+        checks=RANDOM_PLACE_CHECKS,
+        # The curve already holds the verifier's "yes" (proposed and judged yes). The pose-model verifier
+        # finds no body in most rendered people (docs/sitl.md), which would be a second miss the curve does
+        # not have; the colour rules judge every rendered posture and size the survey gives.
+        verifier="local-hsv",
+    )
+
+
 @dataclass(frozen=True)
 class VehicleOutcome:
     """What one vehicle's run produced, as the checks need it (times in scenario seconds)."""
@@ -424,6 +478,17 @@ def _search_checks(scenario: Scenario, name: str, m: dict[str, Any]) -> list[str
                 f"{name}: the find was reported {error} m from where the person was when seen, needs <= "
                 f"{FIND_MAX_ERROR_M:g} m"
             )
+    if "find_position_if_found" in scenario.checks and m.get("find") is not None:
+        error = m.get("geolocation_error_at_seen_m", m.get("geolocation_error_m"))
+        if error is None or error > FIND_MAX_ERROR_M:
+            failures.append(
+                f"{name}: the find was reported {error} m from where the person was when seen, needs <= "
+                f"{FIND_MAX_ERROR_M:g} m"
+            )
+    if "pod_reported" in scenario.checks and m.get("pod_at_target") is None:
+        failures.append(f"{name}: no POD map in the last status with one at the described person's place")
+    if "survey_flown" in scenario.checks and m.get("survey_completed_s") is None:
+        failures.append(f"{name}: the autopilot never reported the survey complete")
     if "resumed_where_left" in scenario.checks:
         episodes = m.get("mission_breaks") or []
         if not episodes:
@@ -549,6 +614,8 @@ class ScriptedGcs:
         self.estimates: deque[tuple[float, float, float, float, float]] = deque(maxlen=50_000)
         self.params: dict[str, float] = {}
         self.mission_currents: list[tuple[float, int]] = []  # (time, MISSION_CURRENT.seq)
+        # Since when MISSION_CURRENT.mission_state says COMPLETE (None while it says otherwise).
+        self.mission_complete_at: float | None = None
         self._rc: dict[int, int] = {}  # channel -> PWM the pilot's radio holds, re-sent at 10 Hz
         self._sticks: tuple[int, int, int, int] | None = None  # MANUAL_CONTROL x, y, z, r, re-sent at 10 Hz
         self._stop = threading.Event()
@@ -591,6 +658,10 @@ class ScriptedGcs:
             kind = msg.get_type()
             if kind == "MISSION_CURRENT":
                 self.mission_currents.append((now, int(msg.seq)))
+                if getattr(msg, "mission_state", 0) != mavutil.mavlink.MISSION_STATE_COMPLETE:
+                    self.mission_complete_at = None
+                elif self.mission_complete_at is None:
+                    self.mission_complete_at = now
             elif kind == "STATUSTEXT":
                 self.statustexts.append((now, str(msg.text)))
             elif kind == "COMMAND_ACK":
