@@ -34,6 +34,16 @@ def select_first_acquisition(
     return min(ranked, key=lambda pair: pair[0])[1] if ranked else None
 
 
+def may_start(
+    candidates: Sequence[Detection],
+    accept_uncertain: bool,
+    eligible: Callable[[Detection], bool] = lambda d: d.box.is_valid(),
+) -> list[Detection]:
+    """The candidates `select_first_acquisition` chooses among: what a search acts on in this answer (the
+    detection curve counts the target found where it is one of them)."""
+    return [d for _, d in _start_ranks(candidates, accept_uncertain, eligible)]
+
+
 def alike(
     candidates: Sequence[Detection],
     chosen: Detection,

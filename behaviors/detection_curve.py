@@ -5,7 +5,9 @@ target is visible, its size (sqrt(w * h) of its box in keyframe pixels, the fram
 companion downscales keyframes) and what the back-end made of it: not proposed, or proposed as a
 candidate with the verifier's verdict. A bin counts those frames; the probability of detection (POD) at a
 size is the share of its bin's frames where the target was proposed and judged the way the mission acts
-on: "yes", or also "uncertain" where the mission accepts it (`[behavior] accept_uncertain`).
+on: "yes", or also "uncertain" where the mission accepts it (`[behavior] accept_uncertain`). "yes" counts
+what the mission acts on by default (`candidate_selection.may_start`): a "yes", and an "uncertain" it
+starts on anyway (nothing in the description the verifier could judge, or singled out by its rank).
 
 Bins are half octaves of size from 8 px (a rule fixed before any data was seen, so a new data set falls
 into the same bins). A bin with fewer than `MIN_SAMPLES` frames says nothing on its own: it takes the
@@ -42,8 +44,8 @@ class CurveBin:
     hi_px: float
     samples: int = 0  # frames with the target visible
     proposed: int = 0  # ... where a candidate was the target (any verdict)
-    yes: int = 0  # ... judged "yes"
-    uncertain: int = 0  # ... judged "uncertain"
+    yes: int = 0  # ... acted on by default (judged "yes", or an "uncertain" the mission starts on anyway)
+    uncertain: int = 0  # ... judged "uncertain", acted on only with accept_uncertain
 
     def found(self, accept_uncertain: bool = False) -> int:
         return self.yes + (self.uncertain if accept_uncertain else 0)

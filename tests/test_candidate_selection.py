@@ -5,6 +5,7 @@ import pytest
 from behaviors.candidate_selection import (
     alike,
     c_box,
+    may_start,
     select_by_c_box,
     select_by_score,
     select_first_acquisition,
@@ -72,6 +73,25 @@ def test_alike_leaves_out_what_the_search_may_not_take() -> None:
     """A candidate the mission refuses (rejected, found, already awaiting) is no alternative."""
     refused = {id(YES_3)}
     assert alike([YES, YES_2, YES_3], YES_2, False, lambda d: id(d) not in refused) == 1
+
+
+@pytest.mark.parametrize(
+    ("candidates", "accept_uncertain", "acted_on"),
+    [
+        ([YES, NO, UNSURE, UNJUDGED], False, [YES, UNJUDGED]),  # what the detection curve counts as found
+        ([YES, NO, UNSURE, UNJUDGED], True, [YES, UNSURE, UNJUDGED]),
+        ([SINGLED, UNSURE], False, [SINGLED]),
+        ([NO, NO_UNJUDGED], True, []),
+    ],
+)
+def test_may_start_is_what_first_acquisition_chooses_among(
+    candidates: list[Detection], accept_uncertain: bool, acted_on: list[Detection]
+) -> None:
+    assert may_start(candidates, accept_uncertain) == acted_on
+    assert select_first_acquisition(candidates, accept_uncertain) in [
+        *acted_on,
+        *([None] if not acted_on else []),
+    ]
 
 
 def test_c_box_is_l1_of_centres_and_sizes() -> None:
