@@ -6,19 +6,35 @@ current search area and each earlier one of the mission (`area`: "current" / "ea
 
 GeoJSON positions are [lon, lat] and exterior rings run counter-clockwise (RFC 7946 section 3.1.6), so
 strict readers accept them; a ring is closed here when the vehicle sent it open.
+
+Text a vehicle or an operator wrote (the prompt, who confirmed, ids) is escaped where the KML is written,
+whatever it holds: simplekml writes an ExtendedData value as given and passes a CDATA section in a
+description through unescaped, and KML readers (Google Earth, CalTopo, ATAK) render a description as HTML.
+So a Data value is XML-escaped (read back, it is the text as stored), a description is HTML-escaped before
+simplekml XML-escapes it (the balloon shows the words, never an element or a link the vehicle wrote; an
+address in it loses its `://`, which readers turn into a link), and each find's balloon shows its
+description alone (`$[description]`), not the Data table. Control characters go in neither.
 """
 
 from __future__ import annotations
 
+import html
 import json
+import threading
 from datetime import datetime, timezone
 from typing import Any
+from xml.sax.saxutils import escape
 
 import simplekml
 
 from backend.pod_layers import geojson_features, kml_folder
 from backend.schemas import EarlierArea, MissionMap, StoredFind
 from cloudtrack.cursor_on_target import FindReport, seen_text
+from cloudtrack.plain_text import without_controls
+
+# simplekml compiles through class-level state (Kmlable._compiling, _currentroot) and patches minidom while
+# it pretty-prints: two downloads built at once on the thread pool would mix. One at a time.
+_SIMPLEKML = threading.Lock()
 
 
 def find_report(find: StoredFind) -> FindReport:
@@ -137,26 +153,48 @@ def geojson_text(finds: list[StoredFind], maps: dict[tuple[str, str], MissionMap
     return json.dumps(geojson_document(finds, maps, title), indent=1)
 
 
+def kml_data(value: object) -> str:
+    """A Data value as simplekml must be given it: no control characters, XML-escaped (it writes it as is)."""
+    return escape(without_controls("" if value is None else str(value)))
+
+
+def balloon_text(lines: list[str]) -> str:
+    """A description a KML reader shows as these lines of plain text (it renders descriptions as HTML):
+    HTML-escaped (simplekml escapes it once more for the XML, and never meets a CDATA section in it), an
+    address's `://` broken so that no reader links it, line breaks as <br>."""
+    plain = [without_controls(line).replace("://", "[:]//") for line in lines]
+    return "<br>".join(html.escape(line) for line in plain)
+
+
 def kml_text(finds: list[StoredFind], maps: dict[tuple[str, str], MissionMap], title: str) -> str:
     """The same as a KML document (Google Earth, ATAK, QGIS, Mission Planner): folders of finds, tracks and
     areas."""
-    kml = simplekml.Kml(name=title)
+    with _SIMPLEKML:
+        return _kml_text(finds, maps, title)
+
+
+def _kml_text(finds: list[StoredFind], maps: dict[tuple[str, str], MissionMap], title: str) -> str:
+    kml = simplekml.Kml(name=without_controls(title))
     folder = kml.newfolder(name="Finds")
     for find in finds:
         sigma = f"±{find.sigma_m:.1f} m" if find.sigma_m is not None else "accuracy unknown"
         point = folder.newpoint(
             name=f"FOUND {_iso(find.time)[11:16]} UTC",
             coords=[(find.position[1], find.position[0])],
-            description=(
-                f"{find.prompt}\nconfirmed by {find.confirmed_by}; {sigma}\n"
-                f"{seen_text(find.time, find.seen_at)}\n"
-                f"{find.vehicle_id}, mission {find.mission_id}, candidate {find.candidate_id}"
+            description=balloon_text(
+                [
+                    find.prompt,
+                    f"confirmed by {find.confirmed_by}; {sigma}",
+                    seen_text(find.time, find.seen_at),
+                    f"{find.vehicle_id}, mission {find.mission_id}, candidate {find.candidate_id}",
+                ]
             ),
         )
         point.timestamp.when = _iso(find.time)
         point.style.iconstyle.color = simplekml.Color.red
+        point.style.balloonstyle.text = "$[description]"  # the plain-text lines above, not the Data table
         for name, value in find_properties(find).items():
-            point.extendeddata.newdata(name=name, value="" if value is None else str(value))
+            point.extendeddata.newdata(name=name, value=kml_data(value))
     for (vehicle, mission), mission_map in maps.items():
         sub = kml.newfolder(name=f"{vehicle} mission {mission}")
         if len(mission_map.track) >= 2:

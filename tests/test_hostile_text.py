@@ -71,7 +71,15 @@ def test_hostile_cursor_on_target_event_is_well_formed_and_carries_the_text_as_t
     remarks = event.findtext("detail/remarks") or ""
     assert clean[:64] in remarks and "GCS one" in remarks
     # The vehicle's markup stays text: the event holds only the elements the sender builds.
-    assert {e.tag for e in event.iter()} <= {"event", "point", "detail", "contact", "remarks", "__group", "track"}
+    assert {e.tag for e in event.iter()} <= {
+        "event",
+        "point",
+        "detail",
+        "contact",
+        "remarks",
+        "__group",
+        "track",
+    }
 
 
 # The API strips control characters from the text fields of statuses and finds.
@@ -97,5 +105,74 @@ def test_hostile_status_and_find_text_arrive_without_control_characters(server: 
     stored = requests.get(f"{server.url}/v1/vehicles/drone-1/status", headers=auth, timeout=10).json()
     assert stored["state"] == "FOUND[31m" and stored["reason"] == "why"
     assert stored["prompt"] == "a man in red Smith & Jones"
-    assert stored["find"]["confirmed_by"] == "Smith & Jones" and stored["find"]["prompt"] == "a man in Smith & Jones"
+    assert (
+        stored["find"]["confirmed_by"] == "Smith & Jones"
+        and stored["find"]["prompt"] == "a man in Smith & Jones"
+    )
     assert stored["awaiting"]["justification"] == "red shirt" and stored["awaiting"]["unjudged"] == ["hat"]
+
+
+# Items 1 and 2: the KML download of every payload, through the API, as a rescuer's tool reads it.
+
+KML = "{http://www.opengis.net/kml/2.2}"
+SUPERVISOR_AUTH = {"Authorization": "Bearer token-supervisor"}
+
+
+def _report_find(
+    server: BackgroundServer, vehicle: str, mission: str, candidate: str, prompt: str, by: str
+) -> requests.Response:
+    find = {"candidate_id": candidate, "position": [47.4, 8.5], "sigma_m": 2.0, "time": 1732200000.0,
+            "prompt": prompt, "confirmed_by": by}  # fmt: skip
+    status = {"mission_id": mission, "state": "CONFIRMED", "prompt": prompt, "find": find}
+    answer = requests.post(
+        f"{server.url}/v1/vehicles/{vehicle}/status",
+        json=status,
+        headers={"Authorization": f"Bearer {TOKENS[vehicle]}"},
+        timeout=10,
+    )
+    return answer
+
+
+def _html_elements(text: str) -> list[str]:
+    """The elements a KML reader's HTML balloon would make of a description."""
+    from lxml import html
+
+    return [e.tag for e in html.fragment_fromstring(text, create_parent="div").iter() if e.tag != "div"]
+
+
+@pytest.mark.parametrize("text", PAYLOADS.values(), ids=PAYLOADS.keys())
+def test_hostile_kml_of_any_text_parses_and_carries_it_as_text(server: BackgroundServer, text: str) -> None:
+    mission = f"kml-{abs(hash(text)) % 10**8}"
+    answer = _report_find(server, "drone-1", mission, "c-1", text, (text + " & Jones")[:64])
+    if "\ud800" in text:  # no JSON text can hold a lone surrogate: refused, naming the fields
+        assert answer.status_code == 422 and "find" in answer.text and "string_unicode" in answer.text
+        text = FORBIDDEN.sub("", text)
+        answer = _report_find(server, "drone-1", mission, "c-1", text, (text + " & Jones")[:64])
+    assert answer.status_code == 200, answer.text[:300]
+    other = _report_find(server, "drone-2", mission, "c-2", "a woman in a red jacket", "gcs")
+    assert other.status_code == 200  # another vehicle's find of the same mission id
+    answer = requests.get(
+        f"{server.url}/v1/missions/{mission}/finds.kml", headers=SUPERVISOR_AUTH, timeout=30
+    )
+    assert answer.status_code == 200, answer.text[:300]
+    assert not FORBIDDEN.search(answer.content.decode("utf-8"))
+    document = _strict(answer.content)
+    placemarks = {p.findtext(f"{KML}ExtendedData/{KML}Data[@name='candidate_id']/{KML}value"): p
+                  for p in document.iter(f"{KML}Placemark") if p.find(f"{KML}Point") is not None}  # fmt: skip
+    assert set(placemarks) == {"c-1", "c-2"}, set(placemarks)
+    find = placemarks["c-1"]
+    # The vehicle's words are the Data values, as text, exactly as stored (the API took the controls out).
+    clean = FORBIDDEN.sub("", text)
+    assert find.findtext(f"{KML}ExtendedData/{KML}Data[@name='prompt']/{KML}value") == clean
+    # Nothing it wrote became an element: one name (ours), one Point, no element the vehicle named.
+    assert [e.text for e in find.iter(f"{KML}name")] == [find.findtext(f"{KML}name")]
+    assert (find.findtext(f"{KML}name") or "").startswith("FOUND ")
+    assert len(list(find.iter(f"{KML}Point"))) == 1
+    assert not {etree.QName(e).localname for e in find.iter()} & {"img", "a", "FAKE"}
+    # The balloon is plain text: its description makes no HTML element but line breaks, and links no address.
+    description = find.findtext(f"{KML}description") or ""
+    assert set(_html_elements(description)) <= {"br"}, description
+    assert "://" not in description and "href" not in _html_elements(description)
+    styles = {style.get("id"): style for style in document.iter(f"{KML}Style")}
+    style = styles[(find.findtext(f"{KML}styleUrl") or "").lstrip("#")]
+    assert style.findtext(f"{KML}BalloonStyle/{KML}text") == "$[description]"

@@ -513,7 +513,7 @@ function renderFinds(card, vehicle) {
         const button = document.createElement("button");
         button.type = "button";
         button.textContent = `${kind.toUpperCase()}${missions.length > 1 ? ` ${mission}` : ""}`;
-        button.addEventListener("click", () => download(vehicle.id, mission, kind));
+        button.addEventListener("click", () => download(vehicle.id, mission, kind, card));
         downloads.appendChild(button);
       }
     }
@@ -569,10 +569,33 @@ async function loadImage(img, url, { replaces = false } = {}) {
   if (img.dataset.url === url || replaces) img.src = objectUrl;
 }
 
-async function download(vehicleId, missionId, kind) {
+async function download(vehicleId, missionId, kind, card) {
+  // A download that fails says so under the buttons (it used to do nothing at all).
+  let note = $(".download-error", card);
+  if (!note) {
+    note = document.createElement("p");
+    note.className = "download-error error";
+    note.setAttribute("role", "alert");
+    $(".downloads", card).closest("h3").after(note);
+  }
+  note.hidden = true;
+  const failed = (why) => {
+    note.textContent = `${kind.toUpperCase()} of mission ${missionId} not downloaded: ${why}`;
+    note.hidden = false;
+  };
   const url = `/v1/missions/${encodeURIComponent(missionId)}/finds.${kind}?vehicle_id=${encodeURIComponent(vehicleId)}`;
-  const response = await fetch(url, { headers: authHeaders() });
-  if (!response.ok) return;
+  let response;
+  try {
+    response = await fetch(url, { headers: authHeaders() });
+  } catch {
+    failed("the back-end did not answer");
+    return;
+  }
+  if (!response.ok) {
+    const detail = await response.json().then((body) => body.detail).catch(() => "");
+    failed(`the back-end answered ${response.status}${typeof detail === "string" && detail ? ` (${detail})` : ""}`);
+    return;
+  }
   const link = document.createElement("a");
   link.href = URL.createObjectURL(await response.blob());
   link.download = `cloudtrack-${vehicleId}-${missionId}-finds.${kind}`;
