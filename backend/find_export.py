@@ -1,8 +1,9 @@
 """A mission's finds for the rescuers' own tools: GeoJSON (RFC 7946) and KML (simplekml), each with the finds
-(points: time, when the position was seen, prompt, who confirmed, sigma), the drone's track (a line), the
-search and covered areas (polygons) and the POD map (polygons per band, `backend.pod_layers`), for the
-current search area and each earlier one of the mission (`area`: "current" / "earlier"); and a find as the
-`cloudtrack.cursor_on_target.FindReport` a TAK map takes. Building them is CPU work: off the event loop.
+(points: time, when the position was seen, prompt, who confirmed it and through what, sigma), the drone's
+track (a line), the search and covered areas (polygons) and the POD map (polygons per band,
+`backend.pod_layers`), for the current search area and each earlier one of the mission (`area`: "current" /
+"earlier"); and a find as the `cloudtrack.cursor_on_target.FindReport` a TAK map takes. Building them is CPU
+work: off the event loop.
 
 GeoJSON positions are [lon, lat] and exterior rings run counter-clockwise (RFC 7946 section 3.1.6), so
 strict readers accept them; a ring is closed here when the vehicle sent it open.
@@ -45,7 +46,7 @@ def find_report(find: StoredFind) -> FindReport:
         sigma_m=find.sigma_m,
         time=find.time,
         prompt=find.prompt,
-        confirmed_by=find.confirmed_by,
+        confirmed_by=find.decided_by or find.confirmed_by,  # who and through what (backend.sessions)
         vehicle_id=find.vehicle_id,
         mission_id=find.mission_id,
         seen_at=find.seen_at,
@@ -89,6 +90,8 @@ def find_properties(find: StoredFind) -> dict[str, Any]:
         "seen_at": _iso(find.seen_at) if find.seen_at is not None else None,
         "prompt": find.prompt,
         "confirmed_by": find.confirmed_by,
+        "decided_via": find.decided_via,
+        "decided_by": find.decided_by,
         "sigma_m": find.sigma_m,
     }
 
@@ -184,7 +187,7 @@ def _kml_text(finds: list[StoredFind], maps: dict[tuple[str, str], MissionMap], 
             description=balloon_text(
                 [
                     find.prompt,
-                    f"confirmed by {find.confirmed_by}; {sigma}",
+                    f"confirmed by {find.decided_by or find.confirmed_by}; {sigma}",
                     seen_text(find.time, find.seen_at),
                     f"{find.vehicle_id}, mission {find.mission_id}, candidate {find.candidate_id}",
                 ]

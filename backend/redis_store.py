@@ -4,7 +4,9 @@ Keys (prefix `ct:`): `mission:<v>:<m>` nothing but its place in the sorted sets 
 seen: expiry reads only the expired range) and `vmissions:<v>` (one vehicle's, for its quota);
 `cand:<v>:<m>` hash id -> float32 bytes with `candseq:<v>:<m>` ordering them; `rej:<v>:<m>` and
 `rejapp:<v>:<m>` lists of rejection records and their appearance bytes; `status` hash vehicle -> record;
-`dec:<v>` list of decisions and `decided:<v>:<m>` hash candidate -> the standing decision (first wins);
+`dec:<v>` list of decisions (the newest 1,000; `decdropped:<v>` the highest id dropped from it),
+`decided:<v>:<m>` hash candidate -> the supervisor's standing decision (first wins) and `reported:<v>:<m>`
+hash candidate -> what the vehicle reported was decided at its GCS (never standing);
 `finds:<v>:<m>` hash candidate -> find; `map:<v>:<m>` the mission's map; `keyframe:<v>` and
 `keyframemeta:<v>` the newest keyframe (expiring); `ids:rejection`, `ids:decision`, `version` counters;
 `rate:<v>:<window>`.
@@ -84,7 +86,7 @@ class RedisStore(StateStore):
             with self._redis.pipeline() as pipe:
                 pipe.zrem(self._k("missions"), raw)
                 pipe.zrem(self._k("vmissions", vehicle), mission)
-                for name in ("cand", "candseq", "rej", "rejapp", "decided", "finds", "map"):
+                for name in ("cand", "candseq", "rej", "rejapp", "decided", "reported", "finds", "map"):
                     pipe.delete(self._k(name, vehicle, mission))
                 pipe.execute()
         return len(stale)
@@ -175,16 +177,27 @@ class RedisStore(StateStore):
         created_at: float,
         source: str = "supervisor",
     ) -> tuple[Decision, bool]:
-        decided = self._k("decided", vehicle, mission or "")
+        vehicle_report = source == "vehicle"
+        decided = self._k("reported" if vehicle_report else "decided", vehicle, mission or "")
+        listed, dropped_key = self._k("dec", vehicle), self._k("decdropped", vehicle)
         # WATCH: two replicas deciding on one candidate at once; the second's EXEC fails, it reads the first's.
         with self._redis.pipeline() as pipe:
             while True:
                 try:
-                    pipe.watch(decided)
-                    standing = pipe.hget(decided, decision.candidate_id)
-                    if standing is not None:
+                    pipe.watch(decided, listed)
+                    value = pipe.hget(decided, decision.candidate_id)
+                    standing = Decision.model_validate_json(value) if value is not None else None
+                    # A vehicle's report an earlier version kept as the standing decision gives way.
+                    if standing is not None and (vehicle_report or standing.source != "vehicle"):
                         pipe.unwatch()
-                        return Decision.model_validate_json(standing), False
+                        return standing, False
+                    # The newest DECISIONS_KEPT_PER_VEHICLE stay listed; the highest id dropped is remembered.
+                    over = int(pipe.llen(listed)) + 1 - DECISIONS_KEPT_PER_VEHICLE
+                    leaving = (
+                        [Decision.model_validate_json(v) for v in pipe.lrange(listed, 0, over - 1)]
+                        if over > 0
+                        else []
+                    )
                     record = Decision(
                         decision_id=int(self._redis.incr(self._k("ids", "decision"))),
                         vehicle_id=vehicle,
@@ -193,10 +206,14 @@ class RedisStore(StateStore):
                         source=source,
                         **decision.model_dump(),
                     )
+                    highest = max((d.decision_id for d in leaving), default=0)
+                    highest = max(highest, int(pipe.get(dropped_key) or 0))
                     pipe.multi()
                     pipe.hset(decided, decision.candidate_id, record.model_dump_json())
-                    pipe.rpush(self._k("dec", vehicle), record.model_dump_json())
-                    pipe.ltrim(self._k("dec", vehicle), -DECISIONS_KEPT_PER_VEHICLE, -1)
+                    pipe.rpush(listed, record.model_dump_json())
+                    pipe.ltrim(listed, -DECISIONS_KEPT_PER_VEHICLE, -1)
+                    if highest:
+                        pipe.set(dropped_key, highest)
                     self._changed(pipe)
                     pipe.execute()
                     return record, True
@@ -205,7 +222,22 @@ class RedisStore(StateStore):
 
     def standing_decision(self, vehicle: str, mission: str | None, candidate_id: str) -> Decision | None:
         value = self._redis.hget(self._k("decided", vehicle, mission or ""), candidate_id)
+        standing = Decision.model_validate_json(value) if value is not None else None
+        return standing if standing is not None and standing.source != "vehicle" else None
+
+    def reported_decision(self, vehicle: str, mission: str | None, candidate_id: str) -> Decision | None:
+        value = self._redis.hget(self._k("reported", vehicle, mission or ""), candidate_id)
+        if value is None:  # kept as the standing decision by an earlier version
+            earlier = self._redis.hget(self._k("decided", vehicle, mission or ""), candidate_id)
+            value = (
+                earlier
+                if earlier is not None and Decision.model_validate_json(earlier).source == "vehicle"
+                else None
+            )
         return Decision.model_validate_json(value) if value is not None else None
+
+    def decisions_dropped(self, vehicle: str) -> int:
+        return int(self._redis.get(self._k("decdropped", vehicle)) or 0)
 
     def put_find(self, find: StoredFind, replace_source: str | None = None) -> tuple[StoredFind, bool]:
         key = self._k("finds", find.vehicle_id, find.mission_id)

@@ -35,6 +35,7 @@ from cloudtrack.api_models import (
     VehicleStatus,
     VehicleStatusIn,
 )
+from cloudtrack.provenance import Via
 
 ERROR_RESPONSES: dict[int | str, dict[str, Any]] = {
     status: {"model": ErrorResponse} for status in (400, 401, 403, 404, 408, 413, 415, 422, 429)
@@ -53,6 +54,16 @@ class StoredFind(Find):
     source: Literal["vehicle", "supervisor"] = Field(
         description='"vehicle": from its status (its own geolocation); "supervisor": made at the supervisor\'s '
         "confirm from the candidate's reported position, replaced once by the vehicle's own"
+    )
+    decided_via: Via | None = Field(
+        None,
+        description="who confirmed it and through what: the supervisor's standing decision on the candidate "
+        '(its "supervisor page" or "back-end API") when there is one, else "GCS via the vehicle" (the '
+        "vehicle's report); filled in when the find is read (backend.sessions)",
+    )
+    decided_by: str = Field(
+        "",
+        description='the same for a person: "supervisor page", "Ops through the back-end API (supervisor token)", ...',
     )
 
 
@@ -124,7 +135,12 @@ class CandidateView(ApiModel):
     crop_url: str | None
     crop_box: list[float] | None = None
     status: Literal["awaiting", "confirmed", "rejected"]
-    decided_by: str = ""
+    decided_by: str = Field("", description="who took the supervisor's standing decision and through what")
+    reported: str = Field(
+        "",
+        description='what the vehicle reports was decided on it at its GCS ("confirmed by "Ops" at the GCS, '
+        "as reported by drone-1\"): the vehicle's word, which leaves the supervisor's decision open",
+    )
 
 
 class KeyframeView(ApiModel):
@@ -149,6 +165,8 @@ class FindView(ApiModel):
     seen: str = ""  # the same for a person: "position as seen at 14:39:15 UTC, 45 s before the confirmation"
     prompt: str
     confirmed_by: str
+    decided_by: str = Field("", description="who confirmed it and through what (cloudtrack.provenance)")
+    decided_via: str = Field("", description='"supervisor page", "back-end API" or "GCS via the vehicle"')
     crop_url: str | None
     crop_box: list[float] | None
 

@@ -38,6 +38,7 @@ from cloudtrack.api_models import (
     VehicleStatus,
     VehicleStatusIn,
 )
+from cloudtrack.provenance import decided_via, decision_text
 
 log = logging.getLogger(__name__)
 
@@ -231,7 +232,8 @@ class SessionStore:
         awaited: AwaitingCandidate | None,
     ) -> None:
         """A find the vehicle reports; it replaces one made at the supervisor's confirm (its geolocation is
-        the vehicle's own) and records the confirm as the standing decision, once."""
+        the vehicle's own) and records the confirm as the vehicle's report, once: who confirmed it at the
+        GCS is the vehicle's word, so it never stands in the way of the supervisor's own decision."""
         known = {f.candidate_id: f for f in self.state.finds(vehicle_id, mission_id)}
         earlier = known.get(find.candidate_id)
         if earlier is not None and earlier.source == "vehicle":
@@ -264,14 +266,37 @@ class SessionStore:
         except QuotaExceededError as exc:
             log.warning("find %s not stored: %s", find.candidate_id, exc)
             return
-        if changed and self.on_find is not None:
+        if changed:
+            self._tell_find(saved)
+
+    def _tell_find(self, find: StoredFind) -> None:
+        if self.on_find is not None:
             try:
-                self.on_find(saved)
+                self.on_find(self.with_provenance(find))
             except Exception:  # telling the TAK server must never lose the find
                 log.exception("find %s stored, but not forwarded", find.candidate_id)
 
+    def with_provenance(self, find: StoredFind) -> StoredFind:
+        """The find with who confirmed it and through what (`decided_via`, `decided_by`): the supervisor's
+        standing confirm on its candidate when there is one, else the vehicle's report in the vehicle's name,
+        whatever name the vehicle gave (a supervisor's reject standing on it is said too)."""
+        vehicle = find.vehicle_id
+        standing = self.state.standing_decision(vehicle, find.mission_id, find.candidate_id)
+        if standing is not None and standing.action == "confirm":
+            via = decided_via(standing.source, standing.via)
+            text = decision_text(via, standing.operator, vehicle)
+        elif find.source == "supervisor":  # made at a supervisor's confirm that is no longer kept
+            via, text = "back-end API", decision_text("back-end API", find.confirmed_by, vehicle)
+        else:
+            via = "GCS via the vehicle"
+            text = decision_text(via, find.confirmed_by, vehicle)
+            if standing is not None:  # the supervisor rejected what the vehicle reports confirmed
+                text += f"; rejected by {decision_text(decided_via(standing.source, standing.via), standing.operator, vehicle)}"
+        return find.model_copy(update={"decided_via": via, "decided_by": text})
+
     def finds(self, vehicle_id: str, mission_id: str | None = None) -> list[StoredFind]:
-        return self.state.finds(vehicle_id, mission_id)
+        """The finds, each with who confirmed it and through what."""
+        return [self.with_provenance(f) for f in self.state.finds(vehicle_id, mission_id)]
 
     def mission_map(self, vehicle_id: str, mission_id: str) -> MissionMap | None:
         return self.state.mission_map(vehicle_id, mission_id)
@@ -319,6 +344,11 @@ class SessionStore:
         record, created = self.state.add_decision(vehicle_id, mission_id, decision, self._clock(), source)
         if not created or mission_id is None:
             return record, created
+        for find in self.state.finds(vehicle_id, mission_id):
+            if (
+                find.candidate_id == decision.candidate_id
+            ):  # the vehicle's find: now the supervisor's word too
+                self._tell_find(find)
         if decision.action == "reject":
             try:
                 self.add_rejection(
@@ -360,8 +390,9 @@ class SessionStore:
         return record, created
 
     def record_vehicle_reject(self, vehicle_id: str, mission_id: str, candidate_id: str) -> None:
-        """A reject the vehicle took from its GCS over MAVLink (it reports it as a rejection): the standing
-        decision, so a later supervisor's confirm is refused instead of contradicting the vehicle."""
+        """A reject the vehicle took from its GCS over MAVLink (it reports it as a rejection): kept as the
+        vehicle's report (the page shows it), never as the standing decision; the supervisor may still
+        decide, and the vehicle gets that decision as any other."""
         reject = DecisionIn(
             candidate_id=candidate_id, action="reject", operator="gcs", note="reported by the vehicle"
         )
@@ -370,7 +401,18 @@ class SessionStore:
     def standing_decision(
         self, vehicle_id: str, mission_id: str | None, candidate_id: str
     ) -> Decision | None:
+        """The supervisor's decision that stands on the candidate; a vehicle's report is none."""
         return self.state.standing_decision(vehicle_id, mission_id, candidate_id)
+
+    def reported_decision(
+        self, vehicle_id: str, mission_id: str | None, candidate_id: str
+    ) -> Decision | None:
+        """What the vehicle reported was decided on the candidate at its GCS."""
+        return self.state.reported_decision(vehicle_id, mission_id, candidate_id)
 
     def decisions(self, vehicle_id: str, after: int = 0) -> list[Decision]:
         return self.state.decisions(vehicle_id, after)
+
+    def decisions_dropped(self, vehicle_id: str) -> int:
+        """The highest decision_id dropped from the vehicle's list (0: none)."""
+        return self.state.decisions_dropped(vehicle_id)

@@ -99,15 +99,28 @@ class StateStore(ABC):
         created_at: float,
         source: str = "supervisor",
     ) -> tuple[Decision, bool]:
-        """The first decision on (vehicle, mission, candidate) wins: stored durably under a new decision_id
-        before returning (created: True); when one stands already, that one (created: False). Atomic
-        against concurrent callers, also across replicas."""
+        """A supervisor's decision: the first on (vehicle, mission, candidate) wins, stored durably under a
+        new decision_id before returning (created: True); when one stands already, that one (created:
+        False). A vehicle's report of a decision taken at its GCS (source "vehicle") is kept in the vehicle's
+        list and as its report on the candidate (the first report stays, created False for a repeat), never
+        as the standing decision: what a vehicle says blocks no supervisor's decision. Atomic against
+        concurrent callers, also across replicas."""
 
     @abstractmethod
-    def standing_decision(self, vehicle: str, mission: str | None, candidate_id: str) -> Decision | None: ...
+    def standing_decision(self, vehicle: str, mission: str | None, candidate_id: str) -> Decision | None:
+        """The supervisor's decision that stands on the candidate (a vehicle's report is none)."""
+
+    @abstractmethod
+    def reported_decision(self, vehicle: str, mission: str | None, candidate_id: str) -> Decision | None:
+        """What the vehicle reported was decided on the candidate at its GCS (the first report)."""
 
     @abstractmethod
     def decisions(self, vehicle: str, after: int = 0) -> list[Decision]: ...
+
+    @abstractmethod
+    def decisions_dropped(self, vehicle: str) -> int:
+        """The highest decision_id dropped from the vehicle's list (the oldest beyond
+        DECISIONS_KEPT_PER_VEHICLE go); 0 when none was. Standing decisions are kept apart and never dropped."""
 
     @abstractmethod
     def put_find(self, find: StoredFind, replace_source: str | None = None) -> tuple[StoredFind, bool]:
@@ -165,6 +178,9 @@ CREATE TABLE IF NOT EXISTS decisions (
     decision_id INTEGER PRIMARY KEY AUTOINCREMENT, vehicle TEXT NOT NULL, record TEXT NOT NULL);
 CREATE INDEX IF NOT EXISTS decisions_by_vehicle ON decisions (vehicle, decision_id);
 CREATE TABLE IF NOT EXISTS decided (
+    vehicle TEXT NOT NULL, mission TEXT NOT NULL, candidate_id TEXT NOT NULL, record TEXT NOT NULL,
+    PRIMARY KEY (vehicle, mission, candidate_id));
+CREATE TABLE IF NOT EXISTS reported (
     vehicle TEXT NOT NULL, mission TEXT NOT NULL, candidate_id TEXT NOT NULL, record TEXT NOT NULL,
     PRIMARY KEY (vehicle, mission, candidate_id));
 CREATE TABLE IF NOT EXISTS finds (
@@ -257,7 +273,15 @@ class SqliteStore(StateStore):
                 return 0
             self._db.execute("BEGIN IMMEDIATE")
             for vehicle, mission in stale:
-                for table in ("missions", "candidates", "rejections", "decided", "finds", "mission_maps"):
+                for table in (
+                    "missions",
+                    "candidates",
+                    "rejections",
+                    "decided",
+                    "reported",
+                    "finds",
+                    "mission_maps",
+                ):
                     self._db.execute(
                         f"DELETE FROM {table} WHERE vehicle = ? AND mission = ?", (vehicle, mission)
                     )
@@ -371,15 +395,18 @@ class SqliteStore(StateStore):
         source: str = "supervisor",
     ) -> tuple[Decision, bool]:
         key = (vehicle, mission or "", decision.candidate_id)
+        table = "reported" if source == "vehicle" else "decided"
         with self._lock:
             self._db.execute("BEGIN IMMEDIATE")  # the check and the insert in one write transaction
             try:
-                standing = self._db.execute(
-                    "SELECT record FROM decided WHERE vehicle = ? AND mission = ? AND candidate_id = ?", key
+                row = self._db.execute(
+                    f"SELECT record FROM {table} WHERE vehicle = ? AND mission = ? AND candidate_id = ?", key
                 ).fetchone()
-                if standing is not None:
+                standing = Decision.model_validate_json(str(row[0])) if row is not None else None
+                # A vehicle's report a store of an earlier version kept as the standing decision gives way.
+                if standing is not None and (table == "reported" or standing.source != "vehicle"):
                     self._db.execute("ROLLBACK")
-                    return Decision.model_validate_json(str(standing[0])), False
+                    return standing, False
                 cursor = self._db.execute(
                     "INSERT INTO decisions (vehicle, record) VALUES (?, '')", (vehicle,)
                 )
@@ -395,12 +422,23 @@ class SqliteStore(StateStore):
                     "UPDATE decisions SET record = ? WHERE decision_id = ?",
                     (record.model_dump_json(), record.decision_id),
                 )
-                self._db.execute("INSERT INTO decided VALUES (?, ?, ?, ?)", (*key, record.model_dump_json()))
                 self._db.execute(
-                    "DELETE FROM decisions WHERE vehicle = ? AND decision_id NOT IN "
-                    "(SELECT decision_id FROM decisions WHERE vehicle = ? ORDER BY decision_id DESC LIMIT ?)",
-                    (vehicle, vehicle, DECISIONS_KEPT_PER_VEHICLE),
+                    f"INSERT OR REPLACE INTO {table} VALUES (?, ?, ?, ?)", (*key, record.model_dump_json())
                 )
+                # The newest DECISIONS_KEPT_PER_VEHICLE stay listed; the highest id dropped is remembered.
+                dropped = self._db.execute(
+                    "SELECT decision_id FROM decisions WHERE vehicle = ? ORDER BY decision_id DESC LIMIT 1 OFFSET ?",
+                    (vehicle, DECISIONS_KEPT_PER_VEHICLE),
+                ).fetchone()
+                if dropped is not None:
+                    self._db.execute(
+                        "DELETE FROM decisions WHERE vehicle = ? AND decision_id <= ?", (vehicle, dropped[0])
+                    )
+                    self._db.execute(
+                        "INSERT INTO counters VALUES (?, ?) ON CONFLICT (name) DO UPDATE "
+                        "SET value = max(value, excluded.value)",
+                        (f"dropped:{vehicle}", dropped[0]),
+                    )
                 self._db.execute("UPDATE counters SET value = value + 1 WHERE name = 'version'")
             except BaseException:
                 self._db.execute("ROLLBACK")
@@ -408,12 +446,25 @@ class SqliteStore(StateStore):
             self._db.execute("COMMIT")
             return record, True
 
-    def standing_decision(self, vehicle: str, mission: str | None, candidate_id: str) -> Decision | None:
+    def _kept_decision(
+        self, table: str, vehicle: str, mission: str | None, candidate_id: str
+    ) -> Decision | None:
         rows = self._read(
-            "SELECT record FROM decided WHERE vehicle = ? AND mission = ? AND candidate_id = ?",
+            f"SELECT record FROM {table} WHERE vehicle = ? AND mission = ? AND candidate_id = ?",
             (vehicle, mission or "", candidate_id),
         )
         return Decision.model_validate_json(str(rows[0][0])) if rows else None
+
+    def standing_decision(self, vehicle: str, mission: str | None, candidate_id: str) -> Decision | None:
+        standing = self._kept_decision("decided", vehicle, mission, candidate_id)
+        return standing if standing is not None and standing.source != "vehicle" else None
+
+    def reported_decision(self, vehicle: str, mission: str | None, candidate_id: str) -> Decision | None:
+        reported = self._kept_decision("reported", vehicle, mission, candidate_id)
+        if reported is None:  # kept as the standing decision by an earlier version
+            earlier = self._kept_decision("decided", vehicle, mission, candidate_id)
+            reported = earlier if earlier is not None and earlier.source == "vehicle" else None
+        return reported
 
     def decisions(self, vehicle: str, after: int = 0) -> list[Decision]:
         rows = self._read(
@@ -421,6 +472,10 @@ class SqliteStore(StateStore):
             (vehicle, after),
         )
         return [Decision.model_validate_json(str(r)) for (r,) in rows]
+
+    def decisions_dropped(self, vehicle: str) -> int:
+        rows = self._read("SELECT value FROM counters WHERE name = ?", (f"dropped:{vehicle}",))
+        return int(rows[0][0]) if rows else 0
 
     def put_find(self, find: StoredFind, replace_source: str | None = None) -> tuple[StoredFind, bool]:
         key = (find.vehicle_id, find.mission_id, find.candidate_id)

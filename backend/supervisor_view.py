@@ -31,9 +31,11 @@ from backend.schemas import (
     VehicleView,
 )
 from backend.sessions import SessionStore
+from cloudtrack.api_models import Decision
 from cloudtrack.coverage import LocalFrame
 from cloudtrack.cursor_on_target import seen_text
 from cloudtrack.pod_map import BANDS
+from cloudtrack.provenance import decided_via, decision_text
 
 _STATUS = {"confirm": "confirmed", "reject": "rejected"}
 TRACK_SHOWN = 300  # points of the track the page draws (the download has them all)
@@ -50,6 +52,10 @@ def _shown(track: list[list[float]]) -> list[list[float]]:
     return [p[:2] for p in kept]
 
 
+def _decided_by(decision: Decision) -> str:
+    return decision_text(decided_via(decision.source, decision.via), decision.operator, decision.vehicle_id)
+
+
 def find_view(find: StoredFind) -> FindView:
     return FindView(
         candidate_id=find.candidate_id,
@@ -61,6 +67,8 @@ def find_view(find: StoredFind) -> FindView:
         seen=seen_text(find.time, find.seen_at),
         prompt=find.prompt,
         confirmed_by=find.confirmed_by,
+        decided_by=find.decided_by,
+        decided_via=find.decided_via or "",
         crop_url=(
             f"/supervisor/api/vehicles/{find.vehicle_id}/finds/{find.mission_id}/{find.candidate_id}/crop.jpg"
             if find.crop_jpeg_b64
@@ -170,6 +178,7 @@ class SupervisorView:
             waiting.add(key)
             first = self._first_seen.setdefault(key, min(now, status.updated_at))
             standing = self.store.standing_decision(vehicle_id, status.mission_id, awaiting.candidate_id)
+            reported = self.store.reported_decision(vehicle_id, status.mission_id, awaiting.candidate_id)
             candidates.append(
                 CandidateView(
                     id=awaiting.candidate_id,
@@ -189,7 +198,12 @@ class SupervisorView:
                     ),
                     crop_box=awaiting.crop_box,
                     status=_STATUS[standing.action] if standing else "awaiting",
-                    decided_by=(standing.operator or standing.source) if standing else "",
+                    decided_by=_decided_by(standing) if standing else "",
+                    reported=(
+                        f"{_STATUS[reported.action]} by {_decided_by(reported)}"
+                        if reported is not None
+                        else ""
+                    ),
                 )
             )
         keyframe = None

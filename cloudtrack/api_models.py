@@ -510,6 +510,11 @@ class DecisionIn(ApiModel):
     operator: PlainText = Field(
         "", max_length=OPERATOR_MAX, description='who decides, e.g. "supervisor page" (default: "supervisor")'
     )
+    via: Literal["supervisor page", "back-end API"] = Field(
+        "back-end API",
+        description='through what the supervisor decided: "supervisor page" (the page sends it) or "back-end '
+        'API" (any other client with the supervisor token); shown with every find and decision',
+    )
 
 
 class Decision(DecisionIn):
@@ -520,5 +525,6 @@ class Decision(DecisionIn):
     source: Literal["supervisor", "vehicle"] = Field(
         "supervisor",
         description='"vehicle": the vehicle reported it (a GCS decision over MAVLink, a find it confirmed); it '
-        "already acted on it and only the standing decision is recorded",
+        "already acted on it, and the report is kept as the vehicle's, never as the standing decision: the "
+        "supervisor's own decision on that candidate is still taken",
     )

@@ -358,7 +358,9 @@ def _report(find: HeardFind, system: int) -> FindReport:
         sigma_m=find.sigma_m,
         time=find.time,
         prompt=find.prompt or "person found",
-        confirmed_by=find.confirmed_by or "unknown",
+        # The vehicle's words for who confirmed it (its GCS line names the way: "supervisor page", "Ops via
+        # back-end API", "gcs"), said to be its announcement.
+        confirmed_by=f"{find.confirmed_by or 'nobody named'}, as announced by system {system} over MAVLink",
         vehicle_id=f"system-{system}",
         mission_id="mavlink",
         seen_at=find.seen_at,

@@ -193,7 +193,7 @@ def test_store_sqlite_keeps_everything_across_a_reopen(tmp_path: Path) -> None:
     first.state.put_find(_find("c2"))
     # No close(): what a SIGKILL leaves behind.
     again = SessionStore(SqliteStore(path))
-    assert again.decisions("d1") == [decision] and again.finds("d1", "m1") == [_find("c2")]
+    assert again.decisions("d1") == [decision] and again.state.finds("d1", "m1") == [_find("c2")]
     assert again.standing_decision("d1", "m1", "c1") == decision
     assert [r.candidate_id for r in again.rejections("d1", "m1")] == ["c1"]
     assert again.rejection_check("d1", "m1", None)([0.5] * 127 + [0.6]) is not None

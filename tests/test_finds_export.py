@@ -231,7 +231,9 @@ def test_kml_download_holds_finds_track_and_areas(client_factory: Any) -> None:
         (pytest.approx(x), pytest.approx(y)) for x, y in points
     ]
     assert any(
-        "confirmed by gcs" in (p.description or "") and "±2.5 m" in p.description and SEEN in p.description
+        "confirmed by the GCS operator, as reported by drone-1" in (p.description or "")
+        and "±2.5 m" in p.description
+        and SEEN in p.description
         for p in found.values()
     )
     assert len(placemarks["track"].geometry.coords) == 6
@@ -257,7 +259,7 @@ def _assert_find_event(message: Any, candidate: str = "c-17") -> None:
     )
     assert event.ce == pytest.approx(2.5)
     assert event.detail.contact.callsign == f"FOUND: {FIND['prompt']}"
-    assert "confirmed by gcs" in event.detail.xmlDetail and "drone-1" in event.detail.xmlDetail
+    assert "confirmed by the GCS operator, as reported by drone-1" in event.detail.xmlDetail
     assert SEEN in event.detail.xmlDetail  # the rescuers' map says how old the position is
 
 

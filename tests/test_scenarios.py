@@ -290,7 +290,12 @@ def test_backend_session_reports_status_and_delivers_supervisor_decisions(tmp_pa
                     f"{server.url}/v1/vehicles/drone-1/decisions",
                     headers=sup,
                     timeout=5,
-                    json={"candidate_id": candidate, "action": action, "operator": "supervisor page"},
+                    json={
+                        "candidate_id": candidate,
+                        "action": action,
+                        "operator": "supervisor page",
+                        "via": "supervisor page",
+                    },
                 )
                 assert r.status_code == 201, r.text
             commands: list[Any] = []

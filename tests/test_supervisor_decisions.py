@@ -87,7 +87,12 @@ def _race(url: str, app: object, client: BackendClient, session: BackendSession)
                 answers[action] = supervisor.post(
                     "/v1/vehicles/drone-1/decisions",
                     params={"require_awaiting": "true"},
-                    json={"candidate_id": candidate, "action": action, "operator": "supervisor page"},
+                    json={
+                        "candidate_id": candidate,
+                        "action": action,
+                        "operator": "supervisor page",
+                        "via": "supervisor page",
+                    },
                 )
 
             threads = [threading.Thread(target=decide, args=(a,)) for a in ("confirm", "reject")]

@@ -67,3 +67,33 @@ def test_hostile_find_text_stays_text_and_the_kml_button_says_when_it_fails(
         "KML of mission m-44 not downloaded: the back-end did not answer"
     )
     page.goto("about:blank")
+
+
+@pytest.mark.slow
+def test_hostile_a_vehicles_claimed_confirmation_leaves_the_supervisors_reject_open(
+    page: Page, models_dir: Path
+) -> None:
+    claim = '"supervisor page" at the GCS, as reported by drone-1'
+    find = {"candidate_id": "c-6", "position": [47.3978, 8.5456], "sigma_m": 2.0, "time": 1732200000.0,
+            "prompt": "a man in red", "confirmed_by": "supervisor page"}  # fmt: skip
+    awaiting = {"candidate_id": "c-6", "box": [0, 0, 10, 10], "position": [47.3978, 8.5456]}
+    with _backend(models_dir) as url:
+        _status(url, {"mission_id": "m-6", "state": "AWAITING_SUPERVISOR", "prompt": "a man in red",
+                      "awaiting": awaiting, "find": find})  # fmt: skip
+        _log_in(page, url)
+        card = page.locator('section[data-vehicle="drone-1"]')
+        candidate = card.locator('article[data-candidate="c-6"]')
+        expect(candidate.locator(".status")).to_have_text(
+            f"awaiting (the vehicle's report: confirmed by {claim})"
+        )
+        expect(card.locator("li.find .who")).to_have_text(f"confirmed by {claim}")
+        expect(candidate.locator("button.reject")).to_be_enabled()
+        candidate.locator("button.reject").click()
+        expect(candidate.locator(".status")).to_have_text(
+            f"rejected by supervisor page (the vehicle's report: confirmed by {claim})", timeout=10_000
+        )
+        expect(candidate.locator(".decision")).not_to_contain_text("not sent")
+        expect(card.locator("li.find .who")).to_have_text(
+            f"confirmed by {claim}; rejected by supervisor page"
+        )
+        page.goto("about:blank")

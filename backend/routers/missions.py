@@ -43,7 +43,7 @@ async def add_rejection(
     except UnknownCandidateError as exc:
         raise HTTPException(404, str(exc)) from None
     if principal.vehicle_id is not None and body.candidate_id:
-        # The vehicle's own reject (from its GCS): it stands, so the supervisor cannot contradict it later.
+        # The vehicle's own reject (from its GCS): kept as its report, shown on the page; it blocks nothing.
         await run_in_threadpool(
             sessions.record_vehicle_reject, body.vehicle_id, mission_id, body.candidate_id
         )

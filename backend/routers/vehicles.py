@@ -21,6 +21,8 @@ from backend.schemas import (
     VehicleStatus,
     VehicleStatusIn,
 )
+from backend.state_store import DECISIONS_KEPT_PER_VEHICLE
+from cloudtrack.provenance import decided_via, decision_text
 
 router = APIRouter(prefix="/v1/vehicles", tags=["sessions"])
 
@@ -81,9 +83,11 @@ def decide(
     """The supervisor confirms or rejects a candidate; the first decision on a candidate stands.
 
     201: stored (on disk, or in Redis) before the answer; a reject also enters the rejection memory, a
-    confirm is kept as a find. 200: the same decision stood already. 409: a different one stands (the
-    answer names it), also when the vehicle took it from its GCS. A crop that cannot be read only keeps a
-    reject out of the memory, never loses the decision.
+    confirm is kept as a find. 200: the same decision stood already. 409: a different one of the supervisor's
+    stands (the answer names who took it and through what). What the vehicle reports was decided at its GCS
+    is its report, never the standing decision: it refuses nothing here. `via` says through what the
+    supervisor decided ("supervisor page" from the page, "back-end API" by default). A crop that cannot be
+    read only keeps a reject out of the memory, never loses the decision.
     """
     if require_awaiting:
         current = sessions.status(vehicle_id)
@@ -107,9 +111,10 @@ def decide(
 
 
 def standing_text(decision: Decision) -> str:
-    """A refused decision's answer: the one that stands, who took it and when."""
+    """A refused decision's answer: the one that stands, who took it, through what and when."""
     when = time.strftime("%H:%M:%S UTC", time.gmtime(decision.created_at))
-    who = decision.operator or decision.source
+    via = decided_via(decision.source, decision.via)
+    who = decision_text(via, decision.operator, decision.vehicle_id)
     done = {"confirm": "confirmed", "reject": "rejected"}[decision.action]
     return (
         f"candidate {decision.candidate_id!r} was already {done} by {who} at {when} "
@@ -117,13 +122,36 @@ def standing_text(decision: Decision) -> str:
     )
 
 
-@router.get("/{vehicle_id}/decisions", response_model=list[Decision], responses=ERROR_RESPONSES)
+DROPPED_HEADER = "X-Decisions-Dropped-Through"
+
+
+@router.get(
+    "/{vehicle_id}/decisions",
+    response_model=list[Decision],
+    responses={
+        **ERROR_RESPONSES,
+        200: {
+            "description": "the decisions newer than `after`, oldest first",
+            "headers": {
+                DROPPED_HEADER: {
+                    "description": f"the highest decision_id dropped from this vehicle's list (the newest "
+                    f"{DECISIONS_KEPT_PER_VEHICLE} are kept); 0: none. An `after` below it missed decisions "
+                    "no longer listed; every standing decision still holds (a contrary one gets 409)",
+                    "schema": {"type": "integer"},
+                }
+            },
+        },
+    },
+)
 def poll_decisions(
     vehicle_id: VehicleId,
     principal: Caller,
     sessions: Sessions,
+    response: Response,
     after: Annotated[int, Query(ge=0, le=2**63 - 1, description="last decision_id already seen")] = 0,
 ) -> list[Decision]:
-    """Decisions for this vehicle newer than `after` (the companion polls this)."""
+    """Decisions for this vehicle newer than `after` (the companion polls this). The list holds the newest
+    1,000 of the vehicle; the `X-Decisions-Dropped-Through` header names the highest id dropped before them."""
     require_vehicle_access(principal, vehicle_id)
+    response.headers[DROPPED_HEADER] = str(sessions.decisions_dropped(vehicle_id))
     return sessions.decisions(vehicle_id, after)

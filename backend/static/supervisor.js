@@ -442,7 +442,10 @@ function renderCandidates(card, vehicle) {
     const verdict = $(".verdict", item);
     verdict.textContent = candidate.verdict;
     verdict.dataset.verdict = candidate.verdict;
-    $(".status", item).textContent = candidate.decided_by ? `${candidate.status} by ${candidate.decided_by}` : candidate.status;
+    // The supervisor's standing decision, and apart from it what the vehicle reports its GCS decided (its
+    // word only: it leaves the decision open here).
+    const status = candidate.decided_by ? `${candidate.status} by ${candidate.decided_by}` : candidate.status;
+    $(".status", item).textContent = candidate.reported ? `${status} (the vehicle's report: ${candidate.reported})` : status;
     item.dataset.status = candidate.status;
     $(".justification", item).textContent = candidate.justification || "(no justification)";
     const alike = candidate.alike || 0;
@@ -494,7 +497,7 @@ function renderFinds(card, vehicle) {
     $(".where", item).textContent = formatPosition(find.position, find.sigma_m);
     $(".when", item).textContent = formatTime(find.time);
     $(".seen", item).textContent = find.seen; // how old the position is, worded as on the TAK map
-    $(".who", item).textContent = `confirmed by ${find.confirmed_by}`;
+    $(".who", item).textContent = `confirmed by ${find.decided_by || find.confirmed_by}`;
     $(".what", item).textContent = `${find.prompt} (mission ${find.mission_id})`;
     showCrop(item, find.crop_url, find.crop_box);
   }
@@ -633,7 +636,7 @@ async function decide(vehicleId, candidateId, decision, item) {
   const response = await fetch(url, {
     method: "POST",
     headers: authHeaders({ "Content-Type": "application/json" }),
-    body: JSON.stringify({ candidate_id: candidateId, action: decision, operator: "supervisor page" }),
+    body: JSON.stringify({ candidate_id: candidateId, action: decision, operator: "supervisor page", via: "supervisor page" }),
   });
   if (response.ok) {
     note.textContent = `${decision} sent, waiting for the vehicle`;

@@ -20,6 +20,7 @@ from typing import Any, Protocol
 
 from behaviors.mission_commands import ConfirmCandidate, MissionCommand, RejectCandidate
 from cloudtrack.api_models import Decision
+from cloudtrack.provenance import decided_via, gcs_text
 
 log = logging.getLogger(__name__)
 
@@ -172,7 +173,8 @@ class BackendSession:
                     continue  # history, or this vehicle's own decision (from its GCS) recorded by the back-end
                 cid = d.candidate_id
                 self._commands.append(
-                    ConfirmCandidate(cid, by=d.operator or "supervisor")
+                    # The GCS line names who and through what: "supervisor page", "Ops via back-end API".
+                    ConfirmCandidate(cid, by=gcs_text(decided_via(d.source, d.via), d.operator))
                     if d.action == "confirm"
                     else RejectCandidate(cid)
                 )
