@@ -17,7 +17,9 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable
+from dataclasses import replace
 
+import numpy as np
 from pymavlink import mavutil
 
 from behaviors.camera_model import CameraModel
@@ -29,6 +31,7 @@ from sitl.world import World
 log = logging.getLogger(__name__)
 
 MSG_ATTITUDE = 30
+NO_THUMBNAIL = np.zeros((0, 0), np.uint8)
 MSG_LOCAL_POSITION_NED = 32
 
 
@@ -154,6 +157,7 @@ class CameraServer:
         clock: Callable[[], float] = time.monotonic,
         truth_frames: int = 300,
         frame_id_base: int = 0,
+        past_frames: int = 3600,
     ) -> None:
         self.renderer = Renderer(world, camera)
         self.camera = camera
@@ -164,6 +168,10 @@ class CameraServer:
         self.frame_id_base = frame_id_base  # several cameras in one world number their frames apart
         self._truth: OrderedDict[int, FrameTruth] = OrderedDict()
         self._truth_frames = truth_frames
+        # Older frames' truth without the thumbnail (only a region of a recent keyframe needs placing): a
+        # keyframe stored through a back-end outage is detected long after it was rendered.
+        self._past: OrderedDict[int, FrameTruth] = OrderedDict()
+        self._past_frames = past_frames
         self._latest: tuple[int, bytes] | None = None
         self._cond = threading.Condition()
         self._stop = threading.Event()
@@ -196,9 +204,10 @@ class CameraServer:
         return self
 
     def truth(self, frame_id: int) -> FrameTruth | None:
-        """Ground truth of a recent frame (the last `truth_frames`), None when unknown or too old."""
+        """Ground truth of a recent frame (the last `truth_frames`, then without the thumbnail the
+        `past_frames` before them), None when unknown or too old."""
         with self._cond:
-            return self._truth.get(frame_id)
+            return self._truth.get(frame_id) or self._past.get(frame_id)
 
     def _render_loop(self) -> None:
         period = 1.0 / self.fps
@@ -213,7 +222,10 @@ class CameraServer:
             with self._cond:
                 self._truth[frame_id] = record
                 while len(self._truth) > self._truth_frames:
-                    self._truth.popitem(last=False)
+                    old_id, old = self._truth.popitem(last=False)
+                    self._past[old_id] = replace(old, thumbnail=NO_THUMBNAIL)
+                while len(self._past) > self._past_frames:
+                    self._past.popitem(last=False)
                 self._latest = (frame_id, packet)
                 self._cond.notify_all()
             self.frames_rendered += 1

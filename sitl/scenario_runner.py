@@ -139,6 +139,9 @@ class _Vehicle:
     offset: int = 0
     events: list[dict[str, Any]] = field(default_factory=list)
     frames: list[_Seen] = field(default_factory=list)
+    frame_by_id: dict[int, _Seen] = field(
+        default_factory=dict
+    )  # a stored keyframe is judged on its own frame
     state: str = ""
     overlay: OverlayState = field(default_factory=OverlayState)
     decided: set[str] = field(default_factory=set)
@@ -216,6 +219,7 @@ class ScenarioRun:
         self._pauses = PauseMonitor()
         self.fault_times: dict[str, float] = {}
         self.faults_done: set[int] = set()
+        self._near_target: dict[float, float] = {}  # near_target_m -> when the lead vehicle came that near
         self.video: VideoWriter | None = None
         self.tokens = {f"drone-{i + 1}": secrets.token_hex(16) for i in range(scenario.vehicles)}
         self._backend: Any = None
@@ -268,12 +272,10 @@ class ScenarioRun:
         if self.scenario.detector_curve:
             from cloudtrack.detection_curves import curve_for
 
-            survey = self.scenario.survey
-            noise = replace(
-                noise,
-                curve=curve_for("person"),
-                look_range_m=survey.search_range_m if survey is not None else None,
-            )
+            noise = replace(noise, curve=curve_for("person"))
+        survey = self.scenario.survey
+        if self.scenario.detector_in_range and survey is not None:
+            noise = replace(noise, look_range_m=survey.search_range_m)
         self.detector = SimulatedPersonDetector(
             self._truth_lookup, self.camera.width, noise, seed=self.options.seed
         )
@@ -416,7 +418,9 @@ class ScenarioRun:
     def _on_frame(self, v: _Vehicle, frame: RenderedFrame) -> None:
         if self.epoch is None:
             return
-        v.frames.append(_Seen(frame.frame_id, frame.time_s, frame.truth, frame.pose))
+        seen = _Seen(frame.frame_id, frame.time_s, frame.truth, frame.pose)
+        v.frames.append(seen)
+        v.frame_by_id[frame.frame_id] = seen
         if self.video is not None and v.index == 0:
             # Written VIDEO_DELAY frames late, so each frame gets the box the companion tracked on it.
             v.video_queue.append((frame.frame_id, frame.time_s, frame.image))
@@ -462,9 +466,7 @@ class ScenarioRun:
             return "none"
         box = Box(*box_xywh)
         recent = v.frames[-300:]
-        frame = next((f for f in recent if f.frame_id == frame_id), None) or min(
-            recent, key=lambda f: abs(f.time_s - t_world)
-        )
+        frame = v.frame_by_id.get(frame_id) or min(recent, key=lambda f: abs(f.time_s - t_world))
         best, best_iou = "none", 0.1
         for tb in frame.truth:
             overlap = iou(box, tb.box)
@@ -530,7 +532,11 @@ class ScenarioRun:
                     # One put again out of view (left before a decision, once the one after it is decided)
                     # has no box in view: the supervisor judges it as when it was.
                     if v.state == "awaiting_supervisor" or cid not in v.judgements:
-                        pid = self._person_at(v, e.get("box"), t, self._frame_of(v, e.get("box")))
+                        # A candidate from a keyframe stored through an outage is judged on that keyframe.
+                        frame = int(e.get("keyframe_id", -1)) if e.get("stored") else -1
+                        if frame < 0:
+                            frame = self._frame_of(v, e.get("box"))
+                        pid = self._person_at(v, e.get("box"), t, frame)
                         v.judgements[cid] = ("confirm" if pid == self.world.target_id else "reject", pid)
                     action, pid = v.judgements[cid]
                     v.pending_decision = (self.now() + self.scenario.supervisor_delay_s, action, pid, cid)
@@ -593,13 +599,30 @@ class ScenarioRun:
         self.say(f"{v.vehicle_id}: supervisor {action}s {pid}")
 
     def _fault_due(self, fault: Fault) -> float:
-        """When `fault` is due in scenario seconds (infinity until its confirmation happened)."""
+        """When `fault` is due in scenario seconds (infinity until its confirmation, or its approach to the
+        described person, happened)."""
+        if fault.near_target_m is not None:
+            return self._near_target.get(fault.near_target_m, math.inf) + fault.after_confirm_s
         confirmations = self.vehicles[0].confirmations
         if len(confirmations) < fault.confirmation:
             return math.inf
         return confirmations[fault.confirmation - 1][0] + fault.after_confirm_s
 
+    def _approach(self) -> None:
+        """The first time the lead vehicle came within each fault's `near_target_m` of the described person."""
+        lead = self.vehicles[0]
+        if not lead.frames:
+            return
+        f = lead.frames[-1]
+        tn, te, _ = self.world.person(self.world.target_id).state_at(f.time_s)
+        distance = math.hypot(f.pose.north - tn, f.pose.east - te)
+        for fault in self.scenario.faults:
+            near = fault.near_target_m
+            if near is not None and near not in self._near_target and distance <= near:
+                self._near_target[near] = self.now()
+
     def _faults(self) -> None:
+        self._approach()
         for i, fault in enumerate(self.scenario.faults):
             if i in self.faults_done or self.now() < self._fault_due(fault):
                 continue
@@ -967,6 +990,9 @@ class ScenarioRun:
             person = self.world.person(self.world.target_id)
             tn, te, _ = person.state_at(confirm_t)
             out["find"] = {k: find.get(k) for k in ("candidate_id", "position", "sigma_m", "confirmed_by")}
+            stored = self._stored_candidates(v)
+            if find.get("candidate_id") in stored:  # found from a keyframe kept through an outage
+                out["find"].update(stored=True, seen_s=stored[find["candidate_id"]])
             out["geolocation_error_m"] = round(math.hypot(north - tn, east - te), 2)
             if find.get("seen_at") is not None:
                 # How old the find's position is, and its error against where the person was then: the
@@ -976,7 +1002,23 @@ class ScenarioRun:
                 out["find"]["seen_before_confirm_s"] = round(age, 2)
                 out["geolocation_error_at_seen_m"] = round(math.hypot(north - sn, east - se), 2)
         out["survey_completed_s"] = self._survey_completed(v)
+        out["keyframes"] = next(
+            (st["keyframes"] for _, st in reversed(v.statuses) if st.get("keyframes")), None
+        )
         out.update(self._pod_metrics(v))
+        down, up = self.fault_times.get("backend_down"), self.fault_times.get("backend_up")
+        if down is not None:
+            # The POD at the person through the outage (the statuses the back-end held then) and after it.
+            history = out["pod_at_target_history"]
+            before = [value for t, value in history if up is None or t <= up]
+            rise = next((t for t, value in history if value > 0.0), None)
+            out["outage"] = {
+                "down_s": round(down, 2),
+                "up_s": None if up is None else round(up, 2),
+                "pod_at_target_to_up": max(before) if before else None,
+                "pod_at_target_rose_s": rise,
+                "pod_at_target_end": out["pod_at_target"],
+            }
         commands = getattr(v.autopilot, "commands", None)
         if commands is not None:
             epoch = self.epoch or 0.0
@@ -985,6 +1027,18 @@ class ScenarioRun:
             ]
             modes = [c for c in list(commands) if c[1] == "companion" and c[2] == 176 and c[0] >= epoch]
             out["companion_commands"] = {"setpoints": len(setpoints), "mode_commands": len(modes)}
+        return out
+
+    def _stored_candidates(self, v: _Vehicle) -> dict[str, float | None]:
+        """Candidates the companion reported from keyframes stored through an outage: id -> when seen
+        (scenario seconds)."""
+        out: dict[str, float | None] = {}
+        for e in v.events:
+            if e.get("kind") == "candidate_report" and e.get("stored"):
+                seen = float(e.get("seen_s", math.nan))
+                out[str(e.get("candidate_id"))] = (
+                    round(self._world_t(seen), 2) if math.isfinite(seen) else None
+                )
         return out
 
     def _pod_metrics(self, v: _Vehicle) -> dict[str, Any]:

@@ -56,12 +56,15 @@ COASTING_FAULTS = ("takeover", "backend_down", "link_down", "abort", "stall")
 class Fault:
     """Something the scenario does to the system, `after_confirm_s` after the lead vehicle's
     `confirmation`-th confirmation (a fault that must find the companion confirmed again after an earlier
-    fault waits for that confirmation rather than for a time that a slow re-approach can overrun)."""
+    fault waits for that confirmation rather than for a time that a slow re-approach can overrun). With
+    `near_target_m` the survey times it instead: `after_confirm_s` after the lead vehicle first came within
+    that many metres (horizontally) of the described person, whatever the autopilot's speed."""
 
     kind: FaultKind
     after_confirm_s: float
     vehicle: int = 0
     confirmation: int = 1
+    near_target_m: float | None = None
 
 
 @dataclass(frozen=True)
@@ -93,8 +96,10 @@ class Scenario:
     supervisor_delay_s: float = 1.0
     miss_rate: float = 0.05  # the simulated detector's chance of missing a visible person in a keyframe
     # Instead of miss_rate, the simulated detector misses as the shipped detection curve says (by size, one
-    # chance per pass: sitl/simulated_detector.py), within the survey's search range.
+    # chance per pass: sitl/simulated_detector.py).
     detector_curve: bool = False
+    # The simulated detector reports nobody beyond the survey's search range (the range the POD map claims).
+    detector_in_range: bool = False
     companion_settings: tuple[str, ...] = ()
     checks: tuple[str, ...] = field(default_factory=tuple)
     companion_listens: bool = False  # the companion's MAVLink link is udpin (the flood's target port)
@@ -184,6 +189,13 @@ SETPOINT_RATE_HZ = (12.0, 18.0)  # streamed at [mavlink] setpoint_rate_hz = 15
 # then silence (the mode and the vehicle belong to the GCS).
 ABORT_MAX_SETPOINTS = 3
 OUTAGE_SETTINGS = ("safety.backend_lost_s=0.7", "backend.status_interval_s=0.2")
+# search-outage: the back-end goes down when the survey's first lane is this far short of the described person
+# (past the look-alike, before the person is within the 15 m search range: nothing of their place analysed
+# yet) and stays down while the lane flies over them and on to its end; the next lane passes 17 m from them,
+# out of range, so only the stored keyframes can search their place.
+SEARCH_OUTAGE_NEAR_M = 26.0
+SEARCH_OUTAGE_S = 18.0
+SEARCH_OUTAGE_MIN_S = 15.0  # the issue's bound on the outage
 LINK_DROP_SETTINGS = ("safety.heartbeat_timeout_s=0.6",)
 
 SCENARIOS: dict[str, Scenario] = {
@@ -296,6 +308,32 @@ SCENARIOS: dict[str, Scenario] = {
             checks=("confirmed_target", "rejected_never_again", "no_commands", "find_position_at_seen"),
         ),
         Scenario(
+            "search-outage",
+            "the search scenario looking only, the back-end unreachable for 18 s while the survey flies over the "
+            "described person: the keyframes are stored and sent when it answers, the POD map fills in, and the "
+            "person is found from a stored keyframe",
+            world="search",
+            survey=SurveySpec(),
+            allow_engage=False,
+            faults=(
+                Fault("backend_down", 0.0, near_target_m=SEARCH_OUTAGE_NEAR_M),
+                Fault("backend_up", SEARCH_OUTAGE_S, near_target_m=SEARCH_OUTAGE_NEAR_M),
+            ),
+            follow_s=3.0,
+            max_s=150.0,
+            miss_rate=0.0,
+            detector_in_range=True,  # no candidate from afar before the outage: the person's place unsearched
+            verifier="local-hsv",  # every rendered look at the person judged: the store, not the verifier, is tested
+            companion_settings=(f"camera.search_range_m={SurveySpec().search_range_m}",),
+            checks=(
+                "confirmed_target",
+                "find_from_stored",
+                "find_position_at_seen",
+                "outage_pod",
+                "keyframes_kept",
+            ),
+        ),
+        Scenario(
             "flood",
             "200 UDP senders hit the companion's MAVLink port mid-follow (garbage, GCS heartbeats, the "
             "autopilot's heartbeat forged in the takeover mode): it keeps following and sends them nothing",
@@ -363,6 +401,7 @@ def placed(scenario: Scenario, place: Place) -> Scenario:
         place="random",
         survey=RANDOM_SURVEY,
         detector_curve=True,
+        detector_in_range=True,
         allow_engage=False,
         whole_survey=True,
         max_s=300.0,
@@ -485,6 +524,7 @@ def _search_checks(scenario: Scenario, name: str, m: dict[str, Any]) -> list[str
                 f"{name}: the find was reported {error} m from where the person was when seen, needs <= "
                 f"{FIND_MAX_ERROR_M:g} m"
             )
+    failures += _outage_checks(scenario, name, m)
     if "pod_reported" in scenario.checks and m.get("pod_at_target") is None:
         failures.append(f"{name}: no POD map in the last status with one at the described person's place")
     if "survey_flown" in scenario.checks and m.get("survey_completed_s") is None:
@@ -507,6 +547,32 @@ def _search_checks(scenario: Scenario, name: str, m: dict[str, Any]) -> list[str
                 f"{name}: without allow-engage the companion sent {sent.get('setpoints')} setpoints and "
                 f"{sent.get('mode_commands')} mode commands during the search"
             )
+    return failures
+
+
+def _outage_checks(scenario: Scenario, name: str, m: dict[str, Any]) -> list[str]:
+    """search-outage: the place searched only by stored keyframes, found from one, nothing dropped."""
+    failures: list[str] = []
+    if "find_from_stored" in scenario.checks and not (m.get("find") or {}).get("stored"):
+        failures.append(f"{name}: the find did not come from a keyframe stored through the outage")
+    outage = m.get("outage") or {}
+    if "outage_pod" in scenario.checks:
+        down, up = outage.get("down_s"), outage.get("up_s")
+        if down is None or up is None or up - down < SEARCH_OUTAGE_MIN_S:
+            failures.append(
+                f"{name}: the back-end was down {down} to {up} s, needs >= {SEARCH_OUTAGE_MIN_S:g} s"
+            )
+        elif outage.get("pod_at_target_to_up") != 0.0:
+            failures.append(
+                f"{name}: POD {outage.get('pod_at_target_to_up')} at the person by the end of the outage, "
+                "needs 0 (nothing analysed there)"
+            )
+        elif not (m.get("pod_at_target") or 0.0) > 0.0:
+            failures.append(f"{name}: POD {m.get('pod_at_target')} at the person after the outage, needs > 0")
+    if "keyframes_kept" in scenario.checks:
+        counts = m.get("keyframes") or {}
+        if not (counts.get("stored", 0) > 0 and counts.get("sent", 0) > 0 and counts.get("dropped") == 0):
+            failures.append(f"{name}: keyframes {counts}: needs some stored and sent, none dropped")
     return failures
 
 

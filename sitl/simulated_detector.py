@@ -17,6 +17,8 @@ probability of its best look; a person not looked at for `pass_gap_s` starts a n
 look, as for the map, is a keyframe showing the person within `look_range_m` of the vehicle (the
 companion's `[camera] search_range_m`); nobody farther is reported, since the map claims nothing there.
 The latent of a pass comes from (seed, person, pass number), so a run is repeatable given its keyframes.
+`look_range_m` (either way of missing) reports nobody farther from the vehicle: with a fixed rate it keeps a
+scenario's candidates where the search range puts them (search-outage times its outage by that range).
 """
 
 from __future__ import annotations
@@ -51,7 +53,8 @@ class DetectorNoise:
     curve: DetectionCurve | None = None
     accept_uncertain: bool = False  # the curve's "found" as the companion's [behavior] accept_uncertain
     pass_gap_s: float = PASS_GAP_S
-    look_range_m: float | None = None  # None: a person anywhere in the keyframe is looked at
+    # Nobody farther from the vehicle is reported (either way of missing); None: anywhere in the keyframe.
+    look_range_m: float | None = None
 
 
 @dataclass
@@ -106,7 +109,7 @@ class SimulatedPersonDetector:
         n = self.noise
         out: list[Detection] = []
         for tb in record.truth:
-            if tb.visible < n.min_visible:
+            if tb.visible < n.min_visible or not self._in_range(tb, record):
                 continue
             if n.curve is None and (tb.box.h < n.min_height_px or rng.random() < n.miss_rate):
                 continue
@@ -133,12 +136,6 @@ class SimulatedPersonDetector:
         """Whether the curve-driven detector reports `tb` in this keyframe (see the module doc)."""
         n = self.noise
         assert n.curve is not None
-        pose = record.pose
-        if (
-            n.look_range_m is not None
-            and math.hypot(tb.north - pose.north, tb.east - pose.east) > n.look_range_m
-        ):
-            return False
         size = math.sqrt(max(0.0, tb.box.w * tb.box.h)) * scale
         p = n.curve.probability(size, n.accept_uncertain)
         t = record.time_s
@@ -159,6 +156,13 @@ class SimulatedPersonDetector:
             found = this.latent < p
             this.reported += int(found)
         return found
+
+    def _in_range(self, tb: TruthBox, record: FrameTruth) -> bool:
+        """Within `look_range_m` of the vehicle (horizontally), where the search looks."""
+        n, pose = self.noise, record.pose
+        return (
+            n.look_range_m is None or math.hypot(tb.north - pose.north, tb.east - pose.east) <= n.look_range_m
+        )
 
     def passes(self, person_id: str) -> list[Pass]:
         """The curve-driven detector's passes over a person so far (empty with a fixed miss rate)."""

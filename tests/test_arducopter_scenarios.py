@@ -59,11 +59,25 @@ def test_arducopter_search(models_dir: Path, tmp_path: Path) -> None:
     assert breaks and breaks[0]["resumed_at"] == breaks[0]["left_at"] is not None
     assert m["geolocation_error_m"] is not None and m["geolocation_error_m"] <= 3.0
     assert m["coverage_at_find"] is not None and 0.0 < m["coverage_at_find"] < 1.0
+    assert m["pod_mean"] > 0.0 and m["pod_at_target"] > 0.0  # the POD map beside coverage (issue 42)
     assert m["survey"]["output"][-1].startswith("uploaded 7 items, read back and checked")
     print(
         f"arducopter search: time to find {m['time_to_find_s']} s, coverage at the find "
         f"{m['coverage_at_find']}, geolocation error {m['geolocation_error_m']} m, break-offs {breaks}"
     )
+
+
+def test_arducopter_search_outage(models_dir: Path, tmp_path: Path) -> None:
+    """Issue 42 on the real ArduCopter: the back-end is down 18 s while the survey (AUTO) flies over the
+    described person, timed by the approach to them; the POD map there stays 0 until the stored keyframes are
+    analysed, none dropped, and the person is found from a stored keyframe within 3 m of where they were."""
+    _, m = _fly("search-outage", models_dir, tmp_path)
+    assert m["confirmed"][:1] == ["target"] and m["find"]["stored"]
+    assert m["geolocation_error_at_seen_m"] <= 3.0
+    outage = m["outage"]
+    assert outage["up_s"] - outage["down_s"] >= 15.0 and outage["pod_at_target_to_up"] == 0.0
+    assert m["pod_at_target"] > 0.0 and m["keyframes"]["dropped"] == 0 and m["keyframes"]["sent"] > 0
+    print(f"arducopter search-outage: outage {outage}, keyframes {m['keyframes']}, find {m['find']}")
 
 
 def test_arducopter_takeover_mode_change(models_dir: Path, tmp_path: Path) -> None:

@@ -174,6 +174,23 @@ def test_search_without_engage_sends_nothing(models_dir: Path, tmp_path: Path) -
     assert m["companion_commands"] == {"setpoints": 0, "mode_commands": 0}
     assert m["mission_breaks"] == []  # the autopilot flew its mission throughout
     assert m["geolocation_error_at_seen_m"] <= 3.0  # the find where the person was when seen
+    # Beside coverage, the POD map the companion reported (issue 42): the person's place was searched.
+    assert 0.0 < m["pod_mean"] <= 1.0 and 0.0 <= m["pod_share_at_0_8"] <= 1.0 and m["pod_at_target"] > 0.0
+
+
+@pytest.mark.slow
+def test_search_outage_fills_the_pod_map_from_stored_keyframes(models_dir: Path, tmp_path: Path) -> None:
+    """Issue 42: the back-end is unreachable for 18 s while the survey flies over the described person. The
+    map stays at POD 0 there through the outage (nothing analysed), the keyframes kept meanwhile are sent when
+    it answers (none dropped), the map fills in, and the person is found from a stored keyframe where they
+    were when seen. The scenario's checks hold all of it; the figures are printed."""
+    m = _run("search-outage", models_dir, tmp_path)["vehicles"]["drone-1"]
+    assert m["confirmed"][:1] == ["target"] and m["find"]["stored"]
+    outage = m["outage"]
+    assert outage["up_s"] - outage["down_s"] >= 15.0 and outage["pod_at_target_to_up"] == 0.0
+    assert outage["pod_at_target_rose_s"] > outage["up_s"] and m["pod_at_target"] > 0.0
+    assert m["keyframes"]["stored"] > 0 and m["keyframes"]["sent"] > 0 and m["keyframes"]["dropped"] == 0
+    print(f"search-outage: outage {outage}, keyframes {m['keyframes']}, find {m['find']}")
 
 
 @pytest.mark.parametrize(
@@ -208,6 +225,7 @@ def test_sim_cli_lists_scenarios_and_has_help(capsys: pytest.CaptureFixture[str]
         "abort-flyto",
         "stall",
         "flood",
+        "search-outage",
     ):
         assert name in listed
     with pytest.raises(SystemExit) as exc:
@@ -395,7 +413,18 @@ def test_sim_help_describes_every_flag(capsys: pytest.CaptureFixture[str]) -> No
     for argv, expected in (
         (["bench", "--help"], ("frames to render", "image width", "image height")),
         (["camera", "--help"], ("--world-start", "MISSION n STARTED")),
-        (["run", "--help"], ("--arducopter-binary", "--speedup", "arducopter", "px4-sitl", "--px4-package")),
+        (
+            ["run", "--help"],
+            (
+                "--arducopter-binary",
+                "--speedup",
+                "arducopter",
+                "px4-sitl",
+                "--px4-package",
+                "--place",
+                "--seeds",
+            ),
+        ),
     ):
         with pytest.raises(SystemExit):
             sim_main(argv)

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import itertools
 import math
+import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -17,6 +19,7 @@ from behaviors.detection import Verdict
 from behaviors.detection_curve import CurveBin, DetectionCurve, empty_bins
 from behaviors.geometry import Box
 from sitl.camera_render import FrameTruth, Renderer, TruthBox, VehiclePose
+from sitl.camera_server import CameraServer
 from sitl.pod_batch import parse_seeds, seed_line, totals
 from sitl.scenario_runner import MOUNT_PITCH_DEG
 from sitl.scenarios import SCENARIOS, placed
@@ -186,11 +189,32 @@ def test_curve_detector_looks_only_within_the_search_range_and_keeps_a_fixed_rat
         assert [x.looks for x in detector.passes("target")] == [1]
         hits += near_seen
     assert 0 < hits < 50
-    # Without a curve the old fixed rate: every keyframe on its own, no passes.
-    fixed = SimulatedPersonDetector(
-        {1: near}.get, noise=DetectorNoise(miss_rate=0.0, jitter_px=0.0, false_positives=0.0)
-    )
-    assert _reported(fixed, [near]) == [True] and fixed.passes("target") == []
+    # Without a curve the old fixed rate: every keyframe on its own, no passes; the range holds there too.
+    exact = DetectorNoise(miss_rate=0.0, jitter_px=0.0, false_positives=0.0)
+    fixed = SimulatedPersonDetector({1: near, 2: far}.get, noise=exact)
+    assert _reported(fixed, [near, far]) == [True, True] and fixed.passes("target") == []
+    ranged = SimulatedPersonDetector({1: near, 2: far}.get, noise=replace(exact, look_range_m=15.0))
+    assert _reported(ranged, [near, far]) == [True, False]
+
+
+def test_camera_keeps_the_truth_of_frames_older_than_an_outage_without_their_thumbnails() -> None:
+    """A keyframe stored through a back-end outage is detected long after it was rendered: its truth is
+    still there (the thumbnail, for placing a region of a recent keyframe, only for the recent ones)."""
+    server = CameraServer(
+        World(1, ()), CameraModel.from_hfov(64, 48, 70.0, -40.0), lambda: VehiclePose(0, 0, -10),
+        fps=200.0, truth_frames=10, past_frames=50,
+    ).start()  # fmt: skip
+    try:
+        deadline = time.monotonic() + 20.0
+        while server.frames_rendered < 80 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        newest = server.frames_rendered
+        recent, older, gone = server.truth(newest - 2), server.truth(newest - 30), server.truth(1)
+    finally:
+        server.stop()
+    assert recent is not None and recent.thumbnail.size > 0
+    assert older is not None and older.thumbnail.size == 0 and older.frame_id == newest - 30
+    assert gone is None  # past both bounds
 
 
 # --------------------------------------------------------------------------------- scenario and batch
@@ -205,6 +229,43 @@ def test_random_placement_is_the_search_scenario_flown_to_its_end_looking_only_w
     for name in ("follow", "search-no-engage"):
         with pytest.raises(ValueError, match="--place random"):
             placed(SCENARIOS[name], "random")
+
+
+@pytest.mark.parametrize(
+    ("change", "failed"),
+    [
+        ({}, ""),
+        ({"find": {"stored": False}}, "did not come from a keyframe stored"),
+        ({"outage": {"down_s": 10.0, "up_s": 24.0, "pod_at_target_to_up": 0.0}}, ">= 15 s"),
+        ({"outage": {"down_s": 10.0, "up_s": 28.0, "pod_at_target_to_up": 0.4}}, "needs 0"),
+        ({"pod_at_target": 0.0}, "after the outage, needs > 0"),
+        ({"keyframes": {"stored": 30, "sent": 30, "dropped": 1}}, "none dropped"),
+        ({"keyframes": {"stored": 0, "sent": 0, "dropped": 0}}, "some stored and sent"),
+    ],
+)
+def test_search_outage_checks_the_map_the_store_and_the_find(change: dict[str, object], failed: str) -> None:
+    from sitl.scenarios import _search_checks as checks
+
+    m: dict[str, object] = {
+        "find": {"stored": True},
+        "geolocation_error_at_seen_m": 0.4,
+        "outage": {"down_s": 10.0, "up_s": 28.0, "pod_at_target_to_up": 0.0},
+        "pod_at_target": 0.8,
+        "keyframes": {"analysed": 60, "stored": 30, "waiting": 0, "sent": 30, "dropped": 0},
+    }
+    failures = checks(SCENARIOS["search-outage"], "drone-1", {**m, **change})
+    assert (failures == []) if not failed else any(failed in f for f in failures), failures
+
+
+def test_search_outage_is_timed_by_the_survey_not_by_a_confirmation() -> None:
+    scenario = SCENARIOS["search-outage"]
+    down, up = scenario.faults
+    assert (down.kind, up.kind) == ("backend_down", "backend_up")
+    near = down.near_target_m
+    assert near is not None and up.near_target_m == near and up.after_confirm_s - down.after_confirm_s >= 15
+    survey = scenario.survey
+    assert survey is not None and near > survey.search_range_m  # down before the first look at the person
+    assert scenario.detector_in_range and not scenario.allow_engage
 
 
 def test_seeds_are_read_as_ranges_and_lists_and_nothing_else() -> None:
