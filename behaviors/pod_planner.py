@@ -16,8 +16,12 @@ and prints what it shows (`cloudtrack/survey_pod.py`):
   place does not choose: one pass's POD at x is the best of p(x, a0 + k v interval_s) over k, averaged over
   the phase a0.
 - The survey's N lanes run through bands of equal width across the area, as `behaviors/survey_planner.py`
-  lays them: a place is passed by every lane in reach, each pass independent, and the area's POD is the
-  mean over places across the bands. Lane ends, turns and the shape of a polygon are left to the full map.
+  lays them: a place is passed by every lane in reach, each pass independent, except near the lane ends,
+  where a lane that begins there has not looked at the ground yet (the camera looks ahead) and a lane and
+  the one it turns into look at a place within `pass_gap_s` of each other, one pass on the map
+  (`merged_share`, `area_pod`). The area's POD is the mean over places across the bands. The turns
+  themselves and the shape of a polygon are left to the full map; the model holds to it within about 0.04
+  (tests/test_survey_pod.py).
 
 Speed is bounded (`SpeedBounds`) by:
 - the keyframes: the ground under the lane is in at least one keyframe (consecutive footprints meet along
@@ -65,6 +69,8 @@ MAX_OVERLAP = 0.9  # lanes no closer than a tenth of the swath (survey_planner's
 SAMPLES_PER_BAND = 8  # places across each band the area's mean is taken over
 MAX_PHASES = 16  # keyframe phases a pass's best look is averaged over
 TIE_S = 1.0  # plans this close in time are told apart by their POD
+# Out of reach, the plan named is the fastest this close to the highest POD: the last hundredths cost the most
+CLOSE = 0.02
 
 
 class PodUnreachable(SurveyError):
@@ -143,8 +149,9 @@ def _image_motion_px_per_m(
     return scale * math.dist(*uv) / step
 
 
-def _depth_under_lane_m(camera: CameraModel, altitude_m: float, search_range_m: float) -> float:
-    """The footprint's length along the lane where it crosses the ground under the lane."""
+def ground_under_lane_m(camera: CameraModel, altitude_m: float, search_range_m: float) -> tuple[float, float]:
+    """Where the footprint crosses the ground under the lane: its nearest and farthest distance ahead of the
+    vehicle (negative: behind it); (0, 0) when it does not."""
     outline = ground_footprint(camera, altitude_m, search_range_m)
     norths = []
     for (n0, e0), (n1, e1) in zip(outline, [*outline[1:], *outline[:1]], strict=True):
@@ -152,7 +159,7 @@ def _depth_under_lane_m(camera: CameraModel, altitude_m: float, search_range_m: 
             norths.append(n0 + (n1 - n0) * (0.0 - e0) / (e1 - e0))
         elif e0 == e1 == 0.0:
             norths.extend((n0, n1))
-    return max(norths) - min(norths) if norths else 0.0
+    return (min(norths), max(norths)) if norths else (0.0, 0.0)
 
 
 def speed_bounds(
@@ -174,8 +181,8 @@ def speed_bounds(
                 for up in (0.0, target.shape.height_m):
                     fastest = max(fastest, _image_motion_px_per_m(camera, altitude_m, north, east, up, scale))
     blur = math.inf if fastest <= 0 else keyframing.max_blur_px / (keyframing.exposure_s * fastest)
-    depth = _depth_under_lane_m(camera, altitude_m, search_range_m)
-    return SpeedBounds(depth / keyframing.interval_s, blur, keyframing.max_speed_m_s)
+    near, far = ground_under_lane_m(camera, altitude_m, search_range_m)
+    return SpeedBounds((far - near) / keyframing.interval_s, blur, keyframing.max_speed_m_s)
 
 
 # -------------------------------------------------------------------------------------- the model
@@ -201,7 +208,7 @@ def lane_profile(
     """The lane profile at `altitude_m` (a place counts within `search_range_m` of the vehicle, as on the
     map)."""
     r = search_range_m
-    # 2 m across, 1 m along (the keyframes fall a few metres apart): within 0.02 of the map, in a tenth of a second
+    # 2 m across, 1 m along (keyframes fall metres apart): within about 0.04 of the map, in a tenth of a second
     dx, da = max(2.0, r / 25.0), max(1.0, r / 50.0)
     columns = int(2 * r / da) + 1
     rows: list[tuple[float, ...]] = []
@@ -255,12 +262,20 @@ def merged_share(lane_m: float, band_m: float, depth_m: float, speed_m_s: float,
     return min(1.0, 2 * near_end / lane_m) if lane_m > 0 else 1.0
 
 
-def area_pod(passes: Sequence[float], dx_m: float, lanes: int, band_m: float, merged: float = 0.0) -> float:
+def area_pod(
+    passes: Sequence[float], dx_m: float, lanes: int, band_m: float, merged: float = 0.0, start: float = 0.0
+) -> float:
     """The mean POD across `lanes` bands `band_m` wide, a lane through the middle of each, from one pass's
-    POD by distance across (`passes`, every `dx_m`). On a `merged` share of the lanes' length each lane and
-    its neighbour at that end (lanes 0-1, 2-3, ... at one end, 1-2, 3-4, ... at the other) count as one
-    pass, its better look."""
+    POD by distance across (`passes`, every `dx_m`). Along the lanes:
+    - on a `start` share of their length, next to either end, the lanes that begin there have not seen
+      the ground yet (a camera looking ahead): only the lanes that end there count;
+    - on a further `merged` share (counted from the ends, so including `start`), each lane and the one it
+      turns into there count as one pass, its better look (lanes 0-1, 2-3, ... at one end, 1-2, 3-4, ... at
+      the other);
+    - elsewhere every lane in reach is an independent pass."""
     reach = len(passes) * dx_m
+    start = min(1.0, start)
+    merged = max(0.0, min(1.0, merged) - start)
 
     def place(u: float) -> float:
         low = max(0, math.ceil((u - reach) / band_m - 0.5))
@@ -270,18 +285,17 @@ def area_pod(passes: Sequence[float], dx_m: float, lanes: int, band_m: float, me
             i = round(abs(u - (k + 0.5) * band_m) / dx_m)
             if i < len(passes):
                 seen[k] = passes[i]
-        apart = 1.0 - math.prod(1.0 - p for p in seen.values())
-        if merged <= 0:
-            return apart
-        ends = []
+        pod = (1.0 - start - merged) * (1.0 - math.prod(1.0 - p for p in seen.values()))
         for first in (0, 1):  # the end where lanes `first`, `first` + 2, ... turn into the next one
-            pairs = (
+            arriving = [seen.get(k, 0.0) for k in range(low - 1, high + 1) if k % 2 == first]
+            pairs = [
                 max(seen.get(k, 0.0), seen.get(k + 1, 0.0))
                 for k in range(low - 1, high + 1)
                 if k % 2 == first
-            )
-            ends.append(1.0 - math.prod(1.0 - p for p in pairs))
-        return (1.0 - merged) * apart + merged * sum(ends) / 2
+            ]
+            pod += start / 2 * (1.0 - math.prod(1.0 - p for p in arriving))
+            pod += merged / 2 * (1.0 - math.prod(1.0 - p for p in pairs))
+        return pod
 
     def band_mean(j: int) -> float:
         return (
@@ -352,6 +366,7 @@ class PodSearch:
         )
         self._profiles: dict[float, LaneProfile] = {}
         self._bounds: dict[float, SpeedBounds] = {}
+        self._under: dict[float, tuple[float, float]] = {}
         self._passes: dict[tuple[float, float], tuple[float, ...]] = {}
         self._legs: dict[int, list[float]] = {}
 
@@ -375,9 +390,16 @@ class PodSearch:
         if (altitude, speed) not in self._passes:
             self._passes[altitude, speed] = pass_pod(profile, speed * self.keyframing.interval_s)
         band = self.extent / lanes
-        depth = self.bounds(altitude).keyframes_m_s * self.keyframing.interval_s
-        merged = merged_share(self.lane_m, band, depth, speed, self.target.pass_gap_s)
-        return area_pod(self._passes[altitude, speed], profile.dx_m, lanes, band, merged)
+        near, far = self.under_lane(altitude)
+        merged = merged_share(self.lane_m, band, far - near, speed, self.target.pass_gap_s)
+        start = 2 * max(0.0, near) / self.lane_m
+        return area_pod(self._passes[altitude, speed], profile.dx_m, lanes, band, merged, start)
+
+    def under_lane(self, altitude: float) -> tuple[float, float]:
+        if altitude not in self._under:
+            s = self.settings
+            self._under[altitude] = ground_under_lane_m(s.camera, altitude, s.search_range_m)
+        return self._under[altitude]
 
     def time_s(self, altitude: float, lanes: int, speed: float) -> float:
         if lanes not in self._legs:
@@ -463,10 +485,10 @@ class PodSearch:
         return best
 
     def _closest(self) -> PodChoice | None:
-        """The fastest plan within 0.01 of the highest POD the model gives (most lanes, slowest speed)."""
+        """The fastest plan within `CLOSE` of the highest POD the model gives (most lanes, slowest speed)."""
         top: float | None = None
         for altitude in self.altitudes:
             speeds, counts = self.speeds(altitude), self.lane_counts(altitude)
             if speeds and counts:
                 top = max(top or 0.0, self.pod(altitude, counts[-1], speeds[0]))
-        return None if top is None else self._fastest(self.altitudes, max(0.0, top - 0.01))
+        return None if top is None else self._fastest(self.altitudes, max(0.0, top - CLOSE))
