@@ -252,7 +252,7 @@ class RequestLimits:
             more = message.get("more_body", False)
         body = b"".join(chunks)
         content_type = headers.get(b"content-type", b"")
-        if len(body) > SHAPE_ON_LOOP_BYTES:
+        if len(body) > SHAPE_ON_LOOP_BYTES and limit.json is not None:  # a JSON parse: off the loop
             problem = await anyio.to_thread.run_sync(self._shape_problem, body, content_type, limit)
         else:
             problem = self._shape_problem(body, content_type, limit)
