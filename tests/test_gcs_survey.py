@@ -4,6 +4,10 @@
 from __future__ import annotations
 
 import json
+import math
+import os
+import re
+import resource
 import subprocess
 import sys
 from pathlib import Path
@@ -11,6 +15,7 @@ from pathlib import Path
 import pytest
 from pymavlink import mavwp
 
+from behaviors.detection_curve import curves_document
 from behaviors.geolocation import latlon_to_offset, offset_to_latlon
 from behaviors.mission_items import DO_CHANGE_SPEED, NAV_WAYPOINT
 from cloudtrack.mavlink_connection import MavlinkEndpoint
@@ -20,6 +25,7 @@ from gcs.survey_command import InputError, parse_polygon, parse_size, read_area_
 from sitl.autopilot import SimulatedAutopilot
 from sitl.autopilot_mission import MissionOptions
 from tests.mavlink_harness import autopilot, wait_for
+from tests.test_pod_planner import step_curve
 
 GCS = [str(Path(sys.executable).with_name("cloudtrack-gcs"))]
 HOME = (47.397742, 8.545594)
@@ -52,15 +58,25 @@ def test_dry_run_prints_lanes_length_and_time(capsys: pytest.CaptureFixture[str]
     assert (code, err) == (0, ""), err
     lines = out.splitlines()
     assert lines[0] == "survey (dry run, nothing sent): 4 corners"
+    assert lines[1] == "  distance to the vehicle not checked: give --from LAT,LON (the vehicle or home)"
     # The defaults' camera: 70 deg across, pitched -45 deg, cut at 50 m: a 63 m swath at 25 m.
-    assert lines[1] == "  lanes: 2, 40.0 m apart (camera swath 63.1 m at 25 m), along 90 deg"
-    assert lines[2] == "  length: 280 m over 0.96 ha"
-    assert lines[3] == "  time to fly: about 1 min 15 s at 4 m/s"
+    assert lines[2] == "  lanes: 2, 40.0 m apart (camera swath 63.1 m at 25 m), along 90 deg"
+    assert lines[3] == "  length: 280 m over 0.96 ha"
+    assert lines[4] == "  time to fly: about 1 min 15 s at 4 m/s"
     # The oblique camera looks ahead: what it never sees is behind the lane starts, 2.5 % of the area.
-    assert lines[4].startswith("  coverage if flown as planned: 97.5 % of the area (")
-    assert lines[5] == "  items: 1 DO_CHANGE_SPEED, 4 NAV_WAYPOINT"
-    assert [line.split(":")[0] for line in lines[6:10]] == [f"  waypoint {k}" for k in range(1, 5)]
-    assert lines[10] == f"saved 5 items to {saved} (QGC WPL 110)"
+    assert lines[5].startswith(
+        "  coverage if flown as planned: 97.5 % of the area (141 keyframes, one every 0.5 s; "
+    )
+    # The shipped curve's figures are not this test's to hold (tests/test_survey_pod.py holds the map's).
+    assert re.fullmatch(
+        r"  expected POD: mean 0\.\d\d, \d+ % of the area at 0\.8 or more \(person, standing, 1\.7 m; the shipped "
+        r"curve.*\)",
+        lines[6],
+    )
+    assert lines[7] == "  search rate: 0.46 km2/h (0.96 ha in 1 min 15 s)"
+    assert lines[8] == "  items: 1 DO_CHANGE_SPEED, 4 NAV_WAYPOINT"
+    assert [line.split(":")[0] for line in lines[9:13]] == [f"  waypoint {k}" for k in range(1, 5)]
+    assert lines[13] == f"saved 5 items to {saved} (QGC WPL 110)"
     loader = mavwp.MAVWPLoader()
     loader.load(str(saved))  # Mission Planner's and MAVProxy's format reads back: home, then the items
     assert [loader.wp(i).command for i in range(loader.count())] == [16, DO_CHANGE_SPEED] + [NAV_WAYPOINT] * 4
@@ -148,6 +164,151 @@ def test_a_bad_companion_config_is_one_line(capsys: pytest.CaptureFixture[str], 
     assert "min_altitude_m (70.0) must be below max_altitude_m (60.0)" in err
 
 
+# ------------------------------------------------------------------------------ planning for a POD
+def curve_config(tmp_path: Path, p: float = 0.7, more: str = "") -> Path:
+    """A companion configuration whose [search] curve is made up for the test (a person of 16 px or more is
+    found with `p`): the shipped curve's figures are not the tests' to hold."""
+    curve = tmp_path / "curve.json"
+    curve.write_text(json.dumps(curves_document({"person": step_curve(16.0, p)})))
+    config = tmp_path / "companion.toml"
+    config.write_text(f'[search]\ncurve_file = "{curve}"\n{more}')
+    return config
+
+
+PLANNED = re.compile(
+    r"  planned for POD 0\.8 \(person, standing, 1\.7 m\): altitude (?P<altitude>[\d.]+) m, lanes "
+    r"(?P<spacing>[\d.]+) m apart, (?P<speed>[\d.]+) m/s: the least time the model found"
+)
+EXPECTED = re.compile(
+    r"  expected POD: mean (?P<mean>[\d.]+), (?P<share>\d+) % of the area at (?P<target>[\d.]+) or more "
+    r"\(person, standing, 1\.7 m; the curve of .*curve\.json\)"
+)
+
+
+def test_a_plan_for_a_pod_prints_its_choice_its_bounds_and_what_the_map_would_show(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    saved = tmp_path / "survey.waypoints"
+    code, out, err = run_survey(
+        capsys, "survey", "--centre", CENTRE, "--size", "240x150", "--pod", "0.8", "--target", "person",
+        "--dry-run", "--save", str(saved), "--companion-config", str(curve_config(tmp_path)),
+    )  # fmt: skip
+    assert (code, err) == (0, ""), err
+    lines = out.splitlines()
+    chosen = PLANNED.fullmatch(lines[2])
+    assert chosen, lines[2]
+    altitude, speed = float(chosen["altitude"]), float(chosen["speed"])
+    assert 5 <= altitude <= 60 and 1 <= speed <= 10
+    bounds = re.fullmatch(
+        rf"  speed bounds at {chosen['altitude']} m: the autopilot's 10 m/s \(--max-speed\), motion blur "
+        r"(?P<blur>[\d.]+) m/s \(1 px in a 0\.002 s exposure, \[camera\] exposure_s\), keyframes [\d.]+ m/s "
+        r"\(one every 0\.5 s, \[backend\] search_interval_s\)",
+        lines[3],
+    )
+    assert bounds and speed <= float(bounds["blur"])
+    assert lines[4].startswith("  lanes: ") and f"{chosen['spacing']} m apart" in lines[4]
+    expected = EXPECTED.fullmatch(lines[8])
+    assert expected, lines[8]
+    assert float(expected["mean"]) >= 0.8 and float(expected["target"]) == 0.8  # reached on the map
+    minutes, seconds = map(int, re.findall(r"about (\d+) min (\d+) s", lines[6])[0])
+    rate = re.fullmatch(r"  search rate: ([\d.]+) km2/h \(3\.60 ha in .*\)", lines[9])
+    assert rate and float(rate[1]) == pytest.approx(0.036 / ((60 * minutes + seconds) / 3600), abs=0.006)
+    # The autopilot is told the chosen speed, and flies the chosen altitude.
+    loader = mavwp.MAVWPLoader()
+    loader.load(str(saved))
+    assert loader.wp(1).command == DO_CHANGE_SPEED and loader.wp(1).param2 == speed
+    assert {loader.wp(i).z for i in range(2, loader.count())} == {altitude}
+
+
+def test_any_plan_prints_its_expected_pod(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    config = curve_config(tmp_path, more="target_pod = 0.5\n")
+    code, out, _ = run_survey(
+        capsys, "survey", "--centre", CENTRE, "--size", "240x150", "--altitude", "20", "--overlap", "0.3",
+        "--speed", "5", "--dry-run", "--companion-config", str(config),
+    )  # fmt: skip
+    assert code == 0
+    expected = [m for m in map(EXPECTED.fullmatch, out.splitlines()) if m]
+    assert len(expected) == 1 and expected[0]["target"] == "0.5"  # [search] target_pod
+    assert 0 < float(expected[0]["mean"]) < 1 and 0 <= int(expected[0]["share"]) <= 100
+
+
+def test_an_unreachable_pod_is_one_line_naming_the_best_plan(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    config = curve_config(tmp_path, p=0.3, more="\n[safety]\nmin_altitude_m = 30.0\nmax_altitude_m = 40.0\n")
+    code, out, err = run_survey(
+        capsys, "survey", "--centre", CENTRE, "--size", "120x60", "--pod", "0.95", "--dry-run",
+        "--companion-config", str(config),
+    )  # fmt: skip
+    assert code == 2 and out == "" and err.count("\n") == 1, err
+    assert re.fullmatch(
+        r"error: POD 0\.95 is out of reach over this area within the \[safety\] altitude band 30-40 m at up to "
+        r"10 m/s: the best is 0\.\d\d \(altitude [\d.]+ m, \d+ lanes [\d.]+ m apart, [\d.]+ m/s, \d+ min \d\d s\); "
+        r"lower --pod, or fly the area again \(two flights at POD P give 1 - \(1 - P\)\^2\)\n",
+        err,
+    ), err
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--pod", "0.8", "--overlap", "0.3"], "error: --pod chooses the lane spacing: drop --overlap"),
+        ([], "error: give --altitude M, or --pod P to have the altitude chosen for a POD"),
+        (["--pod", "1.5"], "error: a POD to plan for is between 0 and 1 (e.g. 0.8), got 1.5"),
+        (["--pod", "0.8", "--max-speed", "0.5"], "error: --max-speed 0.5 must be between 1 and 30 m/s"),
+        (["--pod", "0.8", "--target", "car"], "error: --pod: no detection curve for 'car' in "),
+    ],
+)
+def test_bad_pod_input_is_one_line_and_exit_2(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, args: list[str], message: str
+) -> None:
+    code, out, err = run_survey(
+        capsys, "survey", "--polygon", POLYGON, *args, "--dry-run", "--companion-config", str(curve_config(tmp_path))
+    )  # fmt: skip
+    assert code == 2 and out == ""
+    assert err.count("\n") == 1 and err.startswith(message), err
+
+
+# ------------------------------------------------------------------------------- distance to the area
+LON_FIRST = "8.5450,47.3975 8.5466,47.3975 8.5466,47.3982 8.5450,47.3982"  # POLYGON typed the GeoJSON way
+
+
+def test_a_polygon_given_longitude_first_is_refused_naming_the_swap(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    code, out, err = run_survey(
+        capsys, "survey", "--polygon", LON_FIRST, "--altitude", "25", "--dry-run", "--from", f"{HOME[0]},{HOME[1]}"
+    )  # fmt: skip
+    assert code == 2 and out == "" and err.count("\n") == 1
+    assert err == (
+        "error: the search area is 5660 km from the --from position (47.397742,8.545594); at most 3000 m is "
+        "accepted ([safety] max_survey_distance_m): latitude and longitude may be swapped (swapped, the --from "
+        "position is inside it; GeoJSON lists longitude first, --polygon and --centre take lat,lon)\n"
+    )
+
+
+def test_an_area_too_far_is_refused_without_a_swap_to_blame(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    config = tmp_path / "companion.toml"
+    config.write_text("[safety]\nmax_survey_distance_m = 100.0\n")
+    far = offset_to_latlon(*HOME, 500.0, 0.0)
+    code, _, err = run_survey(
+        capsys, "survey", "--centre", f"{far[0]},{far[1]}", "--size", "100x100", "--altitude", "25", "--dry-run",
+        "--from", f"{HOME[0]},{HOME[1]}", "--companion-config", str(config),
+    )  # fmt: skip
+    assert code == 2
+    assert err == (
+        "error: the search area is 450 m from the --from position (47.397742,8.545594); at most 100 m is "
+        "accepted ([safety] max_survey_distance_m)\n"
+    )
+    code, out, _ = run_survey(
+        capsys, "survey", "--centre", f"{far[0]},{far[1]}", "--size", "100x100", "--altitude", "25", "--dry-run",
+        "--from", f"{far[0]},{far[1] + 0.01}",
+    )  # fmt: skip
+    assert code == 0 and "distance to the vehicle not checked" not in out  # 700 m: within the default 3 km
+
+
 # -------------------------------------------------------------------------------------- area files
 def _geojson(coords: list[list[list[float]]], kind: str = "Polygon") -> dict[str, object]:
     return {"type": kind, "coordinates": coords}
@@ -228,6 +389,75 @@ def test_a_huge_area_file_is_refused_before_it_is_read(tmp_path: Path) -> None:
         read_area_file(path)
 
 
+@pytest.mark.parametrize(
+    ("path", "message"),
+    [
+        ("/dev/zero", "/dev/zero: a character device, not a file; give the area as a GeoJSON or QGroundControl "
+                      ".plan file"),
+        ("/dev/urandom", "/dev/urandom: a character device, not a file; give the area as a GeoJSON or "
+                         "QGroundControl .plan file"),
+        ("FIFO", "area.fifo: a FIFO, not a file; give the area as a GeoJSON or QGroundControl .plan file"),
+        ("DIRECTORY", ": a directory, not a file; give the area as a GeoJSON or QGroundControl .plan file"),
+    ],
+)  # fmt: skip
+def test_an_area_file_that_is_not_a_file_is_refused_before_any_byte_is_read(
+    tmp_path: Path, path: str, message: str
+) -> None:
+    """In a process of its own, with a memory limit and a timeout: reading /dev/zero whole would take the
+    machine's memory, and opening a FIFO with no writer would wait for ever."""
+    if path == "FIFO":
+        os.mkfifo(tmp_path / "area.fifo")
+        path = str(tmp_path / "area.fifo")
+    elif path == "DIRECTORY":
+        path = str(tmp_path)
+    result = subprocess.run(
+        [*GCS, "survey", "--area-file", path, "--altitude", "25", "--dry-run"],
+        capture_output=True, text=True, timeout=60, env={"PATH": "/usr/bin:/bin", "HOME": str(tmp_path)},
+        preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_AS, (4 << 30, 4 << 30)),
+    )  # fmt: skip
+    assert result.returncode == 2 and result.stdout == ""
+    assert result.stderr.count("\n") == 1 and result.stderr.startswith("error: ") and message in result.stderr
+
+
+def _ring(corners: int) -> list[list[float]]:
+    ring = [
+        [round(8.5456 + 0.001 * math.cos(2 * math.pi * k / corners), 6),
+         round(47.3977 + 0.0007 * math.sin(2 * math.pi * k / corners), 6)]
+        for k in range(corners)
+    ]  # fmt: skip
+    return [*ring, ring[0]]
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        ("[" * 100_000, "not a search area (nested too deeply)"),
+        ('{"features": 5}', "neither a GeoJSON Polygon nor a QGroundControl .plan"),
+        ('{"type": "FeatureCollection", "features": 5}', "a FeatureCollection whose features are not a list"),
+        ('{"fileType": "Plan", "mission": {"items": 5}}', "a QGroundControl plan without a survey"),
+        (json.dumps(_geojson([_ring(30_000)])), "the polygon has 30000 corners; at most 200 are accepted"),
+        (
+            json.dumps(_geojson([[[8.5, 47.3], [8.6, 47.3], [True, False]]])),
+            "position [True, False] is not a pair",
+        ),
+        (
+            json.dumps(_geojson([[[[[[[[[[8.5]]]]]]]]]])),
+            "position [[[[[[[...]]]]]]] is not a pair of numbers",
+        ),
+        ("\xff\xfe{", "not JSON ("),
+        ('{"type": "Polygon", "coordinates": [[[1e999, 47.3], [8.6, 47.3], [8.6, 47.4]]]}', "not a latitude"),
+    ],
+)
+def test_hostile_area_files_are_one_line_and_exit_2(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, content: str, message: str
+) -> None:
+    path = tmp_path / "area.geojson"
+    path.write_bytes(content.encode("latin-1") if content.startswith("\xff") else content.encode())
+    code, out, err = run_survey(capsys, "survey", "--area-file", str(path), "--altitude", "25", "--dry-run")
+    assert code == 2 and out == ""
+    assert err.count("\n") == 1 and err.startswith("error: ") and message in err, err
+
+
 def test_parsers() -> None:
     assert parse_polygon("47.1,8.2;47.2,8.3  47.3,8.4") == [(47.1, 8.2), (47.2, 8.3), (47.3, 8.4)]
     assert parse_size("100X60") == (100.0, 60.0)
@@ -257,6 +487,17 @@ def test_upload_to_the_autopilot(capsys: pytest.CaptureFixture[str], personality
         assert north < 40 and east < 0
         assert sim.set_mode(mode)
         assert wait_for(lambda: sim.mission.reached[-1:] == [first + 1], 30.0)  # flies it
+
+
+def test_an_area_far_from_the_vehicle_is_not_uploaded(capsys: pytest.CaptureFixture[str]) -> None:
+    with autopilot("ardupilot") as sim:
+        code, out, err = run_survey(
+            capsys, *link_args(sim, "survey", "--polygon", LON_FIRST, "--altitude", "25")
+        )
+        assert code == 2 and out == ""
+        assert err.startswith("error: the search area is 5660 km from the vehicle (47.39774")
+        assert "latitude and longitude may be swapped (swapped, the vehicle is inside it;" in err
+        assert not sim.mission.has_mission  # nothing uploaded
 
 
 @pytest.mark.parametrize("personality", ["ardupilot", "px4"])
