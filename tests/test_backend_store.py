@@ -18,6 +18,7 @@ from backend.redis_store import RedisStore
 from backend.schemas import KeyframeCandidate, KeyframeRecord, MissionMap, StoredFind
 from backend.sessions import SessionStore
 from backend.state_store import (
+    DECISIONS_KEPT_PER_VEHICLE,
     FINDS_PER_MISSION,
     QuotaExceededError,
     SqliteStore,
@@ -227,3 +228,29 @@ def test_store_redis_change_wakes_another_replicas_watcher(redis_server: RedisSe
     thread.join(timeout=10)
     assert woke and woke[0] < 5.0  # woken by the publication, not by its 10 s timeout
     assert watcher.version() > last
+
+
+def test_store_a_vehicles_report_is_kept_apart_and_never_stands(state: StateStore) -> None:
+    """Issue 44: what the vehicle reports was decided at its GCS is its report, not the standing decision."""
+    gcs = DecisionIn(candidate_id="c1", action="confirm", operator="supervisor page")
+    reported, created = state.add_decision("d1", "m1", gcs, 1.0, source="vehicle")
+    assert created and reported.source == "vehicle"
+    assert state.add_decision("d1", "m1", gcs, 2.0, source="vehicle") == (reported, False)  # once
+    assert state.standing_decision("d1", "m1", "c1") is None
+    assert state.reported_decision("d1", "m1", "c1") == reported
+    reject, created = state.add_decision("d1", "m1", DecisionIn(candidate_id="c1", action="reject"), 3.0)
+    assert created and state.standing_decision("d1", "m1", "c1") == reject
+    assert state.decisions("d1") == [reported, reject]
+
+
+def test_store_the_decision_list_says_which_it_dropped(state: StateStore) -> None:
+    """Past DECISIONS_KEPT_PER_VEHICLE the oldest leave the list, the highest id dropped is kept, and every
+    standing decision still stands."""
+    extra = 3
+    made = [
+        state.add_decision("d1", "m1", DecisionIn(candidate_id=f"c{i}", action="reject"), float(i))[0]
+        for i in range(DECISIONS_KEPT_PER_VEHICLE + extra)
+    ]
+    assert state.decisions_dropped("d1") == made[extra - 1].decision_id and state.decisions_dropped("d2") == 0
+    assert state.decisions("d1") == made[extra:]
+    assert state.standing_decision("d1", "m1", "c0") == made[0]
