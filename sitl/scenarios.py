@@ -383,7 +383,7 @@ SCENARIOS: dict[str, Scenario] = {
 # survey is not broken off for a candidate, so the map at the end is the whole survey's whether the person
 # was found or not: the POD at the person is comparable with the find). The survey is planned so the POD at
 # a place depends on where it lies between the lanes (docs/sitl.md).
-RANDOM_SURVEY = SurveySpec(altitude_m=15.0, search_range_m=22.0)
+RANDOM_SURVEY = SurveySpec(altitude_m=25.0, search_range_m=35.0)
 RANDOM_PLACE_CHECKS = ("pod_reported", "survey_flown", "no_commands", "find_position_if_found")
 
 
