@@ -5,6 +5,7 @@ Select: -k outage."""
 
 from __future__ import annotations
 
+import json
 import re
 import socket
 import threading
@@ -28,7 +29,7 @@ from cloudtrack.api_client import BackendClient
 from cloudtrack.api_models import VehicleStatusIn
 from companion.cloud.backend_worker import BackendAnswer, BackendWorker
 from companion.cloud.keyframe_store import KeyframeStore, StoreCounts, StoredKeyframe
-from companion.mission_runner import MissionRunner
+from companion.mission_runner import EventLogObserver, MissionRunner
 from companion.run_command import QueryService
 from companion.vision.frame_sources import Frame
 from tests.backend_fixtures import frame
@@ -241,7 +242,7 @@ def test_outage_stored_keyframes_never_take_the_last_free_slot() -> None:
         _stored(store, range(100, 110))
         worker.submit(2, image, 2.0, _pose(2.0))
         _wait(lambda: len(service.calls) == 4, "a live keyframe and two stored ones out")
-        assert service.calls[1] == 2 and sorted(service.calls[2:]) == [108, 109]  # newest first
+        assert sorted(service.calls[1:]) == [2, 108, 109]  # the newest stored first
         assert store.counts().waiting == 8
         worker.submit(3, image, 3.0, _pose(3.0))  # the slot left free takes it at once
         _wait(lambda: len(service.calls) == 5, "the live keyframe out")
@@ -271,11 +272,13 @@ def test_outage_with_a_single_slot_a_stored_keyframe_waits_for_the_live_ones() -
         _wait(lambda: len(service.calls) == 2, "the next request out")
         assert service.calls == [1, 2]  # the live keyframe waiting went first
         service.gate.release()
+        # Stored keyframes go out only while the main loop keeps up with the answers (one an iteration).
+        assert [a.frame_id for a in _answers(worker, 2)] == [1, 2]
         _wait(lambda: len(service.calls) == 3, "a stored keyframe out")
         assert service.calls[2] == 102
         for _ in range(3):
             service.gate.release()
-        assert [a.frame_id for a in _answers(worker, 5)] == [1, 2, 102, 101, 100]
+        assert [a.frame_id for a in _answers(worker, 3)] == [102, 101, 100]
     finally:
         worker.close()
 
@@ -356,7 +359,11 @@ def test_outage_a_person_in_a_stored_keyframe_reaches_the_gcs_and_the_status(
     store = KeyframeStore(64 * 2**20, 900.0)
     worker = BackendWorker(QueryService(client), max_in_flight=4, store=store, encode=client.encode)
     camera, vehicle = Camera(person), Vehicle(StartMission(PROMPT, mission_id="m-outage"))
-    runner = MissionRunner(config, camera, Frontend(), vehicle, worker, keyframe_store=store)  # type: ignore[arg-type]
+    log: list[str] = []  # the event log the simulator scores a flight by
+    fakes: tuple[Any, Any, Any] = (camera, Frontend(), vehicle)  # only what the loop uses of each
+    runner = MissionRunner(
+        config, *fakes, worker, observers=[EventLogObserver(log.append)], keyframe_store=store
+    )
     try:
         _wait(looping(runner, lambda: store.counts().stored >= 3), "search keyframes stored")
         assert runner.state.mode is MissionState.SEARCHING and runner.state.along_mission
@@ -373,7 +380,10 @@ def test_outage_a_person_in_a_stored_keyframe_reaches_the_gcs_and_the_status(
         # The frame shows three people: each stored keyframe puts the best one not yet put to the supervisor.
         lines = [s for s in vehicle.said if s.startswith("CANDIDATE")]
         assert lines[0] == line and len(lines) == len(runner.state.pending)
-        for said, pending in zip(lines, runner.state.pending, strict=True):
+        entries = [json.loads(e) for e in log]
+        reports = [e for e in entries if e["kind"] == "candidate_report"]
+        assert any(e["kind"] == "answer" and e.get("stored") for e in entries)
+        for said, pending, report in zip(lines, runner.state.pending, reports, strict=True):
             match = re.fullmatch(
                 r"CANDIDATE AWAITING (\S+) at (-?[\d.]+),(-?[\d.]+); seen (\d+) s ago(;.*)?", said
             )
@@ -381,15 +391,15 @@ def test_outage_a_person_in_a_stored_keyframe_reaches_the_gcs_and_the_status(
             assert pending.stored and pending.candidate_id == match[1] and pending.position is not None
             where = (round(pending.position.lat_deg, 6), round(pending.position.lon_deg, 6))
             assert (float(match[2]), float(match[3])) == where
-            assert pending.position_s < runner.state.now_s and int(match[4]) >= 1
+            assert report["stored"] and report["seen_s"] == pending.position_s
+            assert int(match[4]) == round(report["t"] - pending.position_s)  # how long ago, when said
         status = runner._status()
         VehicleStatusIn.model_validate(status)  # the back-end's own schema takes it
         shown = runner.state.pending[-1]
         assert shown.position is not None
         awaiting = status["awaiting"]
-        assert (
-            awaiting["candidate_id"] == shown.candidate_id and awaiting["crop_jpeg_b64"]
-        )  # from its keyframe
+        assert awaiting["candidate_id"] == shown.candidate_id
+        assert awaiting["crop_jpeg_b64"]  # cut from the stored keyframe
         assert awaiting["position"] == [shown.position.lat_deg, shown.position.lon_deg]
         age = runner.state.now_s - shown.position_s
         assert abs(time.time() - age - awaiting["seen_at"]) < 1.0

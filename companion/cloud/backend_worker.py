@@ -179,7 +179,10 @@ class BackendWorker:
     def poll(self) -> BackendAnswer | None:
         """The oldest answer not yet taken, or None."""
         with self._cond:
-            return self._answers.popleft() if self._answers else None
+            if not self._answers:
+                return None
+            self._cond.notify_all()  # room for a stored keyframe's answer (`_next`)
+            return self._answers.popleft()
 
     def health(self) -> WorkerHealth:
         with self._cond:
@@ -243,14 +246,16 @@ class BackendWorker:
                 self._on_result(None)
 
     def _next(self) -> _Request | None:
-        """The work a free thread takes (under the lock): a live keyframe first; else, the link up and a slot
-        left for live ones, the newest stored keyframe."""
+        """The work a free thread takes (under the lock): a live keyframe first; else, the link up, a slot
+        left for live ones and the loop keeping up with the answers, the newest stored keyframe."""
         if self._stopping:
             return None
         if self._pending:
             return self._pending.popleft()
         link_up = self._last_success is not None and self._failures == 0
         if self.store is None or not link_up or self._in_flight >= self.max_in_flight - self._live_reserve:
+            return None
+        if len(self._answers) >= self.max_in_flight:  # the loop takes one answer an iteration: never flood it
             return None
         kept = self.store.take_newest()
         if kept is None:
@@ -272,6 +277,10 @@ class BackendWorker:
 
     def _failed(self, request: _Request, exc: BaseException) -> None:
         gone = unreachable(exc)
+        with self._cond:  # known before the keyframe is kept: the next ones go into the store untried
+            self._failures += 1
+            self._last_error = f"{type(exc).__name__}: {exc}"
+            self._unreachable = gone
         if request.stored is not None and self.store is not None:
             if gone:
                 self.store.put_back(request.stored)
@@ -281,9 +290,6 @@ class BackendWorker:
         elif gone and request.storable:
             self._keep(request)
         with self._cond:
-            self._failures += 1
-            self._last_error = f"{type(exc).__name__}: {exc}"
-            self._unreachable = gone
             self._in_flight -= 1
             self._cond.notify_all()
         log.debug("back-end request for frame %d failed: %s", request.frame_id, exc)
