@@ -216,8 +216,10 @@ def test_a_plan_for_a_pod_prints_its_choice_its_bounds_and_what_the_map_would_sh
     # The autopilot is told the chosen speed, and flies the chosen altitude.
     loader = mavwp.MAVWPLoader()
     loader.load(str(saved))
-    assert loader.wp(1).command == DO_CHANGE_SPEED and loader.wp(1).param2 == speed
-    assert {loader.wp(i).z for i in range(2, loader.count())} == {altitude}
+    assert loader.wp(1).command == DO_CHANGE_SPEED and loader.wp(1).param2 == pytest.approx(speed, rel=1e-6)
+    assert [loader.wp(i).z for i in range(2, loader.count())] == pytest.approx(
+        [altitude] * (loader.count() - 2)
+    )
 
 
 def test_any_plan_prints_its_expected_pod(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
@@ -487,6 +489,27 @@ def test_upload_to_the_autopilot(capsys: pytest.CaptureFixture[str], personality
         assert north < 40 and east < 0
         assert sim.set_mode(mode)
         assert wait_for(lambda: sim.mission.reached[-1:] == [first + 1], 30.0)  # flies it
+
+
+def test_a_plan_for_a_pod_is_uploaded_with_its_speed_and_altitude(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    config = curve_config(tmp_path)
+    with autopilot("ardupilot") as sim:
+        code, out, err = run_survey(
+            capsys, *link_args(sim, "survey", "--polygon", POLYGON, "--pod", "0.8", "--companion-config", str(config))
+        )  # fmt: skip
+        assert (code, err) == (0, ""), err
+        chosen = PLANNED.fullmatch(out.splitlines()[1])
+        assert chosen, out
+        expected = [m for m in map(EXPECTED.fullmatch, out.splitlines()) if m]
+        assert len(expected) == 1 and float(expected[0]["mean"]) >= 0.8  # the uploaded plan's own map
+        items = sim.mission.items[1:]
+        assert items[0].command == DO_CHANGE_SPEED  # MAVLink carries float32
+        assert items[0].param2 == pytest.approx(float(chosen["speed"]), rel=1e-6)
+        assert [i.z for i in items[1:]] == pytest.approx(
+            [float(chosen["altitude"])] * (len(items) - 1), rel=1e-6
+        )
 
 
 def test_an_area_far_from_the_vehicle_is_not_uploaded(capsys: pytest.CaptureFixture[str]) -> None:
