@@ -20,7 +20,7 @@ and prints what it shows (`cloudtrack/survey_pod.py`):
   where a lane that begins there has not looked at the ground yet (the camera looks ahead) and a lane and
   the one it turns into look at a place within `pass_gap_s` of each other, one pass on the map
   (`merged_share`, `area_pod`). The area's POD is the mean over places across the bands. The turns
-  themselves and the shape of a polygon are left to the full map; the model holds to it within about 0.04
+  themselves and the shape of a polygon are left to the full map; the model holds to it within about 0.05
   (tests/test_survey_pod.py).
 
 Speed is bounded (`SpeedBounds`) by:
@@ -208,7 +208,7 @@ def lane_profile(
     """The lane profile at `altitude_m` (a place counts within `search_range_m` of the vehicle, as on the
     map)."""
     r = search_range_m
-    # 2 m across, 1 m along (keyframes fall metres apart): within about 0.04 of the map, in a tenth of a second
+    # 2 m across, 1 m along (keyframes fall metres apart): within about 0.05 of the map, in a tenth of a second
     dx, da = max(2.0, r / 25.0), max(1.0, r / 50.0)
     columns = int(2 * r / da) + 1
     rows: list[tuple[float, ...]] = []
