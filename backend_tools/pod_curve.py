@@ -428,7 +428,7 @@ def check(
 
 
 def _check_row(b: CurveBin) -> dict[str, Any]:
-    return {"lo_px": round(b.lo_px, 1), "hi_px": None if math.isinf(b.hi_px) else round(b.hi_px, 1),
+    return {"lo_px": round(b.lo_px, 3), "hi_px": None if math.isinf(b.hi_px) else round(b.hi_px, 3),
             "samples": 0, "predicted": 0.0, "observed": 0, "baseline": 0.0}  # fmt: skip
 
 
