@@ -327,6 +327,11 @@ def _predictor(curve: DetectionCurve, sequence: str) -> tuple[DetectionCurve, bo
     return (curve.without(sequence) if held_out else curve), held_out
 
 
+def _gap_frames(seq: SequenceLooks) -> int:
+    """LOOK_GAP_S in the sequence's frames, in whole steps (at least one: --step can only lengthen it)."""
+    return seq.step * max(1, round(LOOK_GAP_S * seq.fps / seq.step))
+
+
 def look_dependence(
     measured: Sequence[SequenceLooks], curves: Mapping[str, DetectionCurve], accept_uncertain: bool
 ) -> dict[str, Any]:
@@ -335,7 +340,7 @@ def look_dependence(
     looks after a miss. Independent looks would have the first two equal."""
     groups: dict[str, dict[str, Any]] = {}
     for seq in measured:
-        k = seq.step * max(1, round(LOOK_GAP_S * seq.fps / seq.step))
+        k = _gap_frames(seq)
         by_frame = {look.frame: look for look in seq.looks}
         curve = curves.get(seq.superset)
         predictor = _predictor(curve, seq.name)[0] if curve is not None else None
@@ -360,7 +365,12 @@ def look_dependence(
                     if predictor is not None:
                         g["size_predicts"] += predictor.probability(second.size_px, accept_uncertain)
                         g["predicted"] += 1
-    out: dict[str, Any] = {"gap_s": LOOK_GAP_S, "accept_uncertain": accept_uncertain, "classes": {}}
+    out: dict[str, Any] = {
+        "gap_s": LOOK_GAP_S,
+        "gap_s_by_sequence": {seq.name: round(_gap_frames(seq) / seq.fps, 3) for seq in measured},
+        "accept_uncertain": accept_uncertain,
+        "classes": {},
+    }
     for key, g in groups.items():
         out["classes"][key] = {
             "pairs": g["pairs"],
@@ -465,9 +475,11 @@ def print_curve(curve: DetectionCurve) -> None:
 
 def print_looks(looks: Mapping[str, Any]) -> None:
     reading = "yes or uncertain" if looks["accept_uncertain"] else "yes"
-    print(f"\nLooks {looks['gap_s']} s apart at the same target (found: {reading}):")
+    gaps = sorted(looks["gap_s_by_sequence"].values())
+    apart = f"{gaps[0]:g}" if gaps[0] == gaps[-1] else f"{gaps[0]:g}-{gaps[-1]:g}"
+    print(f"\nLooks {apart} s apart at the same target (found: {reading}):")
     print(
-        "| class | pairs | P(found) | P(found, missed 0.5 s before) | size alone predicts | P(found, found before) |"
+        "| class | pairs | P(found) | P(found, missed before) | size alone predicts | P(found, found before) |"
     )
     print("|---|---|---|---|---|---|")
     for name, g in looks["classes"].items():
