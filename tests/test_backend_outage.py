@@ -106,8 +106,9 @@ def test_outage_search_keyframes_are_kept_and_sent_newest_first_when_the_back_en
             worker.submit(k, image, float(k), _pose(float(k)), prompt=PROMPT, query_id=k)
             _wait(lambda: store.counts().stored == k - 1, f"keyframe {k} stored")  # noqa: B023
         worker.submit(7, image, 7.0, _pose(7.0), prompt=PROMPT, roi=Box(10, 10, 50, 80))
+        _wait(lambda: worker.health().consecutive_failures == 6, "the re-detection failed")
         worker.submit(8, image, 8.0, prompt=PROMPT)
-        _wait(lambda: worker.health().consecutive_failures >= 7, "every request failed")
+        _wait(lambda: worker.health().consecutive_failures == 7, "the keyframe without a pose failed")
         assert worker.wait_idle(10) and worker.poll() is None
         counts = store.counts()
         assert counts == StoreCounts(stored=5, waiting=5, bytes=counts.bytes)
@@ -332,8 +333,11 @@ class Vehicle:
         return lambda *args, **kwargs: None  # kick, report_frame, report_backend_ok, report_tracking, ...
 
 
-def _drained(counts: dict[str, int]) -> bool:
-    return counts["sent"] == counts["stored"] and counts["analysed"] > counts["sent"]
+def _drained(runner: MissionRunner) -> dict[str, int] | None:
+    """The status's counts once every keyframe stored so far was sent and the loop took its answer (and the
+    live ones' since), else None."""
+    counts = runner._status()["keyframes"]
+    return counts if counts["sent"] == counts["stored"] and counts["analysed"] > counts["sent"] else None
 
 
 def looping(runner: MissionRunner, condition: Callable[[], Any]) -> Callable[[], Any]:
@@ -352,10 +356,12 @@ def test_outage_a_person_in_a_stored_keyframe_reaches_the_gcs_and_the_status(
     """The whole companion path with the real back-end: the survey flies over a person while the back-end
     is down; once it is back the stored keyframes are analysed, and the person is put to the supervisor with
     where they were and how long ago (the GCS line, the status's `awaiting`), the counts in the status."""
-    config = MissionConfig(accept_uncertain=True)  # the detector alone judges nothing: 'uncertain'
+    # The detector alone judges nothing: 'uncertain'. A search every 2 s leaves the stored keyframes slots on
+    # a loaded machine (they never take one a live keyframe waits for).
+    config = MissionConfig(accept_uncertain=True, search_interval_s=2.0)
     person = frame(sequences_dir, "uav123_person12_1", 1, size=(config.camera.width, config.camera.height))
     app, port = _app(models_dir), free_port()
-    client = _client(port, timeout_s=10.0)
+    client = _client(port)  # 30 s: no live keyframe times out on a loaded machine (it would be stored)
     store = KeyframeStore(64 * 2**20, 900.0)
     worker = BackendWorker(QueryService(client), max_in_flight=4, store=store, encode=client.encode)
     camera, vehicle = Camera(person), Vehicle(StartMission(PROMPT, mission_id="m-outage"))
@@ -372,10 +378,10 @@ def test_outage_a_person_in_a_stored_keyframe_reaches_the_gcs_and_the_status(
             line = _wait(
                 looping(runner, lambda: next((s for s in vehicle.said if s.startswith("CANDIDATE")), None)),
                 "the candidate on the GCS",
-                60.0,
+                120.0,
             )
             # Every stored keyframe sent and its answer taken by the loop (and the live ones since).
-            _wait(looping(runner, lambda: _drained(runner._keyframe_counts())), "the store sent and analysed")
+            counts = _wait(looping(runner, lambda: _drained(runner)), "the store sent and analysed", 120.0)
         assert runner.state.mode is MissionState.SEARCHING  # no track on a person long out of view
         # The frame shows three people: each stored keyframe puts the best one not yet put to the supervisor.
         lines = [s for s in vehicle.said if s.startswith("CANDIDATE")]
@@ -402,8 +408,8 @@ def test_outage_a_person_in_a_stored_keyframe_reaches_the_gcs_and_the_status(
         assert awaiting["crop_jpeg_b64"]  # cut from the stored keyframe
         assert awaiting["position"] == [shown.position.lat_deg, shown.position.lon_deg]
         age = runner.state.now_s - shown.position_s
-        assert abs(time.time() - age - awaiting["seen_at"]) < 1.0
-        counts = status["keyframes"]
-        assert counts["stored"] >= 3 and _drained(counts) and counts["waiting"] == counts["dropped"] == 0
+        assert abs(time.time() - age - awaiting["seen_at"]) < 2.0
+        # (A live keyframe timing out on a loaded machine is stored too: the counts when the store was drained.)
+        assert counts["stored"] >= 3 and counts["waiting"] == counts["dropped"] == 0
     finally:
         worker.close()
