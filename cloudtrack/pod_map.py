@@ -12,7 +12,9 @@ detection curve's probability p (`behaviors.detection_curve`). Looks at a place 
 independent (the same person, pose and light a fraction of a second apart: a miss at one size is a miss at
 that size again), so a pass counts its best look; a pass ends when the place has not been looked at for
 `pass_gap_s`, and passes combine as independent looks: POD = 1 - prod(1 - best of each pass). A keyframe
-that was not analysed adds nothing; a place nobody analysed stays at 0.
+that was not analysed adds nothing; a place nobody analysed stays at 0. A keyframe analysed late (kept
+through a back-end outage, sent newest first) joins the pass of the place's latest look when it is older
+than that: at worst two passes count as one, never one as two.
 
 `report()` is the status report's `search.pod` (CONTRACT with `cloudtrack.api_models.PodGrid`): the grid's
 south-west corner, cell size, rows (south to north) and columns (west to east), and the values as base64 of
