@@ -1,0 +1,303 @@
+"""`cloudtrack-backend pod-curve`: the detection curve measured on sequences with ground truth
+(`backend_tools.pod_curve`), written as a curve file, or a curve file checked against them."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from collections.abc import Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+from backend.images import ImageError
+from backend.supersets import UnknownSupersetError
+from backend_tools.pod_curve import (
+    SequenceLooks,
+    build_pipeline,
+    check,
+    configuration,
+    fit_curves,
+    look_dependence,
+    measure,
+    read_sequence,
+    worst_error,
+)
+from behaviors.detection_curve import CurveError, DetectionCurve, curves_document, wilson_interval
+from cloudtrack.config_files import ConfigError
+from cloudtrack.detection_curves import load_curves
+from cloudtrack.model_store import MODEL_DIR_HELP, ModelError
+
+CHECK_FORMAT = "cloudtrack-detection-curve-check/1"
+
+
+def _bin_label(lo: float, hi: float | None) -> str:
+    return f"{lo:.0f}+" if hi is None or math.isinf(hi) else f"{lo:.0f}-{hi:.0f}"
+
+
+def _f(value: float | None) -> str:
+    return "-" if value is None else f"{value:.2f}"
+
+
+def print_curve(curve: DetectionCurve) -> None:
+    sequences = len(curve.sequences)
+    print(
+        f"\n{curve.target_class}: {curve.samples} frames from {sequences} sequence(s). Frames of one sequence "
+        "are one target under one description, not independent samples: the 95 % intervals (Wilson) treat "
+        "them as independent and are too narrow."
+    )
+    print("| size px | frames | proposed | POD (yes) | 95 % interval | POD (yes or uncertain) |")
+    print("|---|---|---|---|---|---|")
+    for b in curve.bins:
+        n = b.samples
+        ci = wilson_interval(b.yes, n)
+        print(
+            f"| {_bin_label(b.lo_px, b.hi_px)} | {n} | {_f(b.proposed / n if n else None)} | "
+            f"{_f(b.probability())} | {f'{ci[0]:.2f}-{ci[1]:.2f}' if ci else '-'} | {_f(b.probability(True))} |"
+        )
+
+
+def print_looks(looks: Mapping[str, Any]) -> None:
+    reading = "yes or uncertain" if looks["accept_uncertain"] else "yes"
+    gaps = sorted(looks["gap_s_by_sequence"].values())
+    apart = f"{gaps[0]:g}" if gaps[0] == gaps[-1] else f"{gaps[0]:g}-{gaps[-1]:g}"
+    print(f"\nLooks {apart} s apart at the same target (found: {reading}):")
+    print(
+        "| class | pairs | P(found) | P(found, missed before) | size alone predicts | P(found, found before) |"
+    )
+    print("|---|---|---|---|---|---|")
+    for name, g in looks["classes"].items():
+        print(
+            f"| {name} | {g['pairs']} | {_f(g['p_found'])} | {_f(g['p_found_after_miss'])} "
+            f"({g['missed_before']}) | {_f(g['p_found_after_miss_by_size'])} | {_f(g['p_found_after_found'])} |"
+        )
+
+
+def print_check(classes: Mapping[str, Any], min_samples: int) -> None:
+    for name, c in classes.items():
+        print(f"\n{name}: predicted (the curve at each frame's size) minus observed, per bin")
+        print("| size px | frames | predicted | observed | predicted - observed | size-blind - observed |")
+        print("|---|---|---|---|---|---|")
+        for r in c["bins"]:
+            if r["samples"]:
+                print(
+                    f"| {_bin_label(r['lo_px'], r['hi_px'])} | {r['samples']} | {_f(r['predicted'])} | "
+                    f"{_f(r['observed'])} | {r['error']:+.2f} | {r['baseline_error']:+.2f} |"
+                )
+        print(
+            f"max |predicted - observed| in bins of >= {min_samples} frames: curve "
+            f"{_f(c['max_abs_error'])}, size-blind {_f(c['baseline_max_abs_error'])}"
+        )
+        print("| sequence | frames | predicted | observed | fitted without it |")
+        print("|---|---|---|---|---|")
+        for seq, s in c["sequences"].items():
+            held = "yes" if s["held_out"] else "no (not in the curve)"
+            print(f"| {seq} | {s['samples']} | {_f(s['predicted'])} | {_f(s['observed'])} | {held} |")
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    from backend.cli import add_config_flags
+
+    parser = subparsers.add_parser(
+        "pod-curve",
+        help="measure the detection curve (POD by target size) on sequences with ground truth, or check one",
+        description="For every frame where groundtruth.txt shows the target: the frame as a keyframe "
+        "(downscaled to --keyframe-width, JPEG) through the back-end's own detection and verification with "
+        "referring.txt as the prompt; counted by the target's size (sqrt(w*h) in keyframe pixels, the bins "
+        "of behaviors/detection_curve.py): frames, proposed (a candidate with IoU >= 0.5), judged yes, "
+        "judged uncertain. Writes one curve per class (--json), or with --check compares a curve's "
+        "prediction to what these sequences show (leave-one-sequence-out for the sequences it was fitted on).",
+        epilog="examples:\n"
+        "  cloudtrack-backend pod-curve ../shared/data/sequences/* --model-dir ../shared/models --json curve.json\n"
+        "  cloudtrack-backend pod-curve ../shared/data/sequences/* --model-dir ../shared/models "
+        "--check curve.json --json check.json --max-error 0.10\n"
+        "  cloudtrack-backend pod-curve new/seq1 new/seq2 --check cloudtrack/data/detection_curve.json",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument(
+        "sequences", nargs="+", type=Path, help="folders with frames/, groundtruth.txt, referring.txt"
+    )
+    parser.add_argument(
+        "--json", type=Path, metavar="OUT", help="write the curve file (with --check: the check) as JSON"
+    )
+    parser.add_argument(
+        "--check", type=Path, metavar="CURVE", help="compare this curve file's prediction to the sequences"
+    )
+    parser.add_argument(
+        "--keyframe-width",
+        type=int,
+        default=640,
+        help="downscale frames to this width as the companion does ([backend] max_keyframe_width, default 640)",
+    )
+    parser.add_argument(
+        "--jpeg-quality",
+        type=int,
+        default=80,
+        help="keyframe JPEG quality ([backend] jpeg_quality, default 80)",
+    )
+    parser.add_argument("--step", type=int, default=1, help="every STEP-th frame (default 1)")
+    parser.add_argument(
+        "--min-sequences",
+        type=int,
+        default=2,
+        help="a class gets a curve from this many sequences on (default 2: one sequence is one target)",
+    )
+    parser.add_argument(
+        "--accept-uncertain",
+        action="store_true",
+        help="count 'uncertain' as found (default: a miss, as the companion does not put uncertain "
+        "candidates to the supervisor by default)",
+    )
+    parser.add_argument(
+        "--max-error",
+        type=float,
+        metavar="E",
+        help="with --check: exit 1 when a bin of --min-samples frames is off by more than E (default: no gate)",
+    )
+    parser.add_argument(
+        "--min-samples", type=int, default=30, help="with --check: bins this large count (default 30)"
+    )
+    parser.add_argument("--model-dir", metavar="DIR", help=MODEL_DIR_HELP)
+    add_config_flags(parser)
+    parser.set_defaults(func=_pod_curve)
+
+
+def _pod_curve(args: argparse.Namespace) -> int:
+    from backend.cli import config_from_args
+
+    extra = [f"detector.model_dir={json.dumps(args.model_dir)}"] if args.model_dir else []
+    if not 64 <= args.keyframe_width <= 4096 or not 10 <= args.jpeg_quality <= 100 or args.step < 1:
+        print("error: --keyframe-width 64-4096, --jpeg-quality 10-100, --step >= 1", file=sys.stderr)
+        return 2
+    try:
+        curves_in = load_curves(args.check) if args.check else None
+        config = config_from_args(args, *extra)
+        sources = [read_sequence(p) for p in args.sequences]
+        measured_for = configuration(config, args.keyframe_width, args.jpeg_quality)
+        measured = []
+        with ThreadPoolExecutor(config.verifier.concurrency) as pool:
+            pipeline = build_pipeline(config, pool)
+            for source in sources:
+                start = time.perf_counter()
+                seq = measure(
+                    source, pipeline, args.keyframe_width, args.jpeg_quality,
+                    config.server.max_image_pixels, args.step,
+                )  # fmt: skip
+                measured.append(seq)
+                print(
+                    f"{seq.name} ({seq.superset}, {seq.fps:g} fps): {len(seq.looks)} frames in "
+                    f"{time.perf_counter() - start:.0f} s",
+                    file=sys.stderr,
+                )
+    except (
+        CurveError,
+        ConfigError,
+        ModelError,
+        ImageError,
+        UnknownSupersetError,
+        ValueError,
+        OSError,
+    ) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    failed = sum(look.verifier_failed for seq in measured for look in seq.looks)
+    if failed:
+        print(f"warning: {failed} verdict(s) came from a verifier timeout or failure", file=sys.stderr)
+    reading = (
+        "'uncertain' counts as found"
+        if args.accept_uncertain
+        else "'uncertain' is a miss (the mission's default)"
+    )
+    if curves_in is not None:
+        return _report_check(args, curves_in, measured, measured_for, reading, failed)
+    curves, left_out = fit_curves(measured, measured_for, args.min_sequences)
+    for curve in curves.values():
+        print_curve(curve)
+    for name, why in left_out.items():
+        print(f"\n{name}: no curve ({why})")
+    looks = look_dependence(measured, curves, args.accept_uncertain)
+    print_looks(looks)
+    if args.json:
+        document = curves_document(
+            curves,
+            measured={
+                "sequences": {s.name: s.summary() for s in measured},
+                "step": args.step,
+                "verifier_failures": failed,
+                "no_curve": left_out,
+            },
+            looks=looks,
+        )
+        if not _write(args.json, document):
+            return 2
+    return 0
+
+
+def _report_check(
+    args: argparse.Namespace,
+    curves: Mapping[str, DetectionCurve],
+    measured: Sequence[SequenceLooks],
+    measured_for: Mapping[str, str],
+    reading: str,
+    failed: int,
+) -> int:
+    for curve in curves.values():
+        differ = sorted(k for k, v in curve.configuration if measured_for.get(k, v) != v)
+        if differ:
+            print(
+                f"warning: the {curve.target_class} curve was measured with other {', '.join(differ)} than this run",
+                file=sys.stderr,
+            )
+    classes, skipped = check(measured, curves, args.accept_uncertain)
+    if not classes:
+        print(f"error: {args.check} has no curve for any of these sequences' classes", file=sys.stderr)
+        return 2
+    for c in classes.values():
+        c["max_abs_error"] = worst_error(c["bins"], "error", args.min_samples)
+        c["baseline_max_abs_error"] = worst_error(c["bins"], "baseline_error", args.min_samples)
+    print(f"reading: {reading}")
+    print_check(classes, args.min_samples)
+    for line in skipped:
+        print(f"not checked: {line}")
+    looks = look_dependence(measured, curves, args.accept_uncertain)
+    print_looks(looks)
+    off = [
+        f"{name} {_bin_label(r['lo_px'], r['hi_px'])} px ({r['error']:+.2f})"
+        for name, c in classes.items()
+        for r in c["bins"]
+        if args.max_error is not None
+        and r["samples"] >= args.min_samples
+        and abs(r["error"]) > args.max_error
+    ]
+    if args.json and not _write(
+        args.json,
+        {
+            "format": CHECK_FORMAT,
+            "curve_file": str(args.check),
+            "accept_uncertain": args.accept_uncertain,
+            "min_samples": args.min_samples,
+            "max_error": args.max_error,
+            "verifier_failures": failed,
+            "classes": classes,
+            "not_checked": skipped,
+            "looks": looks,
+        },
+    ):
+        return 2
+    if off:
+        print(f"off by more than {args.max_error}: {'; '.join(off)}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _write(path: Path, document: Mapping[str, Any]) -> bool:
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(document, indent=1) + "\n")
+    except OSError as exc:
+        print(f"error: {path}: {exc.strerror or exc}", file=sys.stderr)
+        return False
+    return True
