@@ -115,8 +115,9 @@ def _add_run(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         "--verifier",
         choices=("local", "local-hsv", "none", "cascade"),
         help="back-end verifier on the rendered crops (default: the scenario's, the local person verifier; "
-        "with --place random local-hsv, the colour rules on the box, which judge every rendered posture and "
-        "size; cascade: the local one, then a VLM emulator on loopback answering --vlm-latency-s late)",
+        "with --place random local-hsv, the colour rules on the box, which judge rendered people at every "
+        "size the survey gives (docs/sitl.md says where not); cascade: the local one, then a VLM emulator "
+        "on loopback answering --vlm-latency-s late)",
     )
     run.add_argument(
         "--vlm-latency-s",

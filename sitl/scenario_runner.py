@@ -139,9 +139,8 @@ class _Vehicle:
     offset: int = 0
     events: list[dict[str, Any]] = field(default_factory=list)
     frames: list[_Seen] = field(default_factory=list)
-    frame_by_id: dict[int, _Seen] = field(
-        default_factory=dict
-    )  # a stored keyframe is judged on its own frame
+    # The same by frame id: a candidate from a keyframe stored through an outage is judged on its own frame.
+    frame_by_id: dict[int, _Seen] = field(default_factory=dict)
     state: str = ""
     overlay: OverlayState = field(default_factory=OverlayState)
     decided: set[str] = field(default_factory=set)

@@ -409,7 +409,8 @@ def placed(scenario: Scenario, place: Place) -> Scenario:
         checks=RANDOM_PLACE_CHECKS,
         # The curve already holds the verifier's "yes" (proposed and judged yes). The pose-model verifier
         # finds no body in most rendered people (docs/sitl.md), which would be a second miss the curve does
-        # not have; the colour rules judge every rendered posture and size the survey gives.
+        # not have; the colour rules judge rendered people at every size the survey gives, but for someone
+        # lying with the head toward the camera (docs/sitl.md).
         verifier="local-hsv",
     )
 

@@ -106,25 +106,31 @@ def test_fixed_search_world_is_todays() -> None:
 
 
 def test_rendered_people_are_judged_by_the_colour_rules_at_every_size_the_random_survey_gives() -> None:
-    """The random-placement scenario's verifier (local-hsv) says yes to the described person standing or
-    lying, whatever their heading, wherever the survey's looks put them within the search range, and no to a
-    person in red: the curve's draw, not the verifier, decides what is found (docs/sitl.md)."""
+    """The random-placement scenario's verifier (local-hsv) says yes to the described person standing, or
+    lying with the head away from the camera or across its view, wherever the survey's looks put them within
+    the search range, and no to a person in red: there the curve's draw, not the verifier, decides what is
+    found. Lying with the head toward the camera (within 45 degrees) the rules read the legs as the upper body
+    and often say uncertain: a second miss the curve does not have (docs/sitl.md), not asserted here."""
     spec = placed(SCENARIOS["search"], "random").survey
     assert spec is not None
     camera = CameraModel.from_hfov(640, 480, 70.0, MOUNT_PITCH_DEG, stabilised=True)
     verifier = AttributeVerifier()
-    pose = VehiclePose(0.0, 0.0, -spec.altitude_m)
+    pose = VehiclePose(0.0, 0.0, -spec.altitude_m)  # facing north: heading 180 is the head toward the camera
     renderer = Renderer(World(1, ()), camera)  # one ground texture; the person changes
     judged = 0
-    postures: tuple[Pose, ...] = ("standing", "lying")
-    for posture, heading, ahead, lateral in itertools.product(
-        postures, (0, 50, 90), (0.35, 0.6, 0.8, 1.0), (-0.4, 0.0, 0.4)
+    lying: Pose = "lying"
+    looks: list[tuple[Pose, int]] = [("standing", 0), *((lying, h) for h in range(0, 360, 45))]
+    for (posture, heading), ahead, lateral in itertools.product(
+        looks, (0.35, 0.6, 0.8, 1.0), (-0.4, 0.0, 0.4)
     ):
         north, east = ahead * spec.search_range_m, lateral * spec.search_range_m
         if math.hypot(north, east) > spec.search_range_m:
             continue
         h = math.radians(heading)
+        toward_camera = posture == "lying" and abs(heading - 180) <= 45
         for shirt, wanted in (("green", Verdict.YES), ("red", Verdict.NO)):
+            if toward_camera and wanted is Verdict.YES:
+                continue
             way = ((north, east), (north + 0.01 * math.cos(h), east + 0.01 * math.sin(h)))
             renderer.world = World(1, (Person("p", shirt, "black", posture, way),), target_id="p")
             frame = renderer.render(pose, 0.0, 1)
@@ -137,7 +143,7 @@ def test_rendered_people_are_judged_by_the_colour_rules_at_every_size_the_random
             answer = verifier.verify(crop, inner.xywh(), "a person in a green shirt", "person")
             assert answer.verdict is wanted, (posture, heading, north, east, shirt, answer.justification)
             judged += 1
-    assert judged >= 40
+    assert judged >= 100
 
 
 # ------------------------------------------------------------------------------------- curve detector
