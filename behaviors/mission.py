@@ -1053,10 +1053,19 @@ def _given_up(state: State, config: MissionConfig) -> bool:
 
 
 def _acquire_timeout(state: State, config: MissionConfig) -> Result:
+    """The tracker did not lock on the candidate: the search goes on. A candidate the back-end verified (its
+    final verdict) and placed still awaits the supervisor, out of view, cropped from its keyframe (`State
+    .pending`): the back-end found the person; a tracker that cannot hold a few pixels must not lose them."""
     if state.now_s - state.since_s <= config.acquire_timeout_s:
         return state, ()
+    target = state.target
     new, actions = _start_search(state, "tracker did not lock", config)
-    return new, (TrackerStop("acquire timeout"), *actions)
+    actions = (TrackerStop("acquire timeout"), *actions)
+    if target is None or target.early is not None or target.operator_selected or target.position is None:
+        return new, actions
+    new, said = _left_awaiting(new, target)
+    status = "awaiting" if awaiting_decision(new) is target else "queued"  # else after the one shown
+    return new, (*actions, replace(_report(target, status), keyframe_id=target.keyframe_id), *said)
 
 
 def _query(state: State, purpose: QueryPurpose, roi: Box | None, early_answer: bool = False) -> Result:

@@ -38,7 +38,15 @@ from behaviors.events import (
     TimerTick,
 )
 from behaviors.geometry import Box
-from behaviors.mission import HOLD_SHOWS_WITHIN_S, MissionState, State, initial_state, redetect_roi, step
+from behaviors.mission import (
+    HOLD_SHOWS_WITHIN_S,
+    MissionState,
+    State,
+    awaiting_decision,
+    initial_state,
+    redetect_roi,
+    step,
+)
 from behaviors.mission_commands import (
     AbortMission,
     ConfirmCandidate,
@@ -211,7 +219,8 @@ TRANSITIONS: list[tuple[str, MissionState, Event, MissionState, list[str]]] = [
         S.ACQUIRING,
         TimerTick(4.5),
         S.SEARCHING,
-        ["TrackerStop", "GcsMessage", "SendSetpoint", "BackendQuery"],
+        # the verified candidate awaits the supervisor out of view (below: acquire_timeout)
+        ["TrackerStop", "GcsMessage", "SendSetpoint", "BackendQuery", "ReportCandidate"],
     ),
     (
         "acquiring stop",
@@ -440,6 +449,25 @@ def test_searching_queries_at_the_configured_rate_and_scans() -> None:
         queries += [t for a in actions if isinstance(a, BackendQuery)]
     assert queries == [2.25, 4.25, 6.25]  # one more went out with the start, at 0.1 s
     assert last_query(step(state, TimerTick(99.0), config)[1]).purpose is QueryPurpose.SEARCH
+
+
+def test_acquire_timeout_a_verified_candidate_the_tracker_cannot_hold_awaits_the_supervisor() -> None:
+    """The tracker did not lock on a verified candidate (a few pixels, at survey height): the search goes
+    on, and the candidate awaits the supervisor out of view, placed and cropped from its keyframe; seen again
+    there it is not tracked a second time. An early (not yet verified) start is only dropped."""
+    state, actions = step(reach(S.ACQUIRING), TimerTick(4.5), CFG)
+    assert state.mode is S.SEARCHING and [p.candidate_id for p in state.pending] == ["c1"]
+    (report,) = [a for a in actions if isinstance(a, ReportCandidate)]
+    assert report.status == "awaiting" and report.keyframe_id == 30 and report.position is not None
+    assert awaiting_decision(state) is state.pending[0]
+    qid = last_query(actions).query_id
+    again, started = step(state, BackendAnswer(5.0, qid, 40, (candidate(FAR, cid="c9"),)), CFG)
+    assert again.mode is S.SEARCHING and not [a for a in started if isinstance(a, TrackerInit)]
+    early, _ = step(reach(S.SEARCHING), BackendAnswer(1.0, 1, 30, (candidate(FAR),), final=False), CFG)
+    assert early.mode is S.ACQUIRING and early.target is not None and early.target.early is not None
+    dropped, actions = step(early, TimerTick(4.5), CFG)
+    assert dropped.mode is S.SEARCHING and dropped.pending == ()
+    assert not [a for a in actions if isinstance(a, ReportCandidate)]
 
 
 def test_acquiring_prefers_yes_then_uncertain_by_policy() -> None:

@@ -232,7 +232,8 @@ SURVEY: list[tuple[str, bool, MissionState, Event, MissionState, list[str]]] = [
         S.ACQUIRING,
         TimerTick(4.5),
         S.SEARCHING,
-        ["TrackerStop", "ResumeMission", "GcsMessage", "GcsMessage", "BackendQuery"],
+        # the verified candidate awaits the supervisor out of view
+        ["TrackerStop", "ResumeMission", "GcsMessage", "GcsMessage", "BackendQuery", "ReportCandidate"],
     ),
     (
         "acquire timeout without engage",
@@ -240,7 +241,7 @@ SURVEY: list[tuple[str, bool, MissionState, Event, MissionState, list[str]]] = [
         S.ACQUIRING,
         TimerTick(4.5),
         S.SEARCHING,
-        ["TrackerStop", "GcsMessage", "BackendQuery"],
+        ["TrackerStop", "GcsMessage", "BackendQuery", "ReportCandidate"],
     ),
     (
         "reject",
