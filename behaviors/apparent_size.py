@@ -75,7 +75,7 @@ def camera_frame(
     return (c * v[0] + s * v[2], v[1], -s * v[0] + c * v[2])
 
 
-def _box_size_px(
+def _box_px(
     camera: CameraModel,
     height_m: float,
     attitude: tuple[float, float, float],
@@ -83,9 +83,9 @@ def _box_size_px(
     east: float,
     shape: TargetShape,
     along: bool,
-) -> float:
-    """sqrt(w * h) in camera pixels of the box at (north, east), its length along the line of sight
-    (`along`) or across it; 0 when any corner is behind the camera."""
+) -> tuple[float, float, float, float] | None:
+    """The image box (u0, v0, u1, v1) of the target's box at (north, east), its length along the line of
+    sight (`along`) or across it; None when any corner is behind the camera."""
     bearing = math.atan2(east, north)
     half_l, half_w = shape.length_m / 2, shape.width_m / 2
     if not along:
@@ -99,10 +99,10 @@ def _box_size_px(
             for up in (0.0, shape.height_m):
                 f, r, d = camera_frame(camera, n, e, height_m - up, *attitude)
                 if f <= 1e-6:
-                    return 0.0
-                us.append(camera.fx * r / f)
-                vs.append(camera.fy * d / f)
-    return math.sqrt((max(us) - min(us)) * (max(vs) - min(vs)))
+                    return None
+                us.append(camera.cx + camera.fx * r / f)
+                vs.append(camera.cy + camera.fy * d / f)
+    return min(us), min(vs), max(us), max(vs)
 
 
 def apparent_size_px(
@@ -117,16 +117,16 @@ def apparent_size_px(
     keyframe_width: int = 640,
 ) -> float:
     """The target's size in keyframe pixels at (north, east) from the point under the vehicle, `height_m`
-    below the camera; 0 when its foot point is outside the image or behind the camera."""
+    below the camera; 0 when any of it is outside the image (either way round) or behind the camera."""
     if not all(math.isfinite(v) for v in (height_m, north, east, roll, pitch, yaw)) or height_m <= 0:
         return 0.0
-    attitude = (roll, pitch, yaw)
-    f, r, d = camera_frame(camera, north, east, height_m, *attitude)
-    if f <= 1e-6:
-        return 0.0
-    u, v = camera.cx + camera.fx * r / f, camera.cy + camera.fy * d / f
-    if not (0 <= u < camera.width and 0 <= v < camera.height):
-        return 0.0
-    scale = min(1.0, keyframe_width / camera.width)
-    sizes = [_box_size_px(camera, height_m, attitude, north, east, shape, along) for along in (True, False)]
-    return scale * (sizes[0] + sizes[1]) / 2
+    sizes = []
+    for along in (True, False):
+        box = _box_px(camera, height_m, (roll, pitch, yaw), north, east, shape, along)
+        if box is None:
+            return 0.0
+        u0, v0, u1, v1 = box
+        if not (u0 >= 0 and u1 < camera.width and v0 >= 0 and v1 < camera.height):
+            return 0.0  # cut by the image's edge: the curve was not measured on such views
+        sizes.append(math.sqrt((u1 - u0) * (v1 - v0)))
+    return min(1.0, keyframe_width / camera.width) * (sizes[0] + sizes[1]) / 2

@@ -86,21 +86,15 @@ def sizes_px(
 
     north = np.asarray(north, np.float64)
     east = np.asarray(east, np.float64)
-    f, r, d = project(camera, north, east, np.full_like(north, height_m), roll, pitch, yaw)
-    f, r, d = np.asarray(f), np.asarray(r), np.asarray(d)
-    ahead = f > 1e-6
-    safe = np.where(ahead, f, 1.0)
-    u = camera.cx + camera.fx * r / safe
-    v = camera.cy + camera.fy * d / safe
-    in_image = ahead & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
     bearing = np.arctan2(east, north)
     cb, sb = np.cos(bearing), np.sin(bearing)
     total = np.zeros_like(north)
+    seen = np.ones_like(north, dtype=bool)  # the whole target in the image, both ways round
     for along in (True, False):
         half_l, half_w = shape.length_m / 2, shape.width_m / 2
         if not along:
             half_l, half_w = half_w, half_l
-        us, vs, behind = [], [], np.zeros_like(north, dtype=bool)
+        us, vs = [], []
         for dl in (-half_l, half_l):
             for dw in (-half_w, half_w):
                 n = north + dl * cb - dw * sb
@@ -108,15 +102,16 @@ def sizes_px(
                 for up in (0.0, shape.height_m):
                     cf, cr, cd = project(camera, n, e, np.full_like(n, height_m - up), roll, pitch, yaw)
                     cf = np.asarray(cf)
-                    behind |= cf <= 1e-6
+                    seen &= cf > 1e-6
                     safe_f = np.where(cf > 1e-6, cf, 1.0)
-                    us.append(camera.fx * np.asarray(cr) / safe_f)
-                    vs.append(camera.fy * np.asarray(cd) / safe_f)
-        width = np.max(us, axis=0) - np.min(us, axis=0)
-        height = np.max(vs, axis=0) - np.min(vs, axis=0)
-        total += np.where(behind, 0.0, np.sqrt(np.maximum(width * height, 0.0)))
+                    us.append(camera.cx + camera.fx * np.asarray(cr) / safe_f)
+                    vs.append(camera.cy + camera.fy * np.asarray(cd) / safe_f)
+        u0, u1 = np.min(us, axis=0), np.max(us, axis=0)
+        v0, v1 = np.min(vs, axis=0), np.max(vs, axis=0)
+        seen &= (u0 >= 0) & (u1 < camera.width) & (v0 >= 0) & (v1 < camera.height)
+        total += np.sqrt(np.maximum((u1 - u0) * (v1 - v0), 0.0))
     scale = min(1.0, keyframe_width / camera.width)
-    return np.where(in_image, scale * total / 2, 0.0)
+    return np.where(seen, scale * total / 2, 0.0)
 
 
 def curve_probabilities(curve: DetectionCurve, sizes: np.ndarray, accept_uncertain: bool) -> np.ndarray:
