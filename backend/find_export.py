@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import html
 import json
+import re
 import threading
 from datetime import datetime, timezone
 from typing import Any
@@ -223,4 +224,18 @@ def _kml_text(finds: list[StoredFind], maps: dict[tuple[str, str], MissionMap], 
                 owner = {"vehicle_id": vehicle, "mission_id": mission, **which}
                 name = "POD map, earlier area" if earlier else "POD map"
                 kml_folder(place, name, searched.pod, owner)
-    return str(kml.kml())
+    return one_ring_per_inner_boundary(str(kml.kml()))
+
+
+_INNER = re.compile(r"<innerBoundaryIs>(.*?)</innerBoundaryIs>", re.S)
+_RING = re.compile(r"<LinearRing\b.*?</LinearRing>", re.S)
+
+
+def one_ring_per_inner_boundary(text: str) -> str:
+    """simplekml writes a polygon's holes as several LinearRings in one innerBoundaryIs; KML 2.2 (OGC 07-147)
+    gives each hole its own innerBoundaryIs, and readers that follow it (GDAL's, so QGIS) see only the first
+    ring otherwise. Only simplekml's own geometry elements match: every text is escaped before."""
+    return _INNER.sub(
+        lambda m: "".join(f"<innerBoundaryIs>{ring}</innerBoundaryIs>" for ring in _RING.findall(m.group(1))),
+        text,
+    )
