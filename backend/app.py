@@ -80,16 +80,7 @@ def create_app(
         build_verifier(config.verifier, config.vlm) if verifier is _UNSET else verifier  # type: ignore[assignment]
     )
     pool = ThreadPoolExecutor(max_workers=config.verifier.concurrency, thread_name_prefix="verify")
-    pipeline = Pipeline(
-        detector,
-        chosen_verifier,
-        pool,
-        margin_px=config.crops.margin_px,
-        max_candidates=config.detector.max_candidates,
-        timeout_s=config.verifier.timeout_s,
-        deadline_s=config.verifier.request_deadline_s,
-        uncertain_policy=config.verifier.uncertain_policy,
-    )
+    pipeline = Pipeline.configured(config, detector, chosen_verifier, pool)
     s = config.sessions
     store = sessions or SessionStore(
         build_state_store(s),

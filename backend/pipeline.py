@@ -22,6 +22,7 @@ from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from concurrent.futures import TimeoutError as FutureTimeout
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -34,6 +35,9 @@ from backend.verifiers.cascade import fast_stage
 from backend.verifiers.interface import Verifier, VerifierAnswer, VerifierError, VerifierTimeout
 from behaviors.detection import Detection, Verdict
 from behaviors.geometry import Box
+
+if TYPE_CHECKING:
+    from backend.config import BackendConfig
 
 # Returns the reason a candidate with this appearance was rejected earlier, or None.
 RejectionCheck = Callable[[list[float]], str | None]
@@ -124,6 +128,27 @@ class Pipeline:
         self.timeout_s = timeout_s
         self.deadline_s = deadline_s
         self.uncertain_policy = uncertain_policy
+
+    @classmethod
+    def configured(
+        cls,
+        config: BackendConfig,
+        detector: SupersetDetector,
+        verifier: Verifier | None,
+        verify_pool: ThreadPoolExecutor,
+    ) -> Pipeline:
+        """The pipeline the back-end serves (`backend.app.create_app`) and its tools measure, from its
+        configuration's crops, detector and verifier sections."""
+        return cls(
+            detector,
+            verifier,
+            verify_pool,
+            margin_px=config.crops.margin_px,
+            max_candidates=config.detector.max_candidates,
+            timeout_s=config.verifier.timeout_s,
+            deadline_s=config.verifier.request_deadline_s,
+            uncertain_policy=config.verifier.uncertain_policy,
+        )
 
     @property
     def verifier_name(self) -> str:

@@ -188,15 +188,8 @@ def read_sequence(path: Path) -> SequenceSource:
 
 def build_pipeline(config: BackendConfig, pool: ThreadPoolExecutor) -> Pipeline:
     """The back-end's pipeline as `backend.app.create_app` builds it from the configuration."""
-    return Pipeline(
-        build_detector(config.detector),
-        build_verifier(config.verifier, config.vlm),
-        pool,
-        margin_px=config.crops.margin_px,
-        max_candidates=config.detector.max_candidates,
-        timeout_s=config.verifier.timeout_s,
-        deadline_s=config.verifier.request_deadline_s,
-        uncertain_policy=config.verifier.uncertain_policy,
+    return Pipeline.configured(
+        config, build_detector(config.detector), build_verifier(config.verifier, config.vlm), pool
     )
 
 
