@@ -376,3 +376,29 @@ def swapped(corners: Sequence[LatLon]) -> tuple[LatLon, ...] | None:
     if any(abs(lon) > 90 for _, lon in corners):
         return None
     return tuple((lon, lat) for lat, lon in corners)
+
+
+def too_far(
+    corners: Sequence[LatLon], reference: LatLon, max_m: float, what: str, swap_note: str = ""
+) -> str | None:
+    """Why an area farther than `max_m` from `reference` (`what`: "the vehicle") is refused, saying that
+    latitude and longitude may be swapped (and `swap_note`) when swapping them brings it near; None when it
+    is near enough."""
+    distance = distance_to_area_m(reference, corners)
+    if distance <= max_m:
+        return None
+    message = (
+        f"the search area is {_distance_words(distance)} from {what} ({reference[0]:.6f},{reference[1]:.6f}); "
+        f"at most {max_m:g} m is accepted ([safety] max_survey_distance_m)"
+    )
+    turned = swapped(corners)
+    if turned is not None and (near := distance_to_area_m(reference, turned)) <= max_m:
+        where = f"{what} is inside it" if near == 0 else f"it is {_distance_words(near)} from {what}"
+        message += f": latitude and longitude may be swapped (swapped, {where}{swap_note})"
+    return message
+
+
+def _distance_words(metres: float) -> str:
+    if metres >= 10_000:
+        return f"{metres / 1000:.0f} km"
+    return f"{metres / 1000:.1f} km" if metres >= 1000 else f"{metres:.0f} m"

@@ -165,6 +165,7 @@ class SearchCoverageLike(Protocol):
     from the keyframes the back-end analysed."""
 
     pod_error: str
+    error: str
 
     def start(self, target_class: str = "") -> None: ...
 
@@ -296,6 +297,7 @@ class MissionRunner:
         # (when the GCS last got the value, tenths of the area seen and at the target POD announced)
         self._coverage_told: tuple[float, int, int] = (-float("inf"), 0, 0)
         self._pod_error_told = ""  # why there is no POD map, as last told
+        self._no_area_told = ""  # why there is no search area, as last told
         self.keyframe_store = keyframe_store
         self._analysed = 0  # keyframes of this mission analysed whole (laid on the search map)
         self._store_base = StoreCounts()  # the store's counts when this mission started
@@ -682,11 +684,19 @@ class MissionRunner:
         if t.mission_items is not None:
             search["mission_items"] = t.mission_items
         covered = self.coverage.report() if self.coverage is not None else None
+        self._tell_no_area(self.coverage.error if self.coverage is not None and covered is None else "")
         if covered is not None:
             search.update(covered)
             pod = covered.get("pod")
             self._tell_coverage(float(covered["coverage"]), pod)
         return search
+
+    def _tell_no_area(self, why: str) -> None:
+        """Once per reason: why the search has no area to map (no waypoints, too far from the vehicle, the
+        download failing)."""
+        if why and why != self._no_area_told:
+            self.vehicle.send_status(f"NO SEARCH AREA: {why[:180]}", SEVERITY["warning"])
+        self._no_area_told = why
 
     def _tell_coverage(self, share: float, pod: dict[str, Any] | None) -> None:
         """The share seen to the GCS: NAMED_VALUE_FLOAT `coverage` (0..1) once a second, and a status line at

@@ -206,6 +206,7 @@ def run(args: argparse.Namespace) -> int:
         config.search,
         config.backend.max_keyframe_width,
         config.behavior.accept_uncertain,
+        config.safety.max_survey_distance_m,
     )
     settings = LoopSettings(
         frame_stale_s=config.safety.frame_stale_s, loop_stall_s=config.safety.loop_stall_s

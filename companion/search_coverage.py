@@ -6,7 +6,8 @@ the main loop never waits on the autopilot) and takes the area the waypoints swe
 (`cloudtrack.coverage.area_from_waypoints`: their hull grown by half a lane), so a survey planned by
 `cloudtrack-gcs survey`, QGroundControl or Mission Planner is covered the same way. A failed download is
 tried again every `RETRY_S` while the mission runs; a mission without waypoints has no area (coverage is
-then not reported). A mission replaced while the search runs is downloaded again: the autopilot's item
+then not reported), and one farther than `[safety] max_survey_distance_m` from the vehicle is not mapped
+(both said on the GCS). A mission replaced while the search runs is downloaded again: the autopilot's item
 count changes (MISSION_CURRENT.total), or its current item goes back (a new survey starts at its first
 item). The new area gets new maps; the back-end keeps the old area's map (`backend/mission_map.py`).
 
@@ -23,6 +24,7 @@ main loop. The figures for the status report are recomputed at most once per `RE
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections import deque
@@ -34,6 +36,7 @@ from behaviors.apparent_size import TargetShape
 from behaviors.camera_model import CameraModel
 from behaviors.detection_curve import CurveError
 from behaviors.mission_items import waypoint_positions
+from behaviors.survey_planner import too_far
 from behaviors.telemetry import Telemetry
 from cloudtrack.coverage import CoverageMap, LatLon, area_from_waypoints
 from cloudtrack.detection_curves import curve_for
@@ -83,6 +86,7 @@ class SearchCoverage:
         search: SearchConfig | None = None,
         keyframe_width: int = 640,
         accept_uncertain: bool = False,
+        max_distance_m: float = math.inf,  # [safety] max_survey_distance_m
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self._camera = camera
@@ -93,6 +97,8 @@ class SearchCoverage:
         self._search = search or SearchConfig()
         self._keyframe_width = keyframe_width
         self._accept_uncertain = accept_uncertain
+        self._max_distance_m = max_distance_m
+        self._position: tuple[float, float] | None = None  # the vehicle's, from the last telemetry
         self._clock = clock
         self._lock = threading.Lock()
         self._maps: _Maps | None = None
@@ -134,6 +140,8 @@ class SearchCoverage:
         """The vehicle's telemetry while the mission runs: a replaced mission is downloaded again."""
         seen = (telemetry.mission_item, telemetry.mission_items)
         with self._lock:
+            if math.isfinite(telemetry.lat_deg) and math.isfinite(telemetry.lon_deg):
+                self._position = (telemetry.lat_deg, telemetry.lon_deg)
             if not self._running:
                 return
             before, self._mission_seen = self._mission_seen, seen
@@ -202,11 +210,16 @@ class SearchCoverage:
                 log.warning("search area unknown (%s); trying again in %.0f s", exc, RETRY_S)
                 time.sleep(RETRY_S)
                 continue
-            if not area:
+            with self._lock:
+                position = self._position
+            why = "the autopilot's mission has no waypoints spanning an area" if not area else None
+            if area and position is not None:
+                why = too_far(area, position, self._max_distance_m, "the vehicle")
+            if why is not None:  # the map would claim nothing there, or somewhere nobody meant
                 with self._lock:
                     if generation == self._generation:
-                        self.error = "the autopilot's mission has no waypoints spanning an area"
-                log.warning("search area unknown: the autopilot's mission has no waypoints spanning an area")
+                        self.error = why
+                log.warning("search area not mapped: %s", why)
                 return
             self._lay_area(generation, area)
             return

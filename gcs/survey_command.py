@@ -55,10 +55,9 @@ from behaviors.survey_planner import (
     SurveyError,
     SurveyPlan,
     SurveySettings,
-    distance_to_area_m,
     plan_survey,
     rectangle,
-    swapped,
+    too_far,
 )
 from cloudtrack.autopilot_modes import AutopilotKind, detect_autopilot, mission_mode, mode_name
 from cloudtrack.config_files import ConfigError
@@ -382,29 +381,12 @@ def _plan_words(plan: SurveyPlan, altitude: float) -> str:
 
 
 def check_distance(area: Sequence[LatLon], reference: LatLon, max_m: float, what: str) -> None:
-    """InputError when the area is farther than `max_m` from `reference` (the vehicle, or --from), saying
-    so, and saying that latitude and longitude may be swapped when swapping them brings it near."""
-    distance = distance_to_area_m(reference, area)
-    if distance <= max_m:
-        return
-    message = (
-        f"the search area is {_distance_words(distance)} from {what} ({reference[0]:.6f},{reference[1]:.6f}); "
-        f"at most {max_m:g} m is accepted ([safety] max_survey_distance_m)"
+    """InputError when the area is farther than `max_m` from `reference` (the vehicle, or --from)."""
+    refusal = too_far(
+        area, reference, max_m, what, "; GeoJSON lists longitude first, --polygon and --centre take lat,lon"
     )
-    turned = swapped(area)
-    if turned is not None and (near := distance_to_area_m(reference, turned)) <= max_m:
-        where = f"{what} is inside it" if near == 0 else f"it is {_distance_words(near)} from {what}"
-        message += (
-            f": latitude and longitude may be swapped (swapped, {where}; GeoJSON lists longitude first, "
-            "--polygon and --centre take lat,lon)"
-        )
-    raise InputError(message)
-
-
-def _distance_words(metres: float) -> str:
-    if metres >= 10_000:
-        return f"{metres / 1000:.0f} km"
-    return f"{metres / 1000:.1f} km" if metres >= 1000 else f"{metres:.0f} m"
+    if refusal is not None:
+        raise InputError(refusal)
 
 
 def describe(

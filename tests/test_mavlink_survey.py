@@ -203,6 +203,28 @@ def test_a_mission_replaced_mid_search_gets_its_own_map_within_seconds() -> None
         assert report["pod"]["looks"] == 1  # the look made before is laid on the new area too
 
 
+def test_a_mission_far_from_the_vehicle_is_not_mapped_and_the_swap_is_named() -> None:
+    """A survey typed longitude first (the GeoJSON habit) and uploaded by another tool lies 5,000 km off: the
+    companion maps nothing there and says why (the runner puts it on the GCS: NO SEARCH AREA)."""
+    camera = CameraModel.from_hfov(640, 480, 70.0, -40.0, stabilised=True)
+    swapped = [MissionItem.waypoint(item.lon_deg, item.lat_deg, 10.0) for item in LANES]
+    with autopilot("ardupilot", start_height_m=10.0) as sim, gcs(sim) as ground:
+        MissionClient(ground, "ardupilot", source=(255, 190), timeouts=MissionTimeouts(0.3, 3)).upload(
+            swapped
+        )
+        with vehicle_link(sim) as link, MainLoop(link):
+            coverage = SearchCoverage(
+                camera, 15.0, link.mission_link, lambda: "ardupilot", (1, 191), max_distance_m=3000.0
+            )
+            assert wait_for(lambda: link.telemetry() is not None, 10.0)
+            coverage.update(link.telemetry())  # type: ignore[arg-type]
+            coverage.start("person")
+            assert wait_for(lambda: coverage.error, 10.0)
+            assert coverage.report() is None
+            assert "km from the vehicle" in coverage.error
+            assert "latitude and longitude may be swapped" in coverage.error
+
+
 def offset(lat: float, lon: float) -> tuple[float, float]:
     from behaviors.geolocation import latlon_to_offset
 

@@ -159,3 +159,19 @@ def test_search_map_the_gcs_hears_the_share_at_the_target_pod() -> None:
         "COVERAGE 10% of the search area; 11% at POD >= 0.8",
         "COVERAGE 30% of the search area",
     ]
+
+
+def test_search_map_the_gcs_hears_once_why_there_is_no_search_area() -> None:
+    said: list[str] = []
+
+    class Vehicle:
+        def send_status(self, text: str, severity: int) -> None:
+            said.append(text)
+
+    none: Any = None
+    vehicle: Any = Vehicle()
+    runner = MissionRunner(MissionConfig(), none, none, vehicle, none)
+    far = "the search area is 5660 km from the vehicle (47.397700,8.545600)"
+    for why in ("", far, far, "", far):
+        runner._tell_no_area(why)
+    assert said == [f"NO SEARCH AREA: {far}", f"NO SEARCH AREA: {far}"]
