@@ -291,7 +291,13 @@ SCENARIOS: dict[str, Scenario] = {
             max_s=150.0,
             miss_rate=0.0,
             companion_settings=(f"camera.search_range_m={SurveySpec().search_range_m}",),
-            checks=("confirmed_target", "rejected_never_again", "resumed_where_left", "find_position"),
+            checks=(
+                "confirmed_target",
+                "rejected_never_again",
+                "resumed_where_left",
+                "find_position",
+                "pod_at_target",
+            ),
         ),
         Scenario(
             "search-no-engage",
@@ -305,7 +311,13 @@ SCENARIOS: dict[str, Scenario] = {
             max_s=150.0,
             miss_rate=0.0,
             companion_settings=(f"camera.search_range_m={SurveySpec().search_range_m}",),
-            checks=("confirmed_target", "rejected_never_again", "no_commands", "find_position_at_seen"),
+            checks=(
+                "confirmed_target",
+                "rejected_never_again",
+                "no_commands",
+                "find_position_at_seen",
+                "pod_at_target",
+            ),
         ),
         Scenario(
             "search-outage",
@@ -503,6 +515,8 @@ def assess(
 
 def _search_checks(scenario: Scenario, name: str, m: dict[str, Any]) -> list[str]:
     failures: list[str] = []
+    if "pod_at_target" in scenario.checks and not (m.get("pod_at_target") or 0.0) > 0.0:
+        failures.append(f"{name}: the POD map never counted the place where the person was found")
     if "find_position" in scenario.checks:
         error = m.get("geolocation_error_m")
         if error is None or error > FIND_MAX_ERROR_M:

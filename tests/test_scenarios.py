@@ -203,10 +203,29 @@ def test_search_no_engage_checks_the_find_against_where_the_person_was_when_seen
 
     # 12 m from where they are at the decision: they walked on; only the error when seen counts.
     no_commands = {"setpoints": 0, "mode_commands": 0}
-    m = {"geolocation_error_at_seen_m": error, "geolocation_error_m": 12.0, "companion_commands": no_commands}
+    m = {
+        "geolocation_error_at_seen_m": error,
+        "geolocation_error_m": 12.0,
+        "companion_commands": no_commands,
+        "pod_at_target": 0.69,
+    }
     failures = checks(SCENARIOS["search-no-engage"], "drone-1", m)
     assert bool(failures) is failed, failures
     assert all("when seen" in f for f in failures)
+
+
+@pytest.mark.parametrize(("pod", "failed"), [(0.36, False), (0.0, True), (None, True)])
+def test_search_checks_the_map_counted_where_the_person_was_found(pod: float | None, failed: bool) -> None:
+    from sitl.scenarios import _search_checks as checks
+
+    m = {
+        "geolocation_error_m": 0.5,
+        "pod_at_target": pod,
+        "mission_breaks": [{"left_at": 3, "resumed_at": 3}],
+    }
+    failures = checks(SCENARIOS["search"], "drone-1", m)
+    assert bool(failures) is failed, failures
+    assert all("POD map" in f for f in failures)
 
 
 def test_sim_cli_lists_scenarios_and_has_help(capsys: pytest.CaptureFixture[str]) -> None:
