@@ -310,6 +310,7 @@ SCENARIOS: dict[str, Scenario] = {
             follow_s=3.0,
             max_s=150.0,
             miss_rate=0.0,
+            detector_in_range=True,  # found where the companion searches: its map counts the place
             companion_settings=(f"camera.search_range_m={SurveySpec().search_range_m}",),
             checks=(
                 "confirmed_target",
