@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 from cloudtrack.command_line import add_command_modules, new_parser, run
 from sitl.autopilot import PERSONALITIES
 from sitl.flight_stack import REAL_AUTOPILOTS
+from sitl.run_summary import summary_lines
 from sitl.scenarios import SCENARIOS, Scenario
 
 if TYPE_CHECKING:
@@ -179,21 +180,8 @@ def _run(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     print()
-    print(
-        f"scenario {results['scenario']} ({results['autopilot']}, tracker {results['tracker']}): "
-        f"{results['outcome'].upper()}"
-    )
-    for vid, m in results["vehicles"].items():
-        print(
-            f"  {vid}: confirmed {m['confirmed']}, first candidate {m['time_to_first_candidate_s']} s "
-            f"(verified {m['time_to_verified_candidate_s']} s), "
-            f"confirmation {m['time_to_confirmation_s']} s, in view {m['target_in_view_ratio']}, "
-            f"pixel error {m['pixel_error_mean_px']}/{m['pixel_error_p95_px']} px (mean/p95), "
-            f"standoff RMSE {m['standoff_rmse_m']} m, max speed {m['max_commanded_speed_m_s']} m/s, "
-            f"setpoints {m['setpoint_rate_hz']} Hz, re-inits {m['reinits']}"
-        )
-    for failure in results["failures"]:
-        print(f"  FAILED: {failure}")
+    for line in summary_lines(results, scenario):
+        print(line)
     for label, path in (("metrics", args.json), ("video", args.video), ("plot", args.plot)):
         if path is not None:
             print(f"  {label}: {path}")

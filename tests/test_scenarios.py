@@ -16,6 +16,7 @@ from typing import Any
 import pytest
 
 from sitl.cli import main as sim_main
+from sitl.run_summary import summary_lines
 from sitl.scenario_runner import RunOptions, run_scenario
 from sitl.scenarios import (
     PX4_STALL_MAX_COAST_M,
@@ -176,6 +177,14 @@ def test_search_without_engage_sends_nothing(models_dir: Path, tmp_path: Path) -
     assert m["geolocation_error_at_seen_m"] <= 3.0  # the find where the person was when seen
     # Beside coverage, the POD map the companion reported (issue 42): the person's place was searched.
     assert 0.0 < m["pod_mean"] <= 1.0 and 0.0 <= m["pod_share_at_0_8"] <= 1.0 and m["pod_at_target"] > 0.0
+    # The printed summary says the search's figures and no follow figure that is none (issue 45).
+    summary = "\n".join(summary_lines(results, SCENARIOS["search-no-engage"]))
+    assert f"time to find {m['time_to_find_s']} s" in summary and "coverage at the find" in summary
+    assert (
+        f"find's position error {m['geolocation_error_m']} m" in summary
+        and f"POD at the person {m['pod_at_target']:.2f}" in summary
+    )
+    assert "standoff RMSE" not in summary and "pixel error" not in summary, summary
 
 
 @pytest.mark.slow

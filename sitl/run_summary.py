@@ -1,0 +1,90 @@
+"""The lines `cloudtrack-sim run` prints after one scenario: what the scenario is about, from its results JSON.
+
+A search scenario prints the search's figures (time to find, coverage and POD at the find, the find's
+position error, the break-offs and resumes). The follow figures (pixel error, standoff RMSE) are printed only
+where the scenario checks a follow: in a search the companion tracks while the survey flies its own line,
+so a standoff error of tens of metres there is no failure (they stay in the JSON).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from sitl.scenarios import Scenario
+
+
+def _pct(share: Any) -> str:
+    return "?" if share is None else f"{float(share) * 100:.0f} %"
+
+
+def _s(seconds: Any) -> str:
+    return "none" if seconds is None else f"{seconds} s"
+
+
+def _m(metres: Any) -> str:
+    return "?" if metres is None else f"{metres} m"
+
+
+def _breaks(m: dict[str, Any]) -> str:
+    episodes = m.get("mission_breaks") or []
+    if not episodes:
+        return "never left the mission"
+    said = []
+    for e in episodes:
+        back = f"resumed at item {e['resumed_at']}" if e.get("resumed_at") is not None else "not resumed"
+        said.append(f"left at item {e.get('left_at')} ({e.get('left_t')} s), {back}")
+    return "; ".join(said)
+
+
+def search_line(vid: str, m: dict[str, Any]) -> str:
+    """A search's figures for one vehicle."""
+    found = "found" if m.get("found") else "NOT found"
+    pod = m.get("pod_at_target")
+    error = f"find's position error {_m(m.get('geolocation_error_m'))}"
+    if m.get("geolocation_error_at_seen_m") is not None:
+        error += f" ({_m(m['geolocation_error_at_seen_m'])} against where the person was when seen)"
+    return (
+        f"  {vid}: {found}, time to find {_s(m.get('time_to_find_s'))} "
+        f"(first sighting {_s(m.get('time_to_first_sighting_s'))}), "
+        f"coverage at the find {_pct(m.get('coverage_at_find'))} (at the end {_pct(m.get('coverage_at_end'))}), "
+        f"POD at the person {'none reported' if pod is None else f'{pod:.2f}'}, {error}, "
+        f"rejected {len(m.get('rejected') or [])} of {len(m.get('proposed') or [])} proposed; "
+        f"mission: {_breaks(m)}"
+    )
+
+
+def follow_line(vid: str, m: dict[str, Any], with_control: bool) -> str:
+    """The follow's figures; the control's (pixel error, standoff) only where the scenario checks them."""
+    line = (
+        f"  {vid}: confirmed {m['confirmed']}, first candidate {m['time_to_first_candidate_s']} s "
+        f"(verified {m['time_to_verified_candidate_s']} s), "
+        f"confirmation {m['time_to_confirmation_s']} s, in view {m['target_in_view_ratio']}"
+    )
+    if not with_control:
+        return line + f", re-inits {m['reinits']}"
+    return line + (
+        f", pixel error {m['pixel_error_mean_px']}/{m['pixel_error_p95_px']} px (mean/p95), "
+        f"standoff RMSE {m['standoff_rmse_m']} m, max speed {m['max_commanded_speed_m_s']} m/s, "
+        f"setpoints {m['setpoint_rate_hz']} Hz, re-inits {m['reinits']}"
+    )
+
+
+def summary_lines(results: dict[str, Any], scenario: Scenario) -> list[str]:
+    """The summary of one run, as printed."""
+    lines = [
+        f"scenario {results['scenario']} ({results['autopilot']}, tracker {results['tracker']}): "
+        f"{results['outcome'].upper()}"
+    ]
+    search = scenario.survey is not None
+    control = "standoff" in scenario.checks or not search
+    for vid, m in results["vehicles"].items():
+        if search:
+            lines.append(search_line(vid, m))
+        lines.append(follow_line(vid, m, control))
+    if search and not control:
+        lines.append(
+            "  (the follow's standoff and image-centre figures are left out: the survey flies its own line while "
+            "a candidate is tracked, so they measure no search; they are in the JSON)"
+        )
+    lines.extend(f"  FAILED: {failure}" for failure in results["failures"])
+    return lines
