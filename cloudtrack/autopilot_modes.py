@@ -100,6 +100,13 @@ def mission_mode(kind: AutopilotKind) -> str:
     return mode_for_action(kind, "mission")
 
 
+def mode_names(kind: AutopilotKind, vehicle_type: int = QUADROTOR) -> list[str]:
+    """Every mode `set_mode_params` knows for this autopilot and vehicle type."""
+    if kind is AutopilotKind.ARDUPILOT:
+        return list(ardupilot_modes(vehicle_type))
+    return [_PX4_RENAMED.get(str(name), str(name)) for name in mavutil.px4_map]
+
+
 def set_mode_params(kind: AutopilotKind, name: str, vehicle_type: int = QUADROTOR) -> SetModeParams:
     """ValueError for a mode this vehicle does not have (e.g. BRAKE on a Plane)."""
     custom = int(mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED)

@@ -32,7 +32,7 @@ from cloudtrack.gcs_protocol import (
 )
 from cloudtrack.mavlink_connection import MavlinkEndpoint, mavlink, parse_connection
 from cloudtrack.mavlink_signing import parse_signing_key
-from gcs import survey_command, watch_command
+from gcs import mode_command, survey_command, watch_command
 
 EXIT_REFUSED, EXIT_TIMEOUT = 1, 3
 IN_PROGRESS_WAIT_S = 35.0  # the companion's start check is at most [backend] start_check_s (30 s)
@@ -55,6 +55,7 @@ examples:
   cloudtrack-gcs abort
   cloudtrack-gcs track-box 0.40 0.30 0.55 0.70   # normalised corners, as QGroundControl sends them
   cloudtrack-gcs watch --duration 60
+  cloudtrack-gcs mode AUTO                  # the autopilot flies its mission (PX4: MISSION)
   cloudtrack-gcs start --prompt "man in a red cap" --print-mavproxy   # the same start as MAVProxy commands
   cloudtrack-gcs --connect tcp:192.168.1.10:5760 --signing-key-file ~/.config/cloudtrack/signing.key watch
 
@@ -493,6 +494,7 @@ def build_parser() -> argparse.ArgumentParser:
     watch_command.add_arguments(watch)
     watch.set_defaults(func=watch_command.run_watch)
     survey_command.add_parser(sub)
+    mode_command.add_parser(sub)
     return parser
 
 
