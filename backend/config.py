@@ -20,7 +20,7 @@ from cloudtrack.cursor_on_target import check_url
 ENV_PREFIX = "CLOUDTRACK_BACKEND_"
 CONFIG_FILE_NAME = "backend.toml"  # looked up in /etc/cloudtrack/ and $XDG_CONFIG_HOME/cloudtrack/
 
-DetectorKind = Literal["yolox", "grounding_dino", "owlv2", "simulated"]
+DetectorKind = Literal["yolox", "deimv2_atto", "deimv2_femto", "grounding_dino", "owlv2", "simulated"]
 VerifierKind = Literal["none", "local", "local-hsv", "vlm", "cascade"]
 UncertainPolicy = Literal["uncertain", "yes", "no"]
 
@@ -91,6 +91,8 @@ class AuthConfig(ConfigSection):
 
 
 class DetectorConfig(ConfigSection):
+    # yolox (YOLOX-nano), deimv2_atto / deimv2_femto (DEIMv2, same classes, tiling and threshold; measured
+    # side by side in docs/tracking.md, "Superset detectors"), grounding_dino / owlv2 (open vocabulary, gpu extra).
     kind: DetectorKind = "yolox"
     model_dir: str = ""  # empty: $CLOUDTRACK_MODEL_DIR, then the user cache
     # 0.2: the detector proposes, the verifier judges; a target never proposed can never be chosen. YOLOX-nano
@@ -116,9 +118,16 @@ class DetectorConfig(ConfigSection):
     # A keyframe's inferences (whole frame and tiles) at once, up to one per core over all requests: the
     # same work, a lone keyframe answered sooner. False: one after another, on the request's thread.
     parallel_tiles: bool = True
-    # With kind = "yolox": the open-vocabulary detector for prompts naming no COCO class (built from hf_model
-    # and device; needs the gpu extra). Empty: such prompts are answered 422 with the nearest known classes.
+    # With a closed-set kind (yolox, deimv2_*): the open-vocabulary detector for prompts naming no COCO class
+    # (built from hf_model and device; needs the gpu extra). Empty: such prompts are answered 422 with the nearest known classes.
     open_vocabulary: Literal["", "grounding_dino", "owlv2"] = ""
+
+    @model_validator(mode="after")
+    def _int8_is_yolox(self) -> DetectorConfig:
+        # Only YOLOX has int8 weights (backend_tools.quantize); a DEIMv2 kind would silently run fp32.
+        if self.precision == "int8" and self.kind != "yolox":
+            raise ValueError(f"precision int8 is for kind yolox only, not {self.kind}")
+        return self
 
 
 class CropConfig(ConfigSection):

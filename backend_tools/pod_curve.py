@@ -34,7 +34,7 @@ from typing import Any
 import cv2
 
 from backend.config import BackendConfig
-from backend.detectors.factory import INT8_NAME, build_detector
+from backend.detectors.factory import CLOSED_SET_WEIGHTS, build_detector, closed_set_weights
 from backend.images import decode_image
 from backend.pipeline import Pipeline
 from backend.supersets import superset_from_prompt
@@ -51,7 +51,6 @@ from behaviors.detection_curve import (
 )
 from behaviors.geometry import Box, iou
 from cloudtrack.api_client import encode_keyframe
-from cloudtrack.model_store import require, resolve_model_dir
 
 MATCH_IOU = 0.5
 HELD_INSIDE = 0.9  # share of a candidate's box inside the ground truth's, for a target boxed with its ride
@@ -198,11 +197,8 @@ def configuration(config: BackendConfig, keyframe_width: int, jpeg_quality: int)
     curve."""
     d = config.detector
     out: dict[str, str] = {"detector": d.kind}
-    if d.kind == "yolox":
-        model_dir = resolve_model_dir(d.model_dir or None)
-        weights = require("yolox", model_dir)["yolox_nano.onnx"]
-        if d.precision == "int8":
-            weights = weights.with_name(INT8_NAME)
+    if d.kind in CLOSED_SET_WEIGHTS:
+        weights = closed_set_weights(d)
         out["model_file"] = f"{weights.parent.name}/{weights.name}"
         out["model_sha256"] = hashlib.sha256(weights.read_bytes()).hexdigest()
         if d.open_vocabulary:

@@ -91,6 +91,34 @@ REGISTRY: Mapping[str, ModelSpec] = {
                 ),
             ),
         ),
+        # DEIMv2 (DETR-style, COCO-80), an alternative superset detector (`[detector] kind`); the ONNX
+        # exports MODELS.md names, pinned to their commit.
+        ModelSpec(
+            "deimv2_atto",
+            'DEIMv2-Atto, COCO-80, 320x320 input (`[detector] kind = "deimv2_atto"`)',
+            "Apache-2.0",
+            (
+                ModelFile(
+                    "deimv2/deimv2_hgnetv2_atto_coco.onnx",
+                    "b114aa6610ac7c2bd9b3186ffb001afa872430db957407ef2473f7148d00646e",
+                    2248408,
+                    "https://raw.githubusercontent.com/Kazuhito00/DEIMv2-ONNX-Sample/f88d4382/model/deimv2_hgnetv2_atto_coco.onnx",
+                ),
+            ),
+        ),
+        ModelSpec(
+            "deimv2_femto",
+            'DEIMv2-Femto, COCO-80, 416x416 input (`[detector] kind = "deimv2_femto"`)',
+            "Apache-2.0",
+            (
+                ModelFile(
+                    "deimv2/deimv2_hgnetv2_femto_coco.onnx",
+                    "c6ad358f750132b891165e034c2ba507abefc5ebe1c1d2732a0acbcacc47e52c",
+                    4116144,
+                    "https://raw.githubusercontent.com/Kazuhito00/DEIMv2-ONNX-Sample/f88d4382/model/deimv2_hgnetv2_femto_coco.onnx",
+                ),
+            ),
+        ),
         ModelSpec(
             "dasiamrpn",
             "DaSiamRPN (model + two kernels) for cv2.TrackerDaSiamRPN; about 160 MB",

@@ -53,7 +53,7 @@ def _report(args: argparse.Namespace, required_only: bool) -> int:
         statuses = [(mf, file_status(model_dir, mf)) for mf in spec.files]
         origin = "user-supplied" if spec.user_supplied else "downloadable"
         for mf, status in statuses:
-            print(f"  {spec.name:<10} {origin:<13} {status.value:<38} {model_dir / mf.relpath}")
+            print(f"  {spec.name:<12} {origin:<13} {status.value:<38} {model_dir / mf.relpath}")
             if (
                 status is FileStatus.CORRUPT
                 or status is FileStatus.MISSING

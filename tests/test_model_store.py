@@ -22,7 +22,7 @@ from cloudtrack.model_store import (
 
 
 def test_shared_models_verify(models_dir: Path) -> None:
-    for name in ("nano", "vit", "yolox"):
+    for name in ("nano", "vit", "yolox", "deimv2_atto", "deimv2_femto"):
         for mf in REGISTRY[name].files:
             assert file_status(models_dir, mf) is FileStatus.VERIFIED, mf.relpath
         assert all(p.is_file() for p in require(name, models_dir).values())
@@ -82,7 +82,7 @@ def test_models_list_cli(models_dir: Path, tmp_path: Path) -> None:
     cmd = [sys.executable, "-m", "companion.cli", "models", "list", "--model-dir"]
     ok = subprocess.run([*cmd, str(models_dir)], capture_output=True, text=True)
     assert ok.returncode == 0, ok.stderr
-    for name in ("nano", "vit", "yolox"):
+    for name in ("nano", "vit", "yolox", "deimv2_atto", "deimv2_femto"):
         assert any(
             line.split()[:3] == [name, "downloadable", "present+verified"]
             for line in ok.stdout.splitlines()

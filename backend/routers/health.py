@@ -8,6 +8,7 @@ from fastapi import APIRouter
 
 import cloudtrack
 from backend.dependencies import Caller, CurrentPipeline, LoadedModels, Scheduler, Settings, Started
+from backend.detectors.factory import CLOSED_SET_WEIGHTS
 from backend.schemas import ERROR_RESPONSES, HealthResponse, ModelsResponse
 from backend.supersets import known_supersets
 
@@ -29,7 +30,7 @@ def health(models: LoadedModels, scheduler: Scheduler, started: Started) -> Heal
 
 @router.get("/v1/models", response_model=ModelsResponse, responses=ERROR_RESPONSES)
 def models(_: Caller, settings: Settings, pipeline: CurrentPipeline, names: LoadedModels) -> ModelsResponse:
-    closed_set = settings.detector.kind == "yolox"
+    closed_set = settings.detector.kind in CLOSED_SET_WEIGHTS
     return ModelsResponse(
         detector=names.detector,
         detector_kind=settings.detector.kind,
