@@ -95,9 +95,15 @@ class MissionMap(ApiModel):
 
 
 class KeyframeCandidate(ApiModel):
-    id: str
+    id: str = Field(
+        description="stored: the answer's id; shown: the candidate's id as the GCS, the card and the finds name "
+        'it, "" for a box put to no one (the answer\'s ids are new every keyframe)'
+    )
     box: list[float]
     verdict: Literal["yes", "no", "uncertain"]
+    status: Literal["", "tracked", "awaiting", "confirmed", "rejected"] = Field(
+        "", description='shown only: where the candidate stands with the supervisor ("": put to no one)'
+    )
 
 
 class KeyframeRecord(ApiModel):
@@ -153,6 +159,7 @@ class KeyframeView(ApiModel):
     track_box: list[float] | None = Field(
         None, description="the vehicle's tracked box, when in this keyframe"
     )
+    track_id: str | None = Field(None, description="the tracked candidate's id, with `track_box`")
 
 
 class FindView(ApiModel):

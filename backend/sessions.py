@@ -311,8 +311,10 @@ class SessionStore:
         data: bytes,
         size: tuple[int, int],
         candidates: list[KeyframeCandidate],
+        took_s: float = 0.0,
     ) -> None:
-        """Keep the keyframe as sent (a JPEG only: the page shows it as one) with the answer's boxes."""
+        """Keep the keyframe as sent (a JPEG only: the page shows it as one) with the answer's boxes. `took_s`:
+        how long the answer took, so its age on the page counts from when the keyframe arrived."""
         if not is_jpeg(data, size[0] * size[1] + 1):
             return
         record = KeyframeRecord(
@@ -320,7 +322,7 @@ class SessionStore:
             mission_id=mission_id,
             width=size[0],
             height=size[1],
-            received_at=self._clock(),
+            received_at=self._clock() - max(0.0, took_s),
             candidates=candidates,
         )
         self.state.set_keyframe(vehicle_id, record, data)

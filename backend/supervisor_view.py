@@ -19,6 +19,7 @@ from backend.pod_layers import band_colour, meaning
 from backend.schemas import (
     CandidateView,
     FindView,
+    KeyframeCandidate,
     KeyframeView,
     LatLon,
     PodBandView,
@@ -31,6 +32,7 @@ from backend.schemas import (
     VehicleView,
 )
 from backend.sessions import SessionStore
+from behaviors.geometry import Box, iou
 from cloudtrack.api_models import Decision
 from cloudtrack.coverage import LocalFrame
 from cloudtrack.cursor_on_target import seen_text
@@ -41,6 +43,7 @@ _STATUS = {"confirm": "confirmed", "reject": "rejected"}
 TRACK_SHOWN = 300  # points of the track the page draws (the download has them all)
 AUTH_ERROR_KEEP_S = 60.0
 SNAPSHOT_REUSE_S = 1.0
+TRACK_MATCH_IOU = 0.3  # a keyframe box over the tracked box is the tracked candidate
 
 
 def _shown(track: list[list[float]]) -> list[list[float]]:
@@ -208,15 +211,19 @@ class SupervisorView:
             )
         keyframe = None
         record = self.store.state.keyframe(vehicle_id)
+        finds = self.store.finds(vehicle_id)
         if record is not None and record.mission_id == status.mission_id:
+            track_box = status.track_box if status.frame_id == record.frame_id else None
+            found = {f.candidate_id for f in finds if f.mission_id == status.mission_id}
             keyframe = KeyframeView(
                 frame_id=record.frame_id,
                 url=f"/supervisor/api/vehicles/{vehicle_id}/keyframe.jpg?frame={record.frame_id}&t={record.received_at}",
                 width=record.width,
                 height=record.height,
                 age_s=round(max(0.0, now - record.received_at), 1),
-                candidates=record.candidates,
-                track_box=status.track_box if status.frame_id == record.frame_id else None,
+                candidates=self._boxes(status, record.candidates, track_box, found),
+                track_box=track_box,
+                track_id=status.track_id if track_box is not None else None,
             )
         search = status.search
         grid = search.pod if search is not None else None
@@ -257,9 +264,47 @@ class SupervisorView:
             keyframes=status.keyframes,
             track=track,
             keyframe=keyframe,
-            finds=[find_view(f) for f in self.store.finds(vehicle_id)],
+            finds=[find_view(f) for f in finds],
             auth_error=self._auth_error(vehicle_id, now),
         )
+
+    def _boxes(
+        self,
+        status: VehicleStatus,
+        boxes: list[KeyframeCandidate],
+        track_box: list[float] | None,
+        found: set[str],
+    ) -> list[KeyframeCandidate]:
+        """The keyframe's boxes named as the GCS, the card and the finds name them: the answer's own id where
+        the vehicle kept it (the answer that first proposed the candidate), the tracked candidate's id on the
+        box over the track; "" on a box put to no one. Each with where it stands with the supervisor."""
+        awaiting = status.awaiting.candidate_id if status.awaiting is not None else ""
+        known = {awaiting, *status.awaiting_more, *status.dropped_undecided, *found} - {""}
+        on_track = -1
+        if track_box is not None and status.track_id:
+            tracked = Box.from_xyxy(*track_box)
+            overlaps = [iou(Box.from_xyxy(*b.box), tracked) for b in boxes]
+            best = max(range(len(boxes)), key=overlaps.__getitem__, default=-1)
+            on_track = best if best >= 0 and overlaps[best] >= TRACK_MATCH_IOU else -1
+        shown = []
+        for i, b in enumerate(boxes):
+            cid = (status.track_id or "") if i == on_track else (b.id if b.id in known else "")
+            shown.append(
+                b.model_copy(update={"id": cid, "status": self._standing(status, cid, awaiting, found)})
+            )
+        return shown
+
+    def _standing(self, status: VehicleStatus, cid: str, awaiting: str, found: set[str]) -> str:
+        if not cid:
+            return ""
+        if cid in found or (cid == status.track_id and status.state == "CONFIRMED"):
+            return "confirmed"
+        standing = self.store.standing_decision(status.vehicle_id, status.mission_id, cid)
+        if standing is not None:
+            return _STATUS[standing.action]
+        if cid == awaiting or cid in status.awaiting_more:
+            return "awaiting"
+        return "tracked" if cid == status.track_id else ""
 
 
 def view_content(vehicle: VehicleView) -> str:

@@ -292,7 +292,15 @@ class SearchProgress(ApiModel):
     """How far the mission's search has come (counted by the companion since the mission started)."""
 
     keyframes: int = Field(0, ge=0, le=2**31, description="keyframes the back-end checked this mission")
-    candidates: int = Field(0, ge=0, le=2**31, description="distinct candidates the back-end returned")
+    detections: int | None = Field(
+        None,
+        ge=0,
+        le=2**31,
+        description="boxes the back-end returned, counted per keyframe (null: not counted)",
+    )
+    candidates: int = Field(
+        0, ge=0, le=2**31, description="distinct candidates put to the supervisor (a decision asked for)"
+    )
     rejected: int = Field(0, ge=0, le=2**31, description="candidates rejected (supervisor, GCS or memory)")
 
 
@@ -470,6 +478,11 @@ class VehicleStatusIn(ApiModel):
         description="[x1, y1, x2, y2]: the tracked box in the pixels of keyframe `frame_id`",
     )
     frame_id: int | None = Field(None, ge=0, le=2**53, description="the keyframe `track_box` refers to")
+    track_id: CandidateId | None = Field(
+        None,
+        description="the tracked candidate's id, as the GCS, the supervisor's card and the finds name it (the "
+        "keyframe's own answer ids change every keyframe): the live view labels the box on `track_box` with it",
+    )
     progress: SearchProgress | None = None
     search: SearchStatus | None = None
     keyframes: KeyframeCounts | None = None

@@ -541,6 +541,8 @@ class MissionRunner:
         if report.keyframe_id >= 0:  # not the tracked one: cropped from its keyframe while that is kept
             image = self._keyframes.get(report.keyframe_id, (None, None))[0]
             self._candidate_crop(report.candidate_id, report.box, in_view=False, image=image)
+        if report.status in ("awaiting", "queued"):  # put to the supervisor
+            self.report.on_proposed(report.candidate_id)
         if report.status == "confirmed":
             self._report_find(report)
         else:

@@ -73,7 +73,8 @@ class StatusReport:
         self._mission_id: str | None = None
         self.keyframes = 0
         self.rejected = 0
-        self._candidate_ids: set[str] = set()
+        self.detections = 0  # boxes the back-end returned, every keyframe's own
+        self._candidate_ids: set[str] = set()  # put to the supervisor
         self.finds: list[Find] = []
         self._keyframe: tuple[int, Box | None] | None = None  # newest keyframe sent, the track's box on it
 
@@ -82,16 +83,19 @@ class StatusReport:
         if mission_id == self._mission_id:
             return
         self._mission_id = mission_id
-        self.keyframes = self.rejected = 0
+        self.keyframes = self.rejected = self.detections = 0
         self._candidate_ids.clear()
         self.finds.clear()
 
     def on_answer(self, candidates: Sequence[Detection]) -> None:
         """A final answer about a keyframe of this mission."""
         self.keyframes += 1
-        for c in candidates:
-            if c.candidate_id and len(self._candidate_ids) < MAX_CANDIDATE_IDS:
-                self._candidate_ids.add(c.candidate_id)
+        self.detections += len(candidates)
+
+    def on_proposed(self, candidate_id: str) -> None:
+        """A candidate was put to the supervisor (counted once however often it is reported)."""
+        if candidate_id and len(self._candidate_ids) < MAX_CANDIDATE_IDS:
+            self._candidate_ids.add(candidate_id)
 
     def on_rejection(self) -> None:
         self.rejected += 1
@@ -156,8 +160,12 @@ class StatusReport:
                 s = self._keyframe_scale
                 out["track_box"] = [round(v * s, 1) for v in inside.xyxy()]
                 out["frame_id"] = frame_id
+                target = state.target
+                if target is not None and target.candidate_id and target.early is None:
+                    out["track_id"] = target.candidate_id  # the id the GCS, the card and the finds name
         out["progress"] = {
             "keyframes": self.keyframes,
+            "detections": self.detections,
             "candidates": len(self._candidate_ids),
             "rejected": self.rejected,
         }

@@ -10,7 +10,7 @@ from behaviors.actions import ReportCandidate
 from behaviors.detection import Detection, Verdict
 from behaviors.geolocation import GeoEstimate
 from behaviors.geometry import Box
-from behaviors.mission import MissionState, State
+from behaviors.mission import EarlyStart, MissionState, State, Target
 from behaviors.mission_commands import StartMission
 from behaviors.telemetry import Telemetry
 from cloudtrack.api_models import VehicleStatusIn
@@ -40,6 +40,9 @@ def test_fields_validate_against_the_back_ends_model() -> None:
     report.start("7")
     report.on_answer((Detection(BOX, 0.9, candidate_id="c1"), Detection(BOX, 0.8, candidate_id="c3")))
     report.on_answer((Detection(BOX, 0.9, candidate_id="c3"),))
+    # Counted as put to the supervisor once each, however often reported; the boxes as detections.
+    for cid in ("c1", "c3", "c3"):
+        report.on_proposed(cid)
     report.on_rejection()
     report.on_keyframe(4711, Box(-20, 100, 100, 200))  # partly outside the image: clamped
     # Confirmed at event time 100 s, the position seen at 90 s: 10 s old.
@@ -51,9 +54,11 @@ def test_fields_validate_against_the_back_ends_model() -> None:
     assert status.track_box == [0.0, 50.0, 40.0, 150.0] and status.frame_id == 4711  # 1280 px sent at 640
     assert status.progress is not None and status.progress.model_dump() == {
         "keyframes": 2,
+        "detections": 3,
         "candidates": 2,
         "rejected": 1,
     }
+    assert status.track_id is None  # nothing tracked in this state
     assert status.search is not None and status.search.mission_item == 7
     find = status.find
     assert find is not None and find.candidate_id == "c3" and find.position == [47.3977, 8.5456]
@@ -82,7 +87,12 @@ def test_no_box_while_searching_and_counters_begin_again_with_a_new_mission() ->
     report.start("7")  # the same mission restarted: kept
     assert report.fields(following(), None)["progress"]["keyframes"] == 1
     report.start("8")
-    assert report.fields(following(), None)["progress"] == {"keyframes": 0, "candidates": 0, "rejected": 0}
+    assert report.fields(following(), None)["progress"] == {
+        "keyframes": 0,
+        "detections": 0,
+        "candidates": 0,
+        "rejected": 0,
+    }
     no_position = confirmed(position=replace(POSITION, lat_deg=math.nan))
     assert report.record_find(no_position, "p", None, now_s=1.0) is None and "find" not in report.fields(
         following(), None
@@ -108,3 +118,20 @@ def test_the_find_reaches_the_gcs_as_a_popup_and_a_geo_status() -> None:
         assert geo.get_srcComponent() == 100 and geo.h_acc == 1.25 and geo.dist == 14.0
         assert math.isclose(geo.alt, 488.0, abs_tol=0.01)  # the ground: home's altitude AMSL
         assert math.isnan(geo.vel_n)
+
+
+def test_the_tracked_box_carries_the_candidates_own_id_once_verified() -> None:
+    """Issue 45: the live view names the tracked box as the GCS and the card do (the id the candidate was
+    first proposed with), never while only the fast stage chose it (its id may still change)."""
+    report = StatusReport((640, 480))
+    report.start("7")
+    report.on_keyframe(12, BOX)
+    target = Target("7be4dec8ac3b", "gray shirt", Verdict.UNCERTAIN, BOX, 12, 1.0)
+    state = replace(following(), target=target)
+    assert report.fields(state, None)["track_id"] == "7be4dec8ac3b"
+    assert (
+        VehicleStatusIn(state="AWAITING_SUPERVISOR", **report.fields(state, None)).track_id == "7be4dec8ac3b"
+    )
+    early = replace(state, target=replace(target, early=EarlyStart(3, BOX, 1.0)))
+    assert "track_id" not in report.fields(early, None)
+    assert "track_id" not in report.fields(replace(state, mode=MissionState.SEARCHING), None)

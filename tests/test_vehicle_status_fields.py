@@ -24,7 +24,8 @@ FULL: dict[str, Any] = {
     "heading_deg": 271.5,
     "track_box": [100.0, 80.0, 140.0, 180.0],
     "frame_id": 1234,
-    "progress": {"keyframes": 120, "candidates": 3, "rejected": 1},
+    "track_id": "7be4dec8ac3b",
+    "progress": {"keyframes": 120, "detections": 66, "candidates": 3, "rejected": 1},
     "search": {
         "area": [[47.397, 8.545], [47.398, 8.545], [47.398, 8.547], [47.397, 8.547]],
         "coverage": 0.42,

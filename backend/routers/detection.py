@@ -114,6 +114,7 @@ async def detect(
             )
             for c in candidates
         ],
+        time.perf_counter() - t_received,
     )
     return DetectResponse(
         vehicle_id=fields.vehicle_id,
