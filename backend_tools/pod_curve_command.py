@@ -49,15 +49,26 @@ def print_curve(curve: DetectionCurve) -> None:
         "are one target under one description, not independent samples: the 95 % intervals (Wilson) treat "
         "them as independent and are too narrow."
     )
-    print("| size px | frames | proposed | POD (yes) | 95 % interval | POD (yes or uncertain) |")
-    print("|---|---|---|---|---|---|")
-    for b in curve.bins:
+    print("| size px | frames | proposed | POD (yes) | 95 % interval | the curve | POD (yes or uncertain) |")
+    print("|---|---|---|---|---|---|---|")
+    fitted = curve.table()
+    for b, at in zip(curve.bins, fitted, strict=True):
         n = b.samples
         ci = wilson_interval(b.yes, n)
         print(
             f"| {_bin_label(b.lo_px, b.hi_px)} | {n} | {_f(b.proposed / n if n else None)} | "
-            f"{_f(b.probability())} | {f'{ci[0]:.2f}-{ci[1]:.2f}' if ci else '-'} | {_f(b.probability(True))} |"
+            f"{_f(b.probability())} | {f'{ci[0]:.2f}-{ci[1]:.2f}' if ci else '-'} | {_f(at)} | "
+            f"{_f(b.probability(True))} |"
         )
+    fit = curve.fit()
+    if fit is not None:
+        half = (
+            f"found half the time at {fit.size50_px:.1f} px, slope {fit.slope:.2f}"
+            if fit.size50_px
+            else "flat"
+        )
+        print(f"the curve (what the map uses: the fit through every bin, at each bin's centre): {half}; "
+              f"nothing claimed below {fit.min_size_px:.1f} px")  # fmt: skip
 
 
 def print_looks(looks: Mapping[str, Any]) -> None:

@@ -10,10 +10,16 @@ what the mission acts on by default (`candidate_selection.may_start`): a "yes", 
 starts on anyway (nothing in the description the verifier could judge, or singled out by its rank).
 
 Bins are half octaves of size from 8 px (a rule fixed before any data was seen, so a new data set falls
-into the same bins). A bin with fewer than `MIN_SAMPLES` frames says nothing on its own: it takes the
-value of the nearest smaller bin that does (a smaller target is never easier to find), and below the
-smallest such bin the curve claims nothing (0). The per-sequence counts are kept so a sequence can be
-predicted from a curve fitted without it (`without`: leave-one-sequence-out).
+into the same bins); they count frames and print the table. The POD at a size is not a bin's own share:
+a bin holds the frames of one or two sequences as often as of many, so its share is one target's luck.
+It is the curve fitted through all of them in the form target acquisition models give detection by size
+(the target transfer probability function of Johnson's criteria and NVThermIP, P = (N/N50)^E /
+(1 + (N/N50)^E), N the cycles across the target: here its size in pixels), a logistic in log size, fitted
+by maximum likelihood on the bins' counts at their centres with half a frame found and half missed added
+to each bin (so a bin of all found or none does not run the fit off to infinity) and a slope never below 0
+(a bigger target is never harder to find). Below the smallest bin with `MIN_SAMPLES` frames the curve
+claims nothing (0). The per-sequence counts are kept so a sequence can be predicted from a curve fitted
+without it (`without`: leave-one-sequence-out).
 """
 
 from __future__ import annotations
@@ -21,6 +27,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
+from functools import cached_property
 from typing import Any
 
 FORMAT = "cloudtrack-detection-curve/1"
@@ -90,6 +97,67 @@ def wilson_interval(successes: int, trials: int, z: float = 1.96) -> tuple[float
     return max(0.0, centre - half), min(1.0, centre + half)
 
 
+@dataclass(frozen=True)
+class CurveFit:
+    """P(size) = 1 / (1 + exp(-(intercept + slope * ln size))), claimed from `min_size_px` up; with a
+    slope, the same as (size / size50)^slope / (1 + (size / size50)^slope)."""
+
+    intercept: float
+    slope: float
+    min_size_px: float
+
+    def probability(self, size_px: float) -> float:
+        z = self.intercept + self.slope * math.log(max(size_px, 1e-9))
+        return 1.0 / (1.0 + math.exp(-z)) if z > -700 else 0.0
+
+    @property
+    def size50_px(self) -> float | None:
+        """The size found half the time (N50); None for a flat curve."""
+        return math.exp(-self.intercept / self.slope) if self.slope > 0 else None
+
+
+def bin_centre(b: CurveBin) -> float:
+    """Where a bin's frames stand on the size axis: the geometric middle of its edges (the open-ended first
+    and last bins: half an octave inside their one edge)."""
+    if b.lo_px <= 0:
+        return b.hi_px / math.sqrt(2.0)
+    if math.isinf(b.hi_px):
+        return b.lo_px * math.sqrt(2.0)
+    return math.sqrt(b.lo_px * b.hi_px)
+
+
+def fit_curve(bins: Sequence[CurveBin], accept_uncertain: bool = False) -> CurveFit | None:
+    """The maximum-likelihood logistic in log size through the bins' counts (module doc), by Newton's
+    method on the two parameters, the slope held at 0 or above; None without a bin of MIN_SAMPLES frames."""
+    measured = [b for b in bins if b.samples >= MIN_SAMPLES]
+    if not measured:
+        return None
+    rows = [
+        (math.log(bin_centre(b)), b.found(accept_uncertain) + 0.5, b.samples + 1.0) for b in bins if b.samples
+    ]
+    share = sum(k for _, k, _ in rows) / sum(n for _, _, n in rows)
+    intercept, slope = math.log(share / (1 - share)), 0.0
+    for _ in range(100):
+        g0 = g1 = h00 = h01 = h11 = 0.0
+        for x, k, n in rows:
+            p = 1.0 / (1.0 + math.exp(-(intercept + slope * x)))
+            w = n * p * (1 - p)
+            g0 += k - n * p
+            g1 += (k - n * p) * x
+            h00, h01, h11 = h00 + w, h01 + w * x, h11 + w * x * x
+        det = h00 * h11 - h01 * h01
+        if det <= 1e-12:
+            break
+        step0, step1 = (h11 * g0 - h01 * g1) / det, (h00 * g1 - h01 * g0) / det
+        intercept, slope = intercept + step0, slope + step1
+        if slope < 0:  # the best monotone curve is flat: the share of all frames
+            intercept, slope = math.log(share / (1 - share)), 0.0
+            break
+        if abs(step0) + abs(step1) < 1e-10:
+            break
+    return CurveFit(intercept, slope, min(b.lo_px for b in measured))
+
+
 def empty_bins(edges: Sequence[float] = SIZE_EDGES_PX) -> tuple[CurveBin, ...]:
     return tuple(CurveBin(lo, hi) for lo, hi in zip(edges, edges[1:], strict=False))
 
@@ -115,18 +183,23 @@ class DetectionCurve:
     sequences: tuple[tuple[str, tuple[CurveBin, ...]], ...] = ()
 
     def probability(self, size_px: float, accept_uncertain: bool = False) -> float:
-        """POD of one look at a target of `size_px` keyframe pixels (see the module doc for thin bins)."""
-        i = bin_index(self.bins, size_px)
-        if i is None:
+        """POD of one look at a target of `size_px` keyframe pixels: the fitted curve (module doc)."""
+        fit = self.fit(accept_uncertain)
+        if fit is None or not math.isfinite(size_px) or size_px < fit.min_size_px:
             return 0.0
-        for b in reversed(self.bins[: i + 1]):
-            if b.samples >= MIN_SAMPLES:
-                return b.found(accept_uncertain) / b.samples
-        return 0.0
+        return fit.probability(size_px)
+
+    def fit(self, accept_uncertain: bool = False) -> CurveFit | None:
+        """The curve through the bins (None without a bin of `MIN_SAMPLES` frames)."""
+        return self._fits[1 if accept_uncertain else 0]
+
+    @cached_property
+    def _fits(self) -> tuple[CurveFit | None, CurveFit | None]:
+        return fit_curve(self.bins, False), fit_curve(self.bins, True)
 
     def table(self, accept_uncertain: bool = False) -> list[float]:
-        """`probability` at each bin (what a lookup returns for a size in that bin)."""
-        return [self.probability(b.lo_px, accept_uncertain) for b in self.bins]
+        """`probability` at each bin's centre."""
+        return [self.probability(bin_centre(b), accept_uncertain) for b in self.bins]
 
     def without(self, sequence: str) -> DetectionCurve:
         """The curve fitted without one sequence's frames (itself when it holds none of them)."""

@@ -116,10 +116,11 @@ def sizes_px(
 
 def curve_probabilities(curve: DetectionCurve, sizes: np.ndarray, accept_uncertain: bool) -> np.ndarray:
     """`curve.probability` for many sizes at once."""
-    los = np.array([b.lo_px for b in curve.bins])
-    table = np.array(curve.table(accept_uncertain))
-    index = np.clip(np.searchsorted(los, sizes, side="right") - 1, 0, len(table) - 1)
-    return np.where(sizes > 0, table[index], 0.0)
+    fit = curve.fit(accept_uncertain)
+    if fit is None:
+        return np.zeros_like(sizes, dtype=np.float64)
+    z = fit.intercept + fit.slope * np.log(np.maximum(sizes, 1e-9))
+    return np.where(sizes >= fit.min_size_px, 1.0 / (1.0 + np.exp(-np.clip(z, -700, 700))), 0.0)
 
 
 class PodMap:

@@ -15,6 +15,7 @@ from behaviors.detection_curve import (
     CurveBin,
     CurveError,
     DetectionCurve,
+    bin_centre,
     bin_index,
     curve_from_sequences,
     curves_document,
@@ -80,37 +81,82 @@ def _curve(counts: dict[int, tuple[int, int, int, int]], name: str = "person") -
 CURVE = _curve({2: (20, 10, 4, 2), 3: (5, 5, 5, 0), 4: (40, 36, 30, 4), 6: (12, 12, 12, 0)})
 
 
+def _logistic(size: float, size50: float, slope: float) -> float:
+    return 1.0 / (1.0 + (size50 / size) ** slope)
+
+
+def _from_truth(size50: float, slope: float, frames: int = 100_000) -> DetectionCurve:
+    """A curve whose bins hold `frames` frames each, found as often as the true curve says at their centre."""
+    return _curve(
+        {
+            i: (frames, frames, round(frames * _logistic(bin_centre(b), size50, slope)), 0)
+            for i, b in enumerate(empty_bins())
+            if 1 <= i <= 8
+        }
+    )
+
+
+@pytest.mark.parametrize(("size50", "slope"), [(18.0, 2.0), (30.0, 4.0), (12.0, 1.2)])
+def test_the_fit_finds_the_curve_the_frames_came_from(size50: float, slope: float) -> None:
+    """Johnson's target transfer function, (N/N50)^E / (1 + (N/N50)^E), comes back from its own counts."""
+    curve = _from_truth(size50, slope)
+    fit = curve.fit()
+    assert fit is not None and fit.size50_px == pytest.approx(size50, rel=0.01)
+    assert fit.slope == pytest.approx(slope, rel=0.01)
+    for size in (9.0, 14.0, 25.0, 60.0, 300.0):
+        assert curve.probability(size) == pytest.approx(_logistic(size, size50, slope), abs=0.01)
+
+
 @pytest.mark.parametrize(
     ("size", "accept_uncertain", "expected"),
     [
-        (4.0, False, 0.0),  # below the smallest bin with frames: the curve claims nothing
-        (12.0, False, 4 / 20),
-        (12.0, True, 6 / 20),
-        (20.0, False, 4 / 20),  # a thin bin (5 frames) takes the nearest smaller bin that has enough
-        (30.0, False, 30 / 40),
-        (30.0, True, 34 / 40),
-        (40.0, False, 30 / 40),  # an empty bin likewise
-        (70.0, False, 1.0),
-        (1000.0, False, 1.0),  # beyond the largest: the nearest smaller
+        (4.0, False, 0.0),  # below the smallest bin of MIN_SAMPLES frames: the curve claims nothing
         (math.nan, False, 0.0),
+        (12.0, False, 0.21),
+        (12.0, True, 0.28),  # the uncertain ones counted too: higher everywhere
+        (30.0, False, 0.82),
+        (30.0, True, 0.89),
+        (70.0, False, 0.985),  # a bigger target is never harder to find
+        (1000.0, False, 1.0),
     ],
 )
-def test_probability_with_thin_bins(size: float, accept_uncertain: bool, expected: float) -> None:
-    assert CURVE.probability(size, accept_uncertain) == pytest.approx(expected)
+def test_probability_is_the_fit_through_every_bin(
+    size: float, accept_uncertain: bool, expected: float
+) -> None:
+    assert CURVE.probability(size, accept_uncertain) == pytest.approx(expected, abs=0.01)
 
 
-def test_min_samples_decides_when_a_bin_speaks_for_itself() -> None:
-    at_min = _curve({2: (MIN_SAMPLES - 1, 0, 0, 0), 3: (MIN_SAMPLES, 5, 5, 0)})
-    assert at_min.probability(12.0) == 0.0  # one frame short: says nothing
-    assert at_min.probability(20.0) == pytest.approx(5 / MIN_SAMPLES)
+def test_a_thin_bin_counts_in_the_fit_but_claims_nothing_below_the_first_full_one() -> None:
+    thin_first = _curve({2: (MIN_SAMPLES - 1, 9, 9, 0), 3: (MIN_SAMPLES, 5, 5, 0)})
+    assert thin_first.probability(12.0) == 0.0  # one frame short of speaking for its own sizes
+    assert thin_first.probability(20.0) > 0.5  # its 9 of 9 lift the fit above the 5 of 10 there
+    assert _curve({2: (MIN_SAMPLES - 1, 9, 9, 0)}).fit() is None
+
+
+@pytest.mark.parametrize(
+    ("counts", "found"),
+    [
+        ({2: (40, 40, 36, 0), 4: (40, 40, 4, 0)}, 40 / 80),  # found less as they grow: flat at the share
+        ({2: (40, 40, 40, 0), 4: (40, 40, 40, 0)}, 1.0),  # all found: near 1, never off to infinity
+        ({2: (40, 0, 0, 0), 4: (40, 0, 0, 0)}, 0.0),  # none found
+    ],
+)
+def test_the_fit_is_never_falling_nor_infinite(
+    counts: dict[int, tuple[int, int, int, int]], found: float
+) -> None:
+    curve = _curve(counts)
+    fit = curve.fit()
+    assert fit is not None and fit.slope >= 0 and math.isfinite(fit.intercept)
+    assert curve.probability(20.0) == pytest.approx(found, abs=0.03)
 
 
 def test_table_and_share() -> None:
-    assert CURVE.table()[2:5] == pytest.approx([0.2, 0.2, 0.75])
+    assert CURVE.table() == [CURVE.probability(bin_centre(b)) for b in CURVE.bins]
     assert CURVE.samples == 77
     assert CURVE.share() == pytest.approx(51 / 77)
     assert CURVE.share(True) == pytest.approx(57 / 77)
     assert DetectionCurve("person", empty_bins()).share() == 0.0
+    assert DetectionCurve("person", empty_bins()).probability(30.0) == 0.0
 
 
 def test_counting_one_frame() -> None:
@@ -124,11 +170,11 @@ def test_curve_from_sequences_and_without() -> None:
     b = _curve({2: (20, 4, 2, 1), 4: (10, 2, 0, 1)}).bins
     curve = curve_from_sequences("person", {"a": a, "b": b}, {"tiles": "2"})
     assert curve.bins[4].samples == 40 and curve.bins[4].yes == 30 and curve.bins[4].uncertain == 1
-    assert curve.probability(30.0) == pytest.approx(0.75)
     assert dict(curve.configuration) == {"tiles": "2"}
     without_a = curve.without("a")
     assert without_a.bins == b and [name for name, _ in without_a.sequences] == ["b"]
-    assert without_a.probability(30.0) == 0.0  # b's own 10 frames there found nothing
+    assert without_a.probability(30.0) == DetectionCurve("person", b).probability(30.0)
+    assert without_a.probability(30.0) < 0.1 < curve.probability(30.0)  # b's own frames found little
     assert curve.without("a").without("b").samples == 0
     assert curve.without("unknown") is curve
     with pytest.raises(CurveError, match="at least one sequence"):
@@ -147,8 +193,8 @@ def test_round_trip_through_a_document() -> None:
     ]
     assert [x.lo_px for x in again.bins] == pytest.approx([x.lo_px for x in curve.bins], abs=1e-3)
     assert math.isinf(again.bins[-1].hi_px)
-    assert again.without("a").probability(12.0) == curve.without("a").probability(12.0)
-    assert again.table() == curve.table()
+    assert again.without("a").probability(14.0) == curve.without("a").probability(14.0)
+    assert again.table() == pytest.approx(curve.table(), abs=1e-4)  # edges kept to 1e-3 px
 
 
 def _good() -> dict[str, Any]:

@@ -208,11 +208,11 @@ def test_an_unreachable_pod_names_the_closest_plan() -> None:
     assert search.choose(round(best.pod - 0.02, 2)).time_s <= best.time_s  # a little less is reachable
 
 
-def test_a_target_never_found_is_unreachable_at_pod_0() -> None:
+def test_a_target_never_found_is_unreachable() -> None:
     blind = PodTarget(step_curve(math.inf, 0.0), STANDING)
     with pytest.raises(PodUnreachable) as err:
         PodSearch(AREA, settings(), blind, Keyframing()).choose(0.5)
-    assert err.value.best.pod == 0.0
+    assert err.value.best.pod < 0.05  # 0 of 100 frames at every size: the fit's half a frame, no more
 
 
 @pytest.mark.parametrize("pod", [0.0, 1.0, 1.5, -0.2])

@@ -16,7 +16,7 @@ from backend.crops import margin_crop
 from backend.verifiers.attributes import AttributeVerifier
 from behaviors.camera_model import CameraModel
 from behaviors.detection import Verdict
-from behaviors.detection_curve import CurveBin, DetectionCurve, empty_bins
+from behaviors.detection_curve import CurveBin, DetectionCurve, bin_centre, empty_bins
 from behaviors.geometry import Box
 from sitl.camera_render import FrameTruth, Renderer, TruthBox, VehiclePose
 from sitl.camera_server import CameraServer
@@ -37,16 +37,19 @@ from sitl.world import (
     search_world,
 )
 
-SMALL, LARGE = 12.0, 40.0  # px: in the curve's 11.3-16 and 32-45 px bins
-P_SMALL, P_LARGE = 0.3, 0.8
+SMALL, LARGE = 12.0, 40.0  # px
 
 
 def _curve() -> DetectionCurve:
+    """A curve measured on many frames found as (size / 18 px)^2.5 / (1 + (size / 18 px)^2.5) says."""
     bins = []
     for b in empty_bins():
-        share = P_SMALL if b.lo_px <= SMALL < b.hi_px else P_LARGE if b.lo_px <= LARGE < b.hi_px else 0.0
-        bins.append(CurveBin(b.lo_px, b.hi_px, 100, round(share * 100), round(share * 100), 0))
+        share = 1.0 / (1.0 + (18.0 / bin_centre(b)) ** 2.5) if b.lo_px > 0 else 0.0
+        bins.append(CurveBin(b.lo_px, b.hi_px, 100_000, round(share * 100_000), round(share * 100_000), 0))
     return DetectionCurve("person", tuple(bins))
+
+
+P_SMALL, P_LARGE = _curve().probability(SMALL), _curve().probability(LARGE)  # about 0.27 and 0.88
 
 
 def _frame(frame_id: int, t: float, size_px: float, north: float = 10.0) -> FrameTruth:
