@@ -188,7 +188,9 @@ def test_console_shows_live_keyframe_map_and_finds_offline(
         boxes = card.locator(".overlay rect")
         assert boxes.count() >= 2 and card.locator(".overlay rect.track").count() == 1
         # Progress, coverage and the autopilot's mission.
-        expect(card.locator(".progress")).to_have_text("51 keyframes checked · 3 candidates · 1 rejected")
+        expect(card.locator(".progress")).to_have_text(
+            "51 keyframes checked · 3 put to the supervisor · 1 rejected"
+        )
         expect(card.locator(".coverage")).to_have_text("22 % of the area seen")
         expect(card.locator(".mission-item")).to_have_text("mission item 3 of 9 · mode AUTO")
         # The map from the positions alone: area, covered, track, the vehicle and the candidate.

@@ -9,6 +9,7 @@
 "use strict";
 
 const TOKEN_KEY = "cloudtrack.supervisor_token";
+const LIVE_S = 2; // a keyframe older than this is marked "not live"
 const SVG = "http://www.w3.org/2000/svg";
 const $ = (selector, root = document) => root.querySelector(selector);
 let token = sessionStorage.getItem(TOKEN_KEY) || "";
@@ -193,6 +194,7 @@ function renderKeyframe(card, vehicle) {
   $(".no-keyframe", card).hidden = Boolean(keyframe);
   img.hidden = !keyframe;
   overlay.replaceChildren();
+  $(".keyframe-age", card).hidden = !keyframe;
   if (!keyframe) {
     $(".keyframe-info", card).textContent = "";
     return;
@@ -204,33 +206,50 @@ function renderKeyframe(card, vehicle) {
   overlay.setAttribute("viewBox", `0 0 ${keyframe.width} ${keyframe.height}`);
   overlay.setAttribute("font-size", Math.max(12, keyframe.width / 55)); // labels readable at any frame size
   $(".frame", card).style.aspectRatio = `${keyframe.width} / ${keyframe.height}`;
-  for (const candidate of keyframe.candidates) {
+  // A box put to the supervisor carries the candidate's own id (as on the GCS, the card and the finds) and
+  // where it stands ("confirmed", "awaiting"); a box put to no one, the verifier's verdict alone.
+  const named = [...keyframe.candidates].sort((a, b) => Boolean(a.status) - Boolean(b.status)); // on top
+  for (const candidate of named) {
     const [x1, y1, x2, y2] = candidate.box;
-    svg("rect", { x: x1, y: y1, width: x2 - x1, height: y2 - y1, class: candidate.verdict }, overlay);
-    const label = svg("text", { x: x1, y: Math.max(keyframe.width / 55, y1 - 4) }, overlay);
-    label.textContent = `${candidate.verdict} ${candidate.id.slice(0, 6)}`;
+    const kind = candidate.status || candidate.verdict;
+    svg("rect", { x: x1, y: y1, width: x2 - x1, height: y2 - y1, class: kind }, overlay);
+    const label = svg("text", { x: x1, y: Math.max(keyframe.width / 55, y1 - 4), class: kind }, overlay);
+    label.textContent = candidate.id ? `${kind} ${candidate.id}` : kind;
   }
   const track = keyframe.track_box;
   if (track) {
     const [x1, y1, x2, y2] = track;
     svg("rect", { x: x1, y: y1, width: x2 - x1, height: y2 - y1, class: "track" }, overlay);
     const label = svg("text", { x: x1, y: Math.min(keyframe.height - 4, y2 + keyframe.width / 50) }, overlay);
-    label.textContent = "tracked";
+    label.textContent = keyframe.track_id ? `tracked ${keyframe.track_id}` : "tracked";
   }
   $(".keyframe-info", card).dataset.frame = keyframe.frame_id ?? "";
 }
 
 function renderProgress(card, vehicle) {
   const progress = vehicle.progress;
+  // Each counter says what it counts: the boxes of every keyframe's answer are detections, not candidates.
   $(".progress", card).textContent = progress
-    ? `${progress.keyframes} keyframes checked · ${progress.candidates} candidates · ${progress.rejected} rejected`
+    ? [
+        `${progress.keyframes} keyframes checked`,
+        ...(progress.detections != null ? [`${progress.detections} detections`] : []),
+        `${progress.candidates} put to the supervisor`,
+        `${progress.rejected} rejected`,
+      ].join(" · ")
     : "no search progress reported";
   const search = vehicle.search;
-  const coverage = search ? search.coverage : null;
+  // No search area, no area figure (a follow has none: "0 % of the area seen" said something false).
+  const area = Boolean(search && search.area.length > 2);
+  $(".coverage-bar", card).hidden = !area;
+  const coverage = area ? search.coverage : null;
   $(".coverage-fill", card).style.width = `${Math.round((coverage || 0) * 100)}%`;
   const pod = vehicle.pod;
-  const seen = coverage === null ? "coverage unknown" : `${(coverage * 100).toFixed(0)} % of the area seen`;
-  $(".coverage", card).textContent = pod
+  const seen = !area
+    ? "no search area"
+    : coverage === null
+      ? "coverage unknown"
+      : `${(coverage * 100).toFixed(0)} % of the area seen`;
+  $(".coverage", card).textContent = pod && area
     ? `${seen} · ${(pod.at_target * 100).toFixed(0)} % at POD ≥ ${pod.target_pod} · mean POD ${pod.mean.toFixed(2)}`
     : seen;
   // Keyframes the vehicle kept while the back-end was unreachable, once there were any.
@@ -276,20 +295,31 @@ function renderMap(card, vehicle) {
     ...candidates.map((c) => [c.position.lat, c.position.lon]),
     ...vehicle.finds.map((f) => [f.position.lat, f.position.lon]),
   ];
+  // A find's uncertainty circle is fitted whole, not only its centre.
+  const ring = vehicle.finds.filter((f) => f.sigma_m).flatMap((f) => {
+    const dLat = f.sigma_m / 111320;
+    const dLon = dLat / Math.max(0.01, Math.cos((f.position.lat * Math.PI) / 180));
+    return [[f.position.lat - dLat, f.position.lon - dLon], [f.position.lat + dLat, f.position.lon + dLon]];
+  });
   if (!points.length) {
     const empty = svg("text", { x: width / 2, y: height / 2, "text-anchor": "middle", class: "empty" }, map);
     empty.textContent = "no positions reported yet";
     $(".map-info", card).textContent = "";
     return;
   }
-  const world = points.map(([lat, lon]) => mercator(lat, lon));
+  const world = [...points, ...ring].map(([lat, lon]) => mercator(lat, lon));
   const xs = world.map((p) => p[0]);
   const ys = world.map((p) => p[1]);
   const [minX, maxX, minY, maxY] = [Math.min(...xs), Math.max(...xs), Math.min(...ys), Math.max(...ys)];
   const midLat = points.reduce((sum, p) => sum + p[0], 0) / points.length;
   const metresPerUnit = (40075016.686 * Math.cos((midLat * Math.PI) / 180)) / 256;
-  const span = Math.max(maxX - minX, maxY - minY, 60 / metresPerUnit); // at least 60 m across
-  const scale = (Math.min(width, height) * 0.85) / span; // pixels per world unit
+  const least = 60 / metresPerUnit; // at least 60 m across
+  // Fitted inside a margin the marks drawn above and beside a point need (a find's pin is 24 px tall).
+  const margin = 30;
+  const scale = Math.min(
+    (width - 2 * margin) / Math.max(maxX - minX, least),
+    (height - 2 * margin) / Math.max(maxY - minY, least),
+  ); // pixels per world unit
   const cx = (minX + maxX) / 2;
   const cy = (minY + maxY) / 2;
   const project = ([lat, lon]) => {
@@ -439,6 +469,7 @@ function renderCandidates(card, vehicle) {
       $(".reject", item).addEventListener("click", () => decide(vehicle.id, candidate.id, "reject", item));
       box.appendChild(item);
     }
+    $(".candidate-id", item).textContent = `candidate ${candidate.id}`;
     const verdict = $(".verdict", item);
     verdict.textContent = candidate.verdict;
     verdict.dataset.verdict = candidate.verdict;
@@ -499,6 +530,7 @@ function renderFinds(card, vehicle) {
     $(".seen", item).textContent = find.seen; // how old the position is, worded as on the TAK map
     $(".who", item).textContent = `confirmed by ${find.decided_by || find.confirmed_by}`;
     $(".what", item).textContent = `${find.prompt} (mission ${find.mission_id})`;
+    $(".find-id", item).textContent = `candidate ${find.candidate_id}`;
     showCrop(item, find.crop_url, find.crop_box);
   }
   for (const item of list.querySelectorAll("li.find")) {
@@ -616,7 +648,13 @@ function tick() {
       ? "no report accepted"
       : `last report ${formatAge(view.age_s + extra)}`;
     if (view.keyframe) {
-      $(".keyframe-info", card).textContent = `keyframe ${view.keyframe.frame_id ?? ""} · ${formatAge(view.keyframe.age_s + extra)}`;
+      // The live view is the newest keyframe the vehicle sent for analysis, not a video: its age is on it,
+      // marked once older than LIVE_S (docs/backend.md, "The live view's age").
+      const age = view.keyframe.age_s + extra;
+      $(".keyframe-info", card).textContent = `keyframe ${view.keyframe.frame_id ?? ""} · received ${formatAge(age)}`;
+      const badge = $(".keyframe-age", card);
+      badge.textContent = age > LIVE_S ? `not live: ${Math.round(age)} s old` : `${Math.round(age)} s old`;
+      badge.dataset.stale = age > LIVE_S ? "1" : "";
     }
     for (const candidate of view.candidates) {
       const item = card.querySelector(`article[data-candidate="${CSS.escape(candidate.id)}"]`);
