@@ -296,16 +296,18 @@ class Px4Sitl:
             )
         return self
 
-    def start_ground_link(self) -> int:
+    def start_ground_link(self, forward: bool = False) -> int:
         """A sixth MAVLink instance (PX4 SITL's most) in the GCS's normal mode, as a second telemetry radio:
         PX4 binds 18590+N and sends to 127.0.0.1:18600+N, where the ground station listens. PX4 answers only
         the first address it hears from, so a ground station that sends from a fixed port (`udpin`) can
         come and go, as QGroundControl does on 14550. Needs the running PX4 (`mavlink` talks to its daemon);
-        returns the port the ground station listens on."""
+        returns the port the ground station listens on. `forward`: it also carries the companion's traffic
+        both ways (`-f`, as the GCS link), for `cloudtrack-gcs start` and friends."""
         self.check_running()
         done = subprocess.run(
             [str(self.work_dir / "bin" / "px4-mavlink"), "--instance", str(self.instance), "start", "-u",
-             str(self.ports.ground), "-o", str(self.ports.ground_remote), "-r", str(GROUND_LINK_RATE)],
+             str(self.ports.ground), "-o", str(self.ports.ground_remote), "-r", str(GROUND_LINK_RATE),
+             *(["-f"] if forward else [])],
             cwd=self.work_dir, env=self.environment(), capture_output=True, text=True, timeout=10,
         )  # fmt: skip
         if done.returncode != 0:

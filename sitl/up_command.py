@@ -2,9 +2,11 @@
 
 It starts the real back-end (the simulated person detector on the rendered world, the local verifier, a
 vehicle token and a supervisor token), an autopilot (the mock's ArduCopter or PX4 personality, hovering at
-10 m, or the real ArduCopter SITL with `--autopilot arducopter`), the camera world rendered from the
-autopilot's pose, and the real companion process; then prints the supervisor page's address and the
-`cloudtrack-gcs` commands to type. Ctrl-C (or SIGTERM) stops everything it started.
+10 m, or the real ArduCopter SITL with `--autopilot arducopter`, the real PX4 SITL with `px4-sitl`), the
+camera world rendered from the autopilot's pose, and the real companion process; then prints the supervisor
+page's address, which world it renders (for the search world: its area and the survey altitude and range
+that suit the camera) and the `cloudtrack-gcs` commands to type. Ctrl-C (or SIGTERM) stops everything it
+started.
 
 The autopilot serves ground stations on a UDP port (`--gcs-port`, 14550): any number of tools connect to
 it (`cloudtrack-gcs --connect udpout:127.0.0.1:14550`, MAVProxy `--master udpout:...`, a QGroundControl
@@ -34,6 +36,8 @@ examples:
   cloudtrack-sim up                                   # mock ArduCopter, the 'follow' world
   cloudtrack-sim up --autopilot px4                   # the mock's PX4 personality
   cloudtrack-sim up --autopilot arducopter            # the real ArduCopter SITL (../shared/sitl/arducopter)
+  cloudtrack-sim up --autopilot px4-sitl              # the real PX4 SITL (../shared/sitl/px4)
+  cloudtrack-sim up --scenario search                 # the search world: survey it, then start the mission
   cloudtrack-sim up --backend-port 8081 --gcs-port 14560 --work-dir out/up
 """
 
@@ -50,13 +54,19 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
     )
     parser.add_argument(
         "--autopilot",
-        choices=("mock", "px4", "arducopter"),
+        choices=("mock", "px4", "arducopter", "px4-sitl"),
         default="mock",
-        help="mock (the mock autopilot's ArduCopter personality, the default), px4 (its PX4 personality) or "
-        "arducopter (the real ArduCopter SITL binary, see --arducopter-binary)",
+        help="mock (the mock autopilot's ArduCopter personality, the default), px4 (its PX4 personality), "
+        "arducopter (the real ArduCopter SITL binary, see --arducopter-binary) or px4-sitl (the real PX4 "
+        "SITL, see --px4-package)",
     )
     parser.add_argument("--arducopter-binary", type=Path, metavar="PATH", help="as for `cloudtrack-sim run`")
-    parser.add_argument("--scenario", default="follow", help="whose world to render (default follow)")
+    parser.add_argument("--px4-package", type=Path, metavar="PATH", help="as for `cloudtrack-sim run`")
+    parser.add_argument(
+        "--scenario",
+        default="follow",
+        help="whose world to render (default follow; search: the area-search world, see docs/quickstart.md)",
+    )
     parser.add_argument("--seed", type=int, default=1, help="world seed (default 1)")
     parser.add_argument("--backend-port", type=int, default=8080, help="the back-end's port (default 8080)")
     parser.add_argument(
@@ -130,6 +140,10 @@ class LocalStack:
         self._parts: list[Any] = []  # stopped in reverse order
         self._companion: subprocess.Popen[bytes] | None = None
         self.autopilot_text = ""
+        self.px4: Any = None  # the real PX4 (px4-sitl)
+        self.world_extras: dict[str, Any] = {}
+        self.system_id = 1  # PX4 SITL instance N is system N+1
+        self.survey_config = self.work / "survey-camera.toml"
 
     def start(self) -> None:
         from behaviors.camera_model import CameraModel
@@ -141,7 +155,9 @@ class LocalStack:
             out.write(self.supervisor_token + "\n")
         origin = VEHICLE_ORIGINS[0]
         world = self.scenario.build_world(self.args.seed)
+        self.world_extras = world.extras
         camera_model = CameraModel.from_hfov(640, 480, 70.0, MOUNT_PITCH_DEG, stabilised=True)
+        self.camera_model = camera_model
         camera_url, companion_link = self._start_autopilot(origin)
         cameras: list[Any] = []
 
@@ -150,21 +166,32 @@ class LocalStack:
             if cameras and is_mission_start(text) and math.isinf(cameras[0].epoch):
                 cameras[0].epoch = time.monotonic()
 
-        follower = PoseFollower(camera_url, origin=origin, on_text=on_text).start()
-        self._parts.append(follower)
-        camera = CameraServer(world, camera_model, follower.pose, fps=30.0)
+        if self.px4 is not None:
+            pose = self.px4.camera_pose(origin).pose
+            self._parts.append(_TextWatch(self.px4.gcs, on_text).start())
+        else:
+            follower = PoseFollower(camera_url, origin=origin, on_text=on_text).start()
+            self._parts.append(follower)
+            pose = follower.pose
+        camera = CameraServer(world, camera_model, pose, fps=30.0)
         camera.epoch = math.inf
         cameras.append(camera)
         self._start_backend(camera.truth, camera_model.width)
         camera.start()
         self._parts.append(camera)
+        if self.scenario.survey is not None:
+            # What `cloudtrack-gcs survey --companion-config` needs to size the lanes as the companion sees.
+            self.survey_config.write_text(
+                f"[camera]\nhfov_deg = 70.0\nmount_pitch_deg = {MOUNT_PITCH_DEG}\n"
+                f"search_range_m = {self.scenario.survey.search_range_m:g}\n"
+            )
         self._start_companion(camera.url, companion_link)
 
     def _start_backend(self, truth: Any, width: int) -> None:
         from backend.app import create_app
         from backend.config import AuthConfig, BackendConfig, ServerConfig, SessionConfig
         from backend.serving import BackgroundServer
-        from sitl.simulated_detector import SimulatedPersonDetector
+        from sitl.simulated_detector import DetectorNoise, SimulatedPersonDetector
 
         config = BackendConfig(
             server=ServerConfig(port=self.args.backend_port),
@@ -173,7 +200,13 @@ class LocalStack:
             ),
             sessions=SessionConfig(sqlite_path=str(self.work / "sessions.sqlite3")),
         )
-        app = create_app(config, detector=SimulatedPersonDetector(truth, width))
+        survey = self.scenario.survey
+        noise = DetectorNoise(
+            miss_rate=self.scenario.miss_rate,
+            look_range_m=survey.search_range_m if survey and self.scenario.detector_in_range else None,
+        )
+        detector = SimulatedPersonDetector(truth, width, noise, seed=self.args.seed)
+        app = create_app(config, detector=detector)
         try:
             server = BackgroundServer(app, port=self.args.backend_port).start()
         except RuntimeError:
@@ -185,18 +218,24 @@ class LocalStack:
 
     def _start_autopilot(self, origin: tuple[float, float]) -> tuple[str, str]:
         """The camera's and the companion's MAVLink addresses."""
+        from sitl.autopilot_mission import MissionOptions
         from sitl.scenario_runner import ALTITUDE_M, GUID_TIMEOUT_S, _home
 
         lat, lon = _home(origin)
         gcs = f"udpin:127.0.0.1:{self.args.gcs_port}"
         if self.args.autopilot == "arducopter":
             return self._start_arducopter(lat, lon)
+        if self.args.autopilot == "px4-sitl":
+            return self._start_px4(lat, lon)
         from sitl.autopilot import AutopilotOptions, SimulatedAutopilot
 
         personality = "px4" if self.args.autopilot == "px4" else "ardupilot"
+        survey = self.scenario.survey
         options = AutopilotOptions(
             personality=personality, start_height_m=ALTITUDE_M, home_lat=lat, home_lon=lon,
             guid_timeout_s=GUID_TIMEOUT_S,
+            # The survey's speed, after a resume too (WPNAV_SPEED / MPC_XY_CRUISE).
+            mission=MissionOptions(speed_m_s=survey.speed_m_s if survey is not None else None),
         )  # fmt: skip
         links = {"gcs": gcs, "companion": "udpin:127.0.0.1:0", "camera": "udpin:127.0.0.1:0"}
         try:
@@ -220,8 +259,11 @@ class LocalStack:
         from sitl.scenarios import ScriptedGcs
 
         binary = find_binary(self.args.arducopter_binary)
+        survey = self.scenario.survey
+        # AUTO flies at WPNAV_SPEED (cm/s) after a resume: the survey's DO_CHANGE_SPEED no longer holds.
+        params = {"WPNAV_SPEED": survey.speed_m_s * 100.0} if survey is not None else {}
         sitl = ArduCopterSitl(
-            binary, self.work / "arducopter", (lat, lon, HOME_ALT_M, 0.0), speedup=5.0
+            binary, self.work / "arducopter", (lat, lon, HOME_ALT_M, 0.0), speedup=5.0, extra_params=params
         ).start()
         self._parts.append(sitl)
         print(f"ArduCopter SITL {binary}: arming and taking off to {ALTITUDE_M:g} m ...", flush=True)
@@ -235,22 +277,47 @@ class LocalStack:
         self.autopilot_text = f"ArduCopter SITL ({binary}), armed and hovering at {ALTITUDE_M:g} m in GUIDED"
         return f"tcp:127.0.0.1:{sitl.ports.camera}", f"udpout:127.0.0.1:{autopilot.bridge.udp_port}"
 
+    def _start_px4(self, lat: float, lon: float) -> tuple[str, str]:
+        from sitl.px4_sitl import find_package, start_px4
+        from sitl.scenario_runner import ALTITUDE_M, HOME_ALT_M
+
+        package = find_package(self.args.px4_package)
+        print(f"PX4 SITL {package}: booting, arming and taking off to {ALTITUDE_M:g} m ...", flush=True)
+        px4 = start_px4(package, self.work / "px4", (lat, lon, HOME_ALT_M), None)
+        self.px4 = px4
+        self._parts.append(px4)
+        self._parts.append(px4.gcs)  # stopped before the PX4 (reverse order)
+        px4.fly_up(ALTITUDE_M, progress=lambda line: print(line, flush=True))
+        # PX4's second GCS link, forwarding to and from the companion: the ground tools' link.
+        ground = px4.sitl.start_ground_link(forward=True)
+        relay = UdpUdpRelay(self.args.gcs_port, ground, px4.sitl.ports.ground).start()
+        self._parts.append(relay)
+        self.system_id = px4.system_id
+        self.autopilot_text = (
+            f"PX4 SITL ({package}, system id {px4.system_id}), armed and hovering at {ALTITUDE_M:g} m in HOLD"
+        )
+        return "", f"udpout:127.0.0.1:{px4.bridge.udp_port}"
+
     def _start_companion(self, camera_url: str, link: str) -> None:
         from cloudtrack.model_store import resolve_model_dir
         from sitl.scenario_runner import MOUNT_PITCH_DEG, STANDOFF_M, default_tracker
 
         model_dir = resolve_model_dir(self.args.model_dir)
+        posture = self.world_extras.get("target_posture")
         settings = [
             f"vehicle.id={self.vehicle_id}",
             f"camera.source={camera_url}",
             f"camera.mount_pitch_deg={MOUNT_PITCH_DEG}",
             "camera.hfov_deg=70.0",
             f"mavlink.connection={link}",
+            f"mavlink.target_system={self.system_id}",
             f"backend.url={self.backend_url}",
             f"tracker.name={self.args.tracker or default_tracker(model_dir)}",
             f"tracker.model_dir={model_dir}",
             f"behavior.standoff_m={STANDOFF_M}",
             f"recording.dir={self.work / 'records'}",
+            *([f"search.posture={posture}"] if posture else []),
+            *self.scenario.companion_settings,  # the search world's search range
         ]
         command = [sys.executable, "-m", "companion.cli", "--log-level", "INFO", "run"]
         for setting in settings:
@@ -265,26 +332,62 @@ class LocalStack:
 
     def instructions(self) -> str:
         connect = f"--connect udpout:127.0.0.1:{self.args.gcs_port}"
-        # PX4 hovers in POSCTL: the companion may only fly once OFFBOARD is selected, which the start allows.
-        engage = " --allow-engage" if self.args.autopilot == "px4" else ""
-        return "\n".join(
-            [
-                "CloudTrack is up on this machine (Ctrl-C stops everything):",
-                f"  supervisor page  {self.backend_url}/supervisor",
-                f"                   its token: cat {self.token_file}",
-                f"  autopilot        {self.autopilot_text}; ground stations: udp 127.0.0.1:{self.args.gcs_port}",
-                f"  camera world     '{self.scenario.name}' (seed {self.args.seed}): {self.scenario.prompt} among others",
+        if self.system_id != 1:
+            connect += f" --system {self.system_id}"
+        # PX4 hovers in HOLD/POSCTL: the companion may only fly once OFFBOARD is selected, which the start allows.
+        px4 = self.args.autopilot in ("px4", "px4-sitl")
+        survey = self.scenario.survey
+        engage = " --allow-engage" if px4 or survey is not None else ""
+        start = (
+            f'  cloudtrack-gcs {connect} start --prompt "{self.scenario.prompt}" --superset person{engage}'
+        )
+        lines = [
+            "CloudTrack is up on this machine (Ctrl-C stops everything):",
+            f"  supervisor page  {self.backend_url}/supervisor",
+            f"                   its token: cat {self.token_file}",
+            f"  autopilot        {self.autopilot_text}; ground stations: udp 127.0.0.1:{self.args.gcs_port}",
+            f"  camera world     '{self.scenario.name}' (seed {self.args.seed}): {self.scenario.prompt} among others",
+        ]
+        if survey is None:
+            lines += [
                 f"  companion        {self.vehicle_id}, log {self.companion_log}",
                 "",
                 "In another shell (source .venv/bin/activate), as the ground station:",
-                f'  cloudtrack-gcs {connect} start --prompt "{self.scenario.prompt}" --superset person{engage}',
+                start,
                 f"  cloudtrack-gcs {connect} watch --until-candidate   # until a candidate awaits you",
                 f"  cloudtrack-gcs {connect} status",
                 f"  cloudtrack-gcs {connect} confirm        # the candidate awaiting the supervisor",
                 f"  cloudtrack-gcs {connect} abort",
                 "or confirm on the supervisor page.",
             ]
-        )
+            return "\n".join(lines)
+        from sitl.scenario_runner import VEHICLE_ORIGINS, _home
+
+        (s_n, w_e), (n_n, e_e) = survey.area_ne
+        o_n, o_e = VEHICLE_ORIGINS[0]
+        lat, lon = _home((o_n + (s_n + n_n) / 2.0, o_e + (w_e + e_e) / 2.0))
+        mode = "MISSION" if px4 else "AUTO"
+        size = f"{e_e - w_e:g}x{n_n - s_n:g}"
+        lines += [
+            f"  search area      {size} m (east-west x north-south), {s_n:g}-{n_n:g} m north of home, centre "
+            f"{lat:.6f},{lon:.6f}",
+            f"  survey           at {survey.altitude_m:g} m with a {survey.search_range_m:g} m search range, "
+            f"{survey.speed_m_s:g} m/s: the verifier judges a rendered person out to about 12 m from 10 m up "
+            "(from 20 m up it accepts nobody)",
+            f"  companion        {self.vehicle_id}, search range {survey.search_range_m:g} m, log {self.companion_log}",
+            "",
+            "In another shell (source .venv/bin/activate), as the ground station:",
+            f"  cloudtrack-gcs {connect} survey --centre {lat:.6f},{lon:.6f} --size {size} --altitude "
+            f"{survey.altitude_m:g} --speed {survey.speed_m_s:g} --overlap {survey.overlap:g} "
+            f"--companion-config {self.survey_config}",
+            f"  cloudtrack-gcs {connect} mode {mode}          # the autopilot flies the survey",
+            start,
+            f"  cloudtrack-gcs {connect} watch --until-candidate   # until a candidate awaits you",
+            f"  cloudtrack-gcs {connect} reject         # a look-alike: the survey resumes where it broke off",
+            f"  cloudtrack-gcs {connect} confirm        # the described person",
+            "or decide on the supervisor page.",
+        ]
+        return "\n".join(lines)
 
     def stop(self) -> None:
         companion = self._companion
@@ -367,3 +470,84 @@ class UdpTcpRelay:
             thread.join(timeout=2)
         self._udp.close()
         self._tcp.close()
+
+
+class UdpUdpRelay:
+    """Ground stations on a UDP port (each sender remembered) to PX4's second GCS link, which sends to
+    `local_port` from `remote_port`: datagrams as they come."""
+
+    def __init__(self, udp_port: int, local_port: int, remote_port: int) -> None:
+        import socket
+
+        self._udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self._udp.bind(("127.0.0.1", udp_port))
+        self._udp.settimeout(0.2)
+        self._px4 = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self._px4.bind(("127.0.0.1", local_port))
+        self._px4.settimeout(0.2)
+        self._remote = ("127.0.0.1", remote_port)
+        self._clients: set[tuple[str, int]] = set()
+        self._stop = threading.Event()
+        self._threads = [
+            threading.Thread(target=self._uplink, name="gcs-relay-up", daemon=True),
+            threading.Thread(target=self._downlink, name="gcs-relay-down", daemon=True),
+        ]
+
+    def start(self) -> UdpUdpRelay:
+        for thread in self._threads:
+            thread.start()
+        return self
+
+    def _uplink(self) -> None:
+        while not self._stop.is_set():
+            try:
+                data, sender = self._udp.recvfrom(65536)
+                self._clients.add(sender)
+                self._px4.sendto(data, self._remote)
+            except OSError:
+                continue
+
+    def _downlink(self) -> None:
+        while not self._stop.is_set():
+            try:
+                data = self._px4.recv(65536)
+            except OSError:
+                continue
+            for client in list(self._clients):
+                try:
+                    self._udp.sendto(data, client)
+                except OSError:
+                    self._clients.discard(client)
+
+    def stop(self) -> None:
+        self._stop.set()
+        for thread in self._threads:
+            thread.join(timeout=2)
+        self._udp.close()
+        self._px4.close()
+
+
+class _TextWatch:
+    """The scripted pilot's STATUSTEXT lines to `on_text` (PX4: the camera follows SIH's truth, not a link)."""
+
+    def __init__(self, gcs: Any, on_text: Any) -> None:
+        self._gcs = gcs
+        self._on_text = on_text
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="px4-texts", daemon=True)
+
+    def start(self) -> _TextWatch:
+        self._thread.start()
+        return self
+
+    def _run(self) -> None:
+        seen = 0
+        while not self._stop.wait(0.1):
+            texts = list(self._gcs.statustexts)
+            for _, text in texts[seen:]:
+                self._on_text(text)
+            seen = len(texts)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2)
