@@ -32,6 +32,7 @@ from backend.schemas import (
     VehicleView,
 )
 from backend.sessions import SessionStore
+from backend.supersets import prompt_outside_superset
 from behaviors.geometry import Box, iou
 from cloudtrack.api_models import Decision
 from cloudtrack.coverage import LocalFrame
@@ -43,7 +44,7 @@ _STATUS = {"confirm": "confirmed", "reject": "rejected"}
 TRACK_SHOWN = 300  # points of the track the page draws (the download has them all)
 AUTH_ERROR_KEEP_S = 60.0
 SNAPSHOT_REUSE_S = 1.0
-TRACK_MATCH_IOU = 0.3  # a keyframe box over the tracked box is the tracked candidate
+TRACK_MATCH_IOU = 0.2  # a keyframe box over the tracked box is the tracked one (as the companion matches)
 
 
 def _shown(track: list[list[float]]) -> list[list[float]]:
@@ -250,6 +251,9 @@ class SupervisorView:
             reason=status.reason,
             mission_id=status.mission_id,
             prompt=status.prompt,
+            prompt_warning=prompt_outside_superset(status.prompt, status.superset)
+            if status.prompt and status.superset
+            else None,
             position=status.position,
             altitude_m=status.altitude_m,
             heading_deg=status.heading_deg,

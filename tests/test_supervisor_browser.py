@@ -195,6 +195,17 @@ def test_supervisor_confirms_a_running_companions_candidate_in_a_real_browser(
                 timeout=10_000,
             )
             assert 0 < candidate.locator(".crop").evaluate("el => el.naturalWidth") <= 192
+            # One id (issue 45): the GCS, the card and the live view's box over the track name it alike.
+            heard = receive_until(
+                ground,
+                lambda m: m.get_type() == "STATUSTEXT" and m.text.startswith("CANDIDATE AWAITING "),
+                10.0,
+            )
+            assert heard is not None, "the GCS never heard the candidate"
+            cid = heard.text.split()[2]
+            assert candidate.get_attribute("data-candidate") == cid
+            expect(candidate.locator(".candidate-id")).to_have_text(f"candidate {cid}")
+            expect(mine.locator(".overlay text", has_text=f"awaiting {cid}")).to_have_count(1, timeout=20_000)
 
             SCREENSHOT.parent.mkdir(parents=True, exist_ok=True)
             page.screenshot(path=str(SCREENSHOT.with_name("supervisor-candidate.png")), full_page=True)
@@ -203,6 +214,18 @@ def test_supervisor_confirms_a_running_companions_candidate_in_a_real_browser(
             # decision before the page is looked at again (CI saw it go straight to "confirmed").
             expect(candidate.locator(".decision")).to_contain_text(re.compile("confirm sent|confirmed"))
             expect(mine.locator(".state")).to_have_text("CONFIRMED", timeout=20_000)
+            # Confirmed: the live view labels the person confirmed (the verifier's verdict no longer shows).
+            expect(mine.locator(".overlay text", has_text=f"confirmed {cid}")).to_have_count(
+                1, timeout=20_000
+            )
+            # The companion's counters: one candidate put to the supervisor, however many boxes its answers held.
+            expect(mine.locator(".progress")).to_have_text(
+                re.compile(
+                    r"^\d+ keyframes? checked · \d+ detections? · 1 put to the supervisor · 0 rejected$"
+                )
+            )
+            assert not re.search(r"\b1 (keyframes|detections)\b", mine.locator(".progress").inner_text())
+            expect(mine.locator(".coverage")).to_have_text("no search area")
 
             page.screenshot(path=str(SCREENSHOT), full_page=True)
             print(f"screenshots: {SCREENSHOT.with_name('supervisor-candidate.png')} {SCREENSHOT}")

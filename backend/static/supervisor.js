@@ -126,6 +126,10 @@ function formatAge(seconds) {
   return `${(seconds / 3600).toFixed(1)} h ago`;
 }
 
+function plural(count, noun) {
+  return `${count} ${noun}${count === 1 ? "" : "s"}`;
+}
+
 function formatPosition(position, sigma) {
   if (!position) return "position unknown";
   const text = `${position.lat.toFixed(6)}, ${position.lon.toFixed(6)}`;
@@ -176,9 +180,17 @@ function renderVehicle(vehicle) {
   const authError = $(".auth-error", card);
   authError.hidden = !vehicle.auth_error;
   authError.textContent = vehicle.auth_error || "";
-  $(".mission", card).textContent = vehicle.prompt
+  const mission = $(".mission", card);
+  mission.textContent = vehicle.prompt
     ? `Looking for: ${vehicle.prompt}${vehicle.mission_id ? ` (mission ${vehicle.mission_id})` : ""}`
     : "";
+  if (vehicle.prompt_warning) {
+    // The prompt's words name something outside the superset the GCS gave.
+    const warning = document.createElement("strong");
+    warning.className = "prompt-warning";
+    warning.textContent = ` Warning: ${vehicle.prompt_warning}`;
+    mission.append(warning);
+  }
   renderKeyframe(card, vehicle);
   renderProgress(card, vehicle);
   renderMap(card, vehicle);
@@ -231,8 +243,8 @@ function renderProgress(card, vehicle) {
   // Each counter says what it counts: the boxes of every keyframe's answer are detections, not candidates.
   $(".progress", card).textContent = progress
     ? [
-        `${progress.keyframes} keyframes checked`,
-        ...(progress.detections != null ? [`${progress.detections} detections`] : []),
+        `${plural(progress.keyframes, "keyframe")} checked`,
+        ...(progress.detections != null ? [plural(progress.detections, "detection")] : []),
         `${progress.candidates} put to the supervisor`,
         `${progress.rejected} rejected`,
       ].join(" · ")
