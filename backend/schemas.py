@@ -209,6 +209,8 @@ class VehicleView(ApiModel):
     reason: str = ""
     mission_id: str | None
     prompt: str | None
+    # The prompt's words name something outside the superset the GCS gave ("an orange life buoy", person).
+    prompt_warning: str | None = None
     position: GeoPoint | None
     altitude_m: float | None
     heading_deg: float | None = None

@@ -284,3 +284,25 @@ def superset_from_prompt(prompt: str) -> str | None:
     if named:
         return " ".join(named)
     return _first_target(tokens)
+
+
+@lru_cache(maxsize=256)
+def prompt_outside_superset(prompt: str, superset: str) -> str | None:
+    """A warning when the prompt's words name something outside the given superset ("an orange life buoy"
+    under "person"); None when they name one of its classes, nothing at all, or the superset is unmapped."""
+    given = mapped_coco_classes(superset)
+    named = superset_from_prompt(prompt)
+    if given is None or named is None:
+        return None
+    named_classes = mapped_coco_classes(named)
+    if named_classes is not None and set(named_classes) & set(given):
+        return None
+    if named_classes is not None:
+        what = f"the prompt names a {named}, not a {superset}"
+        hint = f"; --superset {named} searches for a {named}"
+    else:
+        what, hint = f"the prompt's {named!r} is no {superset} (nor any COCO class)", ""
+    return (
+        f"{what}: the detector proposes only what it sees as a {superset} and the verifier judges that "
+        f"against the words{hint}"
+    )

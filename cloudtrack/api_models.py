@@ -120,6 +120,9 @@ class PromptCheck(ApiModel):
 class PromptCheckAnswer(ApiModel):
     superset: str = Field(description="the detector class the search will look for")
     detector: str
+    warning: str | None = Field(
+        None, description="the prompt's words name something outside the given superset (the search goes on)"
+    )
 
 
 class Candidate(ApiModel):
@@ -449,6 +452,7 @@ class VehicleStatusIn(ApiModel):
         max_length=64, description="the companion's mission state, e.g. SEARCH, TRACK, AWAIT_SUPERVISOR"
     )
     prompt: PlainText | None = Field(None, max_length=500)
+    superset: PlainText | None = Field(None, max_length=64, description="the superset the GCS gave, if any")
     position: LatLonPoint | None = Field(None, description="[lat, lon] of the vehicle")
     altitude_m: float | None = Field(None, ge=-1000.0, le=100_000.0)
     awaiting: AwaitingCandidate | None = None

@@ -605,6 +605,8 @@ class MissionRunner:
             status["reason"] = notice  # what keeps it from its job before why it is in its state
         if state.mission is not None:
             status["prompt"] = state.mission.prompt
+            if state.mission.superset:
+                status["superset"] = state.mission.superset  # the page warns of words outside it
             if state.mission.mission_id:
                 status["mission_id"] = state.mission.mission_id
         if state.telemetry is not None:

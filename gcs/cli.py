@@ -296,7 +296,25 @@ def _start(session: GcsSession, args: argparse.Namespace) -> int:
         result = session.command(CMD_START, params)
     code = _report("start", result)
     session.wait_status(2.0)  # the companion's line: MISSION n STARTED, or why it refused the start
+    if code == 0:
+        _warnings(session, START_WARNING_WAIT_S)
     return code
+
+
+START_WARNING_WAIT_S = 0.5  # the companion sends a start's warning right after its start line
+
+
+def _warnings(session: GcsSession, seconds: float) -> None:
+    """A warning from the companion within `seconds` (PROMPT WARNING: the words name another class)."""
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        msg = session.endpoint.receive(timeout=0.1)
+        if msg is None or msg.get_type() != "STATUSTEXT" or msg.get_srcComponent() != session.target[1]:
+            continue
+        text = session.join_statustext(msg)
+        if text is not None and msg.severity <= mavlink.MAV_SEVERITY_WARNING:
+            print(f"[{session.target[0]}/{session.target[1]}] {text}", flush=True)
+            return
 
 
 def _simple(command: int, params: Sequence[float]) -> Any:

@@ -254,6 +254,16 @@ def test_reasons_prompt_check_endpoint(models_dir: Path) -> None:
             "/v1/prompts/check", json={"prompt": "an orange thing", "superset": "boat"}, headers=auth()
         )
         assert forced.status_code == 200 and forced.json()["superset"] == "boat"
+        # Words outside the given superset: searched, with a warning naming what they name.
+        outside = client.post(
+            "/v1/prompts/check", json={"prompt": "an orange life buoy", "superset": "person"}, headers=auth()
+        )
+        assert outside.status_code == 200 and outside.json()["superset"] == "person"
+        assert outside.json()["warning"].startswith("the prompt's 'orange life buoy' is no person")
+        fits = client.post(
+            "/v1/prompts/check", json={"prompt": "a man in a kayak", "superset": "person"}, headers=auth()
+        )
+        assert fits.json()["warning"] is None and ok.json()["warning"] is None
 
 
 def test_reasons_a_refused_vehicle_token_shows_on_the_page(models_dir: Path) -> None:

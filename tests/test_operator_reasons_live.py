@@ -199,6 +199,48 @@ def test_reasons_a_prompt_the_back_end_cannot_search_for_is_refused_with_the_nea
 
 
 @pytest.mark.slow
+def test_reasons_a_prompt_outside_its_superset_is_warned_of_on_the_gcs_and_the_page(
+    tmp_path: Path, models_dir: Path, sequences_dir: Path
+) -> None:
+    with (
+        live_backend(models_dir) as backend,
+        autopilot("ardupilot") as sim,
+        CameraStream(sequences_dir / "uav123_person12_1" / "frames", count=8) as camera,
+        companion(
+            tmp_path,
+            models_dir,
+            f"udpout:127.0.0.1:{sim.link_port('companion')}",
+            camera.port,
+            backend.url,
+            VEHICLE_TOKENS["drone-1"],
+        ) as (_, log),  # fmt: skip
+    ):
+        started = gcs(
+            sim, "start", "--prompt", "an orange life buoy", "--superset", "person", "--mission-id", "11"
+        )
+        assert started.returncode == 0, started.stdout + started.stderr
+        lines = started.stdout.splitlines()
+        assert lines[-2] == "[1/191] MISSION 11 STARTED: an orange life buoy (person)", started.stdout
+        warning = "PROMPT WARNING: the prompt's 'orange life buoy' is no person (nor any COCO class)"
+        assert lines[-1].startswith(f"[1/191] {warning}"), started.stdout
+        shown = wait(
+            lambda: snapshot_reason(backend.url)["prompt_warning"], 15, "the warning on the page", log
+        )
+        assert shown.startswith(warning.removeprefix("PROMPT WARNING: ")), shown
+        fits = gcs(
+            sim, "start", "--prompt", "a man in a striped shirt", "--superset", "person", "--mission-id", "12"
+        )
+        assert fits.returncode == 0 and "WARNING" not in fits.stdout, fits.stdout
+        wait(
+            lambda: snapshot_reason(backend.url)["mission_id"] == "12",
+            15,
+            "the next mission on the page",
+            log,
+        )
+        assert snapshot_reason(backend.url)["prompt_warning"] is None
+
+
+@pytest.mark.slow
 def test_reasons_a_refused_token_is_named_on_the_gcs_and_the_page(
     tmp_path: Path, models_dir: Path, sequences_dir: Path
 ) -> None:

@@ -402,3 +402,31 @@ def test_supersets_factory_pairs_yolox_with_the_open_vocabulary_detector(
     detector = build_detector(config)
     assert isinstance(detector, RoutingDetector)
     assert detector.name == f"yolox_nano+owlv2:{tmp_path / 'owlv2-tiny'}"
+
+
+@pytest.mark.parametrize(
+    ("prompt", "superset", "words"),
+    [
+        (
+            "an orange life buoy",
+            "person",
+            "the prompt's 'orange life buoy' is no person (nor any COCO class)",
+        ),
+        ("a red kayak", "person", "the prompt names a boat, not a person"),
+        ("a man in a kayak", "boat", "--superset person searches for a person"),
+        ("a person in a green shirt", "person", None),
+        ("injured man in a gray shirt lying on the ground", "person", None),
+        ("a white van", "car", None),  # a van is a vehicle, of which car is one class
+        ("an orange life buoy", "life buoy", None),  # an unmapped superset: the detector's own question
+    ],
+)
+def test_supersets_prompt_outside_the_given_superset_is_warned_of(
+    prompt: str, superset: str, words: str | None
+) -> None:
+    from backend.supersets import prompt_outside_superset
+
+    warning = prompt_outside_superset(prompt, superset)
+    if words is None:
+        assert warning is None
+    else:
+        assert warning is not None and words in warning and len(warning) <= 200, warning

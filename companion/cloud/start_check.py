@@ -3,7 +3,8 @@
 `cloudtrack.gcs_protocol.GcsProtocol` asks this gate for a start's verdict; the first time it answers None
 (the GCS gets MAV_RESULT_IN_PROGRESS) and asks the back-end (`POST /v1/prompts/check`) on a thread of its
 own; the final COMMAND_ACK follows when the answer is in:
-- the back-end can search for it: ACCEPTED;
+- the back-end can search for it: ACCEPTED; when it warns that the prompt's words name something outside
+  the given superset, the warning goes to the GCS after the start ("PROMPT WARNING: ...");
 - it cannot (422: a class its detector has no name for, with the nearest ones): DENIED, and the reason
   goes to the GCS as a STATUSTEXT ("START REFUSED: ...");
 - it refuses this vehicle's token (401/403): DENIED, named as such;
@@ -86,8 +87,11 @@ class StartCheck:
     def _ask(self, key: tuple[str, str]) -> None:
         prompt, superset = key
         try:
-            self._client.check_prompt(prompt, superset or None)
+            answer = self._client.check_prompt(prompt, superset or None)
             verdict = verdict_for(None, self._client.url)
+            warning = getattr(answer, "warning", None)
+            if warning:
+                verdict = StartVerdict(True, f"PROMPT WARNING: {warning}")
         except Exception as exc:  # the BackendError's status says which kind of failure it was
             verdict = verdict_for(exc, self._client.url)
         if not verdict.accepted or verdict.reason:
