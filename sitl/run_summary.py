@@ -37,17 +37,21 @@ def _breaks(m: dict[str, Any]) -> str:
 
 
 def search_line(vid: str, m: dict[str, Any]) -> str:
-    """A search's figures for one vehicle."""
-    found = "found" if m.get("found") else "NOT found"
+    """A search's figures for one vehicle; the find's only when there is one."""
     pod = m.get("pod_at_target")
-    error = f"find's position error {_m(m.get('geolocation_error_m'))}"
-    if m.get("geolocation_error_at_seen_m") is not None:
-        error += f" ({_m(m['geolocation_error_at_seen_m'])} against where the person was when seen)"
+    sighted = f"first sighting {_s(m.get('time_to_first_sighting_s'))}"
+    if m.get("found"):
+        error = f"find's position error {_m(m.get('geolocation_error_m'))}"
+        if m.get("geolocation_error_at_seen_m") is not None:
+            error += f" ({_m(m['geolocation_error_at_seen_m'])} against where the person was when seen)"
+        found = (
+            f"found in {_s(m.get('time_to_find_s'))} ({sighted}), coverage at the find "
+            f"{_pct(m.get('coverage_at_find'))} (at the end {_pct(m.get('coverage_at_end'))}), {error}"
+        )
+    else:
+        found = f"NOT found ({sighted}), coverage at the end {_pct(m.get('coverage_at_end'))}"
     return (
-        f"  {vid}: {found}, time to find {_s(m.get('time_to_find_s'))} "
-        f"(first sighting {_s(m.get('time_to_first_sighting_s'))}), "
-        f"coverage at the find {_pct(m.get('coverage_at_find'))} (at the end {_pct(m.get('coverage_at_end'))}), "
-        f"POD at the person {'none reported' if pod is None else f'{pod:.2f}'}, {error}, "
+        f"  {vid} search: {found}, POD at the person {'none reported' if pod is None else f'{pod:.2f}'}, "
         f"rejected {len(m.get('rejected') or [])} of {len(m.get('proposed') or [])} proposed; "
         f"mission: {_breaks(m)}"
     )
@@ -56,7 +60,7 @@ def search_line(vid: str, m: dict[str, Any]) -> str:
 def follow_line(vid: str, m: dict[str, Any], with_control: bool) -> str:
     """The follow's figures; the control's (pixel error, standoff) only where the scenario checks them."""
     line = (
-        f"  {vid}: confirmed {m['confirmed']}, first candidate {m['time_to_first_candidate_s']} s "
+        f"  {vid}{'' if with_control else ' tracking'}: confirmed {m['confirmed']}, first candidate {m['time_to_first_candidate_s']} s "
         f"(verified {m['time_to_verified_candidate_s']} s), "
         f"confirmation {m['time_to_confirmation_s']} s, in view {m['target_in_view_ratio']}"
     )

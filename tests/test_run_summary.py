@@ -34,10 +34,11 @@ def test_a_search_prints_its_figures_and_no_standoff() -> None:
     text = "\n".join(lines)
     assert lines[0] == "scenario search (ardupilot, tracker nano): PASS"
     assert lines[1] == (
-        "  drone-1: found, time to find 61.2 s (first sighting 48.0 s), coverage at the find 43 % (at the end "
-        "47 %), POD at the person 0.61, find's position error 1.84 m, rejected 1 of 2 proposed; mission: left "
-        "at item 3 (30.1 s), resumed at item 3; left at item 5 (52.0 s), not resumed"
+        "  drone-1 search: found in 61.2 s (first sighting 48.0 s), coverage at the find 43 % (at the end 47 %), "
+        "find's position error 1.84 m, POD at the person 0.61, rejected 1 of 2 proposed; mission: left at item "
+        "3 (30.1 s), resumed at item 3; left at item 5 (52.0 s), not resumed"
     )
+    assert lines[2].startswith("  drone-1 tracking: confirmed ['target']")
     assert "confirmation 9.0 s, in view 0.97, re-inits 0" in lines[2]
     assert (
         "standoff RMSE" not in text and "pixel error" not in text and "28.1" not in text and "119" not in text
@@ -52,8 +53,9 @@ def test_a_search_that_found_nothing_says_so() -> None:
     results = {**_results("search", figures), "outcome": "fail", "failures": ["drone-1: not found"]}
     lines = summary_lines(results, SCENARIOS["search"])
     assert lines[1].startswith(
-        "  drone-1: NOT found, time to find none (first sighting none), coverage at the find ?"
+        "  drone-1 search: NOT found (first sighting none), coverage at the end 100 %, POD at the person none"
     )
+    assert "find's position error" not in lines[1] and "coverage at the find" not in lines[1]
     assert "POD at the person none reported" in lines[1] and "mission: never left the mission" in lines[1]
     assert lines[-1] == "  FAILED: drone-1: not found"
 
