@@ -373,7 +373,7 @@ class LocalStack:
             f"{lat:.6f},{lon:.6f}",
             f"  survey           at {survey.altitude_m:g} m with a {survey.search_range_m:g} m search range, "
             f"{survey.speed_m_s:g} m/s: the verifier judges a rendered person out to about 12 m from 10 m up "
-            "(from 20 m up it accepts nobody)",
+            "(a survey at 20 m found nobody it would accept)",
             f"  companion        {self.vehicle_id}, search range {survey.search_range_m:g} m, log {self.companion_log}",
             "",
             "In another shell (source .venv/bin/activate), as the ground station:",
