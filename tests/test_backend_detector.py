@@ -321,5 +321,5 @@ def test_recall_command_reports_size_bins_and_ratios(
         set(figures) == {"fp32", "fp32+tiles2"}
         and figures["fp32"]["frames"] == figures["fp32+tiles2"]["frames"] > 0
     )
-    assert set(figures["fp32"]["by_size"]) == {"<32", "32-96", ">96"}
+    assert set(figures["fp32"]["by_size"]) == {"<16", "16-32", "32-96", ">96"}
     assert figures["fp32+tiles2"]["recall"] >= figures["fp32"]["recall"]
