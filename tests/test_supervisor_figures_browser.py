@@ -152,6 +152,13 @@ def test_figures_ids_and_labels_on_the_page(page: Page, models_dir: Path, sequen
         expect(card.locator(".keyframe-info")).to_contain_text(
             re.compile(r"keyframe 41 · received \d+ s ago")
         )
+        # A report that changes nothing renews "last report", never the keyframe's age.
+        expect(badge).to_have_attribute("data-stale", "1", timeout=15_000)
+        before = int(re.findall(r"\d+", badge.text_content() or "")[0])
+        waiting = {"state": "AWAITING_SUPERVISOR", "awaiting": awaiting, "frame_id": 41, **tracked}
+        _status(client, {**waiting, "progress": progress})
+        expect(card.locator(".vehicle-head .seen")).to_have_text(re.compile(r"last report [01] s ago"))
+        assert int(re.findall(r"\d+", badge.text_content() or "")[0]) >= before >= 2
 
         # The next keyframe's answer names the person anew: the live view keeps the candidate's id.
         second = _detect(client, keyframe, 42)

@@ -110,6 +110,10 @@ function handleMessage(block) {
     for (const [id, age] of Object.entries(body)) {
       const known = vehicles.get(id);
       if (known) {
+        // The keyframe and the candidate aged meanwhile: kept, not reset with the report's age.
+        const extra = (performance.now() - known.receivedAt) / 1000;
+        if (known.view.keyframe) known.view.keyframe.age_s += extra;
+        for (const candidate of known.view.candidates) candidate.age_s += extra;
         known.view.age_s = age;
         known.receivedAt = performance.now();
       }
