@@ -160,6 +160,7 @@ class KeyframeView(ApiModel):
         None, description="the vehicle's tracked box, when in this keyframe"
     )
     track_id: str | None = Field(None, description="the tracked candidate's id, with `track_box`")
+    track_status: str = Field("", description="where the tracked candidate stands, as a box's `status`")
 
 
 class FindView(ApiModel):

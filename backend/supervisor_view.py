@@ -216,6 +216,7 @@ class SupervisorView:
         if record is not None and record.mission_id == status.mission_id:
             track_box = status.track_box if status.frame_id == record.frame_id else None
             found = {f.candidate_id for f in finds if f.mission_id == status.mission_id}
+            awaiting_id = status.awaiting.candidate_id if status.awaiting is not None else ""
             keyframe = KeyframeView(
                 frame_id=record.frame_id,
                 url=f"/supervisor/api/vehicles/{vehicle_id}/keyframe.jpg?frame={record.frame_id}&t={record.received_at}",
@@ -225,6 +226,11 @@ class SupervisorView:
                 candidates=self._boxes(status, record.candidates, track_box, found),
                 track_box=track_box,
                 track_id=status.track_id if track_box is not None else None,
+                track_status=(
+                    self._standing(status, status.track_id or "", awaiting_id, found)
+                    if track_box is not None
+                    else ""
+                ),
             )
         search = status.search
         grid = search.pod if search is not None else None

@@ -124,13 +124,12 @@ def test_figures_ids_and_labels_on_the_page(page: Page, models_dir: Path, sequen
         expect(candidate.locator(".candidate-id")).to_have_text(f"candidate {cid}")
         expect(card.locator(".overlay text").first).to_be_attached(timeout=15_000)
         labels = _labels(card)
-        assert f"awaiting {cid}" in labels and f"tracked {cid}" in labels, labels
+        # Named once: the answer's box over the track carries the id, the tracked box no second label.
+        assert sum(cid in label for label in labels) == 1 and f"awaiting {cid}" in labels, labels
         others = [c for c in first if c["candidate_id"] != cid]
         for other in others:  # boxes put to no one: the verdict alone, never the answer's own id
             assert not any(other["candidate_id"] in label for label in labels), labels
-        assert sorted(labels) == sorted(
-            [f"awaiting {cid}", f"tracked {cid}", *(c["verdict"] for c in others)]
-        )
+        assert sorted(labels) == sorted([f"awaiting {cid}", *(c["verdict"] for c in others)])
 
         # Counters say what they count; a follow without a search area shows no area figure.
         expect(card.locator(".progress")).to_have_text(
@@ -175,7 +174,7 @@ def test_figures_ids_and_labels_on_the_page(page: Page, models_dir: Path, sequen
         )
         # (the keyframe may show before the status that names its tracked box: the label is waited for)
         expect(card.locator(".keyframe-info")).to_contain_text("keyframe 42", timeout=15_000)
-        expect(card.locator(".overlay text", has_text=f"tracked {cid}")).to_have_count(1)
+        expect(card.locator(".overlay text", has_text=f"awaiting {cid}")).to_have_count(1)
         labels = _labels(card)
         assert f"awaiting {cid}" in labels, labels
         assert not any(c["candidate_id"] in label for c in second for label in labels), labels
@@ -193,6 +192,16 @@ def test_figures_ids_and_labels_on_the_page(page: Page, models_dir: Path, sequen
         labels = _labels(card)
         assert f"confirmed {cid}" in labels, labels
         assert not any(label.startswith("uncertain") and cid in label for label in labels), labels
+        # A keyframe whose answer has no box on the track (the detector missed the person): the tracked box
+        # itself is named, confirmed.
+        _detect(client, keyframe, 44)
+        elsewhere = {"track_box": [4.0, 4.0, 24.0, 60.0], "track_id": cid}
+        _status(
+            client, {"state": "CONFIRMED", "frame_id": 44, **elsewhere, "find": find, "progress": progress}
+        )
+        expect(card.locator(".keyframe-info")).to_contain_text("keyframe 44", timeout=15_000)
+        expect(card.locator(".overlay text", has_text=f"confirmed {cid}")).to_have_count(1)
+        assert [label for label in _labels(card) if cid in label] == [f"confirmed {cid}"]
         found = card.locator("li.find")
         expect(found).to_have_count(1)
         expect(found.locator(".find-id")).to_have_text(f"candidate {cid}")

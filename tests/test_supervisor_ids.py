@@ -53,7 +53,7 @@ def test_the_live_view_names_boxes_as_the_gcs_and_the_card_do() -> None:
     assert _labels(view) == [(CID, "awaiting"), ("", ""), ("q1", "awaiting")]
     snapshot = view.snapshot().vehicles[0]
     assert snapshot.candidates[0].id == CID and snapshot.keyframe is not None
-    assert snapshot.keyframe.track_id == CID
+    assert snapshot.keyframe.track_id == CID and snapshot.keyframe.track_status == "awaiting"
     # Its age counts from when it arrived, not from when the answer was ready.
     assert snapshot.keyframe.age_s >= 1.5
     # A later keyframe's answer names the same person anew: the box over the track still shows the
@@ -67,6 +67,8 @@ def test_the_live_view_names_boxes_as_the_gcs_and_the_card_do() -> None:
     _keyframe(store, 9, "62e552ffffff")
     _status(store, "CONFIRMED", 9, find=find, awaiting_more=[])
     assert _labels(view) == [(CID, "confirmed"), ("", ""), ("", "")]
+    confirmed = view.snapshot().vehicles[0].keyframe
+    assert confirmed is not None and confirmed.track_status == "confirmed"
     assert view.snapshot().vehicles[0].finds[0].candidate_id == CID
     # The status names another keyframe: no track on this one, so no box is the tracked candidate.
     _keyframe(store, 10, "0a0a0a0a0a0a")

@@ -236,8 +236,13 @@ function renderKeyframe(card, vehicle) {
   if (track) {
     const [x1, y1, x2, y2] = track;
     svg("rect", { x: x1, y: y1, width: x2 - x1, height: y2 - y1, class: "track" }, overlay);
-    const label = svg("text", { x: x1, y: Math.min(keyframe.height - 4, y2 + keyframe.width / 50) }, overlay);
-    label.textContent = keyframe.track_id ? `tracked ${keyframe.track_id}` : "tracked";
+    // Named once: by the answer's box over it when there is one, else here.
+    if (!keyframe.candidates.some((c) => keyframe.track_id && c.id === keyframe.track_id)) {
+      const label = svg("text", { x: x1, y: Math.min(keyframe.height - 4, y2 + keyframe.width / 50) }, overlay);
+      label.textContent = keyframe.track_id
+        ? `${keyframe.track_status || "tracked"} ${keyframe.track_id}`
+        : "tracked";
+    }
   }
   $(".keyframe-info", card).dataset.frame = keyframe.frame_id ?? "";
 }
