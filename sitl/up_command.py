@@ -157,7 +157,6 @@ class LocalStack:
         world = self.scenario.build_world(self.args.seed)
         self.world_extras = world.extras
         camera_model = CameraModel.from_hfov(640, 480, 70.0, MOUNT_PITCH_DEG, stabilised=True)
-        self.camera_model = camera_model
         camera_url, companion_link = self._start_autopilot(origin)
         cameras: list[Any] = []
 
