@@ -299,6 +299,7 @@ class MissionRunner:
         self._pod_error_told = ""  # why there is no POD map, as last told
         self._no_area_told = ""  # why there is no search area, as last told
         self.keyframe_store = keyframe_store
+        self._keyframe_width = keyframe_max_width  # the crop keeps the verifier's margin in native pixels
         self._analysed = 0  # keyframes of this mission analysed whole (laid on the search map)
         self._store_base = StoreCounts()  # the store's counts when this mission started
 
@@ -734,14 +735,15 @@ class MissionRunner:
     def _candidate_crop(
         self, candidate_id: str, box: Box, in_view: bool = True, image: Any = None
     ) -> dict[str, Any]:
-        """The supervisor's crop of this candidate from `image`, else from the newest frame, encoded once per
+        """The supervisor's crop of this candidate from `image`, else from the newest frame (both native
+        resolution; a keyframe kept through an outage is its sent JPEG, decoded), encoded once per
         candidate (and only while it is in view: a candidate out of view keeps the crop it had, or has none)."""
         if candidate_id not in self._crops:
             if image is None and in_view and self._latest is not None:
                 image = self._latest.image
             if image is None:
                 return {}
-            crop = candidate_crop(image, box)
+            crop = candidate_crop(image, box, keyframe_width=self._keyframe_width)
             if crop is None:
                 return {}
             self._crops = {**dict(list(self._crops.items())[-(MAX_CROPS - 1) :]), candidate_id: crop}

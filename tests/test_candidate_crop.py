@@ -18,7 +18,7 @@ from behaviors.geometry import Box
 from behaviors.mission import MissionState
 from behaviors.mission_commands import StartMission
 from behaviors.mission_config import MissionConfig
-from companion.cloud.candidate_crop import MAX_B64_CHARS, candidate_crop
+from companion.cloud.candidate_crop import MAX_B64_CHARS, MAX_SIDE_PX, candidate_crop, crop_window
 from companion.mission_runner import MissionRunner
 from companion.vision.frame_sources import Frame
 
@@ -43,15 +43,42 @@ def test_crop_of_a_real_person_is_small_and_frames_the_box(sequence_dirs: list[P
         assert crop is not None, sequence.name
         assert len(crop["crop_jpeg_b64"]) <= MAX_B64_CHARS
         decoded = _decode(crop["crop_jpeg_b64"])
-        assert max(decoded.shape[:2]) <= 192
+        assert max(decoded.shape[:2]) <= MAX_SIDE_PX
         x1, y1, x2, y2 = crop["crop_box"]
         assert 0 <= x1 < x2 <= decoded.shape[1] + 0.5 and 0 <= y1 < y2 <= decoded.shape[0] + 0.5
+
+
+def test_crop_is_native_resolution_with_the_verifiers_margin() -> None:
+    """A person 12 px tall in the 640-px keyframe is 24 px in a 1280-px frame: the crop keeps those 24 px
+    (twice the keyframe's detail) and the verifier's 50 keyframe-px margin, 100 native px."""
+    frame = np.zeros((720, 1280, 3), np.uint8)
+    frame[:, :, 1] = np.arange(1280, dtype=np.uint16)[None, :] % 256  # smooth: fits at full quality
+    box = Box(600, 300, 10, 24)
+    assert crop_window(1280, 720, box) == (500, 200, 710, 424)
+    crop = candidate_crop(frame, box)
+    assert crop is not None and len(crop["crop_jpeg_b64"]) <= MAX_B64_CHARS
+    decoded = _decode(crop["crop_jpeg_b64"])
+    assert decoded.shape[:2] == (224, 210)  # not scaled: native pixels
+    x1, y1, x2, y2 = crop["crop_box"]
+    assert (x1, y1, round(y2 - y1)) == (100, 100, 24)
+    # A frame no wider than the keyframe: 50 px; a large box: half its longer side around it.
+    assert crop_window(640, 480, Box(300, 200, 10, 24)) == (250, 150, 360, 274)
+    assert crop_window(1280, 720, Box(400, 100, 200, 400)) == (200, 0, 800, 700)
+    # A crop over MAX_SIDE_PX is scaled down, the box with it.
+    big = candidate_crop(frame, Box(400, 100, 200, 400))
+    assert big is not None
+    shrunk = _decode(big["crop_jpeg_b64"])
+    assert max(shrunk.shape[:2]) == MAX_SIDE_PX
+    assert abs((big["crop_box"][3] - big["crop_box"][1]) - 400 * MAX_SIDE_PX / 700) < 1
 
 
 def test_noise_is_squeezed_under_the_budget_and_bad_boxes_give_none() -> None:
     noise = np.random.default_rng(1).integers(0, 256, (480, 640, 3), dtype=np.uint8)
     crop = candidate_crop(noise, Box(100, 100, 300, 300), max_b64_chars=12_000)
     assert crop is not None and len(crop["crop_jpeg_b64"]) <= 12_000
+    # past the lowest quality it shrinks, the box with it: still inside the smaller crop
+    decoded = _decode(crop["crop_jpeg_b64"])
+    assert max(decoded.shape[:2]) < MAX_SIDE_PX and crop["crop_box"][3] <= decoded.shape[0] + 0.5
     assert candidate_crop(noise, Box(700, 500, 20, 40)) is None  # outside the image
     assert candidate_crop(noise, Box(10, 10, float("nan"), 40)) is None
     assert candidate_crop(noise[:, :, 0], Box(10, 10, 20, 40)) is None  # not BGR
