@@ -99,6 +99,10 @@ def _unknown(kind: AutopilotKind, vehicle_type: int, name: str) -> str:
 
 def run(session: Any, args: argparse.Namespace) -> int:
     name = args.name.strip().upper()
+    signing = getattr(session.endpoint.conn.mav, "signing", None)
+    if signing is not None and signing.sign_outgoing:
+        # The autopilot's answer need not be signed (the companion's must): the HEARTBEAT confirms the mode.
+        signing.allow_unsigned_callback = lambda _mav, _msg_id: True
     ap = _Autopilot(session, args.gcs_system)
     deadline = time.monotonic() + args.timeout
     while ap.kind is None and time.monotonic() < deadline:

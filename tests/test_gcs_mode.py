@@ -70,6 +70,17 @@ def test_px4_modes_on_the_mock(capsys: pytest.CaptureFixture[str]) -> None:
         )
 
 
+def test_a_signed_link_takes_the_autopilots_unsigned_answer(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    key = tmp_path / "signing.key"
+    key.write_text("ab" * 32)
+    with autopilot("ardupilot", start_height_m=10.0) as sim:
+        link = ["--connect", f"udpout:127.0.0.1:{sim.link_port('gcs')}", "--timeout", "3"]
+        assert gcs_cli.main([*link, "--signing-key-file", str(key), "mode", "LOITER"]) == 0
+        assert "HEARTBEAT shows LOITER" in capsys.readouterr().out and sim.mode == "LOITER"
+
+
 def test_no_autopilot_is_a_one_line_timeout() -> None:
     done = subprocess.run(
         [GCS, "--connect", "udpout:127.0.0.1:9", "--timeout", "1", "mode", "AUTO"],
