@@ -23,7 +23,15 @@ import time
 from collections.abc import Callable
 
 from backend.appearance import descriptor, similarity
-from backend.images import ImageError, b64_image_bytes, decode_image, is_jpeg
+from backend.images import (
+    JPEG_MAGIC,
+    PNG_MAGIC,
+    ImageError,
+    b64_image_bytes,
+    decode_image,
+    image_size,
+    is_jpeg,
+)
 from backend.mission_map import distance_m, updated_map
 from backend.schemas import KeyframeCandidate, KeyframeRecord, MissionMap, StoredFind
 from backend.state_store import QuotaExceededError, SqliteStore, StateStore, vector_bytes, vector_from
@@ -61,6 +69,17 @@ def crop_descriptor(crop_jpeg_b64: str, crop_box: list[float] | None, max_pixels
     if not box.clamped(w, h).is_valid():
         raise ImageError(f"crop_box {crop_box} lies outside the {w}x{h} crop", 422)
     return descriptor(image, box)
+
+
+def _what(data: bytes) -> str:
+    """What a refused crop is, from its first bytes and header only (for the 422's detail)."""
+    if not data.startswith(JPEG_MAGIC):
+        return "a PNG" if data.startswith(PNG_MAGIC) else f"{len(data)} bytes without a JPEG signature"
+    try:
+        width, height = image_size(data)
+    except ImageError as error:
+        return str(error)
+    return f"a JPEG of {width}x{height} pixels"
 
 
 class SessionStore:
@@ -181,12 +200,17 @@ class SessionStore:
         """Store the vehicle's report, extend its mission's map and keep its find; a crop that is not a JPEG
         within the crop size limit: ImageError."""
         awaiting = status.awaiting
-        for sent in (
-            awaiting.crop_jpeg_b64 if awaiting else None,
-            status.find.crop_jpeg_b64 if status.find else None,
+        for field, sent in (
+            ("awaiting.crop_jpeg_b64", awaiting.crop_jpeg_b64 if awaiting else None),
+            ("find.crop_jpeg_b64", status.find.crop_jpeg_b64 if status.find else None),
         ):
-            if sent is not None and not is_jpeg(b64_image_bytes(sent), self.max_crop_pixels):
-                raise ImageError(f"the crop must be a JPEG of at most {self.max_crop_pixels} pixels", 422)
+            if sent is None:
+                continue
+            data = b64_image_bytes(sent, field)
+            if not is_jpeg(data, self.max_crop_pixels):  # from its header: nothing is decoded here
+                raise ImageError(
+                    f"{field} must be a JPEG of at most {self.max_crop_pixels} pixels; got {_what(data)}", 422
+                )
         if status.mission_id is not None:
             self.open_mission(vehicle_id, status.mission_id)
         now = self._clock()

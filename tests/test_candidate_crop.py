@@ -177,3 +177,59 @@ def test_crop_reaches_the_back_end_store(sequence_dirs: list[Path]) -> None:
     assert awaiting["candidate_id"] == "c7"
     assert awaiting["crop_jpeg_b64"] == status["awaiting"]["crop_jpeg_b64"]
     assert _decode(awaiting["crop_jpeg_b64"]).shape[2] == 3 and len(awaiting["crop_box"]) == 4
+
+
+def _header_bomb(width: int, height: int) -> bytes:
+    """A real small JPEG whose frame header claims width x height."""
+    data = bytearray(cv2.imencode(".jpg", np.full((16, 16, 3), 128, np.uint8))[1].tobytes())
+    sof = data.index(b"\xff\xc0")
+    data[sof + 5 : sof + 7] = height.to_bytes(2, "big")
+    data[sof + 7 : sof + 9] = width.to_bytes(2, "big")
+    return bytes(data)
+
+
+def test_hostile_crops_are_refused_clearly_and_the_candidate_shown_stays(sequence_dirs: list[Path]) -> None:
+    """A vehicle's crop is checked from its header before anything decodes it; a refused one is a 422 (or
+    413 past the body limit) naming the field and what it got, and the crop already shown stays served."""
+    from fastapi.testclient import TestClient
+
+    from backend.app import create_app
+    from backend.config import AuthConfig, BackendConfig, SessionConfig
+    from sitl.simulated_detector import SimulatedPersonDetector
+
+    image, box = _first_frame(sequence_dirs[0])
+    good = candidate_crop(image, box)
+    assert good is not None
+    config = BackendConfig(
+        auth=AuthConfig(tokens={"drone-1": "drone-1-token-0001"}, supervisor_token="supervisor-token-0001"),
+        sessions=SessionConfig(sqlite_path=":memory:"),
+    )
+    vehicle = {"Authorization": "Bearer drone-1-token-0001"}
+    supervisor = {"Authorization": "Bearer supervisor-token-0001"}
+    app = create_app(config, detector=SimulatedPersonDetector(lambda fid: None))
+    with TestClient(app) as client:
+
+        def status(crop: str, cid: str = "c1") -> Any:
+            awaiting = {"candidate_id": cid, "box": [0, 0, 10, 10], "crop_jpeg_b64": crop}
+            body = {"mission_id": "m1", "state": "AWAIT", "awaiting": awaiting}
+            return client.post("/v1/vehicles/drone-1/status", json=body, headers=vehicle)
+
+        assert status(good["crop_jpeg_b64"]).status_code == 200
+        png = base64.b64encode(cv2.imencode(".png", image[:40, :40])[1].tobytes()).decode()
+        refused = {
+            "bomb": (base64.b64encode(_header_bomb(8700, 8700)).decode(), "a JPEG of 8700x8700 pixels"),
+            "png": (png, "got a PNG"),
+            "garbage": (base64.b64encode(b"GIF89a" + b"\0" * 64).decode(), "without a JPEG signature"),
+            "not base64": ("%%%not-base64", "awaiting.crop_jpeg_b64 is not valid base64"),
+            "truncated": (base64.b64encode(b"\xff\xd8\xff\xe0\0\x10JFIF").decode(), "no readable JPEG frame"),
+        }
+        for name, (crop, said) in refused.items():
+            answer = status(crop, cid="c2")
+            assert answer.status_code == 422 and said in answer.text, (name, answer.text)
+        oversized = status("A" * 400_004, cid="c2")
+        assert oversized.status_code in (413, 422), oversized.text
+        # Nothing running lost: the candidate awaiting is the one before, its crop served byte for byte.
+        stored = client.get("/v1/vehicles", headers=supervisor).json()[0]["awaiting"]
+        assert stored["candidate_id"] == "c1" and stored["crop_jpeg_b64"] == good["crop_jpeg_b64"]
+        served = client.get("/supervisor/api/vehicles/drone-1/candidates/c1/crop.jpg", headers=supervisor)
+        assert served.status_code == 200 and served.content == base64.b64decode(good["crop_jpeg_b64"])
