@@ -17,6 +17,7 @@ written to a file in the work folder (mode 0600), never printed. docs/quickstart
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import os
 import secrets
@@ -411,18 +412,16 @@ class LocalStack:
             shutil.rmtree(self.work, ignore_errors=True)
 
 
-class UdpTcpRelay:
-    """Ground stations on a UDP port (any number: each sender is remembered) to one TCP serial port of the
-    SITL, bytes as they come: MAVLink parsers read a stream, whichever way it was cut."""
+class _GroundRelay:
+    """Ground stations on a UDP port (any number: each sender is remembered) to one autopilot link and
+    back; the link's kind is the subclass's (`_send`, `_receive`, `_close_link`)."""
 
-    def __init__(self, udp_port: int, tcp_port: int) -> None:
+    def __init__(self, udp_port: int) -> None:
         import socket
 
         self._udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._udp.bind(("127.0.0.1", udp_port))
         self._udp.settimeout(0.2)
-        self._tcp = socket.create_connection(("127.0.0.1", tcp_port), timeout=10)
-        self._tcp.settimeout(0.2)
         self._clients: set[tuple[str, int]] = set()
         self._stop = threading.Event()
         self._threads = [
@@ -430,10 +429,21 @@ class UdpTcpRelay:
             threading.Thread(target=self._downlink, name="gcs-relay-down", daemon=True),
         ]
 
-    def start(self) -> UdpTcpRelay:
+    def start(self) -> _GroundRelay:
         for thread in self._threads:
             thread.start()
         return self
+
+    def _send(self, data: bytes) -> bool:
+        """To the autopilot; False when the link is gone for good."""
+        raise NotImplementedError
+
+    def _receive(self) -> bytes | None:
+        """From the autopilot: b"" when nothing came this time, None when the link is gone for good."""
+        raise NotImplementedError
+
+    def _close_link(self) -> None:
+        raise NotImplementedError
 
     def _uplink(self) -> None:
         while not self._stop.is_set():
@@ -442,22 +452,15 @@ class UdpTcpRelay:
             except OSError:
                 continue
             self._clients.add(sender)
-            try:
-                self._tcp.sendall(data)
-            except OSError:
+            if not self._send(data):
                 return
 
     def _downlink(self) -> None:
         while not self._stop.is_set():
-            try:
-                data = self._tcp.recv(65536)
-            except TimeoutError:
-                continue
-            except OSError:
+            data = self._receive()
+            if data is None:
                 return
-            if not data:
-                return
-            for client in list(self._clients):
+            for client in list(self._clients) if data else ():
                 try:
                     self._udp.sendto(data, client)
                 except OSError:
@@ -468,61 +471,64 @@ class UdpTcpRelay:
         for thread in self._threads:
             thread.join(timeout=2)
         self._udp.close()
+        self._close_link()
+
+
+class UdpTcpRelay(_GroundRelay):
+    """Ground stations to one TCP serial port of the SITL, bytes as they come: MAVLink parsers read a
+    stream, whichever way it was cut."""
+
+    def __init__(self, udp_port: int, tcp_port: int) -> None:
+        import socket
+
+        super().__init__(udp_port)
+        self._tcp = socket.create_connection(("127.0.0.1", tcp_port), timeout=10)
+        self._tcp.settimeout(0.2)
+
+    def _send(self, data: bytes) -> bool:
+        try:
+            self._tcp.sendall(data)
+        except OSError:
+            return False
+        return True
+
+    def _receive(self) -> bytes | None:
+        try:
+            return self._tcp.recv(65536) or None
+        except TimeoutError:
+            return b""
+        except OSError:
+            return None
+
+    def _close_link(self) -> None:
         self._tcp.close()
 
 
-class UdpUdpRelay:
-    """Ground stations on a UDP port (each sender remembered) to PX4's second GCS link, which sends to
-    `local_port` from `remote_port`: datagrams as they come."""
+class UdpUdpRelay(_GroundRelay):
+    """Ground stations to PX4's second GCS link, which sends to `local_port` from `remote_port`: datagrams
+    as they come."""
 
     def __init__(self, udp_port: int, local_port: int, remote_port: int) -> None:
         import socket
 
-        self._udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self._udp.bind(("127.0.0.1", udp_port))
-        self._udp.settimeout(0.2)
+        super().__init__(udp_port)
         self._px4 = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._px4.bind(("127.0.0.1", local_port))
         self._px4.settimeout(0.2)
         self._remote = ("127.0.0.1", remote_port)
-        self._clients: set[tuple[str, int]] = set()
-        self._stop = threading.Event()
-        self._threads = [
-            threading.Thread(target=self._uplink, name="gcs-relay-up", daemon=True),
-            threading.Thread(target=self._downlink, name="gcs-relay-down", daemon=True),
-        ]
 
-    def start(self) -> UdpUdpRelay:
-        for thread in self._threads:
-            thread.start()
-        return self
+    def _send(self, data: bytes) -> bool:
+        with contextlib.suppress(OSError):  # PX4 not listening yet: the next datagram may get through
+            self._px4.sendto(data, self._remote)
+        return True
 
-    def _uplink(self) -> None:
-        while not self._stop.is_set():
-            try:
-                data, sender = self._udp.recvfrom(65536)
-                self._clients.add(sender)
-                self._px4.sendto(data, self._remote)
-            except OSError:
-                continue
+    def _receive(self) -> bytes | None:
+        try:
+            return self._px4.recv(65536)
+        except OSError:
+            return b""
 
-    def _downlink(self) -> None:
-        while not self._stop.is_set():
-            try:
-                data = self._px4.recv(65536)
-            except OSError:
-                continue
-            for client in list(self._clients):
-                try:
-                    self._udp.sendto(data, client)
-                except OSError:
-                    self._clients.discard(client)
-
-    def stop(self) -> None:
-        self._stop.set()
-        for thread in self._threads:
-            thread.join(timeout=2)
-        self._udp.close()
+    def _close_link(self) -> None:
         self._px4.close()
 
 
