@@ -512,7 +512,7 @@ function renderCandidates(card, vehicle) {
     const open = candidate.status === "awaiting";
     for (const button of item.querySelectorAll(".decide button")) button.disabled = !open || item.dataset.sent === "1";
     if (!open) $(".decision", item).textContent = candidate.status;
-    showCrop(item, candidate.crop_url, candidate.crop_box);
+    showCrop(item, candidate.crop_url, candidate.crop_box, `candidate ${candidate.id}`);
   }
   for (const item of box.querySelectorAll("article.candidate")) {
     if (!seen.has(item.dataset.candidate)) item.remove();
@@ -552,7 +552,7 @@ function renderFinds(card, vehicle) {
     $(".who", item).textContent = `confirmed by ${find.decided_by || find.confirmed_by}`;
     $(".what", item).textContent = `${find.prompt} (mission ${find.mission_id})`;
     $(".find-id", item).textContent = `candidate ${find.candidate_id}`;
-    showCrop(item, find.crop_url, find.crop_box);
+    showCrop(item, find.crop_url, find.crop_box, `find ${find.candidate_id}`);
   }
   for (const item of list.querySelectorAll("li.find")) {
     if (!seen.has(item.dataset.find)) item.remove();
@@ -576,21 +576,31 @@ function renderFinds(card, vehicle) {
   }
 }
 
-function showCrop(item, url, cropBox) {
+// The vehicle's crop is cut from the camera's native frame around the candidate with the verifier's
+// margin; a person 12 px tall in the keyframe is a few dozen pixels in it. The card zooms on the box so
+// the person stands 1/1.4 of the card's height (171 px in the 15rem card), the box drawn; a click shows
+// the whole crop, larger, in the dialog.
+const BOX_SHARE = 1 / 1.4;
+
+function showCrop(item, url, cropBox, caption = "") {
   const img = $(".crop", item);
   const overlay = $(".crop-overlay", item);
+  const frame = $(".crop-box", item);
   img.hidden = !url;
   overlay.hidden = !url;
   $(".no-crop", item).hidden = Boolean(url);
+  frame.dataset.zoomable = url ? "1" : "";
+  frame.onclick = url ? () => showLargeCrop(img, cropBox, caption) : null;
+  frame.onkeydown = url ? (event) => {
+    if (event.key === "Enter" || event.key === " ") {
+      event.preventDefault();
+      showLargeCrop(img, cropBox, caption);
+    }
+  } : null;
   if (!url) return;
   const draw = () => {
-    overlay.replaceChildren();
-    if (!img.naturalWidth) return;
-    overlay.setAttribute("viewBox", `0 0 ${img.naturalWidth} ${img.naturalHeight}`);
-    if (cropBox) {
-      const [x1, y1, x2, y2] = cropBox;
-      svg("rect", { x: x1, y: y1, width: x2 - x1, height: y2 - y1 }, overlay);
-    }
+    const inner = drawCropBox(img, overlay, cropBox);
+    if (inner !== undefined) zoomOnBox($(".crop-view", item), frame, img, inner);
   };
   img.onload = draw;
   if (img.dataset.url !== url) {
@@ -599,6 +609,62 @@ function showCrop(item, url, cropBox) {
   } else {
     draw();
   }
+}
+
+// The box inside the crop, clamped to it (null when there is none worth drawing); undefined before the
+// picture has loaded.
+function drawCropBox(img, overlay, cropBox) {
+  overlay.replaceChildren();
+  const width = img.naturalWidth;
+  const height = img.naturalHeight;
+  if (!width) return undefined;
+  overlay.setAttribute("viewBox", `0 0 ${width} ${height}`);
+  if (!Array.isArray(cropBox) || cropBox.length !== 4) return null;
+  const clamp = (v, hi) => Math.min(hi, Math.max(0, Number(v) || 0));
+  const [x1, y1, x2, y2] = [clamp(cropBox[0], width), clamp(cropBox[1], height), clamp(cropBox[2], width), clamp(cropBox[3], height)];
+  if (x2 - x1 < 1 || y2 - y1 < 1) return null;
+  svg("rect", { x: x1, y: y1, width: x2 - x1, height: y2 - y1 }, overlay);
+  return [x1, y1, x2, y2];
+}
+
+// Scale and place the crop in its frame so the box fills BOX_SHARE of it, centred where the crop allows
+// (never smaller than the whole crop fitted).
+function zoomOnBox(view, frame, img, inner) {
+  const room = [frame.clientWidth, frame.clientHeight];
+  if (!room[0] || !room[1]) return; // not laid out yet: the next render places it
+  const size = [img.naturalWidth, img.naturalHeight];
+  let scale = Math.min(room[0] / size[0], room[1] / size[1]);
+  if (inner) {
+    const boxScale = Math.min((room[0] * BOX_SHARE) / (inner[2] - inner[0]), (room[1] * BOX_SHARE) / (inner[3] - inner[1]));
+    scale = Math.max(scale, boxScale);
+  }
+  const centre = inner ? [(inner[0] + inner[2]) / 2, (inner[1] + inner[3]) / 2] : [size[0] / 2, size[1] / 2];
+  const place = (i) => {
+    const shown = size[i] * scale;
+    if (shown <= room[i]) return (room[i] - shown) / 2;
+    return Math.min(0, Math.max(room[i] - shown, room[i] / 2 - centre[i] * scale));
+  };
+  view.style.width = `${size[0] * scale}px`;
+  view.style.height = `${size[1] * scale}px`;
+  view.style.left = `${place(0)}px`;
+  view.style.top = `${place(1)}px`;
+}
+
+// The whole crop in the dialog, as large as the window allows, its box drawn.
+function showLargeCrop(source, cropBox, caption) {
+  if (!source.naturalWidth) return;
+  const dialog = $("#crop-dialog");
+  const img = $(".crop", dialog);
+  const overlay = $(".crop-overlay", dialog);
+  img.src = source.src;
+  drawCropBox(source, overlay, cropBox);
+  const scale = Math.min((window.innerWidth * 0.9) / source.naturalWidth, (window.innerHeight * 0.8) / source.naturalHeight);
+  const view = $(".crop-large", dialog);
+  view.style.width = `${Math.round(source.naturalWidth * scale)}px`;
+  view.style.height = `${Math.round(source.naturalHeight * scale)}px`;
+  const size = `${source.naturalWidth}x${source.naturalHeight} px from the camera's frame`;
+  $(".crop-caption", dialog).textContent = caption ? `${caption}: ${size}` : size;
+  if (!dialog.open) dialog.showModal();
 }
 
 async function loadImage(img, url, { replaces = false } = {}) {
