@@ -22,7 +22,7 @@ import cv2
 import httpx
 import numpy as np
 import pytest
-from playwright.sync_api import Page, Route, expect, sync_playwright
+from playwright.sync_api import Page, expect
 
 from backend.app import create_app
 from backend.config import (
@@ -33,8 +33,8 @@ from backend.config import (
     SupervisorConfig,
     VerifierConfig,
 )
+from tests import offline_browser
 from tests.live_backend import SUPERVISOR_TOKEN, VEHICLE_TOKENS, serve
-from tests.test_supervisor_browser import CHROMIUM, CHROMIUM_ARGS
 
 REPO = Path(__file__).resolve().parents[1]
 SCREENSHOT = REPO / "out" / "test-artifacts" / "supervisor-console.png"
@@ -46,25 +46,8 @@ AREA = [[47.3972, 8.5449], [47.3972, 8.5465], [47.3984, 8.5465], [47.3984, 8.544
 
 @pytest.fixture
 def offline_page() -> Iterator[tuple[Page, list[str]]]:
-    """A page whose every request off 127.0.0.1 is refused, and the list of such attempts."""
-    assert Path(CHROMIUM).is_file(), f"{CHROMIUM} is missing: `make test` installs Debian's chromium"
-    outside: list[str] = []
-
-    def only_loopback(route: Route) -> None:
-        if route.request.url.startswith("http://127.0.0.1:"):
-            route.continue_()
-        else:
-            outside.append(route.request.url)
-            route.abort("internetdisconnected")
-
-    with sync_playwright() as playwright:
-        browser = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-        try:
-            context = browser.new_context(viewport={"width": 1400, "height": 1000})
-            context.route("**/*", only_loopback)
-            yield context.new_page(), outside
-        finally:
-            browser.close()
+    with offline_browser.offline_page() as page_and_outside:
+        yield page_and_outside
 
 
 class TileServer:

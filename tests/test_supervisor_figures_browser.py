@@ -18,12 +18,12 @@ from typing import Any
 import cv2
 import httpx
 import pytest
-from playwright.sync_api import Locator, Page, Route, expect, sync_playwright
+from playwright.sync_api import Locator, Page, expect
 
 from backend.app import create_app
 from backend.config import AuthConfig, BackendConfig, DetectorConfig, SessionConfig, VerifierConfig
+from tests import offline_browser
 from tests.live_backend import SUPERVISOR_TOKEN, VEHICLE_TOKENS, serve
-from tests.test_supervisor_browser import CHROMIUM, CHROMIUM_ARGS
 
 REPO = Path(__file__).resolve().parents[1]
 SCREENSHOT = REPO / "out" / "test-artifacts" / "supervisor-figures.png"
@@ -39,24 +39,8 @@ FIND_AT = [47.39770 + 0.0000899 * 12.5, 8.54560 + 0.00020]
 
 @pytest.fixture
 def page() -> Iterator[Page]:
-    assert Path(CHROMIUM).is_file(), f"{CHROMIUM} is missing: `make test` installs Debian's chromium"
-    outside: list[str] = []
-
-    def only_loopback(route: Route) -> None:
-        if route.request.url.startswith("http://127.0.0.1:"):
-            route.continue_()
-        else:
-            outside.append(route.request.url)
-            route.abort("internetdisconnected")
-
-    with sync_playwright() as playwright:
-        browser = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-        try:
-            context = browser.new_context(viewport={"width": 1400, "height": 1000})
-            context.route("**/*", only_loopback)
-            yield context.new_page()
-        finally:
-            browser.close()
+    with offline_browser.offline_page() as (page, outside):
+        yield page
     assert outside == []  # vendored assets only: nothing but loopback was asked for
 
 

@@ -9,12 +9,12 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from playwright.sync_api import Page, Route, expect, sync_playwright
+from playwright.sync_api import Page, expect
 
 from backend.app import create_app
 from backend.config import load_backend_config
+from tests import offline_browser
 from tests.live_backend import live_backend, serve
-from tests.test_supervisor_browser import CHROMIUM, CHROMIUM_ARGS
 
 REPO = Path(__file__).resolve().parents[1]
 SCREENSHOT = REPO / "out" / "test-artifacts" / "docs-offline.png"
@@ -22,25 +22,8 @@ SCREENSHOT = REPO / "out" / "test-artifacts" / "docs-offline.png"
 
 @pytest.fixture
 def offline_page() -> Iterator[tuple[Page, list[str]]]:
-    """A page whose every request off 127.0.0.1 is refused, and the list of such attempts."""
-    assert Path(CHROMIUM).is_file(), f"{CHROMIUM} is missing: `make test` installs Debian's chromium"
-    outside: list[str] = []
-
-    def only_loopback(route: Route) -> None:
-        if route.request.url.startswith("http://127.0.0.1:"):
-            route.continue_()
-        else:
-            outside.append(route.request.url)
-            route.abort("internetdisconnected")
-
-    with sync_playwright() as playwright:
-        browser = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-        try:
-            context = browser.new_context(viewport={"width": 1280, "height": 900})
-            context.route("**/*", only_loopback)
-            yield context.new_page(), outside
-        finally:
-            browser.close()
+    with offline_browser.offline_page(1280, 900) as page_and_outside:
+        yield page_and_outside
 
 
 @pytest.mark.slow
