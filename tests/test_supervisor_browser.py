@@ -194,7 +194,7 @@ def test_supervisor_confirms_a_running_companions_candidate_in_a_real_browser(
                 arg=candidate.locator(".crop").element_handle(),
                 timeout=10_000,
             )
-            assert 0 < candidate.locator(".crop").evaluate("el => el.naturalWidth") <= 192
+            assert 0 < candidate.locator(".crop").evaluate("el => el.naturalWidth") <= 384  # MAX_SIDE_PX
             # One id (issue 45): the GCS, the card and the live view's box over the track name it alike.
             heard = receive_until(
                 ground,
