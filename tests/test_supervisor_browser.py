@@ -25,24 +25,19 @@ import cv2
 import httpx
 import numpy as np
 import pytest
-from playwright.sync_api import Page, expect, sync_playwright
+from playwright.sync_api import Page, expect
 
 from cloudtrack.gcs_protocol import CMD_START, encode_prompt
 from cloudtrack.mavlink_connection import MavlinkEndpoint
 from companion.flight_record import read_events
 from companion_tools.replay import load_recording, replay
 from gcs.cli import _tunnel
+from tests import browser_pages
 from tests.camera_stream import CAMERA_FPS, CameraStream
 from tests.live_backend import SUPERVISOR_TOKEN, VEHICLE_TOKENS, live_backend
 from tests.mavlink_harness import autopilot, gcs, receive_until
 
 REPO = Path(__file__).resolve().parents[1]
-CHROMIUM = "/usr/bin/chromium"
-# Without the background-networking flags chromium floods the machine with refused connections.
-CHROMIUM_ARGS = [
-    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-    "--disable-background-networking", "--disable-component-update", "--disable-sync",
-]  # fmt: skip
 PROMPT = "a man in a green-and-white striped shirt"
 # The person's feet in the first frames put them about 23 m away from the vehicle 20 m up, so with this
 # stand-off the companion has arrived at once and asks the supervisor (the recorded frames cannot move).
@@ -53,13 +48,8 @@ SCREENSHOT = REPO / "out" / "test-artifacts" / "supervisor-confirmed.png"
 
 @pytest.fixture
 def page() -> Iterator[Page]:
-    assert Path(CHROMIUM).is_file(), f"{CHROMIUM} is missing: `make test` installs Debian's chromium"
-    with sync_playwright() as playwright:
-        browser = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-        try:
-            yield browser.new_page(viewport={"width": 1280, "height": 900})
-        finally:
-            browser.close()
+    with browser_pages.plain_page() as page:
+        yield page
 
 
 def start_mission(ground: MavlinkEndpoint) -> None:

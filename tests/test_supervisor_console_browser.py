@@ -33,7 +33,7 @@ from backend.config import (
     SupervisorConfig,
     VerifierConfig,
 )
-from tests import offline_browser
+from tests import browser_pages
 from tests.live_backend import SUPERVISOR_TOKEN, VEHICLE_TOKENS, serve
 
 REPO = Path(__file__).resolve().parents[1]
@@ -46,7 +46,7 @@ AREA = [[47.3972, 8.5449], [47.3972, 8.5465], [47.3984, 8.5465], [47.3984, 8.544
 
 @pytest.fixture
 def offline_page() -> Iterator[tuple[Page, list[str]]]:
-    with offline_browser.offline_page() as page_and_outside:
+    with browser_pages.offline_page() as page_and_outside:
         yield page_and_outside
 
 

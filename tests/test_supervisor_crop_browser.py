@@ -13,25 +13,20 @@ import cv2
 import httpx
 import numpy as np
 import pytest
-from playwright.sync_api import Page, expect, sync_playwright
+from playwright.sync_api import Page, expect
 
 from behaviors.geometry import Box
 from companion.cloud.candidate_crop import KEYFRAME_WIDTH, candidate_crop
+from tests import browser_pages
 from tests.live_backend import SUPERVISOR_TOKEN, VEHICLE_TOKENS, live_backend
-from tests.test_supervisor_browser import CHROMIUM, CHROMIUM_ARGS
 
 SHOT = Path(__file__).resolve().parents[1] / "out" / "test-artifacts" / "supervisor-crop.png"
 
 
 @pytest.fixture
 def browser_page() -> Iterator[Page]:
-    assert Path(CHROMIUM).is_file(), f"{CHROMIUM} is missing: `make test` installs Debian's chromium"
-    with sync_playwright() as playwright:
-        browser = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-        try:
-            yield browser.new_page(viewport={"width": 1280, "height": 900})
-        finally:
-            browser.close()
+    with browser_pages.plain_page() as page:
+        yield page
 
 
 def _native_frame_with_a_small_person(sequences_dir: Path) -> tuple[np.ndarray, Box]:

@@ -22,7 +22,7 @@ from playwright.sync_api import Locator, Page, expect
 
 from backend.app import create_app
 from backend.config import AuthConfig, BackendConfig, DetectorConfig, SessionConfig, VerifierConfig
-from tests import offline_browser
+from tests import browser_pages
 from tests.live_backend import SUPERVISOR_TOKEN, VEHICLE_TOKENS, serve
 
 REPO = Path(__file__).resolve().parents[1]
@@ -39,7 +39,7 @@ FIND_AT = [47.39770 + 0.0000899 * 12.5, 8.54560 + 0.00020]
 
 @pytest.fixture
 def page() -> Iterator[Page]:
-    with offline_browser.offline_page() as (page, outside):
+    with browser_pages.offline_page() as (page, outside):
         yield page
     assert outside == []  # vendored assets only: nothing but loopback was asked for
 

@@ -13,7 +13,7 @@ from playwright.sync_api import Page, expect
 
 from backend.app import create_app
 from backend.config import load_backend_config
-from tests import offline_browser
+from tests import browser_pages
 from tests.live_backend import live_backend, serve
 
 REPO = Path(__file__).resolve().parents[1]
@@ -22,7 +22,7 @@ SCREENSHOT = REPO / "out" / "test-artifacts" / "docs-offline.png"
 
 @pytest.fixture
 def offline_page() -> Iterator[tuple[Page, list[str]]]:
-    with offline_browser.offline_page(1280, 900) as page_and_outside:
+    with browser_pages.offline_page(1280, 900) as page_and_outside:
         yield page_and_outside
 
 

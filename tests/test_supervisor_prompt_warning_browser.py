@@ -10,21 +10,16 @@ from pathlib import Path
 
 import httpx
 import pytest
-from playwright.sync_api import Page, expect, sync_playwright
+from playwright.sync_api import Page, expect
 
+from tests import browser_pages
 from tests.live_backend import SUPERVISOR_TOKEN, VEHICLE_TOKENS, live_backend
-from tests.test_supervisor_browser import CHROMIUM, CHROMIUM_ARGS
 
 
 @pytest.fixture
 def browser_page() -> Iterator[Page]:
-    assert Path(CHROMIUM).is_file(), f"{CHROMIUM} is missing: `make test` installs Debian's chromium"
-    with sync_playwright() as playwright:
-        browser = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-        try:
-            yield browser.new_page(viewport={"width": 1280, "height": 900})
-        finally:
-            browser.close()
+    with browser_pages.plain_page() as page:
+        yield page
 
 
 def _status(url: str, vehicle: str, prompt: str, superset: str) -> None:
