@@ -86,6 +86,9 @@ examples:
   cloudtrack-gcs survey --area-file search-area.geojson --altitude 30 --overlap 0.3
   cloudtrack-gcs survey --area-file mission.plan --altitude 25 --save survey.waypoints   # QGC's survey polygon
   cloudtrack-gcs --connect tcp:192.168.1.10:5760 survey --centre 47.3977,8.5456 --size 200x100 --altitude 30
+  cloudtrack-gcs survey --centre 47.3977,8.5456 --size 600x400 --altitude 25 --dry-run \
+      --vehicle a,udpin:0.0.0.0:14551,5,47.3960,8.5440 --vehicle b,udpin:0.0.0.0:14552,8,47.3960,8.5470
+  cloudtrack-gcs survey --area-file search-area.geojson --pod 0.8 --fleet fleet.toml   # each part uploaded
 
 Then switch the vehicle to AUTO (ArduPilot) / Mission (PX4) and start the search:
   cloudtrack-gcs start --prompt "injured man in a gray shirt" --allow-engage
@@ -540,6 +543,10 @@ def run(args: argparse.Namespace) -> int:
     """The subcommand: the area and the plan are checked before any link opens (`--dry-run` opens none)."""
     from gcs.cli import GcsError, GcsSession  # the ground tool's link and its errors (cli imports us)
 
+    if args.vehicle or args.fleet is not None:
+        from gcs.fleet_survey import run_fleet  # the area split over several vehicles (it imports us)
+
+        return run_fleet(args)
     try:
         area = area_from_args(args)
         vehicle_config = load_vehicle_sections(Path(args.companion_config) if args.companion_config else None)
@@ -636,10 +643,20 @@ def _upload(
             file=sys.stderr,
         )
         return EXIT_REFUSED
+    code = send_mission(args, session, vehicle, plan)
+    return code if code else _save(args, plan)
+
+
+def send_mission(
+    args: argparse.Namespace, session: Any, vehicle: Vehicle, plan: SurveyPlan, who: str = ""
+) -> int:
+    """Upload `plan` to the vehicle (heard: its family known), make its first item current, read it back and
+    check it; 0, or the exit code after one line on stderr. `who` ("vehicle a: ") begins each line."""
+    assert vehicle.kind is not None
     client = MissionClient(
         session.endpoint,
         vehicle.kind.value,
-        target=(args.system, AUTOPILOT_COMPONENT),
+        target=(vehicle.system, AUTOPILOT_COMPONENT),
         source=(args.gcs_system, args.gcs_component),
         timeouts=MissionTimeouts(step_s=args.step_timeout, retries=5),
     )
@@ -648,21 +665,21 @@ def _upload(
         current = client.set_current(client.first_seq)
         stored = client.download().items
     except MissionError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"error: {who}{exc}", file=sys.stderr)
         return EXIT_TIMEOUT if exc.result is None and "no answer" in str(exc) else EXIT_REFUSED
     if not positions_match(stored, plan.items):
         print(
-            f"error: the autopilot holds {len(stored)} items that differ from the {len(plan.items)} uploaded: "
-            "check the mission in the ground station before AUTO",
+            f"error: {who}the autopilot holds {len(stored)} items that differ from the {len(plan.items)} "
+            "uploaded: check the mission in the ground station before AUTO",
             file=sys.stderr,
         )
         return EXIT_REFUSED
     print(
-        f"uploaded {len(plan.items)} items, read back and checked; current item {current.seq}: switch to "
+        f"{who}uploaded {len(plan.items)} items, read back and checked; current item {current.seq}: switch to "
         f"{mission_mode(vehicle.kind)} to fly the survey",
         flush=True,
     )
-    return _save(args, plan)
+    return 0
 
 
 def _one_line(exc: Exception) -> str:
@@ -742,6 +759,22 @@ def add_parser(sub: Any) -> None:
         help="lane direction clockwise from north (default: fewest lanes)",
     )
     p.add_argument("--takeoff", action="store_true", help="begin with NAV_TAKEOFF to the survey altitude")
+    fleet = p.add_argument_group(
+        "several vehicles (the area split so their flight times are close; each part to its own autopilot)"
+    )
+    fleet.add_argument(
+        "--vehicle",
+        action="append",
+        default=[],
+        metavar="ID,CONNECT,SPEED,LAT,LON",
+        help="one vehicle of the fleet: its id, MAVLink link, survey speed (m/s) and start position; once per "
+        "vehicle (system id: --system)",
+    )
+    fleet.add_argument(
+        "--fleet",
+        metavar="FILE",
+        help='the fleet as a JSON or TOML file: "vehicles", each with id, connect, speed, lat, lon (and system)',
+    )
     p.add_argument(
         "--companion-config", metavar="FILE",
         help="the companion's configuration, for [camera], [safety], [search], [backend] search_interval_s and "
