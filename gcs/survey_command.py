@@ -86,7 +86,7 @@ examples:
   cloudtrack-gcs survey --area-file search-area.geojson --altitude 30 --overlap 0.3
   cloudtrack-gcs survey --area-file mission.plan --altitude 25 --save survey.waypoints   # QGC's survey polygon
   cloudtrack-gcs --connect tcp:192.168.1.10:5760 survey --centre 47.3977,8.5456 --size 200x100 --altitude 30
-  cloudtrack-gcs survey --centre 47.3977,8.5456 --size 600x400 --altitude 25 --dry-run \
+  cloudtrack-gcs survey --centre 47.3977,8.5456 --size 600x400 --altitude 25 --dry-run \\
       --vehicle a,udpin:0.0.0.0:14551,5,47.3960,8.5440 --vehicle b,udpin:0.0.0.0:14552,8,47.3960,8.5470
   cloudtrack-gcs survey --area-file search-area.geojson --pod 0.8 --fleet fleet.toml   # each part uploaded
 

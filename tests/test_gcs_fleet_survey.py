@@ -213,3 +213,32 @@ def test_nothing_is_uploaded_unless_every_vehicle_is_ready(
         ]
         assert not ready.mission.has_mission
         assert all(i.z == 30.0 for i in flying.mission.items[1:])  # the mission it flies is untouched
+
+
+def test_a_fleet_plan_for_a_pod_flies_the_pod_plans_lanes_at_most_at_its_speed(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    from tests.test_gcs_survey import curve_config
+
+    code, out, err = run(
+        capsys, "survey", "--centre", CENTRE, "--size", "240x150", "--pod", "0.8", "--target", "person",
+        "--dry-run", "--companion-config", str(curve_config(tmp_path)),
+        "--vehicle", f"slow,u:1,2,{HOME[0]},{HOME[1]}", "--vehicle", f"fast,u:2,30,{HOME[0]},{HOME[1]}",
+    )  # fmt: skip
+    assert (code, err) == (0, ""), err
+    lines = out.splitlines()
+    chosen = re.fullmatch(
+        r"  planned for POD 0\.8 \(person, standing, 1\.7 m\): altitude (?P<altitude>[\d.]+) m, lanes "
+        r"(?P<spacing>[\d.]+) m apart, at most (?P<speed>[\d.]+) m/s",
+        lines[1],
+    )
+    assert chosen, out
+    assert f" {chosen['spacing']} m apart (camera swath " in lines[2]
+    assert f" at {chosen['altitude']} m), " in lines[2]
+    parts = {m["id"]: m for m in map(LINE.fullmatch, lines) if m}
+    assert parts["slow"]["speed"] == "2" and parts["fast"]["speed"] == chosen["speed"]  # faster loses POD
+    pods = [
+        re.fullmatch(r"  vehicle (\S+): expected POD mean ([\d.]+) over its part \(person, .*\)", line)
+        for line in lines
+    ]
+    assert sorted(m[1] for m in pods if m) == ["fast", "slow"]
