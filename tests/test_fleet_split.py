@@ -188,3 +188,36 @@ def test_the_estimate_the_split_balances_is_each_parts_own_plan() -> None:
             start = _rotate([latlon_to_offset(*corners[0], *part.vehicle.start)], split.whole.angle_deg)[0]
             times = _Times(lanes, start, part.vehicle.speed_m_s)
             assert times.time(part.first_lane - 1, part.last_lane - 1) == pytest.approx(part.time_s, rel=1e-9)
+
+
+@pytest.mark.parametrize(
+    "vehicles",
+    [
+        fleet(("a", 3.0, at(-100, 0)), ("b", 9.0, at(500, 700))),
+        fleet(("a", 5.0, at(50, -300)), ("b", 7.0, at(390, 610)), ("c", 5.0, at(410, 0))),
+    ],
+)
+def test_no_other_cut_or_order_finishes_sooner(vehicles: list[FleetVehicle]) -> None:
+    """Every way to deal the lanes out in contiguous runs, in every order: none beats the split's finish."""
+    import itertools
+
+    from behaviors.fleet_split import _Times
+    from behaviors.survey_planner import _lanes, _rotate, _to_local
+
+    split = split_area(AREA, SETTINGS, vehicles)
+    corners = tuple(AREA)
+    lanes, _ = _lanes(_to_local(corners[0], corners), split.whole.angle_deg, split.whole.swath_m * 0.8)
+    n = len(lanes)
+    times = {
+        v.id: _Times(
+            lanes, _rotate([latlon_to_offset(*corners[0], *v.start)], split.whole.angle_deg)[0], v.speed_m_s
+        )
+        for v in vehicles
+    }
+    best = math.inf
+    for order in itertools.permutations(vehicles):
+        for cuts in itertools.combinations(range(1, n), len(vehicles) - 1):
+            bounds = [0, *cuts, n]
+            finish = max(times[v.id].time(bounds[k], bounds[k + 1] - 1) for k, v in enumerate(order))
+            best = min(best, finish)
+    assert split.finish_s == pytest.approx(best, abs=1e-5)

@@ -116,11 +116,15 @@ def test_a_fleet_file_json_or_toml(tmp_path: Path) -> None:
         ('{"vehicles": [{"id": "a", "connect": "x", "speed": 5, "lat": 1, "lon": 2, "system": 300}]}',
          "system id 300 must be 1-255"),
         ("[" * 100_000, "more than 64000 bytes"),
+        ("directory", "not a regular file; give the fleet as a JSON or TOML file"),
     ],
 )  # fmt: skip
 def test_bad_fleet_files_are_one_line(tmp_path: Path, content: str, message: str) -> None:
     path = tmp_path / "fleet.json"
     path.write_text(content)
+    if content == "directory":
+        path.unlink()
+        path.mkdir()
     with pytest.raises(InputError) as caught:
         read_fleet_file(path, 1)
     assert message in str(caught.value) and "\n" not in str(caught.value)
