@@ -1,7 +1,8 @@
 """The session state in Redis, shared by every replica behind the load balancer (docs/backend.md).
 
 Keys (prefix `ct:`): `mission:<v>:<m>` nothing but its place in the sorted sets `missions` (all, by last
-seen: expiry reads only the expired range) and `vmissions:<v>` (one vehicle's, for its quota);
+seen: expiry reads only the expired range) and `vmissions:<v>` (one vehicle's, for its quota) and `mvehicles:<m>` (the vehicles searching a mission id, by last seen: the
+fleet's mission);
 `cand:<v>:<m>` hash id -> float32 bytes with `candseq:<v>:<m>` ordering them; `rej:<v>:<m>` and
 `rejapp:<v>:<m>` lists of rejection records and their appearance bytes; `status` hash vehicle -> record;
 `dec:<v>` list of decisions (the newest 1,000; `decdropped:<v>` the highest id dropped from it),
@@ -74,6 +75,7 @@ class RedisStore(StateStore):
                     pipe.multi()
                     pipe.zadd(per_vehicle, {mission: now})
                     pipe.zadd(self._k("missions"), {member: now})
+                    pipe.zadd(self._k("mvehicles", mission), {vehicle: now})
                     pipe.execute()
                     return
                 except redis.WatchError:
@@ -86,10 +88,28 @@ class RedisStore(StateStore):
             with self._redis.pipeline() as pipe:
                 pipe.zrem(self._k("missions"), raw)
                 pipe.zrem(self._k("vmissions", vehicle), mission)
+                pipe.zrem(self._k("mvehicles", mission), vehicle)
                 for name in ("cand", "candseq", "rej", "rejapp", "decided", "reported", "finds", "map"):
                     pipe.delete(self._k(name, vehicle, mission))
                 pipe.execute()
         return len(stale)
+
+    def mission_vehicles(self, mission: str, limit: int) -> list[str]:
+        if limit < 1:
+            return []
+        return [v.decode() for v in self._redis.zrevrange(self._k("mvehicles", mission), 0, limit - 1)]
+
+    def mission_rejections(self, mission: str, vehicles: list[str]) -> list[tuple[Rejection, bytes]]:
+        with self._redis.pipeline(transaction=True) as pipe:  # one round trip for the whole fleet
+            for vehicle in vehicles:
+                pipe.lrange(self._k("rej", vehicle, mission), 0, -1)
+                pipe.lrange(self._k("rejapp", vehicle, mission), 0, -1)
+            values = pipe.execute()
+        return [
+            (Rejection.model_validate_json(r), bytes(v))
+            for records, vectors in zip(values[::2], values[1::2], strict=True)
+            for r, v in zip(records, vectors, strict=False)
+        ]
 
     def put_candidates(self, vehicle: str, mission: str, items: list[tuple[str, bytes]]) -> None:
         if not items:

@@ -55,6 +55,11 @@ class StoredFind(Find):
         description='"vehicle": from its status (its own geolocation); "supervisor": made at the supervisor\'s '
         "confirm from the candidate's reported position, replaced once by the vehicle's own"
     )
+    same_as: str | None = Field(
+        None,
+        description='"<vehicle>/<candidate>": another vehicle of the mission found this person first (within '
+        "the finds' uncertainty); this one is kept as that vehicle's sighting, never listed as a find of its own",
+    )
     decided_via: Via | None = Field(
         None,
         description="who confirmed it and through what: the supervisor's standing decision on the candidate "
@@ -91,6 +96,27 @@ class MissionMap(ApiModel):
     pod: PodGrid | None = None
     area_since: float = Field(0.0, description="Unix time the area was first reported (0: not known)")
     earlier: list[EarlierArea] = Field(default_factory=list)
+    updated_at: float = 0.0
+
+
+class MergedMap(ApiModel):
+    """The map of one mission of the fleet: every vehicle searching that mission id, merged
+    (`backend.mission_merge`): the union of their search areas and covered areas, and one POD map."""
+
+    mission_id: str
+    vehicles: list[str] = Field(
+        description="the vehicles whose maps are merged, the most recently seen first"
+    )
+    area: list[list[list[float]]] = Field(
+        default_factory=list, description="the union of the vehicles' search areas, [lat, lon] rings"
+    )
+    covered: list[list[list[float]]] = Field(
+        default_factory=list, description="the union of their covered areas"
+    )
+    coverage: float | None = Field(None, description="the share of the area covered by any vehicle (0..1)")
+    pod: PodGrid | None = Field(
+        None, description="per place 1 - prod(1 - POD of each vehicle), on one grid over every vehicle's grid"
+    )
     updated_at: float = 0.0
 
 
@@ -269,6 +295,7 @@ __all__ = [
     "KeyframeRecord",
     "KeyframeView",
     "LatLon",
+    "MergedMap",
     "MissionMap",
     "ModelNames",
     "ModelsResponse",

@@ -1,8 +1,12 @@
 """What the back-end remembers between requests: per-(vehicle, mission) rejections, vehicle status, decisions.
 
 The logic lives here; the state lives in a `backend.state_store.StateStore` (SQLite by default, Redis for
-several replicas), so a restart or a failover to another replica forgets nothing. Missions are keyed by
-(vehicle, mission): one vehicle's rejections never touch another's candidates, even on the same mission id.
+several replicas), so a restart or a failover to another replica forgets nothing. Missions are stored by
+(vehicle, mission); the vehicles searching the same mission id are one mission of the fleet (at most
+`MISSION_VEHICLES` of them, the most recently seen, are read): a rejection holds for all of them where it
+was made (a rejection without a place holds only for its own vehicle: mission ids are 0-255 and meet by
+accident), a person several of them find is one find (`same_as`), and their maps merge
+(`merged_map`, `backend.mission_merge`).
 
 Rejection memory: when the supervisor rejects a candidate, its appearance (hue-saturation histogram)
 and, when known, its position are kept for the mission. A later candidate in the same mission whose
@@ -33,7 +37,8 @@ from backend.images import (
     is_jpeg,
 )
 from backend.mission_map import distance_m, updated_map
-from backend.schemas import KeyframeCandidate, KeyframeRecord, MissionMap, StoredFind
+from backend.mission_merge import merged_map
+from backend.schemas import KeyframeCandidate, KeyframeRecord, MergedMap, MissionMap, StoredFind
 from backend.state_store import QuotaExceededError, SqliteStore, StateStore, vector_bytes, vector_from
 from behaviors.geometry import Box
 from cloudtrack.api_models import (
@@ -49,6 +54,10 @@ from cloudtrack.api_models import (
 from cloudtrack.provenance import decided_via, decision_text
 
 log = logging.getLogger(__name__)
+
+MISSION_VEHICLES = 64  # the vehicles of one mission id read for its rejections, finds and map
+FIND_SIGMA_UNKNOWN_M = 10.0  # a find without an uncertainty (made at a supervisor's confirm) is this sure
+FIND_SAME_MIN_M = 5.0  # two finds closer than this are one person, however sure each is
 
 __all__ = ["QuotaExceededError", "SessionStore", "UnknownCandidateError", "crop_descriptor", "distance_m"]
 
@@ -169,11 +178,24 @@ class SessionStore:
     def rejections(self, vehicle_id: str, mission_id: str) -> list[Rejection]:
         return [r for r, _ in self.state.rejections(vehicle_id, mission_id)]
 
+    def mission_vehicles(self, mission_id: str) -> list[str]:
+        """The vehicles searching this mission id (the most recently seen first, at most MISSION_VEHICLES)."""
+        return self.state.mission_vehicles(mission_id, MISSION_VEHICLES)
+
     def rejection_check(
         self, vehicle_id: str, mission_id: str, vehicle_position: list[float] | None
     ) -> Callable[[list[float]], str | None]:
-        """A function telling whether a candidate's appearance matches a rejection of this vehicle's mission."""
+        """A function telling whether a candidate's appearance matches a rejection of the mission: the
+        vehicle's own, and another vehicle's of the same mission id made within `radius_m` of where this
+        vehicle is (one without a place, or a vehicle without one, holds only for its own vehicle)."""
         entries = [(r, vector_from(a)) for r, a in self.state.rejections(vehicle_id, mission_id)]
+        if vehicle_position is not None:
+            others = [v for v in self.mission_vehicles(mission_id) if v != vehicle_id]
+            entries += [
+                (r, vector_from(a))
+                for r, a in self.state.mission_rejections(mission_id, others)
+                if r.position is not None and distance_m(r.position, vehicle_position) <= self.radius_m
+            ]
 
         def check(appearance: list[float]) -> str | None:
             for record, rejected in entries:
@@ -186,9 +208,10 @@ class SessionStore:
                     continue
                 score = similarity(appearance, rejected)
                 if score >= self.similarity_threshold:
+                    via = "" if record.vehicle_id == vehicle_id else f" via {record.vehicle_id}"
                     return (
                         f"looks like candidate {record.candidate_id or record.rejection_id} that the supervisor "
-                        f"rejected (appearance similarity {score:.2f})"
+                        f"rejected{via} (appearance similarity {score:.2f})"
                     )
             return None
 
@@ -284,13 +307,29 @@ class SessionStore:
         )
         self.state.add_decision(vehicle_id, mission_id, confirm, self._clock(), source="vehicle")
 
+    def _first_finder(self, find: StoredFind) -> StoredFind | None:
+        """Another vehicle's find of the mission of the same person: within two sigma of the difference of
+        the two positions (an unknown sigma counts as FIND_SIGMA_UNKNOWN_M), at most `radius_m` apart."""
+        sigma = find.sigma_m if find.sigma_m is not None else FIND_SIGMA_UNKNOWN_M
+        others = [v for v in self.mission_vehicles(find.mission_id) if v != find.vehicle_id]
+        candidates = [f for v in others for f in self.state.finds(v, find.mission_id) if f.same_as is None]
+        for other in sorted(candidates, key=lambda f: f.received_at):
+            theirs = other.sigma_m if other.sigma_m is not None else FIND_SIGMA_UNKNOWN_M
+            reach = min(self.radius_m, max(FIND_SAME_MIN_M, 2 * math.hypot(sigma, theirs)))
+            if distance_m(other.position, find.position) <= reach:
+                return other
+        return None
+
     def _keep_find(self, find: StoredFind, replace_source: str | None = None) -> None:
+        first = self._first_finder(find)
+        if first is not None:  # one person, one find: this vehicle's is kept as its sighting of it
+            find = find.model_copy(update={"same_as": f"{first.vehicle_id}/{first.candidate_id}"})
         try:
             saved, changed = self.state.put_find(find, replace_source)
         except QuotaExceededError as exc:
             log.warning("find %s not stored: %s", find.candidate_id, exc)
             return
-        if changed:
+        if changed and saved.same_as is None:
             self._tell_find(saved)
 
     def _tell_find(self, find: StoredFind) -> None:
@@ -319,11 +358,32 @@ class SessionStore:
         return find.model_copy(update={"decided_via": via, "decided_by": text})
 
     def finds(self, vehicle_id: str, mission_id: str | None = None) -> list[StoredFind]:
-        """The finds, each with who confirmed it and through what."""
-        return [self.with_provenance(f) for f in self.state.finds(vehicle_id, mission_id)]
+        """The vehicle's finds, each with who confirmed it and through what; a person another vehicle of
+        the mission found first is that vehicle's find, not listed here (`sightings` has it)."""
+        return [
+            self.with_provenance(f) for f in self.state.finds(vehicle_id, mission_id) if f.same_as is None
+        ]
+
+    def sightings(self, vehicle_id: str, mission_id: str | None = None) -> list[StoredFind]:
+        """The vehicle's finds of persons another vehicle of the mission found first (`same_as`)."""
+        return [f for f in self.state.finds(vehicle_id, mission_id) if f.same_as is not None]
+
+    def mission_finds(self, mission_id: str) -> list[StoredFind]:
+        """The mission's finds over every vehicle searching it: one per person, oldest first."""
+        found = [f for v in self.mission_vehicles(mission_id) for f in self.finds(v, mission_id)]
+        return sorted(found, key=lambda f: (f.time, f.received_at))
 
     def mission_map(self, vehicle_id: str, mission_id: str) -> MissionMap | None:
         return self.state.mission_map(vehicle_id, mission_id)
+
+    def merged_map(self, mission_id: str) -> MergedMap | None:
+        """The map of every vehicle searching the mission id, merged (backend.mission_merge); None when no
+        vehicle has reported a map of it."""
+        maps = [(v, self.state.mission_map(v, mission_id)) for v in self.mission_vehicles(mission_id)]
+        kept = [(v, m) for v, m in maps if m is not None]
+        if not kept:
+            return None
+        return merged_map(mission_id, kept, max(m.updated_at for _, m in kept))
 
     # The newest keyframe, for the supervisor's live view
 
@@ -372,7 +432,7 @@ class SessionStore:
             return record, created
         for find in self.state.finds(vehicle_id, mission_id):
             if (
-                find.candidate_id == decision.candidate_id
+                find.candidate_id == decision.candidate_id and find.same_as is None
             ):  # the vehicle's find: now the supervisor's word too
                 self._tell_find(find)
         if decision.action == "reject":

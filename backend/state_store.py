@@ -61,6 +61,15 @@ class StateStore(ABC):
         """Forget missions last seen before `cutoff` (their candidates and rejections); how many."""
 
     @abstractmethod
+    def mission_vehicles(self, mission: str, limit: int) -> list[str]:
+        """The vehicles with a live search of this mission id (one mission of the fleet), the most recently
+        seen first, at most `limit`."""
+
+    def mission_rejections(self, mission: str, vehicles: list[str]) -> list[tuple[Rejection, bytes]]:
+        """The rejections of these vehicles' searches of the mission."""
+        return [entry for vehicle in vehicles for entry in self.rejections(vehicle, mission)]
+
+    @abstractmethod
     def put_candidates(self, vehicle: str, mission: str, items: list[tuple[str, bytes]]) -> None: ...
 
     @abstractmethod
@@ -166,6 +175,7 @@ _SCHEMA = """
 CREATE TABLE IF NOT EXISTS missions (
     vehicle TEXT NOT NULL, mission TEXT NOT NULL, last_seen REAL NOT NULL, PRIMARY KEY (vehicle, mission));
 CREATE INDEX IF NOT EXISTS missions_by_age ON missions (last_seen);
+CREATE INDEX IF NOT EXISTS missions_by_id ON missions (mission, last_seen);
 CREATE TABLE IF NOT EXISTS candidates (
     seq INTEGER PRIMARY KEY AUTOINCREMENT, vehicle TEXT NOT NULL, mission TEXT NOT NULL,
     candidate_id TEXT NOT NULL, appearance BLOB NOT NULL, UNIQUE (vehicle, mission, candidate_id));
@@ -287,6 +297,13 @@ class SqliteStore(StateStore):
                     )
             self._db.execute("COMMIT")
             return len(stale)
+
+    def mission_vehicles(self, mission: str, limit: int) -> list[str]:
+        rows = self._read(
+            "SELECT vehicle FROM missions WHERE mission = ? ORDER BY last_seen DESC, vehicle LIMIT ?",
+            (mission, limit),
+        )
+        return [str(v) for (v,) in rows]
 
     def put_candidates(self, vehicle: str, mission: str, items: list[tuple[str, bytes]]) -> None:
         if not items:

@@ -1,6 +1,9 @@
-"""A mission's rejection memory: the candidates the supervisor or the vehicle rejected, never proposed again.
+"""A mission's rejection memory: the candidates the supervisor or the vehicle rejected, never proposed again;
+and the mission's map over the whole fleet.
 
-Missions are keyed by (vehicle, mission): the mission is the sending vehicle's.
+Missions are stored by (vehicle, mission): a rejection is the sending vehicle's, and holds for the other
+vehicles of the same mission id where it was made (backend.sessions). `GET /v1/missions/{m}/map`: the
+map of every vehicle searching the mission id, merged (backend.mission_merge).
 """
 
 from __future__ import annotations
@@ -11,9 +14,9 @@ from fastapi import APIRouter, HTTPException, Query
 from fastapi.concurrency import run_in_threadpool
 
 from backend.auth import require_vehicle_access
-from backend.dependencies import Caller, MissionId, Scheduler, Sessions
+from backend.dependencies import Caller, MissionId, Scheduler, Sessions, SupervisorCaller
 from backend.fair_queue import QueueFullError
-from backend.schemas import ERROR_RESPONSES, IDENTIFIER, Rejection, RejectionIn
+from backend.schemas import ERROR_RESPONSES, IDENTIFIER, MergedMap, Rejection, RejectionIn
 from backend.sessions import UnknownCandidateError
 
 router = APIRouter(prefix="/v1/missions/{mission_id}", tags=["sessions"])
@@ -65,3 +68,14 @@ def list_rejections(
         raise HTTPException(422, "the supervisor must name the vehicle: ?vehicle_id=<id>")
     require_vehicle_access(principal, vehicle)
     return sessions.rejections(vehicle, mission_id)
+
+
+@router.get("/map", response_model=MergedMap, responses=ERROR_RESPONSES)
+def mission_map(mission_id: MissionId, _: SupervisorCaller, sessions: Sessions) -> MergedMap:
+    """The mission's map over every vehicle searching this mission id: the union of their search and
+    covered areas, the coverage of the whole, and one POD map (1 - prod(1 - each vehicle's POD) per place).
+    404 when no vehicle has reported a map of it."""
+    merged = sessions.merged_map(mission_id)
+    if merged is None:
+        raise HTTPException(404, f"no vehicle has reported a map of mission {mission_id!r}")
+    return merged

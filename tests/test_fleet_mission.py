@@ -1,0 +1,213 @@
+"""One mission of the fleet on the back-end (issue 43 item 2): the vehicles searching the same mission id
+share its rejections (where they were made), its finds (one per person) and its map (merged), in both
+stores (SQLite, and Debian's real redis-server as in test_backend_store)."""
+
+from __future__ import annotations
+
+import base64
+import math
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from backend.mission_merge import merged_pod
+from backend.redis_store import RedisStore
+from backend.schemas import (
+    AwaitingCandidate,
+    DecisionIn,
+    Find,
+    PodGrid,
+    SearchStatus,
+    StoredFind,
+    VehicleStatusIn,
+)
+from backend.sessions import SessionStore
+from backend.state_store import SqliteStore, StateStore
+from backend_tools.fleet_services import RedisServer
+from cloudtrack.coverage import LocalFrame
+from cloudtrack.pod_map import MAX_CELLS, decode_grid, grid_value
+
+RED = [1.0] + [0.0] * 127
+BLUE = [0.0] * 127 + [1.0]
+HERE = [47.0, 8.0]
+FRAME = LocalFrame(*HERE)
+
+
+def _at(east_m: float, north_m: float) -> list[float]:
+    return list(FRAME.latlon(east_m, north_m))
+
+
+@pytest.fixture(scope="module")
+def redis_server() -> Iterator[RedisServer]:
+    with RedisServer() as server:
+        yield server
+
+
+@pytest.fixture(params=["sqlite", "redis"])
+def state(request: pytest.FixtureRequest, tmp_path: Path, redis_server: RedisServer) -> Iterator[StateStore]:
+    if request.param == "sqlite":
+        store: StateStore = SqliteStore(tmp_path / "sessions.sqlite3")
+    else:
+        store = RedisStore(redis_server.url)
+        store._redis.flushdb()  # type: ignore[attr-defined]
+    yield store
+    store.close()
+
+
+def _grid(origin: list[float], rows: int, cols: int, pod: float, cell_m: float = 10.0) -> PodGrid:
+    values = bytes([round(pod * 250)] * (rows * cols))
+    return PodGrid(
+        target="person",
+        posture="standing",
+        target_pod=0.8,
+        origin=origin,
+        cell_m=cell_m,
+        rows=rows,
+        cols=cols,
+        values=base64.b64encode(values).decode(),
+        mean=pod,
+        at_target=0.0,
+        looks=3,
+    )
+
+
+def _square(west_m: float, south_m: float, side_m: float) -> list[list[float]]:
+    return [
+        _at(west_m, south_m),
+        _at(west_m + side_m, south_m),
+        _at(west_m + side_m, south_m + side_m),
+        _at(west_m, south_m + side_m),
+    ]
+
+
+def test_the_vehicles_of_one_mission_id_are_listed_and_expire(state: StateStore) -> None:
+    state.touch_mission("d1", "m1", 100.0, 60, 8)
+    state.touch_mission("d2", "m1", 110.0, 60, 8)
+    state.touch_mission("d3", "m2", 110.0, 60, 8)
+    assert state.mission_vehicles("m1", 10) == ["d2", "d1"]  # the most recently seen first
+    assert state.mission_vehicles("m1", 1) == ["d2"]  # bounded
+    assert state.expire(105.0) == 1
+    assert state.mission_vehicles("m1", 10) == ["d2"]
+
+
+def test_a_rejection_on_one_vehicle_refuses_the_same_place_proposed_by_another(state: StateStore) -> None:
+    store = SessionStore(state, radius_m=100)
+    store.remember_candidates("d1", "m1", [("c1", RED)])
+    awaiting = AwaitingCandidate(candidate_id="c1", box=[0, 0, 60, 120], position=HERE)
+    store.set_status("d1", VehicleStatusIn(mission_id="m1", state="AWAIT_SUPERVISOR", awaiting=awaiting))
+    store.add_decision("d1", DecisionIn(candidate_id="c1", action="reject", note="not him"))
+    store.open_mission("d2", "m1")
+    near = store.rejection_check("d2", "m1", _at(30, 40))  # 50 m from the rejected place
+    reason = near(RED)
+    assert reason is not None and "c1" in reason and "via d1" in reason
+    assert near(BLUE) is None  # another look is a new candidate
+    assert store.rejection_check("d2", "m1", _at(300, 0))(RED) is None  # a look-alike elsewhere
+    assert store.rejection_check("d2", "m1", None)(RED) is None  # no place: nothing to match it by
+    assert store.rejection_check("d2", "m2", HERE)(RED) is None  # another mission id
+    # Today's own-vehicle rule holds: d1's rejection matches d1 anywhere without a position.
+    assert store.rejection_check("d1", "m1", None)(RED) is not None
+
+
+def test_a_rejection_without_a_place_holds_for_its_vehicle_only(state: StateStore) -> None:
+    store = SessionStore(state, radius_m=100)
+    store.remember_candidates("d1", "m1", [("c1", RED)])
+    store.set_status("d1", VehicleStatusIn(mission_id="m1", state="SEARCH"))
+    store.add_decision("d1", DecisionIn(candidate_id="c1", action="reject"))
+    store.open_mission("d2", "m1")
+    assert store.rejection_check("d1", "m1", HERE)(RED) is not None
+    assert store.rejection_check("d2", "m1", HERE)(RED) is None
+
+
+def _find(candidate: str, position: list[float], sigma_m: float | None) -> Find:
+    return Find(
+        candidate_id=candidate,
+        position=position,
+        sigma_m=sigma_m,
+        time=1000.0,
+        prompt="a man",
+        confirmed_by="ops",
+    )
+
+
+def test_one_person_seen_by_two_vehicles_is_one_find(state: StateStore) -> None:
+    told: list[StoredFind] = []
+    store = SessionStore(state, on_find=told.append)
+    store.set_status("d1", VehicleStatusIn(mission_id="m1", state="CONFIRMED", find=_find("a7", HERE, 3.0)))
+    store.set_status(
+        "d2", VehicleStatusIn(mission_id="m1", state="CONFIRMED", find=_find("b2", _at(4, 3), 4.0))
+    )
+    store.set_status(
+        "d2", VehicleStatusIn(mission_id="m1", state="CONFIRMED", find=_find("b2", _at(4, 3), 4.0))
+    )
+    assert [(f.vehicle_id, f.candidate_id) for f in store.mission_finds("m1")] == [("d1", "a7")]
+    assert store.finds("d2", "m1") == []
+    assert [f.same_as for f in store.sightings("d2", "m1")] == ["d1/a7"]
+    assert [f.candidate_id for f in told] == ["a7"]  # told once (Cursor-on-Target)
+    # Another person, beyond the two finds' uncertainty, is a find of its own.
+    store.set_status(
+        "d2", VehicleStatusIn(mission_id="m1", state="CONFIRMED", find=_find("b3", _at(60, 0), 4.0))
+    )
+    assert [f.candidate_id for f in store.mission_finds("m1")] == ["a7", "b3"]
+    # Another mission id is another mission.
+    store.set_status("d3", VehicleStatusIn(mission_id="m2", state="CONFIRMED", find=_find("c1", HERE, 3.0)))
+    assert [f.candidate_id for f in store.mission_finds("m2")] == ["c1"]
+
+
+def test_a_supervisors_confirm_of_the_same_person_on_another_vehicle_is_no_second_find(
+    state: StateStore,
+) -> None:
+    store = SessionStore(state)
+    store.set_status("d1", VehicleStatusIn(mission_id="m1", state="CONFIRMED", find=_find("a7", HERE, 5.0)))
+    awaiting = AwaitingCandidate(candidate_id="b2", box=[0, 0, 60, 120], position=_at(8, 0))
+    store.set_status("d2", VehicleStatusIn(mission_id="m1", state="AWAIT_SUPERVISOR", awaiting=awaiting))
+    _, created = store.add_decision("d2", DecisionIn(candidate_id="b2", action="confirm"))
+    assert created  # the decision stands and goes to d2 as any other
+    assert [f.candidate_id for f in store.mission_finds("m1")] == ["a7"]
+    assert [f.same_as for f in store.sightings("d2", "m1")] == ["d1/a7"]
+
+
+def test_merged_pod_combines_overlapping_grids_of_different_origins() -> None:
+    a = _grid(HERE, 2, 2, 0.5)
+    b = _grid(_at(10, 0), 2, 2, 0.5)  # one cell farther east: their middle column overlaps
+    merged = merged_pod([a, b])
+    assert merged is not None and (merged.rows, merged.cols) == (2, 3) and merged.cell_m == 10.0
+    values = decode_grid(merged.model_dump())
+    assert np.allclose(values, [[0.5, 0.75, 0.5], [0.5, 0.75, 0.5]], atol=0.004)  # 1 - (1 - p1)(1 - p2)
+    report = merged.model_dump()
+    assert grid_value(report, *_at(15, 5)) == pytest.approx(0.75, abs=0.004)
+    assert grid_value(report, *_at(-5, 5)) is None  # beyond every grid
+
+
+def test_merged_pod_stays_bounded_when_the_grids_lie_far_apart() -> None:
+    a = _grid(HERE, 64, 64, 0.4, cell_m=2.0)
+    b = _grid(_at(3000, 2000), 64, 64, 0.6, cell_m=2.0)
+    merged = merged_pod([a, b])
+    assert merged is not None and merged.rows * merged.cols <= MAX_CELLS
+    values = decode_grid(merged.model_dump())
+    assert np.nanmax(values) == pytest.approx(0.6, abs=0.004) and np.isnan(values).any()  # between: outside
+    assert merged_pod([_grid(HERE, 1, 1, 0.5), _grid(_at(1e6, 0), 1, 1, 0.5)]) is None  # no cell spans it
+    broken = _grid(HERE, 2, 2, 0.5).model_copy(update={"values": base64.b64encode(b"\x01").decode()})
+    assert merged_pod([broken]) is None  # a grid that does not decode says nothing
+
+
+def test_the_mission_map_merges_every_vehicles_area_coverage_and_pod(state: StateStore) -> None:
+    store = SessionStore(state)
+    west, east = _square(0, 0, 20), _square(20, 0, 20)  # two halves of a 40 x 20 m area
+    west_seen = SearchStatus(area=west, covered=[west], coverage=1.0, pod=_grid(HERE, 2, 2, 0.5))
+    east_seen = SearchStatus(area=east, covered=[], coverage=0.0, pod=_grid(_at(10, 0), 2, 3, 0.2))
+    store.set_status("d1", VehicleStatusIn(mission_id="m1", state="SEARCH", position=HERE, search=west_seen))
+    store.set_status("d2", VehicleStatusIn(mission_id="m1", state="SEARCH", position=HERE, search=east_seen))
+    store.set_status("d3", VehicleStatusIn(mission_id="m2", state="SEARCH", position=HERE, search=east_seen))
+    merged = store.merged_map("m1")
+    assert merged is not None and sorted(merged.vehicles) == ["d1", "d2"]
+    assert merged.coverage == pytest.approx(0.5, abs=0.01)
+    assert len(merged.area) == 1 and len(merged.covered) == 1
+    assert merged.pod is not None
+    report = merged.pod.model_dump()
+    assert grid_value(report, *_at(5, 5)) == pytest.approx(0.5, abs=0.004)  # d1's alone
+    assert grid_value(report, *_at(15, 5)) == pytest.approx(1 - 0.5 * 0.8, abs=0.004)  # both
+    assert grid_value(report, *_at(35, 5)) == pytest.approx(0.2, abs=0.004)  # d2's alone
+    assert store.merged_map("m9") is None
+    assert math.isclose(store.merged_map("m2").coverage or 0.0, 0.0)  # type: ignore[union-attr]
