@@ -5,6 +5,11 @@ track (a line), the search and covered areas (polygons) and the POD map (polygon
 "earlier"); and a find as the `cloudtrack.cursor_on_target.FindReport` a TAK map takes. Building them is CPU
 work: off the event loop.
 
+A mission flown by several vehicles holds every vehicle's part (the search area it reported) and track, each
+named with its vehicle id and drawn in that vehicle's colour (`cloudtrack.vehicle_colours`): the GeoJSON
+simplestyle keys (`title`, `stroke`, `fill`, ...) that CalTopo / SARTopo, geojson.io and QGIS draw by, and
+a KML style per placemark. The id is always there, so nobody has to tell vehicles apart by colour alone.
+
 GeoJSON positions are [lon, lat] and exterior rings run counter-clockwise (RFC 7946 section 3.1.6), so
 strict readers accept them; a ring is closed here when the vehicle sent it open.
 
@@ -33,6 +38,7 @@ from backend.pod_layers import geojson_features, kml_folder
 from backend.schemas import EarlierArea, MissionMap, StoredFind
 from cloudtrack.cursor_on_target import FindReport, seen_text
 from cloudtrack.plain_text import without_controls
+from cloudtrack.vehicle_colours import kml_colour, vehicle_colours
 
 # simplekml compiles through class-level state (Kmlable._compiling, _currentroot) and patches minidom while
 # it pretty-prints: two downloads built at once on the thread pool would mix. One at a time.
@@ -109,8 +115,10 @@ def geojson_document(
         }
         for f in finds
     ]
+    colours = vehicle_colours(vehicle for vehicle, _ in maps)
     for (vehicle, mission), mission_map in maps.items():
         owner = {"vehicle_id": vehicle, "mission_id": mission}
+        colour = colours[vehicle]
         if len(mission_map.track) >= 2:
             features.append(
                 {
@@ -121,6 +129,7 @@ def geojson_document(
                         **owner,
                         "start": _iso(mission_map.track[0][2]),
                         "end": _iso(mission_map.track[-1][2]),
+                        **_track_style(vehicle, colour),
                     },
                 }
             )
@@ -133,7 +142,12 @@ def geojson_document(
                             "type": "Polygon",
                             "coordinates": [_counter_clockwise(_lon_lat(searched.area))],
                         },
-                        "properties": {"kind": "search_area", **owner, **which},
+                        "properties": {
+                            "kind": "search_area",
+                            **owner,
+                            **which,
+                            **_area_style(vehicle, colour, which["area"] == "earlier"),
+                        },
                     }
                 )
             rings = [r for r in searched.covered if len(r) >= 3]
@@ -145,12 +159,46 @@ def geojson_document(
                             "type": "MultiPolygon",
                             "coordinates": [[_counter_clockwise(_lon_lat(r))] for r in rings],
                         },
-                        "properties": {"kind": "covered", **owner, **which, "coverage": searched.coverage},
+                        "properties": {
+                            "kind": "covered",
+                            **owner,
+                            **which,
+                            "coverage": searched.coverage,
+                            **_covered_style(vehicle, colour),
+                        },
                     }
                 )
             if searched.pod is not None:
                 features.extend(geojson_features(searched.pod, {**owner, **which}))
     return {"type": "FeatureCollection", "name": title, "features": features}
+
+
+TRACK_WIDTH, AREA_WIDTH = 3, 2
+AREA_FILL_OPACITY, COVERED_FILL_OPACITY = 0.08, 0.3
+
+
+def _track_style(vehicle: str, colour: str) -> dict[str, Any]:
+    return {"title": f"{vehicle} track", "stroke": colour, "stroke-width": TRACK_WIDTH, "stroke-opacity": 1}
+
+
+def _area_style(vehicle: str, colour: str, earlier: bool) -> dict[str, Any]:
+    return {
+        "title": f"{vehicle} {'earlier search area' if earlier else 'search area'}",
+        "stroke": colour,
+        "stroke-width": AREA_WIDTH,
+        "fill": colour,
+        "fill-opacity": AREA_FILL_OPACITY,
+    }
+
+
+def _covered_style(vehicle: str, colour: str) -> dict[str, Any]:
+    return {
+        "title": f"{vehicle} covered",
+        "stroke": colour,
+        "stroke-width": 1,
+        "fill": colour,
+        "fill-opacity": COVERED_FILL_OPACITY,
+    }
 
 
 def geojson_text(finds: list[StoredFind], maps: dict[tuple[str, str], MissionMap], title: str) -> str:
@@ -199,32 +247,52 @@ def _kml_text(finds: list[StoredFind], maps: dict[tuple[str, str], MissionMap], 
         point.style.balloonstyle.text = "$[description]"  # the plain-text lines above, not the Data table
         for name, value in find_properties(find).items():
             point.extendeddata.newdata(name=name, value=kml_data(value))
+    colours = vehicle_colours(vehicle for vehicle, _ in maps)
     for (vehicle, mission), mission_map in maps.items():
-        sub = kml.newfolder(name=f"{vehicle} mission {mission}")
+        # Ids are identifiers (the API's pattern); the names go through the same cleaning as any text.
+        sub = kml.newfolder(name=without_controls(f"{vehicle} mission {mission}"))
+        colour = colours[vehicle]
+        line_colour = kml_colour(colour)
+        owner_data = {"vehicle_id": vehicle, "mission_id": mission, "colour": colour}
         if len(mission_map.track) >= 2:
-            line = sub.newlinestring(name="track", coords=[(p[1], p[0]) for p in mission_map.track])
-            line.style.linestyle.width = 2
+            line = sub.newlinestring(
+                name=without_controls(f"{vehicle} track"), coords=[(p[1], p[0]) for p in mission_map.track]
+            )
+            line.style.linestyle.width = TRACK_WIDTH
+            line.style.linestyle.color = line_colour
+            _kml_owner(line, {"kind": "track", **owner_data})
         for which, searched in searched_areas(mission_map):
             # The current area's placemarks in the mission's folder; each earlier one in a folder of its own.
             earlier = which["area"] == "earlier"
             place = sub.newfolder(name=f"earlier area, replaced {which['replaced_at']}") if earlier else sub
             if len(searched.area) >= 3:
                 area = place.newpolygon(
-                    name="earlier search area" if earlier else "search area",
+                    name=without_controls(_area_style(vehicle, colour, earlier)["title"]),
                     outerboundaryis=_counter_clockwise(_lon_lat(searched.area)),
                 )
                 area.style.polystyle.fill = 0
-                area.style.linestyle.color = simplekml.Color.blue
+                area.style.linestyle.color = line_colour
+                area.style.linestyle.width = AREA_WIDTH
+                _kml_owner(area, {"kind": "search_area", **owner_data, **which})
             for i, ring in enumerate(r for r in searched.covered if len(r) >= 3):
                 covered = place.newpolygon(
-                    name=f"covered {i + 1}", outerboundaryis=_counter_clockwise(_lon_lat(ring))
+                    name=without_controls(f"{vehicle} covered {i + 1}"),
+                    outerboundaryis=_counter_clockwise(_lon_lat(ring)),
                 )
-                covered.style.polystyle.color = simplekml.Color.changealphaint(80, simplekml.Color.green)
+                covered.style.polystyle.color = kml_colour(colour, round(COVERED_FILL_OPACITY * 255))
+                covered.style.linestyle.color = line_colour
+                _kml_owner(covered, {"kind": "covered", **owner_data, **which})
             if searched.pod is not None:
                 owner = {"vehicle_id": vehicle, "mission_id": mission, **which}
                 name = "POD map, earlier area" if earlier else "POD map"
                 kml_folder(place, name, searched.pod, owner)
     return one_ring_per_inner_boundary(str(kml.kml()))
+
+
+def _kml_owner(placemark: Any, values: dict[str, object]) -> None:
+    """Whose placemark it is, as ExtendedData (QGIS and ATAK show and filter by it), escaped as a find's."""
+    for name, value in values.items():
+        placemark.extendeddata.newdata(name=name, value=kml_data(value))
 
 
 _INNER = re.compile(r"<innerBoundaryIs>(.*?)</innerBoundaryIs>", re.S)

@@ -32,7 +32,7 @@ from cloudtrack.gcs_protocol import (
 )
 from cloudtrack.mavlink_connection import MavlinkEndpoint, mavlink, parse_connection
 from cloudtrack.mavlink_signing import parse_signing_key
-from gcs import mode_command, survey_command, watch_command
+from gcs import fleet_status, mode_command, survey_command, watch_command
 
 EXIT_REFUSED, EXIT_TIMEOUT = 1, 3
 IN_PROGRESS_WAIT_S = 35.0  # the companion's start check is at most [backend] start_check_s (30 s)
@@ -55,6 +55,7 @@ examples:
   cloudtrack-gcs abort
   cloudtrack-gcs track-box 0.40 0.30 0.55 0.70   # normalised corners, as QGroundControl sends them
   cloudtrack-gcs watch --duration 60
+  cloudtrack-gcs status --all --backend https://backend.example --supervisor-token-file ~/.config/cloudtrack/supervisor.token
   cloudtrack-gcs mode AUTO                  # the autopilot flies its mission (PX4: MISSION)
   cloudtrack-gcs start --prompt "man in a red cap" --print-mavproxy   # the same start as MAVProxy commands
   cloudtrack-gcs --connect tcp:192.168.1.10:5760 --signing-key-file ~/.config/cloudtrack/signing.key watch
@@ -485,13 +486,22 @@ def build_parser() -> argparse.ArgumentParser:
     abort.set_defaults(func=_simple(CMD_ABORT, [0.0]))
     status = sub.add_parser(
         "status",
-        help="print the companion's status line and what the link shows (tracking, mode, finds)",
-        epilog="example:\n  cloudtrack-gcs status",
+        help="print the companion's status line and what the link shows (tracking, mode, finds); --all: a "
+        "line per vehicle, from the back-end",
+        epilog="examples:\n  cloudtrack-gcs status\n"
+        "  cloudtrack-gcs status --all --backend http://127.0.0.1:8080 --supervisor-token-file "
+        "out/quickstart/supervisor-token\n"
+        "  cloudtrack-gcs status --all --mission m-7      # back-end and token from "
+        f"${fleet_status.BACKEND_ENV}, ${fleet_status.TOKEN_ENV}\n\n"
+        "--all prints, per vehicle: id, mission, state, mode, position, coverage of its part (and the POD\n"
+        "map's share at the target POD), and how long ago it last reported. The supervisor token comes\n"
+        f"from a file or ${fleet_status.TOKEN_ENV}, never from the command line.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     status.add_argument(
         "--listen", type=float, default=2.0, metavar="S", help="listen this long after the answer (default 2)"
     )
+    fleet_status.add_arguments(status)
     status.set_defaults(func=_status)
     box = sub.add_parser(
         "track-box", help="track what is inside a box (MAV_CMD_CAMERA_TRACK_RECTANGLE, normalised 0..1)",
@@ -526,12 +536,16 @@ def main(argv: Sequence[str] | None = None) -> int:
             encode_prompt(args.mission_id, args.superset, args.prompt)
         if args.command == "watch":
             watch_command.check_arguments(args)  # the TAK address and certificates, before watching
+        if args.command == "status":
+            fleet_status.check_arguments(args)  # the back-end's address and token, for --all
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     if args.command == "start" and args.print_mavproxy:
         print("\n".join(mavproxy_start_lines(args)))
         return 0
+    if args.command == "status" and args.all:
+        return fleet_status.run_all(args)  # asks the back-end: no MAVLink link
     if getattr(args, "opens_own_link", False):
         return int(args.func(args))  # survey: checks its area and plan before it opens the link
     try:

@@ -236,8 +236,8 @@ def test_kml_download_holds_finds_track_and_areas(client_factory: Any) -> None:
         and SEEN in p.description
         for p in found.values()
     )
-    assert len(placemarks["track"].geometry.coords) == 6
-    assert len(placemarks["search area"].geometry.exterior.coords) == 5
+    assert len(placemarks["drone-1 track"].geometry.coords) == 6
+    assert len(placemarks["drone-1 search area"].geometry.exterior.coords) == 5
 
 
 def _vehicle_find(client: TestClient, candidate: str = "c-17") -> None:
