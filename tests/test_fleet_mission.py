@@ -11,7 +11,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from fastapi.testclient import TestClient
 
+from backend.app import create_app
 from backend.mission_merge import merged_pod
 from backend.redis_store import RedisStore
 from backend.schemas import (
@@ -28,6 +30,7 @@ from backend.state_store import SqliteStore, StateStore
 from backend_tools.fleet_services import RedisServer
 from cloudtrack.coverage import LocalFrame
 from cloudtrack.pod_map import MAX_CELLS, decode_grid, grid_value
+from tests.backend_fixtures import SUPERVISOR, auth, backend_config
 
 RED = [1.0] + [0.0] * 127
 BLUE = [0.0] * 127 + [1.0]
@@ -211,3 +214,25 @@ def test_the_mission_map_merges_every_vehicles_area_coverage_and_pod(state: Stat
     assert grid_value(report, *_at(35, 5)) == pytest.approx(0.2, abs=0.004)  # d2's alone
     assert store.merged_map("m9") is None
     assert math.isclose(store.merged_map("m2").coverage or 0.0, 0.0)  # type: ignore[union-attr]
+
+
+def test_the_mission_map_is_served_to_the_supervisor_only(models_dir: Path) -> None:
+    app = create_app(backend_config(models_dir))
+    west, east = _square(0, 0, 20), _square(20, 0, 20)
+    with TestClient(app) as client:
+        for vehicle, area, pod in (("drone-1", west, 0.5), ("drone-2", east, 0.2)):
+            search = SearchStatus(area=area, covered=[area], coverage=1.0, pod=_grid(area[0], 2, 2, pod))
+            status = VehicleStatusIn(mission_id="7", state="SEARCH", position=HERE, search=search)
+            response = client.post(
+                f"/v1/vehicles/{vehicle}/status", json=status.model_dump(mode="json"), headers=auth(vehicle)
+            )
+            assert response.status_code == 200, response.text
+        supervisor = {"Authorization": f"Bearer {SUPERVISOR}"}
+        answer = client.get("/v1/missions/7/map", headers=supervisor)
+        assert answer.status_code == 200, answer.text
+        merged = answer.json()
+        assert sorted(merged["vehicles"]) == ["drone-1", "drone-2"]
+        assert merged["coverage"] == pytest.approx(1.0, abs=0.01)
+        assert (merged["pod"]["rows"], merged["pod"]["cols"]) == (2, 4)
+        assert client.get("/v1/missions/7/map", headers=auth("drone-1")).status_code == 403
+        assert client.get("/v1/missions/8/map", headers=supervisor).status_code == 404
