@@ -31,7 +31,7 @@ STATUSES = {
         "search": {"area": AREA_1, "coverage": 0.42, "mode": "AUTO"},
     },
     "drone-2": {
-        "mission_id": "m-43", "state": "AWAIT_SUPERVISOR", "position": [47.39801, 8.54655],
+        "mission_id": "m-43", "state": "AWAITING_SUPERVISOR", "position": [47.39801, 8.54655],
         "search": {"area": AREA_2, "coverage": 0.25, "mode": "GUIDED", "pod": POD},
     },
 }  # fmt: skip
@@ -75,7 +75,7 @@ def test_status_all_prints_a_line_per_vehicle(
     one, two = lines
     assert one.startswith("drone-1  mission m-43  SEARCHING  mode AUTO  at 47.397120,8.545510 30 m")
     assert "coverage 42 %" in one and "POD" not in one
-    assert two.startswith("drone-2  mission m-43  AWAIT_SUPERVISOR  mode GUIDED  at 47.398010,8.546550")
+    assert two.startswith("drone-2  mission m-43  AWAITING_SUPERVISOR  mode GUIDED  at 47.398010,8.546550")
     assert "coverage 25 %, POD >= 0.80 on 100 % (mean 0.80)" in two
     for line in lines:
         age = re.search(r"last report (\d+) s ago$", line)
