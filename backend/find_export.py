@@ -38,7 +38,7 @@ from backend.pod_layers import geojson_features, kml_folder
 from backend.schemas import EarlierArea, MissionMap, StoredFind
 from cloudtrack.cursor_on_target import FindReport, seen_text
 from cloudtrack.plain_text import without_controls
-from cloudtrack.vehicle_colours import kml_colour, vehicle_colours
+from cloudtrack.vehicle_colours import colour_name, kml_colour, vehicle_colours
 
 # simplekml compiles through class-level state (Kmlable._compiling, _currentroot) and patches minidom while
 # it pretty-prints: two downloads built at once on the thread pool would mix. One at a time.
@@ -111,7 +111,7 @@ def geojson_document(
         {
             "type": "Feature",
             "geometry": {"type": "Point", "coordinates": [f.position[1], f.position[0]]},
-            "properties": find_properties(f),
+            "properties": {**find_properties(f), "title": _find_name(f)},
         }
         for f in finds
     ]
@@ -170,7 +170,13 @@ def geojson_document(
                 )
             if searched.pod is not None:
                 features.extend(geojson_features(searched.pod, {**owner, **which}))
-    return {"type": "FeatureCollection", "name": title, "features": features}
+    # A foreign member (RFC 7946 section 6.1), the legend: which colour is which vehicle.
+    legend = [{"vehicle_id": v, "colour": c, "colour_name": colour_name(c)} for v, c in colours.items()]
+    return {"type": "FeatureCollection", "name": title, "vehicles": legend, "features": features}
+
+
+def _find_name(find: StoredFind) -> str:
+    return f"FOUND {_iso(find.time)[11:16]} UTC ({find.vehicle_id})"
 
 
 TRACK_WIDTH, AREA_WIDTH = 3, 2
@@ -227,11 +233,14 @@ def kml_text(finds: list[StoredFind], maps: dict[tuple[str, str], MissionMap], t
 
 def _kml_text(finds: list[StoredFind], maps: dict[tuple[str, str], MissionMap], title: str) -> str:
     kml = simplekml.Kml(name=without_controls(title))
+    colours = vehicle_colours(vehicle for vehicle, _ in maps)
+    if colours:  # the legend: which colour is which vehicle
+        kml.document.description = balloon_text([f"{v}: {colour_name(c)} ({c})" for v, c in colours.items()])
     folder = kml.newfolder(name="Finds")
     for find in finds:
         sigma = f"±{find.sigma_m:.1f} m" if find.sigma_m is not None else "accuracy unknown"
         point = folder.newpoint(
-            name=f"FOUND {_iso(find.time)[11:16]} UTC",
+            name=without_controls(_find_name(find)),
             coords=[(find.position[1], find.position[0])],
             description=balloon_text(
                 [
@@ -247,7 +256,6 @@ def _kml_text(finds: list[StoredFind], maps: dict[tuple[str, str], MissionMap], 
         point.style.balloonstyle.text = "$[description]"  # the plain-text lines above, not the Data table
         for name, value in find_properties(find).items():
             point.extendeddata.newdata(name=name, value=kml_data(value))
-    colours = vehicle_colours(vehicle for vehicle, _ in maps)
     for (vehicle, mission), mission_map in maps.items():
         # Ids are identifiers (the API's pattern); the names go through the same cleaning as any text.
         sub = kml.newfolder(name=without_controls(f"{vehicle} mission {mission}"))

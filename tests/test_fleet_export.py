@@ -88,6 +88,9 @@ def test_geojson_of_a_two_vehicle_mission_carries_each_part_and_track_by_id_and_
         assert covered["properties"]["fill"] == colour
         colours[vehicle] = colour
     assert colours["drone-1"] != colours["drone-2"]
+    # The legend (a foreign member): each vehicle's colour by id.
+    assert {v["vehicle_id"]: v["colour"] for v in document["vehicles"]} == colours
+    assert all(v["colour_name"] and not v["colour_name"].startswith("#") for v in document["vehicles"])
 
 
 def test_kml_of_a_two_vehicle_mission_carries_each_part_and_track_by_id_and_colour(
@@ -132,5 +135,7 @@ def test_kml_of_a_two_vehicle_mission_carries_each_part_and_track_by_id_and_colo
         assert colour == kml_colour(stroke[vehicle])  # the GeoJSON's, as KML writes it
         line_colours[vehicle] = colour
     assert line_colours["drone-1"] != line_colours["drone-2"]
+    legend = document.find(f"{KML}Document/{KML}description")
+    assert legend is not None and "drone-1: " in (legend.text or "") and "drone-2: " in (legend.text or "")
     folders = [f.findtext(f"{KML}name") for f in document.iter(f"{KML}Folder")]
     assert f"drone-1 mission {MISSION}" in folders and f"drone-2 mission {MISSION}" in folders
