@@ -2,7 +2,7 @@
 
 Keys (prefix `ct:`): `mission:<v>:<m>` nothing but its place in the sorted sets `missions` (all, by last
 seen: expiry reads only the expired range) and `vmissions:<v>` (one vehicle's, for its quota) and `mvehicles:<m>` (the vehicles searching a mission id, by last seen: the
-fleet's mission);
+fleet's mission), `fleet:<m>` hash field -> value (the fleet mission's `on_find` and first `found`);
 `cand:<v>:<m>` hash id -> float32 bytes with `candseq:<v>:<m>` ordering them; `rej:<v>:<m>` and
 `rejapp:<v>:<m>` lists of rejection records and their appearance bytes; `status` hash vehicle -> record;
 `dec:<v>` list of decisions (the newest 1,000; `decdropped:<v>` the highest id dropped from it),
@@ -89,15 +89,29 @@ class RedisStore(StateStore):
                 pipe.zrem(self._k("missions"), raw)
                 pipe.zrem(self._k("vmissions", vehicle), mission)
                 pipe.zrem(self._k("mvehicles", mission), vehicle)
+                pipe.zcard(self._k("mvehicles", mission))
                 for name in ("cand", "candseq", "rej", "rejapp", "decided", "reported", "finds", "map"):
                     pipe.delete(self._k(name, vehicle, mission))
-                pipe.execute()
+                left = pipe.execute()[3]
+            if int(left) == 0:  # the fleet's settings go with the mission's last vehicle
+                self._redis.delete(self._k("fleet", mission))
         return len(stale)
 
     def mission_vehicles(self, mission: str, limit: int) -> list[str]:
         if limit < 1:
             return []
         return [v.decode() for v in self._redis.zrevrange(self._k("mvehicles", mission), 0, limit - 1)]
+
+    def set_fleet(self, mission: str, field: str, value: str) -> str:
+        key = self._k("fleet", mission)
+        with self._redis.pipeline(transaction=True) as pipe:  # HSETNX: the first value stands
+            pipe.hsetnx(key, field, value)
+            pipe.hget(key, field)
+            _, kept = pipe.execute()
+        return str(kept.decode())
+
+    def fleet(self, mission: str) -> dict[str, str]:
+        return {k.decode(): v.decode() for k, v in self._redis.hgetall(self._k("fleet", mission)).items()}
 
     def mission_rejections(self, mission: str, vehicles: list[str]) -> list[tuple[Rejection, bytes]]:
         with self._redis.pipeline(transaction=True) as pipe:  # one round trip for the whole fleet

@@ -120,6 +120,33 @@ class MergedMap(ApiModel):
     updated_at: float = 0.0
 
 
+OnFind = Literal["continue", "hold", "return"]
+
+
+class OnFindIn(ApiModel):
+    """What the fleet does on the mission's first confirmed find, set once at the start."""
+
+    on_find: OnFind = Field(
+        description='"continue": every vehicle searches on; "hold": the others hold where they are; '
+        '"return": the others return to launch (the finder stays with the person either way)'
+    )
+
+
+class FleetOrder(ApiModel):
+    """What one vehicle of the fleet mission is to do now (GET /v1/missions/{m}/fleet)."""
+
+    mission_id: str
+    vehicle_id: str
+    on_find: OnFind = Field(description='the mission\'s setting ("continue" when none was set)')
+    found: str | None = Field(
+        None, description='the first confirmed find, "<vehicle>/<candidate>"; null: none yet'
+    )
+    order: OnFind = Field(
+        description='what this vehicle is to do: "continue" until a find is confirmed, and always for the '
+        "vehicle that found the person; else the mission's on_find"
+    )
+
+
 class KeyframeCandidate(ApiModel):
     id: str = Field(
         description="stored: the answer's id; shown: the candidate's id as the GCS, the card and the finds name "
@@ -276,6 +303,8 @@ __all__ = [
     "ID_FIELD",
     "IDENTIFIER",
     "NOTE_MAX",
+    "OnFind",
+    "OnFindIn",
     "ApiModel",
     "AwaitingCandidate",
     "Candidate",
@@ -295,6 +324,7 @@ __all__ = [
     "KeyframeRecord",
     "KeyframeView",
     "LatLon",
+    "FleetOrder",
     "MergedMap",
     "MissionMap",
     "ModelNames",

@@ -38,7 +38,15 @@ from backend.images import (
 )
 from backend.mission_map import distance_m, updated_map
 from backend.mission_merge import merged_map
-from backend.schemas import KeyframeCandidate, KeyframeRecord, MergedMap, MissionMap, StoredFind
+from backend.schemas import (
+    FleetOrder,
+    KeyframeCandidate,
+    KeyframeRecord,
+    MergedMap,
+    MissionMap,
+    OnFind,
+    StoredFind,
+)
 from backend.state_store import QuotaExceededError, SqliteStore, StateStore, vector_bytes, vector_from
 from behaviors.geometry import Box
 from cloudtrack.api_models import (
@@ -330,7 +338,27 @@ class SessionStore:
             log.warning("find %s not stored: %s", find.candidate_id, exc)
             return
         if changed and saved.same_as is None:
+            self.state.set_fleet(saved.mission_id, "found", f"{saved.vehicle_id}/{saved.candidate_id}")
             self._tell_find(saved)
+
+    # What the fleet does on a confirmed find
+
+    def set_on_find(self, mission_id: str, on_find: OnFind) -> str:
+        """Set the mission's `on_find` unless one is set: the one that stands."""
+        return self.state.set_fleet(mission_id, "on_find", on_find)
+
+    def fleet_order(self, vehicle_id: str, mission_id: str) -> FleetOrder:
+        """What the vehicle is to do now: "continue" until the mission's first find is confirmed, and always
+        for the vehicle that found the person; then the mission's on_find for every other vehicle."""
+        fleet = self.state.fleet(mission_id)
+        raw = fleet.get("on_find", "continue")
+        on_find: OnFind = "hold" if raw == "hold" else "return" if raw == "return" else "continue"
+        found = fleet.get("found")
+        finder = found.partition("/")[0] if found else None
+        order: OnFind = on_find if found is not None and finder != vehicle_id else "continue"
+        return FleetOrder(
+            mission_id=mission_id, vehicle_id=vehicle_id, on_find=on_find, found=found, order=order
+        )
 
     def _tell_find(self, find: StoredFind) -> None:
         if self.on_find is not None:

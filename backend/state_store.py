@@ -65,6 +65,16 @@ class StateStore(ABC):
         """The vehicles with a live search of this mission id (one mission of the fleet), the most recently
         seen first, at most `limit`."""
 
+    @abstractmethod
+    def set_fleet(self, mission: str, field: str, value: str) -> str:
+        """Set the fleet mission's `field` ("on_find": what the fleet does on a confirmed find; "found": the
+        first find, "<vehicle>/<candidate>") unless it is set already: the first value stands and is
+        returned. Forgotten with the mission's last vehicle."""
+
+    @abstractmethod
+    def fleet(self, mission: str) -> dict[str, str]:
+        """The fleet mission's fields set so far."""
+
     def mission_rejections(self, mission: str, vehicles: list[str]) -> list[tuple[Rejection, bytes]]:
         """The rejections of these vehicles' searches of the mission."""
         return [entry for vehicle in vehicles for entry in self.rejections(vehicle, mission)]
@@ -198,6 +208,8 @@ CREATE TABLE IF NOT EXISTS finds (
     candidate_id TEXT NOT NULL, record TEXT NOT NULL, UNIQUE (vehicle, mission, candidate_id));
 CREATE TABLE IF NOT EXISTS mission_maps (
     vehicle TEXT NOT NULL, mission TEXT NOT NULL, record TEXT NOT NULL, PRIMARY KEY (vehicle, mission));
+CREATE TABLE IF NOT EXISTS fleet (
+    mission TEXT NOT NULL, field TEXT NOT NULL, value TEXT NOT NULL, PRIMARY KEY (mission, field));
 CREATE TABLE IF NOT EXISTS counters (name TEXT PRIMARY KEY, value INTEGER NOT NULL);
 INSERT OR IGNORE INTO counters VALUES ('version', 0);
 """
@@ -295,6 +307,10 @@ class SqliteStore(StateStore):
                     self._db.execute(
                         f"DELETE FROM {table} WHERE vehicle = ? AND mission = ?", (vehicle, mission)
                     )
+                self._db.execute(  # the fleet's settings go with the mission's last vehicle
+                    "DELETE FROM fleet WHERE mission = ? AND NOT EXISTS (SELECT 1 FROM missions WHERE mission = ?)",
+                    (mission, mission),
+                )
             self._db.execute("COMMIT")
             return len(stale)
 
@@ -304,6 +320,26 @@ class SqliteStore(StateStore):
             (mission, limit),
         )
         return [str(v) for (v,) in rows]
+
+    def set_fleet(self, mission: str, field: str, value: str) -> str:
+        with self._lock:
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                self._db.execute("INSERT OR IGNORE INTO fleet VALUES (?, ?, ?)", (mission, field, value))
+                (kept,) = self._db.execute(
+                    "SELECT value FROM fleet WHERE mission = ? AND field = ?", (mission, field)
+                ).fetchone()
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+            self._db.execute("COMMIT")
+            return str(kept)
+
+    def fleet(self, mission: str) -> dict[str, str]:
+        return {
+            str(f): str(v)
+            for f, v in self._read("SELECT field, value FROM fleet WHERE mission = ?", (mission,))
+        }
 
     def put_candidates(self, vehicle: str, mission: str, items: list[tuple[str, bytes]]) -> None:
         if not items:

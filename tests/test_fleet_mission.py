@@ -236,3 +236,73 @@ def test_the_mission_map_is_served_to_the_supervisor_only(models_dir: Path) -> N
         assert (merged["pod"]["rows"], merged["pod"]["cols"]) == (2, 4)
         assert client.get("/v1/missions/7/map", headers=auth("drone-1")).status_code == 403
         assert client.get("/v1/missions/8/map", headers=supervisor).status_code == 404
+
+
+def test_the_fleet_setting_stands_once_and_goes_with_the_last_vehicle(state: StateStore) -> None:
+    state.touch_mission("d1", "m1", 100.0, 60, 8)
+    state.touch_mission("d2", "m1", 110.0, 60, 8)
+    assert state.set_fleet("m1", "on_find", "hold") == "hold"
+    assert state.set_fleet("m1", "on_find", "return") == "hold"  # the first stands
+    assert state.fleet("m1") == {"on_find": "hold"} and state.fleet("m2") == {}
+    state.expire(105.0)  # d1's search of it is gone, d2's lives
+    assert state.fleet("m1") == {"on_find": "hold"}
+    state.expire(200.0)
+    assert state.fleet("m1") == {}
+
+
+def test_on_a_confirmed_find_the_others_do_what_was_set_at_the_start(state: StateStore) -> None:
+    store = SessionStore(state)
+    for vehicle in ("d1", "d2", "d3"):
+        store.set_status(vehicle, VehicleStatusIn(mission_id="m1", state="SEARCH"))
+    assert store.set_on_find("m1", "return") == "return"
+    assert store.fleet_order("d2", "m1").order == "continue"  # nothing found yet
+    store.set_status("d1", VehicleStatusIn(mission_id="m1", state="CONFIRMED", find=_find("a7", HERE, 3.0)))
+    store.set_status(
+        "d2", VehicleStatusIn(mission_id="m1", state="CONFIRMED", find=_find("b2", _at(3, 0), 3.0))
+    )
+    finder, other = store.fleet_order("d1", "m1"), store.fleet_order("d3", "m1")
+    assert (finder.order, finder.found) == ("continue", "d1/a7")  # the finder stays with the person
+    assert (other.order, other.on_find, other.found) == ("return", "return", "d1/a7")
+    assert store.fleet_order("d2", "m1").order == "return"  # it saw the same person second: one find
+    unknown = store.fleet_order("d9", "m2")
+    assert (unknown.on_find, unknown.found, unknown.order) == ("continue", None, "continue")
+    # Without a setting the fleet goes on.
+    store.set_status("d4", VehicleStatusIn(mission_id="m3", state="CONFIRMED", find=_find("c1", HERE, 3.0)))
+    assert store.fleet_order("d5", "m3").order == "continue"
+
+
+def test_on_find_is_set_once_and_each_vehicle_is_told_over_the_api(models_dir: Path) -> None:
+    app = create_app(backend_config(models_dir))
+    supervisor = {"Authorization": f"Bearer {SUPERVISOR}"}
+    with TestClient(app) as client:
+        put = client.put("/v1/missions/9/on_find", json={"on_find": "hold"}, headers=auth("drone-1"))
+        assert put.status_code == 200, put.text
+        assert (
+            client.put("/v1/missions/9/on_find", json={"on_find": "hold"}, headers=supervisor).status_code
+            == 200
+        )
+        refused = client.put("/v1/missions/9/on_find", json={"on_find": "return"}, headers=supervisor)
+        assert refused.status_code == 409 and "'hold'" in refused.json()["detail"]
+        assert (
+            client.put("/v1/missions/9/on_find", json={"on_find": "dance"}, headers=supervisor).status_code
+            == 422
+        )
+        for vehicle in ("drone-1", "drone-2"):
+            status = VehicleStatusIn(mission_id="9", state="SEARCH")
+            client.post(
+                f"/v1/vehicles/{vehicle}/status", json=status.model_dump(mode="json"), headers=auth(vehicle)
+            )
+        assert client.get("/v1/missions/9/fleet", headers=auth("drone-2")).json()["order"] == "continue"
+        found = VehicleStatusIn(mission_id="9", state="CONFIRMED", find=_find("c1", HERE, 3.0))
+        client.post(
+            "/v1/vehicles/drone-1/status", json=found.model_dump(mode="json"), headers=auth("drone-1")
+        )
+        told = client.get("/v1/missions/9/fleet", headers=auth("drone-2")).json()
+        assert (told["order"], told["found"], told["vehicle_id"]) == ("hold", "drone-1/c1", "drone-2")
+        assert client.get("/v1/missions/9/fleet", headers=auth("drone-1")).json()["order"] == "continue"
+        assert (
+            client.get("/v1/missions/9/fleet?vehicle_id=drone-1", headers=auth("drone-2")).status_code == 403
+        )
+        by_supervisor = client.get("/v1/missions/9/fleet?vehicle_id=drone-2", headers=supervisor)
+        assert by_supervisor.json()["order"] == "hold"
+        assert client.get("/v1/missions/9/fleet", headers=supervisor).status_code == 422

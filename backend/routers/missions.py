@@ -3,7 +3,9 @@ and the mission's map over the whole fleet.
 
 Missions are stored by (vehicle, mission): a rejection is the sending vehicle's, and holds for the other
 vehicles of the same mission id where it was made (backend.sessions). `GET /v1/missions/{m}/map`: the
-map of every vehicle searching the mission id, merged (backend.mission_merge).
+map of every vehicle searching the mission id, merged (backend.mission_merge). `PUT .../on_find` sets
+what the fleet does on the first confirmed find (once, at the start), `GET .../fleet` tells a vehicle
+what it is to do now.
 """
 
 from __future__ import annotations
@@ -16,7 +18,16 @@ from fastapi.concurrency import run_in_threadpool
 from backend.auth import require_vehicle_access
 from backend.dependencies import Caller, MissionId, Scheduler, Sessions, SupervisorCaller
 from backend.fair_queue import QueueFullError
-from backend.schemas import ERROR_RESPONSES, IDENTIFIER, MergedMap, Rejection, RejectionIn
+from backend.schemas import (
+    ERROR_RESPONSES,
+    IDENTIFIER,
+    ErrorResponse,
+    FleetOrder,
+    MergedMap,
+    OnFindIn,
+    Rejection,
+    RejectionIn,
+)
 from backend.sessions import UnknownCandidateError
 
 router = APIRouter(prefix="/v1/missions/{mission_id}", tags=["sessions"])
@@ -79,3 +90,43 @@ def mission_map(mission_id: MissionId, _: SupervisorCaller, sessions: Sessions) 
     if merged is None:
         raise HTTPException(404, f"no vehicle has reported a map of mission {mission_id!r}")
     return merged
+
+
+@router.put(
+    "/on_find",
+    response_model=OnFindIn,
+    responses={
+        **ERROR_RESPONSES,
+        409: {"model": ErrorResponse, "description": "another on_find stands for the mission (named)"},
+    },
+)
+def set_on_find(mission_id: MissionId, body: OnFindIn, principal: Caller, sessions: Sessions) -> OnFindIn:
+    """Set what the fleet does on the mission's first confirmed find (the supervisor, or a vehicle at its
+    start). The first setting stands: the same again is 200, another is 409 naming the one that stands.
+    A vehicle's setting opens its search of the mission (its mission quota, 429), so it goes with it."""
+    if principal.vehicle_id is not None:
+        sessions.open_mission(principal.vehicle_id, mission_id)
+    standing = sessions.set_on_find(mission_id, body.on_find)
+    if standing != body.on_find:
+        raise HTTPException(
+            409, f"mission {mission_id!r} already has on_find {standing!r}; that setting stands"
+        )
+    return body
+
+
+@router.get("/fleet", response_model=FleetOrder, responses=ERROR_RESPONSES)
+def fleet_order(
+    mission_id: MissionId,
+    principal: Caller,
+    sessions: Sessions,
+    vehicle_id: Annotated[
+        str | None, Query(pattern=IDENTIFIER, description="which vehicle; default: the token's vehicle")
+    ] = None,
+) -> FleetOrder:
+    """What the vehicle is to do now in the fleet mission: "continue" until the first find is confirmed (and
+    always for the vehicle that found the person), then the mission's on_find."""
+    vehicle = vehicle_id or principal.vehicle_id
+    if vehicle is None:
+        raise HTTPException(422, "the supervisor must name the vehicle: ?vehicle_id=<id>")
+    require_vehicle_access(principal, vehicle)
+    return sessions.fleet_order(vehicle, mission_id)
