@@ -32,6 +32,7 @@ BACKEND_ENV = "CLOUDTRACK_GCS_BACKEND_URL"
 TOKEN_ENV = "CLOUDTRACK_GCS_SUPERVISOR_TOKEN"
 EXIT_USAGE, EXIT_REFUSED, EXIT_UNREACHABLE = 2, 1, 3
 TIMEOUT_S = 10.0
+SILENT_AFTER_S = 10.0  # a companion reports every [backend] status_interval_s (1 s by default)
 _STATUSES = TypeAdapter(list[VehicleStatus])
 
 
@@ -51,6 +52,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     # A token in argv is visible to every user (ps, /proc/*/cmdline): only there to say so.
     parser.add_argument("--supervisor-token", help=argparse.SUPPRESS)
     parser.add_argument("--mission", metavar="ID", help="with --all: only the vehicles of this mission")
+    parser.add_argument(
+        "--silent-after", type=float, default=SILENT_AFTER_S, metavar="S",
+        help=f"with --all: mark a vehicle SILENT when its last report is older (default {SILENT_AFTER_S:g})",
+    )  # fmt: skip
 
 
 class StatusError(Exception):
@@ -119,8 +124,8 @@ def _age(seconds: float) -> str:
     return f"{seconds / 3600:.1f} h ago"
 
 
-def status_line(status: VehicleStatus, now: float) -> str:
-    """One vehicle, one line."""
+def status_line(status: VehicleStatus, now: float, silent_after_s: float = SILENT_AFTER_S) -> str:
+    """One vehicle, one line; SILENT at its end when it has not reported for `silent_after_s`."""
     parts = [_text(status.vehicle_id), f"mission {_text(status.mission_id or '-')}", _text(status.state)]
     search = status.search
     parts.append(f"mode {_text(search.mode) if search is not None and search.mode else '-'}")
@@ -139,7 +144,8 @@ def status_line(status: VehicleStatus, now: float) -> str:
         parts.append(share)
     else:
         parts.append("no search area")
-    parts.append(f"last report {_age(now - status.updated_at)}")
+    age = now - status.updated_at
+    parts.append(f"last report {_age(age)}" + (", SILENT" if age > silent_after_s else ""))
     return "  ".join(parts)
 
 
@@ -202,5 +208,5 @@ def run_all(args: argparse.Namespace) -> int:
         print(f"no vehicle{which} has reported to {hide_url_secrets(url)}", flush=True)
         return 0
     for status in sorted(statuses, key=lambda s: s.vehicle_id):
-        print(status_line(status, now), flush=True)
+        print(status_line(status, now, args.silent_after), flush=True)
     return 0

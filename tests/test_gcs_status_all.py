@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 import requests
 
+from cloudtrack.api_models import VehicleStatus
 from gcs import cli as gcs_cli
 from gcs import fleet_status
 from tests.live_backend import SUPERVISOR_TOKEN, VEHICLE_TOKENS, LiveBackend, free_port, live_backend
@@ -130,3 +131,20 @@ def test_status_all_never_takes_a_token_on_the_command_line(
     assert code == 2 and "--supervisor-token-file" in err
     assert gcs_cli.main(["status", "--backend", backend.url]) == 2  # --backend is for --all
     assert "go with status --all" in capsys.readouterr().err
+
+
+def test_a_line_marks_a_silent_vehicle_and_keeps_hostile_text_on_one_line() -> None:
+    status = VehicleStatus.model_validate(
+        {
+            "vehicle_id": "drone-3",
+            "updated_at": 1000.0,
+            "state": "SEARCHING\n\x1b[2Jfake line",
+            "search": None,
+        }
+    )
+    assert fleet_status.status_line(status, now=1003.0) == (
+        "drone-3  mission -  SEARCHING [2Jfake line  mode -  position unknown  no search area  last report 3 s ago"
+    )
+    line = fleet_status.status_line(status, now=1045.0)
+    assert line.endswith("last report 45 s ago, SILENT") and "\n" not in line and "\x1b" not in line
+    assert fleet_status.status_line(status, now=1000.0 + 7200).endswith("last report 2.0 h ago, SILENT")
