@@ -113,11 +113,16 @@ class RedisStore(StateStore):
     def fleet(self, mission: str) -> dict[str, str]:
         return {k.decode(): v.decode() for k, v in self._redis.hgetall(self._k("fleet", mission)).items()}
 
-    def mission_rejections(self, mission: str, vehicles: list[str]) -> list[tuple[Rejection, bytes]]:
+    def mission_rejections(
+        self, mission: str, vehicles: list[str], limit: int
+    ) -> list[tuple[Rejection, bytes]]:
+        if not vehicles or limit < 1:
+            return []
+        each = max(1, limit // len(vehicles))
         with self._redis.pipeline(transaction=True) as pipe:  # one round trip for the whole fleet
             for vehicle in vehicles:
-                pipe.lrange(self._k("rej", vehicle, mission), 0, -1)
-                pipe.lrange(self._k("rejapp", vehicle, mission), 0, -1)
+                pipe.lrange(self._k("rej", vehicle, mission), -each, -1)
+                pipe.lrange(self._k("rejapp", vehicle, mission), -each, -1)
             values = pipe.execute()
         return [
             (Rejection.model_validate_json(r), bytes(v))

@@ -64,6 +64,7 @@ from cloudtrack.provenance import decided_via, decision_text
 log = logging.getLogger(__name__)
 
 MISSION_VEHICLES = 64  # the vehicles of one mission id read for its rejections, finds and map
+SHARED_REJECTIONS = 400  # the newest of the other vehicles' rejections a candidate is matched against
 FIND_SIGMA_UNKNOWN_M = 10.0  # a find without an uncertainty (made at a supervisor's confirm) is this sure
 FIND_SAME_MIN_M = 5.0  # two finds closer than this are one person, however sure each is
 
@@ -195,13 +196,14 @@ class SessionStore:
     ) -> Callable[[list[float]], str | None]:
         """A function telling whether a candidate's appearance matches a rejection of the mission: the
         vehicle's own, and another vehicle's of the same mission id made within `radius_m` of where this
-        vehicle is (one without a place, or a vehicle without one, holds only for its own vehicle)."""
+        vehicle is (one without a place, or a vehicle without one, holds only for its own vehicle; the
+        newest SHARED_REJECTIONS of the others are read, so a fleet's flood of them costs a bounded read)."""
         entries = [(r, vector_from(a)) for r, a in self.state.rejections(vehicle_id, mission_id)]
         if vehicle_position is not None:
             others = [v for v in self.mission_vehicles(mission_id) if v != vehicle_id]
             entries += [
                 (r, vector_from(a))
-                for r, a in self.state.mission_rejections(mission_id, others)
+                for r, a in self.state.mission_rejections(mission_id, others, SHARED_REJECTIONS)
                 if r.position is not None and distance_m(r.position, vehicle_position) <= self.radius_m
             ]
 

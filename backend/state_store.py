@@ -75,9 +75,12 @@ class StateStore(ABC):
     def fleet(self, mission: str) -> dict[str, str]:
         """The fleet mission's fields set so far."""
 
-    def mission_rejections(self, mission: str, vehicles: list[str]) -> list[tuple[Rejection, bytes]]:
-        """The rejections of these vehicles' searches of the mission."""
-        return [entry for vehicle in vehicles for entry in self.rejections(vehicle, mission)]
+    @abstractmethod
+    def mission_rejections(
+        self, mission: str, vehicles: list[str], limit: int
+    ) -> list[tuple[Rejection, bytes]]:
+        """The newest rejections of these vehicles' searches of the mission: at most `limit` (Redis: the
+        newest limit / len(vehicles), at least one, of each vehicle)."""
 
     @abstractmethod
     def put_candidates(self, vehicle: str, mission: str, items: list[tuple[str, bytes]]) -> None: ...
@@ -340,6 +343,19 @@ class SqliteStore(StateStore):
             str(f): str(v)
             for f, v in self._read("SELECT field, value FROM fleet WHERE mission = ?", (mission,))
         }
+
+    def mission_rejections(
+        self, mission: str, vehicles: list[str], limit: int
+    ) -> list[tuple[Rejection, bytes]]:
+        if not vehicles or limit < 1:
+            return []
+        marks = ", ".join("?" * len(vehicles))
+        rows = self._read(
+            f"SELECT record, appearance FROM rejections WHERE mission = ? AND vehicle IN ({marks}) "
+            "ORDER BY rejection_id DESC LIMIT ?",
+            (mission, *vehicles, limit),
+        )
+        return [(Rejection.model_validate_json(str(r)), bytes(a)) for r, a in rows]
 
     def put_candidates(self, vehicle: str, mission: str, items: list[tuple[str, bytes]]) -> None:
         if not items:

@@ -21,12 +21,13 @@ from backend.schemas import (
     DecisionIn,
     Find,
     PodGrid,
+    Rejection,
     SearchStatus,
     StoredFind,
     VehicleStatusIn,
 )
 from backend.sessions import SessionStore
-from backend.state_store import SqliteStore, StateStore
+from backend.state_store import SqliteStore, StateStore, vector_bytes
 from backend_tools.fleet_services import RedisServer
 from cloudtrack.coverage import LocalFrame
 from cloudtrack.pod_map import MAX_CELLS, decode_grid, grid_value
@@ -34,6 +35,7 @@ from tests.backend_fixtures import SUPERVISOR, auth, backend_config
 
 RED = [1.0] + [0.0] * 127
 BLUE = [0.0] * 127 + [1.0]
+RED_BYTES = vector_bytes(RED)
 HERE = [47.0, 8.0]
 FRAME = LocalFrame(*HERE)
 
@@ -306,3 +308,23 @@ def test_on_find_is_set_once_and_each_vehicle_is_told_over_the_api(models_dir: P
         by_supervisor = client.get("/v1/missions/9/fleet?vehicle_id=drone-2", headers=supervisor)
         assert by_supervisor.json()["order"] == "hold"
         assert client.get("/v1/missions/9/fleet", headers=supervisor).status_code == 422
+
+
+def test_the_other_vehicles_rejections_are_read_newest_first_and_bounded(state: StateStore) -> None:
+    for vehicle in ("d1", "d2"):
+        state.touch_mission(vehicle, "m1", 100.0, 60, 8)
+        for i in range(5):
+            record = Rejection(
+                rejection_id=0,
+                mission_id="m1",
+                vehicle_id=vehicle,
+                candidate_id=f"{vehicle}-c{i}",
+                position=HERE,
+                reason="",
+                created_at=1.0,
+            )
+            state.add_rejection(vehicle, "m1", record, bytes(RED_BYTES), 10)
+    both = state.mission_rejections("m1", ["d1", "d2"], 4)
+    assert len(both) == 4 and {r.candidate_id for r, _ in both} >= {"d2-c4"}
+    assert {r.candidate_id for r, _ in state.mission_rejections("m1", ["d1"], 2)} == {"d1-c3", "d1-c4"}
+    assert state.mission_rejections("m1", [], 4) == [] and state.mission_rejections("m2", ["d1"], 4) == []
