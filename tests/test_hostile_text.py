@@ -119,9 +119,15 @@ SUPERVISOR_AUTH = {"Authorization": "Bearer token-supervisor"}
 
 
 def _report_find(
-    server: BackgroundServer, vehicle: str, mission: str, candidate: str, prompt: str, by: str
+    server: BackgroundServer,
+    vehicle: str,
+    mission: str,
+    candidate: str,
+    prompt: str,
+    by: str,
+    position: tuple[float, float] = (47.4, 8.5),
 ) -> requests.Response:
-    find = {"candidate_id": candidate, "position": [47.4, 8.5], "sigma_m": 2.0, "time": 1732200000.0,
+    find = {"candidate_id": candidate, "position": list(position), "sigma_m": 2.0, "time": 1732200000.0,
             "prompt": prompt, "confirmed_by": by}  # fmt: skip
     status = {"mission_id": mission, "state": "CONFIRMED", "prompt": prompt, "find": find}
     answer = requests.post(
@@ -149,8 +155,10 @@ def test_hostile_kml_of_any_text_parses_and_carries_it_as_text(server: Backgroun
         text = FORBIDDEN.sub("", text)
         answer = _report_find(server, "drone-1", mission, "c-1", text, (text + " & Jones")[:64])
     assert answer.status_code == 200, answer.text[:300]
-    other = _report_find(server, "drone-2", mission, "c-2", "a woman in a red jacket", "gcs")
-    assert other.status_code == 200  # another vehicle's find of the same mission id
+    # another vehicle's find of the same mission id: another person, 1 km away (one person seen by two
+    # vehicles is one find)
+    other = _report_find(server, "drone-2", mission, "c-2", "a woman in a red jacket", "gcs", (47.409, 8.5))
+    assert other.status_code == 200
     answer = requests.get(
         f"{server.url}/v1/missions/{mission}/finds.kml", headers=SUPERVISOR_AUTH, timeout=30
     )
