@@ -46,7 +46,7 @@ from typing import Any
 
 from behaviors.fleet_split import FleetSplit, FleetVehicle, split_area
 from behaviors.survey_planner import LatLon, SurveyError
-from cloudtrack.autopilot_modes import AutopilotKind, mission_mode
+from cloudtrack.autopilot_modes import AutopilotKind
 from cloudtrack.config_files import ConfigError
 from cloudtrack.mission_protocol import MissionError
 from cloudtrack.survey_pod import PodOutOfReach, expected_pod
@@ -65,6 +65,7 @@ from gcs.survey_command import (
     out_of_reach,
     plan_for,
     pod_context,
+    refused_in_mission,
     save_waypoints,
     send_mission,
     settings_from,
@@ -381,11 +382,4 @@ def _ready(
     name = "ArduPilot" if vehicle.kind is AutopilotKind.ARDUPILOT else "PX4"
     where = "no position reported" if vehicle.position is None else "position checked"
     print(f"{who}system {vehicle.system} ({name}, mode {vehicle.mode}), {where}", flush=True)
-    if vehicle.mode == mission_mode(vehicle.kind):
-        print(
-            f"error: {who}the vehicle is flying its mission ({vehicle.mode}): switch it to another mode (e.g. "
-            f"{'LOITER' if vehicle.kind is AutopilotKind.ARDUPILOT else 'HOLD'}) before replacing the mission",
-            file=sys.stderr,
-        )
-        return EXIT_REFUSED
-    return 0
+    return EXIT_REFUSED if refused_in_mission(vehicle, who) else 0

@@ -636,15 +636,22 @@ def _upload(
     note = "" if settings.speed_m_s is not None else f"the {name} default; --speed sets one"
     for line in describe(plan, area, settings, pod, note, chosen):
         print(f"  {line}", flush=True)
-    if vehicle.mode == mission_mode(vehicle.kind):
-        print(
-            f"error: the vehicle is flying its mission ({vehicle.mode}): switch it to another mode (e.g. "
-            f"{'LOITER' if vehicle.kind is AutopilotKind.ARDUPILOT else 'HOLD'}) before replacing the mission",
-            file=sys.stderr,
-        )
+    if refused_in_mission(vehicle):
         return EXIT_REFUSED
     code = send_mission(args, session, vehicle, plan)
     return code if code else _save(args, plan)
+
+
+def refused_in_mission(vehicle: Vehicle, who: str = "") -> bool:
+    """True (and says why) when the vehicle flies its mission: a mission is never replaced under it."""
+    if vehicle.kind is None or vehicle.mode != mission_mode(vehicle.kind):
+        return False
+    print(
+        f"error: {who}the vehicle is flying its mission ({vehicle.mode}): switch it to another mode (e.g. "
+        f"{'LOITER' if vehicle.kind is AutopilotKind.ARDUPILOT else 'HOLD'}) before replacing the mission",
+        file=sys.stderr,
+    )
+    return True
 
 
 def send_mission(
