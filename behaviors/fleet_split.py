@@ -31,7 +31,6 @@ from dataclasses import dataclass, replace
 
 from behaviors.camera_footprint import Point, polygon_area
 from behaviors.geolocation import latlon_to_offset, offset_to_latlon
-from behaviors.mission_items import MissionItem
 from behaviors.survey_planner import (
     LatLon,
     SurveyError,
@@ -45,6 +44,7 @@ from behaviors.survey_planner import (
     _unrotate,
     check_polygon,
     leg_time_s,
+    mission_items,
     plan_checked,
 )
 
@@ -289,14 +289,9 @@ def _plan(
     path = _order(list(lanes), start)
     waypoints = tuple(offset_to_latlon(origin[0], origin[1], *_unrotate(p, whole.angle_deg)) for p in path)
     legs = [math.dist(a, b) for a, b in zip(path, path[1:], strict=False)]
-    items: list[MissionItem] = []
-    if settings.takeoff:
-        items.append(MissionItem.takeoff(settings.altitude_m))
-    items.append(MissionItem.change_speed(speed))
-    items.extend(MissionItem.waypoint(lat, lon, settings.altitude_m) for lat, lon in waypoints)
     return replace(
         whole,
-        items=tuple(items),
+        items=mission_items(settings, speed, waypoints),
         waypoints=waypoints,
         lanes=len(lanes),
         length_m=sum(legs),

@@ -317,14 +317,8 @@ def plan_checked(corners: tuple[LatLon, ...], settings: SurveySettings) -> Surve
     waypoints = tuple(offset_to_latlon(origin[0], origin[1], *_unrotate(p, angle)) for p in path)
     speed = s.speed_m_s if s.speed_m_s is not None else s.cruise_speed_m_s
     legs = [math.dist(a, b) for a, b in zip(path, path[1:], strict=False)]
-    items: list[MissionItem] = []
-    if s.takeoff:
-        items.append(MissionItem.takeoff(s.altitude_m))
-    if s.speed_m_s is not None:
-        items.append(MissionItem.change_speed(s.speed_m_s))
-    items.extend(MissionItem.waypoint(lat, lon, s.altitude_m) for lat, lon in waypoints)
     return SurveyPlan(
-        items=tuple(items),
+        items=mission_items(s, s.speed_m_s, waypoints),
         waypoints=waypoints,
         lanes=len(lanes),
         length_m=sum(legs),
@@ -335,6 +329,19 @@ def plan_checked(corners: tuple[LatLon, ...], settings: SurveySettings) -> Surve
         angle_deg=angle,
         area_m2=polygon_area(local),
     )
+
+
+def mission_items(
+    s: SurveySettings, speed_m_s: float | None, waypoints: Sequence[LatLon]
+) -> tuple[MissionItem, ...]:
+    """The mission for a path: a takeoff where asked, the speed where one is set, the waypoints."""
+    items: list[MissionItem] = []
+    if s.takeoff:
+        items.append(MissionItem.takeoff(s.altitude_m))
+    if speed_m_s is not None:
+        items.append(MissionItem.change_speed(speed_m_s))
+    items.extend(MissionItem.waypoint(lat, lon, s.altitude_m) for lat, lon in waypoints)
+    return tuple(items)
 
 
 # ------------------------------------------------------------------------------------------ distance
