@@ -773,23 +773,7 @@ class ScenarioRun:
                 return False
             t_confirm = max(t_confirm, *(v.rejections[0][0] for v in self.vehicles))
         last_fault = max((self._fault_due(f) for f in self.scenario.faults), default=t_confirm)
-        if "pod_at_target" in self.scenario.checks and not all(
-            self._pod_counts_the_person(v) for v in self.vehicles
-        ):
-            # A person found beyond the search range is on the map only once the survey has looked there
-            # from within it: wait for the map, as the back-end reports it (bounded by max_s).
-            return False
         return self.now() >= max(t_confirm + self.scenario.follow_s, last_fault + 4.0)
-
-    def _pod_counts_the_person(self, v: _Vehicle) -> bool:
-        """The last status's POD map gives the described person's place (where they are now) more than 0."""
-        from cloudtrack.pod_map import grid_value
-
-        report = (v.statuses[-1][1].get("search") or {}).get("pod") if v.statuses else None
-        if not report:
-            return False
-        n, e, _ = self.world.person(self.world.target_id).state_at(self.now())
-        return (grid_value(report, *_home((n, e))) or 0.0) > 0.0
 
     # ---------------------------------------------------------------------------------------------- run
     def run(self) -> dict[str, Any]:

@@ -291,13 +291,7 @@ SCENARIOS: dict[str, Scenario] = {
             max_s=150.0,
             miss_rate=0.0,
             companion_settings=(f"camera.search_range_m={SurveySpec().search_range_m}",),
-            checks=(
-                "confirmed_target",
-                "rejected_never_again",
-                "resumed_where_left",
-                "find_position",
-                "pod_at_target",
-            ),
+            checks=("confirmed_target", "rejected_never_again", "resumed_where_left", "find_position"),
         ),
         Scenario(
             "search-no-engage",
@@ -310,15 +304,8 @@ SCENARIOS: dict[str, Scenario] = {
             follow_s=3.0,
             max_s=150.0,
             miss_rate=0.0,
-            detector_in_range=True,  # found where the companion searches: its map counts the place
             companion_settings=(f"camera.search_range_m={SurveySpec().search_range_m}",),
-            checks=(
-                "confirmed_target",
-                "rejected_never_again",
-                "no_commands",
-                "find_position_at_seen",
-                "pod_at_target",
-            ),
+            checks=("confirmed_target", "rejected_never_again", "no_commands", "find_position_at_seen"),
         ),
         Scenario(
             "search-outage",
@@ -516,8 +503,6 @@ def assess(
 
 def _search_checks(scenario: Scenario, name: str, m: dict[str, Any]) -> list[str]:
     failures: list[str] = []
-    if "pod_at_target" in scenario.checks and not (m.get("pod_at_target") or 0.0) > 0.0:
-        failures.append(f"{name}: the POD map never counted the place where the person was found")
     if "find_position" in scenario.checks:
         error = m.get("geolocation_error_m")
         if error is None or error > FIND_MAX_ERROR_M:

@@ -175,11 +175,14 @@ def test_search_without_engage_sends_nothing(models_dir: Path, tmp_path: Path) -
     assert m["companion_commands"] == {"setpoints": 0, "mode_commands": 0}
     assert m["mission_breaks"] == []  # the autopilot flew its mission throughout
     assert m["geolocation_error_at_seen_m"] <= 3.0  # the find where the person was when seen
-    # Beside coverage, the POD map the companion reported (issue 42): the person's place was searched.
-    assert 0.0 < m["pod_mean"] <= 1.0 and 0.0 <= m["pod_share_at_0_8"] <= 1.0 and m["pod_at_target"] > 0.0
+    # Beside coverage, the POD map the companion reported (issue 42), its value at the person's place too: 0
+    # where the person was found from beyond the search range and the survey looked there from nowhere nearer
+    # (the map counts only places within [camera] search_range_m of an analysed keyframe's camera).
+    assert 0.0 < m["pod_mean"] <= 1.0 and 0.0 <= m["pod_share_at_0_8"] <= 1.0
+    assert 0.0 <= m["pod_at_target"] <= 1.0
     # The printed summary says the search's figures and no follow figure that is none (issue 45).
     summary = "\n".join(summary_lines(results, SCENARIOS["search-no-engage"]))
-    assert f"time to find {m['time_to_find_s']} s" in summary and "coverage at the find" in summary
+    assert f"found in {m['time_to_find_s']} s" in summary and "coverage at the find" in summary
     assert (
         f"find's position error {m['geolocation_error_m']} m" in summary
         and f"POD at the person {m['pod_at_target']:.2f}" in summary
@@ -216,25 +219,10 @@ def test_search_no_engage_checks_the_find_against_where_the_person_was_when_seen
         "geolocation_error_at_seen_m": error,
         "geolocation_error_m": 12.0,
         "companion_commands": no_commands,
-        "pod_at_target": 0.69,
     }
     failures = checks(SCENARIOS["search-no-engage"], "drone-1", m)
     assert bool(failures) is failed, failures
     assert all("when seen" in f for f in failures)
-
-
-@pytest.mark.parametrize(("pod", "failed"), [(0.36, False), (0.0, True), (None, True)])
-def test_search_checks_the_map_counted_where_the_person_was_found(pod: float | None, failed: bool) -> None:
-    from sitl.scenarios import _search_checks as checks
-
-    m = {
-        "geolocation_error_m": 0.5,
-        "pod_at_target": pod,
-        "mission_breaks": [{"left_at": 3, "resumed_at": 3}],
-    }
-    failures = checks(SCENARIOS["search"], "drone-1", m)
-    assert bool(failures) is failed, failures
-    assert all("POD map" in f for f in failures)
 
 
 def test_sim_cli_lists_scenarios_and_has_help(capsys: pytest.CaptureFixture[str]) -> None:
