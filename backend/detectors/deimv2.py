@@ -17,10 +17,9 @@ import cv2
 import numpy as np
 import onnxruntime as ort
 
-from backend.detectors.nms import nms
+from backend.detectors.nms import superset_detections
 from backend.supersets import COCO_CLASSES, coco_classes_for, is_stand_in
 from behaviors.detection import Detection
-from behaviors.geometry import Box
 
 
 class Deimv2Detector:
@@ -92,11 +91,4 @@ class Deimv2Detector:
             return []
         boxes, scores, inside = boxes[mask], scores[mask], inside[mask]
         labels = np.asarray(wanted)[inside.argmax(axis=1)]
-        detections = []
-        for i in nms(boxes, scores, self.nms_threshold):
-            box = Box.from_xyxy(*(float(v) for v in boxes[i]))
-            if box.w >= 1 and box.h >= 1:
-                detections.append(
-                    Detection(box=box, score=float(scores[i]), label=COCO_CLASSES[int(labels[i])])
-                )
-        return detections
+        return superset_detections(boxes, scores, labels, self.nms_threshold)

@@ -4,6 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from backend.supersets import COCO_CLASSES
+from behaviors.detection import Detection
+from behaviors.geometry import Box
+
 
 def nms(boxes_xyxy: np.ndarray, scores: np.ndarray, iou_threshold: float) -> list[int]:
     """Indices kept by greedy non-maximum suppression, highest score first."""
@@ -22,6 +26,19 @@ def nms(boxes_xyxy: np.ndarray, scores: np.ndarray, iou_threshold: float) -> lis
         overlap = np.where(union > 0, inter / np.maximum(union, 1e-9), 0)
         order = rest[overlap <= iou_threshold]
     return keep
+
+
+def superset_detections(
+    boxes_xyxy: np.ndarray, scores: np.ndarray, labels: np.ndarray, iou_threshold: float
+) -> list[Detection]:
+    """One NMS over a superset's boxes (the same object under two of its classes is one candidate),
+    each labelled with its COCO class index in `labels`; boxes under a pixel wide or tall dropped."""
+    detections = []
+    for i in nms(boxes_xyxy, scores, iou_threshold):
+        box = Box.from_xyxy(*(float(v) for v in boxes_xyxy[i]))
+        if box.w >= 1 and box.h >= 1:
+            detections.append(Detection(box=box, score=float(scores[i]), label=COCO_CLASSES[int(labels[i])]))
+    return detections
 
 
 def class_aware_nms(

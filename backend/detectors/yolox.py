@@ -15,10 +15,9 @@ import cv2
 import numpy as np
 import onnxruntime as ort
 
-from backend.detectors.nms import nms
+from backend.detectors.nms import superset_detections
 from backend.supersets import COCO_CLASSES, coco_classes_for, is_stand_in
 from behaviors.detection import Detection
-from behaviors.geometry import Box
 
 STRIDES = (8, 16, 32)
 PAD_VALUE = 114
@@ -111,11 +110,4 @@ class YoloxDetector:
             return []
         boxes, scores = xyxy[mask], scores[mask]
         labels = np.asarray(wanted)[probabilities[mask].argmax(axis=1)]
-        detections = []
-        for i in nms(boxes, scores, self.nms_threshold):
-            box = Box.from_xyxy(*(float(v) for v in boxes[i]))
-            if box.w >= 1 and box.h >= 1:
-                detections.append(
-                    Detection(box=box, score=float(scores[i]), label=COCO_CLASSES[int(labels[i])])
-                )
-        return detections
+        return superset_detections(boxes, scores, labels, self.nms_threshold)
