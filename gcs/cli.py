@@ -28,6 +28,7 @@ from cloudtrack.gcs_protocol import (
     MAV_RESULT_FAILED,
     MAV_RESULT_IN_PROGRESS,
     PROMPT_PAYLOAD_TYPE,
+    RESULT_NAMES,
     encode_prompt,
 )
 from cloudtrack.mavlink_connection import MavlinkEndpoint, mavlink, parse_connection
@@ -36,15 +37,6 @@ from gcs import fleet_status, mode_command, survey_command, watch_command
 
 EXIT_REFUSED, EXIT_TIMEOUT = 1, 3
 IN_PROGRESS_WAIT_S = 35.0  # the companion's start check is at most [backend] start_check_s (30 s)
-RESULT_NAMES = {
-    0: "ACCEPTED",
-    1: "TEMPORARILY_REJECTED",
-    2: "DENIED",
-    3: "UNSUPPORTED",
-    4: "FAILED",
-    5: "IN_PROGRESS",
-    6: "CANCELLED",
-}
 
 EXAMPLES = """\
 examples:

@@ -25,17 +25,10 @@ from cloudtrack.gcs_protocol import (
     CMD_STATUS,
     COMMAND_NAMES,
     PROMPT_PAYLOAD_TYPE,
+    RESULT_NAMES,
     encode_prompt,
 )
 
-RESULT_NAMES = {
-    0: "ACCEPTED",
-    1: "TEMPORARILY_REJECTED",
-    2: "DENIED",
-    3: "UNSUPPORTED",
-    4: "FAILED",
-    5: "IN_PROGRESS",
-}
 USAGE = (
     'usage: cloudtrack start "<prompt>" [superset=WORD] [engage] | confirm [N] | reject [N] | abort | status'
     " | target SYS COMP"

@@ -23,20 +23,12 @@ from cloudtrack.autopilot_modes import (
     mode_names,
     set_mode_params,
 )
+from cloudtrack.gcs_protocol import RESULT_NAMES
 from cloudtrack.mavlink_connection import mavlink
 
 EXIT_REFUSED, EXIT_UNKNOWN, EXIT_TIMEOUT = 1, 2, 3
 AUTOPILOT_COMPONENT = 1
 REFUSAL_TEXT_WAIT_S = 0.5  # ArduCopter's STATUSTEXT saying why may follow its FAILED answer
-RESULT_NAMES = {
-    0: "ACCEPTED",
-    1: "TEMPORARILY_REJECTED",
-    2: "DENIED",
-    3: "UNSUPPORTED",
-    4: "FAILED",
-    5: "IN_PROGRESS",
-    6: "CANCELLED",
-}
 FAMILY = {AutopilotKind.ARDUPILOT: "ArduPilot", AutopilotKind.PX4: "PX4"}
 
 
