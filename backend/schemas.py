@@ -285,11 +285,32 @@ class VehicleView(ApiModel):
     keyframe: KeyframeView | None = None
     finds: list[FindView] = Field(default_factory=list, description="this vehicle's finds, oldest first")
     auth_error: str | None = Field(None, description="the back-end refused this vehicle's credentials")
+    colour: str = Field(
+        "",
+        description='"#rrggbb": the vehicle\'s colour in its mission (cloudtrack.vehicle_colours, as in the '
+        'exports), always shown beside its id; "" without a mission',
+    )
+
+
+class MissionView(ApiModel):
+    """One mission of the fleet as the page's fleet map draws it: the merged map of the vehicles on the page
+    searching it (`backend.mission_merge`, bounded as GET /v1/missions/{m}/map is); each vehicle's part,
+    track and state are in its own view."""
+
+    mission_id: str
+    vehicles: list[str] = Field(description="the ids of the vehicles on the page searching it, sorted")
+    area: list[list[list[float]]] = Field(default_factory=list, description="the union of their parts")
+    covered: list[list[list[float]]] = Field(default_factory=list, description="the union of their covered")
+    coverage: float | None = Field(None, description="the share of the area covered by any vehicle (0..1)")
+    pod: PodView | None = Field(None, description="the merged POD map, 1 - prod(1 - POD of each vehicle)")
 
 
 class SupervisorSnapshot(ApiModel):
     server_time: float
     vehicles: list[VehicleView]
+    missions: list[MissionView] = Field(
+        default_factory=list, description="the fleet's missions on one map each (the merged map), by id"
+    )
     map_tiles: str = Field("", description="[supervisor] map_tiles: the optional tile layer's URL template")
 
 
@@ -327,6 +348,7 @@ __all__ = [
     "FleetOrder",
     "MergedMap",
     "MissionMap",
+    "MissionView",
     "ModelNames",
     "ModelsResponse",
     "PodBandView",

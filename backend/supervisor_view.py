@@ -1,6 +1,14 @@
 """The supervisor page's view of the fleet: per vehicle its state and why, the newest keyframe with its boxes,
 the candidate it awaits (with the decision that stands on it), search progress and coverage, the POD map
-with its legend, the keyframes kept through outages, the mission's track, and its finds, which stay.
+with its legend, the keyframes kept through outages, the mission's track, and its finds, which stay; and
+per mission of the fleet the merged map (`MissionView`) the page's fleet map draws under every vehicle's
+part, track and position, each vehicle in its colour (`cloudtrack.vehicle_colours`, as the exports) and
+named by its id.
+
+Bounded as the fleet grows: the tracks shown share `FLEET_TRACK_POINTS` (each at most `TRACK_SHOWN`, at
+least `TRACK_SHOWN_MIN`), a part is the reported search area (the API caps its vertices), the merged map is
+`backend.mission_merge`'s (rings and vertices capped, the POD grid at most `cloudtrack.pod_map.MAX_CELLS`)
+and is merged again only when a vehicle's area, coverage or POD map changed, not on every report.
 
 Built from the session store (the whole fleet, whichever replica answers); it remembers since when each
 candidate waits, and forgets a candidate as soon as nobody waits on it, so it stays as small as the fleet.
@@ -15,6 +23,7 @@ import threading
 import time
 from collections.abc import Callable
 
+from backend.mission_merge import merged_map
 from backend.pod_layers import band_colour, meaning
 from backend.schemas import (
     CandidateView,
@@ -22,6 +31,9 @@ from backend.schemas import (
     KeyframeCandidate,
     KeyframeView,
     LatLon,
+    MergedMap,
+    MissionMap,
+    MissionView,
     PodBandView,
     PodGrid,
     PodView,
@@ -39,17 +51,20 @@ from cloudtrack.coverage import LocalFrame
 from cloudtrack.cursor_on_target import seen_text
 from cloudtrack.pod_map import BANDS
 from cloudtrack.provenance import decided_via, decision_text
+from cloudtrack.vehicle_colours import vehicle_colours
 
 _STATUS = {"confirm": "confirmed", "reject": "rejected"}
-TRACK_SHOWN = 300  # points of the track the page draws (the download has them all)
+TRACK_SHOWN = 300  # points of a vehicle's track the page draws (the download has them all)
+FLEET_TRACK_POINTS = 6000  # points of all the tracks together: a large fleet's tracks are drawn coarser
+TRACK_SHOWN_MIN = 60  # ... but never coarser than this many points a vehicle
 AUTH_ERROR_KEEP_S = 60.0
 SNAPSHOT_REUSE_S = 1.0
 TRACK_MATCH_IOU = 0.2  # a keyframe box over the tracked box is the tracked one (as the companion matches)
 
 
-def _shown(track: list[list[float]]) -> list[list[float]]:
-    """At most TRACK_SHOWN [lat, lon] points, evenly spread, the newest always kept."""
-    step = max(1, -(-len(track) // TRACK_SHOWN))
+def _shown(track: list[list[float]], most: int = TRACK_SHOWN) -> list[list[float]]:
+    """At most `most` [lat, lon] points (one more: the newest is always kept), evenly spread."""
+    step = max(1, -(-len(track) // most))
     kept = track[::step]
     if track and kept[-1] is not track[-1]:
         kept.append(track[-1])
@@ -93,6 +108,22 @@ def pod_view(grid: PodGrid) -> PodView:
     )
 
 
+def _merge_key(vehicle: str, mission_map: MissionMap) -> tuple[object, ...]:
+    """What of a vehicle's map the merged map depends on (its track does not): cheap to compare."""
+    pod = mission_map.pod
+    covered = mission_map.covered
+    return (
+        vehicle,
+        mission_map.area_since,
+        len(mission_map.area),
+        mission_map.area[0] if mission_map.area else None,
+        mission_map.coverage,
+        sum(len(r) for r in covered),
+        covered[-1][-1] if covered and covered[-1] else None,
+        (pod.looks, pod.values, pod.origin) if pod is not None else None,
+    )
+
+
 class SupervisorView:
     """Turns the session store into what the page shows, and remembers since when each candidate waits."""
 
@@ -107,6 +138,7 @@ class SupervisorView:
         self._lock = threading.Lock()
         self._build_lock = threading.Lock()
         self._cached: tuple[int, float, SupervisorSnapshot] | None = None
+        self._merged: dict[str, tuple[tuple[object, ...], MergedMap]] = {}
 
     def note_auth_failure(self, vehicle_id: str, reason: str) -> None:
         """A request for this vehicle was refused its credentials (401/403): shown on its card for a while."""
@@ -166,14 +198,57 @@ class SupervisorView:
                         auth_error=error,
                     )
                 )
+        members: dict[str, list[str]] = {}
         for status in statuses.values():
-            vehicles.append(self._vehicle(status, now, waiting))
+            if status.mission_id is not None:
+                members.setdefault(status.mission_id, []).append(status.vehicle_id)
+        colours = {m: vehicle_colours(ids) for m, ids in members.items()}
+        track_points = max(TRACK_SHOWN_MIN, min(TRACK_SHOWN, FLEET_TRACK_POINTS // max(1, len(statuses))))
+        maps: dict[str, list[tuple[str, MissionMap]]] = {}
+        for status in statuses.values():
+            colour = colours[status.mission_id][status.vehicle_id] if status.mission_id is not None else ""
+            vehicles.append(self._vehicle(status, now, waiting, colour, track_points, maps))
         vehicles.sort(key=lambda v: v.id)
         for key in [k for k in self._first_seen if k not in waiting]:
             del self._first_seen[key]
-        return SupervisorSnapshot(server_time=now, vehicles=vehicles, map_tiles=self.map_tiles)
+        missions = [self._mission(m, sorted(ids), maps.get(m, []), now) for m, ids in sorted(members.items())]
+        for gone in [m for m in self._merged if m not in members]:
+            del self._merged[gone]
+        return SupervisorSnapshot(
+            server_time=now, vehicles=vehicles, missions=missions, map_tiles=self.map_tiles
+        )
 
-    def _vehicle(self, status: VehicleStatus, now: float, waiting: set[tuple[str, str]]) -> VehicleView:
+    def _mission(
+        self, mission_id: str, vehicle_ids: list[str], maps: list[tuple[str, MissionMap]], now: float
+    ) -> MissionView:
+        """The mission's merged map from the maps its vehicles' views read, merged again only when one of
+        them changed what the merge depends on."""
+        maps = sorted(maps, key=lambda vm: vm[0])
+        key = tuple(_merge_key(v, m) for v, m in maps)
+        kept = self._merged.get(mission_id)
+        if kept is not None and kept[0] == key:
+            merged = kept[1]
+        else:
+            merged = merged_map(mission_id, maps, now)
+            self._merged[mission_id] = (key, merged)
+        return MissionView(
+            mission_id=mission_id,
+            vehicles=vehicle_ids,
+            area=merged.area,
+            covered=merged.covered,
+            coverage=merged.coverage,
+            pod=pod_view(merged.pod) if merged.pod is not None else None,
+        )
+
+    def _vehicle(
+        self,
+        status: VehicleStatus,
+        now: float,
+        waiting: set[tuple[str, str]],
+        colour: str = "",
+        track_points: int = TRACK_SHOWN,
+        maps: dict[str, list[tuple[str, MissionMap]]] | None = None,
+    ) -> VehicleView:
         vehicle_id = status.vehicle_id
         candidates = []
         awaiting = status.awaiting
@@ -239,7 +314,9 @@ class SupervisorView:
         if status.mission_id is not None:
             mission_map = self.store.mission_map(vehicle_id, status.mission_id)
             if mission_map is not None:
-                track = _shown(mission_map.track)
+                if maps is not None:
+                    maps.setdefault(status.mission_id, []).append((vehicle_id, mission_map))
+                track = _shown(mission_map.track, track_points)
                 earlier_areas = len(mission_map.earlier)
                 if search is None and (mission_map.area or mission_map.covered):
                     search = SearchStatus(
@@ -276,6 +353,7 @@ class SupervisorView:
             keyframe=keyframe,
             finds=[find_view(f) for f in finds],
             auth_error=self._auth_error(vehicle_id, now),
+            colour=colour,
         )
 
     def _boxes(
@@ -323,6 +401,15 @@ def view_content(vehicle: VehicleView) -> str:
     return vehicle.model_dump_json(exclude=ages)  # type: ignore[arg-type]
 
 
+def missions_content(snapshot: SupervisorSnapshot) -> str:
+    """The fleet's merged maps as sent (the `fleet` event), to tell when they changed."""
+    return "[" + ",".join(m.model_dump_json() for m in snapshot.missions) + "]"
+
+
 def without_ages(snapshot: SupervisorSnapshot) -> str:
     """The snapshot's content minus what changes every second."""
-    return "\n".join(view_content(v) for v in snapshot.vehicles) + snapshot.map_tiles
+    return (
+        "\n".join(view_content(v) for v in snapshot.vehicles)
+        + missions_content(snapshot)
+        + snapshot.map_tiles
+    )

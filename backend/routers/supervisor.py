@@ -46,7 +46,7 @@ from backend.dependencies import (
 )
 from backend.images import ImageError, b64_image_bytes, is_jpeg
 from backend.schemas import SupervisorEnabled, SupervisorSnapshot
-from backend.supervisor_view import view_content
+from backend.supervisor_view import missions_content, view_content
 
 STATIC_DIR = Path(__file__).resolve().parents[1] / "static"
 STATIC_FILES = {
@@ -88,34 +88,39 @@ def state(view: View) -> SupervisorSnapshot:
 @router.get("/events", dependencies=_AUTHED)
 async def events(request: Request, view: View, feed: Feed, limits: StreamLimits) -> StreamingResponse:
     """Server-Sent Events: `state` (the whole snapshot) first and when vehicles come or go, `vehicle` (one
-    vehicle's view) when only it changed, `ages` when only reports arrived, comments as keep-alive."""
+    vehicle's view) when only it changed, `fleet` ({"missions": [...]}, the merged maps) when they changed,
+    `ages` when only reports arrived, comments as keep-alive."""
 
     async def stream() -> AsyncIterator[str]:
         opened = time.monotonic()
         yield "retry: 1000\n\n"
         version = feed.version
         sent: dict[str, str] | None = None  # vehicle id -> its content as last sent
+        sent_fleet = ""  # the missions' merged maps as last sent
         reported: dict[str, float] = {}
         # A stream ends after max_stream_s and the page reconnects at once: a server shutting down
         # (uvicorn waits for open responses) or a proxy's idle limit never holds a stream for long.
         while not await request.is_disconnected() and time.monotonic() - opened < limits.max_stream_s:
             snapshot = await run_in_threadpool(view.snapshot)
             content = {v.id: view_content(v) for v in snapshot.vehicles}
+            fleet = missions_content(snapshot)
             ages = {v.id: v.age_s for v in snapshot.vehicles}
             # A report that changed nothing still makes the vehicle's "last report" young again.
             reports = {vid: snapshot.server_time - age for vid, age in ages.items()}
             fresher = any(at > reported.get(vid, 0.0) + 0.05 for vid, at in reports.items())
             if sent is None or content.keys() != sent.keys():
                 yield f"event: state\ndata: {snapshot.model_dump_json()}\n\n"
-            elif content != sent:
+            elif content != sent or fleet != sent_fleet:
                 for vehicle in snapshot.vehicles:
                     if content[vehicle.id] != sent[vehicle.id]:
                         yield f"event: vehicle\ndata: {vehicle.model_dump_json()}\n\n"
+                if fleet != sent_fleet:
+                    yield f'event: fleet\ndata: {{"missions": {fleet}}}\n\n'
             elif fresher:
                 yield f"event: ages\ndata: {json.dumps(ages)}\n\n"
             else:
                 yield ": keep-alive\n\n"  # proxies close silent connections
-            sent, reported = content, reports
+            sent, reported, sent_fleet = content, reports, fleet
             remaining = limits.max_stream_s - (time.monotonic() - opened)
             version = await feed.wait(version, max(0.0, min(limits.keepalive_s, remaining)))
 

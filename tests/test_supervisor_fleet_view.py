@@ -1,0 +1,96 @@
+"""Issue 43 item 4, one picture: the supervisor page's state for a fleet. Each vehicle's view carries its
+colour in its mission (the exports' colours, beside its id), its part and its bounded track; each mission
+carries the merged map of its vehicles, merged again only when an area, coverage or POD map changed."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from backend import supervisor_view
+from backend.sessions import SessionStore
+from backend.supervisor_view import SupervisorView
+from cloudtrack.api_models import VehicleStatusIn
+from cloudtrack.vehicle_colours import vehicle_colours
+
+LAT, LON = 47.3977, 8.5456
+D = 0.0009  # about 100 m of latitude
+WEST = [[LAT, LON], [LAT + D, LON], [LAT + D, LON + D], [LAT, LON + D]]
+EAST = [[LAT, LON + D], [LAT + D, LON + D], [LAT + D, LON + 2 * D], [LAT, LON + 2 * D]]
+
+
+def _report(
+    store: SessionStore, vehicle: str, area: list[list[float]], position: list[float], **extra: Any
+) -> None:
+    # The western half of the part, counter-clockwise (clockwise rings are holes).
+    covered = [[area[0], [area[0][0], area[0][1] + D / 2], [area[1][0], area[1][1] + D / 2], area[1]]]
+    body = {
+        "mission_id": "m-43",
+        "state": "SEARCHING",
+        "prompt": "a man in a gray shirt",
+        "position": position,
+        "search": {"area": area, "covered": covered, "coverage": 0.5},
+        **extra,
+    }
+    store.set_status(vehicle, VehicleStatusIn.model_validate(body))
+
+
+def test_the_fleet_in_one_state_each_vehicle_in_its_colour_and_one_merged_map() -> None:
+    now = [1000.0]
+    store = SessionStore(clock=lambda: now[0])
+    view = SupervisorView(store, clock=lambda: now[0])
+    for i in range(5):
+        _report(store, "drone-2", EAST, [LAT + i * D / 5, LON + 1.5 * D])
+        _report(store, "drone-1", WEST, [LAT + i * D / 5, LON + 0.5 * D])
+    store.set_status("drone-3", VehicleStatusIn.model_validate({"mission_id": "other", "state": "IDLE"}))
+    snapshot = view.snapshot()
+    by_id = {v.id: v for v in snapshot.vehicles}
+    colours = vehicle_colours(["drone-1", "drone-2"])  # as the exports colour the mission
+    assert by_id["drone-1"].colour == colours["drone-1"] != by_id["drone-2"].colour == colours["drone-2"]
+    assert by_id["drone-3"].colour == vehicle_colours(["drone-3"])["drone-3"]
+    assert by_id["drone-1"].search is not None and by_id["drone-1"].search.area == WEST
+    assert len(by_id["drone-1"].track) == 5 and by_id["drone-1"].track[-1] == [LAT + 4 * D / 5, LON + 0.5 * D]
+
+    missions = {m.mission_id: m for m in snapshot.missions}
+    assert sorted(missions) == ["m-43", "other"]
+    fleet = missions["m-43"]
+    assert fleet.vehicles == ["drone-1", "drone-2"]
+    # The two parts merged into one area twice either's; each covered half of its own: half of the whole.
+    assert len(fleet.area) == 1 and fleet.coverage is not None and abs(fleet.coverage - 0.5) < 0.02
+    lons = [p[1] for p in fleet.area[0]]
+    assert min(lons) < LON + 1e-9 and max(lons) > LON + 2 * D - 1e-9
+    assert missions["other"].area == [] and missions["other"].coverage is None
+
+    # A report that only moves a vehicle (its track) does not merge the map again.
+    merged_before = view._merged["m-43"][1]
+    now[0] += 2
+    _report(store, "drone-1", WEST, [LAT + D, LON + 0.5 * D])
+    assert view.snapshot().vehicles[0].track[-1] == [LAT + D, LON + 0.5 * D]
+    assert view._merged["m-43"][1] is merged_before
+    # One that covers more does.
+    now[0] += 2
+    _report(store, "drone-2", EAST, [LAT + D, LON + 1.5 * D], search={"area": EAST, "coverage": 1.0,
+            "covered": [EAST[::-1]]})  # fmt: skip
+    fleet = view.snapshot().missions[0]
+    assert fleet.coverage is not None and abs(fleet.coverage - 0.75) < 0.02
+    assert view._merged["m-43"][1] is not merged_before
+
+    # No vehicle's credentials in the page's state.
+    text = view.snapshot().model_dump_json()
+    assert "token" not in text.lower()
+
+
+def test_a_large_fleets_tracks_are_shown_coarser_but_bounded(monkeypatch: Any) -> None:
+    monkeypatch.setattr(supervisor_view, "FLEET_TRACK_POINTS", 100)
+    monkeypatch.setattr(supervisor_view, "TRACK_SHOWN_MIN", 10)
+    now = [1000.0]
+    store = SessionStore(clock=lambda: now[0])
+    view = SupervisorView(store, clock=lambda: now[0])
+    for i in range(200):  # 200 points 10 m apart
+        now[0] += 1
+        for v in range(4):
+            _report(store, f"d{v}", WEST, [LAT + i * D / 10, LON + v * D / 4])
+    snapshot = view.snapshot()
+    for vehicle in snapshot.vehicles:  # 100 points among 4 vehicles: 25 each, the newest kept
+        assert 10 <= len(vehicle.track) <= 26, len(vehicle.track)
+        assert vehicle.track[-1] == [LAT + 199 * D / 10, vehicle.track[-1][1]]
+    assert sum(len(v.track) for v in snapshot.vehicles) <= 104
