@@ -90,6 +90,7 @@ def create_app(
         s.max_rejections_per_mission,
         s.max_missions_per_vehicle,
         config.server.max_crop_pixels,
+        dropout_s=config.fleet.dropout_s,
     )
     feed = ChangeFeed(store.state)
     tak = config.tak

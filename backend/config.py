@@ -214,6 +214,13 @@ class TakConfig(ConfigSection):
         return check_url(value) if value else value  # a port 0 or over 65535, a host that is no address
 
 
+class FleetConfig(ConfigSection):
+    # A vehicle of a mission that has sent no status for longer than this has dropped out of the search
+    # (its link or companion lost): its unflown part is offered for a re-plan (GET /v1/missions/{m}/dropouts).
+    # A companion reports every [backend] status_interval_s (1 s by default).
+    dropout_s: float = Field(30.0, ge=1.0, le=3600.0)
+
+
 class BackendConfig(ConfigSection):
     server: ServerConfig = ServerConfig()
     auth: AuthConfig = AuthConfig()
@@ -224,6 +231,7 @@ class BackendConfig(ConfigSection):
     sessions: SessionConfig = SessionConfig()
     supervisor: SupervisorConfig = SupervisorConfig()
     tak: TakConfig = TakConfig()
+    fleet: FleetConfig = FleetConfig()
 
 
 def backend_environment(environ: Mapping[str, str]) -> dict[str, str]:

@@ -120,6 +120,37 @@ class MergedMap(ApiModel):
     updated_at: float = 0.0
 
 
+class Dropout(ApiModel):
+    """A vehicle that left the mission's search (`backend.fleet_dropout`), and the part of its area left unflown."""
+
+    vehicle_id: str
+    kind: Literal["mode", "aborted", "moved", "silent"] = Field(
+        description='"mode": it reports RTL/LAND (or PX4\'s RTL, LAND, RTGS); "aborted": its companion aborted '
+        '(a pilot\'s takeover, the link lost); "moved": it reports another mission; "silent": no status for '
+        "longer than [fleet] dropout_s"
+    )
+    reason: str = Field(description='one line, e.g. "mode RTL", "silent for 42 s (over 30 s)"')
+    since: float = Field(description="Unix time of the last status that says so (silent: its last status)")
+    unflown: list[list[list[float]]] = Field(
+        default_factory=list,
+        description="its part of the area that no vehicle of the mission has covered, [lat, lon] rings (outer "
+        "counter-clockwise, holes clockwise; slivers and scraps left out)",
+    )
+    area_m2: float = Field(0.0, description="the unflown part's area")
+
+
+class MissionDropouts(ApiModel):
+    """`GET /v1/missions/{m}/dropouts`: who left the mission's search, and who still searches it."""
+
+    mission_id: str
+    dropout_s: float = Field(description="[fleet] dropout_s: silent longer than this is a drop-out")
+    dropouts: list[Dropout] = Field(default_factory=list, description="the vehicles that left, by id")
+    searching: list[str] = Field(
+        default_factory=list, description="the vehicles with a part of the area that still search it, by id"
+    )
+    server_time: float
+
+
 OnFind = Literal["continue", "hold", "return"]
 
 

@@ -27,6 +27,7 @@ import time
 from collections.abc import Callable
 
 from backend.appearance import descriptor, similarity
+from backend.fleet_dropout import leaving, unflown_part
 from backend.images import (
     JPEG_MAGIC,
     PNG_MAGIC,
@@ -39,10 +40,12 @@ from backend.images import (
 from backend.mission_map import distance_m, updated_map
 from backend.mission_merge import merged_map
 from backend.schemas import (
+    Dropout,
     FleetOrder,
     KeyframeCandidate,
     KeyframeRecord,
     MergedMap,
+    MissionDropouts,
     MissionMap,
     OnFind,
     StoredFind,
@@ -112,8 +115,10 @@ class SessionStore:
         max_crop_pixels: int = 4_000_000,
         clock: Callable[[], float] = time.time,
         on_find: Callable[[StoredFind], None] | None = None,
+        dropout_s: float = 30.0,
     ) -> None:
         self.state = state or SqliteStore()
+        self.dropout_s = dropout_s  # [fleet] dropout_s: a mission's vehicle silent longer has left its search
         self.similarity_threshold = similarity_threshold
         self.radius_m = radius_m
         self.mission_ttl_s = mission_ttl_s
@@ -414,6 +419,46 @@ class SessionStore:
         if not kept:
             return None
         return merged_map(mission_id, kept, max(m.updated_at for _, m in kept))
+
+    def dropouts(self, mission_id: str) -> MissionDropouts | None:
+        """Who of the mission's vehicles left its search and the part of its area left unflown
+        (`backend.fleet_dropout`), worked out from each vehicle's last status and map on every read (nothing
+        is stored for it); None when no vehicle has reported a map of the mission."""
+        now = self._clock()
+        maps = [(v, self.state.mission_map(v, mission_id)) for v in self.mission_vehicles(mission_id)]
+        kept = [(v, m) for v, m in maps if m is not None]
+        if not kept:
+            return None
+        covered = [m.covered for _, m in kept if m.covered]
+        dropouts: list[Dropout] = []
+        searching: list[str] = []
+        for vehicle, mission_map in sorted(kept, key=lambda vm: vm[0]):
+            if len(mission_map.area) < 3:
+                continue  # no part of the area: nothing of the search to leave unflown
+            left = leaving(
+                mission_id, self.state.status(vehicle), mission_map.updated_at, now, self.dropout_s
+            )
+            if left is None:
+                searching.append(vehicle)
+                continue
+            unflown = unflown_part(mission_map.area, covered)
+            dropouts.append(
+                Dropout(
+                    vehicle_id=vehicle,
+                    kind=left.kind,
+                    reason=left.reason,
+                    since=left.since,
+                    unflown=unflown.rings,
+                    area_m2=unflown.area_m2,
+                )
+            )
+        return MissionDropouts(
+            mission_id=mission_id,
+            dropout_s=self.dropout_s,
+            dropouts=dropouts,
+            searching=searching,
+            server_time=now,
+        )
 
     # The newest keyframe, for the supervisor's live view
 

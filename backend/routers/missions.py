@@ -5,7 +5,8 @@ Missions are stored by (vehicle, mission): a rejection is the sending vehicle's,
 vehicles of the same mission id where it was made (backend.sessions). `GET /v1/missions/{m}/map`: the
 map of every vehicle searching the mission id, merged (backend.mission_merge). `PUT .../on_find` sets
 what the fleet does on the first confirmed find (once, at the start), `GET .../fleet` tells a vehicle
-what it is to do now.
+what it is to do now. `GET .../dropouts`: the vehicles that left the search and their unflown parts
+(backend.fleet_dropout).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from backend.schemas import (
     ErrorResponse,
     FleetOrder,
     MergedMap,
+    MissionDropouts,
     OnFindIn,
     Rejection,
     RejectionIn,
@@ -90,6 +92,19 @@ def mission_map(mission_id: MissionId, _: SupervisorCaller, sessions: Sessions) 
     if merged is None:
         raise HTTPException(404, f"no vehicle has reported a map of mission {mission_id!r}")
     return merged
+
+
+@router.get("/dropouts", response_model=MissionDropouts, responses=ERROR_RESPONSES)
+def mission_dropouts(mission_id: MissionId, _: SupervisorCaller, sessions: Sessions) -> MissionDropouts:
+    """The vehicles that left the mission's search (RTL or LAND reported, the companion's abort or a pilot's
+    takeover, another mission, or silent for longer than `[fleet] dropout_s`), each with the part of its area
+    that no vehicle has covered (what `cloudtrack-gcs replan` re-splits over the vehicles still searching),
+    and the vehicles still searching. Worked out on each read from the vehicles' last statuses and maps.
+    404 when no vehicle has reported a map of it."""
+    answer = sessions.dropouts(mission_id)
+    if answer is None:
+        raise HTTPException(404, f"no vehicle has reported a map of mission {mission_id!r}")
+    return answer
 
 
 @router.put(
