@@ -92,6 +92,7 @@ def merged_pod(grids: Sequence[PodGrid], max_cells: int = MAX_CELLS) -> PodGrid 
         mean=round(float(pods.mean()), 4) if pods.size else 0.0,
         at_target=round(float((pods >= first.target_pod).mean()), 4) if pods.size else 0.0,
         looks=min(2**31, sum(grid.looks for grid, _ in decoded)),
+        dark_looks=min(2**31, sum(grid.dark_looks for grid, _ in decoded)),
     )
 
 

@@ -17,6 +17,11 @@ a surfer with the board), the detector boxes the person alone (uav123_bike1 clos
 
 Frames of one sequence are one target under one description: they are not independent samples, and the
 look-dependence figure (`look_dependence`) says how far from it they are.
+
+A keyframe too dark for the curve (`behaviors.scene_light`: mean luma two stops under mid-grey, measured on
+the keyframe as the companion measures it, `cloudtrack.keyframe_light`) is measured but kept apart: it is
+in no bin, no fit and no check, and is reported on its own (`low_light`), because the companion's map
+claims nothing for such a keyframe either.
 """
 
 from __future__ import annotations
@@ -50,7 +55,9 @@ from behaviors.detection_curve import (
     empty_bins,
 )
 from behaviors.geometry import Box, iou
+from behaviors.scene_light import MIN_MEAN_LUMA, too_dark
 from cloudtrack.api_client import encode_keyframe
+from cloudtrack.keyframe_light import mean_luma
 
 MATCH_IOU = 0.5
 HELD_INSIDE = 0.9  # share of a candidate's box inside the ground truth's, for a target boxed with its ride
@@ -76,6 +83,7 @@ class Look:
     # uncertain ones; "no": judged no; None: not proposed
     verifier_yes: bool = False  # the verifier itself said "yes" (the rest of "yes" is uncertain, acted on)
     verifier_failed: bool = False  # a verdict on it came from a timeout or a failed verifier
+    mean_luma: float = 255.0  # the keyframe's (cloudtrack.keyframe_light)
 
     def found(self, accept_uncertain: bool) -> bool:
         return self.verdict == "yes" or (accept_uncertain and self.verdict == "uncertain")
@@ -87,11 +95,12 @@ class SequenceLooks:
     superset: str
     fps: float
     step: int
-    looks: tuple[Look, ...]
+    looks: tuple[Look, ...]  # lit well enough for the curve: the frames it is fitted and checked on
+    dark: tuple[Look, ...] = ()  # too dark for it (module doc)
 
     def summary(self) -> dict[str, Any]:
         """Its frames, and how many the verifier itself said "yes" to (beside the curve's "yes", which also
-        counts the "uncertain" ones the mission acts on)."""
+        counts the "uncertain" ones the mission acts on); the low-light frames apart."""
         return {
             "class": self.superset,
             "fps": self.fps,
@@ -99,6 +108,7 @@ class SequenceLooks:
             "proposed": sum(look.proposed for look in self.looks),
             "found": sum(look.verdict == "yes" for look in self.looks),
             "verifier_yes": sum(look.verifier_yes for look in self.looks),
+            "low_light": low_light(self.dark),
         }
 
     def bins(self) -> tuple[CurveBin, ...]:
@@ -245,6 +255,7 @@ def measure(
         jpeg, scale = encode_keyframe(image, keyframe_width, jpeg_quality)
         keyframe = decode_image(jpeg, max_pixels)
         truth = box.scaled(keyframe.shape[1] / image.shape[1], keyframe.shape[0] / image.shape[0])
+        luma = mean_luma(keyframe)
         result = pipeline.run(keyframe, source.prompt, source.superset, frame_id=index)
         detections = [c.detection for c in result.candidates]
         target = [d for d in detections if is_target(d.box, truth)]
@@ -263,9 +274,23 @@ def measure(
                 verdict,
                 any(d.verdict is Verdict.YES for d in target),
                 any(d.justification.startswith(FAILED) for d in target),
+                round(luma, 1),
             )
         )
-    return SequenceLooks(source.path.name, source.superset, source.fps, step, tuple(looks))
+    lit = tuple(look for look in looks if not too_dark(look.mean_luma))
+    dark = tuple(look for look in looks if too_dark(look.mean_luma))
+    return SequenceLooks(source.path.name, source.superset, source.fps, step, lit, dark)
+
+
+def low_light(dark: Sequence[Look]) -> dict[str, Any]:
+    """What the back-end made of frames too dark for the curve (reported, never fitted or checked)."""
+    return {
+        "frames": len(dark),
+        "proposed": sum(look.proposed for look in dark),
+        "found": sum(look.verdict == "yes" for look in dark),
+        "mean_luma": round(sum(look.mean_luma for look in dark) / len(dark), 1) if dark else None,
+        "below": MIN_MEAN_LUMA,
+    }
 
 
 def is_target(candidate: Box, truth: Box) -> bool:
@@ -286,7 +311,8 @@ def fit_curves(
     why each other class has none."""
     by_class: dict[str, dict[str, tuple[CurveBin, ...]]] = {}
     for seq in measured:
-        by_class.setdefault(seq.superset, {})[seq.name] = seq.bins()
+        if seq.looks:  # a sequence all in low light is no sequence of the curve (reported apart)
+            by_class.setdefault(seq.superset, {})[seq.name] = seq.bins()
     curves, left_out = {}, {}
     for name, sequences in sorted(by_class.items()):
         curve = curve_from_sequences(name, sequences, config)
@@ -378,6 +404,8 @@ def check(
     classes: dict[str, Any] = {}
     skipped = []
     for seq in measured:
+        if not seq.looks:  # all in low light: reported apart
+            continue
         curve = curves.get(seq.superset)
         if curve is None:
             skipped.append(f"{seq.name} ({seq.superset}: the curve file has no curve for it)")

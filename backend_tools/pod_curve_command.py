@@ -27,6 +27,7 @@ from backend_tools.pod_curve import (
     worst_error,
 )
 from behaviors.detection_curve import CurveError, DetectionCurve, curves_document, wilson_interval
+from behaviors.scene_light import MIN_MEAN_LUMA
 from cloudtrack.config_files import ConfigError
 from cloudtrack.detection_curves import load_curves
 from cloudtrack.model_store import MODEL_DIR_HELP, ModelError
@@ -69,6 +70,21 @@ def print_curve(curve: DetectionCurve) -> None:
         )
         print(f"the curve (what the map uses: the fit through every bin, at each bin's centre): {half}; "
               f"nothing claimed below {fit.min_size_px:.1f} px")  # fmt: skip
+
+
+def print_low_light(measured: Sequence[SequenceLooks]) -> None:
+    """The frames too dark for the curve, apart: in no bin, no fit, no check (behaviors/scene_light.py)."""
+    dark = [(seq, seq.summary()["low_light"]) for seq in measured if seq.dark]
+    if not dark:
+        return
+    print(f"\nLow light (keyframe mean luma < {MIN_MEAN_LUMA:g}, two stops under mid-grey): not fitted, not "
+          "checked; the map claims nothing for such keyframes")  # fmt: skip
+    print("| sequence | class | frames | mean luma | proposed | found |")
+    print("|---|---|---|---|---|---|")
+    for seq, d in dark:
+        print(
+            f"| {seq.name} | {seq.superset} | {d['frames']} | {d['mean_luma']:g} | {d['proposed']} | {d['found']} |"
+        )
 
 
 def print_looks(looks: Mapping[str, Any]) -> None:
@@ -136,6 +152,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
     )
     parser.add_argument(
         "--check", type=Path, metavar="CURVE", help="compare this curve file's prediction to the sequences"
+    )
+    parser.add_argument(
+        "--self-check",
+        type=Path,
+        metavar="OUT",
+        help="with --json: also check the curves just fitted, leave-one-sequence-out on the same frames, and "
+        "write it as --check --json would (one measurement for both)",
     )
     parser.add_argument(
         "--keyframe-width",
@@ -222,8 +245,9 @@ def _pod_curve(args: argparse.Namespace) -> int:
         if args.accept_uncertain
         else "'uncertain' is a miss (the mission's default)"
     )
+    print_low_light(measured)
     if curves_in is not None:
-        return _report_check(args, curves_in, measured, measured_for, reading, failed)
+        return _report_check(args, curves_in, measured, measured_for, reading, failed, args.check, args.json)
     curves, left_out = fit_curves(measured, measured_for, args.min_sequences)
     for curve in curves.values():
         print_curve(curve)
@@ -244,6 +268,11 @@ def _pod_curve(args: argparse.Namespace) -> int:
         )
         if not _write(args.json, document):
             return 2
+    if args.self_check and args.json:
+        print("\nThe curves just fitted, each sequence predicted by the curve fitted without it:")
+        return _report_check(
+            args, curves, measured, measured_for, reading, failed, args.json, args.self_check
+        )
     return 0
 
 
@@ -254,6 +283,8 @@ def _report_check(
     measured_for: Mapping[str, str],
     reading: str,
     failed: int,
+    curve_file: Path,
+    out: Path | None,
 ) -> int:
     for curve in curves.values():
         differ = sorted(k for k, v in curve.configuration if measured_for.get(k, v) != v)
@@ -264,7 +295,7 @@ def _report_check(
             )
     classes, skipped = check(measured, curves, args.accept_uncertain)
     if not classes:
-        print(f"error: {args.check} has no curve for any of these sequences' classes", file=sys.stderr)
+        print(f"error: {curve_file} has no curve for any of these sequences' classes", file=sys.stderr)
         return 2
     for c in classes.values():
         c["max_abs_error"] = worst_error(c["bins"], "error", args.min_samples)
@@ -283,11 +314,11 @@ def _report_check(
         and r["samples"] >= args.min_samples
         and abs(r["error"]) > args.max_error
     ]
-    if args.json and not _write(
-        args.json,
+    if out and not _write(
+        out,
         {
             "format": CHECK_FORMAT,
-            "curve_file": str(args.check),
+            "curve_file": str(curve_file),
             "accept_uncertain": args.accept_uncertain,
             "min_samples": args.min_samples,
             "max_error": args.max_error,
@@ -295,6 +326,7 @@ def _report_check(
             "classes": classes,
             "not_checked": skipped,
             "looks": looks,
+            "low_light": {seq.name: seq.summary()["low_light"] for seq in measured if seq.dark},
         },
     ):
         return 2

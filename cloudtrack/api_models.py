@@ -338,6 +338,13 @@ class PodGrid(ApiModel):
     mean: float = Field(ge=0.0, le=1.0, description="mean POD over the area")
     at_target: float = Field(ge=0.0, le=1.0, description="share of the area at or above target_pod")
     looks: int = Field(ge=0, le=2**31, description="analysed keyframes laid on the map")
+    dark_looks: int = Field(
+        0,
+        ge=0,
+        le=2**31,
+        description="analysed keyframes too dark for the detection curve (mean luma two stops under "
+        "mid-grey, behaviors.scene_light): they lay coverage but no POD",
+    )
 
     @field_validator("cols")
     @classmethod

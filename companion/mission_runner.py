@@ -68,6 +68,7 @@ from behaviors.mission import (
 from behaviors.mission_commands import MissionCommand, StartMission, TrackRectangle
 from behaviors.mission_config import MissionConfig
 from behaviors.reinit_policy import ReinitAction, ReinitDecision
+from behaviors.scene_light import low_light_note, too_dark
 from behaviors.setpoint import Setpoint
 from behaviors.telemetry import Telemetry
 from behaviors.track_result import TrackResult
@@ -173,7 +174,7 @@ class SearchCoverageLike(Protocol):
 
     def update(self, telemetry: Telemetry) -> None: ...
 
-    def add_look(self, pose: Telemetry, capture_time: float) -> None: ...
+    def add_look(self, pose: Telemetry, capture_time: float, lit: bool = True) -> None: ...
 
     def report(self) -> dict[str, Any] | None: ...
 
@@ -301,6 +302,7 @@ class MissionRunner:
         self.keyframe_store = keyframe_store
         self._keyframe_width = keyframe_max_width  # the crop keeps the verifier's margin in native pixels
         self._analysed = 0  # keyframes of this mission analysed whole (laid on the search map)
+        self._dark_keyframes = 0  # of them, too dark for the detection curve (no POD laid)
         self._store_base = StoreCounts()  # the store's counts when this mission started
 
     # ------------------------------------------------------------------------------------------ control
@@ -391,8 +393,14 @@ class MissionRunner:
             and self.state.mode in ACTIVE
         ):
             self._analysed += 1
+            lit = answer.mean_luma is None or not too_dark(answer.mean_luma)
+            if lit:
+                self.notices.set("light", None)
+            else:  # the operator knows why the POD map stays where it is
+                self._dark_keyframes += 1
+                self.notices.set("light", low_light_note(answer.mean_luma, self._dark_keyframes))
             if self.coverage is not None:
-                self.coverage.add_look(pose, answer.capture_time)
+                self.coverage.add_look(pose, answer.capture_time, lit)
 
     def _pose_at(self, when: float) -> Telemetry | None:
         """The newest telemetry received at or before `when` (a keyframe's capture time); None if none is
@@ -410,6 +418,8 @@ class MissionRunner:
         if isinstance(event, GcsCommand) and isinstance(event.command, StartMission) and self.state.mission:
             self.report.start(self.state.mission.mission_id or self.state.mission.prompt)
             self._analysed = 0
+            self._dark_keyframes = 0
+            self.notices.set("light", None)
             if self.keyframe_store is not None:
                 self._store_base = self.keyframe_store.counts()
             self.notices.set("start", None)  # a start went through: an earlier refusal no longer holds

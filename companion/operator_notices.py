@@ -3,9 +3,10 @@
 Topics, most pressing first: the autopilot has not been heard ("waiting for the autopilot's HEARTBEAT on
 udpin:0.0.0.0:14550"), the back-end refuses this vehicle's token (named as such, never "unreachable"),
 the back-end does not answer ("waiting for the back-end at https://...: connection refused"), the
-back-end cannot search for the mission's prompt (its 422, with the nearest classes), and the last start
-the companion refused. Whoever notices calls in (the main loop, the back-end session and worker threads,
-the start check); the main loop says each change once — in the journal and on the GCS as a STATUSTEXT —
+back-end cannot search for the mission's prompt (its 422, with the nearest classes), the last start
+the companion refused, and keyframes too dark for the detection curve (`behaviors.scene_light`: the POD
+map claims nothing for them). Whoever notices calls in (the main loop, the back-end session and worker
+threads, the start check); the main loop says each change once — in the journal and on the GCS as a STATUSTEXT —
 and every status report to the back-end carries the most pressing one as its `reason`, so the supervisor
 page shows it too. Thread-safe; nothing here blocks.
 """
@@ -16,7 +17,7 @@ import threading
 
 from cloudtrack.gcs_protocol import clip_reason
 
-TOPICS = ("autopilot", "auth", "backend", "search", "start")
+TOPICS = ("autopilot", "auth", "backend", "search", "start", "light")
 
 
 def backend_problem(error: BaseException, url: str, request: str = "search") -> tuple[str, str]:

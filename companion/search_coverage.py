@@ -52,7 +52,7 @@ MAX_LOOKS = 20_000  # analysed keyframes kept to lay a new area from (about 2.8 
 AREA_MAX_VERTICES = 200  # VehicleStatusIn.search.area
 
 Pose = tuple[float, float, float, float, float, float]  # lat, lon, height, yaw, roll, pitch
-Look = tuple[Pose, float]  # the pose a keyframe was captured from, and when
+Look = tuple[Pose, float, bool]  # the pose a keyframe was captured from, when, and lit for the curve
 
 
 class _Maps:
@@ -62,12 +62,16 @@ class _Maps:
         self.area = tuple(area)
         self.cover = cover
         self.pod = pod
+        self.dark_looks = 0  # analysed keyframes too dark for the curve, laid on the coverage only
 
     def lay(self, look: Look) -> None:
-        (lat, lon, height, yaw, roll, pitch), when = look
+        (lat, lon, height, yaw, roll, pitch), when, lit = look
         self.cover.add_view(lat, lon, height, yaw, roll, pitch)
         if self.pod is not None:
-            self.pod.add_look(lat, lon, height, yaw, when, roll, pitch)
+            if lit:
+                self.pod.add_look(lat, lon, height, yaw, when, roll, pitch)
+            else:  # the detection curve cannot judge it (behaviors.scene_light): no place gains POD
+                self.dark_looks += 1
 
 
 class SearchCoverage:
@@ -153,12 +157,14 @@ class SearchCoverage:
             log.info("the autopilot's mission changed (item %s of %s): downloading it again", item1, items1)
             self._download()
 
-    def add_look(self, pose: Telemetry, capture_time: float) -> None:
+    def add_look(self, pose: Telemetry, capture_time: float, lit: bool = True) -> None:
         """A keyframe the back-end analysed, captured from `pose` at `capture_time` (a gimbal's roll and
-        pitch are ignored by the footprint when the camera is stabilised)."""
+        pitch are ignored by the footprint when the camera is stabilised); not `lit`: too dark for the
+        detection curve (`behaviors.scene_light`), so it lays coverage but no POD."""
         look: Look = (
             (pose.lat_deg, pose.lon_deg, pose.height_agl, pose.yaw, pose.roll, pose.pitch),
             capture_time,
+            lit,
         )
         with self._lock:
             if not self._running:
@@ -183,7 +189,7 @@ class SearchCoverage:
                     "covered": maps.cover.covered_rings(),
                 }
                 if maps.pod is not None:
-                    report["pod"] = maps.pod.report()
+                    report["pod"] = {**maps.pod.report(), "dark_looks": maps.dark_looks}
                 self._report, self._reported_at = report, now
             return dict(self._report)
 

@@ -7,14 +7,17 @@ import contextlib
 import io
 import json
 import math
+import shutil
 from pathlib import Path
 
+import cv2
 import pytest
 
 from backend.cli import main
 from backend.config import BackendConfig
 from backend_tools.pod_curve import is_target, read_sequence
 from behaviors.geometry import Box
+from behaviors.scene_light import MIN_MEAN_LUMA
 from cloudtrack.detection_curves import SHIPPED, curve_for, load_curves
 from companion.config import BackendConfig as CompanionBackendConfig
 
@@ -98,6 +101,45 @@ def test_check_reports_per_bin_and_gates_on_the_error(
     assert (
         "| size px | frames | predicted | observed | predicted - observed | size-blind - observed |"
         in printed
+    )
+
+
+def test_frames_too_dark_for_the_curve_are_measured_apart(
+    models_dir: Path, sequences_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A real sequence as at dusk (every pixel at a fifth, mean luma under two stops below mid-grey) beside
+    the same frames as shot: the dark copy is in no bin and no fit, and reported on its own."""
+    source = sequences_dir / SEQUENCES[0]
+    dusk = tmp_path / "dusk" / SEQUENCES[0]
+    (dusk / "frames").mkdir(parents=True)
+    for name in ("groundtruth.txt", "referring.txt", "source.json"):
+        if (source / name).exists():
+            shutil.copy(source / name, dusk / name)
+    for i, frame in enumerate(sorted((source / "frames").iterdir())):
+        if i % STEP == 0:  # only the frames measured
+            cv2.imwrite(str(dusk / "frames" / frame.name), (cv2.imread(str(frame)) * 0.2).astype("uint8"))
+        else:
+            shutil.copy(frame, dusk / "frames" / frame.name)
+    out, check_out = tmp_path / "curve.json", tmp_path / "check.json"
+    code = main(
+        ["pod-curve", str(dusk), str(sequences_dir / SEQUENCES[1]), "--step", str(STEP), "--model-dir",
+         str(models_dir), "--json", str(out), "--min-sequences", "1", "--self-check", str(check_out)]
+    )  # fmt: skip
+    printed = capsys.readouterr().out
+    assert code in (0, 1)  # the self-check's gate follows the bins (no --max-error: none)
+    in_view = sum(1 for i, box in enumerate(read_sequence(source).boxes) if box is not None and i % STEP == 0)
+    document = json.loads(out.read_text())
+    dark = document["measured"]["sequences"][SEQUENCES[0]]
+    assert dark["frames"] == 0 and dark["low_light"]["frames"] == in_view
+    assert dark["low_light"]["mean_luma"] < MIN_MEAN_LUMA
+    curve = load_curves(out)["person"]
+    assert [name for name, _ in curve.sequences] == [SEQUENCES[1]]  # fitted on the lit sequence alone
+    check = json.loads(check_out.read_text())
+    assert check["low_light"][SEQUENCES[0]]["frames"] == in_view
+    assert list(check["classes"]["person"]["sequences"]) == [SEQUENCES[1]]
+    assert (
+        "Low light (keyframe mean luma < 60" in printed
+        and f"| {SEQUENCES[0]} | person | {in_view} |" in printed
     )
 
 

@@ -107,7 +107,7 @@ class Coverage:
 
     def update(self, telemetry: Telemetry) -> None: ...
 
-    def add_look(self, pose: Telemetry, capture_time: float) -> None:
+    def add_look(self, pose: Telemetry, capture_time: float, lit: bool = True) -> None:
         self.looks.append((pose.time_s, capture_time))
 
     def report(self) -> dict[str, Any] | None:

@@ -37,6 +37,7 @@ import numpy as np
 from behaviors.detection import Detection
 from behaviors.telemetry import Telemetry
 from cloudtrack.api_client import BackendError, EncodedKeyframe
+from cloudtrack.keyframe_light import mean_luma
 from companion.cloud.keyframe_store import KeyframeStore, StoredKeyframe
 
 log = logging.getLogger(__name__)
@@ -72,6 +73,7 @@ class BackendAnswer:
     stored: bool = False  # the keyframe waited out a back-end outage in the store
     # A stored keyframe's pixels (the caller's size) when its answer has candidates: the live ones are gone.
     image: np.ndarray | None = None
+    mean_luma: float | None = None  # a search keyframe's (cloudtrack.keyframe_light): too dark, no POD
 
 
 @dataclass(frozen=True)
@@ -94,6 +96,7 @@ class _Request:
     submitted_at: float
     pose: Telemetry | None = None  # given: a full-frame search keyframe, kept through an outage
     stored: StoredKeyframe | None = None  # sent from the store
+    mean_luma: float | None = None
 
     @property
     def storable(self) -> bool:
@@ -162,7 +165,8 @@ class BackendWorker:
         """Queue a keyframe; True if it goes out now, False if every slot is busy (it will still be sent
         when one frees unless replaced by a newer keyframe). `pose` (the vehicle at capture time) is given
         for full-frame search keyframes: those are kept through an outage when there is a store."""
-        request = _Request(frame_id, image, capture_time, dict(fields), self._clock(), pose)
+        luma = mean_luma(image) if pose is not None else None
+        request = _Request(frame_id, image, capture_time, dict(fields), self._clock(), pose, mean_luma=luma)
         with self._cond:
             if self._stopping:
                 return False
@@ -262,7 +266,14 @@ class BackendWorker:
             return None
         fields = {k: v for k, v in kept.fields.items() if k != "early_answer"}  # final verdicts only
         return _Request(
-            kept.frame_id, kept.keyframe, kept.capture_time, fields, self._clock(), kept.pose, kept
+            kept.frame_id,
+            kept.keyframe,
+            kept.capture_time,
+            fields,
+            self._clock(),
+            kept.pose,
+            kept,
+            kept.mean_luma,
         )
 
     def _ask(self, request: _Request) -> tuple[list[Detection], bool]:
@@ -309,7 +320,14 @@ class BackendWorker:
                 log.warning("keyframe %d not stored: %s", request.frame_id, exc)
                 return
         self.store.put(
-            StoredKeyframe(request.frame_id, request.capture_time, encoded, request.pose, request.fields)
+            StoredKeyframe(
+                request.frame_id,
+                request.capture_time,
+                encoded,
+                request.pose,
+                request.fields,
+                request.mean_luma,
+            )
         )
         with self._cond:
             self._cond.notify_all()
@@ -329,6 +347,7 @@ class BackendWorker:
             request.pose,
             request.stored is not None,
             image,
+            request.mean_luma,
         )
         with self._cond:
             self._answers.append(answer)

@@ -31,6 +31,7 @@ class StoredKeyframe:
     keyframe: EncodedKeyframe
     pose: Telemetry  # the vehicle when the keyframe was captured
     fields: dict[str, Any] = field(default_factory=dict)  # the request's fields (prompt, mission, query)
+    mean_luma: float | None = None  # the keyframe's (cloudtrack.keyframe_light), for the map's low-light rule
 
     @property
     def size_bytes(self) -> int:
