@@ -9,6 +9,9 @@ of fixed latency L (the OpenAI-compatible emulator in backend_tools/vlm_emulator
 4. Replicas (backend_tools/fleet_bench.py): 16 vehicles through nginx over 1 and over 2 replicas sharing one
    redis-server, then a failover run that SIGKILLs one replica half-way and counts acknowledged
    rejections and decisions lost (must be 0). Needs Debian's redis-server and nginx (make install-services).
+`--capacity`, `--hostile` and `--fleet-map` measure one thing each instead (their modules say what);
+`--fleet-map` (backend_tools/mission_fleet_bench.py): one mission of N vehicles, its merged map and the
+supervisor page's state.
 Servers run as separate `cloudtrack-backend serve` processes so the bench's own threads do not share
 their interpreter. Each part prints a line when it starts, so a run of a few minutes shows where it is.
 """
@@ -52,7 +55,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
         '  cloudtrack-backend bench --url https://backend.example.org --tokens \'{"drone-1": "...", "drone-2": "..."}\' '
         "--vehicles 1 2\n"
         "  cloudtrack-backend bench --capacity --json out/capacity.json\n"
-        "  cloudtrack-backend bench --hostile --json out/hostile.json",
+        "  cloudtrack-backend bench --hostile --json out/hostile.json\n"
+        "  cloudtrack-backend bench --fleet-map 50 --fleet-s 30 --json out/fleet-map.json",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--latency", type=float, default=1.0, help="VLM latency L in seconds (default 1.0)")
@@ -127,6 +131,32 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
     )
     hostile.add_argument(
         "--solo-s", type=float, default=30.0, help="seconds of the vehicle's search alone (default 30)"
+    )
+    fleet_map = parser.add_argument_group("one mission of many vehicles (--fleet-map)")
+    fleet_map.add_argument(
+        "--fleet-map",
+        type=int,
+        nargs="+",
+        metavar="N",
+        help="N vehicles searching one mission id, each reporting status (area, covered area, POD grid) at the "
+        "companion's default rates, while a supervisor reads the merged map and the page's state: their "
+        "p50/p95 and bytes, the status report's p95, the server's RSS; one N is measured beside 1 vehicle "
+        "(e.g. --fleet-map 50, or --fleet-map 1 10 50); nothing else is measured",
+    )
+    fleet_map.add_argument(
+        "--fleet-s", type=float, default=30.0, help="seconds measured per fleet size (default 30)"
+    )
+    fleet_map.add_argument(
+        "--fleet-warm-s",
+        type=float,
+        default=120.0,
+        help="how far into its flight each vehicle's maps are when the measurement starts (default 120)",
+    )
+    fleet_map.add_argument(
+        "--fleet-store",
+        choices=("sqlite", "redis"),
+        default="sqlite",
+        help="the server's session store: SQLite on disk (default) or Debian's redis-server on loopback",
     )
     parser.add_argument("--json", type=Path, metavar="OUT", help="write the figures as JSON")
     parser.set_defaults(func=_bench)
@@ -401,9 +431,31 @@ def _hostile(args: argparse.Namespace, model_dir: Path, sequences: Path) -> int:
     return 0
 
 
+def _fleet_map(args: argparse.Namespace, model_dir: Path) -> int:
+    from backend_tools.mission_fleet_bench import FleetMapSettings, fleet_map_bench, print_fleet_map
+
+    sizes = [1, *args.fleet_map] if len(args.fleet_map) == 1 and args.fleet_map[0] != 1 else args.fleet_map
+    if any(n < 1 or n > 500 for n in sizes) or args.fleet_s <= 0 or args.fleet_warm_s < 0:
+        print("error: --fleet-map takes 1-500 vehicles, --fleet-s > 0, --fleet-warm-s >= 0", file=sys.stderr)
+        return 2
+    settings = FleetMapSettings(duration_s=args.fleet_s, warm_s=args.fleet_warm_s, store=args.fleet_store)
+    try:
+        report = fleet_map_bench(sizes, model_dir, settings, say)
+    except (ConfigError, ModelError, ValueError, OSError, RuntimeError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print_fleet_map(report)
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(report, indent=2))
+    return 0
+
+
 def _bench(args: argparse.Namespace) -> int:
     sequences = _shared(args) / "data" / "sequences"
     model_dir = resolve_model_dir(args.model_dir)
+    if args.fleet_map:
+        return _fleet_map(args, model_dir)
     if args.capacity:
         return _capacity(args, model_dir, sequences)
     if args.hostile:
