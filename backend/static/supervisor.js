@@ -2,7 +2,9 @@
 // candidate boxes, the state and why, search progress and coverage, the candidate awaiting a decision (its
 // crop with the box drawn) with Confirm / Reject, a map drawn from the positions themselves (no internet
 // needed; an optional tile layer from `[supervisor] map_tiles`) with the POD map and its legend, and the
-// finds, which stay.
+// finds, which stay. Above the vehicles, the fleet: per mission one map with every vehicle's part, track and
+// position in its colour and named by its id over the mission's merged coverage or POD map, a legend (id,
+// colour, state, coverage of its part), and one queue of every vehicle's candidates, newest first.
 // The token is a bearer token like the API's; it lives in this tab's sessionStorage only. Live updates are
 // Server-Sent Events read with fetch() so the token travels in a header, never in a URL (or a proxy log).
 // Everything that came from a vehicle or a VLM is inserted as text, never as HTML.
@@ -15,6 +17,8 @@ const $ = (selector, root = document) => root.querySelector(selector);
 let token = sessionStorage.getItem(TOKEN_KEY) || "";
 let mapTiles = "";
 const vehicles = new Map(); // vehicle id -> { view, receivedAt }
+let missions = []; // the snapshot's missions: each one's merged map
+let fleetTimer = null;
 let stream = null;
 const images = new Map(); // image URL -> object URL of the fetched image ("" while fetching)
 
@@ -105,6 +109,10 @@ function handleMessage(block) {
   const body = JSON.parse(data.join("\n"));
   if (kind === "state") renderAll(body);
   else if (kind === "vehicle") renderVehicle(body);
+  else if (kind === "fleet") {
+    missions = body.missions || [];
+    scheduleFleet();
+  }
   else if (kind === "ages") {
     // Reports that changed nothing else: only "last report" becomes young again.
     for (const [id, age] of Object.entries(body)) {
@@ -155,6 +163,7 @@ function svg(tag, attributes = {}, parent = null) {
 
 function renderAll(snapshot) {
   mapTiles = snapshot.map_tiles || "";
+  missions = snapshot.missions || [];
   const seen = new Set(snapshot.vehicles.map((v) => v.id));
   for (const card of document.querySelectorAll("section.vehicle")) {
     if (!seen.has(card.dataset.vehicle)) {
@@ -164,6 +173,7 @@ function renderAll(snapshot) {
   }
   for (const vehicle of snapshot.vehicles) renderVehicle(vehicle);
   $("#no-vehicles").hidden = snapshot.vehicles.length > 0;
+  scheduleFleet();
 }
 
 function renderVehicle(vehicle) {
@@ -177,6 +187,10 @@ function renderVehicle(vehicle) {
   }
   $("#no-vehicles").hidden = true;
   $(".vehicle-id", card).textContent = vehicle.id;
+  const chip = $(".vehicle-head .chip", card);
+  chip.hidden = !vehicle.colour;
+  chip.style.backgroundColor = safeColour(vehicle.colour);
+  chip.title = vehicle.colour ? `${vehicle.id}'s colour on the fleet map` : "";
   const state = $(".state", card);
   state.textContent = vehicle.state;
   state.dataset.state = vehicle.state;
@@ -200,6 +214,7 @@ function renderVehicle(vehicle) {
   renderMap(card, vehicle);
   renderCandidates(card, vehicle);
   renderFinds(card, vehicle);
+  scheduleFleet();
   tick();
 }
 
@@ -725,6 +740,258 @@ async function download(vehicleId, missionId, kind, card) {
   setTimeout(() => URL.revokeObjectURL(link.href), 10_000);
 }
 
+// --- the fleet: one map per mission, its legend, one queue of every vehicle's candidates ---------------
+
+const SILENT_S = 10; // a vehicle with no report for longer is marked silent in the legend
+const LEFT_MODES = new Set(["RTL", "SMART_RTL", "LAND", "AUTO.RTL", "AUTO.LAND", "AUTO.RTGS", "RTGS"]);
+const STATE_WORDS = {
+  IDLE: "idle",
+  SEARCHING: "searching",
+  ACQUIRING: "tracking",
+  FOLLOWING: "tracking",
+  AWAITING_SUPERVISOR: "awaiting supervisor",
+  CONFIRMED: "confirmed find",
+  REJECTED: "rejected, searching on",
+  LOST: "lost the target",
+  ABORTED: "left the search (aborted)",
+  UNKNOWN: "credentials refused",
+};
+
+// Colours come from the back-end's palette; anything else is drawn grey, never inserted as markup.
+function safeColour(colour) {
+  return /^#[0-9a-fA-F]{6}$/.test(colour || "") ? colour : "#5d6670";
+}
+
+function stateWords(vehicle) {
+  const mode = (vehicle.search && vehicle.search.mode) || "";
+  if (LEFT_MODES.has(mode.toUpperCase())) return `left the search (${mode})`;
+  return STATE_WORDS[vehicle.state] || vehicle.state.toLowerCase();
+}
+
+function scheduleFleet() {
+  // A fleet's vehicles report many times a second: the fleet is drawn at most every 200 ms.
+  if (fleetTimer === null) {
+    fleetTimer = setTimeout(() => {
+      fleetTimer = null;
+      renderFleet();
+    }, 200);
+  }
+}
+
+function renderFleet() {
+  const views = [...vehicles.values()].map((known) => known.view);
+  const box = $("#fleet-maps");
+  const ids = new Set(missions.map((m) => m.mission_id));
+  for (const figure of box.querySelectorAll("figure.mission-map")) {
+    if (!ids.has(figure.dataset.mission)) figure.remove();
+  }
+  for (const mission of missions) {
+    let figure = box.querySelector(`figure.mission-map[data-mission="${CSS.escape(mission.mission_id)}"]`);
+    if (!figure) {
+      figure = $("#mission-template").content.firstElementChild.cloneNode(true);
+      figure.dataset.mission = mission.mission_id;
+      box.appendChild(figure);
+    }
+    const members = views.filter((v) => v.mission_id === mission.mission_id).sort((a, b) => (a.id < b.id ? -1 : 1));
+    const coverage = mission.coverage == null ? "" : ` · ${(mission.coverage * 100).toFixed(0)} % of the area covered`;
+    $(".mission-title", figure).textContent = `Mission ${mission.mission_id}: ${plural(members.length, "vehicle")}${coverage}`;
+    drawFleetMap(figure, mission, members);
+    renderFleetLegend(figure, members);
+  }
+  const queued = renderQueue(views);
+  $("#fleet").hidden = missions.length === 0 && queued === 0;
+  tick();
+}
+
+function drawFleetMap(figure, mission, members) {
+  const map = $(".fleet-map", figure);
+  const width = 800;
+  const height = 500;
+  map.setAttribute("viewBox", `0 0 ${width} ${height}`);
+  map.replaceChildren();
+  const parts = (v) => (v.search && v.search.area.length > 2 ? v.search.area : []);
+  const candidates = members.flatMap((v) => v.candidates.filter((c) => c.position).map((c) => [v, c]));
+  const points = [
+    ...mission.area.flat(),
+    ...members.flatMap((v) => [...parts(v), ...v.track, ...(v.position ? [v.position] : [])]),
+    ...candidates.map(([, c]) => [c.position.lat, c.position.lon]),
+    ...members.flatMap((v) => v.finds.map((f) => [f.position.lat, f.position.lon])),
+  ];
+  if (!points.length) {
+    const empty = svg("text", { x: width / 2, y: height / 2, "text-anchor": "middle", class: "empty" }, map);
+    empty.textContent = "no positions or parts reported yet";
+    $(".fleet-info", figure).textContent = "";
+    renderLegend(figure, null);
+    return;
+  }
+  const world = points.map(([lat, lon]) => mercator(lat, lon));
+  const xs = world.map((p) => p[0]);
+  const ys = world.map((p) => p[1]);
+  const [minX, maxX, minY, maxY] = [Math.min(...xs), Math.max(...xs), Math.min(...ys), Math.max(...ys)];
+  const midLat = points.reduce((sum, p) => sum + p[0], 0) / points.length;
+  const metresPerUnit = (40075016.686 * Math.cos((midLat * Math.PI) / 180)) / 256;
+  const least = 60 / metresPerUnit;
+  const margin = 36;
+  const scale = Math.min(
+    (width - 2 * margin) / Math.max(maxX - minX, least),
+    (height - 2 * margin) / Math.max(maxY - minY, least),
+  );
+  const cx = (minX + maxX) / 2;
+  const cy = (minY + maxY) / 2;
+  const project = ([lat, lon]) => {
+    const [x, y] = mercator(lat, lon);
+    return [width / 2 + (x - cx) * scale, height / 2 + (y - cy) * scale];
+  };
+  const path = (ring) => ring.map(project).map(([x, y], i) => `${i ? "L" : "M"}${x.toFixed(1)},${y.toFixed(1)}`).join(" ");
+  const titled = (node, text) => {
+    svg("title", {}, node).textContent = text;
+    return node;
+  };
+  if (mapTiles) drawTiles(map, scale, cx, cy, width, height);
+  // The mission's merged map under the vehicles: its POD map where there is one, else its covered area.
+  if (mission.pod) drawPod(map, mission.pod, path);
+  else for (const ring of mission.covered) if (ring.length > 2) svg("path", { d: `${path(ring)} Z`, class: "merged-covered" }, map);
+  renderLegend(figure, mission.pod);
+  for (const ring of mission.area) if (ring.length > 2) svg("path", { d: `${path(ring)} Z`, class: "merged-area" }, map);
+  // Each vehicle in its colour, and named: its part, its track, where it is and what it does.
+  for (const vehicle of members) {
+    const colour = safeColour(vehicle.colour);
+    const area = parts(vehicle);
+    if (area.length) {
+      const part = svg("path", { d: `${path(area)} Z`, class: "part", stroke: colour, fill: colour }, map);
+      part.dataset.vehicle = vehicle.id;
+      titled(part, `${vehicle.id}'s part of the area`);
+      const [sx, sy] = area.map(project).reduce(([ax, ay], [x, y]) => [ax + x, ay + y], [0, 0]);
+      const label = svg("text", { x: sx / area.length, y: sy / area.length, "text-anchor": "middle", class: "part-label", fill: colour }, map);
+      label.dataset.vehicle = vehicle.id;
+      label.textContent = `${vehicle.id} part`;
+    }
+    if (vehicle.track.length > 1) {
+      const track = svg("path", { d: path(vehicle.track), class: "fleet-track", stroke: colour }, map);
+      track.dataset.vehicle = vehicle.id;
+      titled(track, `${vehicle.id}'s track`);
+    }
+    const at = vehicle.position || vehicle.track[vehicle.track.length - 1];
+    if (at) {
+      const [x, y] = project(at);
+      if (vehicle.position) {
+        const mark = svg("path", {
+          d: "M0,-11 L7,8 L0,4 L-7,8 Z",
+          transform: `translate(${x},${y}) rotate(${vehicle.heading_deg ?? 0})`,
+          class: "fleet-vehicle",
+          fill: colour,
+        }, map);
+        mark.dataset.vehicle = vehicle.id;
+        titled(mark, `${vehicle.id}: ${stateWords(vehicle)}`);
+      }
+      const label = svg("text", { x: x + 10, y: y - 8, class: "vehicle-label" }, map);
+      label.dataset.vehicle = vehicle.id;
+      label.textContent = `${vehicle.id} · ${stateWords(vehicle)}`;
+    }
+    for (const find of vehicle.finds) {
+      const [x, y] = project([find.position.lat, find.position.lon]);
+      svg("path", { d: `M${x},${y} l-7,-16 a7.5,7.5 0 1 1 14,0 z`, class: "find-mark" }, map);
+      const label = svg("text", { x: x + 9, y: y - 12 }, map);
+      label.textContent = `find of ${vehicle.id}`;
+    }
+  }
+  for (const [vehicle, candidate] of candidates) {
+    const [x, y] = project([candidate.position.lat, candidate.position.lon]);
+    const mark = svg("circle", { cx: x, cy: y, r: 6, class: "fleet-candidate", stroke: safeColour(vehicle.colour) }, map);
+    mark.dataset.vehicle = vehicle.id;
+    const label = svg("text", { x: x + 8, y: y + 14 }, map);
+    label.textContent = `candidate of ${vehicle.id}`;
+  }
+  drawScale(map, metresPerUnit / scale, height);
+  $(".fleet-info", figure).textContent =
+    (mapTiles ? "map tiles from the configured tile server" : "drawn from the reported positions (no map tiles)") +
+    (mission.pod ? " · the mission's POD map, every vehicle's looks merged" : " · green: covered by any vehicle");
+}
+
+function renderFleetLegend(figure, members) {
+  const list = $(".fleet-legend", figure);
+  list.replaceChildren();
+  for (const vehicle of members) {
+    const item = document.createElement("li");
+    item.dataset.vehicle = vehicle.id;
+    const chip = document.createElement("span");
+    chip.className = "chip";
+    chip.style.backgroundColor = safeColour(vehicle.colour);
+    const id = document.createElement("span");
+    id.className = "legend-id";
+    id.textContent = vehicle.id;
+    const state = document.createElement("span");
+    state.className = "legend-state";
+    state.textContent = stateWords(vehicle);
+    const coverage = document.createElement("span");
+    coverage.className = "legend-coverage muted";
+    const search = vehicle.search;
+    coverage.textContent = search && search.area.length > 2
+      ? `${(search.coverage * 100).toFixed(0)} % of its part covered`
+      : "no part of the area";
+    const age = document.createElement("span");
+    age.className = "legend-age muted";
+    item.append(chip, id, state, coverage, age);
+    item.title = `show ${vehicle.id}'s console`;
+    item.addEventListener("click", () => {
+      document.querySelector(`section.vehicle[data-vehicle="${CSS.escape(vehicle.id)}"]`)?.scrollIntoView({ behavior: "smooth" });
+    });
+    list.appendChild(item);
+  }
+}
+
+// Every vehicle's candidate awaiting the supervisor in one list, newest first (the one that began waiting
+// last on top), each naming the vehicle that sees it by id and colour. The number of entries.
+function renderQueue(views) {
+  const now = performance.now();
+  const entries = [];
+  for (const vehicle of views) {
+    const known = vehicles.get(vehicle.id);
+    const extra = known ? (now - known.receivedAt) / 1000 : 0;
+    for (const candidate of vehicle.candidates) entries.push({ vehicle, candidate, age: candidate.age_s + extra });
+  }
+  entries.sort((a, b) => a.age - b.age || (a.vehicle.id < b.vehicle.id ? -1 : 1));
+  const list = $("#queue");
+  const keep = new Set();
+  for (const { vehicle, candidate } of entries) {
+    const key = `${vehicle.id}/${candidate.id}`;
+    keep.add(key);
+    let item = list.querySelector(`li.queued[data-key="${CSS.escape(key)}"]`);
+    if (!item) {
+      item = $("#queued-template").content.firstElementChild.cloneNode(true);
+      item.dataset.key = key;
+      item.dataset.vehicle = vehicle.id;
+      item.dataset.candidate = candidate.id;
+      $(".confirm", item).addEventListener("click", () => decide(vehicle.id, candidate.id, "confirm", item));
+      $(".reject", item).addEventListener("click", () => decide(vehicle.id, candidate.id, "reject", item));
+    }
+    list.appendChild(item); // in the queue's order
+    const colour = safeColour(vehicle.colour);
+    item.style.borderLeftColor = colour;
+    $(".chip", item).style.backgroundColor = colour;
+    $(".queued-vehicle", item).textContent = vehicle.id;
+    $(".candidate-id", item).textContent = `candidate ${candidate.id}`;
+    const verdict = $(".verdict", item);
+    verdict.textContent = candidate.verdict;
+    verdict.dataset.verdict = candidate.verdict;
+    $(".status", item).textContent = candidate.decided_by ? `${candidate.status} by ${candidate.decided_by}` : candidate.status;
+    item.dataset.status = candidate.status;
+    $(".justification", item).textContent = candidate.justification || "(no justification)";
+    $(".position", item).textContent = formatPosition(candidate.position);
+    const more = vehicle.awaiting_more || [];
+    $(".more", item).hidden = more.length === 0;
+    $(".more", item).textContent = more.length ? `${more.length} more of ${vehicle.id} wait behind it` : "";
+    const open = candidate.status === "awaiting";
+    for (const button of item.querySelectorAll(".decide button")) button.disabled = !open || item.dataset.sent === "1";
+    if (!open) $(".decision", item).textContent = candidate.status;
+    showCrop(item, candidate.crop_url, candidate.crop_box, `candidate ${candidate.id} of ${vehicle.id}`);
+  }
+  for (const item of list.querySelectorAll("li.queued")) if (!keep.has(item.dataset.key)) item.remove();
+  $("#queue-empty").hidden = entries.length > 0;
+  $("#queue-count").textContent = entries.length ? `(${entries.length})` : "";
+  return entries.length;
+}
+
 function tick() {
   const now = performance.now();
   for (const [id, { view, receivedAt }] of vehicles) {
@@ -746,6 +1013,12 @@ function tick() {
     for (const candidate of view.candidates) {
       const item = card.querySelector(`article[data-candidate="${CSS.escape(candidate.id)}"]`);
       if (item) $(".age", item).textContent = `seen ${formatAge(candidate.age_s + extra)}`;
+      const queued = document.querySelector(`li.queued[data-key="${CSS.escape(`${id}/${candidate.id}`)}"]`);
+      if (queued) $(".age", queued).textContent = `put to the supervisor ${formatAge(candidate.age_s + extra)}`;
+    }
+    for (const item of document.querySelectorAll(`.fleet-legend li[data-vehicle="${CSS.escape(id)}"]`)) {
+      const age = view.age_s + extra;
+      $(".legend-age", item).textContent = age > SILENT_S ? `silent, last report ${formatAge(age)}` : "";
     }
   }
 }
