@@ -279,6 +279,7 @@ class PodView(ApiModel):
     mean: float
     at_target: float = Field(description="share of the area at or above target_pod")
     looks: int
+    dark_looks: int = Field(0, description="analysed keyframes too dark for the detection curve (as reported)")
     origin: list[float] = Field(description="[lat, lon] of the grid's south-west corner")
     cell_deg: list[float] = Field(description="[north, east]: one cell's side in degrees of lat and lon")
     rows: int
