@@ -4,6 +4,7 @@ carries the merged map of its vehicles, merged again only when an area, coverage
 
 from __future__ import annotations
 
+import base64
 from typing import Any
 
 from backend import supervisor_view
@@ -94,3 +95,26 @@ def test_a_large_fleets_tracks_are_shown_coarser_but_bounded(monkeypatch: Any) -
         assert 10 <= len(vehicle.track) <= 26, len(vehicle.track)
         assert vehicle.track[-1] == [LAT + 199 * D / 10, vehicle.track[-1][1]]
     assert sum(len(v.track) for v in snapshot.vehicles) <= 104
+
+
+def _grid(west: float, pod: float) -> dict[str, Any]:
+    """A 10 x 10 grid of 10 m cells over a part, every cell at `pod`."""
+    values = base64.b64encode(bytes([round(pod * 250)] * 100)).decode()
+    return {
+        "target": "person", "posture": "standing", "target_pod": 0.8, "origin": [LAT, west], "cell_m": 10.0,
+        "rows": 10, "cols": 10, "values": values, "mean": pod, "at_target": 0.0, "looks": 3, "dark_looks": 1,
+    }  # fmt: skip
+
+
+def test_the_missions_pod_map_merges_every_vehicles() -> None:
+    store = SessionStore()
+    view = SupervisorView(store)
+    for vehicle, area, grid in (("drone-1", WEST, _grid(LON, 0.5)), ("drone-2", EAST, _grid(LON + D, 0.6))):
+        search = {"area": area, "coverage": 0.5, "pod": grid}
+        _report(store, vehicle, area, [LAT, area[0][1]], search=search)
+    snapshot = view.snapshot()
+    assert all(v.pod is not None and v.pod.looks == 3 for v in snapshot.vehicles)
+    (fleet,) = snapshot.missions
+    assert fleet.pod is not None and fleet.pod.looks == 6 and fleet.pod.dark_looks == 2
+    # (the grids, 100 m square, overlap where the parts meet: there the looks combine, 1 - 0.5 * 0.4)
+    assert 0.5 < fleet.pod.mean < 0.8 and fleet.pod.at_target > 0 and fleet.pod.bands and fleet.pod.meaning
