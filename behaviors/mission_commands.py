@@ -15,6 +15,9 @@ class StartMission:
     superset: str = ""
     allow_engage: bool = False
     mission_id: str = ""
+    # What the fleet does on the mission's first confirmed find ("continue", "hold", "return"; "": not set
+    # by this start). Set on the back-end once for the mission; behaviors/fleet_order.py acts on it.
+    on_find: str = ""
 
 
 @dataclass(frozen=True)

@@ -32,7 +32,9 @@ from behaviors.geometry import Box
 from cloudtrack.api_models import (
     Decision,
     DetectResponse,
+    FleetOrder,
     HealthResponse,
+    OnFindIn,
     PromptCheckAnswer,
     Rejection,
     VehicleStatus,
@@ -326,6 +328,15 @@ class BackendClient:
             "POST", f"/v1/missions/{mission_id or self.mission_id}/rejections", _REJECTION, json=body
         )
 
+    def set_on_find(self, mission_id: str, on_find: str) -> OnFindIn:
+        """Set what the fleet does on the mission's first confirmed find (BackendError 409 naming the
+        setting that stands when another was set first)."""
+        return self._call("PUT", f"/v1/missions/{mission_id}/on_find", _ON_FIND, json={"on_find": on_find})
+
+    def fleet_order(self, mission_id: str) -> FleetOrder:
+        """What this vehicle of the fleet mission is to do now (behaviors/fleet_order.py)."""
+        return self._call("GET", f"/v1/missions/{mission_id}/fleet", _FLEET_ORDER)
+
     def decisions(self, after: int = 0, vehicle_id: str | None = None) -> list[Decision]:
         """Supervisor decisions for this vehicle newer than decision id `after`."""
         return self._call(
@@ -359,3 +370,5 @@ _PROMPT_CHECK = TypeAdapter(PromptCheckAnswer)
 _STATUS = TypeAdapter(VehicleStatus)
 _REJECTION = TypeAdapter(Rejection)
 _DECISIONS = TypeAdapter(list[Decision])
+_ON_FIND = TypeAdapter(OnFindIn)
+_FLEET_ORDER = TypeAdapter(FleetOrder)

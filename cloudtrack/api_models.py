@@ -552,3 +552,30 @@ class Decision(DecisionIn):
         "already acted on it, and the report is kept as the vehicle's, never as the standing decision: the "
         "supervisor's own decision on that candidate is still taken",
     )
+
+
+OnFind = Literal["continue", "hold", "return"]
+
+
+class OnFindIn(ApiModel):
+    """What the fleet does on the mission's first confirmed find, set once at the start."""
+
+    on_find: OnFind = Field(
+        description='"continue": every vehicle searches on; "hold": the others hold where they are; '
+        '"return": the others return to launch (the finder stays with the person either way)'
+    )
+
+
+class FleetOrder(ApiModel):
+    """What one vehicle of the fleet mission is to do now (GET /v1/missions/{m}/fleet)."""
+
+    mission_id: str
+    vehicle_id: str
+    on_find: OnFind = Field(description='the mission\'s setting ("continue" when none was set)')
+    found: str | None = Field(
+        None, description='the first confirmed find, "<vehicle>/<candidate>"; null: none yet'
+    )
+    order: OnFind = Field(
+        description='what this vehicle is to do: "continue" until a find is confirmed, and always for the '
+        "vehicle that found the person; else the mission's on_find"
+    )

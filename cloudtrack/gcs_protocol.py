@@ -11,7 +11,8 @@ then UTF-8 bytes of "SUPERSET|PROMPT" (SUPERSET may be empty).
 
 COMMAND_LONG (or COMMAND_INT, same params 1-4) to (vehicle, companion component), obeyed only from the
 system ids in `[mavlink] gcs_system_ids`; anyone else is answered MAV_RESULT_DENIED and logged:
-  MAV_CMD_USER_1 start:   p1 mission id (0-255), p2 chunk count, p3 allow engage (0/1), p4 text bytes
+  MAV_CMD_USER_1 start:   p1 mission id (0-255), p2 chunk count, p3 allow engage (0/1), p4 text bytes,
+                          p5 (COMMAND_INT: x) the fleet's on_find: 0 not set, 1 continue, 2 hold, 3 return
   MAV_CMD_USER_2 abort
   MAV_CMD_USER_3 confirm: p1 candidate number (0: the one awaiting the supervisor)
   MAV_CMD_USER_4 reject:  p1 candidate number (0: the one awaiting the supervisor)
@@ -53,6 +54,7 @@ CHUNK_TEXT_BYTES = 128 - CHUNK_HEADER
 MAX_CHUNKS = 8
 MAX_PROMPT_CHARS = 400
 PROMPT_TTL_S = 60.0
+ON_FIND_CODES = ("", "continue", "hold", "return")  # the start's p5
 
 # Numbers from pymavlink's generated dialect, never written out here.
 CMD_START, CMD_ABORT, CMD_CONFIRM, CMD_REJECT, CMD_STATUS = (
@@ -392,8 +394,12 @@ class GcsProtocol:
                 _whole(p[1], 1, MAX_CHUNKS),
                 _whole(p[3], 1, 1024),
             )
+            fifth = msg.param5 if hasattr(msg, "param5") else float(getattr(msg, "x", 0))
+            on_find = ON_FIND_CODES[_whole(fifth, 0, len(ON_FIND_CODES) - 1)]
             superset, prompt = parse_prompt_text(self._prompts.take(mission_id, count, length))
-            return StartMission(prompt, superset, allow_engage=p[2] >= 0.5, mission_id=str(mission_id))
+            return StartMission(
+                prompt, superset, allow_engage=p[2] >= 0.5, mission_id=str(mission_id), on_find=on_find
+            )
         if cmd == CMD_ABORT:
             return AbortMission("gcs")
         if cmd in (CMD_CONFIRM, CMD_REJECT):

@@ -54,6 +54,7 @@ from behaviors.events import (
     RejectionShared,
     TimerTick,
 )
+from behaviors.fleet_order import respond
 from behaviors.geometry import Box
 from behaviors.mission import (
     ACTIVE,
@@ -72,7 +73,7 @@ from behaviors.scene_light import low_light_note, too_dark
 from behaviors.setpoint import Setpoint
 from behaviors.telemetry import Telemetry
 from behaviors.track_result import TrackResult
-from cloudtrack.api_models import ALIKE_MAX
+from cloudtrack.api_models import ALIKE_MAX, FleetOrder
 from cloudtrack.service_notify import Notifier
 from companion.cloud.backend_worker import BackendWorker
 from companion.cloud.candidate_crop import candidate_crop
@@ -159,6 +160,10 @@ class BackendSessionLike(Protocol):
     def shared_rejections(self) -> list[str]: ...
 
     def last_success(self) -> float | None: ...
+
+    def set_on_find(self, mission_id: str, on_find: str) -> None: ...
+
+    def fleet_order(self) -> FleetOrder | None: ...
 
 
 class SearchCoverageLike(Protocol):
@@ -303,6 +308,7 @@ class MissionRunner:
         self._keyframe_width = keyframe_max_width  # the crop keeps the verifier's margin in native pixels
         self._analysed = 0  # keyframes of this mission analysed whole (laid on the search map)
         self._dark_keyframes = 0  # of them, too dark for the detection curve (no POD laid)
+        self._fleet_seen: tuple[str, str, str | None] | None = None  # the fleet order last acted on
         self._store_base = StoreCounts()  # the store's counts when this mission started
 
     # ------------------------------------------------------------------------------------------ control
@@ -341,6 +347,7 @@ class MissionRunner:
             events.append(telemetry)
             self._poses.append(telemetry)
         events.extend(self._ground_events(now))
+        self._follow_fleet_order(now)
         if frame is not None:
             self._latest = frame
             self.stats.frames += 1
@@ -420,6 +427,10 @@ class MissionRunner:
             self._analysed = 0
             self._dark_keyframes = 0
             self.notices.set("light", None)
+            self._fleet_seen = None
+            mission = self.state.mission
+            if self.session is not None and mission.on_find and mission.mission_id:
+                self.session.set_on_find(mission.mission_id, mission.on_find)
             if self.keyframe_store is not None:
                 self._store_base = self.keyframe_store.counts()
             self.notices.set("start", None)  # a start went through: an earlier refusal no longer holds
@@ -522,6 +533,30 @@ class MissionRunner:
         if self.session is not None:
             events.extend(RejectionShared(now, cid) for cid in self.session.shared_rejections())
         return events
+
+    def _follow_fleet_order(self, now: float) -> None:
+        """A new order of the fleet mission for this vehicle (another vehicle's find was confirmed), acted
+        on once as behaviors/fleet_order.py says: told to the GCS; with the start's leave to command, the
+        mission ends (as the GCS's abort) and the autopilot is asked to hold or return."""
+        mission = self.state.mission
+        if self.session is None or mission is None or not mission.mission_id:
+            return
+        order = self.session.fleet_order()
+        if order is None or order.mission_id != mission.mission_id:
+            return
+        seen = (order.mission_id, order.order, order.found)
+        if seen == self._fleet_seen:
+            return
+        self._fleet_seen = seen
+        response = respond(order.order, order.found, mission.allow_engage)
+        if response is None:
+            return
+        log.warning("fleet order %s (find %s): %s", order.order, order.found, response.message)
+        self._execute(GcsMessage(response.message, "warning"))
+        if response.abort is not None:
+            self._handle(GcsCommand(now, response.abort))
+        if response.mode is not None:
+            self._execute(RequestMode(response.mode, response.message))
 
     def _tracker_init(self, action: TrackerInit) -> None:
         newest = self._latest.frame_id if self._latest is not None else 0

@@ -27,6 +27,7 @@ from cloudtrack.gcs_protocol import (
     MAV_RESULT_ACCEPTED,
     MAV_RESULT_FAILED,
     MAV_RESULT_IN_PROGRESS,
+    ON_FIND_CODES,
     PROMPT_PAYLOAD_TYPE,
     RESULT_NAMES,
     encode_prompt,
@@ -270,15 +271,17 @@ def mavproxy_start_lines(args: argparse.Namespace) -> list[str]:
     ]
     length = sum(len(p) - 4 for p in payloads)
     engage = 1 if args.allow_engage else 0
+    on_find = ON_FIND_CODES.index(args.on_find or "")
     lines.append(
-        f"message COMMAND_LONG {system} {component} {CMD_START} 0 {args.mission_id} {len(payloads)} {engage} {length} 0 0 0"
+        f"message COMMAND_LONG {system} {component} {CMD_START} 0 {args.mission_id} {len(payloads)} {engage} {length} {on_find} 0 0"
     )
     return lines
 
 
 def _start(session: GcsSession, args: argparse.Namespace) -> int:
     chunks, length = session.send_prompt(args.mission_id, args.superset, args.prompt)
-    params = [args.mission_id, chunks, 1.0 if args.allow_engage else 0.0, length]
+    on_find = float(ON_FIND_CODES.index(args.on_find or ""))
+    params = [args.mission_id, chunks, 1.0 if args.allow_engage else 0.0, length, on_find]
 
     def resend_prompt() -> None:
         session.send_prompt(args.mission_id, args.superset, args.prompt)
@@ -444,6 +447,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     start.add_argument(
         "--mission-id", type=int, default=int(time.time()) % 256, help="0-255 (default: from the clock)"
+    )
+    start.add_argument(
+        "--on-find",
+        choices=ON_FIND_CODES[1:],
+        help="what the other vehicles of this mission id do on its first confirmed find: continue, hold (where "
+        "they are) or return (to launch); set once for the mission on the back-end, the first setting stands; "
+        "a vehicle started without --allow-engage is told, its pilot acts (default: not set, i.e. continue)",
     )
     start.add_argument(
         "--print-mavproxy",

@@ -24,14 +24,16 @@ def test_start_ack_status_round_trip_through_the_autopilot() -> None:
     with autopilot("ardupilot") as sim, vehicle_link(sim) as link, MainLoop(link):
         result = subprocess.run(
             GCS + _gcs_args(sim, "start", "--prompt", "injured man in a gray shirt", "--superset", "person",
-                            "--allow-engage", "--mission-id", "7"),
+                            "--allow-engage", "--mission-id", "7", "--on-find", "hold"),
             capture_output=True, text=True, timeout=60,
         )  # fmt: skip
         assert result.returncode == 0, result.stderr
         assert "start: ACCEPTED" in result.stdout
         assert "[1/191] MISSION 7 STARTED: injured man in a gray shirt (person)" in result.stdout
         assert link.commands() == [
-            StartMission("injured man in a gray shirt", "person", allow_engage=True, mission_id="7")
+            StartMission(
+                "injured man in a gray shirt", "person", allow_engage=True, mission_id="7", on_find="hold"
+            )
         ]
 
 

@@ -3,10 +3,13 @@
 A background thread, once a `period_s`: posts the vehicle's status (state, prompt, position and the
 candidate awaiting the supervisor, with its small JPEG crop from `companion.cloud.candidate_crop`; the crop
 goes up once per candidate, the back-end keeps it, and it is sent again every CROP_REFRESH_S so a
-restarted back-end recovers it; the same for the mission's find and its crop) so the supervisor page shows it, fetches the supervisor's new
-decisions and turns them into Confirm/Reject commands, and sends queued rejections so the back-end
-never proposes a rejected candidate again in this mission. Nothing here blocks the main loop; every
-failure is logged and retried on the next round. `last_success()` feeds the lost-back-end watchdog.
+restarted back-end recovers it; the same for the mission's find and its crop) so the supervisor page
+shows it, fetches the supervisor's new decisions and turns them into Confirm/Reject commands, and sends
+queued rejections so the back-end never proposes a rejected candidate again in this mission. For a fleet
+mission it sets the mission's `on_find` once when the start gave one (the first setting stands: a refusal
+says which), and asks every FLEET_POLL_S what the fleet orders this vehicle (`fleet_order()`, acted on by
+behaviors/fleet_order.py). Nothing here blocks the main loop; every failure is logged and retried on the
+next round. `last_success()` feeds the lost-back-end watchdog.
 """
 
 from __future__ import annotations
@@ -19,12 +22,13 @@ from collections.abc import Callable
 from typing import Any, Protocol
 
 from behaviors.mission_commands import ConfirmCandidate, MissionCommand, RejectCandidate
-from cloudtrack.api_models import Decision
+from cloudtrack.api_models import Decision, FleetOrder
 from cloudtrack.provenance import decided_via, gcs_text
 
 log = logging.getLogger(__name__)
 
 CROP_REFRESH_S = 30.0
+FLEET_POLL_S = 2.0  # a find's order reaches the fleet within this (and a round), at half a request a second
 _CROP_FIELDS = ("crop_jpeg_b64", "crop_box")
 
 
@@ -43,6 +47,10 @@ class SessionClient(Protocol):
     ) -> object: ...
 
     def decisions(self, after: int = 0, vehicle_id: str | None = None) -> list[Decision]: ...
+
+    def set_on_find(self, mission_id: str, on_find: str) -> object: ...
+
+    def fleet_order(self, mission_id: str) -> FleetOrder: ...
 
 
 class BackendSession:
@@ -69,6 +77,10 @@ class BackendSession:
         self._primed = False  # decisions made before we started are history, not commands
         self._crop_sent: tuple[str, float] | None = None  # (candidate id, when) of the last crop delivered
         self._find_crop_sent: tuple[str, float] | None = None  # the same for the find's crop
+        self._on_find: tuple[str, str] | None = None  # (mission, setting) still to be set on the back-end
+        self._on_find_refused = ""  # why the back-end kept another setting (for the operator)
+        self._fleet: FleetOrder | None = None  # the back-end's latest order for this vehicle
+        self._fleet_asked = -float("inf")
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="backend-session", daemon=True)
 
@@ -87,6 +99,23 @@ class BackendSession:
                 log.warning("rejection of %s not sent: no mission", candidate_id)
                 return
             self._rejections.append((candidate_id, position, mission))
+
+    def set_on_find(self, mission_id: str, on_find: str) -> None:
+        """Set the mission's on_find on the back-end (once, on the next rounds until it answers)."""
+        with self._lock:
+            self._on_find = (mission_id, on_find)
+            self._on_find_refused = ""
+            self._fleet = None
+
+    def fleet_order(self) -> FleetOrder | None:
+        """What the fleet mission orders this vehicle, as the back-end last said (None: not asked yet)."""
+        with self._lock:
+            return self._fleet
+
+    def on_find_refused(self) -> str:
+        """Why the start's on_find did not stand ("" while it did, or none was given)."""
+        with self._lock:
+            return self._on_find_refused
 
     def commands(self) -> list[MissionCommand]:
         with self._lock:
@@ -165,6 +194,7 @@ class BackendSession:
                 self._rejections.popleft()
                 if taken and candidate_id:
                     self._shared.append(candidate_id)
+        self._fleet_round(status)
         decisions = self._client.decisions(after=self._after)
         with self._lock:
             for d in decisions:
@@ -180,3 +210,27 @@ class BackendSession:
                 )
             self._primed = True
             self._last_success = self._clock()
+
+    def _fleet_round(self, status: dict[str, Any] | None) -> None:
+        """The start's on_find set once, then the fleet's order for this vehicle's mission."""
+        mission = status.get("mission_id") if status else None
+        with self._lock:
+            pending = self._on_find
+        if pending is not None:
+            try:
+                self._client.set_on_find(*pending)
+                refused = ""
+            except Exception as exc:
+                if getattr(exc, "status", None) != 409:
+                    raise  # unreachable or busy: set again next round
+                refused = f"on_find {pending[1]} refused: {getattr(exc, 'detail', exc)}"
+                log.warning("%s", refused)
+            with self._lock:
+                if self._on_find == pending:
+                    self._on_find, self._on_find_refused = None, refused
+        if not mission or self._clock() - self._fleet_asked < FLEET_POLL_S:
+            return
+        self._fleet_asked = self._clock()
+        order = self._client.fleet_order(str(mission))
+        with self._lock:
+            self._fleet = order if order.mission_id == str(mission) else None
