@@ -12,7 +12,8 @@ dealt out in contiguous runs, one run per vehicle. A part is the area between tw
 direction, each cut on the boundary between two lanes' bands, so neighbouring parts meet edge to edge, their
 lanes are the single plan's own (none doubled, none dropped) and the parts together are the area.
 
-A vehicle's time is what the planner estimates for one vehicle: its transit from its start position to its
+A vehicle's time is what the planner estimates for one vehicle (after its `busy_s`, the time it flies before
+its part begins: in a re-plan, its own lanes left): its transit from its start position to its
 part's first waypoint, then the lanes and the turns between them, each leg flown from rest to rest at the
 vehicle's speed (`leg_time_s`); its lanes are flown in the order that begins nearest its start, as
 `plan_checked` flies them. The climb from the ground is not counted (all vehicles climb alike). The split
@@ -52,6 +53,7 @@ MAX_VEHICLES = 16  # a search team flies two to six; more is surely a typo
 MIN_SPEED_M_S = 0.5  # survey_planner's bounds on a survey speed
 MAX_SPEED_M_S = 30.0
 MAX_START_M = 50_000.0  # a start position farther from the area is a typo (the ground tool checks closer)
+MAX_BUSY_S = 86_400.0  # a day's flying before its part begins is surely a typo
 MAX_ORDER_WORK = 200_000  # every order of the vehicles is tried while orders x lanes^2 stays under this
 VEHICLE_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,31}")
 
@@ -60,7 +62,8 @@ VEHICLE_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,31}")
 class FleetVehicle:
     id: str  # how the operator names it: letters, digits, _ . -, at most 32
     speed_m_s: float  # the survey speed it flies (DO_CHANGE_SPEED)
-    start: LatLon  # where it begins: its position, or home
+    start: LatLon  # where it begins: its position, or home (a re-plan: where its own lanes left end)
+    busy_s: float = 0.0  # how long it flies before it begins its part (a re-plan: its own lanes left)
 
 
 @dataclass(frozen=True)
@@ -75,7 +78,8 @@ class FleetPart:
 
     @property
     def time_s(self) -> float:
-        return self.transit_s + self.plan.time_s
+        """Its busy time first, then the transit and its part."""
+        return self.vehicle.busy_s + self.transit_s + self.plan.time_s
 
 
 @dataclass(frozen=True)
@@ -112,6 +116,10 @@ def check_vehicles(vehicles: Sequence[FleetVehicle]) -> tuple[FleetVehicle, ...]
                 f"vehicle {v.id}: speed {v.speed_m_s:g} m/s must be between {MIN_SPEED_M_S:g} and "
                 f"{MAX_SPEED_M_S:g} m/s"
             )
+        if not (math.isfinite(v.busy_s) and 0 <= v.busy_s <= MAX_BUSY_S):
+            raise SurveyError(
+                f"vehicle {v.id}: busy time {v.busy_s:g} s must be between 0 and {MAX_BUSY_S:g} s"
+            )
         lat, lon = v.start
         if not (math.isfinite(lat) and math.isfinite(lon) and abs(lat) <= 90 and abs(lon) <= 180):
             raise SurveyError(f"vehicle {v.id}: start {lat},{lon} is not a latitude,longitude")
@@ -123,10 +131,13 @@ class _Times:
     """One vehicle's time for any run of the lanes, in O(1): the lanes' and the turns' leg times as prefix
     sums (a turn's side, the lanes' far or near ends, alternates with the lane's parity)."""
 
-    def __init__(self, lanes: Sequence[tuple[Point, Point]], start: Point, speed: float) -> None:
+    def __init__(
+        self, lanes: Sequence[tuple[Point, Point]], start: Point, speed: float, busy_s: float = 0.0
+    ) -> None:
         self.lanes = lanes
         self.start = start
         self.speed = speed
+        self.busy_s = busy_s
         n = len(lanes)
         self.lane = [0.0]
         for a, b in lanes:
@@ -172,7 +183,8 @@ class _Times:
                 best = way
         first, far_par = best
         return (
-            leg_time_s(math.dist(first, self.start), self.speed)
+            self.busy_s
+            + leg_time_s(math.dist(first, self.start), self.speed)
             + self.lane[j + 1]
             - self.lane[i]
             + self._turns(i, j, far_par)
@@ -231,7 +243,7 @@ def split_area(
                 "from the area (check lat,lon)"
             )
         starts[v.id] = _rotate([ne], whole.angle_deg)[0]
-    times = {v.id: _Times(lanes, starts[v.id], v.speed_m_s) for v in fleet}
+    times = {v.id: _Times(lanes, starts[v.id], v.speed_m_s, v.busy_s) for v in fleet}
     n = len(lanes)
     across = sorted(fleet, key=lambda v: (starts[v.id][1], v.id))
     orders: list[Sequence[FleetVehicle]] = [across]

@@ -34,7 +34,7 @@ from cloudtrack.gcs_protocol import (
 )
 from cloudtrack.mavlink_connection import MavlinkEndpoint, mavlink, parse_connection
 from cloudtrack.mavlink_signing import parse_signing_key
-from gcs import fleet_status, mode_command, survey_command, watch_command
+from gcs import fleet_replan, fleet_status, mode_command, survey_command, watch_command
 
 EXIT_REFUSED, EXIT_TIMEOUT = 1, 3
 IN_PROGRESS_WAIT_S = 35.0  # the companion's start check is at most [backend] start_check_s (30 s)
@@ -524,6 +524,7 @@ def build_parser() -> argparse.ArgumentParser:
     watch_command.add_arguments(watch)
     watch.set_defaults(func=watch_command.run_watch)
     survey_command.add_parser(sub)
+    fleet_replan.add_parser(sub)
     mode_command.add_parser(sub)
     return parser
 

@@ -1,0 +1,274 @@
+"""`cloudtrack-gcs replan` (issue 43 item 3): what a dropped vehicle left unflown, read from a real back-end on
+loopback (uvicorn), re-split over two mock autopilots (ArduPilot and PX4, over real UDP) still flying their
+missions; each gets its share appended without leaving AUTO / Mission, and goes on from where it is. The
+supervisor token comes from a file and is never printed; every refusal is one line and a non-zero exit."""
+
+from __future__ import annotations
+
+import json
+import re
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+import requests
+
+from backend.app import create_app
+from behaviors.camera_model import CameraModel
+from behaviors.fleet_split import FleetVehicle, split_area
+from behaviors.geolocation import latlon_to_offset, offset_to_latlon
+from behaviors.mission_items import NAV_WAYPOINT, MissionItem
+from behaviors.survey_planner import SurveySettings
+from cloudtrack.mavlink_connection import MavlinkEndpoint
+from cloudtrack.mission_protocol import MissionClient, positions_match
+from gcs import cli as gcs_cli
+from tests.backend_fixtures import SUPERVISOR, TOKENS, backend_config
+from tests.live_backend import serve
+from tests.mavlink_harness import autopilot, wait_for
+
+HOME = (47.397742, 8.545594)  # the mock autopilot's
+DROPPED_TOKEN = "drone-3-token-three"
+VEHICLE_TOKENS = {**TOKENS, "drone-3": DROPPED_TOKEN}
+LINE = re.compile(
+    r"  vehicle (?P<id>\S+): (?P<first>.*?) lanes? (?P<lanes>[\d-]+) of (?P<of>\d+), (?P<length>\d+) m over "
+    r"(?P<ha>[\d.]+) ha, transit (?P<transit>\d+) m, at (?P<speed>[\d.]+) m/s; done in about (?P<min>\d+) min "
+    r"(?P<s>\d\d) s, (?P<items>\d+) items added"
+)
+
+
+def _at(north_m: float, east_m: float) -> list[float]:
+    return [round(v, 8) for v in offset_to_latlon(HOME[0], HOME[1], north_m, east_m)]
+
+
+def _rect(west: float, south: float, east: float, north: float) -> list[list[float]]:
+    """Counter-clockwise [lat, lon] corners, in metres east and north of HOME."""
+    return [_at(south, west), _at(south, east), _at(north, east), _at(north, west)]
+
+
+def _waypoint(north_m: float) -> MissionItem:
+    lat, lon = _at(north_m, 0)
+    return MissionItem.waypoint(lat, lon, 20.0)
+
+
+def run(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, str]:
+    code = gcs_cli.main(list(args))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+@pytest.fixture
+def defaults(tmp_path: Path) -> str:
+    config = tmp_path / "companion.toml"
+    config.write_text("")  # the schema's defaults, whatever /etc/cloudtrack holds on this machine
+    return str(config)
+
+
+@pytest.fixture
+def token_file(tmp_path: Path) -> Path:
+    path = tmp_path / "supervisor-token"
+    path.write_text(SUPERVISOR + "\n")
+    path.chmod(0o600)
+    return path
+
+
+@pytest.fixture(scope="module")
+def backend(models_dir: Path) -> Iterator[str]:
+    """A back-end where drone-3 went home (RTL) with the west 40 m of its 200 x 200 m part covered, and
+    drone-1 and drone-2 search their parts in AUTO / Mission."""
+    app = create_app(backend_config(models_dir, f"auth.tokens={json.dumps(VEHICLE_TOKENS)}"))
+    reports = {
+        "drone-1": {"area": _rect(-200, 0, -100, 200), "mode": "AUTO"},
+        "drone-2": {"area": _rect(-100, 0, 100, 200), "mode": "MISSION"},
+        "drone-3": {"area": _rect(100, 0, 300, 200), "covered": [_rect(100, 0, 140, 200)], "mode": "RTL"},
+    }
+    with serve(app) as url:
+        for vehicle, search in reports.items():
+            answer = requests.post(
+                f"{url}/v1/vehicles/{vehicle}/status",
+                json={"mission_id": "m-43", "state": "SEARCHING", "search": search},
+                headers={"Authorization": f"Bearer {VEHICLE_TOKENS[vehicle]}"},
+                timeout=10,
+            )
+            assert answer.status_code == 200, answer.text[:300]
+        yield url
+
+
+def _fleet(tmp_path: Path, ardupilot_port: int, px4_port: int) -> Path:
+    fleet = tmp_path / "fleet.json"
+    fleet.write_text(
+        json.dumps({"vehicles": [
+            {"id": "drone-1", "connect": f"udpout:127.0.0.1:{ardupilot_port}", "speed": 5, "lat": HOME[0],
+             "lon": HOME[1]},
+            {"id": "drone-2", "connect": f"udpout:127.0.0.1:{px4_port}", "speed": 8, "lat": HOME[0],
+             "lon": HOME[1], "system": 2},
+            {"id": "drone-3", "connect": "udpout:127.0.0.1:9", "speed": 5, "lat": HOME[0], "lon": HOME[1],
+             "system": 3},
+        ]})
+    )  # fmt: skip
+    return fleet
+
+
+def _upload(port: int, system: int, personality: str, items: list[MissionItem]) -> None:
+    """The vehicle's own mission, through the mission protocol over its GCS link."""
+    endpoint = MavlinkEndpoint.open(f"udpout:127.0.0.1:{port}", 255, 190, system)
+    try:
+        MissionClient(endpoint, personality, target=(system, 1), source=(255, 190)).upload(items)
+    finally:
+        endpoint.close()
+
+
+def _east_of_lanes(items: list[Any]) -> set[float]:
+    return {
+        round(latlon_to_offset(*HOME, i.lat_deg, i.lon_deg)[1], 0) for i in items if i.command == NAV_WAYPOINT
+    }
+
+
+def test_the_dropped_area_is_appended_and_the_vehicles_go_on_in_their_mission(
+    capsys: pytest.CaptureFixture[str], backend: str, token_file: Path, defaults: str, tmp_path: Path
+) -> None:
+    with autopilot("ardupilot") as ardupilot, autopilot("px4", system_id=2) as px4:
+        # drone-1 (ArduPilot) flies a long leg north; drone-2 (PX4) has flown its short mission to the end.
+        north = [MissionItem.change_speed(3.0), *(_waypoint(n) for n in (150, 300))]
+        _upload(ardupilot.link_port("gcs"), 1, "ardupilot", north)
+        _upload(px4.link_port("gcs"), 2, "px4", [_waypoint(3)])
+        assert ardupilot.set_mode("AUTO") and px4.set_mode("MISSION")
+        assert wait_for(lambda: px4.mission.complete, 15.0), "the PX4 never finished its one-waypoint mission"
+        assert wait_for(lambda: ardupilot.mission.current == 2, 5.0)  # its first waypoint, after the speed
+        fleet = _fleet(tmp_path, ardupilot.link_port("gcs"), px4.link_port("gcs"))
+        code, out, err = run(
+            capsys, "--timeout", "3", "replan", "--mission", "m-43", "--fleet", str(fleet), "--altitude", "25",
+            "--backend", backend, "--supervisor-token-file", str(token_file), "--companion-config", defaults,
+        )  # fmt: skip
+        assert (code, err) == (0, ""), err
+        assert SUPERVISOR not in out
+        lines = out.splitlines()
+        assert (
+            lines[0]
+            == "replan of mission m-43 (to upload): 1 vehicle left the search, 2 of the fleet still searching"
+        )
+        assert lines[1] == "  vehicle drone-3 left the search (mode RTL): 3.20 ha unflown"
+        assert lines[2].startswith("  the unflown area as one plan: 4 lanes "), out
+        parts = {m["id"]: m.groupdict() for m in map(LINE.fullmatch, lines) if m}
+        assert set(parts) == {"drone-1", "drone-2"}, out
+        assert parts["drone-1"]["first"].startswith("its own 2 waypoints left first (about ")
+        assert parts["drone-2"]["first"] == "its own mission flown, then"
+        assert re.fullmatch(
+            r"  time to finish: about \d+ min \d\d s \(vehicle drone-. finishes last\)", lines[5]
+        )
+        assert lines[-3:] == [
+            f"vehicle drone-1: uploaded {3 + int(parts['drone-1']['items'])} items (its 3, then "
+            f"{parts['drone-1']['items']} for the dropped area), read back and checked; current item 2, mode AUTO: "
+            "it goes on",
+            f"vehicle drone-2: uploaded {1 + int(parts['drone-2']['items'])} items (its 1, then "
+            f"{parts['drone-2']['items']} for the dropped area), read back and checked; current item 1, mode "
+            "MISSION: it goes on",
+            "replan: 2 of 2 vehicles hold their share",
+        ]
+        # drone-1's own lanes stand as they were, its share after them; it still flies to the same waypoint.
+        items_1 = ardupilot.mission.items[1:]
+        assert positions_match(items_1[:3], north) and len(items_1) == 3 + int(parts["drone-1"]["items"])
+        assert ardupilot.mode == "AUTO" and ardupilot.mission.running and ardupilot.mission.current == 2
+        # drone-2 had finished: it now flies its share, from its first item, still in Mission mode.
+        items_2 = px4.mission.items
+        assert px4.mode == "MISSION" and px4.mission.running and not px4.mission.complete
+        assert px4.mission.current >= 1
+        target = next(i for i in items_2[1:] if i.command == NAV_WAYPOINT)
+        goal = latlon_to_offset(*HOME, target.lat_deg, target.lon_deg)
+
+        def gap() -> float:
+            s = px4.snapshot()
+            return float(((s.north - goal[0]) ** 2 + (s.east - goal[1]) ** 2) ** 0.5)
+
+        before = gap()
+        assert wait_for(lambda: gap() < before - 5.0, 10.0), "drone-2 does not fly towards its share"
+        # The shares are the dropped area's lanes, none doubled, none left out, all east of the covered 40 m.
+        lanes = [_east_of_lanes(items_1[3:]), _east_of_lanes(items_2[1:])]
+        assert lanes[0] and lanes[1] and not lanes[0] & lanes[1]
+        assert len(lanes[0]) + len(lanes[1]) == 4 * 1  # each lane: one east offset (lanes run north-south)
+        assert min(min(x) for x in lanes) > 140 and max(max(x) for x in lanes) < 300
+
+
+def test_a_dry_run_prints_the_plan_and_sends_nothing(
+    capsys: pytest.CaptureFixture[str], backend: str, token_file: Path, defaults: str, tmp_path: Path
+) -> None:
+    fleet = _fleet(tmp_path, 11, 12)  # nobody listens: a dry run opens no link
+    code, out, err = run(
+        capsys, "replan", "--mission", "m-43", "--fleet", str(fleet), "--altitude", "25", "--dry-run",
+        "--backend", backend, "--supervisor-token-file", str(token_file), "--companion-config", defaults,
+    )  # fmt: skip
+    assert (code, err) == (0, ""), err
+    lines = out.splitlines()
+    assert (
+        lines[0]
+        == "replan of mission m-43 (dry run, nothing sent): 1 vehicle left the search, 2 of the fleet still searching"
+    )
+    parts = [m.groupdict() for m in map(LINE.fullmatch, lines) if m]
+    assert [p["first"] for p in parts] == ["from its start", "from its start"]
+    assert lines[-1].startswith("  time to finish: about ")
+
+
+@pytest.mark.parametrize(
+    ("extra", "env", "message", "exit_code"),
+    [
+        (["--supervisor-token", SUPERVISOR], {}, "error: a token on the command line is visible", 2),
+        (["--supervisor-token-file", "/nonexistent/token"], {}, "error: cannot read the supervisor token file", 2),
+        ([], {}, "error: replan needs the back-end's supervisor token", 2),
+        ([], {"CLOUDTRACK_GCS_SUPERVISOR_TOKEN": "wrong-token-wrong-token"},
+         "error: back-end http://127.0.0.1:", 1),
+    ],
+)  # fmt: skip
+def test_refusals_are_one_line(
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    backend: str,
+    defaults: str,
+    tmp_path: Path,
+    extra: list[str],
+    env: dict[str, str],
+    message: str,
+    exit_code: int,
+) -> None:
+    monkeypatch.delenv("CLOUDTRACK_GCS_SUPERVISOR_TOKEN", raising=False)
+    for key, value in env.items():
+        monkeypatch.setenv(key, value)
+    fleet = _fleet(tmp_path, 11, 12)
+    code, out, err = run(
+        capsys, "replan", "--mission", "m-43", "--fleet", str(fleet), "--altitude", "25", "--dry-run",
+        "--backend", backend, "--companion-config", defaults, *extra,
+    )  # fmt: skip
+    assert code == exit_code and out == ""
+    assert err.count("\n") == 1 and err.startswith(message), err
+    assert SUPERVISOR not in err
+
+
+def test_an_unknown_mission_and_nothing_left_unflown(
+    capsys: pytest.CaptureFixture[str], backend: str, token_file: Path, defaults: str, tmp_path: Path
+) -> None:
+    fleet = _fleet(tmp_path, 11, 12)
+    common = ["--fleet", str(fleet), "--altitude", "25", "--dry-run", "--backend", backend,
+              "--supervisor-token-file", str(token_file), "--companion-config", defaults]  # fmt: skip
+    code, out, err = run(capsys, "replan", "--mission", "m-9", *common)
+    assert code == 1 and out == "" and "(HTTP 404): no vehicle has reported a map of mission 'm-9'" in err
+    code, out, err = run(capsys, "replan", "--mission", "a/b", *common)
+    assert code == 2 and err.startswith("error: --mission 'a/b' must be")
+
+
+def test_a_busy_vehicle_takes_fewer_lanes() -> None:
+    settings = SurveySettings(
+        altitude_m=25.0,
+        overlap=0.2,
+        camera=CameraModel.from_hfov(1280, 720, 90.0, -90.0, True),
+        search_range_m=150.0,
+        min_altitude_m=10.0,
+        max_altitude_m=120.0,
+    )
+    area = [(p[0], p[1]) for p in _rect(0, 0, 400, 200)]
+    free = [FleetVehicle("a", 5.0, HOME), FleetVehicle("b", 5.0, HOME)]
+    even = split_area(area, settings, free)
+    busy = split_area(area, settings, [free[0], FleetVehicle("b", 5.0, HOME, busy_s=120.0)])
+    lanes = {p.vehicle.id: p.last_lane - p.first_lane + 1 for p in busy.parts}
+    assert lanes["b"] < lanes["a"]
+    assert busy.finish_s >= even.finish_s
+    b = next(p for p in busy.parts if p.vehicle.id == "b")
+    assert b.time_s == pytest.approx(120.0 + b.transit_s + b.plan.time_s)
