@@ -503,8 +503,7 @@ def _plan_and_send(
                 check_distance(area, where, max_distance_m, f"vehicle {r.member.vehicle.id}")
         split = split_area(area, settings, [r.fleet_vehicle() for r in remaining.values()])
     except ReplanError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        print("error: nothing uploaded: not every remaining vehicle is ready", file=sys.stderr)
+        print(f"error: {exc}; nothing uploaded", file=sys.stderr)
         return exc.code
     except (InputError, SurveyError) as exc:
         print(f"error: {_one_line(exc)}", file=sys.stderr)

@@ -189,6 +189,25 @@ def test_the_dropped_area_is_appended_and_the_vehicles_go_on_in_their_mission(
         assert min(min(x) for x in lanes) > 140 and max(max(x) for x in lanes) < 300
 
 
+def test_a_remaining_vehicle_going_home_is_refused_and_nothing_is_sent(
+    capsys: pytest.CaptureFixture[str], backend: str, token_file: Path, defaults: str, tmp_path: Path
+) -> None:
+    with autopilot("ardupilot") as ardupilot, autopilot("px4", system_id=2) as px4:
+        assert ardupilot.set_mode("RTL")  # the back-end has not heard of it yet: the link has
+        fleet = _fleet(tmp_path, ardupilot.link_port("gcs"), px4.link_port("gcs"))
+        code, out, err = run(
+            capsys, "--timeout", "3", "replan", "--mission", "m-43", "--fleet", str(fleet), "--altitude", "25",
+            "--backend", backend, "--supervisor-token-file", str(token_file), "--companion-config", defaults,
+        )  # fmt: skip
+        assert code == 1
+        assert err.count("\n") == 1 and re.fullmatch(
+            r"error: vehicle drone-1: it is leaving the search \(mode (RTL|LAND)\): leave it out of the fleet "
+            r"for the re-plan; nothing uploaded\n",
+            err,
+        ), err  # RTL right over home lands at once
+        assert not px4.mission.has_mission and not ardupilot.mission.has_mission
+
+
 def test_a_dry_run_prints_the_plan_and_sends_nothing(
     capsys: pytest.CaptureFixture[str], backend: str, token_file: Path, defaults: str, tmp_path: Path
 ) -> None:
