@@ -341,7 +341,7 @@ def describe(split: FleetSplit, remaining: dict[str, Remaining], altitude_m: flo
         plan, own = part.plan, remaining[part.vehicle.id].own
         lanes = f"lane {part.first_lane}" if plan.lanes == 1 else f"lanes {part.first_lane}-{part.last_lane}"
         if own is None:
-            first = "from its start"
+            first = "from its start,"
         elif own.left:
             first = (
                 f"its own {len(own.left)} waypoints left first (about {_minutes(part.vehicle.busy_s)}), then"

@@ -223,7 +223,7 @@ def test_a_dry_run_prints_the_plan_and_sends_nothing(
         == "replan of mission m-43 (dry run, nothing sent): 1 vehicle left the search, 2 of the fleet still searching"
     )
     parts = [m.groupdict() for m in map(LINE.fullmatch, lines) if m]
-    assert [p["first"] for p in parts] == ["from its start", "from its start"]
+    assert [p["first"] for p in parts] == ["from its start,", "from its start,"]
     assert lines[-1].startswith("  time to finish: about ")
 
 
