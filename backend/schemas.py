@@ -255,7 +255,9 @@ class PodView(ApiModel):
     mean: float
     at_target: float = Field(description="share of the area at or above target_pod")
     looks: int
-    dark_looks: int = Field(0, description="analysed keyframes too dark for the detection curve (as reported)")
+    dark_looks: int = Field(
+        0, description="analysed keyframes too dark for the detection curve (as reported)"
+    )
     origin: list[float] = Field(description="[lat, lon] of the grid's south-west corner")
     cell_deg: list[float] = Field(description="[north, east]: one cell's side in degrees of lat and lon")
     rows: int
@@ -298,6 +300,19 @@ class VehicleView(ApiModel):
         description='"#rrggbb": the vehicle\'s colour in its mission (cloudtrack.vehicle_colours, as in the '
         'exports), always shown beside its id; "" without a mission',
     )
+    left: str = Field(
+        "",
+        description='why it left its mission\'s search (backend.fleet_dropout: "mode RTL", "aborted: ...", '
+        '"silent over 30 s"); "" while it searches',
+    )
+
+
+class UnflownView(ApiModel):
+    """The part of the area a vehicle that left the search leaves unflown (backend.fleet_dropout)."""
+
+    vehicle_id: str
+    rings: list[list[list[float]]] = Field(description="[lat, lon] rings, outer counter-clockwise")
+    area_m2: float
 
 
 class MissionView(ApiModel):
@@ -311,6 +326,9 @@ class MissionView(ApiModel):
     covered: list[list[list[float]]] = Field(default_factory=list, description="the union of their covered")
     coverage: float | None = Field(None, description="the share of the area covered by any vehicle (0..1)")
     pod: PodView | None = Field(None, description="the merged POD map, 1 - prod(1 - POD of each vehicle)")
+    unflown: list[UnflownView] = Field(
+        default_factory=list, description="per vehicle that left the search, its part no vehicle covered"
+    )
 
 
 class SupervisorSnapshot(ApiModel):
@@ -357,6 +375,7 @@ __all__ = [
     "MergedMap",
     "MissionMap",
     "MissionView",
+    "UnflownView",
     "ModelNames",
     "ModelsResponse",
     "PodBandView",

@@ -23,6 +23,7 @@ import threading
 import time
 from collections.abc import Callable
 
+from backend.fleet_dropout import leaving, unflown_part
 from backend.mission_merge import merged_map
 from backend.pod_layers import band_colour, meaning
 from backend.schemas import (
@@ -40,6 +41,7 @@ from backend.schemas import (
     SearchStatus,
     StoredFind,
     SupervisorSnapshot,
+    UnflownView,
     VehicleStatus,
     VehicleView,
 )
@@ -138,7 +140,7 @@ class SupervisorView:
         self._lock = threading.Lock()
         self._build_lock = threading.Lock()
         self._cached: tuple[int, float, SupervisorSnapshot] | None = None
-        self._merged: dict[str, tuple[tuple[object, ...], MergedMap]] = {}
+        self._merged: dict[str, tuple[tuple[object, ...], MergedMap, list[UnflownView]]] = {}
 
     def note_auth_failure(self, vehicle_id: str, reason: str) -> None:
         """A request for this vehicle was refused its credentials (401/403): shown on its card for a while."""
@@ -205,13 +207,25 @@ class SupervisorView:
         colours = {m: vehicle_colours(ids) for m, ids in members.items()}
         track_points = max(TRACK_SHOWN_MIN, min(TRACK_SHOWN, FLEET_TRACK_POINTS // max(1, len(statuses))))
         maps: dict[str, list[tuple[str, MissionMap]]] = {}
+        left: dict[str, str] = {}
         for status in statuses.values():
             colour = colours[status.mission_id][status.vehicle_id] if status.mission_id is not None else ""
-            vehicles.append(self._vehicle(status, now, waiting, colour, track_points, maps))
+            view = self._vehicle(status, now, waiting, colour, track_points, maps)
+            if status.mission_id is not None:
+                away = leaving(status.mission_id, status, status.updated_at, now, self.store.dropout_s)
+                if away is not None:
+                    # Worded without the seconds a silence lasts: the page counts them (the view stays put).
+                    why = f"silent over {self.store.dropout_s:g} s" if away.kind == "silent" else away.reason
+                    view = view.model_copy(update={"left": why})
+                    left[status.vehicle_id] = why
+            vehicles.append(view)
         vehicles.sort(key=lambda v: v.id)
         for key in [k for k in self._first_seen if k not in waiting]:
             del self._first_seen[key]
-        missions = [self._mission(m, sorted(ids), maps.get(m, []), now) for m, ids in sorted(members.items())]
+        missions = [
+            self._mission(m, sorted(ids), maps.get(m, []), sorted(v for v in ids if v in left), now)
+            for m, ids in sorted(members.items())
+        ]
         for gone in [m for m in self._merged if m not in members]:
             del self._merged[gone]
         return SupervisorSnapshot(
@@ -219,18 +233,33 @@ class SupervisorView:
         )
 
     def _mission(
-        self, mission_id: str, vehicle_ids: list[str], maps: list[tuple[str, MissionMap]], now: float
+        self,
+        mission_id: str,
+        vehicle_ids: list[str],
+        maps: list[tuple[str, MissionMap]],
+        left: list[str],
+        now: float,
     ) -> MissionView:
-        """The mission's merged map from the maps its vehicles' views read, merged again only when one of
-        them changed what the merge depends on."""
+        """The mission's merged map from the maps its vehicles' views read, and the unflown part of each
+        vehicle in `left` (which left the search): worked out again only when one of the maps changed what
+        they depend on, or another vehicle left."""
         maps = sorted(maps, key=lambda vm: vm[0])
-        key = tuple(_merge_key(v, m) for v, m in maps)
+        key = (tuple(_merge_key(v, m) for v, m in maps), tuple(left))
         kept = self._merged.get(mission_id)
         if kept is not None and kept[0] == key:
-            merged = kept[1]
+            merged, unflown = kept[1], kept[2]
         else:
             merged = merged_map(mission_id, maps, now)
-            self._merged[mission_id] = (key, merged)
+            covered = [m.covered for _, m in maps if m.covered]
+            unflown = []
+            for vehicle, mission_map in maps:
+                if vehicle in left:
+                    part = unflown_part(mission_map.area, covered)
+                    if part.rings:
+                        unflown.append(
+                            UnflownView(vehicle_id=vehicle, rings=part.rings, area_m2=part.area_m2)
+                        )
+            self._merged[mission_id] = (key, merged, unflown)
         return MissionView(
             mission_id=mission_id,
             vehicles=vehicle_ids,
@@ -238,6 +267,7 @@ class SupervisorView:
             covered=merged.covered,
             coverage=merged.coverage,
             pod=pod_view(merged.pod) if merged.pod is not None else None,
+            unflown=unflown,
         )
 
     def _vehicle(

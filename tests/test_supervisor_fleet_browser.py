@@ -9,6 +9,7 @@ A decision from the queue reaches the vehicle's candidate. Select: -k fleet_brow
 from __future__ import annotations
 
 import base64
+import re
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -54,19 +55,18 @@ def _crop() -> str:
     return base64.b64encode(cv2.imencode(".jpg", picture)[1].tobytes()).decode()
 
 
-def _status(url: str, vehicle: str, step: int, **extra: Any) -> None:
-    """`vehicle` at `step` of its lane up the middle of its part, the lower half of which it has covered."""
+def _status(url: str, vehicle: str, step: int, mode: str = "AUTO", **extra: Any) -> None:
+    """`vehicle` at `step` of its lane up the middle of its part, the southern half of which it has covered."""
     part = PARTS[vehicle]
     west, east = part[0][1], part[1][1]
-    middle = (west + east) / 2
     covered = [[part[0], part[1], [LAT + D / 2, east], [LAT + D / 2, west]]]
     body = {
         "mission_id": MISSION,
         "state": "SEARCHING",
         "prompt": PROMPT,
-        "position": [LAT + step * D / 10, middle],
+        "position": [LAT + step * D / 10, (west + east) / 2],
         "heading_deg": 0.0,
-        "search": {"area": part, "covered": covered, "coverage": 0.5, "mode": "AUTO"},
+        "search": {"area": part, "covered": covered, "coverage": 0.5, "mode": mode},
         **extra,
     }
     headers = {"Authorization": f"Bearer {VEHICLE_TOKENS[vehicle]}"}
@@ -209,14 +209,25 @@ def test_the_fleet_on_one_map_and_one_candidate_queue(page: Page) -> None:
             "drone-1 sees candidate c-west-2"
         )
 
-        # A vehicle that goes home is said to have left the search, on the map and in the legend.
-        _status(url, "drone-2", 7, search={"area": PARTS["drone-2"], "coverage": 0.5, "mode": "RTL"})
+        # A vehicle that goes home has left the search (the back-end says so): on the map and in the legend,
+        # with the part of its area it leaves unflown (its northern half) in its colour, named.
+        expect(the_map.locator("path.unflown")).to_have_count(0)
+        _status(url, "drone-2", 7, mode="RTL")
         expect(the_map.locator('text.vehicle-label[data-vehicle="drone-2"]')).to_have_text(
-            "drone-2 · left the search (RTL)", timeout=10_000
+            "drone-2 · left the search (mode RTL)", timeout=10_000
         )
-        expect(figure.locator('.fleet-legend li[data-vehicle="drone-2"] .legend-state')).to_have_text(
-            "left the search (RTL)"
+        legend = figure.locator('.fleet-legend li[data-vehicle="drone-2"]')
+        expect(legend.locator(".legend-state")).to_have_text("left the search (mode RTL)")
+        expect(legend.locator(".legend-coverage")).to_have_text(
+            re.compile(r"^50 % of its part covered · \d+ m² unflown$")
         )
+        unflown = the_map.locator('path.unflown[data-vehicle="drone-2"]')
+        expect(unflown).to_have_count(1)
+        assert unflown.get_attribute("fill") == colours["drone-2"]
+        expect(unflown.locator("title")).to_have_text(
+            re.compile(r"^drone-2 left \d+ m² of its part unflown$")
+        )
+        expect(the_map.locator("path.unflown")).to_have_count(1)  # drone-1 searches on
         SCREENSHOT.parent.mkdir(parents=True, exist_ok=True)
         page.screenshot(path=str(SCREENSHOT), full_page=True)
         page.goto("about:blank")  # close the live stream before the back-end stops

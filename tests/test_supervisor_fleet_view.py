@@ -118,3 +118,33 @@ def test_the_missions_pod_map_merges_every_vehicles() -> None:
     assert fleet.pod is not None and fleet.pod.looks == 6 and fleet.pod.dark_looks == 2
     # (the grids, 100 m square, overlap where the parts meet: there the looks combine, 1 - 0.5 * 0.4)
     assert 0.5 < fleet.pod.mean < 0.8 and fleet.pod.at_target > 0 and fleet.pod.bands and fleet.pod.meaning
+
+
+def test_a_vehicle_that_left_the_search_and_its_unflown_part() -> None:
+    now = [1000.0]
+    store = SessionStore(clock=lambda: now[0], dropout_s=30.0)
+    view = SupervisorView(store, clock=lambda: now[0])
+    _report(store, "drone-1", WEST, [LAT, LON + D / 4])
+    _report(store, "drone-2", EAST, [LAT, LON + 1.5 * D])
+    snapshot = view.snapshot()
+    assert [v.left for v in snapshot.vehicles] == ["", ""] and snapshot.missions[0].unflown == []
+    # drone-2 goes home: it has left (as backend.fleet_dropout says), the eastern half of its part unflown.
+    now[0] += 5
+    _report(store, "drone-2", EAST, [LAT, LON + 1.5 * D], search={"area": EAST, "coverage": 0.5, "mode": "RTL",
+            "covered": _report_covered(EAST)})  # fmt: skip
+    snapshot = view.snapshot()
+    assert {v.id: v.left for v in snapshot.vehicles} == {"drone-1": "", "drone-2": "mode RTL"}
+    (unflown,) = snapshot.missions[0].unflown
+    assert unflown.vehicle_id == "drone-2" and unflown.rings
+    half = D * 111_320 * D * 111_320 * 0.674 / 2  # half the part, m² (a degree of longitude at 47.4°)
+    assert 0.8 * half < unflown.area_m2 < 1.1 * half, (unflown.area_m2, half)
+    # drone-1 falls silent past [fleet] dropout_s: worded without the seconds, which the page counts.
+    now[0] += 40
+    store.set_status("drone-3", VehicleStatusIn.model_validate({"mission_id": "other", "state": "IDLE"}))
+    snapshot = view.snapshot()
+    assert {v.id: v.left for v in snapshot.vehicles}["drone-1"] == "silent over 30 s"
+    assert sorted(u.vehicle_id for u in snapshot.missions[0].unflown) == ["drone-1", "drone-2"]
+
+
+def _report_covered(area: list[list[float]]) -> list[list[list[float]]]:
+    return [[area[0], [area[0][0], area[0][1] + D / 2], [area[1][0], area[1][1] + D / 2], area[1]]]

@@ -743,7 +743,6 @@ async function download(vehicleId, missionId, kind, card) {
 // --- the fleet: one map per mission, its legend, one queue of every vehicle's candidates ---------------
 
 const SILENT_S = 10; // a vehicle with no report for longer is marked silent in the legend
-const LEFT_MODES = new Set(["RTL", "SMART_RTL", "LAND", "AUTO.RTL", "AUTO.LAND", "AUTO.RTGS", "RTGS"]);
 const STATE_WORDS = {
   IDLE: "idle",
   SEARCHING: "searching",
@@ -762,10 +761,15 @@ function safeColour(colour) {
   return /^#[0-9a-fA-F]{6}$/.test(colour || "") ? colour : "#5d6670";
 }
 
+// The back-end says when a vehicle has left its mission's search (backend.fleet_dropout: RTL / LAND, an
+// abort, silent too long) and why.
 function stateWords(vehicle) {
-  const mode = (vehicle.search && vehicle.search.mode) || "";
-  if (LEFT_MODES.has(mode.toUpperCase())) return `left the search (${mode})`;
+  if (vehicle.left) return `left the search (${vehicle.left})`;
   return STATE_WORDS[vehicle.state] || vehicle.state.toLowerCase();
+}
+
+function formatArea(m2) {
+  return m2 >= 10000 ? `${(m2 / 10000).toFixed(1)} ha` : `${Math.round(m2)} m²`;
 }
 
 function scheduleFleet() {
@@ -811,8 +815,10 @@ function drawFleetMap(figure, mission, members) {
   map.replaceChildren();
   const parts = (v) => (v.search && v.search.area.length > 2 ? v.search.area : []);
   const candidates = members.flatMap((v) => v.candidates.filter((c) => c.position).map((c) => [v, c]));
+  const unflown = mission.unflown || [];
   const points = [
     ...mission.area.flat(),
+    ...unflown.flatMap((u) => u.rings.flat()),
     ...members.flatMap((v) => [...parts(v), ...v.track, ...(v.position ? [v.position] : [])]),
     ...candidates.map(([, c]) => [c.position.lat, c.position.lon]),
     ...members.flatMap((v) => v.finds.map((f) => [f.position.lat, f.position.lon])),
@@ -853,6 +859,16 @@ function drawFleetMap(figure, mission, members) {
   else for (const ring of mission.covered) if (ring.length > 2) svg("path", { d: `${path(ring)} Z`, class: "merged-covered" }, map);
   renderLegend(figure, mission.pod);
   for (const ring of mission.area) if (ring.length > 2) svg("path", { d: `${path(ring)} Z`, class: "merged-area" }, map);
+  // What a vehicle that left the search leaves unflown: for the re-plan, in its colour, named.
+  const colourOf = new Map(members.map((v) => [v.id, safeColour(v.colour)]));
+  for (const left of unflown) {
+    const d = left.rings.filter((ring) => ring.length > 2).map((ring) => `${path(ring)} Z`).join(" ");
+    if (!d) continue;
+    const colour = colourOf.get(left.vehicle_id) || safeColour("");
+    const shape = svg("path", { d, class: "unflown", stroke: colour, fill: colour, "fill-rule": "evenodd" }, map);
+    shape.dataset.vehicle = left.vehicle_id;
+    titled(shape, `${left.vehicle_id} left ${formatArea(left.area_m2)} of its part unflown`);
+  }
   // Each vehicle in its colour, and named: its part, its track, where it is and what it does.
   for (const vehicle of members) {
     const colour = safeColour(vehicle.colour);
@@ -929,6 +945,8 @@ function renderFleetLegend(figure, members) {
     coverage.textContent = search && search.area.length > 2
       ? `${(search.coverage * 100).toFixed(0)} % of its part covered`
       : "no part of the area";
+    const unflown = (missions.find((m) => m.mission_id === vehicle.mission_id)?.unflown || []).find((u) => u.vehicle_id === vehicle.id);
+    if (unflown) coverage.textContent += ` · ${formatArea(unflown.area_m2)} unflown`;
     const age = document.createElement("span");
     age.className = "legend-age muted";
     item.append(chip, id, state, coverage, age);
