@@ -97,11 +97,14 @@ def merged_pod(grids: Sequence[PodGrid], max_cells: int = MAX_CELLS) -> PodGrid 
 
 
 def _metres(geometry: BaseGeometry, frame: LocalFrame) -> BaseGeometry:
-    """A lon/lat geometry in `frame`'s metres (east, north)."""
-    return shapely.transform(
-        geometry,
-        lambda lonlat: np.array([frame.xy(float(lat), float(lon)) for lon, lat in lonlat]).reshape(-1, 2),
-    )
+    """A lon/lat geometry in `frame`'s metres (east, north): `frame.xy` on every vertex at once. Its offsets
+    are linear in the degrees from the origin (the radii are the origin's), so one degree's metres scale them
+    all (a point at a time in Python was a third of a 50-vehicle merge)."""
+    east_per_deg = frame.xy(frame.lat, frame.lon + 1.0)[0]
+    north_per_deg = frame.xy(frame.lat + 1.0, frame.lon)[1]
+    origin = np.array([frame.lon, frame.lat])
+    scale = np.array([east_per_deg, north_per_deg])
+    return shapely.transform(geometry, lambda lonlat: (lonlat - origin) * scale)
 
 
 def merged_map(mission_id: str, maps: Sequence[tuple[str, MissionMap]], now: float) -> MergedMap:

@@ -304,6 +304,7 @@ def fleet_map_run(
             pause = due - time.monotonic()
             if pause > 0 and stop.wait(pause):
                 return
+            due += settings.poll_s  # a poll that takes longer than poll_s delays the next, never doubles up
             try:
                 t0 = time.perf_counter()
                 state = supervisor.get(f"{url}/supervisor/api/state", timeout=60)
@@ -326,7 +327,6 @@ def fleet_map_run(
                 elif merged.status_code != 404:  # 404 until a first vehicle has reported its map
                     errors.append(f"map HTTP {merged.status_code}")
                 rss.append(server.rss_bytes())
-            due += settings.poll_s
 
     page = _Page(f"{url}/supervisor/events").start()
     threads = [threading.Thread(target=vehicle, args=(i,), name=f"vehicle-{i}") for i in range(n)]
