@@ -85,6 +85,7 @@ from gcs.survey_command import (
 TIMEOUT_S = 10.0
 MAX_ANSWER_BYTES = 2_000_000
 MAX_CORNERS = 200  # the re-planned area's outline is simplified to at most this many corners
+INSIDE_MARGIN_M = 2.0  # a waypoint this far inside the dropped area flies into it
 MISSION_STATE_COMPLETE = 5  # MISSION_CURRENT.mission_state
 LEAVING_MODES = frozenset({"RTL", "SMART_RTL", "AUTO_RTL", "LAND", "QRTL", "QLAND", "RTGS", "RETURN"})
 EXAMPLES = """\
@@ -329,6 +330,24 @@ def _hear(args: argparse.Namespace, remaining: Remaining, gcs_error: type[Except
     remaining.own = own_mission(downloaded.items, downloaded.first_seq, current)
 
 
+def _not_replanned_before(remaining: Remaining, area: Sequence[LatLon]) -> None:
+    """ReplanError when the path along the vehicle's waypoints left already flies into the area (a re-plan run twice would
+    append the same share again)."""
+    own = remaining.own
+    if own is None or not own.left:
+        return
+    frame = LocalFrame(*area[0])
+    inside = Polygon([frame.xy(lat, lon) for lat, lon in area]).buffer(-INSIDE_MARGIN_M)
+    points = [frame.xy(lat, lon) for lat, lon in own.left]
+    path = shapely.LineString(points) if len(points) > 1 else shapely.Point(points[0])
+    if path.intersects(inside):  # lanes end on the area's edge: their legs, not their ends, lie in it
+        raise ReplanError(
+            f"vehicle {remaining.member.vehicle.id}: its waypoints left already fly into the dropped area "
+            "(re-planned before?); --again appends its share all the same",
+            EXIT_REFUSED,
+        )
+
+
 # ------------------------------------------------------------------------------------------ the lines
 def describe(split: FleetSplit, remaining: dict[str, Remaining], altitude_m: float) -> list[str]:
     whole = split.whole
@@ -501,6 +520,8 @@ def _plan_and_send(
                 assert r.vehicle is not None
                 where = r.vehicle.position or r.member.vehicle.start
                 check_distance(area, where, max_distance_m, f"vehicle {r.member.vehicle.id}")
+                if not args.again:
+                    _not_replanned_before(r, area)
         split = split_area(area, settings, [r.fleet_vehicle() for r in remaining.values()])
     except ReplanError as exc:
         print(f"error: {exc}; nothing uploaded", file=sys.stderr)
@@ -578,6 +599,11 @@ def add_parser(sub: Any) -> None:
     p.add_argument(
         "--dry-run", action="store_true", help="fetch the drop-outs and print the plan; send nothing"
     )
+    p.add_argument(
+        "--again", action="store_true",
+        help="append the shares even where a vehicle's waypoints left already fly into the dropped area (by "
+        "default that is refused: a re-plan run twice would fly it twice)",
+    )  # fmt: skip
     p.add_argument(
         "--step-timeout", type=float, default=1.5, metavar="S",
         help="mission protocol: wait this long for each answer, 5 retries (default 1.5)",

@@ -187,6 +187,19 @@ def test_the_dropped_area_is_appended_and_the_vehicles_go_on_in_their_mission(
         assert lanes[0] and lanes[1] and not lanes[0] & lanes[1]
         assert len(lanes[0]) + len(lanes[1]) == 4 * 1  # each lane: one east offset (lanes run north-south)
         assert min(min(x) for x in lanes) > 140 and max(max(x) for x in lanes) < 300
+        # Run again, it would append the same share again: refused, nothing sent.
+        code, out, err = run(
+            capsys, "--timeout", "3", "replan", "--mission", "m-43", "--fleet", str(fleet), "--altitude", "25",
+            "--backend", backend, "--supervisor-token-file", str(token_file), "--companion-config", defaults,
+        )  # fmt: skip
+        assert code == 1 and err.count("\n") == 1, err
+        assert re.fullmatch(
+            r"error: vehicle drone-.: its waypoints left already fly into the dropped area \(re-planned before\?\); "
+            r"--again appends its share all the same; nothing uploaded\n",
+            err,
+        ), err
+        assert len(ardupilot.mission.items[1:]) == len(items_1)
+        assert len(px4.mission.items) == len(items_2)
 
 
 def test_a_remaining_vehicle_going_home_is_refused_and_nothing_is_sent(
