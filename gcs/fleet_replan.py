@@ -52,7 +52,14 @@ from shapely.geometry import Polygon
 from behaviors.fleet_split import FleetPart, FleetSplit, FleetVehicle, split_area
 from behaviors.geolocation import latlon_to_offset
 from behaviors.mission_items import NAV_TAKEOFF, MissionItem
-from behaviors.survey_planner import LatLon, SurveyError, leg_time_s
+from behaviors.survey_planner import (
+    LatLon,
+    SurveyError,
+    SurveySettings,
+    check_polygon,
+    leg_time_s,
+    plan_checked,
+)
 from cloudtrack.api_models import IDENTIFIER
 from cloudtrack.autopilot_modes import AutopilotKind, mission_mode
 from cloudtrack.config_files import ConfigError, hide_url_secrets
@@ -349,6 +356,23 @@ def _not_replanned_before(remaining: Remaining, area: Sequence[LatLon]) -> None:
 
 
 # ------------------------------------------------------------------------------------------ the lines
+def split_over(
+    area: Sequence[LatLon], settings: SurveySettings, vehicles: Sequence[FleetVehicle]
+) -> tuple[FleetSplit, list[FleetVehicle]]:
+    """The area split over the vehicles (`split_area`); where it has fewer lanes than vehicles (a vehicle that
+    dropped out near the end of its part leaves a lane or two), over those that would fly the whole of it
+    soonest alone, one lane or more each. The vehicles left without a share come second."""
+    whole = plan_checked(check_polygon(area), replace(settings, start=None))
+    if whole.lanes >= len(vehicles):
+        return split_area(area, settings, vehicles), []
+    soonest = sorted(vehicles, key=lambda v: (split_area(area, settings, [v]).finish_s, v.id))
+    taking = {v.id for v in soonest[: whole.lanes]}
+    return (
+        split_area(area, settings, [v for v in vehicles if v.id in taking]),
+        [v for v in vehicles if v.id not in taking],
+    )
+
+
 def describe(split: FleetSplit, remaining: dict[str, Remaining], altitude_m: float) -> list[str]:
     whole = split.whole
     lines = [
@@ -504,7 +528,7 @@ def run(args: argparse.Namespace) -> int:
 def _plan_and_send(
     args: argparse.Namespace,
     area: list[LatLon],
-    settings: Any,
+    settings: SurveySettings,
     remaining: dict[str, Remaining],
     max_distance_m: float,
     gcs_error: type[Exception],
@@ -522,7 +546,7 @@ def _plan_and_send(
                 check_distance(area, where, max_distance_m, f"vehicle {r.member.vehicle.id}")
                 if not args.again:
                     _not_replanned_before(r, area)
-        split = split_area(area, settings, [r.fleet_vehicle() for r in remaining.values()])
+        split, idle = split_over(area, settings, [r.fleet_vehicle() for r in remaining.values()])
     except ReplanError as exc:
         print(f"error: {exc}; nothing uploaded", file=sys.stderr)
         return exc.code
@@ -537,6 +561,12 @@ def _plan_and_send(
         )
     for line in describe(split, remaining, settings.altitude_m):
         print(f"  {line}", flush=True)
+    for vehicle in idle:
+        print(
+            f"  vehicle {vehicle.id}: no share (the unflown area has {split.whole.lanes} lane"
+            f"{'s' if split.whole.lanes != 1 else ''}, taken by the vehicles that finish them soonest)",
+            flush=True,
+        )
     if args.dry_run:
         return 0
     worst, done = 0, []

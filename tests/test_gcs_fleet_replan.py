@@ -23,6 +23,7 @@ from behaviors.survey_planner import SurveySettings
 from cloudtrack.mavlink_connection import MavlinkEndpoint
 from cloudtrack.mission_protocol import MissionClient, positions_match
 from gcs import cli as gcs_cli
+from gcs.fleet_replan import split_over
 from tests.backend_fixtures import SUPERVISOR, TOKENS, backend_config
 from tests.live_backend import serve
 from tests.mavlink_harness import autopilot, wait_for
@@ -169,6 +170,8 @@ def test_the_dropped_area_is_appended_and_the_vehicles_go_on_in_their_mission(
         items_1 = ardupilot.mission.items[1:]
         assert positions_match(items_1[:3], north) and len(items_1) == 3 + int(parts["drone-1"]["items"])
         assert ardupilot.mode == "AUTO" and ardupilot.mission.running and ardupilot.mission.current == 2
+        north_now = ardupilot.snapshot().north
+        assert wait_for(lambda: ardupilot.snapshot().north > north_now + 3.0, 10.0), "drone-1 stopped"
         # drone-2 had finished: it now flies its share, from its first item, still in Mission mode.
         items_2 = px4.mission.items
         assert px4.mode == "MISSION" and px4.mission.running and not px4.mission.complete
@@ -286,15 +289,18 @@ def test_an_unknown_mission_and_nothing_left_unflown(
     assert code == 2 and err.startswith("error: --mission 'a/b' must be")
 
 
+SETTINGS = SurveySettings(
+    altitude_m=25.0,
+    overlap=0.2,
+    camera=CameraModel.from_hfov(1280, 720, 90.0, -90.0, True),
+    search_range_m=150.0,
+    min_altitude_m=10.0,
+    max_altitude_m=120.0,
+)
+
+
 def test_a_busy_vehicle_takes_fewer_lanes() -> None:
-    settings = SurveySettings(
-        altitude_m=25.0,
-        overlap=0.2,
-        camera=CameraModel.from_hfov(1280, 720, 90.0, -90.0, True),
-        search_range_m=150.0,
-        min_altitude_m=10.0,
-        max_altitude_m=120.0,
-    )
+    settings = SETTINGS
     area = [(p[0], p[1]) for p in _rect(0, 0, 400, 200)]
     free = [FleetVehicle("a", 5.0, HOME), FleetVehicle("b", 5.0, HOME)]
     even = split_area(area, settings, free)
@@ -304,3 +310,15 @@ def test_a_busy_vehicle_takes_fewer_lanes() -> None:
     assert busy.finish_s >= even.finish_s
     b = next(p for p in busy.parts if p.vehicle.id == "b")
     assert b.time_s == pytest.approx(120.0 + b.transit_s + b.plan.time_s)
+
+
+def test_fewer_lanes_than_vehicles_go_to_those_that_finish_them_soonest() -> None:
+    strip = [(p[0], p[1]) for p in _rect(0, 0, 30, 200)]  # one lane: what a drone leaves near its part's end
+    near = FleetVehicle("near", 5.0, tuple(_at(0, -50)))  # type: ignore[arg-type]
+    far = FleetVehicle("far", 5.0, tuple(_at(0, -900)))  # type: ignore[arg-type]
+    busy = FleetVehicle("busy", 5.0, tuple(_at(0, -50)), busy_s=600.0)  # type: ignore[arg-type]
+    split, idle = split_over(strip, SETTINGS, [far, busy, near])
+    assert [p.vehicle.id for p in split.parts] == ["near"] and [v.id for v in idle] == ["far", "busy"]
+    wide = [(p[0], p[1]) for p in _rect(0, 0, 400, 200)]
+    split, idle = split_over(wide, SETTINGS, [far, near])
+    assert sorted(p.vehicle.id for p in split.parts) == ["far", "near"] and idle == []
