@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -42,11 +43,14 @@ from typing import Any
 import numpy as np
 import requests
 
+from backend.mission_map import updated_map
+from backend.mission_merge import merged_map
 from backend_tools.fleet_bench import SUPERVISOR_TOKEN, fleet_tokens
 from backend_tools.fleet_services import BackendProcess, RedisServer
 from behaviors.apparent_size import TargetShape
 from behaviors.camera_model import CameraModel
 from behaviors.survey_planner import SurveySettings, plan_survey
+from cloudtrack.api_models import VehicleStatusIn
 from cloudtrack.coverage import CoverageMap, LocalFrame
 from cloudtrack.detection_curves import curve_for
 from cloudtrack.model_store import ModelError, require
@@ -242,6 +246,27 @@ class _Page:
         self._thread.join(timeout=5)
 
 
+def cpu_seconds(pid: int) -> float:
+    """User plus system CPU time of a process so far, from /proc (what it used, however busy the machine)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def merge_cpu_ms(bodies: list[list[bytes]], repeats: int = 3) -> float:
+    """CPU time of one merge of the vehicles' maps as they stand after their last reports (the merge the map
+    endpoint and the page's state run), here in the bench's process: the merge's cost apart from the load."""
+    maps = []
+    for index, mine in enumerate(bodies):
+        status = VehicleStatusIn.model_validate_json(mine[-1])
+        kept = updated_map(None, status.position, status.search, 1.0)
+        if kept is not None:
+            maps.append((f"bench-{index}", kept))
+    start = time.process_time()
+    for _ in range(repeats):
+        merged_map(MISSION_ID, maps, 1.0)
+    return 1000 * (time.process_time() - start) / repeats
+
+
 def fleet_map_run(
     server: BackendProcess, tokens: dict[str, str], bodies: list[list[bytes]], settings: FleetMapSettings
 ) -> dict[str, Any]:
@@ -297,6 +322,7 @@ def fleet_map_run(
     map_s: list[float] = []
     map_bytes: list[int] = []
     rss: list[int] = [server.rss_bytes()]
+    cpu_before = cpu_seconds(server.pid)
 
     def poll() -> None:
         due = start + settings.poll_s / 2
@@ -337,6 +363,7 @@ def fleet_map_run(
     for t in threads:
         t.join()
     wall = time.monotonic() - start
+    server_cpu = cpu_seconds(server.pid) - cpu_before
     stop.set()
     poller.join()
     page.stop()
@@ -361,6 +388,12 @@ def fleet_map_run(
             "events": page.events,
             "error": page.error,
         },
+        "server_cpu": {
+            "seconds": server_cpu,
+            "per_wall_s": server_cpu / wall if wall > 0 else 0.0,
+            "ms_per_status": 1000 * server_cpu / max(1, len(status_s)),
+        },
+        "merge_cpu_ms": merge_cpu_ms(bodies),
         "rss_mb": {"start": rss[0] / 2**20, "max": max(rss) / 2**20, "end": rss[-1] / 2**20},
         "errors": len(errors),
         "error_examples": errors[:3],
@@ -432,6 +465,7 @@ def fleet_map_bench(
             "state_bytes": ratio(large["state"]["bytes"], small["state"]["bytes"]),
             "status_p95": ratio(large["status"]["p95_ms"], small["status"]["p95_ms"]),
             "rss_max": ratio(large["rss_mb"]["max"], small["rss_mb"]["max"]),
+            "merge_cpu": ratio(large["merge_cpu_ms"], small["merge_cpu_ms"]),
         }
     return report
 
@@ -447,21 +481,25 @@ def print_fleet_map(report: dict[str, Any]) -> None:
     )
     print(
         "| vehicles | status p50/p95 [ms] | decisions p95 [ms] | map p50/p95 [ms] | map bytes | "
-        "state p50/p95 [ms] | state bytes | stream bytes/s | RSS start/max [MB] | errors |"
+        "state p50/p95 [ms] | state bytes | stream bytes/s | RSS start/max [MB] | server CPU [s/s] | "
+        "merge CPU [ms] | errors |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in report["runs"]:
         print(
             f"| {r['vehicles']} | {r['status']['p50_ms']:.1f} / {r['status']['p95_ms']:.1f} | "
             f"{r['decisions_poll']['p95_ms']:.1f} | {r['map']['p50_ms']:.1f} / {r['map']['p95_ms']:.1f} | "
             f"{r['map']['bytes']:,} | {r['state']['p50_ms']:.1f} / {r['state']['p95_ms']:.1f} | "
             f"{r['state']['bytes']:,} | {r['page_stream']['bytes_per_s']:,.0f} | "
-            f"{r['rss_mb']['start']:.0f} / {r['rss_mb']['max']:.0f} | {r['errors']} |"
+            f"{r['rss_mb']['start']:.0f} / {r['rss_mb']['max']:.0f} | {r['server_cpu']['per_wall_s']:.2f} | "
+            f"{r['merge_cpu_ms']:.0f} | {r['errors']} |"
         )
     for r in report["runs"]:
         f = r["final"]
         print(
-            f"{r['vehicles']} vehicle(s): {r['status_reports']} status reports of {r['status_bytes']:,.0f} bytes; "
+            f"{r['vehicles']} vehicle(s): {r['status_reports']} status reports of {r['status_bytes']:,.0f} bytes in "
+            f"{r['window_s']:g} s ({r['status_reports'] / max(r['window_s'], 1e-9):.1f}/s of "
+            f"{r['vehicles'] / s['status_interval_s']:g}/s due); "
             f"merged map holds {len(f['map_vehicles'])} vehicle(s), coverage {f['map_coverage']}, POD grid "
             f"{f['map_pod_cells']} cells of {f['map_pod_cell_m'] or 0:.1f} m; page shows {f['page_vehicles']}"
         )
@@ -470,5 +508,5 @@ def print_fleet_map(report: dict[str, Any]) -> None:
         print(
             f"{q['vehicles']}: map p95 x{q['map_p95']:.2f}, map bytes x{q['map_bytes']:.2f}, state p95 "
             f"x{q['state_p95']:.2f}, state bytes x{q['state_bytes']:.2f}, status p95 x{q['status_p95']:.2f}, "
-            f"RSS max x{q['rss_max']:.2f}"
+            f"RSS max x{q['rss_max']:.2f}, merge CPU x{q['merge_cpu']:.1f}"
         )

@@ -44,6 +44,7 @@ def test_fleet_map_bench_prints_every_figure(models_dir: Path, tmp_path: Path, c
             assert run[part]["count"] >= 1 and 0 <= run[part]["p50_ms"] <= run[part]["p95_ms"], part
         assert run["map"]["bytes"] > 0 and run["state"]["bytes"] > 0 and run["status_bytes"] > 0
         assert 0 < run["rss_mb"]["start"] <= run["rss_mb"]["max"]
+        assert run["server_cpu"]["seconds"] > 0 and run["merge_cpu_ms"] >= 0
         assert run["page_stream"]["events"] >= 1 and run["page_stream"]["bytes_per_s"] > 0
         final = run["final"]
         assert final["map_vehicles"] == [f"bench-{i}" for i in range(n)]  # every vehicle on the merged map
