@@ -93,12 +93,61 @@ def unflown_part(
 ) -> Unflown:
     """The vehicle's `part` ([lat, lon] corners) less every vehicle's `covered` rings (each vehicle's list of
     [lat, lon] rings, as statuses report them): see the module doc. Empty for a part of fewer than 3 corners."""
-    if len(part) < 3:
-        return Unflown([], 0.0)
-    frame = LocalFrame(float(part[0][0]), float(part[0][1]))
+    return unflown_parts([part], covered, sliver_m, min_piece_m2, max_rings, max_vertices)[0]
+
+
+def unflown_parts(
+    parts: Sequence[Sequence[Sequence[float]]],
+    covered: Sequence[Sequence[Sequence[Sequence[float]]]],
+    sliver_m: float = SLIVER_M,
+    min_piece_m2: float = MIN_PIECE_M2,
+    max_rings: int = MAX_RINGS,
+    max_vertices: int = MAX_VERTICES,
+) -> list[Unflown]:
+    """`unflown_part` of each of `parts`, the covered rings merged once (in one local frame: a mission's
+    parts lie within a few km)."""
+    corners = [p for p in parts if len(p) >= 3]
+    if not corners:
+        return [Unflown([], 0.0) for _ in parts]
+    frame = LocalFrame(float(corners[0][0][0]), float(corners[0][0][1]))
+    reach = _bounds([q for p in corners for q in p])
+    seen = [
+        shapely.make_valid(_metres(geometry_from_rings(rings), frame))
+        for rings in covered
+        if rings and _meet(_bounds([q for ring in rings for q in ring]), reach)
+    ]  # only what may meet a part is put in metres (a fleet of 50 reports 50 covered areas)
+    tree = shapely.STRtree(seen)  # a part meets the covered areas of a few vehicles: its own, its neighbours'
+    return [
+        _unflown(part, seen, tree, frame, sliver_m, min_piece_m2, max_rings, max_vertices)
+        if len(part) >= 3
+        else Unflown([], 0.0)
+        for part in parts
+    ]
+
+
+def _bounds(points: Sequence[Sequence[float]]) -> tuple[float, float, float, float]:
+    lats = [float(p[0]) for p in points]
+    lons = [float(p[1]) for p in points]
+    return min(lats), min(lons), max(lats), max(lons)
+
+
+def _meet(a: tuple[float, float, float, float], b: tuple[float, float, float, float]) -> bool:
+    return a[0] <= b[2] and b[0] <= a[2] and a[1] <= b[3] and b[1] <= a[3]
+
+
+def _unflown(
+    part: Sequence[Sequence[float]],
+    seen: Sequence[BaseGeometry],
+    tree: shapely.STRtree,
+    frame: LocalFrame,
+    sliver_m: float,
+    min_piece_m2: float,
+    max_rings: int,
+    max_vertices: int,
+) -> Unflown:
     area = shapely.make_valid(Polygon([frame.xy(float(lat), float(lon)) for lat, lon in part]))
-    seen = [shapely.make_valid(_metres(geometry_from_rings(rings), frame)) for rings in covered if rings]
-    left = area.difference(shapely.union_all(seen)) if seen else area
+    near = [seen[int(i)] for i in tree.query(area)]
+    left = area.difference(shapely.union_all(near)) if near else area
     left = _opened(left, sliver_m).intersection(area)
     pieces = [p for p in getattr(left, "geoms", [left]) if isinstance(p, Polygon) and p.area >= min_piece_m2]
     kept = shapely.union_all(pieces) if pieces else Polygon()

@@ -27,7 +27,7 @@ import time
 from collections.abc import Callable
 
 from backend.appearance import descriptor, similarity
-from backend.fleet_dropout import leaving, unflown_part
+from backend.fleet_dropout import leaving, unflown_parts
 from backend.images import (
     JPEG_MAGIC,
     PNG_MAGIC,
@@ -429,9 +429,8 @@ class SessionStore:
         kept = [(v, m) for v, m in maps if m is not None]
         if not kept:
             return None
-        covered = [m.covered for _, m in kept if m.covered]
-        dropouts: list[Dropout] = []
         searching: list[str] = []
+        left_search = []
         for vehicle, mission_map in sorted(kept, key=lambda vm: vm[0]):
             if len(mission_map.area) < 3:
                 continue  # no part of the area: nothing of the search to leave unflown
@@ -440,18 +439,24 @@ class SessionStore:
             )
             if left is None:
                 searching.append(vehicle)
-                continue
-            unflown = unflown_part(mission_map.area, covered)
-            dropouts.append(
-                Dropout(
-                    vehicle_id=vehicle,
-                    kind=left.kind,
-                    reason=left.reason,
-                    since=left.since,
-                    unflown=unflown.rings,
-                    area_m2=unflown.area_m2,
-                )
+            else:
+                left_search.append((vehicle, mission_map, left))
+        unflown = (
+            unflown_parts([m.area for _, m, _ in left_search], [m.covered for _, m in kept if m.covered])
+            if left_search
+            else []
+        )
+        dropouts = [
+            Dropout(
+                vehicle_id=vehicle,
+                kind=left.kind,
+                reason=left.reason,
+                since=left.since,
+                unflown=part.rings,
+                area_m2=part.area_m2,
             )
+            for (vehicle, _, left), part in zip(left_search, unflown, strict=True)
+        ]
         return MissionDropouts(
             mission_id=mission_id,
             dropout_s=self.dropout_s,

@@ -16,7 +16,7 @@ import requests
 from shapely.geometry import Polygon
 
 from backend.app import create_app
-from backend.fleet_dropout import leaving, unflown_part
+from backend.fleet_dropout import leaving, unflown_part, unflown_parts
 from backend.redis_store import RedisStore
 from backend.schemas import SearchStatus, VehicleStatus, VehicleStatusIn
 from backend.sessions import SessionStore
@@ -77,6 +77,14 @@ def test_the_unflown_part_stays_bounded() -> None:
     unflown = unflown_part(PART, covered, sliver_m=0.1, min_piece_m2=1.0, max_rings=5, max_vertices=40)
     assert 1 <= len(unflown.rings) <= 5 and sum(len(r) for r in unflown.rings) <= 40
     assert unflown_part(PART[:2], []).rings == []  # no part: nothing unflown
+
+
+def test_several_parts_at_once_meet_only_the_covered_areas_near_them() -> None:
+    west, east = _rect(0, 0, 100, 40), _rect(1000, 0, 1100, 40)
+    covered = [[_rect(0, 0, 60, 40)], [_rect(1000, 0, 1030, 40)], [_rect(5000, 0, 5100, 40)]]
+    parts = unflown_parts([west, east, west[:2]], covered)
+    assert [p.area_m2 for p in parts] == pytest.approx([1600.0, 2800.0, 0.0], rel=0.01)
+    assert unflown_parts([], covered) == []
 
 
 def _status(**fields: Any) -> VehicleStatus:
