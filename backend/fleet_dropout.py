@@ -4,7 +4,7 @@ Pure functions over what the back-end already keeps per vehicle (its last status
 nothing is stored for a drop-out, it is worked out on each read.
 
 A vehicle of a mission has left the search (`leaving`) when
-- its last status reports a flight mode that takes it home or down (`LEAVING_MODES`: ArduPilot's RTL, SMART_RTL,
+- its last status reports a flight mode that takes it home or down (`cloudtrack.autopilot_modes.RETURN_MODES`: ArduPilot's RTL, SMART_RTL,
   LAND, QRTL, QLAND, AUTO_RTL; PX4's RTL, LAND, RTGS, and "RETURN" as QGroundControl names PX4's RTL);
 - its companion reports the mission ABORTED (a pilot's takeover, the autopilot link lost, the operator's abort:
   the status's reason says which);
@@ -32,9 +32,9 @@ from shapely.geometry.base import BaseGeometry
 
 from backend.mission_merge import _metres
 from cloudtrack.api_models import VehicleStatus
+from cloudtrack.autopilot_modes import RETURN_MODES
 from cloudtrack.coverage import LocalFrame, bounded_rings, geometry_from_rings
 
-LEAVING_MODES = frozenset({"RTL", "SMART_RTL", "AUTO_RTL", "LAND", "QRTL", "QLAND", "RTGS", "RETURN"})
 ABORTED_STATE = "ABORTED"
 SLIVER_M = 4.0
 MIN_PIECE_M2 = 50.0
@@ -64,7 +64,7 @@ def leaving(
     mission (its status's time, else its map's)."""
     if status is not None and status.mission_id == mission_id:
         mode = (status.search.mode if status.search is not None else "").strip().upper()
-        if mode in LEAVING_MODES:
+        if mode in RETURN_MODES:
             return Leaving("mode", f"mode {mode}", status.updated_at)
         if status.state.strip().upper() == ABORTED_STATE:
             why = " ".join(status.reason.split())[:120]

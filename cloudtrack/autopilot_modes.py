@@ -47,6 +47,12 @@ _PX4_ACTIONS = {
 }
 
 
+# Flight modes that take a vehicle home or down, out of its search: ArduPilot's (Copter, Plane's VTOL Q
+# modes) and PX4's (RTGS: return to the ground station), and "RETURN" as QGroundControl names PX4's RTL.
+# A fleet's back-end counts a vehicle reporting one as dropped out; `cloudtrack-gcs replan` refuses it.
+RETURN_MODES = frozenset({"RTL", "SMART_RTL", "AUTO_RTL", "LAND", "QRTL", "QLAND", "RTGS", "RETURN"})
+
+
 @dataclass(frozen=True)
 class SetModeParams:
     """MAV_CMD_DO_SET_MODE params 1-3."""

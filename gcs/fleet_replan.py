@@ -61,7 +61,7 @@ from behaviors.survey_planner import (
     plan_checked,
 )
 from cloudtrack.api_models import IDENTIFIER
-from cloudtrack.autopilot_modes import AutopilotKind, mission_mode
+from cloudtrack.autopilot_modes import RETURN_MODES, AutopilotKind, mission_mode
 from cloudtrack.config_files import ConfigError, hide_url_secrets
 from cloudtrack.connection_errors import connection_cause
 from cloudtrack.coverage import LocalFrame
@@ -94,7 +94,6 @@ MAX_ANSWER_BYTES = 2_000_000
 MAX_CORNERS = 200  # the re-planned area's outline is simplified to at most this many corners
 INSIDE_MARGIN_M = 2.0  # a waypoint this far inside the dropped area flies into it
 MISSION_STATE_COMPLETE = 5  # MISSION_CURRENT.mission_state
-LEAVING_MODES = frozenset({"RTL", "SMART_RTL", "AUTO_RTL", "LAND", "QRTL", "QLAND", "RTGS", "RETURN"})
 EXAMPLES = """\
 examples:
   cloudtrack-gcs replan --mission m-7 --fleet fleet.toml --altitude 25 --dry-run
@@ -329,7 +328,7 @@ def _hear(args: argparse.Namespace, remaining: Remaining, gcs_error: type[Except
         raise ReplanError(f"{who}{exc}", int(getattr(exc, "code", EXIT_TIMEOUT))) from None
     except MissionError as exc:
         raise ReplanError(f"{who}{exc}", EXIT_TIMEOUT) from None
-    if vehicle.mode.upper() in LEAVING_MODES:
+    if vehicle.mode.upper() in RETURN_MODES:
         raise ReplanError(
             f"{who}it is leaving the search (mode {vehicle.mode}): leave it out of the fleet for the re-plan",
             EXIT_REFUSED,
