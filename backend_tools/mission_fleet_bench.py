@@ -497,9 +497,8 @@ def print_fleet_map(report: dict[str, Any]) -> None:
     for r in report["runs"]:
         f = r["final"]
         print(
-            f"{r['vehicles']} vehicle(s): {r['status_reports']} status reports of {r['status_bytes']:,.0f} bytes in "
-            f"{r['window_s']:g} s ({r['status_reports'] / max(r['window_s'], 1e-9):.1f}/s of "
-            f"{r['vehicles'] / s['status_interval_s']:g}/s due); "
+            f"{r['vehicles']} vehicle(s): {r['status_reports']} status reports of {r['status_bytes']:,.0f} bytes, "
+            f"due over {s['duration_s']:g} s, sent in {r['window_s']:g} s; "
             f"merged map holds {len(f['map_vehicles'])} vehicle(s), coverage {f['map_coverage']}, POD grid "
             f"{f['map_pod_cells']} cells of {f['map_pod_cell_m'] or 0:.1f} m; page shows {f['page_vehicles']}"
         )
