@@ -318,7 +318,8 @@ def fit_curves(
         curve = curve_from_sequences(name, sequences, config)
         if len(sequences) < min_sequences:
             left_out[name] = (
-                f"{len(sequences)} sequence(s), fewer than {min_sequences}: one target's curve is that target's"
+                f"{len(sequences)} sequence(s), fewer than {min_sequences}: one target's curve is that "
+                "target's, and a curve is checked by predicting each sequence from the others"
             )
         elif not any(b.samples >= MIN_SAMPLES for b in curve.bins):
             left_out[name] = f"no size bin with {MIN_SAMPLES} frames"

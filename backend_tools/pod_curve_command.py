@@ -33,6 +33,9 @@ from cloudtrack.detection_curves import load_curves
 from cloudtrack.model_store import MODEL_DIR_HELP, ModelError
 
 CHECK_FORMAT = "cloudtrack-detection-curve-check/1"
+# Sequences a class needs for a curve: one sequence is one target's curve and predicts no other, and the
+# leave-one-sequence-out check must still predict each sequence from two.
+MIN_SEQUENCES = 3
 
 
 def _bin_label(lo: float, hi: float | None) -> str:
@@ -176,8 +179,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[
     parser.add_argument(
         "--min-sequences",
         type=int,
-        default=2,
-        help="a class gets a curve from this many sequences on (default 2: one sequence is one target)",
+        default=MIN_SEQUENCES,
+        help=f"a class gets a curve from this many sequences on (default {MIN_SEQUENCES}: one sequence is one "
+        "target's curve, so a curve is shipped only where leaving any one sequence out still leaves two to "
+        "predict it by)",
     )
     parser.add_argument(
         "--accept-uncertain",

@@ -34,7 +34,7 @@ def measured(
     with contextlib.redirect_stdout(printed):
         code = main(
             ["pod-curve", *(str(sequences_dir / s) for s in SEQUENCES), "--step", str(STEP),
-             "--model-dir", str(models_dir), "--json", str(out)]
+             "--model-dir", str(models_dir), "--json", str(out), "--min-sequences", "2"]
         )  # fmt: skip
     assert code == 0
     return out, printed.getvalue()
