@@ -820,11 +820,17 @@ def _on_track(answer: BackendAnswer, box: Box) -> Detection | None:
 
 
 def _searching_on(state: State) -> bool:
-    """Looking only (along the mission, not engaged), a candidate awaiting the supervisor in view: the survey
-    flies on whatever the tracker holds, so the search goes on in the same keyframes. Others in view are put
-    to the supervisor too (`_propose_other`); before, one tracked at a time hid anyone seen beside it, and
-    the survey had flown past them by the time the track ended."""
-    return state.mode is MissionState.AWAITING_SUPERVISOR and state.along_mission and not state.engaged
+    """Looking only (along the mission, not engaged), a candidate awaiting the supervisor in view, or a find
+    the tracker still holds after the confirmation: the survey flies on whatever the tracker holds, so the
+    search goes on in the same keyframes (and counts as searched: coverage, POD). Others in view are put to
+    the supervisor too (`_propose_other`); before, one tracked at a time hid anyone seen beside it, and the
+    survey had flown past them by the time the track ended (after a find, the lanes flown while the find was
+    held in view were left unsearched: a fleet that goes on after a find had holes there)."""
+    return (
+        state.mode in (MissionState.AWAITING_SUPERVISOR, MissionState.CONFIRMED)
+        and state.along_mission
+        and not state.engaged
+    )
 
 
 def _propose_other(state: State, target: Target, answer: BackendAnswer, config: MissionConfig) -> Result:
@@ -842,8 +848,10 @@ def _propose_other(state: State, target: Target, answer: BackendAnswer, config: 
         return state, ()
     other = _seen_in(answer, *chosen)
     state, said = _left_awaiting(state, other)
-    # "queued", not "awaiting": a decision naming no candidate is still for the tracked one.
-    report = replace(_report(other, "queued"), keyframe_id=answer.keyframe_id)
+    # "queued", not "awaiting", while the tracked one awaits: a decision naming no candidate is still for it;
+    # beside a confirmed find the new one is the one awaiting (as one from the store).
+    status = "awaiting" if awaiting_decision(state) is other else "queued"
+    report = replace(_report(other, status), keyframe_id=answer.keyframe_id)
     return state, (report, *said)
 
 

@@ -742,6 +742,23 @@ def test_looking_only_the_search_goes_on_beside_the_candidate_awaiting_the_super
     assert state.pending == () and state.found.entries[-1].candidate_id == "c2"
 
 
+def test_looking_only_the_search_goes_on_while_a_confirmed_find_is_held_in_view() -> None:
+    """Issue 43: looking only, the survey flies on after the supervisor confirmed the find while the tracker
+    still holds it in view; the search goes on in the same keyframes (whole-frame SEARCH queries: they count
+    as searched, so a fleet going on after the find has no hole there), and another verified person in view
+    is the one awaiting the supervisor now (the find is decided)."""
+    state = reach(S.CONFIRMED, engage=False)
+    assert state.mode is S.CONFIRMED and state.along_mission and not state.engaged
+    state, actions = _search_beside(state, 1.7, candidate(AT_STANDOFF, "k1"), candidate(BESIDE, "c2"))
+    (report,) = [a for a in actions if isinstance(a, ReportCandidate)]
+    assert (report.candidate_id, report.status) == ("c2", "awaiting")
+    assert state.mode is S.CONFIRMED and awaiting_decision(state) is not None
+    assert awaiting_decision(state).candidate_id == "c2"  # type: ignore[union-attr]
+    engaged = reach(S.CONFIRMED, engage=True)
+    _, actions = run(engaged, [guided(1.7), TimerTick(1.7)])
+    assert not [a for a in actions if isinstance(a, BackendQuery) and a.purpose is QueryPurpose.SEARCH]
+
+
 def test_the_search_beside_the_tracked_candidate_only_looking_and_only_awaiting() -> None:
     """Engaged, the camera is pointed at the candidate: no search beside it (the track checks stay). Looking
     only, a person the supervisor rejected is not proposed beside; nor is anyone while the candidate is lost
