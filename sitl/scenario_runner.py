@@ -76,7 +76,11 @@ ALTITUDE_M = 10.0
 MOUNT_PITCH_DEG = -40.0  # at 10 m up and 12 m standoff the target sits near the image centre
 STANDOFF_M = 12.0
 VIDEO_DELAY_FRAMES = 20
-VEHICLE_ORIGINS = ((0.0, 0.0), (0.0, -8.0))  # where each vehicle's home lies in the world (north, east)
+VEHICLE_ORIGINS = (
+    (0.0, 0.0),
+    (0.0, -8.0),
+    (0.0, 8.0),
+)  # where each vehicle's home lies in the world (north, east)
 HOME_ALT_M = 488.0
 HOME_LAT, HOME_LON = 47.397742, 8.545594  # the world's origin (PX4's SIH default home)
 FOUND_TEXT = re.compile(r"FOUND (-?\d+\.\d+),(-?\d+\.\d+) \+-(\d+(?:\.\d+)?)m")  # VehicleLink.announce_find
@@ -86,6 +90,17 @@ FLY_TO_OFFSET_M = (0.0, 15.0)  # the GCS "fly to" target, from where the vehicle
 # After the survey's end: the last keyframes' answers, the status laying them and a decision on a candidate
 # seen at the end (the supervisor's 1 s) still come in.
 SURVEY_END_GRACE_S = 5.0
+# A fleet's search (`Scenario.fleet`): the lines `cloudtrack-gcs survey --fleet` prints per vehicle and for the
+# whole area (gcs/fleet_survey.py describe_fleet).
+FLEET_PART = re.compile(
+    r"^vehicle (?P<id>\S+): (?P<lanes>lanes? [\d-]+ of \d+), (?P<length>\d+) m over (?P<ha>[\d.]+) ha, transit "
+    r"(?P<transit>\d+) m, about (?P<min>\d+) min (?P<sec>\d+) s at (?P<speed>[\d.]+) m/s, (?P<items>\d+) items$"
+)
+FLEET_WHOLE = re.compile(
+    r"^whole area: about (?P<min>\d+) min (?P<sec>\d+) s \(vehicle (?P<last>\S+) finishes last\); one vehicle "
+    r"alone: about (?P<amin>\d+) min (?P<asec>\d+) s \((?P<alone>\S+), the quickest alone\)$"
+)
+FLEET_POLL_S = 1.0  # the merged map and the drop-outs, asked as the supervisor page would
 
 Progress = Callable[[str], None]
 
@@ -166,6 +181,7 @@ class _Vehicle:
     # The back-end's view of the vehicle (search scenarios): (time, status) as the supervisor page polls it.
     statuses: list[tuple[float, dict[str, Any]]] = field(default_factory=list)
     survey: dict[str, Any] = field(default_factory=dict)  # the plan the pilot uploaded
+    rejections_taken: list[float] = field(default_factory=list)  # when the companion took each rejection
 
 
 def default_tracker(model_dir: Path) -> str:
@@ -229,6 +245,14 @@ class ScenarioRun:
         self._stopping = False
         self._supervisor_token = secrets.token_hex(16)
         self._last_poll = -math.inf
+        self._app: Any = None
+        # A fleet's search: its figures (`_fleet_results`), the re-plan's process and when the pilot sends the
+        # leaving vehicle home (monotonic).
+        self._fleet: dict[str, Any] = {}
+        self._fleet_last_poll = -math.inf
+        self._leave_at = math.inf
+        self._replan: tuple[subprocess.Popen[bytes], Path, float] | None = None
+        self._fleet_files: tuple[Path, Path] | None = None  # the fleet file and the survey's configuration
 
     @property
     def real(self) -> bool:
@@ -278,7 +302,8 @@ class ScenarioRun:
         self.detector = SimulatedPersonDetector(
             self._truth_lookup, self.camera.width, noise, seed=self.options.seed
         )
-        self._backend = BackgroundServer(create_app(config, detector=self.detector)).start()
+        self._app = create_app(config, detector=self.detector)
+        self._backend = BackgroundServer(self._app).start()
         return str(self._backend.url)
 
     def _start_vehicle(self, index: int, backend_url: str) -> _Vehicle:
@@ -476,6 +501,10 @@ class ScenarioRun:
     def _handle_event(self, v: _Vehicle, e: dict[str, Any]) -> None:
         kind = e.get("kind")
         t = self._world_t(float(e.get("t", 0.0)))
+        if (
+            kind == "RememberRejection"
+        ):  # the companion took the supervisor's rejection (and tells the back-end)
+            v.rejections_taken.append(t)
         if kind == "health" and e.get("healthy"):
             v.ready = True
         elif kind == "command" and e.get("command") == "StartMission":
@@ -531,8 +560,11 @@ class ScenarioRun:
                     # One put again out of view (left before a decision, once the one after it is decided)
                     # has no box in view: the supervisor judges it as when it was.
                     if v.state == "awaiting_supervisor" or cid not in v.judgements:
-                        # A candidate from a keyframe stored through an outage is judged on that keyframe.
-                        frame = int(e.get("keyframe_id", -1)) if e.get("stored") else -1
+                        # A candidate from a keyframe stored through an outage, or one the search put to the
+                        # supervisor beside a confirmed find the tracker holds (not the tracker's box), is judged
+                        # on that keyframe.
+                        beside = v.state == "confirmed" and e.get("keyframe_id") is not None
+                        frame = int(e.get("keyframe_id", -1)) if e.get("stored") or beside else -1
                         if frame < 0:
                             frame = self._frame_of(v, e.get("box"))
                         pid = self._person_at(v, e.get("box"), t, frame)
@@ -758,6 +790,8 @@ class ScenarioRun:
         if self.now() > self.scenario.max_s:
             self.say("time limit reached")
             return True
+        if self.scenario.fleet is not None:
+            return self._fleet_finished()
         if self.scenario.whole_survey:
             done = [self._survey_completed(v) for v in self.vehicles]
             ends = [t for t in done if t is not None]
@@ -826,7 +860,9 @@ class ScenarioRun:
                     "companions not ready in time:\n" + "\n".join(self._log_tail(v) for v in self.vehicles)
                 )
             time.sleep(0.1)
-        if s.survey is not None:
+        if s.fleet is not None:
+            self._fly_fleet_survey()
+        elif s.survey is not None:
             for v in self.vehicles:
                 self._fly_survey(v)
         if self.options.video_out is not None:
@@ -844,6 +880,7 @@ class ScenarioRun:
                 self._resend_start(v)
             self._faults()
             self._poll_statuses()
+            self._fleet_step()
             time.sleep(0.05)
         end_t = self.now()
         for t in self._flood_threads:
@@ -888,6 +925,10 @@ class ScenarioRun:
                 f"{v.vehicle_id}: cloudtrack-gcs survey exited {done.returncode}: {lines[-1:]}"
             )
         v.survey = {"command": " ".join(cmd[2:]), "output": lines}
+        self._select_mission_mode(v, timeout_s)
+
+    def _select_mission_mode(self, v: _Vehicle, timeout_s: float = 30.0) -> None:
+        """The pilot selects AUTO / Mission; returns once the autopilot flies its mission."""
         mode = MISSION_MODE[self.personality]
         v.autopilot.set_mode(mode, source="pilot")
         deadline = time.monotonic() + timeout_s
@@ -902,6 +943,242 @@ class ScenarioRun:
         """When the autopilot reported the survey complete (scenario seconds); None while it has not."""
         at = v.gcs.mission_complete_at
         return None if at is None or self.epoch is None or at < self.epoch else at - self.epoch
+
+    # ------------------------------------------------------------------------------------------- fleet
+    def _survey_config(self, name: str) -> Path:
+        """The camera section `cloudtrack-gcs survey` / `replan` plan the lanes with (the companion's)."""
+        spec = self.scenario.survey
+        assert spec is not None
+        path = self.work / name
+        path.write_text(
+            f"[camera]\nhfov_deg = {math.degrees(2 * math.atan(self.camera.cx / self.camera.fx)):.6f}\n"
+            f"mount_pitch_deg = {MOUNT_PITCH_DEG}\nsearch_range_m = {spec.search_range_m}\n"
+        )
+        return path
+
+    def _fly_fleet_survey(self, timeout_s: float = 30.0) -> None:
+        """As a team would: ONE `cloudtrack-gcs survey --fleet FILE` splits the area over the vehicles and
+        uploads each part to its own autopilot (each on its own second ground link), then each pilot selects
+        AUTO / Mission. The area is the world's (from the first vehicle's home)."""
+        spec, fleet = self.scenario.survey, self.scenario.fleet
+        assert spec is not None and fleet is not None
+        (s_n, w_e), (n_n, e_e) = spec.area_ne
+        centre = _home(((s_n + n_n) / 2.0, (w_e + e_e) / 2.0))
+        config = self._survey_config("fleet-survey.toml")
+        members = []
+        for v in self.vehicles:
+            lat, lon = _home(v.origin)
+            system = v.autopilot.system_id if self.real else 1
+            members.append(
+                {"id": v.vehicle_id, "connect": self._ground_url(v), "speed": spec.speed_m_s,
+                 "lat": round(lat, 7), "lon": round(lon, 7), "system": system}
+            )  # fmt: skip
+            for msg_id, hz in ((0, 10.0), (42, 4.0)):  # HEARTBEAT (modes), MISSION_CURRENT (the item flown)
+                v.gcs.request_interval(msg_id, hz)
+        fleet_file = self.work / "fleet.json"
+        fleet_file.write_text(json.dumps({"vehicles": members}, indent=2))
+        self._fleet_files = (fleet_file, config)
+        cmd = [
+            sys.executable, "-m", "gcs.cli", "--timeout", "15",
+            "survey", "--centre", f"{centre[0]:.7f},{centre[1]:.7f}", "--size", f"{e_e - w_e:g}x{n_n - s_n:g}",
+            "--altitude", f"{spec.altitude_m:g}", "--overlap", f"{spec.overlap:g}", "--companion-config", str(config),
+            "--fleet", str(fleet_file),
+        ]  # fmt: skip
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=180, env=dict(os.environ))
+        lines = [line.strip() for line in (done.stdout + done.stderr).splitlines() if line.strip()]
+        for line in lines:
+            self.progress(f"cloudtrack-gcs survey --fleet: {line}")
+        parts: dict[str, dict[str, Any]] = {}
+        whole: dict[str, Any] = {}
+        for line in lines:
+            if (m := FLEET_PART.match(line)) is not None:
+                parts[m["id"]] = {
+                    "lanes": m["lanes"], "length_m": int(m["length"]), "area_ha": float(m["ha"]),
+                    "transit_m": int(m["transit"]), "time_s": 60 * int(m["min"]) + int(m["sec"]),
+                    "speed_m_s": float(m["speed"]), "items": int(m["items"]), "line": line,
+                }  # fmt: skip
+            elif (m := FLEET_WHOLE.match(line)) is not None:
+                whole = {
+                    "whole_area_s": 60 * int(m["min"]) + int(m["sec"]),
+                    "finishes_last": m["last"],
+                    "one_vehicle_alone_s": 60 * int(m["amin"]) + int(m["asec"]),
+                    "one_vehicle_alone": m["alone"],
+                }
+        self._fleet = {
+            "mission_id": str(fleet.mission_id),
+            "survey": {
+                "command": "cloudtrack-gcs " + " ".join(cmd[3:]),
+                "exit_code": done.returncode,
+                "output": lines,
+                "parts": parts,
+                "whole_area_s": whole.get("whole_area_s"),
+                "one_vehicle_alone_s": whole.get("one_vehicle_alone_s"),
+                **{k: v for k, v in whole.items() if k not in ("whole_area_s", "one_vehicle_alone_s")},
+            },
+            "dropout": {"vehicle": self.vehicles[fleet.leaves].vehicle_id},
+            "replan": None,
+            "coverage_history": [],
+            "coverage_at_end": None,
+            "time_to_cover_s": None,
+        }
+        if done.returncode != 0:
+            raise RuntimeError(f"cloudtrack-gcs survey --fleet exited {done.returncode}: {lines[-1:]}")
+        for v in self.vehicles:
+            v.survey = {"part": parts.get(v.vehicle_id)}
+            self._select_mission_mode(v, timeout_s)
+            if v.index == fleet.leaves:
+                part_s = (parts.get(v.vehicle_id) or {}).get("time_s", 0.0)
+                self._leave_at = time.monotonic() + fleet.leaves_at * part_s
+
+    def _fleet_step(self) -> None:
+        """The fleet's pilot and operator: the leaving vehicle sent home on time, the back-end's merged map
+        and drop-outs read, the re-plan run once the drop-out is listed (in the background: the supervisor
+        goes on meanwhile), its result collected."""
+        fleet = self.scenario.fleet
+        if fleet is None or self.epoch is None:
+            return
+        dropout = self._fleet["dropout"]
+        leaving = self.vehicles[fleet.leaves]
+        if "rtl_s" not in dropout and time.monotonic() >= self._leave_at:
+            leaving.autopilot.set_mode("RTL", source="pilot")
+            dropout["rtl_s"] = round(self.now(), 2)
+            self.fault_times["rtl"] = self.now()
+            self.say(f"FAULT rtl on {leaving.vehicle_id}: the pilot sends it home")
+        if self._replan is not None:
+            proc, out_path, started = self._replan
+            if proc.poll() is not None:
+                lines = [x.strip() for x in out_path.read_text(errors="replace").splitlines() if x.strip()]
+                for line in lines:
+                    self.progress(f"cloudtrack-gcs replan: {line}")
+                self._fleet["replan"].update(
+                    exit_code=proc.returncode, output=lines, took_s=round(time.monotonic() - started, 2)
+                )
+                self._replan = None
+        if self.now() - self._fleet_last_poll < FLEET_POLL_S:
+            return
+        self._fleet_last_poll = self.now()
+        merged = self._supervisor_get(f"/v1/missions/{fleet.mission_id}/map")
+        coverage = None if merged is None else merged.get("coverage")
+        if merged is not None and coverage is not None:
+            history = self._fleet["coverage_history"]
+            if not history or history[-1][1] != round(coverage, 3):
+                history.append([round(self.now(), 2), round(coverage, 3)])
+            self._fleet["coverage_at_end"] = round(coverage, 4)
+            self._fleet["merged_vehicles"] = merged.get("vehicles")
+            if self._fleet["time_to_cover_s"] is None and coverage >= fleet.min_coverage:
+                self._fleet["time_to_cover_s"] = round(self.now(), 2)
+                self.say(f"the merged coverage is {coverage:.3f}: the area is covered")
+        if "rtl_s" in dropout and "listed_s" not in dropout:
+            answer = self._supervisor_get(f"/v1/missions/{fleet.mission_id}/dropouts")
+            listed = [
+                d for d in (answer or {}).get("dropouts", []) if d.get("vehicle_id") == leaving.vehicle_id
+            ]
+            if listed:
+                d = listed[0]
+                dropout.update(
+                    listed_s=round(self.now(), 2), kind=d.get("kind"), reason=d.get("reason"),
+                    unflown_m2=d.get("area_m2"), searching=answer.get("searching") if answer else None,
+                )  # fmt: skip
+                self.say(
+                    f"the back-end lists {leaving.vehicle_id} as dropped out ({d.get('reason')}, "
+                    f"{d.get('area_m2', 0.0):.0f} m2 unflown): re-planning"
+                )
+                self._start_replan()
+
+    def _start_replan(self) -> None:
+        """`cloudtrack-gcs replan` as the operator runs it: the fleet file the survey took, the back-end and its
+        supervisor token from a file; its output is collected by `_fleet_step` when it exits."""
+        spec, fleet = self.scenario.survey, self.scenario.fleet
+        assert spec is not None and fleet is not None and self._fleet_files is not None
+        fleet_file, config = self._fleet_files
+        token = self.work / "supervisor.token"
+        token.write_text(self._supervisor_token)
+        token.chmod(0o600)
+        cmd = [
+            sys.executable, "-m", "gcs.cli", "--timeout", "15",
+            "replan", "--mission", str(fleet.mission_id), "--fleet", str(fleet_file), "--altitude",
+            f"{spec.altitude_m:g}", "--overlap", f"{spec.overlap:g}", "--companion-config", str(config),
+            "--backend", str(self._backend.url), "--supervisor-token-file", str(token),
+        ]  # fmt: skip
+        out_path = self.work / "replan.out"
+        with open(out_path, "wb") as out:
+            proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=dict(os.environ))
+        self._replan = (proc, out_path, time.monotonic())
+        self._fleet["replan"] = {
+            "command": "cloudtrack-gcs " + " ".join(cmd[3:]),
+            "started_s": round(self.now(), 2),
+        }
+
+    def _supervisor_get(self, path: str) -> dict[str, Any] | None:
+        import requests
+
+        try:
+            r = requests.get(
+                f"{self._backend.url}{path}",
+                headers={"Authorization": f"Bearer {self._supervisor_token}"},
+                timeout=1.0,
+            )
+        except requests.RequestException:
+            return None
+        return r.json() if r.status_code == 200 else None
+
+    def _fleet_finished(self) -> bool:
+        """The area covered (merged), the described person found and the re-plan over (or failed)."""
+        f = self._fleet
+        covered: float | None = f.get("time_to_cover_s")
+        found = [t for v in self.vehicles for t, pid in v.confirmations if pid == self.world.target_id]
+        replanned = (f.get("replan") or {}).get("exit_code") is not None
+        if covered is None or not found or not replanned:
+            return False
+        return self.now() >= max(covered, min(found)) + self.scenario.follow_s
+
+    def _fleet_results(self, outcomes: list[VehicleOutcome]) -> dict[str, Any]:
+        """The fleet's figures for the JSON and the checks: the survey's parts and times, the drop-out and the
+        re-plan, the merged coverage, the mission's finds on the back-end (one per person), the rejections."""
+        fleet = self.scenario.fleet
+        assert fleet is not None
+        out = dict(self._fleet)
+        if self._replan is not None:  # still running at the end
+            out["replan"] = {**(out.get("replan") or {}), "exit_code": None, "output": ["(still running)"]}
+        sessions = self._app.state.sessions if self._app is not None else None
+        finds = [] if sessions is None else sessions.mission_finds(str(fleet.mission_id))
+        person = self.world.person(self.world.target_id)
+        out["finds"] = []
+        for find in finds:
+            north, east = _world(*find.position)
+            t = (find.seen_at or find.time) - (time.time() - time.monotonic()) - (self.epoch or 0.0)
+            tn, te, _ = person.state_at(max(0.0, t))
+            out["finds"].append(
+                {"vehicle_id": find.vehicle_id, "candidate_id": find.candidate_id,
+                 "position": list(find.position), "error_m": round(math.hypot(north - tn, east - te), 2)}
+            )  # fmt: skip
+        out["sightings"] = (
+            []
+            if sessions is None
+            else [
+                {"vehicle_id": s.vehicle_id, "same_as": s.same_as}
+                for v in self.vehicles
+                for s in sessions.sightings(v.vehicle_id, str(fleet.mission_id))
+            ]
+        )
+        out["rejections"] = [
+            {"vehicle_id": v.vehicle_id, "t": round(t, 2), "person": pid}
+            for v, o in zip(self.vehicles, outcomes, strict=True)
+            for t, pid in o.rejected_ids
+        ]
+        taken = [t for v in self.vehicles for t in v.rejections_taken]
+        out["first_rejection_taken_s"] = round(min(taken), 2) if taken else None
+        merged = self._supervisor_get(f"/v1/missions/{fleet.mission_id}/map")
+        if merged is not None:
+            out["uncovered_m2"] = _uncovered_m2(merged)
+            (self.work / "mission-map.json").write_text(json.dumps(merged))
+        out["confirmations"] = [
+            {"vehicle_id": v.vehicle_id, "t": round(t, 2), "person": pid}
+            for v in self.vehicles
+            for t, pid in v.confirmations
+        ]
+        out["time_to_cover_whole_area_s"] = out.get("time_to_cover_s")
+        return out
 
     def _mode_number(self, v: _Vehicle, name: str) -> int:
         """HEARTBEAT.custom_mode of a mode, as the GCS sees it."""
@@ -1470,7 +1747,8 @@ class ScenarioRun:
         for v, o in zip(self.vehicles, outcomes, strict=True):
             o.metrics["companion_stop_s"] = None if v.stop_s is None else round(v.stop_s, 3)
             o.metrics["companion_exit_code"] = v.process.returncode if v.process is not None else None
-        failures = assess(s, outcomes, self.fault_times, self.personality)
+        fleet = self._fleet_results(outcomes) if s.fleet is not None else None
+        failures = assess(s, outcomes, self.fault_times, self.personality, fleet)
         pauses = [(p.began - (self.epoch or 0.0), p.length_s) for p in self._pauses.pauses()]
         if failures:
             failures += [
@@ -1496,6 +1774,8 @@ class ScenarioRun:
             "vehicles": {},
             "work_dir": None if self._own_work else str(self.work),
         }
+        if fleet is not None:
+            results["fleet"] = fleet
         for v, o in zip(self.vehicles, outcomes, strict=True):
             o.metrics["outcome"] = outcome
             o.metrics["confirmed"] = list(o.confirmed_ids)
@@ -1532,6 +1812,25 @@ def _world(lat: float, lon: float) -> tuple[float, float]:
     north = math.radians(lat - HOME_LAT) * EARTH_RADIUS
     east = math.radians(lon - HOME_LON) * EARTH_RADIUS * math.cos(math.radians(HOME_LAT))
     return north, east
+
+
+def _uncovered_m2(merged: dict[str, Any]) -> float | None:
+    """The merged map's area left uncovered (m2)."""
+    import shapely
+
+    from backend.mission_merge import _metres
+    from cloudtrack.coverage import LocalFrame, geometry_from_rings
+
+    area, covered = merged.get("area") or [], merged.get("covered") or []
+    if not area or not area[0]:
+        return None
+    frame = LocalFrame(float(area[0][0][0]), float(area[0][0][1]))
+
+    def metres(rings: list[Any]) -> Any:
+        return shapely.make_valid(_metres(geometry_from_rings(rings), frame))
+
+    left = metres(area).difference(metres(covered)) if covered else metres(area)
+    return round(float(left.area), 1)
 
 
 def _custom_mode(personality: str, name: str) -> int:

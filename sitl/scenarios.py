@@ -82,6 +82,21 @@ class SurveySpec:
 
 
 @dataclass(frozen=True)
+class FleetSpec:
+    """A fleet's search (issue 43): the scenario's vehicles fly one area split over them by ONE
+    `cloudtrack-gcs survey --fleet FILE`, all with the same mission id; vehicle `leaves` (index) goes home (the
+    pilot's RTL) `leaves_at` of the way through its part's planned time, and once the back-end lists it in
+    GET /v1/missions/{m}/dropouts, `cloudtrack-gcs replan` re-plans its unflown part onto the others. The run
+    ends once the merged coverage (GET /v1/missions/{m}/map) reaches `min_coverage` and the described person is
+    found, or at the scenario's `max_s`."""
+
+    leaves: int = 2
+    leaves_at: float = 1.0 / 3.0
+    min_coverage: float = 0.95
+    mission_id: int = 1
+
+
+@dataclass(frozen=True)
 class Scenario:
     name: str
     summary: str
@@ -111,6 +126,9 @@ class Scenario:
     # not, rather than until the find.
     whole_survey: bool = False
     verifier: str = "local"  # the back-end's verifier unless the run names one (`--verifier`)
+    fleet: FleetSpec | None = (
+        None  # the vehicles search as one fleet (one survey split over them, a drop-out)
+    )
 
     def build_world(self, seed: int) -> World:
         if self.world in ("search", "search-beside"):
@@ -197,6 +215,9 @@ SEARCH_OUTAGE_NEAR_M = 26.0
 SEARCH_OUTAGE_S = 18.0
 SEARCH_OUTAGE_MIN_S = 15.0  # the issue's bound on the outage
 LINK_DROP_SETTINGS = ("safety.heartbeat_timeout_s=0.6",)
+# fleet-search: the search area with lanes 10 m apart (half the camera's 20.6 m swath at 10 m up): 6 lanes, two
+# per vehicle, so the part a vehicle leaves unflown is wide enough to be shared by the two that stay.
+FLEET_SURVEY = SurveySpec(overlap=0.5)
 
 SCENARIOS: dict[str, Scenario] = {
     s.name: s
@@ -334,6 +355,30 @@ SCENARIOS: dict[str, Scenario] = {
             ),
         ),
         Scenario(
+            "fleet-search",
+            "three drones search as one fleet: the area split three ways by one `cloudtrack-gcs survey --fleet`, "
+            "one drone goes home a third of the way in and `cloudtrack-gcs replan` re-plans its unflown part onto "
+            "the other two; the look-alike rejected once is proposed by no other drone, the described person "
+            "found once, the merged coverage >= 0.95",
+            vehicles=3,
+            world="search",
+            survey=FLEET_SURVEY,
+            fleet=FleetSpec(),
+            allow_engage=False,  # looking only: the lanes are flown as planned
+            follow_s=3.0,
+            max_s=150.0,
+            miss_rate=0.0,
+            companion_settings=(f"camera.search_range_m={FLEET_SURVEY.search_range_m}",),
+            checks=(
+                "fleet_survey",
+                "fleet_replanned",
+                "fleet_rejected_never_again",
+                "fleet_found_once",
+                "fleet_coverage",
+                "no_commands",
+            ),
+        ),
+        Scenario(
             "flood",
             "200 UDP senders hit the companion's MAVLink port mid-follow (garbage, GCS heartbeats, the "
             "autopilot's heartbeat forged in the takeover mode): it keeps following and sends them nothing",
@@ -437,10 +482,11 @@ def assess(
     outcomes: Sequence[VehicleOutcome],
     fault_times: dict[str, float],
     autopilot: str | None = None,
+    fleet: dict[str, Any] | None = None,
 ) -> list[str]:
     """The failed checks with the reason, empty when the scenario passed (`autopilot`: the one flown, if not
-    the scenario's own personality)."""
-    failures: list[str] = []
+    the scenario's own personality; `fleet`: a fleet scenario's mission-wide figures, `ScenarioRun._fleet`)."""
+    failures: list[str] = _fleet_checks(scenario, outcomes, fleet)
     for i, o in enumerate(outcomes):
         name = f"vehicle {i + 1}"
         m = o.metrics
@@ -498,6 +544,91 @@ def assess(
             recover_from = fault_times.get("restart", fault_times.get(up, math.inf))
             if o.following_after(recover_from) < 4.0:
                 failures.append(f"{name}: did not resume following after {up.replace('_', ' ')}")
+    return failures
+
+
+FLEET_FIND_MAX_ERROR_M = 5.0  # the mission's one find against where the described person was
+# A rejection holds for the mission's other vehicles once the companion that took it has told the back-end; a
+# keyframe another vehicle sent before may still come back with the rejected person (about one round trip).
+FLEET_REJECTION_SHARED_S = 1.0
+
+
+def _fleet_checks(
+    scenario: Scenario, outcomes: Sequence[VehicleOutcome], fleet: dict[str, Any] | None
+) -> list[str]:
+    """A fleet's search, mission-wide: the area split and uploaded to every vehicle by one survey, the dropped
+    vehicle's unflown part re-planned onto the others, a person rejected via one vehicle's candidate proposed by
+    no vehicle afterwards, one find on the back-end (the described person's), the merged coverage reached."""
+    if scenario.fleet is None:
+        return []
+    if fleet is None:
+        return ["fleet: no fleet figures"]
+    failures: list[str] = []
+    checks = scenario.checks
+    survey = fleet.get("survey") or {}
+    if "fleet_survey" in checks:
+        parts = survey.get("parts") or {}
+        if survey.get("exit_code") != 0 or len(parts) != scenario.vehicles:
+            failures.append(
+                f"fleet: the survey exited {survey.get('exit_code')} with {len(parts)} parts for "
+                f"{scenario.vehicles} vehicles"
+            )
+        if survey.get("whole_area_s") is None or survey.get("one_vehicle_alone_s") is None:
+            failures.append("fleet: the survey printed no whole-area and one-vehicle-alone times")
+    if "fleet_replanned" in checks:
+        dropout, replan = fleet.get("dropout") or {}, fleet.get("replan") or {}
+        stayed = [f"drone-{i + 1}" for i in range(scenario.vehicles) if i != scenario.fleet.leaves]
+        if dropout.get("listed_s") is None:
+            failures.append(f"fleet: the back-end never listed {dropout.get('vehicle')} as dropped out")
+        elif replan.get("exit_code") != 0:
+            failures.append(
+                f"fleet: cloudtrack-gcs replan exited {replan.get('exit_code')}: {replan.get('output', [])[-2:]}"
+            )
+        else:
+            uploaded = [
+                v
+                for v in stayed
+                if any(line.startswith(f"vehicle {v}: uploaded") for line in replan["output"])
+            ]
+            if uploaded != stayed:
+                failures.append(
+                    f"fleet: the re-plan was uploaded to {uploaded}, not to every vehicle that stayed ({stayed})"
+                )
+    if "fleet_rejected_never_again" in checks:
+        rejections = sorted((t, pid) for o in outcomes for t, pid in o.rejected_ids)
+        if not rejections:
+            failures.append("fleet: nobody was rejected")
+        # From when the first companion took the rejection (and told the back-end), a keyframe already in
+        # flight then aside.
+        taken = fleet.get("first_rejection_taken_s")
+        for t_rej, pid in rejections[:1]:
+            since = (t_rej if taken is None else max(t_rej, taken)) + FLEET_REJECTION_SHARED_S
+            for i, o in enumerate(outcomes):
+                again = [t for t, p in o.proposals if p == pid and t > since]
+                if again:
+                    failures.append(
+                        f"fleet: {pid}, rejected at {t_rej:.1f} s, was proposed again by vehicle {i + 1} at {again[0]:.1f} s"
+                    )
+    if "fleet_found_once" in checks:
+        finds = fleet.get("finds") or []
+        if len(finds) != 1:
+            failures.append(f"fleet: {len(finds)} finds on the back-end for the mission, needs 1: {finds}")
+        elif finds[0].get("error_m") is None or finds[0]["error_m"] > FLEET_FIND_MAX_ERROR_M:
+            failures.append(
+                f"fleet: the mission's find lies {finds[0].get('error_m')} m from the described person, needs <= "
+                f"{FLEET_FIND_MAX_ERROR_M:g} m"
+            )
+        if not any(o.confirmed_ids and o.confirmed_ids[0] == "target" for o in outcomes):
+            failures.append("fleet: no vehicle's candidate of the described person was confirmed")
+        wrong = sorted({pid for o in outcomes for pid in o.confirmed_ids if pid != "target"})
+        if wrong:
+            failures.append(f"fleet: the supervisor confirmed {wrong}")
+    if "fleet_coverage" in checks:
+        coverage = fleet.get("coverage_at_end")
+        if coverage is None or coverage < scenario.fleet.min_coverage:
+            failures.append(
+                f"fleet: merged coverage {coverage} at the end, needs >= {scenario.fleet.min_coverage:g}"
+            )
     return failures
 
 

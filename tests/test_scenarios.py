@@ -205,6 +205,106 @@ def test_search_outage_fills_the_pod_map_from_stored_keyframes(models_dir: Path,
     print(f"search-outage: outage {outage}, keyframes {m['keyframes']}, find {m['find']}")
 
 
+@pytest.mark.slow
+def test_fleet_search(models_dir: Path, tmp_path: Path) -> None:
+    """Issue 43: three mock vehicles, one back-end, one mission. One `cloudtrack-gcs survey --fleet` splits the
+    area three ways and uploads each part; drone-3 goes home (RTL) a third of the way into its part, the
+    back-end lists it in /dropouts and `cloudtrack-gcs replan` puts its unflown part onto drone-1 and drone-2
+    without taking them out of AUTO; the look-alike, rejected via one vehicle's candidate, is proposed by none
+    afterwards; one find on the back-end; the merged coverage >= 0.95. The scenario's checks hold all of it."""
+    results = _run("fleet-search", models_dir, tmp_path, json_out=tmp_path / "out.json")
+    fleet = results["fleet"]
+    survey = fleet["survey"]
+    assert set(survey["parts"]) == {"drone-1", "drone-2", "drone-3"}
+    assert survey["one_vehicle_alone_s"] > survey["whole_area_s"] > 0
+    assert fleet["dropout"]["vehicle"] == "drone-3" and fleet["dropout"]["reason"] == "mode RTL"
+    assert fleet["replan"]["exit_code"] == 0 and fleet["replan"]["output"][-1].startswith("replan: 2 of 2")
+    assert len(fleet["finds"]) == 1 and fleet["coverage_at_end"] >= 0.95
+    assert any(r["person"] == "decoy" for r in fleet["rejections"])
+    for vid, m in results["vehicles"].items():
+        assert m["companion_commands"] == {"setpoints": 0, "mode_commands": 0}, vid
+    print(
+        "fleet-search: parts", {v: p["lanes"] for v, p in survey["parts"].items()}, "whole area",
+        survey["whole_area_s"], "s, one alone", survey["one_vehicle_alone_s"], "s, covered",
+        fleet["time_to_cover_s"], "s, coverage", fleet["coverage_at_end"],
+    )  # fmt: skip
+
+
+def test_fleet_search_reads_what_the_fleet_survey_prints(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    """The runner's JSON takes each vehicle's part and the whole-area and one-vehicle-alone times from the
+    lines `cloudtrack-gcs survey --fleet` prints (a dry run here: the same lines)."""
+    import json
+
+    from gcs.cli import main as gcs_main
+    from sitl.scenario_runner import FLEET_PART, FLEET_WHOLE, _home
+
+    fleet = {
+        "vehicles": [
+            {
+                "id": f"drone-{i + 1}",
+                "connect": f"udpin:0.0.0.0:{14551 + i}",
+                "speed": 5,
+                "lat": lat,
+                "lon": lon,
+            }
+            for i, (lat, lon) in enumerate(_home(o) for o in ((0.0, 0.0), (0.0, -8.0), (0.0, 8.0)))
+        ]
+    }
+    path = tmp_path / "fleet.json"
+    path.write_text(json.dumps(fleet))
+    lat, lon = _home((60.0, 2.0))
+    code = gcs_main(
+        ["survey", "--centre", f"{lat:.7f},{lon:.7f}", "--size", "60x100", "--altitude", "10", "--overlap",
+         "0.5", "--fleet", str(path), "--dry-run"]
+    )  # fmt: skip
+    lines = [line.strip() for line in capsys.readouterr().out.splitlines()]
+    assert code == 0
+    parts = [m for line in lines if (m := FLEET_PART.match(line)) is not None]
+    whole = [m for line in lines if (m := FLEET_WHOLE.match(line)) is not None]
+    assert sorted(m["id"] for m in parts) == ["drone-1", "drone-2", "drone-3"], lines
+    assert len(whole) == 1 and int(whole[0]["amin"]) * 60 + int(whole[0]["asec"]) > int(whole[0]["sec"])
+
+
+def test_fleet_checks_fail_on_a_second_find_a_low_coverage_and_a_rejected_person_proposed_again() -> None:
+    from sitl.scenarios import VehicleOutcome, assess
+
+    def outcome(
+        proposals: tuple[tuple[float, str], ...], rejected: tuple[tuple[float, str], ...]
+    ) -> VehicleOutcome:
+        return VehicleOutcome(
+            metrics={"companion_commands": {"setpoints": 0, "mode_commands": 0}},
+            confirmations=(10.0,), confirmed_ids=("target",), proposals=proposals, rejected_ids=rejected,
+            lost_intervals=(), occlusion=None, last_setpoint_after_takeover_s=None, takeover_t=None,
+            hold_times=(), following_after=lambda t: 0.0,
+        )  # fmt: skip
+
+    scenario = SCENARIOS["fleet-search"]
+    good = {
+        "survey": {"exit_code": 0, "parts": {"drone-1": {}, "drone-2": {}, "drone-3": {}}, "whole_area_s": 53,
+                   "one_vehicle_alone_s": 158},
+        "dropout": {"vehicle": "drone-3", "listed_s": 19.0},
+        "replan": {"exit_code": 0, "output": ["vehicle drone-1: uploaded 8 items", "vehicle drone-2: uploaded 8 items"]},
+        "finds": [{"vehicle_id": "drone-1", "error_m": 0.4}],
+        "coverage_at_end": 0.96,
+        "first_rejection_taken_s": 7.4,
+    }  # fmt: skip
+    seen_before = (
+        outcome(((4.9, "decoy"),), ((6.7, "decoy"),)),
+        outcome(((6.8, "decoy"),), ()),
+        outcome((), ()),
+    )
+    assert assess(scenario, seen_before, {}, None, good) == []
+    again = (seen_before[0], outcome(((6.8, "decoy"), (20.0, "decoy")), ()), seen_before[2])
+    assert any("proposed again by vehicle 2 at 20.0 s" in f for f in assess(scenario, again, {}, None, good))
+    two_finds = {**good, "finds": good["finds"] * 2, "coverage_at_end": 0.9}
+    failures = assess(scenario, seen_before, {}, None, two_finds)
+    assert any("2 finds" in f for f in failures) and any("merged coverage 0.9" in f for f in failures)
+    not_replanned = {**good, "replan": {"exit_code": 1, "output": ["error: ..."]}}
+    assert any("replan exited 1" in f for f in assess(scenario, seen_before, {}, None, not_replanned))
+
+
 @pytest.mark.parametrize(
     ("error", "failed"), [(0.4, False), (2.99, False), (3.01, True), (9.9, True), (None, True)]
 )
