@@ -93,7 +93,9 @@ TIMEOUT_S = 10.0
 MAX_ANSWER_BYTES = 2_000_000
 MAX_CORNERS = 200  # the re-planned area's outline is simplified to at most this many corners
 INSIDE_MARGIN_M = 2.0  # a waypoint this far inside the dropped area flies into it
-MISSION_STATE_COMPLETE = 5  # MISSION_CURRENT.mission_state
+MISSION_STATE_COMPLETE = 5
+MAV_CMD_MISSION_START = 300
+MAV_RESULT_ACCEPTED = 0  # MISSION_CURRENT.mission_state
 EXAMPLES = """\
 examples:
   cloudtrack-gcs replan --mission m-7 --fleet fleet.toml --altitude 25 --dry-run
@@ -420,6 +422,32 @@ def _mode_now(remaining: Remaining, seconds: float = 2.5) -> str:
     return vehicle.mode
 
 
+def _mission_start(args: argparse.Namespace, session: Any, vehicle: Vehicle) -> None:
+    """MAV_CMD_MISSION_START to an ArduCopter in AUTO whose mission had finished: MISSION_SET_CURRENT leaves
+    such a mission stopped at the item, holding (AP_Mission::set_current_cmd); this resumes it there without
+    a mode change (it is in AUTO already). MissionError unless it is accepted."""
+    endpoint, target = session.endpoint, (vehicle.system, AUTOPILOT_COMPONENT)
+    for _ in range(3):
+        endpoint.send(lambda m: m.command_long_send(*target, MAV_CMD_MISSION_START, 0, 0, 0, 0, 0, 0, 0, 0))
+        deadline = time.monotonic() + args.step_timeout
+        while time.monotonic() < deadline:
+            msg = endpoint.receive(timeout=0.2)
+            if (
+                msg is None
+                or msg.get_type() != "COMMAND_ACK"
+                or msg.command != MAV_CMD_MISSION_START
+                or msg.get_srcSystem() != vehicle.system
+            ):
+                continue
+            if msg.result != MAV_RESULT_ACCEPTED:
+                raise MissionError(
+                    f"MAV_CMD_MISSION_START refused (result {msg.result}): switch it out of AUTO and back to fly "
+                    "its share"
+                )
+            return
+    raise MissionError("MAV_CMD_MISSION_START: no answer; switch it out of AUTO and back to fly its share")
+
+
 def send_share(args: argparse.Namespace, remaining: Remaining, part: FleetPart) -> int:
     """Append the vehicle's share to its mission, leave it flying where it was: 0, or the exit code after one
     line on stderr."""
@@ -438,6 +466,10 @@ def send_share(args: argparse.Namespace, remaining: Remaining, part: FleetPart) 
         if after.seq < expected or now_own.complete:
             after = client.set_current(expected)
         stored = client.download().items
+        flying = mission_mode(vehicle.kind)
+        mode = _mode_now(remaining)
+        if now_own.complete and vehicle.kind is AutopilotKind.ARDUPILOT and mode == flying:
+            _mission_start(args, remaining.session, vehicle)  # a finished mission is held, not resumed
     except MissionError as exc:
         print(f"error: {who}{exc}", file=sys.stderr)
         return EXIT_TIMEOUT if exc.result is None and "no answer" in str(exc) else EXIT_REFUSED
@@ -448,8 +480,6 @@ def send_share(args: argparse.Namespace, remaining: Remaining, part: FleetPart) 
             file=sys.stderr,
         )
         return EXIT_REFUSED
-    mode = _mode_now(remaining)
-    flying = mission_mode(vehicle.kind)
     goes_on = (
         f"mode {mode}: it goes on" if mode == flying else f"mode {mode}: it flies them when back in {flying}"
     )

@@ -468,6 +468,14 @@ class SimulatedAutopilot:
         elif cmd == mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH:
             self._try_set_mode("RTL", who)
             self._ack(link, msg, mavlink.MAV_RESULT_ACCEPTED)
+        elif cmd == mavlink.MAV_CMD_MISSION_START and self.is_ardupilot:
+            # ArduCopter: first/last item unsupported; AUTO (nothing changes in it), then a mission that is
+            # not running resumed (GCS_MAVLINK_Copter::handle_MAV_CMD_MISSION_START).
+            if msg.param1 or msg.param2:
+                self._ack(link, msg, mavlink.MAV_RESULT_DENIED)
+                return
+            ok = self._try_set_mode("AUTO", who) and self.mission.resume_in_auto()
+            self._ack(link, msg, mavlink.MAV_RESULT_ACCEPTED if ok else mavlink.MAV_RESULT_FAILED)
         else:
             self._ack(link, msg, mavlink.MAV_RESULT_UNSUPPORTED)
 

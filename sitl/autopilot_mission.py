@@ -24,7 +24,10 @@ ArduCopter (AP_Mission, MissionItemProtocol_Waypoints)
   seq 0 until the mission first runs, `total` without home, mission_state NO_MISSION / NOT_STARTED (also
   when interrupted) / ACTIVE / COMPLETE, mission_mode 1 in AUTO; MISSION_ITEM_REACHED to every link for
   every item, DO_CHANGE_SPEED included; STATUSTEXT "Mission: 2 WP", "Reached command #2";
-- at the end it holds where the last waypoint put it, still in AUTO.
+- at the end it holds where the last waypoint put it, still in AUTO. MISSION_SET_CURRENT then leaves the
+  mission stopped at that item, the vehicle holding in AUTO (`held`), until AUTO is entered again or
+  MAV_CMD_MISSION_START resumes it there (from ArduPilot's source, AP_Mission::set_current_cmd and
+  GCS_MAVLINK_Copter::handle_MAV_CMD_MISSION_START; not measured by the conformance suite);
 
 PX4 (navigator, MavlinkMissionManager; what the real PX4 1.16 SIH showed is marked measured)
 - items start at 0; an upload goes into a spare slot and replaces the mission only when complete, so a
@@ -126,6 +129,7 @@ class AutopilotMission:
         self.running = False  # in AUTO / Mission mode
         self.complete = False
         self.interrupted = False  # PX4: left Mission mode before the end
+        self.held = False  # ArduPilot: set current after the end: stopped there, holding in AUTO
         self.reached: list[int] = []  # every MISSION_ITEM_REACHED sent, in order (tests and metrics)
         self._upload: _Upload | None = None
         self._origin: tuple[float, float, float] | None = None  # where the current leg starts (NED)
@@ -147,6 +151,8 @@ class AutopilotMission:
             return NO_MISSION
         if self.complete:
             return COMPLETE
+        if self.held:
+            return NOT_STARTED  # AP_Mission's MISSION_STOPPED
         if self.running:
             return ACTIVE
         return PAUSED if self.interrupted and not self.ardupilot else NOT_STARTED
@@ -180,7 +186,7 @@ class AutopilotMission:
             ok = self._upload is None and not (self.ardupilot and self.running and not self.complete)
             if ok:
                 self.items = []
-                self.current, self.complete, self.interrupted = 0, False, False
+                self.current, self.complete, self.interrupted, self.held = 0, False, False, False
             reply(lambda m: m.mission_ack_send(*peer, ACCEPTED if ok else ERROR, 0))
         elif kind == "MISSION_SET_CURRENT":
             seq = int(msg.seq)
@@ -342,6 +348,7 @@ class AutopilotMission:
             )
             self._do_from = seq if nav > seq else None
             seq = nav
+            self.held = self.held or self.complete  # a finished mission is not restarted by this alone
         self.current, self.complete = seq, False
         self._started_item = False
         if self.running:
@@ -364,9 +371,21 @@ class AutopilotMission:
                 i.param2 for i in self.items[: self.current] if i.command == DO_CHANGE_SPEED and i.param2 > 0
             ]
             self._speed = speeds[-1] if speeds else self.default_speed  # PX4 replays its speed items
-        self.running, self.complete, self._do_from = True, False, None
+        self.running, self.complete, self._do_from, self.held = True, False, None, False
         self._origin = None  # the interrupted item is flown from where the vehicle is now
         self._started_item = False
+        return True
+
+    def resume_in_auto(self) -> bool:
+        """ArduCopter's MAV_CMD_MISSION_START in AUTO: a mission that is not running (held, or finished: from
+        its first item) runs again; False without a mission."""
+        if not self.has_mission:
+            return False
+        if self.held:
+            self.held = False
+            self._origin, self._started_item = None, False
+        elif self.complete:
+            self.start_or_resume()
         return True
 
     def stop(self) -> None:
@@ -386,7 +405,12 @@ class AutopilotMission:
 
     def command(self, state: VehicleState, broadcast: Send, status: Status) -> VelocityCommand:
         """The velocity AUTO/Mission flies now (zero: hold)."""
-        if not self.running or self.complete or not self.first_seq <= self.current < len(self.items):
+        if (
+            not self.running
+            or self.complete
+            or self.held
+            or not self.first_seq <= self.current < len(self.items)
+        ):
             return VelocityCommand()  # hold (also after the mission was cleared under it, as PX4 allows)
         while not self.complete and self.items[self.current].command == DO_CHANGE_SPEED:
             item = self.items[self.current]

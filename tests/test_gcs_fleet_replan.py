@@ -205,6 +205,70 @@ def test_the_dropped_area_is_appended_and_the_vehicles_go_on_in_their_mission(
         assert len(px4.mission.items) == len(items_2)
 
 
+def test_a_finished_ardupilot_is_resumed_on_its_share_and_a_px4_keeps_its_item(
+    capsys: pytest.CaptureFixture[str], backend: str, token_file: Path, defaults: str, tmp_path: Path
+) -> None:
+    with autopilot("ardupilot") as ardupilot, autopilot("px4", system_id=2) as px4:
+        north = [MissionItem.change_speed(3.0), *(_waypoint(n) for n in (150, 300))]
+        _upload(ardupilot.link_port("gcs"), 1, "ardupilot", [_waypoint(3)])
+        _upload(px4.link_port("gcs"), 2, "px4", north)
+        assert ardupilot.set_mode("AUTO") and px4.set_mode("MISSION")
+        assert wait_for(lambda: ardupilot.mission.complete, 15.0), "the ArduPilot never finished its mission"
+        assert wait_for(lambda: px4.mission.current == 1, 5.0)
+        fleet = _fleet(tmp_path, ardupilot.link_port("gcs"), px4.link_port("gcs"))
+        code, out, err = run(
+            capsys, "--timeout", "3", "replan", "--mission", "m-43", "--fleet", str(fleet), "--altitude", "25",
+            "--backend", backend, "--supervisor-token-file", str(token_file), "--companion-config", defaults,
+        )  # fmt: skip
+        assert (code, err) == (0, ""), err
+        lines = out.splitlines()
+        assert re.fullmatch(
+            r"vehicle drone-1: uploaded \d+ items \(its 1, then \d+ for the dropped area\), read back and checked; "
+            r"current item 2, mode AUTO: it goes on",
+            lines[-3],
+        ), out
+        assert re.fullmatch(
+            r"vehicle drone-2: uploaded \d+ items \(its 3, then \d+ for the dropped area\), read back and checked; "
+            r"current item 1, mode MISSION: it goes on",
+            lines[-2],
+        ), out
+        # MISSION_SET_CURRENT alone would leave ArduCopter's finished mission stopped (held): MISSION_START ran.
+        assert ardupilot.mode == "AUTO" and not ardupilot.mission.held and ardupilot.mission.current >= 2
+        assert positions_match(px4.mission.items[:3], north) and px4.mission.current == 1
+        assert px4.mode == "MISSION" and px4.mission.running
+        target = ardupilot.mission.items[2:]
+        goal = next(
+            latlon_to_offset(*HOME, i.lat_deg, i.lon_deg) for i in target if i.command == NAV_WAYPOINT
+        )
+
+        def gap() -> float:
+            s = ardupilot.snapshot()
+            return float(((s.north - goal[0]) ** 2 + (s.east - goal[1]) ** 2) ** 0.5)
+
+        before, north_now = gap(), px4.snapshot().north
+        assert wait_for(lambda: gap() < before - 5.0, 10.0), "drone-1 does not fly towards its share"
+        assert wait_for(lambda: px4.snapshot().north > north_now + 3.0, 10.0), "drone-2 stopped"
+
+
+def test_the_mock_arducopter_holds_a_finished_mission_set_current_until_mission_start() -> None:
+    with autopilot("ardupilot") as sim:
+        _upload(sim.link_port("gcs"), 1, "ardupilot", [_waypoint(3), _waypoint(40)])
+        assert sim.set_mode("AUTO")
+        assert wait_for(lambda: sim.mission.complete, 30.0)
+        endpoint = MavlinkEndpoint.open(f"udpout:127.0.0.1:{sim.link_port('gcs')}", 255, 190, 1)
+        try:
+            client = MissionClient(endpoint, "ardupilot", target=(1, 1), source=(255, 190))
+            assert client.set_current(1).seq == 1
+            assert sim.mission.held and client.read_current().state == 2  # NOT_STARTED: AP's MISSION_STOPPED
+            here = sim.snapshot().north
+            assert not wait_for(lambda: abs(sim.snapshot().north - here) > 3.0, 2.0)  # it holds in AUTO
+            endpoint.send(lambda m: m.command_long_send(1, 1, 300, 0, 0, 0, 0, 0, 0, 0, 0))
+            assert wait_for(lambda: not sim.mission.held, 5.0) and sim.mode == "AUTO"
+            assert wait_for(lambda: sim.snapshot().north < here - 3.0, 10.0)  # back to item 1, 3 m north
+        finally:
+            endpoint.close()
+
+
 def test_a_remaining_vehicle_going_home_is_refused_and_nothing_is_sent(
     capsys: pytest.CaptureFixture[str], backend: str, token_file: Path, defaults: str, tmp_path: Path
 ) -> None:
