@@ -90,5 +90,29 @@ def summary_lines(results: dict[str, Any], scenario: Scenario) -> list[str]:
             "  (the follow's standoff and image-centre figures are left out: the survey flies its own line while "
             "a candidate is tracked, so they measure no search; they are in the JSON)"
         )
+    if results.get("fleet"):
+        lines.extend(fleet_lines(results["fleet"]))
     lines.extend(f"  FAILED: {failure}" for failure in results["failures"])
     return lines
+
+
+def fleet_lines(fleet: dict[str, Any]) -> list[str]:
+    """A fleet's search (`fleet-search`): the parts, the plan's times, the drop-out and re-plan, the merged
+    coverage and the mission's finds."""
+    survey = fleet.get("survey") or {}
+    parts = ", ".join(
+        f"{vid} {p['lanes']} ({p['time_s']} s)" for vid, p in (survey.get("parts") or {}).items()
+    )
+    dropout, replan = fleet.get("dropout") or {}, fleet.get("replan") or {}
+    coverage = fleet.get("coverage_at_end")
+    return [
+        f"  fleet plan: {parts}; whole area {_s(survey.get('whole_area_s'))}, one vehicle alone "
+        f"{_s(survey.get('one_vehicle_alone_s'))}",
+        f"  fleet drop-out: {dropout.get('vehicle')} sent home at {_s(dropout.get('rtl_s'))}, listed by the back-end "
+        f"at {_s(dropout.get('listed_s'))} ({dropout.get('reason')}, {dropout.get('unflown_m2')} m2 unflown); "
+        f"replan exited {replan.get('exit_code')} after {_s(replan.get('took_s'))}: "
+        f"{(replan.get('output') or ['-'])[-1]}",
+        f"  fleet search: merged coverage {'?' if coverage is None else f'{coverage:.3f}'} at the end, the area "
+        f"covered at {_s(fleet.get('time_to_cover_s'))}; {len(fleet.get('finds') or [])} find(s) on the back-end, "
+        f"{len(fleet.get('sightings') or [])} sighting(s) of it by other vehicles",
+    ]

@@ -223,6 +223,10 @@ def test_fleet_search(models_dir: Path, tmp_path: Path) -> None:
     assert any(r["person"] == "decoy" for r in fleet["rejections"])
     for vid, m in results["vehicles"].items():
         assert m["companion_commands"] == {"setpoints": 0, "mode_commands": 0}, vid
+    summary = "\n".join(summary_lines(results, SCENARIOS["fleet-search"]))
+    assert (
+        "fleet plan: " in summary and "fleet drop-out: " in summary and "1 find(s) on the back-end" in summary
+    )
     print(
         "fleet-search: parts", {v: p["lanes"] for v, p in survey["parts"].items()}, "whole area",
         survey["whole_area_s"], "s, one alone", survey["one_vehicle_alone_s"], "s, covered",
