@@ -123,9 +123,9 @@ def item_from_message(msg: Any) -> MissionItem:
     )  # fmt: skip
 
 
-def send_item(mav: Any, target: tuple[int, int], seq: int, item: MissionItem) -> None:
+def send_item(mav: Any, target: tuple[int, int], seq: int, item: MissionItem, current: bool = False) -> None:
     mav.mission_item_int_send(
-        target[0], target[1], seq, item.frame, item.command, 0, int(item.autocontinue),
+        target[0], target[1], seq, item.frame, item.command, int(current), int(item.autocontinue),
         item.param1, item.param2, item.param3, item.param4, item.x, item.y, item.z, MISSION_TYPE_MISSION,
     )  # fmt: skip
 
@@ -191,9 +191,11 @@ class MissionClient:
         return int(msg.type) if msg.get_type() == "MISSION_ACK" else None
 
     # -------------------------------------------------------------------------------------- upload
-    def upload(self, items: Sequence[MissionItem]) -> None:
+    def upload(self, items: Sequence[MissionItem], current: int | None = None) -> None:
         """Replace the autopilot's mission with `items` (without ArduPilot's home item); MissionError with
-        a one-line reason when it fails, after clearing what the autopilot took of it (module docstring)."""
+        a one-line reason when it fails, after clearing what the autopilot took of it (module docstring).
+        `current` (the autopilot's numbering): the item sent flagged current, where PX4 begins the new mission
+        (ArduPilot ignores the flag; set the current item after the upload there)."""
         wire = ([HOME_PLACEHOLDER] if self.autopilot == "ardupilot" else []) + list(items)
         count = len(wire)
         target = self.target
@@ -232,7 +234,7 @@ class MissionClient:
                         f"mission upload: the autopilot asked for item {seq} of {count}", None, True
                     )
                 requested = max(requested, seq)
-                last_sent = partial(send_item, target=target, seq=seq, item=wire[seq])
+                last_sent = partial(send_item, target=target, seq=seq, item=wire[seq], current=seq == current)
                 self.link.send(last_sent)
                 tries = 0
                 deadline = self._clock() + self.timeouts.step_s

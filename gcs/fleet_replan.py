@@ -461,7 +461,7 @@ def send_share(args: argparse.Namespace, remaining: Remaining, part: FleetPart) 
         before = client.read_current()  # it may have moved on since it was heard
         now_own = own_mission(own.items, own.first_seq, before)
         expected = own.next_seq if now_own.complete else now_own.current
-        client.upload(items)
+        client.upload(items, current=expected)  # where PX4 begins the new mission
         after = client.read_current()
         if after.seq < expected or now_own.complete:
             after = client.set_current(expected)

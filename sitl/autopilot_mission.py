@@ -31,7 +31,9 @@ ArduCopter (AP_Mission, MissionItemProtocol_Waypoints)
 
 PX4 (navigator, MavlinkMissionManager; what the real PX4 1.16 SIH showed is marked measured)
 - items start at 0; an upload goes into a spare slot and replaces the mission only when complete, so a
-  failed upload leaves the old mission whole; items are asked for with MISSION_REQUEST_INT;
+  failed upload leaves the old mission whole, and begins at item 0, or at the item sent with current=1
+  (MavlinkMissionManager's _transfer_current_seq, from PX4's source); items are asked for with
+  MISSION_REQUEST_INT;
 - clearing is allowed at any time; Mission mode needs a mission;
 - a download (MISSION_REQUEST_INT) answers a global item in its _INT frame (GLOBAL_RELATIVE_ALT comes back as
   GLOBAL_RELATIVE_ALT_INT; measured on the real PX4 1.16);
@@ -109,6 +111,7 @@ class _Upload:
     last_item_time: float
     last_request_time: float
     staged: list[MissionItem] | None  # PX4 writes into a spare slot
+    flagged: int | None = None  # PX4: the item sent with current=1 becomes the current one
 
 
 class AutopilotMission:
@@ -241,6 +244,8 @@ class AutopilotMission:
             return
         if up.staged is not None:
             up.staged.append(item)
+            if getattr(msg, "current", 0) == 1:
+                up.flagged = up.next_seq
         elif up.next_seq == 0:
             if not self.items:
                 self.items.append(self._home_item())  # ArduPilot keeps its own home as item 0
@@ -274,8 +279,8 @@ class AutopilotMission:
         assert up is not None
         self._upload = None
         if up.staged is not None:  # PX4: the new mission replaces the old one whole, from its start
-            self.items = up.staged
-            self.current, self.complete, self.interrupted = 0, False, False
+            self.items = up.staged  # (or from the item sent as current: MavlinkMissionManager's current_seq)
+            self.current, self.complete, self.interrupted = up.flagged or 0, False, False
             self._started_item = False
             self._origin = None
         elif self.current >= len(self.items):

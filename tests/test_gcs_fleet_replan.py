@@ -386,3 +386,17 @@ def test_fewer_lanes_than_vehicles_go_to_those_that_finish_them_soonest() -> Non
     wide = [(p[0], p[1]) for p in _rect(0, 0, 400, 200)]
     split, idle = split_over(wide, SETTINGS, [far, near])
     assert sorted(p.vehicle.id for p in split.parts) == ["far", "near"] and idle == []
+
+
+def test_a_px4_begins_a_new_mission_at_the_item_sent_as_current() -> None:
+    with autopilot("px4") as sim:
+        items = [_waypoint(n) for n in (10, 20, 30)]
+        endpoint = MavlinkEndpoint.open(f"udpout:127.0.0.1:{sim.link_port('gcs')}", 255, 190, 1)
+        try:
+            client = MissionClient(endpoint, "px4", target=(1, 1), source=(255, 190))
+            client.upload(items, current=2)
+            assert sim.mission.current == 2 and client.read_current().seq == 2
+            client.upload(items)
+            assert sim.mission.current == 0  # none flagged: from the start
+        finally:
+            endpoint.close()
