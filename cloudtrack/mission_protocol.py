@@ -21,6 +21,8 @@ previous mission would be a second upload over the same failing link, and the ol
 search. An upload refused at MISSION_COUNT (e.g. more items than the autopilot stores) changes nothing on
 either autopilot, and the error says the previous mission is unchanged. Uploading while the vehicle flies
 its mission is refused by the caller (`gcs/survey_command.py`): ArduPilot cannot clear a running mission.
+`gcs/fleet_replan.py` only appends to a running mission (every item the same, at the same number) and
+flags the item PX4 is to begin the new mission at (`upload(items, current=N)`).
 
 Works over any `MissionLink` (a `MavlinkEndpoint`, or the companion's link with a queue in front) and is
 not thread-safe: one transfer at a time per link, as the protocol itself allows.

@@ -17,13 +17,15 @@ its mission and reads its current item. Its share begins where its own lanes end
 The upload leaves the vehicle in its search. Its new mission is its mission as it stands, every item
 unchanged and at the same number, with its share appended: ArduPilot writes the items as they arrive while it
 flies AUTO (an item it is flying is written with the same content, its current item stays), PX4 switches to
-the new mission whole on its last MISSION_ACK and begins it at item 0. After the upload the tool reads the
-current item and, where it went back (PX4), sets it to the item the vehicle was flying to (MISSION_SET_CURRENT:
-it flies there from where it is); a vehicle that had finished its mission is set to the first item of its
-share. The mode is never changed: a vehicle in AUTO / Mission goes on; one in another mode (e.g. GUIDED while
-its companion follows a candidate) flies it when it is back in its mission. A vehicle going home or landing is
-refused. `survey` refuses a vehicle flying its mission because it replaces that mission; `replan` only adds
-to it.
+the new mission whole on its last MISSION_ACK and begins it at the item sent flagged current, which is the
+item the vehicle was flying to. After the upload the tool reads the current item and, where it went back,
+sets it (MISSION_SET_CURRENT: it flies there from where it is); a vehicle that had finished its mission is
+set to the first item of its share, and an ArduCopter, which then holds its finished mission stopped at that
+item, gets MAV_CMD_MISSION_START (in AUTO: no mode change, the mission resumed there). The mode is never
+changed: a vehicle in AUTO / Mission goes on; one in another mode (e.g. GUIDED while its companion follows a
+candidate) flies it when it is back in its mission. A vehicle going home or landing is refused, and so is one
+whose waypoints left already fly into the dropped area (a re-plan run twice; `--again` overrides). `survey`
+refuses a vehicle flying its mission because it replaces that mission; `replan` only adds to it.
 
 `--dry-run` fetches the drop-outs and prints the plan, from each vehicle's start in the fleet (its own lanes
 left are not known without its link); nothing is sent. It prints a line per dropped vehicle, the re-planned
