@@ -839,10 +839,16 @@ def _propose_other(state: State, target: Target, answer: BackendAnswer, config: 
     rejected or found, is queued for the supervisor after the tracked one (`State.pending`, placed from its
     keyframe). The tracker stays on its candidate, and the front-end's policy is not given these answers:
     the supervisor is deciding on that candidate."""
+    where = [(target.candidate_id, target.position), (target.candidate_id, target.fix)]
     if answer.track_box is not None:
-        tracked, placed = _on_track(answer, answer.track_box), []
+        # A confirmed find is known by where it stands too: a tracker drifting off it must not make the person
+        # a new candidate (a second find of them).
+        tracked, placed = (
+            _on_track(answer, answer.track_box),
+            where if state.mode is MissionState.CONFIRMED else [],
+        )
     else:
-        tracked, placed = None, [(target.candidate_id, target.position), (target.candidate_id, target.fix)]
+        tracked, placed = None, where
     chosen = _choose(state, answer.candidates, config, answer, placed, tracked)
     if chosen is None or chosen[1] is None:  # nowhere to place it: nothing to tell it apart by
         return state, ()

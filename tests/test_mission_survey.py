@@ -757,6 +757,15 @@ def test_looking_only_the_search_goes_on_while_a_confirmed_find_is_held_in_view(
     engaged = reach(S.CONFIRMED, engage=True)
     _, actions = run(engaged, [guided(1.7), TimerTick(1.7)])
     assert not [a for a in actions if isinstance(a, BackendQuery) and a.purpose is QueryPurpose.SEARCH]
+    # The find itself, where it stands but off the tracker's box on that keyframe (the tracker drifted), is no
+    # new candidate: a second find of the same person.
+    state = reach(S.CONFIRMED, engage=False)
+    assert state.target is not None and state.target.position is not None
+    state, actions = run(state, [tracked(1.65, AT_STANDOFF), TimerTick(1.7)])
+    (query,) = [a for a in actions if isinstance(a, BackendQuery)]
+    drifted = BackendAnswer(1.9, query.query_id, 51, (candidate(AT_STANDOFF, "k7"),), track_box=BESIDE)
+    _, actions = run(state, [drifted])
+    assert not [a for a in actions if isinstance(a, ReportCandidate)], actions
 
 
 def test_the_search_beside_the_tracked_candidate_only_looking_and_only_awaiting() -> None:
