@@ -79,7 +79,7 @@ VIDEO_DELAY_FRAMES = 20
 VEHICLE_ORIGINS = (
     (0.0, 0.0),
     (0.0, -8.0),
-    (0.0, 8.0),
+    (0.0, 24.0),  # the third: nearer the east edge, so it flies the outer lane first
 )  # where each vehicle's home lies in the world (north, east)
 HOME_ALT_M = 488.0
 HOME_LAT, HOME_LON = 47.397742, 8.545594  # the world's origin (PX4's SIH default home)
