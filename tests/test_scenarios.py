@@ -346,6 +346,7 @@ def test_sim_cli_lists_scenarios_and_has_help(capsys: pytest.CaptureFixture[str]
         "stall",
         "flood",
         "search-outage",
+        "fleet-search",
     ):
         assert name in listed
     with pytest.raises(SystemExit) as exc:
