@@ -91,8 +91,11 @@ def create_app(
         s.max_missions_per_vehicle,
         config.server.max_crop_pixels,
         dropout_s=config.fleet.dropout_s,
+        merge_period_s=config.fleet.merge_period_s,
+        merge_in_background=True,  # a mission's merged map is merged off the requests (backend.merged_maps)
     )
     feed = ChangeFeed(store.state)
+    store.merged_maps.on_merged = lambda _mission: feed.poke()  # the pages' streams show the new map
     tak = config.tak
     sender = CotSender(tak.url, tak.tls_cert, tak.tls_key, tak.tls_ca) if tak.url else None
     if sender is not None:
@@ -106,6 +109,7 @@ def create_app(
             sender.start()
         yield
         feed.stop()
+        store.merged_maps.close()
         if sender is not None:
             sender.close()
         pool.shutdown(wait=False, cancel_futures=True)

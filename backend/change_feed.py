@@ -8,6 +8,7 @@ hundred pollers. Changes made by another replica arrive the same way, through th
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import threading
 
@@ -53,6 +54,15 @@ class ChangeFeed:
                     waiters, self._waiters = self._waiters, []
                 for loop, event in waiters:
                     loop.call_soon_threadsafe(event.set)
+
+    def poke(self) -> None:
+        """Wake every waiting stream without a store change: a mission's map was merged anew in this process
+        (backend.merged_maps), off the request that read it; the streams build the page's state again."""
+        with self._lock:
+            waiters, self._waiters = self._waiters, []
+        for loop, event in waiters:
+            with contextlib.suppress(RuntimeError):  # that stream's loop is closed
+                loop.call_soon_threadsafe(event.set)
 
     async def wait(self, last: int, timeout_s: float) -> int:
         """The version once it differs from `last`, or after `timeout_s`."""

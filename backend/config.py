@@ -219,6 +219,10 @@ class FleetConfig(ConfigSection):
     # (its link or companion lost): its unflown part is offered for a re-plan (GET /v1/missions/{m}/dropouts).
     # A companion reports every [backend] status_interval_s (1 s by default).
     dropout_s: float = Field(30.0, ge=1.0, le=3600.0)
+    # A mission's merged map (GET /v1/missions/{m}/map, the supervisor page's fleet map) is merged again at
+    # most once per this period, off the requests, and served as kept meanwhile (its `as_of` says since
+    # when): one merge costs about 8 ms of CPU per vehicle (backend.merged_maps). 0: whenever read and changed.
+    merge_period_s: float = Field(2.0, ge=0.0, le=60.0)
 
 
 class BackendConfig(ConfigSection):

@@ -107,6 +107,22 @@ def _metres(geometry: BaseGeometry, frame: LocalFrame) -> BaseGeometry:
     return shapely.transform(geometry, lambda lonlat: (lonlat - origin) * scale)
 
 
+def merge_key(vehicle: str, mission_map: MissionMap) -> tuple[object, ...]:
+    """What of a vehicle's map its mission's merged map depends on (its track does not): cheap to compare."""
+    pod = mission_map.pod
+    covered = mission_map.covered
+    return (
+        vehicle,
+        mission_map.area_since,
+        len(mission_map.area),
+        mission_map.area[0] if mission_map.area else None,
+        mission_map.coverage,
+        sum(len(r) for r in covered),
+        covered[-1][-1] if covered and covered[-1] else None,
+        (pod.looks, pod.values, pod.origin) if pod is not None else None,
+    )
+
+
 def merged_map(mission_id: str, maps: Sequence[tuple[str, MissionMap]], now: float) -> MergedMap:
     """The mission's map from each vehicle's (vehicle id, its map of the mission): see the module doc."""
     corners = [m.area[0] for _, m in maps if len(m.area) >= 3]

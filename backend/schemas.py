@@ -120,7 +120,13 @@ class MergedMap(ApiModel):
     pod: PodGrid | None = Field(
         None, description="per place 1 - prod(1 - POD of each vehicle), on one grid over every vehicle's grid"
     )
-    updated_at: float = 0.0
+    updated_at: float = Field(0.0, description="when the newest of the merged vehicles' maps was updated")
+    as_of: float = Field(
+        0.0,
+        description="server time the vehicles' maps were read for this map: it is merged again at most once "
+        "per [fleet] merge_period_s, off the request, and served as kept meanwhile",
+    )
+    age_s: float = Field(0.0, description="how old the map was when served: server time minus as_of")
 
 
 class Dropout(ApiModel):
@@ -262,7 +268,10 @@ class PodView(ApiModel):
     cell_deg: list[float] = Field(description="[north, east]: one cell's side in degrees of lat and lon")
     rows: int
     cols: int
-    values: str = Field(description="as in the status: base64, a byte a cell, 0-250 POD, 255 outside")
+    values: str = Field(
+        description="as in the status: base64, a byte a cell, 0-250 POD, 255 outside; empty in a vehicle's "
+        "view whose cells are on its mission's merged map (`on_mission_map`)"
+    )
     bands: list[PodBandView]
     meaning: str = Field(description="what POD means, one sentence for the legend")
 
@@ -287,8 +296,15 @@ class VehicleView(ApiModel):
         default_factory=list, description="ids of candidates dropped undecided this mission (too many waited)"
     )
     progress: SearchProgress | None = None
-    search: SearchStatus | None = Field(None, description="as reported, less its POD map (`pod`)")
+    search: SearchStatus | None = Field(
+        None, description="as reported, less its POD map (`pod`) and, with `on_mission_map`, its covered area"
+    )
     pod: PodView | None = None
+    on_mission_map: bool = Field(
+        False,
+        description="one of several vehicles of its mission: its covered area and POD cells are left out "
+        "here (search.covered empty, pod.values empty), the mission's merged map (`missions`) carries them",
+    )
     earlier_areas: int = Field(0, description="search areas of this mission before its survey was replaced")
     keyframes: KeyframeCounts | None = None
     track: list[list[float]] = Field(default_factory=list, description="[[lat, lon], ...] of this mission")
@@ -328,6 +344,10 @@ class MissionView(ApiModel):
     pod: PodView | None = Field(None, description="the merged POD map, 1 - prod(1 - POD of each vehicle)")
     unflown: list[UnflownView] = Field(
         default_factory=list, description="per vehicle that left the search, its part no vehicle covered"
+    )
+    as_of: float = Field(
+        0.0,
+        description="when the vehicles' maps were read for it (merged at most once per [fleet] merge_period_s)",
     )
 
 

@@ -6,7 +6,8 @@ several replicas), so a restart or a failover to another replica forgets nothing
 `MISSION_VEHICLES` of them, the most recently seen, are read): a rejection holds for all of them where it
 was made (a rejection without a place holds only for its own vehicle: mission ids are 0-255 and meet by
 accident), a person several of them find is one find (`same_as`), and their maps merge
-(`merged_map`, `backend.mission_merge`).
+(`merged_map`, `backend.mission_merge`: kept per mission and merged again at most once per
+`merge_period_s`, `backend.merged_maps`).
 
 Rejection memory: when the supervisor rejects a candidate, its appearance (hue-saturation histogram)
 and, when known, its position are kept for the mission. A later candidate in the same mission whose
@@ -37,8 +38,8 @@ from backend.images import (
     image_size,
     is_jpeg,
 )
+from backend.merged_maps import MergedMaps
 from backend.mission_map import distance_m, updated_map
-from backend.mission_merge import merged_map
 from backend.schemas import (
     Dropout,
     FleetOrder,
@@ -116,8 +117,15 @@ class SessionStore:
         clock: Callable[[], float] = time.time,
         on_find: Callable[[StoredFind], None] | None = None,
         dropout_s: float = 30.0,
+        merge_period_s: float = 2.0,
+        merge_in_background: bool = False,
     ) -> None:
         self.state = state or SqliteStore()
+        # [fleet] merge_period_s: each mission's merged map, shared by GET .../map and the supervisor page;
+        # in the background (off the requests) in the server, in the reading call otherwise.
+        self.merged_maps = MergedMaps(
+            self._mission_maps, merge_period_s, clock, background=merge_in_background
+        )
         self.dropout_s = dropout_s  # [fleet] dropout_s: a mission's vehicle silent longer has left its search
         self.similarity_threshold = similarity_threshold
         self.radius_m = radius_m
@@ -413,12 +421,13 @@ class SessionStore:
 
     def merged_map(self, mission_id: str) -> MergedMap | None:
         """The map of every vehicle searching the mission id, merged (backend.mission_merge); None when no
-        vehicle has reported a map of it."""
+        vehicle has reported a map of it. As kept (`backend.merged_maps`): merged again at most once per
+        `merge_period_s`, its `as_of` says when its vehicles' maps were read."""
+        return self.merged_maps.get(mission_id)
+
+    def _mission_maps(self, mission_id: str) -> list[tuple[str, MissionMap]]:
         maps = [(v, self.state.mission_map(v, mission_id)) for v in self.mission_vehicles(mission_id)]
-        kept = [(v, m) for v, m in maps if m is not None]
-        if not kept:
-            return None
-        return merged_map(mission_id, kept, max(m.updated_at for _, m in kept))
+        return [(v, m) for v, m in maps if m is not None]
 
     def dropouts(self, mission_id: str) -> MissionDropouts | None:
         """Who of the mission's vehicles left its search and the part of its area left unflown

@@ -7,8 +7,13 @@ named by its id.
 
 Bounded as the fleet grows: the tracks shown share `FLEET_TRACK_POINTS` (each at most `TRACK_SHOWN`, at
 least `TRACK_SHOWN_MIN`), a part is the reported search area (the API caps its vertices), the merged map is
-`backend.mission_merge`'s (rings and vertices capped, the POD grid at most `cloudtrack.pod_map.MAX_CELLS`)
-and is merged again only when a vehicle's area, coverage or POD map changed, not on every report.
+`backend.mission_merge`'s (rings and vertices capped, the POD grid at most `cloudtrack.pod_map.MAX_CELLS`),
+the one `GET /v1/missions/{m}/map` serves (`SessionStore.merged_map`, `backend.merged_maps`): merged again
+at most once per `[fleet] merge_period_s` and only when a vehicle's area, coverage or POD map changed, off
+the page's build, which takes it as kept. A vehicle of a mission of several (`on_mission_map`) is sent
+without its own covered area and POD cells (about 10 KB a vehicle): the mission's merged map carries them,
+and its card draws that map under its part. The part a vehicle that left the search leaves unflown is its
+area less the merged map's covered area (what the page draws), worked out again when either changes.
 
 Built from the session store (the whole fleet, whichever replica answers); it remembers since when each
 candidate waits, and forgets a candidate as soon as nobody waits on it, so it stays as small as the fleet.
@@ -24,7 +29,6 @@ import time
 from collections.abc import Callable
 
 from backend.fleet_dropout import leaving, unflown_part
-from backend.mission_merge import merged_map
 from backend.pod_layers import band_colour, meaning
 from backend.schemas import (
     CandidateView,
@@ -32,7 +36,6 @@ from backend.schemas import (
     KeyframeCandidate,
     KeyframeView,
     LatLon,
-    MergedMap,
     MissionMap,
     MissionView,
     PodBandView,
@@ -61,6 +64,10 @@ FLEET_TRACK_POINTS = 6000  # points of all the tracks together: a large fleet's 
 TRACK_SHOWN_MIN = 60  # ... but never coarser than this many points a vehicle
 AUTH_ERROR_KEEP_S = 60.0
 SNAPSHOT_REUSE_S = 1.0
+# An open page's stream builds the state at most this often: with a fleet reporting, the store changes all
+# the time, and a stream rebuilding on every change kept a build running without end (the page redraws the
+# fleet at most every 200 ms; a decision still shows within this).
+STREAM_BUILD_MIN_S = 0.5
 TRACK_MATCH_IOU = 0.2  # a keyframe box over the tracked box is the tracked one (as the companion matches)
 
 
@@ -110,22 +117,6 @@ def pod_view(grid: PodGrid) -> PodView:
     )
 
 
-def _merge_key(vehicle: str, mission_map: MissionMap) -> tuple[object, ...]:
-    """What of a vehicle's map the merged map depends on (its track does not): cheap to compare."""
-    pod = mission_map.pod
-    covered = mission_map.covered
-    return (
-        vehicle,
-        mission_map.area_since,
-        len(mission_map.area),
-        mission_map.area[0] if mission_map.area else None,
-        mission_map.coverage,
-        sum(len(r) for r in covered),
-        covered[-1][-1] if covered and covered[-1] else None,
-        (pod.looks, pod.values, pod.origin) if pod is not None else None,
-    )
-
-
 class SupervisorView:
     """Turns the session store into what the page shows, and remembers since when each candidate waits."""
 
@@ -139,8 +130,10 @@ class SupervisorView:
         self._auth_errors: dict[str, tuple[str, float]] = {}
         self._lock = threading.Lock()
         self._build_lock = threading.Lock()
-        self._cached: tuple[int, float, SupervisorSnapshot] | None = None
-        self._merged: dict[str, tuple[tuple[object, ...], MergedMap, list[UnflownView]]] = {}
+        # (store version and merge generation, when built, when its build began (monotonic), the snapshot)
+        self._cached: tuple[tuple[int, int], float, float, SupervisorSnapshot] | None = None
+        # Per mission: what its vehicles' unflown parts were worked out from, and them.
+        self._unflown: dict[str, tuple[tuple[object, ...], list[UnflownView]]] = {}
 
     def note_auth_failure(self, vehicle_id: str, reason: str) -> None:
         """A request for this vehicle was refused its credentials (401/403): shown on its card for a while."""
@@ -167,14 +160,21 @@ class SupervisorView:
 
     def snapshot(self) -> SupervisorSnapshot:
         """The fleet now. Every open page's stream asks on every change: one build serves them all until the
-        store changes again (or a second passes, for the ages)."""
+        store changes again, or a mission's map is merged anew (or a second passes, for the ages). A caller
+        that waited for another's build takes that one when it began after the caller asked: it read the
+        store later than the caller could have (so callers arriving during a build share the next, not one
+        each)."""
+        asked = time.monotonic()
         with self._build_lock:
-            version = self.store.state.version()
+            version = (self.store.state.version(), self.store.merged_maps.generation)
             cached = self._cached
-            if cached is not None and cached[0] == version and self._clock() - cached[1] < SNAPSHOT_REUSE_S:
-                return cached[2]
+            if cached is not None and (
+                cached[2] >= asked or (cached[0] == version and self._clock() - cached[1] < SNAPSHOT_REUSE_S)
+            ):
+                return cached[3]
+            began = time.monotonic()
             built = self._build()
-            self._cached = (version, self._clock(), built)
+            self._cached = (version, self._clock(), began, built)
             return built
 
     def _build(self) -> SupervisorSnapshot:
@@ -223,11 +223,12 @@ class SupervisorView:
         for key in [k for k in self._first_seen if k not in waiting]:
             del self._first_seen[key]
         missions = [
-            self._mission(m, sorted(ids), maps.get(m, []), sorted(v for v in ids if v in left), now)
+            self._mission(m, sorted(ids), maps.get(m, []), sorted(v for v in ids if v in left))
             for m, ids in sorted(members.items())
         ]
-        for gone in [m for m in self._merged if m not in members]:
-            del self._merged[gone]
+        for gone in [m for m in self._unflown if m not in members]:
+            del self._unflown[gone]
+        vehicles = _slimmed(vehicles, missions)
         return SupervisorSnapshot(
             server_time=now, vehicles=vehicles, missions=missions, map_tiles=self.map_tiles
         )
@@ -238,28 +239,28 @@ class SupervisorView:
         vehicle_ids: list[str],
         maps: list[tuple[str, MissionMap]],
         left: list[str],
-        now: float,
     ) -> MissionView:
-        """The mission's merged map from the maps its vehicles' views read, and the unflown part of each
-        vehicle in `left` (which left the search): worked out again only when one of the maps changed what
-        they depend on, or another vehicle left."""
-        maps = sorted(maps, key=lambda vm: vm[0])
-        key = (tuple(_merge_key(v, m) for v, m in maps), tuple(left))
-        kept = self._merged.get(mission_id)
+        """The mission's merged map as kept (`SessionStore.merged_map`, shared with GET .../map: merged at
+        most once per period, never here), and the unflown part of each vehicle in `left` (which left the
+        search): its area less the merged covered area, worked out again only when that map, a left
+        vehicle's area or who left changed."""
+        merged = self.store.merged_map(mission_id) if maps else None
+        if merged is None:
+            return MissionView(mission_id=mission_id, vehicles=vehicle_ids)
+        areas = {v: m.area for v, m in maps if v in left}
+        key = (merged.as_of, merged.updated_at, tuple(left), tuple(str(areas.get(v)) for v in left))
+        kept = self._unflown.get(mission_id)
         if kept is not None and kept[0] == key:
-            merged, unflown = kept[1], kept[2]
+            unflown = kept[1]
         else:
-            merged = merged_map(mission_id, maps, now)
-            covered = [m.covered for _, m in maps if m.covered]
             unflown = []
-            for vehicle, mission_map in maps:
-                if vehicle in left:
-                    part = unflown_part(mission_map.area, covered)
-                    if part.rings:
-                        unflown.append(
-                            UnflownView(vehicle_id=vehicle, rings=part.rings, area_m2=part.area_m2)
-                        )
-            self._merged[mission_id] = (key, merged, unflown)
+            for vehicle in left:
+                if vehicle not in areas:
+                    continue
+                part = unflown_part(areas[vehicle], [merged.covered] if merged.covered else [])
+                if part.rings:
+                    unflown.append(UnflownView(vehicle_id=vehicle, rings=part.rings, area_m2=part.area_m2))
+            self._unflown[mission_id] = (key, unflown)
         return MissionView(
             mission_id=mission_id,
             vehicles=vehicle_ids,
@@ -268,6 +269,7 @@ class SupervisorView:
             coverage=merged.coverage,
             pod=pod_view(merged.pod) if merged.pod is not None else None,
             unflown=unflown,
+            as_of=merged.as_of,
         )
 
     def _vehicle(
@@ -423,6 +425,25 @@ class SupervisorView:
         if cid == awaiting or cid in status.awaiting_more:
             return "awaiting"
         return "tracked" if cid == status.track_id else ""
+
+
+def _slimmed(vehicles: list[VehicleView], missions: list[MissionView]) -> list[VehicleView]:
+    """Each vehicle of a mission of several, whose map is merged on the mission's (`missions`), without its
+    own covered rings and POD cells: `on_mission_map`, its card draws the merged map (the rest of its POD
+    view, its figures and legend, stays)."""
+    merged = {m.mission_id: m for m in missions if len(m.vehicles) > 1 and m.area}
+    slim = []
+    for vehicle in vehicles:
+        mission = merged.get(vehicle.mission_id or "")
+        if mission is None or vehicle.search is None or len(vehicle.search.area) < 3:
+            slim.append(vehicle)
+            continue
+        update: dict[str, object] = {"on_mission_map": True}
+        update["search"] = vehicle.search.model_copy(update={"covered": []})
+        if vehicle.pod is not None:
+            update["pod"] = vehicle.pod.model_copy(update={"values": ""})
+        slim.append(vehicle.model_copy(update=update))
+    return slim
 
 
 def view_content(vehicle: VehicleView) -> str:

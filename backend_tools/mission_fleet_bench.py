@@ -22,9 +22,10 @@ runs, and the figures are the map's and the page's.
 
 Meanwhile a supervisor, as the page and a GCS would: one open `/supervisor/events` stream (the page's live
 state: its bytes and events counted), and every `poll_s` `GET /supervisor/api/state` (the snapshot the page
-loads, also the stream's `state` event) and `GET /v1/missions/{m}/map` (the merged map, built on each
-read: its serve cost is its update cost). Printed per fleet size: p50/p95 and bytes of both, the status
-report's p50/p95 (what one vehicle waits while the fleet reports), the server's RSS, and 50 vs 1 ratios.
+loads, also the stream's `state` event) and `GET /v1/missions/{m}/map` (the merged map as kept: merged at
+most once per `[fleet] merge_period_s`, off the requests; its `age_s` and the merges its `as_of` shows are
+printed). Printed per fleet size: p50/p95 and bytes of both, the status report's p50/p95 (what one vehicle
+waits while the fleet reports), the server's RSS, the CPU of one merge, and 50 vs 1 ratios.
 The end checks that every vehicle is on the merged map. Timings are printed, never asserted.
 """
 
@@ -321,6 +322,8 @@ def fleet_map_run(
     state_bytes: list[int] = []
     map_s: list[float] = []
     map_bytes: list[int] = []
+    map_ages: list[float] = []
+    map_as_of: set[float] = set()
     rss: list[int] = [server.rss_bytes()]
     cpu_before = cpu_seconds(server.pid)
 
@@ -350,6 +353,9 @@ def fleet_map_run(
                 if merged.status_code == 200:
                     map_s.append(t2 - t1)
                     map_bytes.append(len(merged.content))
+                    answer = merged.json()
+                    map_ages.append(float(answer.get("age_s", 0.0)))
+                    map_as_of.add(float(answer.get("as_of", 0.0)))
                 elif merged.status_code != 404:  # 404 until a first vehicle has reported its map
                     errors.append(f"map HTTP {merged.status_code}")
                 rss.append(server.rss_bytes())
@@ -382,7 +388,13 @@ def fleet_map_run(
         "status": _percentiles(status_s),
         "decisions_poll": _percentiles(decisions_s),
         "state": {**_percentiles(state_s), "bytes": int(np.median(state_bytes)) if state_bytes else 0},
-        "map": {**_percentiles(map_s), "bytes": int(np.median(map_bytes)) if map_bytes else 0},
+        "map": {
+            **_percentiles(map_s),
+            "bytes": int(np.median(map_bytes)) if map_bytes else 0,
+            "age_p50_s": float(np.percentile(map_ages, 50)) if map_ages else float("nan"),
+            "age_p95_s": float(np.percentile(map_ages, 95)) if map_ages else float("nan"),
+            "as_of_seen": len(map_as_of),
+        },
         "page_stream": {
             "bytes_per_s": page.bytes / wall if wall > 0 else 0.0,
             "events": page.events,
@@ -500,7 +512,9 @@ def print_fleet_map(report: dict[str, Any]) -> None:
             f"{r['vehicles']} vehicle(s): {r['status_reports']} status reports of {r['status_bytes']:,.0f} bytes, "
             f"due over {s['duration_s']:g} s, sent in {r['window_s']:g} s; "
             f"merged map holds {len(f['map_vehicles'])} vehicle(s), coverage {f['map_coverage']}, POD grid "
-            f"{f['map_pod_cells']} cells of {f['map_pod_cell_m'] or 0:.1f} m; page shows {f['page_vehicles']}"
+            f"{f['map_pod_cells']} cells of {f['map_pod_cell_m'] or 0:.1f} m; page shows {f['page_vehicles']}; "
+            f"map served {r['map']['age_p50_s']:.2f} / {r['map']['age_p95_s']:.2f} s old (p50/p95), "
+            f"{r['map']['as_of_seen']} different maps in {r['map']['count']} reads"
         )
     if "ratios" in report:
         q = report["ratios"]

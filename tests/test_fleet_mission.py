@@ -236,6 +236,8 @@ def test_the_mission_map_is_served_to_the_supervisor_only(models_dir: Path) -> N
         assert sorted(merged["vehicles"]) == ["drone-1", "drone-2"]
         assert merged["coverage"] == pytest.approx(1.0, abs=0.01)
         assert (merged["pod"]["rows"], merged["pod"]["cols"]) == (2, 4)
+        # Kept and merged at most once per [fleet] merge_period_s: the answer says how old it is.
+        assert merged["as_of"] > 0 and 0 <= merged["age_s"] < 60
         assert client.get("/v1/missions/7/map", headers=auth("drone-1")).status_code == 403
         assert client.get("/v1/missions/8/map", headers=supervisor).status_code == 404
 

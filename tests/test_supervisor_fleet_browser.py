@@ -158,6 +158,8 @@ def test_the_fleet_on_one_map_and_one_candidate_queue(page: Page) -> None:
             # The vehicle's console carries the same chip beside its id.
             card = page.locator(f'section.vehicle[data-vehicle="{vehicle}"]')
             expect(card.locator(".vehicle-head .chip")).to_have_css("background-color", _rgb(colour))
+            # ... and draws the mission's merged covered area under its part (its own is not sent twice).
+            expect(card.locator(".map path.covered")).to_have_count(1)
         # The merged map under them: one covered area over both parts, the mission's area outlined.
         expect(the_map.locator("path.merged-covered")).to_have_count(1)
         expect(the_map.locator("path.merged-area")).to_have_count(1)

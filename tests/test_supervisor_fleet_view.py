@@ -61,19 +61,20 @@ def test_the_fleet_in_one_state_each_vehicle_in_its_colour_and_one_merged_map() 
     assert min(lons) < LON + 1e-9 and max(lons) > LON + 2 * D - 1e-9
     assert missions["other"].area == [] and missions["other"].coverage is None
 
-    # A report that only moves a vehicle (its track) does not merge the map again.
-    merged_before = view._merged["m-43"][1]
+    # A report that only moves a vehicle (its track) does not merge the map again ([fleet] merge_period_s
+    # is 2 s: the map was due for a look, not for a merge).
+    merges = store.merged_maps.merges
     now[0] += 2
     _report(store, "drone-1", WEST, [LAT + D, LON + 0.5 * D])
     assert view.snapshot().vehicles[0].track[-1] == [LAT + D, LON + 0.5 * D]
-    assert view._merged["m-43"][1] is merged_before
+    assert store.merged_maps.merges == merges
     # One that covers more does.
     now[0] += 2
     _report(store, "drone-2", EAST, [LAT + D, LON + 1.5 * D], search={"area": EAST, "coverage": 1.0,
             "covered": [EAST[::-1]]})  # fmt: skip
     fleet = view.snapshot().missions[0]
     assert fleet.coverage is not None and abs(fleet.coverage - 0.75) < 0.02
-    assert view._merged["m-43"][1] is not merged_before
+    assert store.merged_maps.merges == merges + 1 and fleet.as_of == now[0]
 
     # No vehicle's credentials in the page's state.
     text = view.snapshot().model_dump_json()

@@ -3,7 +3,8 @@ and the mission's map over the whole fleet.
 
 Missions are stored by (vehicle, mission): a rejection is the sending vehicle's, and holds for the other
 vehicles of the same mission id where it was made (backend.sessions). `GET /v1/missions/{m}/map`: the
-map of every vehicle searching the mission id, merged (backend.mission_merge). `PUT .../on_find` sets
+map of every vehicle searching the mission id, merged (backend.mission_merge) at most once per
+`[fleet] merge_period_s` (backend.merged_maps). `PUT .../on_find` sets
 what the fleet does on the first confirmed find (once, at the start), `GET .../fleet` tells a vehicle
 what it is to do now. `GET .../dropouts`: the vehicles that left the search and their unflown parts
 (backend.fleet_dropout).
@@ -11,6 +12,7 @@ what it is to do now. `GET .../dropouts`: the vehicles that left the search and 
 
 from __future__ import annotations
 
+import time
 from typing import Annotated
 
 from fastapi import APIRouter, HTTPException, Query
@@ -87,11 +89,13 @@ def list_rejections(
 def mission_map(mission_id: MissionId, _: SupervisorCaller, sessions: Sessions) -> MergedMap:
     """The mission's map over every vehicle searching this mission id: the union of their search and
     covered areas, the coverage of the whole, and one POD map (1 - prod(1 - each vehicle's POD) per place).
+    Merged at most once per `[fleet] merge_period_s`, off the request, and shared with the supervisor page:
+    the map is served as kept meanwhile, `as_of` and `age_s` say when its vehicles' maps were read.
     404 when no vehicle has reported a map of it."""
     merged = sessions.merged_map(mission_id)
     if merged is None:
         raise HTTPException(404, f"no vehicle has reported a map of mission {mission_id!r}")
-    return merged
+    return merged.model_copy(update={"age_s": round(max(0.0, time.time() - merged.as_of), 3)})
 
 
 @router.get("/dropouts", response_model=MissionDropouts, responses=ERROR_RESPONSES)

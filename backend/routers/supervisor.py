@@ -24,6 +24,7 @@ stream is woken by the store's changes (backend.change_feed), not by polling per
 
 from __future__ import annotations
 
+import asyncio
 import json
 import time
 from collections.abc import AsyncIterator
@@ -46,7 +47,7 @@ from backend.dependencies import (
 )
 from backend.images import ImageError, b64_image_bytes, is_jpeg
 from backend.schemas import SupervisorEnabled, SupervisorSnapshot
-from backend.supervisor_view import missions_content, view_content
+from backend.supervisor_view import STREAM_BUILD_MIN_S, missions_content, view_content
 
 STATIC_DIR = Path(__file__).resolve().parents[1] / "static"
 STATIC_FILES = {
@@ -89,7 +90,7 @@ def state(view: View) -> SupervisorSnapshot:
 async def events(request: Request, view: View, feed: Feed, limits: StreamLimits) -> StreamingResponse:
     """Server-Sent Events: `state` (the whole snapshot) first and when vehicles come or go, `vehicle` (one
     vehicle's view) when only it changed, `fleet` ({"missions": [...]}, the merged maps) when they changed,
-    `ages` when only reports arrived, comments as keep-alive."""
+    `ages` when only reports arrived, comments as keep-alive. Built at most once per STREAM_BUILD_MIN_S."""
 
     async def stream() -> AsyncIterator[str]:
         opened = time.monotonic()
@@ -101,6 +102,7 @@ async def events(request: Request, view: View, feed: Feed, limits: StreamLimits)
         # A stream ends after max_stream_s and the page reconnects at once: a server shutting down
         # (uvicorn waits for open responses) or a proxy's idle limit never holds a stream for long.
         while not await request.is_disconnected() and time.monotonic() - opened < limits.max_stream_s:
+            built_at = time.monotonic()
             snapshot = await run_in_threadpool(view.snapshot)
             content = {v.id: view_content(v) for v in snapshot.vehicles}
             fleet = missions_content(snapshot)
@@ -123,6 +125,10 @@ async def events(request: Request, view: View, feed: Feed, limits: StreamLimits)
             sent, reported, sent_fleet = content, reports, fleet
             remaining = limits.max_stream_s - (time.monotonic() - opened)
             version = await feed.wait(version, max(0.0, min(limits.keepalive_s, remaining)))
+            # A fleet changes the store all the time: one build per STREAM_BUILD_MIN_S, not one per change.
+            pause = STREAM_BUILD_MIN_S - (time.monotonic() - built_at)
+            if pause > 0:
+                await asyncio.sleep(pause)
 
     headers = {**_NO_STORE, "X-Accel-Buffering": "no"}  # nginx: pass events through unbuffered
     return StreamingResponse(stream(), media_type="text/event-stream", headers=headers)

@@ -112,6 +112,11 @@ function handleMessage(block) {
   else if (kind === "fleet") {
     missions = body.missions || [];
     scheduleFleet();
+    // The cards that draw their mission's merged map under their part.
+    for (const { view } of vehicles.values()) {
+      const card = document.querySelector(`section.vehicle[data-vehicle="${CSS.escape(view.id)}"]`);
+      if (card && view.on_mission_map) renderMap(card, view);
+    }
   }
   else if (kind === "ages") {
     // Reports that changed nothing else: only "last report" becomes young again.
@@ -365,11 +370,16 @@ function renderMap(card, vehicle) {
   if (mapTiles) drawTiles(map, scale, cx, cy, width, height);
   const path = (ring) => ring.map(project).map(([x, y], i) => `${i ? "L" : "M"}${x.toFixed(1)},${y.toFixed(1)}`).join(" ");
   const pod = vehicle.pod;
-  if (pod) drawPod(map, pod, path);
+  // One of several vehicles of a mission: its own covered area and POD cells are on the mission's merged
+  // map (not sent twice), drawn here under its part; its POD figures and legend are its own.
+  const mission = vehicle.on_mission_map ? missions.find((m) => m.mission_id === vehicle.mission_id) : null;
+  const cells = mission ? mission.pod : pod;
+  if (cells && cells.values) drawPod(map, cells, path);
   renderLegend(card, pod);
   // With a POD map the footprints are an outline: what the camera pointed at is not what was searched.
-  const covered = pod ? "covered outline" : "covered";
-  for (const ring of search.covered) if (ring.length > 2) svg("path", { d: `${path(ring)} Z`, class: covered }, map);
+  const covered = cells ? "covered outline" : "covered";
+  const rings = mission ? mission.covered : search.covered;
+  for (const ring of rings) if (ring.length > 2) svg("path", { d: `${path(ring)} Z`, class: covered }, map);
   if (search.area.length > 2) svg("path", { d: `${path(search.area)} Z`, class: "area" }, map);
   if (vehicle.track.length > 1) svg("path", { d: path(vehicle.track), class: "track" }, map);
   for (const candidate of candidates) {
