@@ -331,11 +331,17 @@ class SessionStore:
         self.state.add_decision(vehicle_id, mission_id, confirm, self._clock(), source="vehicle")
 
     def _first_finder(self, find: StoredFind) -> StoredFind | None:
-        """Another vehicle's find of the mission of the same person: within two sigma of the difference of
-        the two positions (an unknown sigma counts as FIND_SIGMA_UNKNOWN_M), at most `radius_m` apart."""
+        """An earlier find of the mission of the same person, by another vehicle or by this one under another
+        candidate id (a tracker that lost the person and found them again): within two sigma of the
+        difference of the two positions (an unknown sigma counts as FIND_SIGMA_UNKNOWN_M), at most
+        `radius_m` apart. The same candidate again is that find refined, not another."""
         sigma = find.sigma_m if find.sigma_m is not None else FIND_SIGMA_UNKNOWN_M
-        others = [v for v in self.mission_vehicles(find.mission_id) if v != find.vehicle_id]
-        candidates = [f for v in others for f in self.state.finds(v, find.mission_id) if f.same_as is None]
+        candidates = [
+            f
+            for v in self.mission_vehicles(find.mission_id)
+            for f in self.state.finds(v, find.mission_id)
+            if f.same_as is None and (v, f.candidate_id) != (find.vehicle_id, find.candidate_id)
+        ]
         for other in sorted(candidates, key=lambda f: f.received_at):
             theirs = other.sigma_m if other.sigma_m is not None else FIND_SIGMA_UNKNOWN_M
             reach = min(self.radius_m, max(FIND_SAME_MIN_M, 2 * math.hypot(sigma, theirs)))

@@ -160,6 +160,29 @@ def test_one_person_seen_by_two_vehicles_is_one_find(state: StateStore) -> None:
     assert [f.candidate_id for f in store.mission_finds("m2")] == ["c1"]
 
 
+def test_one_vehicle_finding_the_same_person_again_under_another_candidate_is_one_find(
+    state: StateStore,
+) -> None:
+    """A tracker that lost the person and picked them up again gives them a new candidate id: still one
+    person, one find; the same candidate reported again is its find refined, and someone 60 m off another."""
+    told: list[StoredFind] = []
+    store = SessionStore(state, on_find=told.append)
+    store.set_status("d1", VehicleStatusIn(mission_id="m1", state="CONFIRMED", find=_find("a7", HERE, 3.0)))
+    store.set_status(
+        "d1", VehicleStatusIn(mission_id="m1", state="CONFIRMED", find=_find("a7", _at(1, 0), 2.0))
+    )
+    store.set_status(
+        "d1", VehicleStatusIn(mission_id="m1", state="CONFIRMED", find=_find("a9", _at(2, 1), 3.0))
+    )
+    assert [f.candidate_id for f in store.mission_finds("m1")] == ["a7"]
+    assert [f.same_as for f in store.sightings("d1", "m1")] == ["d1/a7"]
+    store.set_status(
+        "d1", VehicleStatusIn(mission_id="m1", state="CONFIRMED", find=_find("b1", _at(60, 0), 3.0))
+    )
+    assert [f.candidate_id for f in store.mission_finds("m1")] == ["a7", "b1"]
+    assert [f.candidate_id for f in told] == ["a7", "b1"]  # each person told once (Cursor-on-Target)
+
+
 def test_a_supervisors_confirm_of_the_same_person_on_another_vehicle_is_no_second_find(
     state: StateStore,
 ) -> None:

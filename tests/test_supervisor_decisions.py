@@ -71,7 +71,12 @@ def _race(url: str, app: object, client: BackendClient, session: BackendSession)
     with httpx.Client(base_url=url, timeout=10, headers=SUPERVISOR) as supervisor:
         for i in range(ROUNDS):
             candidate = f"c-{i}"
-            awaiting = {"candidate_id": candidate, "box": [10.0, 10.0, 40.0, 90.0], "position": [47.39, 8.54]}
+            # Each candidate another person, 111 m from the last (one person seen again is one find).
+            awaiting = {
+                "candidate_id": candidate,
+                "box": [10.0, 10.0, 40.0, 90.0],
+                "position": [47.39 + 0.001 * i, 8.54],
+            }
             # The status goes out here, in order (the session's own reports would race this loop's).
             client.report_status("AWAITING_SUPERVISOR", awaiting=awaiting)
             answers: dict[str, httpx.Response] = {}
