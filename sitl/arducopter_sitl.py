@@ -93,12 +93,16 @@ def _udp_free(port: int) -> bool:
     return True
 
 
+_TAKEN: set[int] = set()  # instances this process started (a fleet's second SITL must not share one)
+
+
 def _free_instance() -> int:
     """A SITL instance number whose fixed UDP ports (5501+10i simulator input, 9005+10i IRLock) are free."""
     start = os.getpid() % 50
     for k in range(50):
         i = (start + k) % 50 + 1
-        if _udp_free(5501 + 10 * i) and _udp_free(9005 + 10 * i):
+        if i not in _TAKEN and _udp_free(5501 + 10 * i) and _udp_free(9005 + 10 * i):
+            _TAKEN.add(i)
             return i
     raise RuntimeError("no free ArduCopter SITL instance number (ports 5511-6001 all in use)")
 
@@ -130,8 +134,10 @@ class ArduCopterSitl:
         home: tuple[float, float, float, float],
         speedup: float = 1.0,
         extra_params: dict[str, float] | None = None,
+        system_id: int = 1,
     ) -> None:
         self.binary = binary
+        self.system_id = system_id
         self.work_dir = work_dir
         self.home = home  # lat, lon, alt (m AMSL), heading (deg)
         self.speedup = speedup
@@ -175,6 +181,9 @@ class ArduCopterSitl:
             "--serial5",
             f"tcp:{self.ports.ground}",
         ]
+        if self.system_id != 1:
+            # --sysid, not a parameter: 4.7 names it MAV_SYSID where 4.5 and 4.6 had SYSID_THISMAV.
+            cmd += ["--sysid", str(self.system_id)]
         with open(self.work_dir / "arducopter.log", "wb") as out:
             self.process = subprocess.Popen(cmd, cwd=self.work_dir, stdout=out, stderr=subprocess.STDOUT)
         deadline = time.monotonic() + timeout_s
@@ -221,6 +230,10 @@ class ArduCopterSitl:
             except subprocess.TimeoutExpired:
                 self.process.kill()
                 self.process.wait()
+        self.release()
+
+    def release(self) -> None:
+        _TAKEN.discard(self.instance)
 
     def remove_work_dir(self) -> None:
         shutil.rmtree(self.work_dir, ignore_errors=True)
@@ -238,7 +251,10 @@ class RealAutopilot:
     offboard_mode = "GUIDED"
     takeover_mode = "LOITER"
 
-    def __init__(self, sitl: ArduCopterSitl, gcs: Any, companion_port: int | None = None) -> None:
+    def __init__(
+        self, sitl: ArduCopterSitl, gcs: Any, companion_port: int | None = None, system_id: int = 1
+    ) -> None:
+        self.system_id = system_id  # MAV_SYSID (--sysid): 1 unless a fleet gives each vehicle its own
         self.sitl = sitl
         self.gcs = gcs
         self.mode_history: list[tuple[float, str, str]] = []
@@ -258,8 +274,8 @@ class RealAutopilot:
     def describe(self) -> str:
         pid = self.sitl.process.pid if self.sitl.process else "?"
         return (
-            f"ArduCopter SITL {self.sitl.binary} (pid {pid}, instance {self.sitl.instance}, "
-            f"speed-up {self.sitl.speedup:g} until airborne)"
+            f"ArduCopter SITL {self.sitl.binary} (pid {pid}, instance {self.sitl.instance}, system id "
+            f"{self.system_id}, speed-up {self.sitl.speedup:g} until airborne)"
         )
 
     def camera_pose(self, origin: tuple[float, float]) -> PoseFollower:
@@ -364,15 +380,17 @@ def start_arducopter(
     companion_port: int | None,
     speedup: float = 10.0,
     extra_params: dict[str, float] | None = None,
+    system_id: int = 1,
 ) -> RealAutopilot:
-    """The binary in `work_dir`, its scripted GCS on SERIAL0 and the companion's bridge to SERIAL2."""
+    """The binary in `work_dir`, its scripted GCS on SERIAL0 and the companion's bridge to SERIAL2; a
+    `system_id` other than 1 is given as `--sysid` (a fleet's vehicles each have their own)."""
     from sitl.scenarios import ScriptedGcs
 
     lat, lon, alt = home
-    sitl = ArduCopterSitl(binary, work_dir, (lat, lon, alt, 0.0), speedup, extra_params).start()
+    sitl = ArduCopterSitl(binary, work_dir, (lat, lon, alt, 0.0), speedup, extra_params, system_id).start()
     try:
-        gcs = ScriptedGcs(f"tcp:127.0.0.1:{sitl.ports.gcs}").start()
-        return RealAutopilot(sitl, gcs, companion_port)
+        gcs = ScriptedGcs(f"tcp:127.0.0.1:{sitl.ports.gcs}", target_system=system_id).start()
+        return RealAutopilot(sitl, gcs, companion_port, system_id)
     except Exception:
         sitl.stop()
         raise

@@ -29,6 +29,7 @@ examples:
   cloudtrack-sim run follow --autopilot px4 --tracker vit --model-dir ../shared/models
   cloudtrack-sim run follow --autopilot arducopter --json out/follow-arducopter.json
   cloudtrack-sim run follow --autopilot px4-sitl --json out/follow-px4.json
+  cloudtrack-sim run fleet-search --autopilot arducopter,px4-sitl --json out/fleet-mixed.json
   cloudtrack-sim autopilot --autopilot px4 --gcs udpout:127.0.0.1:14550
   cloudtrack-sim camera --autopilot-url udpin:0.0.0.0:14551 --backend-port 8080
   cloudtrack-sim bench
@@ -48,10 +49,13 @@ def _add_run(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     run.add_argument("scenario", choices=sorted(SCENARIOS), metavar="SCENARIO", help=", ".join(SCENARIOS))
     run.add_argument(
         "--autopilot",
-        choices=(*PERSONALITIES, *REAL_AUTOPILOTS),
+        type=_autopilot_list,
+        metavar="NAME[,NAME...]",
         help="override the scenario's autopilot: a mock personality (ardupilot, px4), 'arducopter', "
         "the real ArduCopter SITL binary (see --arducopter-binary), or 'px4-sitl', the real PX4 with SIH "
-        "physics (see --px4-package)",
+        "physics (see --px4-package); a comma list gives each vehicle its own, in order "
+        "(fleet-search --autopilot arducopter,px4-sitl: drone-1 ArduCopter, drone-2 PX4). fleet-search on "
+        "one real autopilot flies two vehicles of it (docs/sitl.md)",
     )
     run.add_argument(
         "--arducopter-binary",
@@ -142,6 +146,19 @@ def _add_run(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     run.set_defaults(func=_run)
 
 
+def _autopilot_list(text: str) -> str:
+    """NAME or NAME,NAME,...: each a mock personality or a real autopilot."""
+    known = (*PERSONALITIES, *REAL_AUTOPILOTS)
+    names = [n.strip() for n in text.split(",")]
+    bad = [n for n in names if n not in known]
+    if bad or not names:
+        raise argparse.ArgumentTypeError(
+            f"invalid choice: {', '.join(map(repr, bad)) or repr(text)} (choose from {', '.join(known)}, "
+            "or a comma list of them, one per vehicle)"
+        )
+    return ",".join(names)
+
+
 def _run(args: argparse.Namespace) -> int:
     from sitl.scenario_runner import RunOptions, run_scenario
     from sitl.scenarios import placed
@@ -167,6 +184,14 @@ def _run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(str(exc), file=sys.stderr)
         return 2
+    if args.autopilot is not None:
+        from sitl.scenarios import autopilot_names
+
+        try:
+            autopilot_names(scenario, args.autopilot)
+        except ValueError as exc:
+            print(str(exc), file=sys.stderr)
+            return 2
     if args.supervisor_delay_s is not None:
         if not 0.0 <= args.supervisor_delay_s <= 600.0:
             print(f"--supervisor-delay-s must be 0-600 s, not {args.supervisor_delay_s:g}", file=sys.stderr)

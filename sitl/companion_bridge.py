@@ -59,6 +59,9 @@ class CompanionBridge:
         self._parser = mavutil.mavlink.MAVLink(None)
         self._parser.robust_parsing = True
         self.setpoints: list[BridgedSetpoint] = []
+        # The companion's commands, as the mock records them: (time, "companion", MAV_CMD); SET_MODE counts as
+        # MAV_CMD_DO_SET_MODE (176). What a scenario looking only checks it never sent.
+        self.commands: list[tuple[float, str, int]] = []
         self._down = threading.Event()
         self._stop = threading.Event()
         self._threads = [
@@ -76,6 +79,7 @@ class CompanionBridge:
         nothing recorded, the link up."""
         self._peer = ("127.0.0.1", companion_port) if companion_port else None
         self.setpoints = []
+        self.commands = []
         self._down.clear()
 
     def set_down(self, down: bool) -> None:
@@ -106,6 +110,10 @@ class CompanionBridge:
             except Exception:  # the bridge only observes; the autopilot judges the bytes
                 msgs = []
             for m in msgs:
+                if m.get_type() in ("COMMAND_LONG", "COMMAND_INT"):
+                    self.commands.append((now, "companion", int(m.command)))
+                elif m.get_type() == "SET_MODE":
+                    self.commands.append((now, "companion", mavutil.mavlink.MAV_CMD_DO_SET_MODE))
                 if m.get_type() == "SET_POSITION_TARGET_LOCAL_NED":
                     self.setpoints.append(
                         BridgedSetpoint(

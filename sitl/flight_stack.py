@@ -98,12 +98,14 @@ def start_flight_stack(
     companion_port: int | None,
     speedup: float = 1.0,
     extra_params: dict[str, float] | None = None,
+    system_id: int = 1,
 ) -> FlightStack:
-    """Start `name` ("arducopter": `executable` is the binary; "px4-sitl": the package directory) and its GCS."""
+    """Start `name` ("arducopter": `executable` is the binary; "px4-sitl": the package directory) and its GCS.
+    `system_id`: ArduCopter's SYSID_THISMAV (PX4 takes its instance's, N+1)."""
     if name == "arducopter":
         from sitl.arducopter_sitl import start_arducopter
 
-        return start_arducopter(executable, work_dir, home, companion_port, speedup, extra_params)
+        return start_arducopter(executable, work_dir, home, companion_port, speedup, extra_params, system_id)
     if name == "px4-sitl":
         from sitl.px4_sitl import start_px4
 

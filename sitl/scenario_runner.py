@@ -66,6 +66,8 @@ from sitl.scenarios import (
     ScriptedGcs,
     VehicleOutcome,
     assess,
+    autopilot_names,
+    for_autopilots,
 )
 from sitl.simulated_detector import DetectorNoise, SimulatedPersonDetector
 from sitl.video_overlay import OverlayState, VideoWriter, draw_overlay
@@ -182,6 +184,11 @@ class _Vehicle:
     statuses: list[tuple[float, dict[str, Any]]] = field(default_factory=list)
     survey: dict[str, Any] = field(default_factory=dict)  # the plan the pilot uploaded
     rejections_taken: list[float] = field(default_factory=list)  # when the companion took each rejection
+    personality: str = ""  # its autopilot: a mock personality or a real one (REAL_AUTOPILOTS)
+
+    @property
+    def real(self) -> bool:
+        return self.personality in REAL_AUTOPILOTS
 
 
 def default_tracker(model_dir: Path) -> str:
@@ -207,24 +214,33 @@ class ScenarioRun:
     def __init__(self, scenario: Scenario, options: RunOptions, progress: Progress = print) -> None:
         from cloudtrack.model_store import resolve_model_dir
 
+        # One autopilot per vehicle: `--autopilot` names one for all or gives a comma list (a fleet of real
+        # autopilots flies two vehicles: `for_autopilots`).
+        if options.flight_stack is None:
+            self.autopilots = autopilot_names(scenario, options.autopilot)
+            scenario = for_autopilots(scenario, self.autopilots)
+        else:
+            self.autopilots = (options.flight_stack.name,)
         self.scenario = scenario
         self.options = options
         self.progress = progress
-        self.personality = options.autopilot or scenario.autopilot
+        # The autopilot flown (single-autopilot runs), or the comma list of a mixed fleet.
+        self.personality = self.autopilots[0] if len(set(self.autopilots)) == 1 else ",".join(self.autopilots)
         self.world = scenario.build_world(options.seed)
         self.camera = CameraModel.from_hfov(640, 480, 70.0, MOUNT_PITCH_DEG, stabilised=True)
         self.model_dir = resolve_model_dir(options.model_dir)
         self.tracker = options.tracker or default_tracker(self.model_dir)
         self.verifier = options.verifier or scenario.verifier
-        self.flight_stack: Path | None = None  # the real autopilot's binary or package
+        self.flight_stacks: dict[str, Path] = {}  # each real autopilot's binary or package, by name
         self.shared = options.flight_stack
         if self.shared is not None:
             self.personality = self.shared.name
             if scenario.vehicles != 1:
                 raise ValueError(f"{scenario.name} flies {scenario.vehicles} vehicles: one shared autopilot")
-        elif self.real:
-            override = options.arducopter_binary if self.personality == "arducopter" else options.px4_package
-            self.flight_stack = find_flight_stack(self.personality, override)  # never the mock instead
+        else:
+            for name in dict.fromkeys(n for n in self.autopilots if n in REAL_AUTOPILOTS):
+                override = options.arducopter_binary if name == "arducopter" else options.px4_package
+                self.flight_stacks[name] = find_flight_stack(name, override)  # never the mock instead
         # A temp work dir is removed after the run (--work-dir keeps one).
         self._own_work = options.work_dir is None
         self.work = options.work_dir or Path(tempfile.mkdtemp(prefix=f"cloudtrack-sim-{scenario.name}-"))
@@ -256,7 +272,8 @@ class ScenarioRun:
 
     @property
     def real(self) -> bool:
-        return self.personality in REAL_AUTOPILOTS
+        """Some vehicle flies a real autopilot (each vehicle's own: `_Vehicle.real`)."""
+        return any(n in REAL_AUTOPILOTS for n in self.autopilots)
 
     # ----------------------------------------------------------------------------------------- helpers
     def now(self) -> float:
@@ -310,13 +327,14 @@ class ScenarioRun:
         origin = VEHICLE_ORIGINS[index % len(VEHICLE_ORIGINS)]
         vid = f"drone-{index + 1}"
         udp_port = _free_udp_port() if self.scenario.companion_listens else None
+        personality = self.autopilots[index % len(self.autopilots)]
         follower: Any
-        if self.real:
-            autopilot = self._start_real(vid, origin, udp_port)
+        if personality in REAL_AUTOPILOTS:
+            autopilot = self._start_real(index, origin, udp_port, personality)
             gcs = autopilot.gcs
             follower = autopilot.camera_pose(origin)
         else:
-            autopilot, gcs, camera_url = self._start_mock(origin, udp_port)
+            autopilot, gcs, camera_url = self._start_mock(origin, udp_port, personality)
             follower = PoseFollower(camera_url, origin=origin).start()
         camera = CameraServer(
             self.world, self.camera, follower.pose, fps=30.0, frame_id_base=index << FRAME_ID_BITS
@@ -336,19 +354,22 @@ class ScenarioRun:
             self.work / f"{vid}-companion.log",
             origin=origin,
             companion_udp_port=udp_port,
+            personality=personality,
         )
         camera.add_hook(partial(self._on_frame, v))
         camera.start()
         return v
 
-    def _start_mock(self, origin: tuple[float, float], udp_port: int | None) -> tuple[Any, ScriptedGcs, str]:
+    def _start_mock(
+        self, origin: tuple[float, float], udp_port: int | None, personality: str
+    ) -> tuple[Any, ScriptedGcs, str]:
         from sitl.autopilot import AutopilotOptions, SimulatedAutopilot
         from sitl.autopilot_mission import MissionOptions
 
         lat, lon = _home(origin)
         survey = self.scenario.survey
         options = AutopilotOptions(
-            personality=self.personality,
+            personality=personality,
             start_height_m=ALTITUDE_M,
             home_lat=lat,
             home_lon=lon,
@@ -365,28 +386,33 @@ class ScenarioRun:
         gcs = ScriptedGcs(f"udpout:127.0.0.1:{autopilot.link_port('gcs')}").start()
         return autopilot, gcs, f"udpout:127.0.0.1:{autopilot.link_port('camera')}"
 
-    def _start_real(self, vid: str, origin: tuple[float, float], udp_port: int | None) -> FlightStack:
+    def _start_real(
+        self, index: int, origin: tuple[float, float], udp_port: int | None, personality: str
+    ) -> FlightStack:
+        vid = f"drone-{index + 1}"
         if self.shared is not None:
             self.shared.reuse(udp_port)
             self.progress(f"{vid}: {self.shared.describe()}, used before")
             return self.shared
-        assert self.flight_stack is not None
         lat, lon = _home(origin)
         survey = self.scenario.survey
         # AUTO flies at WPNAV_SPEED (cm/s) after a resume: a DO_CHANGE_SPEED before the break-off no longer holds.
         params = (
             {"WPNAV_SPEED": survey.speed_m_s * 100.0}
-            if survey is not None and self.personality == "arducopter"
+            if survey is not None and personality == "arducopter"
             else {}
         )
         autopilot = start_flight_stack(
-            self.personality,
-            self.flight_stack,
-            self.work / f"{vid}-{self.personality}",
+            personality,
+            self.flight_stacks[personality],
+            self.work / f"{vid}-{personality}",
             (lat, lon, HOME_ALT_M),
             udp_port,
             speedup=self.options.speedup,
             extra_params=params,
+            # A fleet's ArduCopters are system 1, 2, ... as a team's would be; other scenarios keep 1 (each
+            # vehicle on its own links). PX4 takes its instance's (N+1) either way.
+            system_id=index + 1 if self.scenario.fleet is not None else 1,
         )
         self.progress(f"{vid}: {autopilot.describe()}")
         return autopilot
@@ -399,7 +425,7 @@ class ScenarioRun:
             f"camera.mount_pitch_deg={MOUNT_PITCH_DEG}",
             "camera.hfov_deg=70.0",
             f"mavlink.connection={self._companion_link(v)}",
-            f"mavlink.target_system={v.autopilot.system_id if self.real else 1}",
+            f"mavlink.target_system={v.autopilot.system_id if v.real else 1}",
             f"backend.url={v.proxy.url}",
             f"tracker.name={self.tracker}",
             f"tracker.model_dir={self.model_dir}",
@@ -435,7 +461,7 @@ class ScenarioRun:
     def _companion_link(self, v: _Vehicle) -> str:
         if v.companion_udp_port is not None:
             return f"udpin:127.0.0.1:{v.companion_udp_port}"
-        if self.real:
+        if v.real:
             return f"udpout:127.0.0.1:{v.autopilot.bridge.udp_port}"
         return f"udpout:127.0.0.1:{v.autopilot.link_port('companion')}"
 
@@ -665,7 +691,7 @@ class ScenarioRun:
                 v.autopilot.set_mode(self._takeover_mode(v), source="pilot")
             elif fault.kind == "rc_takeover":
                 self.fault_times["takeover"] = self.now()
-                if self.real:
+                if v.real:
                     v.autopilot.rc_takeover()
                 else:
                     from sitl.autopilot import RC_MODE_SWITCH_PWM
@@ -697,14 +723,14 @@ class ScenarioRun:
                 self._send_start(v, 2)
 
     def _takeover_mode(self, v: _Vehicle) -> str:
-        return str(v.autopilot.takeover_mode) if self.real else TAKEOVER_MODE[self.personality]
+        return str(v.autopilot.takeover_mode) if v.real else TAKEOVER_MODE[v.personality]
 
     def _fly_to(self, v: _Vehicle) -> None:
         """The GCS takes the vehicle back: GUIDED, then a position target 15 m east of where it is."""
         pose = v.follower.pose()
         here = (pose.north, pose.east)
         there = (here[0] + FLY_TO_OFFSET_M[0], here[1] + FLY_TO_OFFSET_M[1])
-        if self.real:
+        if v.real:
             v.autopilot.gcs_fly_to(there[0] - v.origin[0], there[1] - v.origin[1], pose.down)
         else:
             v.gcs.set_mode(4)  # GUIDED on ArduCopter
@@ -771,7 +797,7 @@ class ScenarioRun:
         companion that believed it would stop following (the flood check sees that)."""
         from pymavlink import mavutil
 
-        px4 = "px4" in self.personality
+        px4 = "px4" in v.personality
         custom = self._mode_number(v, self._takeover_mode(v))
         mav = mavutil.mavlink.MAVLink(None, srcSystem=getattr(v.autopilot, "system_id", 1), srcComponent=1)
         heartbeat = mav.heartbeat_encode(
@@ -840,6 +866,8 @@ class ScenarioRun:
             self.progress(f"drone-1: back over home in HOLD after {took:.1f} s")
         elif self.real:
             for v in self.vehicles:  # the pilot arms and takes off; the companion never does
+                if not v.real:
+                    continue  # a mock autopilot starts airborne
                 took = v.autopilot.fly_up(ALTITUDE_M, progress=self.progress)
                 self.progress(
                     f"{v.vehicle_id}: airborne at {ALTITUDE_M:g} m in {v.autopilot.mode_name()} after "
@@ -911,7 +939,7 @@ class ScenarioRun:
             v.gcs.request_interval(msg_id, hz)
         cmd = [
             sys.executable, "-m", "gcs.cli", "--connect", self._ground_url(v), "--timeout", "15", "--system",
-            str(v.autopilot.system_id if self.real else 1),
+            str(v.autopilot.system_id if v.real else 1),
             "survey", "--centre", f"{centre[0]:.7f},{centre[1]:.7f}", "--size", f"{e_e - w_e:g}x{n_n - s_n:g}",
             "--altitude", f"{spec.altitude_m:g}", "--overlap", f"{spec.overlap:g}", "--speed",
             f"{spec.speed_m_s:g}", "--companion-config", str(vehicle_config),
@@ -929,7 +957,7 @@ class ScenarioRun:
 
     def _select_mission_mode(self, v: _Vehicle, timeout_s: float = 30.0) -> None:
         """The pilot selects AUTO / Mission; returns once the autopilot flies its mission."""
-        mode = MISSION_MODE[self.personality]
+        mode = MISSION_MODE[v.personality]
         v.autopilot.set_mode(mode, source="pilot")
         deadline = time.monotonic() + timeout_s
         while not (v.gcs.modes and v.gcs.modes[-1][1] == self._mode_number(v, mode)):
@@ -968,7 +996,7 @@ class ScenarioRun:
         members = []
         for v in self.vehicles:
             lat, lon = _home(v.origin)
-            system = v.autopilot.system_id if self.real else 1
+            system = v.autopilot.system_id if v.real else 1
             members.append(
                 {"id": v.vehicle_id, "connect": self._ground_url(v), "speed": spec.speed_m_s,
                  "lat": round(lat, 7), "lon": round(lon, 7), "system": system}
@@ -1182,11 +1210,11 @@ class ScenarioRun:
 
     def _mode_number(self, v: _Vehicle, name: str) -> int:
         """HEARTBEAT.custom_mode of a mode, as the GCS sees it."""
-        return int(v.autopilot.custom_mode(name)) if self.real else _custom_mode(self.personality, name)
+        return int(v.autopilot.custom_mode(name)) if v.real else _custom_mode(v.personality, name)
 
     def _ground_url(self, v: _Vehicle) -> str:
         """Where a second ground station (the operator's laptop) connects to the vehicle's autopilot."""
-        if self.real:
+        if v.real:
             return str(v.autopilot.ground_url())
         return f"udpout:127.0.0.1:{v.autopilot.link_port('ground')}"
 
@@ -1214,7 +1242,7 @@ class ScenarioRun:
         """Every time the autopilot left its mission after the start, and where it resumed: from its own
         HEARTBEAT and MISSION_CURRENT on the GCS link (the autopilot's account, not the companion's)."""
         epoch = self.epoch or 0.0
-        auto = self._mode_number(v, MISSION_MODE[self.personality])
+        auto = self._mode_number(v, MISSION_MODE[v.personality])
         currents = list(v.gcs.mission_currents)
         breaks: list[dict[str, Any]] = []
         in_mission: bool | None = None
@@ -1295,7 +1323,8 @@ class ScenarioRun:
                 "pod_at_target_rose_s": rise,
                 "pod_at_target_end": out["pod_at_target"],
             }
-        commands = getattr(v.autopilot, "commands", None)
+        # The mock records the companion's commands itself; a real autopilot's bridge records them on the way.
+        commands = v.autopilot.bridge.commands if v.real else getattr(v.autopilot, "commands", None)
         if commands is not None:
             epoch = self.epoch or 0.0
             setpoints = [
@@ -1520,7 +1549,7 @@ class ScenarioRun:
                 t - epoch for t, _, source in v.autopilot.mode_history if source.startswith("pilot")
             ]
             takeover_t = mode_times[0] if mode_times else takeover_t
-            if self.real:
+            if v.real:
                 # The real autopilot changes mode some time after the pilot's action (the RC switch is
                 # debounced for 200 ms); the stop latency counts from the HEARTBEAT that reported the change.
                 wanted = v.autopilot.custom_mode(v.autopilot.takeover_mode)
@@ -1637,7 +1666,7 @@ class ScenarioRun:
                     "speed_m_s": round(after[0].horizontal_speed, 3),
                 }
             )
-        if self.real and "stall" in self.fault_times:
+        if v.real and "stall" in self.fault_times:
             out["autopilot_during_stall"] = self._autopilot_during_stall(v)
         if v.flood:
             out["flood"] = dict(v.flood)
@@ -1687,7 +1716,7 @@ class ScenarioRun:
     def _flying_mode(self, v: _Vehicle) -> str:
         """The mode in which `v`'s autopilot flies the companion's setpoints: GUIDED, or OFFBOARD on PX4."""
         return str(
-            v.autopilot.offboard_mode if self.real else "OFFBOARD" if self.personality == "px4" else "GUIDED"
+            v.autopilot.offboard_mode if v.real else "OFFBOARD" if v.personality == "px4" else "GUIDED"
         )
 
     def _unflown(self, v: _Vehicle, end_t: float) -> list[tuple[float, float]]:
@@ -1748,7 +1777,7 @@ class ScenarioRun:
             o.metrics["companion_stop_s"] = None if v.stop_s is None else round(v.stop_s, 3)
             o.metrics["companion_exit_code"] = v.process.returncode if v.process is not None else None
         fleet = self._fleet_results(outcomes) if s.fleet is not None else None
-        failures = assess(s, outcomes, self.fault_times, self.personality, fleet)
+        failures = assess(s, outcomes, self.fault_times, [v.personality for v in self.vehicles], fleet)
         pauses = [(p.began - (self.epoch or 0.0), p.length_s) for p in self._pauses.pauses()]
         if failures:
             failures += [
@@ -1781,6 +1810,7 @@ class ScenarioRun:
             o.metrics["confirmed"] = list(o.confirmed_ids)
             o.metrics["rejected"] = [pid for _, pid in o.rejected_ids]
             o.metrics["proposed"] = [pid for _, pid in o.proposals]
+            o.metrics["autopilot"] = v.personality
             results["vehicles"][v.vehicle_id] = o.metrics
         if self.options.json_out is not None:
             self.options.json_out.parent.mkdir(parents=True, exist_ok=True)

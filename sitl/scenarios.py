@@ -460,6 +460,64 @@ def placed(scenario: Scenario, place: Place) -> Scenario:
     )
 
 
+def autopilot_names(scenario: Scenario, autopilot: str | None) -> tuple[str, ...]:
+    """`--autopilot` as one name per vehicle: one name flies every vehicle, a comma list gives each vehicle its
+    own (`arducopter,px4-sitl`: drone-1 ArduCopter, drone-2 PX4). ValueError for an unknown name or a list
+    whose length is not the scenario's vehicles (a fleet takes any length from 2: `for_autopilots`)."""
+    from sitl.autopilot import PERSONALITIES
+    from sitl.flight_stack import REAL_AUTOPILOTS
+
+    names = tuple(n.strip() for n in (autopilot or scenario.autopilot).split(",") if n.strip())
+    unknown = [n for n in names if n not in (*PERSONALITIES, *REAL_AUTOPILOTS)]
+    if not names or unknown:
+        raise ValueError(
+            f"--autopilot {autopilot!r}: unknown {unknown or autopilot!r}; use "
+            f"{', '.join((*PERSONALITIES, *REAL_AUTOPILOTS))} or a comma list of them, one per vehicle"
+        )
+    if len(names) == 1:
+        return names * for_autopilots(scenario, names).vehicles
+    if scenario.fleet is None and len(names) != scenario.vehicles:
+        raise ValueError(
+            f"{scenario.name} flies {scenario.vehicles} vehicle(s): --autopilot {autopilot} names {len(names)}"
+        )
+    if scenario.fleet is not None and len(names) < 2:
+        raise ValueError(f"{scenario.name} is a fleet: --autopilot names at least 2 vehicles")
+    return names
+
+
+# A fleet on real autopilots flies two vehicles (the issue's two SITL instances): three real autopilots, three
+# companions and three cameras do not keep real time on the 2 cores the simulator is run on.
+REAL_FLEET_VEHICLES = 2
+
+
+def for_autopilots(scenario: Scenario, names: Sequence[str]) -> Scenario:
+    """The scenario as flown by `names` (one per vehicle, or one for all). Only a fleet changes: a comma list
+    flies one vehicle per name, one real autopilot flies `REAL_FLEET_VEHICLES`; the last vehicle is the one
+    that goes home. Everything else is the scenario unchanged (a single mock name keeps fleet-search's three)."""
+    from sitl.flight_stack import REAL_AUTOPILOTS
+
+    if scenario.fleet is None:
+        return scenario
+    if len(names) > 1:
+        vehicles = len(names)
+    elif names[0] in REAL_AUTOPILOTS:
+        vehicles = REAL_FLEET_VEHICLES
+    else:
+        return scenario
+    if vehicles == scenario.vehicles:
+        return scenario
+    return replace(
+        scenario,
+        vehicles=vehicles,
+        fleet=replace(scenario.fleet, leaves=vehicles - 1),
+        summary=f"{vehicles} drones search as one fleet ({', '.join(names) if len(set(names)) > 1 else names[0]}): the "
+        f"area split {vehicles} ways by one `cloudtrack-gcs survey --fleet`, drone-{vehicles} goes home a third of "
+        f"the way in and `cloudtrack-gcs replan` re-plans its unflown part onto the other{'s' if vehicles > 2 else ''}"
+        "; the look-alike rejected once is proposed by no other drone, the described person found once, the "
+        "merged coverage >= 0.95",
+    )
+
+
 @dataclass(frozen=True)
 class VehicleOutcome:
     """What one vehicle's run produced, as the checks need it (times in scenario seconds)."""
@@ -481,17 +539,18 @@ def assess(
     scenario: Scenario,
     outcomes: Sequence[VehicleOutcome],
     fault_times: dict[str, float],
-    autopilot: str | None = None,
+    autopilot: str | Sequence[str] | None = None,
     fleet: dict[str, Any] | None = None,
 ) -> list[str]:
-    """The failed checks with the reason, empty when the scenario passed (`autopilot`: the one flown, if not
-    the scenario's own personality; `fleet`: a fleet scenario's mission-wide figures, `ScenarioRun._fleet`)."""
+    """The failed checks with the reason, empty when the scenario passed (`autopilot`: the one flown, or one
+    per vehicle, if not the scenario's own personality; `fleet`: a fleet scenario's mission-wide figures, `ScenarioRun._fleet`)."""
     failures: list[str] = _fleet_checks(scenario, outcomes, fleet)
     for i, o in enumerate(outcomes):
         name = f"vehicle {i + 1}"
         m = o.metrics
-        failures += _companion_checks(scenario, name, m, autopilot or scenario.autopilot)
-        failures += _fault_checks(scenario, name, m, o, fault_times, autopilot or scenario.autopilot)
+        flown = (autopilot[i] if not isinstance(autopilot, str) else autopilot) if autopilot else None
+        failures += _companion_checks(scenario, name, m, flown or scenario.autopilot)
+        failures += _fault_checks(scenario, name, m, o, fault_times, flown or scenario.autopilot)
         if "confirmed_target" in scenario.checks and (not o.confirmed_ids or o.confirmed_ids[0] != "target"):
             failures.append(
                 f"{name}: the right person was not confirmed (confirmed: {list(o.confirmed_ids)})"
@@ -502,7 +561,7 @@ def assess(
                 failures.append(f"{name}: target in view {ratio} of the follow time, needs >= 0.9")
         if "standoff" in scenario.checks:
             rmse = m.get("standoff_rmse_m")
-            bound = standoff_max_rmse_m(autopilot or scenario.autopilot)
+            bound = standoff_max_rmse_m(flown or scenario.autopilot)
             if rmse is None or rmse > bound:
                 failures.append(f"{name}: standoff RMSE {rmse} m, needs <= {bound:g} m")
         failures += _search_checks(scenario, name, m)
