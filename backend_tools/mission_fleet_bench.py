@@ -59,6 +59,7 @@ from cloudtrack.pod_map import PodMap, PodSettings
 from cloudtrack.survey_pod import keyframe_poses
 
 MISSION_ID = "fleet-map"
+FINAL_WAIT_S = 30.0  # the end waits at most this for a merge holding every vehicle
 PROMPT = "an injured man in a gray shirt"
 ORIGIN = (47.3970, 8.5440)  # the shared area's south-west corner
 ALTITUDE_M = 25.0  # `cloudtrack-gcs survey --altitude 25`, its examples' altitude
@@ -373,7 +374,16 @@ def fleet_map_run(
     stop.set()
     poller.join()
     page.stop()
-    final = supervisor.get(f"{url}/v1/missions/{MISSION_ID}/map", timeout=60)
+    # The map is merged again at most once per [fleet] merge_period_s: the end's check waits (bounded) for
+    # the merge that holds every vehicle's last report, as a supervisor would see it a moment later.
+    expected = {f"bench-{i}" for i in range(n)}
+    give_up = time.monotonic() + FINAL_WAIT_S
+    while True:
+        final = supervisor.get(f"{url}/v1/missions/{MISSION_ID}/map", timeout=60)
+        held = set(final.json().get("vehicles", [])) if final.status_code == 200 else set()
+        if held >= expected or time.monotonic() > give_up:
+            break
+        time.sleep(0.2)
     final_state = supervisor.get(f"{url}/supervisor/api/state", timeout=60)
     supervisor.close()
     merged = final.json() if final.status_code == 200 else {}

@@ -48,12 +48,14 @@ def server(models_dir: Path, tak: TakStandIn) -> Iterator[BackgroundServer]:
         yield running
 
 
-def _claim(server: BackgroundServer, mission: str, candidate: str, by: str = "supervisor page") -> None:
+def _claim(
+    server: BackgroundServer, mission: str, candidate: str, by: str = "supervisor page", lat: float = 47.4
+) -> None:
     """drone-1 awaits `candidate` and, in the same status, says `by` confirmed it as a find."""
-    find = {"candidate_id": candidate, "position": [47.4, 8.5], "sigma_m": 2.0, "time": 1732200000.0,
+    find = {"candidate_id": candidate, "position": [lat, 8.5], "sigma_m": 2.0, "time": 1732200000.0,
             "prompt": "a man in red", "confirmed_by": by}  # fmt: skip
     status = {"mission_id": mission, "state": "AWAITING_SUPERVISOR", "prompt": "a man in red",
-              "awaiting": {"candidate_id": candidate, "box": [0, 0, 10, 10], "position": [47.4, 8.5]},
+              "awaiting": {"candidate_id": candidate, "box": [0, 0, 10, 10], "position": [lat, 8.5]},
               "find": find}  # fmt: skip
     answer = requests.post(f"{server.url}/v1/vehicles/drone-1/status", json=status, headers=DRONE, timeout=10)
     assert answer.status_code == 200, answer.text
@@ -129,9 +131,10 @@ def test_provenance_a_vehicles_claim_is_its_report_and_the_supervisors_reject_is
 
 
 def test_provenance_every_way_a_decision_comes_is_named(server: BackgroundServer, tak: TakStandIn) -> None:
-    for candidate in ("c-page", "c-api"):
+    # Three people 111 m apart (one person confirmed again would be one find).
+    for candidate, lat in (("c-page", 47.4), ("c-api", 47.401)):
         status = {"mission_id": "m-7", "state": "AWAITING_SUPERVISOR", "prompt": "a man in red",
-                  "awaiting": {"candidate_id": candidate, "box": [0, 0, 10, 10], "position": [47.4, 8.5]}}  # fmt: skip
+                  "awaiting": {"candidate_id": candidate, "box": [0, 0, 10, 10], "position": [lat, 8.5]}}  # fmt: skip
         assert requests.post(
             f"{server.url}/v1/vehicles/drone-1/status", json=status, headers=DRONE, timeout=10
         ).ok
@@ -141,7 +144,7 @@ def test_provenance_every_way_a_decision_comes_is_named(server: BackgroundServer
             else {"operator": "Ops"}
         )
         assert _decide(server, candidate, "confirm", **extra).status_code == 201
-    _claim(server, "m-7", "c-gcs", by="gcs")  # the GCS operator confirmed over MAVLink
+    _claim(server, "m-7", "c-gcs", by="gcs", lat=47.402)  # the GCS operator confirmed over MAVLink
     expected = {
         "c-page": ("supervisor page", "supervisor page"),
         "c-api": ("back-end API", "Ops through the back-end API (supervisor token)"),

@@ -90,7 +90,7 @@ def state(view: View) -> SupervisorSnapshot:
 async def events(request: Request, view: View, feed: Feed, limits: StreamLimits) -> StreamingResponse:
     """Server-Sent Events: `state` (the whole snapshot) first and when vehicles come or go, `vehicle` (one
     vehicle's view) when only it changed, `fleet` ({"missions": [...]}, the merged maps) when they changed,
-    `ages` when only reports arrived, comments as keep-alive. Built at most once per STREAM_BUILD_MIN_S."""
+    `ages` when reports arrived (also beside the others), comments as keep-alive. Built at most once per STREAM_BUILD_MIN_S."""
 
     async def stream() -> AsyncIterator[str]:
         opened = time.monotonic()
@@ -112,16 +112,21 @@ async def events(request: Request, view: View, feed: Feed, limits: StreamLimits)
             fresher = any(at > reported.get(vid, 0.0) + 0.05 for vid, at in reports.items())
             if sent is None or content.keys() != sent.keys():
                 yield f"event: state\ndata: {snapshot.model_dump_json()}\n\n"
-            elif content != sent or fleet != sent_fleet:
+            else:
+                told = False
                 for vehicle in snapshot.vehicles:
                     if content[vehicle.id] != sent[vehicle.id]:
                         yield f"event: vehicle\ndata: {vehicle.model_dump_json()}\n\n"
+                        told = True
                 if fleet != sent_fleet:
                     yield f'event: fleet\ndata: {{"missions": {fleet}}}\n\n'
-            elif fresher:
-                yield f"event: ages\ndata: {json.dumps(ages)}\n\n"
-            else:
-                yield ": keep-alive\n\n"  # proxies close silent connections
+                    told = True
+                # Every vehicle's last report, also when a merged map or another vehicle changed meanwhile.
+                if fresher:
+                    yield f"event: ages\ndata: {json.dumps(ages)}\n\n"
+                    told = True
+                if not told:
+                    yield ": keep-alive\n\n"  # proxies close silent connections
             sent, reported, sent_fleet = content, reports, fleet
             remaining = limits.max_stream_s - (time.monotonic() - opened)
             version = await feed.wait(version, max(0.0, min(limits.keepalive_s, remaining)))
