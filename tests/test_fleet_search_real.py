@@ -7,7 +7,8 @@ one `cloudtrack-gcs survey --fleet` splits the area two ways over the autopilots
 goes home (RTL) a third of the way into its part, the back-end lists it in /dropouts and `cloudtrack-gcs replan`
 puts its unflown part onto drone-1 without taking it out of AUTO. The scenario's checks hold the rest (the
 look-alike rejected once and proposed by no other vehicle, one find, merged coverage >= 0.95). About 2.5-3 min
-each on a 2-core machine; `pytest -k arducopter` and `pytest -k px4_sitl` select them. The mixed flight starts its
+each on a 2-core machine; `make trials` runs them (marked `trial`: CI leaves them out while the
+cross-vehicle look-alike check fails, 1 pass in 7 runs so far, docs/sitl.md). The mixed flight starts its
 own PX4 (not the `shares_px4` one: tests/conftest.py stops that before a test without the mark).
 
 The fast tests below check how `--autopilot` names one autopilot per vehicle.
@@ -40,14 +41,11 @@ def _fly_fleet(autopilot: str, models_dir: Path, tmp_path: Path) -> dict[str, An
         progress=lines.append,
     )
     print("\n".join(lines))
-    # Every run so far (docs/sitl.md) failed one check: the look-alike drone-2's candidate had rejected, proposed
+    # Most runs so far (docs/sitl.md) failed one check: the look-alike drone-2's candidate had rejected, proposed
     # again by drone-1 once the re-plan sent it over drone-2's lanes (the shared rejection memory's appearance
-    # match across views). Everything else is asserted; that one alone makes the test xfail, not pass.
-    known = [f for f in results["failures"] if "was proposed again by vehicle" in f]
-    other = [
-        f for f in results["failures"] if f not in known and not f.startswith("the runner itself paused")
-    ]
-    assert not other, (results["failures"], lines[-20:])
+    # match across views). That fails the test, as any other check does: hence `trial`, out of CI.
+    failed = [f for f in results["failures"] if not f.startswith("the runner itself paused")]
+    assert not failed, (failed, lines[-20:])
     fleet = results["fleet"]
     survey = fleet["survey"]
     assert set(survey["parts"]) == {"drone-1", "drone-2"}
@@ -67,14 +65,8 @@ def _fly_fleet(autopilot: str, models_dir: Path, tmp_path: Path) -> dict[str, An
     return results
 
 
-def _known_failure(results: dict[str, Any]) -> None:
-    """After the test's own asserts: xfail on the rejection memory across vehicles alone (docs/sitl.md)."""
-    known = [f for f in results["failures"] if "was proposed again by vehicle" in f]
-    if known:
-        pytest.xfail(f"issue 43, the rejection memory across vehicles: {known[0]}")
-
-
 @pytest.mark.slow
+@pytest.mark.trial
 def test_fleet_search_arducopter(models_dir: Path, tmp_path: Path) -> None:
     """Two real ArduCopter SITL instances, system ids 1 and 2, one mission."""
     results = _fly_fleet("arducopter", models_dir, tmp_path)
@@ -84,16 +76,15 @@ def test_fleet_search_arducopter(models_dir: Path, tmp_path: Path) -> None:
     assert '"system": 1' in members and '"system": 2' in members
     for vid in ("drone-1", "drone-2"):
         assert (tmp_path / f"{vid}-arducopter" / "eeprom.bin").is_file()  # each SITL in its own directory
-    _known_failure(results)
 
 
 @pytest.mark.slow
+@pytest.mark.trial
 def test_fleet_search_arducopter_px4_sitl(models_dir: Path, tmp_path: Path) -> None:
     """One real ArduCopter (drone-1) and one real PX4 with SIH (drone-2, which goes home) in one mission."""
     results = _fly_fleet("arducopter,px4-sitl", models_dir, tmp_path)
     assert results["autopilot"] == "arducopter,px4-sitl"
     assert [m["autopilot"] for m in results["vehicles"].values()] == ["arducopter", "px4-sitl"]
-    _known_failure(results)
 
 
 def test_one_autopilot_name_flies_every_vehicle() -> None:
