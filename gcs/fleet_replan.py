@@ -76,7 +76,7 @@ from cloudtrack.mission_protocol import (
 )
 from cloudtrack.plain_text import without_controls
 from cloudtrack.vehicle_config import load_vehicle_sections
-from gcs.fleet_status import BACKEND_ENV, TOKEN_ENV
+from gcs.fleet_status import BACKEND_ENV, TOKEN_ENV, backend_url, supervisor_token
 from gcs.fleet_survey import FleetMember, _minutes, fleet_from_args
 from gcs.survey_command import (
     AUTOPILOT_COMPONENT,
@@ -130,31 +130,12 @@ class Dropouts(BaseModel):
     server_time: float
 
 
-def _backend_url(args: argparse.Namespace) -> str:
-    url = (args.backend or os.environ.get(BACKEND_ENV, "")).strip().rstrip("/")
-    if not url:
-        raise InputError(f"replan asks the back-end: give its address with --backend URL or ${BACKEND_ENV}")
-    if not url.startswith(("http://", "https://")):
-        raise InputError(f"--backend must be an http:// or https:// URL, not {hide_url_secrets(url)!r}")
-    return url
-
-
-def _token(args: argparse.Namespace) -> str:
-    if args.supervisor_token is not None:
-        raise InputError(
-            "a token on the command line is visible to every user of this machine (ps, /proc); put the "
-            f"supervisor token in a file only you can read (--supervisor-token-file PATH) or in ${TOKEN_ENV}"
-        )
-    if args.supervisor_token_file is not None:
-        try:
-            token = str(args.supervisor_token_file.expanduser().read_text()).strip()
-        except OSError as exc:
-            raise InputError(
-                f"cannot read the supervisor token file {args.supervisor_token_file}: {exc.strerror}"
-            ) from None
-        if not token:
-            raise InputError(f"the supervisor token file {args.supervisor_token_file} is empty")
-        return token
+def _backend(args: argparse.Namespace) -> tuple[str, str]:
+    """The back-end's address and the supervisor token, as `status --all` reads them."""
+    try:
+        return backend_url(args, "replan"), supervisor_token(args, "replan")
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
     token = os.environ.get(TOKEN_ENV, "").strip()
     if not token:
         raise InputError(
@@ -498,7 +479,7 @@ def run(args: argparse.Namespace) -> int:
     from gcs.cli import GcsError
 
     try:
-        url, token = _backend_url(args), _token(args)
+        url, token = _backend(args)
         if not re.fullmatch(IDENTIFIER, args.mission):
             raise InputError(
                 f"--mission {_text(args.mission, 64)!r} must be 1-64 letters, digits, '_', '.' or '-' (as the "

@@ -64,18 +64,20 @@ class StatusError(Exception):
         self.code = code
 
 
-def backend_url(args: argparse.Namespace) -> str:
+def backend_url(args: argparse.Namespace, command: str = "status --all") -> str:
+    """The back-end's address for a supervisor's command (`command`, as the operator typed it)."""
     url = (args.backend or os.environ.get(BACKEND_ENV, "")).strip().rstrip("/")
     if not url:
         raise ValueError(
-            f"status --all asks the back-end: give its address with --backend URL or ${BACKEND_ENV}"
+            f"{command} asks the back-end: give its address with --backend URL or ${BACKEND_ENV}"
         )
     if not url.startswith(("http://", "https://")):
         raise ValueError(f"--backend must be an http:// or https:// URL, not {hide_url_secrets(url)!r}")
     return url
 
 
-def supervisor_token(args: argparse.Namespace) -> str:
+def supervisor_token(args: argparse.Namespace, command: str = "status --all") -> str:
+    """The supervisor token from a file only its owner reads, or the environment; never the command line."""
     if args.supervisor_token is not None:
         raise ValueError(
             "a token on the command line is visible to every user of this machine (ps, /proc); put the "
@@ -94,7 +96,7 @@ def supervisor_token(args: argparse.Namespace) -> str:
     token = os.environ.get(TOKEN_ENV, "").strip()
     if not token:
         raise ValueError(
-            "status --all needs the back-end's supervisor token: in a file (--supervisor-token-file PATH) "
+            f"{command} needs the back-end's supervisor token: in a file (--supervisor-token-file PATH) "
             f"or in ${TOKEN_ENV}"
         )
     return token
