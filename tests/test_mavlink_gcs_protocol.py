@@ -219,3 +219,25 @@ def test_well_formed_but_nonsensical_commands_are_denied_not_crashing() -> None:
             assert ack is not None and ack.result == 2, (command, params)
         assert link.commands() == []
         assert all(t.is_alive() for t in link._threads)
+
+
+def test_the_starts_on_find_is_one_of_four_codes() -> None:
+    """The start's param5: 0 not set, 1 continue, 2 hold, 3 return; anything else is DENIED, nothing started."""
+    with autopilot("ardupilot") as sim, vehicle_link(sim) as link, MainLoop(link), gcs(sim) as ground:
+        for mission, fifth in ((5, 9.0), (6, 1.5), (7, -1.0)):
+            count, length = _send_prompt(ground, mission, "person", "a man in a green shirt")
+            ground.send(
+                lambda m, n=mission, c=count, k=length, f=fifth: m.command_long_send(
+                    1, 191, 31010, 0, n, c, 0, k, f, 0, 0
+                )
+            )
+            ack = receive_until(ground, _is_ack(31010))
+            assert ack is not None and ack.result == 2, fifth
+        count, length = _send_prompt(ground, 8, "person", "a man in a green shirt")
+        ground.send(lambda m: m.command_long_send(1, 191, 31010, 0, 8, count, 0, length, 2, 0, 0))
+        ack = receive_until(ground, _is_ack(31010))
+        assert ack is not None and ack.result == 0
+        assert wait_for(lambda: len(link._commands) >= 1)
+        assert link.commands() == [
+            StartMission("a man in a green shirt", "person", mission_id="8", on_find="hold")
+        ]
