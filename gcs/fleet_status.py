@@ -4,7 +4,9 @@ It asks the back-end (`GET /v1/vehicles`, supervisor token), not the MAVLink lin
 a fleet's vehicles may be on several. A line gives the vehicle id, its mission, the companion's state, the
 autopilot's mode, its position, how much of its part the camera has seen (and the POD map's share at the
 target POD, where it keeps one) and how long ago it last reported (by the back-end's clock, from its `Date`
-header, so a GCS clock that is off does not age a report).
+header, so a GCS clock that is off does not age a report). Below them, for a vehicle that left its mission's
+search with part of its area unflown (the back-end's /dropouts), the re-plan it offers: "REPLAN OFFERED:
+drone-3 left the search (mode RTL), 0.03 ha unflown; onto drone-1, drone-2: cloudtrack-gcs replan ...".
 
 The supervisor token is a secret: it is read from a file (--supervisor-token-file, e.g. the one
 `cloudtrack-sim up` writes) or from $CLOUDTRACK_GCS_SUPERVISOR_TOKEN, never from the command line (every
@@ -15,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shlex
 import sys
 import time
 from email.utils import parsedate_to_datetime
@@ -32,6 +35,7 @@ BACKEND_ENV = "CLOUDTRACK_GCS_BACKEND_URL"
 TOKEN_ENV = "CLOUDTRACK_GCS_SUPERVISOR_TOKEN"
 EXIT_USAGE, EXIT_REFUSED, EXIT_UNREACHABLE = 2, 1, 3
 TIMEOUT_S = 10.0
+MAX_OFFER_MISSIONS = 16  # missions asked for their drop-outs per `status --all`
 SILENT_AFTER_S = 10.0  # a companion reports every [backend] status_interval_s (1 s by default)
 _STATUSES = TypeAdapter(list[VehicleStatus])
 
@@ -211,4 +215,30 @@ def run_all(args: argparse.Namespace) -> int:
         return 0
     for status in sorted(statuses, key=lambda s: s.vehicle_id):
         print(status_line(status, now, args.silent_after), flush=True)
+    for line in replan_offers(url, supervisor_token(args), statuses, args.timeout):
+        print(line, flush=True)
     return 0
+
+
+def replan_offers(url: str, token: str, statuses: list[VehicleStatus], timeout_s: float) -> list[str]:
+    """The GCS offers the re-plan: for each mission of these vehicles, a line per vehicle that left its
+    search with part of its area unflown (the back-end's /dropouts), naming the vehicles it would go onto
+    and the command that does it. A mission the back-end has no map of offers nothing."""
+    from gcs.fleet_replan import ReplanError, fetch_dropouts  # replan builds on this module
+
+    lines = []
+    for mission in sorted({s.mission_id for s in statuses if s.mission_id})[:MAX_OFFER_MISSIONS]:
+        try:
+            answer = fetch_dropouts(url, token, mission, timeout_s)
+        except ReplanError:
+            continue
+        for dropout in answer.dropouts:
+            if dropout.area_m2 <= 0:
+                continue
+            onto = ", ".join(_text(v) for v in answer.searching) or "no vehicle still searching"
+            lines.append(
+                f"REPLAN OFFERED: {_text(dropout.vehicle_id)} left the search ({_text(dropout.reason)}), "
+                f"{dropout.area_m2 / 1e4:.2f} ha unflown; onto {onto}: cloudtrack-gcs replan --mission "
+                f"{shlex.quote(_text(mission))} --fleet FLEET_FILE --altitude SURVEY_ALTITUDE"
+            )
+    return lines

@@ -13,7 +13,14 @@ from pathlib import Path
 import uvicorn
 
 from backend.app import create_app
-from backend.config import AuthConfig, BackendConfig, DetectorConfig, SessionConfig, VerifierConfig
+from backend.config import (
+    AuthConfig,
+    BackendConfig,
+    DetectorConfig,
+    FleetConfig,
+    SessionConfig,
+    VerifierConfig,
+)
 
 SUPERVISOR_TOKEN = "supervisor-test-token"
 VEHICLE_TOKENS = {"drone-1": "drone-1-test-token", "drone-2": "drone-2-test-token"}
@@ -55,14 +62,17 @@ def serve(app: object, port: int | None = None) -> Iterator[str]:
 
 
 @contextmanager
-def live_backend(models_dir: Path, verifier: str = "none") -> Iterator[LiveBackend]:
+def live_backend(
+    models_dir: Path, verifier: str = "none", dropout_s: float | None = None
+) -> Iterator[LiveBackend]:
     """The back-end with YOLOX-nano from the shared models, the test tokens and `verifier` ("local": the
-    colour verifier that runs here; "none": detector only)."""
+    colour verifier that runs here; "none": detector only); `dropout_s`: [fleet] dropout_s (None: default)."""
     config = BackendConfig(
         auth=AuthConfig(tokens=VEHICLE_TOKENS, supervisor_token=SUPERVISOR_TOKEN),
         detector=DetectorConfig(kind="yolox", model_dir=str(models_dir)),
         verifier=VerifierConfig(kind=verifier),
         sessions=SessionConfig(sqlite_path=":memory:"),
+        **({} if dropout_s is None else {"fleet": FleetConfig(dropout_s=dropout_s)}),
     )
     app = create_app(config)
     with serve(app) as url:

@@ -40,7 +40,8 @@ STATUSES = {
 
 @pytest.fixture(scope="module")
 def backend(models_dir: Path) -> Iterator[LiveBackend]:
-    with live_backend(models_dir) as running:
+    # Reported once for the module: silence must not make the vehicles drop-outs however long it runs.
+    with live_backend(models_dir, dropout_s=3600) as running:
         for vehicle, status in STATUSES.items():
             answer = requests.post(
                 f"{running.url}/v1/vehicles/{vehicle}/status",
@@ -148,3 +149,33 @@ def test_a_line_marks_a_silent_vehicle_and_keeps_hostile_text_on_one_line() -> N
     line = fleet_status.status_line(status, now=1045.0)
     assert line.endswith("last report 45 s ago, SILENT") and "\n" not in line and "\x1b" not in line
     assert fleet_status.status_line(status, now=1000.0 + 7200).endswith("last report 2.0 h ago, SILENT")
+
+
+def test_status_all_offers_the_replan_for_a_vehicle_that_went_home(
+    models_dir: Path, token_file: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """drone-2 reports RTL with its part unflown: below the vehicles' lines, the re-plan onto drone-1."""
+    part = [[47.3980, 8.5450], [47.3980, 8.5470], [47.3990, 8.5470], [47.3990, 8.5450]]
+    with live_backend(models_dir, dropout_s=3600) as running:
+        for vehicle, search in (
+            ("drone-1", {"area": AREA_1, "coverage": 0.3, "mode": "AUTO"}),
+            ("drone-2", {"area": part, "coverage": 0.0, "mode": "RTL"}),
+        ):
+            answer = requests.post(
+                f"{running.url}/v1/vehicles/{vehicle}/status",
+                json={"mission_id": "m-50", "state": "SEARCHING", "search": search},
+                headers={"Authorization": f"Bearer {VEHICLE_TOKENS[vehicle]}"},
+                timeout=10,
+            )
+            assert answer.status_code == 200, answer.text[:300]
+        code, lines, err = _run(capsys, "--backend", running.url, "--supervisor-token-file", str(token_file))
+    assert code == 0, err
+    assert [line.split()[0] for line in lines[:2]] == ["drone-1", "drone-2"]
+    (offer,) = lines[2:]
+    assert (
+        offer.startswith("REPLAN OFFERED: drone-2 left the search (mode RTL), ")
+        and "ha unflown; onto drone-1:" in offer
+    )
+    assert offer.endswith(
+        "cloudtrack-gcs replan --mission m-50 --fleet FLEET_FILE --altitude SURVEY_ALTITUDE"
+    )
