@@ -37,7 +37,6 @@ the time for the whole area; each error is one line on stderr and a non-zero exi
 from __future__ import annotations
 
 import argparse
-import os
 import re
 import sys
 import time
@@ -46,7 +45,6 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-import requests
 import shapely
 from pydantic import BaseModel, ValidationError
 from shapely.geometry import Polygon
@@ -65,7 +63,6 @@ from behaviors.survey_planner import (
 from cloudtrack.api_models import IDENTIFIER
 from cloudtrack.autopilot_modes import RETURN_MODES, AutopilotKind, mission_mode
 from cloudtrack.config_files import ConfigError, hide_url_secrets
-from cloudtrack.connection_errors import connection_cause
 from cloudtrack.coverage import LocalFrame
 from cloudtrack.mission_protocol import (
     MissionClient,
@@ -76,7 +73,14 @@ from cloudtrack.mission_protocol import (
 )
 from cloudtrack.plain_text import without_controls
 from cloudtrack.vehicle_config import load_vehicle_sections
-from gcs.fleet_status import BACKEND_ENV, TOKEN_ENV, backend_url, supervisor_token
+from gcs.fleet_status import (
+    BACKEND_ENV,
+    TOKEN_ENV,
+    StatusError,
+    backend_url,
+    supervisor_get,
+    supervisor_token,
+)
 from gcs.fleet_survey import FleetMember, _minutes, fleet_from_args
 from gcs.survey_command import (
     AUTOPILOT_COMPONENT,
@@ -136,13 +140,6 @@ def _backend(args: argparse.Namespace) -> tuple[str, str]:
         return backend_url(args, "replan"), supervisor_token(args, "replan")
     except ValueError as exc:
         raise InputError(str(exc)) from None
-    token = os.environ.get(TOKEN_ENV, "").strip()
-    if not token:
-        raise InputError(
-            "replan needs the back-end's supervisor token: in a file (--supervisor-token-file PATH) or in "
-            f"${TOKEN_ENV}"
-        )
-    return token
 
 
 def _text(value: object, limit: int = 120) -> str:
@@ -153,28 +150,9 @@ def fetch_dropouts(url: str, token: str, mission: str, timeout_s: float = TIMEOU
     """The mission's drop-outs from the back-end; ReplanError with one line for a person."""
     shown = hide_url_secrets(url)
     try:
-        response = requests.get(
-            f"{url}/v1/missions/{mission}/dropouts",
-            headers={"Authorization": f"Bearer {token}"},
-            timeout=timeout_s,
-        )
-    except requests.Timeout:
-        raise ReplanError(f"back-end {shown}: no answer within {timeout_s:g} s", EXIT_TIMEOUT) from None
-    except requests.RequestException as exc:
-        raise ReplanError(f"back-end {shown} unreachable: {connection_cause(exc)}", EXIT_TIMEOUT) from None
-    if response.status_code >= 400:
-        try:
-            detail = response.json().get("detail", "")
-        except (ValueError, AttributeError):
-            detail = ""
-        why = {401: "refused the supervisor token", 403: "refused the supervisor token"}.get(
-            response.status_code, "refused the request"
-        )
-        code = EXIT_TIMEOUT if response.status_code >= 500 else EXIT_REFUSED
-        raise ReplanError(
-            f"back-end {shown} {why} (HTTP {response.status_code}): {_text(detail if isinstance(detail, str) else '')}",
-            code,
-        )
+        response = supervisor_get(url, f"/v1/missions/{mission}/dropouts", token, timeout_s)
+    except StatusError as exc:
+        raise ReplanError(str(exc), exc.code) from None
     if len(response.content) > MAX_ANSWER_BYTES:
         raise ReplanError(f"back-end {shown}: its answer is over {MAX_ANSWER_BYTES} bytes", EXIT_TIMEOUT)
     try:

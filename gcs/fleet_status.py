@@ -163,12 +163,13 @@ def _server_time(response: requests.Response) -> float:
         return time.time()
 
 
-def fetch(url: str, token: str, timeout_s: float = TIMEOUT_S) -> tuple[list[VehicleStatus], float]:
-    """Every vehicle's last status and the back-end's time; StatusError with a line for a person."""
+def supervisor_get(url: str, path: str, token: str, timeout_s: float = TIMEOUT_S) -> requests.Response:
+    """GET a supervisor's route of the back-end; StatusError with one line for a person when it does not
+    answer, cannot be reached or refuses (its own words), never with the token or a password of the URL."""
     shown = hide_url_secrets(url)
     try:
         response = requests.get(
-            f"{url}/v1/vehicles", headers={"Authorization": f"Bearer {token}"}, timeout=timeout_s
+            f"{url}{path}", headers={"Authorization": f"Bearer {token}"}, timeout=timeout_s
         )
     except requests.Timeout:
         raise StatusError(f"back-end {shown}: no answer within {timeout_s:g} s", EXIT_UNREACHABLE) from None
@@ -187,6 +188,13 @@ def fetch(url: str, token: str, timeout_s: float = TIMEOUT_S) -> tuple[list[Vehi
         )
         code = EXIT_UNREACHABLE if response.status_code >= 500 else EXIT_REFUSED
         raise StatusError(f"back-end {shown} {why} (HTTP {response.status_code}): {detail}", code)
+    return response
+
+
+def fetch(url: str, token: str, timeout_s: float = TIMEOUT_S) -> tuple[list[VehicleStatus], float]:
+    """Every vehicle's last status and the back-end's time; StatusError with a line for a person."""
+    shown = hide_url_secrets(url)
+    response = supervisor_get(url, "/v1/vehicles", token, timeout_s)
     try:
         statuses = _STATUSES.validate_json(response.content)
     except ValidationError as exc:
