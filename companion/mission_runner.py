@@ -165,6 +165,8 @@ class BackendSessionLike(Protocol):
 
     def fleet_order(self) -> FleetOrder | None: ...
 
+    def on_find_refused(self) -> str: ...
+
 
 class SearchCoverageLike(Protocol):
     """`companion.search_coverage.SearchCoverage`: the search area, the share of it seen and its POD map,
@@ -541,6 +543,9 @@ class MissionRunner:
         mission = self.state.mission
         if self.session is None or mission is None or not mission.mission_id:
             return
+        refused = self.session.on_find_refused()
+        if refused:  # the start's on_find did not stand: the operator hears which one does
+            self.notices.set("start", refused)
         order = self.session.fleet_order()
         if order is None or order.mission_id != mission.mission_id:
             return

@@ -24,6 +24,7 @@ from cloudtrack.api_client import BackendClient
 from cloudtrack.api_models import FleetOrder
 from companion.cloud.backend_session import BackendSession
 from companion.mission_runner import MissionRunner
+from companion.operator_notices import OperatorNotices
 from tests.live_backend import SUPERVISOR_TOKEN, VEHICLE_TOKENS, serve
 
 
@@ -121,11 +122,27 @@ class Vehicle:
 
 
 class Session:
-    def __init__(self, order: FleetOrder | None) -> None:
+    def __init__(self, order: FleetOrder | None, refused: str = "") -> None:
         self.order = order
+        self.refused = refused
 
     def fleet_order(self) -> FleetOrder | None:
         return self.order
+
+    def on_find_refused(self) -> str:
+        return self.refused
+
+
+def test_the_operator_hears_when_the_starts_on_find_did_not_stand() -> None:
+    none: Any = None
+    notices = OperatorNotices()
+    refused = "on_find return refused: mission '7' already has on_find 'hold'; that setting stands"
+    session: Any = Session(None, refused)
+    runner = MissionRunner(MissionConfig(), none, none, Vehicle(), none, session=session, notices=notices)
+    mission = StartMission("a man in a green shirt", "person", mission_id="7", on_find="return")
+    runner.state = replace(initial_state(MissionConfig()), mode=MissionState.SEARCHING, mission=mission)
+    runner._follow_fleet_order(1.0)
+    assert "on_find return refused" in notices.current() and "'hold'" in notices.current()
 
 
 @pytest.mark.parametrize("engage", [True, False])
