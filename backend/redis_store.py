@@ -24,6 +24,7 @@ from typing import Any
 
 import redis
 
+from backend.parsed_records import ParsedRecords
 from backend.schemas import KeyframeRecord, MissionMap, StoredFind
 from backend.state_store import (
     CANDIDATES_PER_MISSION,
@@ -48,6 +49,9 @@ class RedisStore(StateStore):
         self._redis.ping()  # fail at start-up, not on the first request
         self._pubsub: Any = None
         self._pubsub_lock = threading.Lock()
+        # Each status and map text parsed once, whichever replica wrote it (backend.parsed_records).
+        self._statuses: ParsedRecords[VehicleStatus] = ParsedRecords(VehicleStatus)
+        self._maps: ParsedRecords[MissionMap] = ParsedRecords(MissionMap)
 
     @staticmethod
     def _k(*parts: str) -> str:
@@ -186,27 +190,31 @@ class RedisStore(StateStore):
         pipe.publish(CHANNEL, b"1")
 
     def set_status(self, status: VehicleStatus) -> None:
+        text = status.model_dump_json().encode()  # as redis-py reads it back
         with self._redis.pipeline() as pipe:
-            pipe.hset(self._k("status"), status.vehicle_id, status.model_dump_json())
+            pipe.hset(self._k("status"), status.vehicle_id, text)
             self._changed(pipe)
             pipe.execute()
+        self._statuses.remember(status.vehicle_id, text, status)
 
     def status(self, vehicle: str) -> VehicleStatus | None:
         value = self._redis.hget(self._k("status"), vehicle)
-        return VehicleStatus.model_validate_json(value) if value is not None else None
+        return self._statuses.parsed(vehicle, value) if value is not None else None
 
     def statuses(self) -> list[VehicleStatus]:
         values = self._redis.hgetall(self._k("status"))
         return sorted(
-            (VehicleStatus.model_validate_json(v) for v in values.values()), key=lambda s: s.vehicle_id
+            (self._statuses.parsed(_text(k), v) for k, v in values.items()), key=lambda s: s.vehicle_id
         )
 
     def set_mission_map(self, vehicle: str, mission: str, record: MissionMap) -> None:
-        self._redis.set(self._k("map", vehicle, mission), record.model_dump_json())
+        text = record.model_dump_json().encode()
+        self._redis.set(self._k("map", vehicle, mission), text)
+        self._maps.remember((vehicle, mission), text, record)
 
     def mission_map(self, vehicle: str, mission: str) -> MissionMap | None:
         value = self._redis.get(self._k("map", vehicle, mission))
-        return MissionMap.model_validate_json(value) if value is not None else None
+        return self._maps.parsed((vehicle, mission), value) if value is not None else None
 
     def add_decision(
         self,
@@ -379,3 +387,8 @@ class RedisStore(StateStore):
             if self._pubsub is not None:
                 self._pubsub.close()
         self._redis.close()
+
+
+def _text(key: bytes | str) -> str:
+    """A hash field's name as stored: redis-py reads bytes (str with decode_responses)."""
+    return key.decode() if isinstance(key, bytes) else key

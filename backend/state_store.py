@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from backend.parsed_records import ParsedRecords
 from backend.schemas import KeyframeRecord, MissionMap, StoredFind
 from cloudtrack.api_models import Decision, DecisionIn, Rejection, VehicleStatus
 from cloudtrack.private_files import private_dir, private_file
@@ -247,6 +248,10 @@ class SqliteStore(StateStore):
         # The newest keyframe per vehicle: one server, and nothing lost in a restart, so in memory too.
         self._keyframes: dict[str, tuple[KeyframeRecord, bytes]] = {}
         self._memory_changes = 0
+        # Statuses and maps are read far more often than written (every report reads its vehicle's back,
+        # every build of the page all of them): each text is parsed once (backend.parsed_records).
+        self._statuses: ParsedRecords[VehicleStatus] = ParsedRecords(VehicleStatus)
+        self._maps: ParsedRecords[MissionMap] = ParsedRecords(MissionMap)
 
     def _write(self, sql_and_params: list[tuple[str, tuple[object, ...]]]) -> list[sqlite3.Cursor]:
         with self._lock:
@@ -419,41 +424,35 @@ class SqliteStore(StateStore):
         return [(Rejection.model_validate_json(str(r)), bytes(a)) for r, a in rows]
 
     def set_status(self, status: VehicleStatus) -> None:
+        text = status.model_dump_json()
         self._write(
             [
-                (
-                    "INSERT OR REPLACE INTO statuses VALUES (?, ?)",
-                    (status.vehicle_id, status.model_dump_json()),
-                ),
+                ("INSERT OR REPLACE INTO statuses VALUES (?, ?)", (status.vehicle_id, text)),
                 ("UPDATE counters SET value = value + 1 WHERE name = 'version'", ()),
             ]
         )
+        self._statuses.remember(status.vehicle_id, text, status)
 
     def status(self, vehicle: str) -> VehicleStatus | None:
         rows = self._read("SELECT record FROM statuses WHERE vehicle = ?", (vehicle,))
-        return VehicleStatus.model_validate_json(str(rows[0][0])) if rows else None
+        return self._statuses.parsed(vehicle, str(rows[0][0])) if rows else None
 
     def statuses(self) -> list[VehicleStatus]:
         return [
-            VehicleStatus.model_validate_json(str(r))
-            for (r,) in self._read("SELECT record FROM statuses ORDER BY vehicle")
+            self._statuses.parsed(str(v), str(r))
+            for v, r in self._read("SELECT vehicle, record FROM statuses ORDER BY vehicle")
         ]
 
     def set_mission_map(self, vehicle: str, mission: str, record: MissionMap) -> None:
-        self._write(
-            [
-                (
-                    "INSERT OR REPLACE INTO mission_maps VALUES (?, ?, ?)",
-                    (vehicle, mission, record.model_dump_json()),
-                )
-            ]
-        )
+        text = record.model_dump_json()
+        self._write([("INSERT OR REPLACE INTO mission_maps VALUES (?, ?, ?)", (vehicle, mission, text))])
+        self._maps.remember((vehicle, mission), text, record)
 
     def mission_map(self, vehicle: str, mission: str) -> MissionMap | None:
         rows = self._read(
             "SELECT record FROM mission_maps WHERE vehicle = ? AND mission = ?", (vehicle, mission)
         )
-        return MissionMap.model_validate_json(str(rows[0][0])) if rows else None
+        return self._maps.parsed((vehicle, mission), str(rows[0][0])) if rows else None
 
     def add_decision(
         self,
