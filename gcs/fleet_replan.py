@@ -32,13 +32,19 @@ left are not known without its link); nothing is sent. It prints a line per drop
 area as one plan, a line per remaining vehicle (its own lanes left, its share's lanes, length and time) and
 the time for the whole area; each error is one line on stderr and a non-zero exit (2: input, 1: refused,
 3: no answer).
+
+`--watch` does the re-plan without the operator (issue 43 item 3, "or, if configured, does"): it asks the
+back-end every `--watch-period` seconds and re-plans each drop-out once, by itself, as it happens, until
+SIGINT / SIGTERM.
 """
 
 from __future__ import annotations
 
 import argparse
 import re
+import signal
 import sys
+import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -72,7 +78,7 @@ from cloudtrack.mission_protocol import (
     positions_match,
 )
 from cloudtrack.plain_text import without_controls
-from cloudtrack.vehicle_config import load_vehicle_sections
+from cloudtrack.vehicle_config import VehicleSections, load_vehicle_sections
 from gcs.fleet_status import (
     BACKEND_ENV,
     TOKEN_ENV,
@@ -99,9 +105,10 @@ TIMEOUT_S = 10.0
 MAX_ANSWER_BYTES = 2_000_000
 MAX_CORNERS = 200  # the re-planned area's outline is simplified to at most this many corners
 INSIDE_MARGIN_M = 2.0  # a waypoint this far inside the dropped area flies into it
-MISSION_STATE_COMPLETE = 5
+MISSION_STATE_COMPLETE = 5  # MISSION_CURRENT.mission_state
 MAV_CMD_MISSION_START = 300
-MAV_RESULT_ACCEPTED = 0  # MISSION_CURRENT.mission_state
+MAV_RESULT_ACCEPTED = 0
+WATCH_TRIES = 3  # rounds a drop-out is tried while the vehicles to take it do not answer
 EXAMPLES = """\
 examples:
   cloudtrack-gcs replan --mission m-7 --fleet fleet.toml --altitude 25 --dry-run
@@ -465,26 +472,43 @@ def run(args: argparse.Namespace) -> int:
             )
         if args.altitude is None:
             raise InputError("give --altitude M: the survey's altitude, which the dropped area is flown at")
+        if not 0.5 <= args.watch_period <= 3600:
+            raise InputError(f"--watch-period {args.watch_period:g} must be 0.5-3600 s")
         members = fleet_from_args(args)
         config = load_vehicle_sections(Path(args.companion_config) if args.companion_config else None)
         settings = settings_from(args, config, CRUISE_SPEED[AutopilotKind.PX4])
     except (InputError, ConfigError, SurveyError) as exc:
         print(f"error: {_one_line(exc)}", file=sys.stderr)
         return EXIT_INPUT
+    if args.watch:
+        return _watch(args, url, token, members, config, settings, GcsError)
     try:
         answer = fetch_dropouts(url, token, args.mission, args.timeout)
     except ReplanError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return exc.code
-    dropped = {d.vehicle_id: d for d in answer.dropouts}
-    remaining = {m.vehicle.id: Remaining(m) for m in members if m.vehicle.id in answer.searching}
+    return _replan(args, answer.dropouts, answer.searching, members, config, settings, GcsError)
+
+
+def _replan(
+    args: argparse.Namespace,
+    dropouts: Sequence[_Dropout],
+    searching: Sequence[str],
+    members: Sequence[FleetMember],
+    config: VehicleSections,
+    settings: SurveySettings,
+    gcs_error: type[Exception],
+) -> int:
+    """One re-plan of these drop-outs' unflown parts over the fleet's vehicles still searching."""
+    dropped = {d.vehicle_id: d for d in dropouts}
+    remaining = {m.vehicle.id: Remaining(m) for m in members if m.vehicle.id in searching}
     mode = "dry run, nothing sent" if args.dry_run else "to upload"
     print(
         f"replan of mission {_text(args.mission, 64)} ({mode}): {len(dropped)} vehicle"
         f"{'s' if len(dropped) != 1 else ''} left the search, {len(remaining)} of the fleet still searching",
         flush=True,
     )
-    for d in answer.dropouts:
+    for d in dropouts:
         print(
             f"  vehicle {_text(d.vehicle_id, 32)} left the search ({_text(d.reason)}): "
             f"{d.area_m2 / 1e4:.2f} ha unflown",
@@ -495,7 +519,7 @@ def run(args: argparse.Namespace) -> int:
             print(
                 f"  vehicle {m.vehicle.id}: not searching mission {_text(args.mission, 64)} on the back-end: left out"
             )
-    area, note = replan_area(answer.dropouts)
+    area, note = replan_area(dropouts)
     if not area:
         print("  nothing to re-plan: no vehicle left part of its area unflown", flush=True)
         return 0
@@ -508,11 +532,68 @@ def run(args: argparse.Namespace) -> int:
     if note:
         print(f"  the unflown area: {note}", flush=True)
     try:
-        return _plan_and_send(args, area, settings, remaining, config.safety.max_survey_distance_m, GcsError)
+        return _plan_and_send(args, area, settings, remaining, config.safety.max_survey_distance_m, gcs_error)
     finally:
         for r in remaining.values():
             if r.session is not None:
                 r.session.close()
+
+
+def _watch(
+    args: argparse.Namespace,
+    url: str,
+    token: str,
+    members: Sequence[FleetMember],
+    config: VehicleSections,
+    settings: SurveySettings,
+    gcs_error: type[Exception],
+) -> int:
+    """`--watch`: the re-plan done as each vehicle drops out, without the operator. Each drop-out (a vehicle
+    and the time it left) is re-planned once, by itself; one whose vehicles did not answer is tried again
+    next round, up to WATCH_TRIES. A round's error is a line and the watch goes on; SIGINT or SIGTERM ends
+    it between rounds (an upload under way is finished, not cut)."""
+    stop = threading.Event()
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: stop.set())
+    mission = _text(args.mission, 64)
+    print(
+        f"replan --watch of mission {mission}: asking the back-end every {args.watch_period:g} s, re-planning "
+        "each vehicle that leaves the search; Ctrl-C ends",
+        flush=True,
+    )
+    tries: dict[tuple[str, float], int] = {}
+    done: set[tuple[str, float]] = set()
+    while not stop.is_set():
+        try:
+            answer = fetch_dropouts(url, token, args.mission, args.timeout)
+        except ReplanError as exc:
+            print(
+                f"replan --watch: {exc}; asking again in {args.watch_period:g} s", file=sys.stderr, flush=True
+            )
+        else:
+            new = [d for d in answer.dropouts if (d.vehicle_id, d.since) not in done]
+            if new:
+                names = ", ".join(_text(d.vehicle_id, 32) for d in new)
+                print(f"AUTO REPLAN: {names} left the search of mission {mission}", flush=True)
+                code = _replan(args, new, answer.searching, members, config, settings, gcs_error)
+                for d in new:
+                    key = (d.vehicle_id, d.since)
+                    tries[key] = tries.get(key, 0) + 1
+                    if code != EXIT_TIMEOUT or tries[key] >= WATCH_TRIES:
+                        done.add(key)
+                if code == 0:
+                    print(f"AUTO REPLAN: done for {names}", flush=True)
+                elif any((d.vehicle_id, d.since) not in done for d in new):
+                    print(f"AUTO REPLAN: not done for {names}; trying again next round", flush=True)
+                else:
+                    print(
+                        f"AUTO REPLAN: not done for {names}: re-plan by hand (cloudtrack-gcs replan)",
+                        flush=True,
+                    )
+        stop.wait(args.watch_period)
+    print("replan --watch: stopped", flush=True)
+    return 0
 
 
 def _plan_and_send(
@@ -619,6 +700,15 @@ def add_parser(sub: Any) -> None:
     p.add_argument(
         "--dry-run", action="store_true", help="fetch the drop-outs and print the plan; send nothing"
     )
+    p.add_argument(
+        "--watch", action="store_true",
+        help="keep asking the back-end and re-plan each vehicle that leaves the search as it leaves, until "
+        "Ctrl-C (the re-plan done without the operator)",
+    )  # fmt: skip
+    p.add_argument(
+        "--watch-period", type=float, default=5.0, metavar="S",
+        help="with --watch: ask the back-end every S seconds (default 5)",
+    )  # fmt: skip
     p.add_argument(
         "--again", action="store_true",
         help="append the shares even where a vehicle's waypoints left already fly into the dropped area (by "

@@ -6,7 +6,13 @@ supervisor token comes from a file and is never printed; every refusal is one li
 from __future__ import annotations
 
 import json
+import queue
 import re
+import signal
+import subprocess
+import sys
+import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -409,3 +415,84 @@ def test_a_px4_begins_a_new_mission_at_the_item_sent_as_current() -> None:
             assert sim.mission.current == 0  # none flagged: from the start
         finally:
             endpoint.close()
+
+
+def _report(url: str, vehicle: str, search: dict[str, Any]) -> None:
+    answer = requests.post(
+        f"{url}/v1/vehicles/{vehicle}/status",
+        json={"mission_id": "m-43", "state": "SEARCHING", "search": search},
+        headers={"Authorization": f"Bearer {VEHICLE_TOKENS[vehicle]}"},
+        timeout=10,
+    )
+    assert answer.status_code == 200, answer.text[:300]
+
+
+def test_watch_replans_each_vehicle_as_it_leaves_once_and_ends_on_sigterm(
+    models_dir: Path, token_file: Path, defaults: str, tmp_path: Path
+) -> None:
+    """`replan --watch`: the re-plan done without the operator. drone-3's drop-out is re-planned onto
+    drone-1 and drone-2, and not again in later rounds; when drone-2 then goes home, its unflown part goes
+    to drone-1 alone; SIGTERM ends the watch between rounds."""
+    app = create_app(
+        backend_config(models_dir, f"auth.tokens={json.dumps(VEHICLE_TOKENS)}", "fleet.dropout_s=3600")
+    )
+    with (
+        serve(app) as url,
+        autopilot("ardupilot") as ardupilot,
+        autopilot("px4", system_id=2) as px4,
+    ):
+        _report(url, "drone-1", {"area": _rect(-200, 0, -100, 200), "mode": "AUTO"})
+        _report(url, "drone-2", {"area": _rect(-100, 0, 100, 200), "mode": "MISSION"})
+        _report(
+            url,
+            "drone-3",
+            {"area": _rect(100, 0, 300, 200), "covered": [_rect(100, 0, 140, 200)], "mode": "RTL"},
+        )
+        north = [MissionItem.change_speed(3.0), *(_waypoint(n) for n in (150, 300))]
+        _upload(ardupilot.link_port("gcs"), 1, "ardupilot", north)
+        _upload(px4.link_port("gcs"), 2, "px4", [_waypoint(150)])
+        assert ardupilot.set_mode("AUTO") and px4.set_mode("MISSION")
+        fleet = _fleet(tmp_path, ardupilot.link_port("gcs"), px4.link_port("gcs"))
+        watch = subprocess.Popen(
+            [sys.executable, "-m", "gcs.cli", "--timeout", "3", "replan", "--mission", "m-43", "--fleet",
+             str(fleet), "--altitude", "25", "--backend", url, "--supervisor-token-file", str(token_file),
+             "--companion-config", defaults, "--watch", "--watch-period", "0.5"],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        lines: queue.Queue[str] = queue.Queue()
+        threading.Thread(target=lambda: [lines.put(x) for x in watch.stdout or ()], daemon=True).start()
+        seen: list[str] = []
+
+        def printed(text: str, timeout_s: float = 60.0) -> None:
+            end = time.monotonic() + timeout_s
+            while not any(text in x for x in seen):
+                assert watch.poll() is None, f"the watch ended ({watch.returncode}): {''.join(seen)}"
+                try:
+                    seen.append(lines.get(timeout=max(0.0, end - time.monotonic())))
+                except queue.Empty:
+                    raise AssertionError(f"never printed {text!r}: {''.join(seen)}") from None
+
+        try:
+            printed("AUTO REPLAN: done for drone-3")
+            shares = (len(ardupilot.mission.items) - 4, len(px4.mission.items) - 1)  # after their own 3 and 1
+            assert shares[0] > 0 and shares[1] > 0, seen
+            assert ardupilot.mode == "AUTO" and px4.mode == "MISSION"
+            # drone-2 goes home with its east half unflown: re-planned onto drone-1 alone.
+            _report(url, "drone-2", {"area": _rect(-100, 0, 100, 200), "covered": [_rect(-100, 0, 0, 200)],
+                                     "mode": "RTL"})  # fmt: skip
+            printed("AUTO REPLAN: done for drone-2")
+            assert len(px4.mission.items) - 1 == shares[1]  # drone-2 took nothing more
+            assert len(ardupilot.mission.items) - 4 > shares[0]
+            watch.send_signal(signal.SIGTERM)
+            assert watch.wait(30) == 0
+        finally:
+            if watch.poll() is None:
+                watch.kill()
+                watch.wait()
+        out = "".join(seen) + "".join(lines.queue)
+        err = watch.stderr.read() if watch.stderr else ""
+        assert out.count("AUTO REPLAN: drone-3 left the search") == 1, out  # once, however many rounds
+        assert out.count("AUTO REPLAN: drone-2 left the search") == 1, out
+        assert out.rstrip().endswith("replan --watch: stopped"), out
+        assert SUPERVISOR not in out + err
+        assert "error" not in err, err
