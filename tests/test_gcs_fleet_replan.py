@@ -453,14 +453,20 @@ def test_watch_replans_each_vehicle_as_it_leaves_once_and_ends_on_sigterm(
         _upload(px4.link_port("gcs"), 2, "px4", [_waypoint(150)])
         assert ardupilot.set_mode("AUTO") and px4.set_mode("MISSION")
         fleet = _fleet(tmp_path, ardupilot.link_port("gcs"), px4.link_port("gcs"))
+        errors = tmp_path / "watch.err"
         watch = subprocess.Popen(
             [sys.executable, "-m", "gcs.cli", "--timeout", "3", "replan", "--mission", "m-43", "--fleet",
              str(fleet), "--altitude", "25", "--backend", url, "--supervisor-token-file", str(token_file),
              "--companion-config", defaults, "--watch", "--watch-period", "0.5"],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+            stdout=subprocess.PIPE, stderr=errors.open("w"), text=True,
         )  # fmt: skip
         lines: queue.Queue[str] = queue.Queue()
-        threading.Thread(target=lambda: [lines.put(x) for x in watch.stdout or ()], daemon=True).start()
+
+        def read() -> None:
+            for line in watch.stdout or ():
+                lines.put(line)
+
+        threading.Thread(target=read, daemon=True).start()
         seen: list[str] = []
 
         def printed(text: str, timeout_s: float = 60.0) -> None:
@@ -490,7 +496,7 @@ def test_watch_replans_each_vehicle_as_it_leaves_once_and_ends_on_sigterm(
                 watch.kill()
                 watch.wait()
         out = "".join(seen) + "".join(lines.queue)
-        err = watch.stderr.read() if watch.stderr else ""
+        err = errors.read_text()
         assert out.count("AUTO REPLAN: drone-3 left the search") == 1, out  # once, however many rounds
         assert out.count("AUTO REPLAN: drone-2 left the search") == 1, out
         assert out.rstrip().endswith("replan --watch: stopped"), out
