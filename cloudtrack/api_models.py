@@ -566,6 +566,24 @@ class OnFindIn(ApiModel):
     )
 
 
+# The newest of the other vehicles' placed rejections a /fleet answer lists: a search area holds few people, and
+# the companion keeps this many in its memory of the fleet's rejections (its default capacity is twice this).
+FLEET_REJECTIONS_MAX = 32
+
+
+class FleetRejection(ApiModel):
+    """A rejection by another vehicle of the same fleet mission, with the rejected candidate's place: the
+    companion keeps candidates standing there from being proposed (the back-end's appearance match does not
+    hold for a look-alike seen from another lane)."""
+
+    rejection_id: int
+    vehicle_id: str = Field(description="whose candidate the supervisor (or its GCS) rejected")
+    candidate_id: str | None = Field(None, description="that vehicle's id of it (not this vehicle's)")
+    position: LatLonPoint = Field(
+        description="[lat, lon] of the rejected candidate, as its vehicle estimated it"
+    )
+
+
 class FleetOrder(ApiModel):
     """What one vehicle of the fleet mission is to do now (GET /v1/missions/{m}/fleet)."""
 
@@ -578,4 +596,10 @@ class FleetOrder(ApiModel):
     order: OnFind = Field(
         description='what this vehicle is to do: "continue" until a find is confirmed, and always for the '
         "vehicle that found the person; else the mission's on_find"
+    )
+    rejections: list[FleetRejection] = Field(
+        default_factory=list,
+        max_length=FLEET_REJECTIONS_MAX,
+        description="the other vehicles' rejections of the mission that carry a place, newest first (at most "
+        f"{FLEET_REJECTIONS_MAX}; a candidate rejected twice, by the supervisor and by its vehicle, once)",
     )

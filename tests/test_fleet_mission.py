@@ -9,6 +9,7 @@ import math
 from collections.abc import Iterator
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
@@ -22,13 +23,15 @@ from backend.schemas import (
     Find,
     PodGrid,
     Rejection,
+    RejectionIn,
     SearchStatus,
     StoredFind,
     VehicleStatusIn,
 )
-from backend.sessions import SessionStore
+from backend.sessions import SessionStore, distance_m
 from backend.state_store import SqliteStore, StateStore, vector_bytes
 from backend_tools.fleet_services import RedisServer
+from cloudtrack.api_models import FLEET_REJECTIONS_MAX
 from cloudtrack.coverage import LocalFrame
 from cloudtrack.pod_map import MAX_CELLS, decode_grid, grid_value
 from tests.backend_fixtures import SUPERVISOR, auth, backend_config
@@ -353,3 +356,63 @@ def test_the_other_vehicles_rejections_are_read_newest_first_and_bounded(state: 
     assert len(both) == 4 and {r.candidate_id for r, _ in both} >= {"d2-c4"}
     assert {r.candidate_id for r, _ in state.mission_rejections("m1", ["d1"], 2)} == {"d1-c3", "d1-c4"}
     assert state.mission_rejections("m1", [], 4) == [] and state.mission_rejections("m2", ["d1"], 4) == []
+
+
+def test_each_vehicle_is_told_the_others_placed_rejections_newest_first_and_bounded(
+    state: StateStore,
+) -> None:
+    """`fleet_order`'s rejections: the other vehicles' that carry a place (the companion excludes candidates
+    standing there), newest first, a candidate rejected twice (the supervisor's, then its vehicle's report)
+    once, at most FLEET_REJECTIONS_MAX."""
+    store = SessionStore(state)
+    for vehicle in ("d1", "d2"):
+        store.set_status(vehicle, VehicleStatusIn(mission_id="m1", state="SEARCH"))
+    crop = base64.b64encode(cv2.imencode(".jpg", np.full((32, 16, 3), 90, np.uint8))[1].tobytes()).decode()
+
+    def reject(vehicle: str, candidate: str, position: list[float] | None) -> None:
+        body = RejectionIn(vehicle_id=vehicle, candidate_id=candidate, crop_jpeg_b64=crop, position=position)
+        store.add_rejection("m1", body)
+
+    reject("d1", "a1", _at(10, 20))
+    reject("d1", "a1", _at(10, 21))  # the vehicle's report of the supervisor's reject: listed once
+    reject("d1", "a2", None)  # no place: nothing to exclude by
+    reject("d2", "b1", _at(-5, 0))
+    told = store.fleet_order("d2", "m1").rejections
+    assert [(r.vehicle_id, r.candidate_id) for r in told] == [("d1", "a1")]
+    assert distance_m(told[0].position, _at(10, 21)) < 0.01  # the newest of the two
+    assert [r.candidate_id for r in store.fleet_order("d1", "m1").rejections] == ["b1"]  # not its own
+    assert store.fleet_order("d3", "m2").rejections == []
+    for i in range(FLEET_REJECTIONS_MAX + 4):
+        reject("d1", f"x{i}", _at(i, 0))
+    told = store.fleet_order("d2", "m1").rejections
+    assert len(told) == FLEET_REJECTIONS_MAX and told[0].candidate_id == f"x{FLEET_REJECTIONS_MAX + 3}"
+    assert [r.rejection_id for r in told] == sorted((r.rejection_id for r in told), reverse=True)
+
+
+def test_a_vehicles_fleet_answer_lists_another_vehicles_rejection_with_its_place(models_dir: Path) -> None:
+    app = create_app(backend_config(models_dir))
+    crop = base64.b64encode(cv2.imencode(".jpg", np.full((32, 16, 3), 90, np.uint8))[1].tobytes()).decode()
+    with TestClient(app) as client:
+        for vehicle in ("drone-1", "drone-2"):
+            status = VehicleStatusIn(mission_id="9", state="SEARCH")
+            client.post(
+                f"/v1/vehicles/{vehicle}/status", json=status.model_dump(mode="json"), headers=auth(vehicle)
+            )
+        body = {
+            "vehicle_id": "drone-1",
+            "candidate_id": "k3-1",
+            "crop_jpeg_b64": crop,
+            "position": _at(-13, 23),
+        }
+        posted = client.post("/v1/missions/9/rejections", json=body, headers=auth("drone-1"))
+        assert posted.status_code == 201, posted.text
+        told = client.get("/v1/missions/9/fleet", headers=auth("drone-2")).json()
+        assert told["rejections"] == [
+            {
+                "rejection_id": posted.json()["rejection_id"],
+                "vehicle_id": "drone-1",
+                "candidate_id": "k3-1",
+                "position": _at(-13, 23),
+            }
+        ]
+        assert client.get("/v1/missions/9/fleet", headers=auth("drone-1")).json()["rejections"] == []

@@ -6,8 +6,8 @@ vehicles of the same mission id where it was made (backend.sessions). `GET /v1/m
 map of every vehicle searching the mission id, merged (backend.mission_merge) at most once per
 `[fleet] merge_period_s` (backend.merged_maps). `PUT .../on_find` sets
 what the fleet does on the first confirmed find (once, at the start), `GET .../fleet` tells a vehicle
-what it is to do now. `GET .../dropouts`: the vehicles that left the search and their unflown parts
-(backend.fleet_dropout).
+what it is to do now and where the other vehicles' rejections stand. `GET .../dropouts`: the vehicles
+that left the search and their unflown parts (backend.fleet_dropout).
 """
 
 from __future__ import annotations
@@ -143,7 +143,8 @@ def fleet_order(
     ] = None,
 ) -> FleetOrder:
     """What the vehicle is to do now in the fleet mission: "continue" until the first find is confirmed (and
-    always for the vehicle that found the person), then the mission's on_find."""
+    always for the vehicle that found the person), then the mission's on_find. With it, the other vehicles'
+    rejections of the mission that carry a place (`rejections`): the companion proposes nobody standing there."""
     vehicle = vehicle_id or principal.vehicle_id
     if vehicle is None:
         raise HTTPException(422, "the supervisor must name the vehicle: ?vehicle_id=<id>")
