@@ -72,6 +72,27 @@ class RejectionShared:
 
 
 @dataclass(frozen=True)
+class FleetRejection:
+    """A rejection by another vehicle of the same fleet mission: where its rejected candidate stood, as that
+    vehicle estimated it (the back-end keeps no uncertainty with it)."""
+
+    vehicle_id: str
+    rejection_id: int
+    lat_deg: float
+    lon_deg: float
+
+
+@dataclass(frozen=True)
+class FleetRejections:
+    """The back-end listed these rejections by the other vehicles of fleet mission `mission_id`, new since
+    it last listed them: candidates standing there are not proposed (`behaviors.mission`, by place only)."""
+
+    time_s: float
+    mission_id: str
+    rejections: tuple[FleetRejection, ...]
+
+
+@dataclass(frozen=True)
 class AutopilotLinkLost:
     """No autopilot heartbeat for `[safety] heartbeat_timeout_s`."""
 
@@ -103,6 +124,7 @@ Event = (
     | TimerTick
     | BackendUnreachable
     | RejectionShared
+    | FleetRejections
     | AutopilotLinkLost
     | PilotTakeover
     | CompanionHold

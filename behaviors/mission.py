@@ -45,6 +45,7 @@ from behaviors.events import (
     BackendUnreachable,
     CompanionHold,
     Event,
+    FleetRejections,
     GcsCommand,
     PilotTakeover,
     RejectionShared,
@@ -202,6 +203,9 @@ class State:
     break_off_item: int | None = None
     let_go: bool = False  # the companion let go on a confirmation (on_confirm = hold): it commands nothing
     found: RejectionMemory = RejectionMemory()  # confirmed finds the search went on from: not proposed again
+    # The fleet mission's other vehicles' rejections (`FleetRejections`), by place: apart from `rejections`,
+    # so a fleet's many never push this vehicle's own out.
+    fleet_rejections: RejectionMemory = RejectionMemory()
     # Candidates put to the supervisor that the search gave up (out of view, the survey flew on) before a
     # decision, newest last: each keeps awaiting one while the search goes on (confirm: a find; reject:
     # remembered). The newest is the one shown (`awaiting_decision`); once it is decided, the one before.
@@ -220,7 +224,7 @@ def initial_state(config: MissionConfig) -> State:
     memory = RejectionMemory(
         radius_m=config.rejection_radius_m, signature_threshold=config.signature_threshold
     )
-    return State(rejections=memory, found=memory)
+    return State(rejections=memory, found=memory, fleet_rejections=memory)
 
 
 def commanding(state: State) -> bool:
@@ -328,6 +332,8 @@ def _step(state: State, event: Event, config: MissionConfig) -> Result:
     if isinstance(event, RejectionShared):
         # Answers to the queries from the next one on were judged with it (`behaviors.rejection_memory`).
         return replace(state, rejections=state.rejections.shared(event.candidate_id, state.next_query_id)), ()
+    if isinstance(event, FleetRejections):
+        return _fleet_rejected(state, event)
     return _tick(state, config)  # TimerTick, the last kind of event
 
 
@@ -376,6 +382,35 @@ def _start_search(state: State, reason: str, config: MissionConfig) -> Result:
     if not new.along_mission:
         new, scan = _scan(new, config)
     return new, (*hand_back, *msg, *scan, *query)
+
+
+def _fleet_rejected(state: State, event: FleetRejections) -> Result:
+    """Rejections by the other vehicles of this fleet mission: candidates standing there (within the rejection
+    radius, widened by the candidate's uncertainty) are not proposed, as where this vehicle's own rejections
+    stand. By place alone: their candidate ids are the other vehicle's, and nobody here saw their looks."""
+    mission = state.mission
+    if mission is None or not mission.mission_id or event.mission_id != mission.mission_id:
+        return state, ()  # another mission's, or one this vehicle no longer searches
+    memory = state.fleet_rejections
+    via: list[str] = []
+    for rejected in event.rejections:
+        known = any(
+            e.via == rejected.vehicle_id
+            and e.position is not None
+            and (e.position.lat_deg, e.position.lon_deg) == (rejected.lat_deg, rejected.lon_deg)
+            for e in memory.entries
+        )
+        if known or not (math.isfinite(rejected.lat_deg) and math.isfinite(rejected.lon_deg)):
+            continue
+        # The other vehicle's estimate, without its uncertainty (the back-end keeps none): the radius covers it.
+        place = GeoEstimate(rejected.lat_deg, rejected.lon_deg, 0.0, 0.0, 0.0, 0.0, 0.0)
+        memory = memory.remember(RejectedTarget(position=place, time_s=state.now_s, via=rejected.vehicle_id))
+        via.append(rejected.vehicle_id)
+    if not via:
+        return state, ()
+    count = f"{len(via)} " if len(via) > 1 else ""
+    said = GcsMessage(f"{count}rejected via {', '.join(dict.fromkeys(via))}: not proposed here"[:50])
+    return replace(state, fleet_rejections=memory), (said,)
 
 
 def _remember_found(state: State, target: Target) -> State:
@@ -464,12 +499,14 @@ def _command(state: State, event: GcsCommand, config: MissionConfig) -> Result:
         keep = state.mission is not None and state.mission.prompt == cmd.prompt
         rejections = state.rejections if keep else _forgotten(state.rejections)
         found = state.found if keep else _forgotten(state.found)
+        fleet = state.fleet_rejections if keep else _forgotten(state.fleet_rejections)
         stop: tuple[Action, ...] = (TrackerStop("new mission"),) if state.mode in TRACKING else ()
         new = replace(
             state,
             mission=cmd,
             rejections=rejections,
             found=found,
+            fleet_rejections=fleet,
             backend_down=False,
             mode_requested=None,
             holding=False,
@@ -1190,11 +1227,12 @@ def _arrived(state: State, box: Box, config: MissionConfig) -> bool:
 
 
 def _excluded(state: State, det: Detection, config: MissionConfig, answer: BackendAnswer) -> bool:
-    """Rejected by the supervisor, or a find the search already went on from (by id, place or looks)."""
+    """Rejected by the supervisor (via this vehicle by id, place or looks; via another of the fleet mission by
+    place), or a find the search already went on from."""
     position = _position(state, det, config, answer.pose)
     return any(
         memory.matches(det.candidate_id, position, det.signature, answer.query_id) is not None
-        for memory in (state.rejections, state.found)
+        for memory in (state.rejections, state.found, state.fleet_rejections)
     )
 
 

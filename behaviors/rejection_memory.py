@@ -6,7 +6,9 @@ of plain number vectors, e.g. colour histograms). Positions are compared in metr
 
 The radius stands in for appearance, which the companion does not judge, and so hides anyone standing near
 a rejected person. Once the back-end holds the rejection (`RejectedTarget.shared_from_query`) it judges
-appearance in every later answer, and position matches only within two sigma of both estimates.
+appearance in every later answer, and position matches only within two sigma of both estimates. Another
+vehicle's rejection in a fleet mission (`RejectedTarget.via`) is never taken as judged so: the back-end's
+appearance match fails for a look-alike seen from another lane, so the radius holds for it throughout.
 """
 
 from __future__ import annotations
@@ -26,6 +28,8 @@ class RejectedTarget:
     time_s: float = 0.0
     # The first query whose answer the back-end judged with this rejection known (0: not known to hold it).
     shared_from_query: int = 0
+    # Whose rejection it is in a fleet mission ("": this vehicle's own): another vehicle's holds by place.
+    via: str = ""
 
 
 @dataclass(frozen=True)

@@ -49,6 +49,8 @@ from behaviors.events import (
     BackendUnreachable,
     CompanionHold,
     Event,
+    FleetRejection,
+    FleetRejections,
     GcsCommand,
     PilotTakeover,
     RejectionShared,
@@ -311,6 +313,8 @@ class MissionRunner:
         self._analysed = 0  # keyframes of this mission analysed whole (laid on the search map)
         self._dark_keyframes = 0  # of them, too dark for the detection curve (no POD laid)
         self._fleet_seen: tuple[str, str, str | None] | None = None  # the fleet order last acted on
+        # Ids of the other vehicles' rejections the last /fleet answer listed (each passed to the behaviour once).
+        self._fleet_rejections_seen: set[int] = set()
         self._store_base = StoreCounts()  # the store's counts when this mission started
 
     # ------------------------------------------------------------------------------------------ control
@@ -529,12 +533,43 @@ class MissionRunner:
         self._keyframes = {**dict(recent), frame_id: (image, track_box)}
 
     def _ground_events(self, now: float) -> list[Event]:
-        """Commands from the GCS and the supervisor page, and the rejections the back-end has taken."""
+        """Commands from the GCS and the supervisor page, the rejections the back-end has taken, and the fleet
+        mission's other vehicles' rejections new to this vehicle."""
         commands = self.vehicle.commands() + (self.session.commands() if self.session is not None else [])
         events: list[Event] = [GcsCommand(now, cmd) for cmd in commands]
         if self.session is not None:
             events.extend(RejectionShared(now, cid) for cid in self.session.shared_rejections())
+            events.extend(self._fleet_rejections(now))
         return events
+
+    def _fleet_rejections(self, now: float) -> list[Event]:
+        """The other vehicles' rejections of this fleet mission that the back-end's last /fleet answer lists
+        and the behaviour has not had yet (each once, by rejection id)."""
+        mission = self.state.mission
+        order = self.session.fleet_order() if self.session is not None else None
+        if (
+            mission is None
+            or not mission.mission_id
+            or order is None
+            or order.mission_id != mission.mission_id
+        ):
+            return []
+        new = tuple(
+            FleetRejection(r.vehicle_id, r.rejection_id, r.position[0], r.position[1])
+            for r in order.rejections
+            if r.rejection_id not in self._fleet_rejections_seen
+        )
+        # Only the listed ids are kept: the list is the newest few, so one that left it is never listed again.
+        self._fleet_rejections_seen = {r.rejection_id for r in order.rejections}
+        for r in new:
+            log.info(
+                "rejected via %s (rejection %d) at %.7f, %.7f",
+                r.vehicle_id,
+                r.rejection_id,
+                r.lat_deg,
+                r.lon_deg,
+            )
+        return [FleetRejections(now, mission.mission_id, new)] if new else []
 
     def _follow_fleet_order(self, now: float) -> None:
         """A new order of the fleet mission for this vehicle (another vehicle's find was confirmed), acted

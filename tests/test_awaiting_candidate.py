@@ -141,6 +141,9 @@ def test_a_rejection_the_back_end_took_reaches_the_rejection_memory() -> None:
         def shared_rejections(self) -> list[str]:
             return ["c-17"]
 
+        def fleet_order(self) -> None:
+            return None
+
     vehicle: Any = Vehicle()
     session: Any = Session()
     runner = MissionRunner(CONFIG, none, none, vehicle, none, session=session)
