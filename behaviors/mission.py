@@ -408,9 +408,11 @@ def _fleet_rejected(state: State, event: FleetRejections) -> Result:
         via.append(rejected.vehicle_id)
     if not via:
         return state, ()
+    # "FLEET": not a line starting "rejected ", which the GCS takes as the answer to its own reject.
     count = f"{len(via)} " if len(via) > 1 else ""
-    said = GcsMessage(f"{count}rejected via {', '.join(dict.fromkeys(via))}: not proposed here"[:50])
-    return replace(state, fleet_rejections=memory), (said,)
+    said = f"FLEET: {count}rejected via {', '.join(dict.fromkeys(via))}"
+    said = f"{said}, not proposed here" if len(said) <= 31 else said[:50]
+    return replace(state, fleet_rejections=memory), (GcsMessage(said),)
 
 
 def _remember_found(state: State, target: Target) -> State:

@@ -123,11 +123,11 @@ def test_another_vehicles_rejection_matches_neither_by_its_id_nor_once_the_back_
 @pytest.mark.parametrize(
     ("mission_id", "rejections", "kept", "said"),
     [
-        ("9", (rejected_at(15.0),), 1, "rejected via drone-1: not proposed here"),
+        ("9", (rejected_at(15.0),), 1, "FLEET: rejected via drone-1, not proposed here"),
         ("9", (rejected_at(15.0), rejected_at(40.0, "drone-3", 7)), 2,
-         "2 rejected via drone-1, drone-3: not proposed here"),
+         "FLEET: 2 rejected via drone-1, drone-3"),
         ("9", (rejected_at(15.0), rejected_at(15.0, rejection_id=5)), 1,
-         "rejected via drone-1: not proposed here"),  # the same place twice: one entry
+         "FLEET: rejected via drone-1, not proposed here"),  # the same place twice: one entry
         ("9", (FleetRejection("drone-1", 4, math.nan, 8.0),), 0, None),
         ("8", (rejected_at(15.0),), 0, None),  # another mission's
         ("9", (), 0, None),
@@ -252,7 +252,7 @@ def test_a_look_alike_rejected_via_one_vehicle_is_never_proposed_by_another(back
     )
     assert math.hypot(north, east) < 0.01  # the candidate's place as drone-1 reported it
     runner._handle(event)
-    assert "rejected via drone-1: not proposed here" in vehicle.said
+    assert "FLEET: rejected via drone-1, not proposed here" in vehicle.said
     assert runner._ground_events(time.monotonic()) == []  # taken once
 
     state = runner.state
