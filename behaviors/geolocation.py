@@ -6,6 +6,14 @@ inverted when the camera is calibrated, the pinhole of the field of view otherwi
 Frames: NED world, FRD body, attitude as ZYX Euler angles (yaw, pitch, roll). The camera looks along the
 body's forward axis pitched by the mount; a stabilised gimbal cancels the vehicle's roll and pitch. A
 pixel's ray is intersected with the ground plane `height_agl` below the camera.
+
+A box against the image's left, right or bottom edge (`clipped_by_frame`) does not show where the person
+meets the ground: part of them is outside the view, so the box's bottom centre is shifted off their feet (or,
+at the bottom edge, above them), and a tracker whose target has just crossed the edge may hold such a box on
+the background it left (a real-ArduCopter fleet run: NanoTrack's box stayed against the left edge, 10 px wide,
+scored 0.7-0.9 and trusted for 2 s after the person had left the view, its estimates sliding 8-15 m on with the
+drone). Its estimate is marked `clipped`; `behaviors.target_fix` lets it stand only where the track has no
+other. The top edge is no such edge: a person cut off there still shows their feet.
 """
 
 from __future__ import annotations
@@ -46,6 +54,9 @@ class GeoEstimate:
     ground_range_m: float
     slant_range_m: float
     sigma_m: float
+    # Located from a box against the image's left, right or bottom edge: its foot point is not the person's
+    # feet, and the box may hold only the background a person who left the view was last seen on.
+    clipped: bool = False
 
 
 def _rot_x(a: float, v: Vec3) -> Vec3:
@@ -114,6 +125,13 @@ def latlon_to_offset(lat0_deg: float, lon0_deg: float, lat_deg: float, lon_deg: 
     )
 
 
+def clipped_by_frame(box: Box, width: float, height: float, margin_px: float) -> bool:
+    """Whether `box` reaches to within `margin_px` of the left, right or bottom edge of a `width` x `height`
+    image (or past it): the person may go on beyond it, so the box's bottom centre need not be their feet.
+    The top edge does not count: a standing person cut off there still shows where they stand."""
+    return box.x <= margin_px or box.x2 >= width - margin_px or box.y2 >= height - margin_px
+
+
 def foot_point(box: Box) -> tuple[float, float]:
     """Where a standing person meets the ground in the image: bottom centre of the box."""
     return (box.cx, box.y2)
@@ -170,8 +188,13 @@ def locate_pixel(
 def locate_box(
     camera: CameraModel, telemetry: Telemetry, box: Box, sigmas: GeoSigmas = GeoSigmas()
 ) -> GeoEstimate | None:
-    """The ground position of a box's foot point (see `locate_pixel`); None for an invalid box."""
+    """The ground position of a box's foot point (see `locate_pixel`); None for an invalid box. A box within
+    a pixel sigma of the image's left, right or bottom edge (it cannot be told from one cut off there) gives
+    an estimate marked `clipped`."""
     if not box.is_valid():
         return None
     u, v = foot_point(box)
-    return locate_pixel(camera, telemetry, u, v, sigmas)
+    estimate = locate_pixel(camera, telemetry, u, v, sigmas)
+    if estimate is not None and clipped_by_frame(box, camera.width, camera.height, sigmas.pixel):
+        return replace(estimate, clipped=True)
+    return estimate

@@ -10,6 +10,15 @@ estimate is the latest whose sigma is within `FRESHER_WITHIN` of the smallest th
 drone keeps its standoff the estimates stay that good and the find follows the person. Whichever is kept,
 its time goes with it: a rescuer must know how old a position is (a person seen well a minute ago may have
 walked on).
+
+An estimate from a box against the image's side or bottom edge (`GeoEstimate.clipped`) is no measure of the
+person's feet, and its sigma cannot say how far off it is: the tracker may hold the background the person
+crossed the edge from. A surveying drone passing a person at the view's side sees them leave over that edge,
+and the track's last boxes (the freshest) are such boxes: in a real-ArduCopter fleet run the tracker held the
+left edge for 2 s after the person had left, its estimates sliding 8-15 m on with the drone at sigmas of
+3.7-4.5 m, within `FRESHER_WITHIN` of the best (3.1 m), and the find was placed 8 m off. So a clipped
+estimate is kept only while the track has no other (then the first: nearest the view the back-end judged),
+never instead of one from a whole box, and it does not set the best sigma the others are held to.
 """
 
 from __future__ import annotations
@@ -33,8 +42,11 @@ class KeptFix:
 
 def kept_fix(kept: KeptFix, latest: GeoEstimate, time_s: float) -> KeptFix:
     """After `latest`, observed at `time_s`: it is kept when its sigma is within `FRESHER_WITHIN` of the
-    track's best, else the estimate kept before stays, with its own time."""
+    track's best, else the estimate kept before stays, with its own time. A clipped `latest` is kept only
+    when nothing is; an unclipped one always replaces a clipped one."""
+    if latest.clipped:
+        return kept if kept.estimate is not None else KeptFix(latest, kept.best_sigma_m, time_s)
     best = min(kept.best_sigma_m, latest.sigma_m)
-    if kept.estimate is None or latest.sigma_m <= FRESHER_WITHIN * best:
+    if kept.estimate is None or kept.estimate.clipped or latest.sigma_m <= FRESHER_WITHIN * best:
         return KeptFix(latest, best, time_s)
     return KeptFix(kept.estimate, best, kept.time_s)

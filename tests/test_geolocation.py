@@ -6,12 +6,14 @@ import math
 from dataclasses import replace
 
 import numpy as np
+import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from behaviors.camera_model import CameraModel
 from behaviors.geolocation import (
     GeoSigmas,
+    clipped_by_frame,
     foot_point,
     latlon_to_offset,
     locate_box,
@@ -135,6 +137,32 @@ def test_box_foot_point_is_what_gets_located() -> None:
     tel = Telemetry(0, LAT, LON, 20.0, yaw=0.3)
     assert locate_box(CAM, tel, box) == locate_pixel(CAM, tel, 320, 350)
     assert locate_box(CAM, tel, Box(0, 0, 0, 10)) is None
+
+
+@pytest.mark.parametrize(
+    ("box", "clipped", "why"),
+    [
+        (Box(300, 250, 40, 100), False, "inside the frame"),
+        (Box(27.0, 0.0, 16.4, 24.2), False, "cut off at the top: the feet are still seen"),
+        (Box(3, 9, 15, 26), False, "3 px from the left edge: more than the pixel sigma"),
+        (Box(2, 6, 11, 21), True, "2 px from the left edge: within the pixel sigma"),
+        (Box(1, 7, 10, 19), True, "against the left edge (a tracker left on the background there)"),
+        (Box(-6, 20, 12, 26), True, "past the left edge"),
+        (Box(600, 100, 38, 60), True, "against the right edge (x2 638)"),
+        (Box(600, 100, 37, 60), False, "3 px from the right edge"),
+        (Box(300, 400, 20, 78.5), True, "against the bottom edge: the feet may be below the frame"),
+        (Box(300, 400, 20, 77), False, "3 px above the bottom edge"),
+    ],
+)
+def test_a_box_against_the_side_or_bottom_edge_is_clipped(box: Box, clipped: bool, why: str) -> None:
+    assert clipped_by_frame(box, 640, 480, GeoSigmas().pixel) is clipped, why
+    est = locate_box(CAM, Telemetry(0, LAT, LON, 10.0, yaw=0.3), box)
+    assert est is not None
+    assert est.clipped is clipped, why
+    # Marked, not moved: the position and sigma are the foot point's all the same.
+    u, v = foot_point(box)
+    unmarked = locate_pixel(CAM, Telemetry(0, LAT, LON, 10.0, yaw=0.3), u, v)
+    assert unmarked is not None and replace(est, clipped=False) == unmarked
 
 
 def test_rays_at_or_above_the_horizon_and_bad_inputs_give_none() -> None:
