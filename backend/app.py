@@ -93,6 +93,7 @@ def create_app(
         dropout_s=config.fleet.dropout_s,
         merge_period_s=config.fleet.merge_period_s,
         merge_in_background=True,  # a mission's merged map is merged off the requests (backend.merged_maps)
+        merge_in_process=True,  # ... and off the server's GIL (backend.merge_worker)
     )
     feed = ChangeFeed(store.state)
     store.merged_maps.on_merged = lambda _mission: feed.poke()  # the pages' streams show the new map

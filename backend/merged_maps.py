@@ -16,7 +16,8 @@ merge per mission serves every reader (the map endpoint and the page alike):
   so merging takes at most half of one core however many vehicles report and readers read.
 
 `background=False` (the default, for tests and tools): the refresh runs in the read that finds it due,
-the same rules otherwise. `merges` counts the merges; `on_merged` is told of each new map (the server wakes
+the same rules otherwise. `merge`: what merges (the server's runs in a process of its own,
+`backend.merge_worker`, so a merge never holds the server's GIL). `merges` counts the merges; `on_merged` is told of each new map (the server wakes
 the supervisor pages' streams with it).
 """
 
@@ -36,6 +37,7 @@ log = logging.getLogger(__name__)
 KEEP_UNREAD_S = 600.0  # a mission's map nobody read for this long is forgotten (read again: merged again)
 
 MapsReader = Callable[[str], Sequence[tuple[str, MissionMap]]]
+Merge = Callable[[str, Sequence[tuple[str, MissionMap]], float], MergedMap]
 
 
 @dataclass
@@ -58,8 +60,10 @@ class MergedMaps:
         clock: Callable[[], float] = time.time,
         background: bool = False,
         on_merged: Callable[[str], None] | None = None,
+        merge: Merge | None = None,
     ) -> None:
         self._read_maps = read_maps
+        self._merge = merge  # None: `merged_map` here; the server's in a process (backend.merge_worker)
         self.period_s = period_s
         self._clock = clock
         self.background = background
@@ -128,7 +132,8 @@ class MergedMaps:
                 kept.merged = kept.merged.model_copy(update={"as_of": now})
                 return
             started = time.monotonic()
-            merged = merged_map(mission_id, maps, max(m.updated_at for _, m in maps))
+            merge = self._merge or merged_map
+            merged = merge(mission_id, maps, max(m.updated_at for _, m in maps))
             kept.merge_took_s = time.monotonic() - started
             kept.merge_started = now
             kept.merged, kept.key = merged.model_copy(update={"as_of": now}), key
@@ -179,3 +184,6 @@ class MergedMaps:
             self._worker.join(timeout=5)
         with self._lock:  # a later read (the store reused by another app) starts a worker again
             self._worker, self._stop = None, False
+        close = getattr(self._merge, "close", None)  # a merge worker's process
+        if close is not None:
+            close()

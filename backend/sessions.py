@@ -38,6 +38,7 @@ from backend.images import (
     image_size,
     is_jpeg,
 )
+from backend.merge_worker import MergeWorker
 from backend.merged_maps import MergedMaps
 from backend.mission_map import distance_m, updated_map
 from backend.schemas import (
@@ -121,12 +122,18 @@ class SessionStore:
         dropout_s: float = 30.0,
         merge_period_s: float = 2.0,
         merge_in_background: bool = False,
+        merge_in_process: bool = False,
     ) -> None:
         self.state = state or SqliteStore()
         # [fleet] merge_period_s: each mission's merged map, shared by GET .../map and the supervisor page;
-        # in the background (off the requests) in the server, in the reading call otherwise.
+        # in the background (off the requests) in the server, in the reading call otherwise; in the server,
+        # in a worker process (backend.merge_worker: a merge of 50 vehicles held the GIL for half a second).
         self.merged_maps = MergedMaps(
-            self._mission_maps, merge_period_s, clock, background=merge_in_background
+            self._mission_maps,
+            merge_period_s,
+            clock,
+            background=merge_in_background,
+            merge=MergeWorker() if merge_in_process else None,
         )
         self.dropout_s = dropout_s  # [fleet] dropout_s: a mission's vehicle silent longer has left its search
         self.similarity_threshold = similarity_threshold
