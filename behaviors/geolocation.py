@@ -11,9 +11,9 @@ A box against the image's left, right or bottom edge (`clipped_by_frame`) does n
 meets the ground: part of them is outside the view, so the box's bottom centre is shifted off their feet (or,
 at the bottom edge, above them), and a tracker whose target has just crossed the edge may hold such a box on
 the background it left (a real-ArduCopter fleet run: NanoTrack's box stayed against the left edge, 10 px wide,
-scored 0.7-0.9 and trusted for 2 s after the person had left the view, its estimates sliding 8-15 m on with the
-drone). Its estimate is marked `clipped`; `behaviors.target_fix` lets it stand only where the track has no
-other. The top edge is no such edge: a person cut off there still shows their feet.
+trusted for 3.9 s after the person had left the view, its estimates sliding 4-15 m on with the drone). Its
+estimate is marked `clipped`; `behaviors.target_fix` lets it stand only where the track has no other. The top
+edge is no such edge: a person cut off there still shows their feet.
 """
 
 from __future__ import annotations

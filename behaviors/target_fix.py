@@ -15,8 +15,8 @@ An estimate from a box against the image's side or bottom edge (`GeoEstimate.cli
 person's feet, and its sigma cannot say how far off it is: the tracker may hold the background the person
 crossed the edge from. A surveying drone passing a person at the view's side sees them leave over that edge,
 and the track's last boxes (the freshest) are such boxes: in a real-ArduCopter fleet run the tracker held the
-left edge for 2 s after the person had left, its estimates sliding 8-15 m on with the drone at sigmas of
-3.7-4.5 m, within `FRESHER_WITHIN` of the best (3.1 m), and the find was placed 8 m off. So a clipped
+left edge for 4 s after the person had left, its estimates sliding 4-15 m on with the drone at sigmas of
+3.7-4.6 m, within `FRESHER_WITHIN` of the best (3.1 m), and the find was placed 8 m off. So a clipped
 estimate is kept only while the track has no other (then the first: nearest the view the back-end judged),
 never instead of one from a whole box, and it does not set the best sigma the others are held to.
 """
