@@ -25,7 +25,8 @@ state: its bytes and events counted), and every `poll_s` `GET /supervisor/api/st
 loads, also the stream's `state` event) and `GET /v1/missions/{m}/map` (the merged map as kept: merged at
 most once per `[fleet] merge_period_s`, off the requests; its `age_s` and the merges its `as_of` shows are
 printed). Printed per fleet size: p50/p95 and bytes of both, the status report's p50/p95 (what one vehicle
-waits while the fleet reports), the server's RSS, the CPU of one merge, and 50 vs 1 ratios.
+waits while the fleet reports), the server's RSS and CPU, its merge worker's apart (`backend.merge_worker`),
+the CPU of one merge, and 50 vs 1 ratios.
 The end checks that every vehicle is on the merged map. Timings are printed, never asserted.
 """
 
@@ -250,8 +251,30 @@ class _Page:
 
 def cpu_seconds(pid: int) -> float:
     """User plus system CPU time of a process so far, from /proc (what it used, however busy the machine)."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:  # a child gone meanwhile
+        return 0.0
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def children(pid: int) -> list[int]:
+    """The server's child processes (its merge worker, `backend.merge_worker`), from /proc."""
+    found: list[int] = []
+    for listed in Path(f"/proc/{pid}/task").glob("*/children"):
+        try:
+            found += [int(c) for c in listed.read_text().split()]
+        except OSError:
+            continue
+    return found
+
+
+def rss_bytes(pid: int) -> int:
+    try:
+        lines = Path(f"/proc/{pid}/status").read_text().splitlines()
+    except OSError:
+        return 0
+    return next((int(line.split()[1]) * 1024 for line in lines if line.startswith("VmRSS:")), 0)
 
 
 def merge_cpu_ms(bodies: list[list[bytes]], repeats: int = 3) -> float:
@@ -326,7 +349,10 @@ def fleet_map_run(
     map_ages: list[float] = []
     map_as_of: set[float] = set()
     rss: list[int] = [server.rss_bytes()]
+    worker_rss: list[int] = [0]
     cpu_before = cpu_seconds(server.pid)
+    # The merge worker's CPU apart (a worker started in the window counts from its start, its imports too).
+    workers_before = {c: cpu_seconds(c) for c in children(server.pid)}
 
     def poll() -> None:
         due = start + settings.poll_s / 2
@@ -360,6 +386,7 @@ def fleet_map_run(
                 elif merged.status_code != 404:  # 404 until a first vehicle has reported its map
                     errors.append(f"map HTTP {merged.status_code}")
                 rss.append(server.rss_bytes())
+                worker_rss.append(sum(rss_bytes(c) for c in children(server.pid)))
 
     page = _Page(f"{url}/supervisor/events").start()
     threads = [threading.Thread(target=vehicle, args=(i,), name=f"vehicle-{i}") for i in range(n)]
@@ -371,6 +398,7 @@ def fleet_map_run(
         t.join()
     wall = time.monotonic() - start
     server_cpu = cpu_seconds(server.pid) - cpu_before
+    worker_cpu = sum(cpu_seconds(c) - workers_before.get(c, 0.0) for c in children(server.pid))
     stop.set()
     poller.join()
     page.stop()
@@ -414,9 +442,15 @@ def fleet_map_run(
             "seconds": server_cpu,
             "per_wall_s": server_cpu / wall if wall > 0 else 0.0,
             "ms_per_status": 1000 * server_cpu / max(1, len(status_s)),
+            "merge_worker_per_wall_s": worker_cpu / wall if wall > 0 else 0.0,
         },
         "merge_cpu_ms": merge_cpu_ms(bodies),
-        "rss_mb": {"start": rss[0] / 2**20, "max": max(rss) / 2**20, "end": rss[-1] / 2**20},
+        "rss_mb": {
+            "start": rss[0] / 2**20,
+            "max": max(rss) / 2**20,
+            "end": rss[-1] / 2**20,
+            "merge_worker_max": max(worker_rss) / 2**20,
+        },
         "errors": len(errors),
         "error_examples": errors[:3],
         "final": {
@@ -504,9 +538,9 @@ def print_fleet_map(report: dict[str, Any]) -> None:
     print(
         "| vehicles | status p50/p95 [ms] | decisions p95 [ms] | map p50/p95 [ms] | map bytes | "
         "state p50/p95 [ms] | state bytes | stream bytes/s | RSS start/max [MB] | server CPU [s/s] | "
-        "merge CPU [ms] | errors |"
+        "merge worker CPU [s/s] / RSS [MB] | merge CPU [ms] | errors |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in report["runs"]:
         print(
             f"| {r['vehicles']} | {r['status']['p50_ms']:.1f} / {r['status']['p95_ms']:.1f} | "
@@ -514,6 +548,7 @@ def print_fleet_map(report: dict[str, Any]) -> None:
             f"{r['map']['bytes']:,} | {r['state']['p50_ms']:.1f} / {r['state']['p95_ms']:.1f} | "
             f"{r['state']['bytes']:,} | {r['page_stream']['bytes_per_s']:,.0f} | "
             f"{r['rss_mb']['start']:.0f} / {r['rss_mb']['max']:.0f} | {r['server_cpu']['per_wall_s']:.2f} | "
+            f"{r['server_cpu']['merge_worker_per_wall_s']:.2f} / {r['rss_mb']['merge_worker_max']:.0f} | "
             f"{r['merge_cpu_ms']:.0f} | {r['errors']} |"
         )
     for r in report["runs"]:
