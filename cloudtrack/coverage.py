@@ -4,7 +4,10 @@ The companion adds a view per pose (`CoverageMap.add_view`: where the vehicle is
 attitude); each view is the camera's ground footprint (`behaviors/camera_footprint.py`: the image outline on
 flat ground, cut at the search range), laid on a local flat frame of metres (x east, y north) around the
 search area's first corner. `coverage()` is the share of the search area inside the union of the views;
-`covered_rings()` is that union, clipped to the area and simplified to what a status report carries
+`covered_rings()` is that union, clipped to the area (the companion reports it clipped to the area grown by
+its search range: in a fleet a vehicle's camera sees into its neighbours' parts, and the mission's merged map
+must count that; clipped to its own part, a strip the neighbour's lane saw of a part whose vehicle went home
+stayed "unseen" on the merged map) and simplified to what a status report carries
 (CONTRACT: at most 20 rings and 500 vertices in all), as [lat, lon] rings: outer boundaries
 counter-clockwise, holes (unseen patches inside) clockwise, as GeoJSON orders them (x = longitude), each
 listed once without repeating its first corner. `geometry_from_rings` turns such rings back into a
@@ -150,10 +153,13 @@ class CoverageMap:
         return float(min(1.0, self.covered.intersection(self.area).area / self.area.area))
 
     def covered_rings(
-        self, max_rings: int = MAX_RINGS, max_vertices: int = MAX_VERTICES
+        self, max_rings: int = MAX_RINGS, max_vertices: int = MAX_VERTICES, beyond_m: float = 0.0
     ) -> list[list[list[float]]]:
-        """The seen part of the search area for a status report: [lat, lon] rings (see the module doc)."""
-        return bounded_rings(self.covered.intersection(self.area), self.frame, max_rings, max_vertices)
+        """The seen part of the search area for a status report: [lat, lon] rings (see the module doc).
+        `beyond_m` > 0: the seen ground within that distance of the area too (a fleet's vehicle sees into
+        its neighbours' parts, and the mission's merged map counts it there)."""
+        within = self.area.buffer(beyond_m, join_style="mitre") if beyond_m > 0 else self.area
+        return bounded_rings(self.covered.intersection(within), self.frame, max_rings, max_vertices)
 
 
 def fly_path(cover: CoverageMap, path: Sequence[LatLon], height_m: float, step_m: float = 2.0) -> CoverageMap:

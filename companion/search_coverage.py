@@ -18,7 +18,10 @@ the camera's footprint (`cloudtrack.coverage.CoverageMap`: the share seen) and t
 detection per place (`cloudtrack.pod_map.PodMap`, for the mission's superset class with the [search]
 section's shape and target POD; a class without a detection curve gets coverage only, and the reason).
 Looks are kept (bounded) so an area that arrives later, or a new one, is laid from all of them, off the
-main loop. The figures for the status report are recomputed at most once per `REPORT_PERIOD_S`.
+main loop. The figures for the status report are recomputed at most once per `REPORT_PERIOD_S`. The
+report's `covered` is the seen ground within the search range of the area, not only inside it: a fleet's
+vehicle sees into its neighbours' parts (lanes overlap), and the back-end's merged map and drop-outs count
+what any vehicle saw of a part (the share, `coverage`, stays that of this vehicle's own area).
 """
 
 from __future__ import annotations
@@ -186,7 +189,8 @@ class SearchCoverage:
                 report: dict[str, Any] = {
                     "area": [[round(lat, 7), round(lon, 7)] for lat, lon in maps.area][:AREA_MAX_VERTICES],
                     "coverage": round(maps.cover.coverage(), 4),
-                    "covered": maps.cover.covered_rings(),
+                    # what it saw of the ground around its area too: a neighbour's part (module doc)
+                    "covered": maps.cover.covered_rings(beyond_m=self._range),
                 }
                 if maps.pod is not None:
                     report["pod"] = {**maps.pod.report(), "dark_looks": maps.dark_looks}

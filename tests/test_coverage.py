@@ -94,6 +94,24 @@ def test_covered_rings_are_bounded_and_keep_holes() -> None:
     assert all(isinstance(v, float) for ring in rings for point in ring for v in point)
 
 
+def test_covered_rings_beyond_the_area_keep_what_was_seen_of_a_neighbours_part() -> None:
+    """A lane along a 20 m part's east edge sees 10 m into the next part: clipped to the part, the rings hold
+    none of it (the share is unchanged); `beyond_m` keeps it, up to that distance, for the merged map."""
+    cover = CoverageMap(square(20.0), NADIR, 1000.0)
+    for north in range(0, 21, 2):
+        cover.add_view(*at(float(north), 20.0), 10.0, 0.0)  # footprint east 10..30
+    frame = cover.frame
+
+    def east_extent(rings: list[list[list[float]]]) -> tuple[float, float]:
+        xs = [frame.xy(lat, lon)[0] for ring in rings for lat, lon in ring]
+        return min(xs), max(xs)
+
+    assert east_extent(cover.covered_rings()) == pytest.approx((10.0, 20.0), abs=0.01)
+    assert east_extent(cover.covered_rings(beyond_m=5.0)) == pytest.approx((10.0, 25.0), abs=0.01)
+    assert east_extent(cover.covered_rings(beyond_m=50.0)) == pytest.approx((10.0, 30.0), abs=0.01)
+    assert cover.coverage() == pytest.approx(0.5, abs=1e-6)
+
+
 def test_many_patches_are_cut_to_twenty_rings_and_five_hundred_vertices() -> None:
     frame = LocalFrame(*ORIGIN)
     circles = [Polygon([(100 * i + 30 * math.cos(a / 50 * math.tau), 30 * math.sin(a / 50 * math.tau))
