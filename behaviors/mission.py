@@ -158,6 +158,12 @@ class Target:
     alike: int = 0
     # Seen in a keyframe the companion kept through a back-end outage, analysed once it answered again.
     stored: bool = False
+    # Where the keyframe that proposed it placed it (its box from the keyframe's pose): the candidate the
+    # back-end and the supervisor judge. The track's estimates may be of another place: a tracker started
+    # on a keyframe seconds older than the live view (a loaded machine) can hold the background from its
+    # first frame (a fleet run: 17 m beyond the look-alike, sigma 1.3 m, its first estimate kept as the fix).
+    # A rejection or a find is remembered at both places.
+    proposed_at: GeoEstimate | None = None
 
     @property
     def fix(self) -> GeoEstimate | None:
@@ -415,9 +421,17 @@ def _fleet_rejected(state: State, event: FleetRejections) -> Result:
     return replace(state, fleet_rejections=memory), (GcsMessage(said),)
 
 
+def _remembered(target: Target, now_s: float) -> RejectedTarget:
+    """A rejection or a find of `target` to remember: where the track placed it and, when that is another
+    place, where the keyframe that proposed it did (`Target.proposed_at`)."""
+    fix = target.fix
+    also = target.proposed_at if target.proposed_at is not fix else None
+    return RejectedTarget(target.candidate_id, fix, target.signature, now_s, also_at=also)
+
+
 def _remember_found(state: State, target: Target) -> State:
     """A confirmed find the search goes on from: never proposed again in this mission."""
-    entry = RejectedTarget(target.candidate_id, target.fix, target.signature, state.now_s)
+    entry = _remembered(target, state.now_s)
     return replace(state, found=state.found.remember(entry))
 
 
@@ -459,7 +473,7 @@ def _reject(state: State, candidate_id: str) -> Result:
     if target is None or (candidate_id and candidate_id != target.candidate_id):
         pending = _pending(state, candidate_id)
         if pending is not None:
-            entry = RejectedTarget(pending.candidate_id, pending.fix, pending.signature, state.now_s)
+            entry = _remembered(pending, state.now_s)
             rest = tuple(p for p in state.pending if p is not pending)
             return replace(state, rejections=state.rejections.remember(entry), pending=rest), (
                 RememberRejection(pending.candidate_id, pending.fix, pending.signature),
@@ -472,7 +486,7 @@ def _reject(state: State, candidate_id: str) -> Result:
         return replace(state, rejections=state.rejections.remember(entry)), (
             RememberRejection(candidate_id, None),
         )
-    entry = RejectedTarget(target.candidate_id, target.fix, target.signature, state.now_s)
+    entry = _remembered(target, state.now_s)
     new, msg = _enter(
         replace(state, rejections=state.rejections.remember(entry), target=None, control=ControlState()),
         MissionState.REJECTED,
@@ -813,6 +827,7 @@ def _seen_in(answer: BackendAnswer, det: Detection, position: GeoEstimate | None
         position_s=answer.pose.time_s if answer.pose is not None else answer.time_s,
         unjudged=det.unjudged,
         alike=others,
+        proposed_at=position,
     )
 
 

@@ -30,6 +30,10 @@ class RejectedTarget:
     shared_from_query: int = 0
     # Whose rejection it is in a fleet mission ("": this vehicle's own): another vehicle's holds by place.
     via: str = ""
+    # A second place it stands at: where the keyframe the supervisor judged placed the candidate, when the
+    # track's estimate (`position`) is another (a track started late on a keyframe seconds old may hold the
+    # background; behaviors.mission `Target.proposed_at`). Matched as `position` is.
+    also_at: GeoEstimate | None = None
 
 
 @dataclass(frozen=True)
@@ -66,10 +70,9 @@ class RejectionMemory:
             if candidate_id and entry.candidate_id == candidate_id:
                 return entry
             judged = bool(entry.shared_from_query) and query_id >= entry.shared_from_query
-            if (
-                position is not None
-                and entry.position is not None
-                and self._near(entry.position, position, 0.0 if judged else self.radius_m)
+            if position is not None and any(
+                at is not None and self._near(at, position, 0.0 if judged else self.radius_m)
+                for at in (entry.position, entry.also_at)
             ):
                 return entry
             if (

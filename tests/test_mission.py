@@ -789,6 +789,30 @@ def test_rejected_target_is_recognised_by_signature_and_id() -> None:
     assert step(state, BackendAnswer(2.0, qid, 60, (same_id,)), CFG)[0].mode is S.SEARCHING
 
 
+def test_a_rejection_holds_where_the_keyframe_placed_it_when_the_track_placed_it_elsewhere() -> None:
+    """A tracker started late (a keyframe seconds older than the live view) held the background from its first
+    frame: the track's fix lies 20 m beyond the candidate the keyframe showed and the supervisor rejected (a
+    fleet run: the look-alike's rejection remembered 17 m off, the look-alike proposed again from another
+    lane). The rejection holds at both places."""
+    state = reach(S.SEARCHING)
+    state, _ = step(state, BackendAnswer(1.0, 1, 30, (candidate(box_at(12.0), "c1"),)), CFG)
+    assert state.mode is S.ACQUIRING and state.target is not None and state.target.proposed_at is not None
+    state, _ = run(
+        state, [tracked(1.1, box_at(32.0)), tracked(1.2, box_at(32.0)), cmd(1.3, RejectCandidate())]
+    )
+    entry = state.rejections.entries[-1]
+    assert entry.position is not None and entry.position.ground_range_m == pytest.approx(32.0, abs=0.5)
+    assert entry.also_at is not None and entry.also_at.ground_range_m == pytest.approx(12.0, abs=0.5)
+    state, _ = step(state, TimerTick(1.4), CFG)
+    qid = state.queries[-1][0]
+    again = BackendAnswer(2.0, qid, 60, (candidate(box_at(12.0), "new-id"),))  # where the keyframe showed it
+    assert step(state, again, CFG)[0].mode is S.SEARCHING
+    beyond = BackendAnswer(2.0, qid, 60, (candidate(box_at(32.0), "other"),))  # where the track was
+    assert step(state, beyond, CFG)[0].mode is S.SEARCHING
+    elsewhere = BackendAnswer(2.0, qid, 60, (candidate(box_at(22.0, u=100), "p2"),))
+    assert step(state, elsewhere, CFG)[0].mode is S.ACQUIRING
+
+
 def test_rejection_emits_remember_action_and_memory_survives_same_prompt_only() -> None:
     state = reach(S.AWAITING_SUPERVISOR)
     state, actions = step(state, cmd(1.3, RejectCandidate()), CFG)

@@ -82,6 +82,11 @@ def guided(t: float, item: int = BREAK_OFF) -> Telemetry:
     return Telemetry(t, 47.0, 8.0, HEIGHT, mode="GUIDED", offboard_active=True, mission_item=item)
 
 
+# Another person after a rejection: not where the rejected one was proposed (from the same pose: FAR), where
+# the rejection holds too (`Target.proposed_at`).
+ELSEWHERE = box_at(25.0, u=80.0)
+
+
 def _seen_and_left(state: State, t: float, cid: str) -> tuple[State, list[Action]]:
     """Looking only: the back-end's candidate `cid` at `t` (the survey 10 m further on for each second: a
     person of their own), put to the supervisor, then out of view and given up without a decision."""
@@ -442,7 +447,7 @@ def test_a_candidate_found_while_the_mission_is_handed_back_takes_the_vehicle_on
     state, _ = step(reach(S.REJECTED), TimerTick(1.4), CFG)
     assert state.mode_requested is FlightMode.MISSION
     query = state.queries[-1][0]
-    state, actions = step(state, BackendAnswer(1.45, query, 40, (candidate(FAR, "c2"),)), CFG)
+    state, actions = step(state, BackendAnswer(1.45, query, 40, (candidate(ELSEWHERE, "c2"),)), CFG)
     assert state.mode is S.ACQUIRING and not state.engaged
     assert not any(isinstance(a, COMMANDS) for a in actions)
     state, actions = step(state, auto(1.5, item=BREAK_OFF + 1), CFG)
@@ -461,7 +466,9 @@ def test_the_pilot_choosing_a_mode_meanwhile_is_left_alone() -> None:
     state, actions = step(state, loiter(1.5), CFG)  # the pilot, before the autopilot took AUTO
     assert state.mode is S.SEARCHING and actions == ()
     # A candidate now is only reported: the vehicle is the pilot's, not the mission's.
-    state, actions = step(state, BackendAnswer(1.6, state.queries[-1][0], 40, (candidate(FAR, "c2"),)), CFG)
+    state, actions = step(
+        state, BackendAnswer(1.6, state.queries[-1][0], 40, (candidate(ELSEWHERE, "c2"),)), CFG
+    )
     assert state.mode is S.ACQUIRING and not any(isinstance(a, COMMANDS) for a in actions)
 
 
