@@ -146,6 +146,11 @@ class Dropout(ApiModel):
         "counter-clockwise, holes clockwise; slivers and scraps left out)",
     )
     area_m2: float = Field(0.0, description="the unflown part's area")
+    area_known: bool = Field(
+        True,
+        description="false: it left before any status of it carried its part of the area (`search.area`), so "
+        "what it left unflown is unknown, not none: `unflown` is empty and `area_m2` 0 for that reason alone",
+    )
 
 
 class MissionDropouts(ApiModel):

@@ -479,7 +479,9 @@ class SessionStore:
     def dropouts(self, mission_id: str) -> MissionDropouts | None:
         """Who of the mission's vehicles left its search and the part of its area left unflown
         (`backend.fleet_dropout`), worked out from each vehicle's last status and map on every read (nothing
-        is stored for it); None when no vehicle has reported a map of the mission."""
+        is stored for it); None when no vehicle has reported a map of the mission. A vehicle that left before
+        any status of it carried its part of the area is listed with `area_known` false: what it left unflown
+        is unknown, which "0 m2 unflown" would hide."""
         now = self._clock()
         maps = [(v, self.state.mission_map(v, mission_id)) for v in self.mission_vehicles(mission_id)]
         kept = [(v, m) for v, m in maps if m is not None]
@@ -487,12 +489,26 @@ class SessionStore:
             return None
         searching: list[str] = []
         left_search = []
-        for vehicle, mission_map in sorted(kept, key=lambda vm: vm[0]):
-            if len(mission_map.area) < 3:
-                continue  # no part of the area: nothing of the search to leave unflown
-            left = leaving(
-                mission_id, self.state.status(vehicle), mission_map.updated_at, now, self.dropout_s
-            )
+        unknown: list[Dropout] = []  # left before reporting its part: what it left unflown is not known
+        for vehicle, mission_map in sorted(maps, key=lambda vm: vm[0]):
+            status = self.state.status(vehicle)
+            if mission_map is None or len(mission_map.area) < 3:
+                seen = mission_map.updated_at if mission_map is not None else None
+                if seen is None and status is None:
+                    continue
+                left = leaving(mission_id, status, seen if seen is not None else 0.0, now, self.dropout_s)
+                if left is not None:  # never "0 m2 unflown": its part is unknown, not flown
+                    unknown.append(
+                        Dropout(
+                            vehicle_id=vehicle,
+                            kind=left.kind,
+                            reason=left.reason,
+                            since=left.since,
+                            area_known=False,
+                        )
+                    )
+                continue  # searching without a part of the area: nothing of it to re-plan
+            left = leaving(mission_id, status, mission_map.updated_at, now, self.dropout_s)
             if left is None:
                 searching.append(vehicle)
             else:
@@ -513,6 +529,7 @@ class SessionStore:
             )
             for (vehicle, _, left), part in zip(left_search, unflown, strict=True)
         ]
+        dropouts = sorted([*dropouts, *unknown], key=lambda d: d.vehicle_id)
         return MissionDropouts(
             mission_id=mission_id,
             dropout_s=self.dropout_s,

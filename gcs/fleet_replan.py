@@ -131,6 +131,7 @@ class _Dropout(BaseModel):
     since: float
     unflown: list[list[list[float]]] = []
     area_m2: float = 0.0
+    area_known: bool = True  # false: it left before reporting its part: what it left unflown is unknown
 
 
 class Dropouts(BaseModel):
@@ -509,11 +510,13 @@ def _replan(
         flush=True,
     )
     for d in dropouts:
-        print(
-            f"  vehicle {_text(d.vehicle_id, 32)} left the search ({_text(d.reason)}): "
-            f"{d.area_m2 / 1e4:.2f} ha unflown",
-            flush=True,
+        left = (
+            f"{d.area_m2 / 1e4:.2f} ha unflown"
+            if d.area_known
+            else "its part of the area unknown (it reported none before it left): what it left unflown is not "
+            "known, and nothing of it can be re-planned"
         )
+        print(f"  vehicle {_text(d.vehicle_id, 32)} left the search ({_text(d.reason)}): {left}", flush=True)
     for m in members:
         if m.vehicle.id not in remaining and m.vehicle.id not in dropped:
             print(
@@ -521,7 +524,15 @@ def _replan(
             )
     area, note = replan_area(dropouts)
     if not area:
-        print("  nothing to re-plan: no vehicle left part of its area unflown", flush=True)
+        unknown = [d.vehicle_id for d in dropouts if not d.area_known]
+        if unknown:
+            print(
+                "  nothing to re-plan from what the back-end knows: the part of "
+                f"{', '.join(_text(v, 32) for v in unknown)} is unknown (plan it by hand)",
+                flush=True,
+            )
+        else:
+            print("  nothing to re-plan: no vehicle left part of its area unflown", flush=True)
         return 0
     if not remaining:
         print(

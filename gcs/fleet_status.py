@@ -241,6 +241,12 @@ def replan_offers(url: str, token: str, statuses: list[VehicleStatus], timeout_s
         except ReplanError:
             continue
         for dropout in answer.dropouts:
+            if not dropout.area_known:
+                lines.append(
+                    f"DROPPED OUT: {_text(dropout.vehicle_id)} left the search ({_text(dropout.reason)}); its part "
+                    "of the area is unknown (it reported none): what it left unflown is not known"
+                )
+                continue
             if dropout.area_m2 <= 0:
                 continue
             onto = ", ".join(_text(v) for v in answer.searching) or "no vehicle still searching"

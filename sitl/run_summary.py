@@ -17,6 +17,13 @@ def _pct(share: Any) -> str:
     return "?" if share is None else f"{float(share) * 100:.0f} %"
 
 
+def _unflown(dropout: dict[str, Any]) -> str:
+    """What the back-end listed unflown: its m2, or that the vehicle's part was unknown (listed without it)."""
+    if "listed_s" in dropout and dropout.get("unflown_m2") is None:
+        return "its part unknown"
+    return f"{dropout.get('unflown_m2')} m2 unflown"
+
+
 def _s(seconds: Any) -> str:
     return "none" if seconds is None else f"{seconds} s"
 
@@ -109,7 +116,7 @@ def fleet_lines(fleet: dict[str, Any]) -> list[str]:
         f"  fleet plan: {parts}; whole area {_s(survey.get('whole_area_s'))}, one vehicle alone "
         f"{_s(survey.get('one_vehicle_alone_s'))}",
         f"  fleet drop-out: {dropout.get('vehicle')} sent home at {_s(dropout.get('rtl_s'))}, listed by the back-end "
-        f"at {_s(dropout.get('listed_s'))} ({dropout.get('reason')}, {dropout.get('unflown_m2')} m2 unflown); "
+        f"at {_s(dropout.get('listed_s'))} ({dropout.get('reason')}, {_unflown(dropout)}); "
         f"replan exited {replan.get('exit_code')} after {_s(replan.get('took_s'))}: "
         f"{(replan.get('output') or ['-'])[-1]}",
         f"  fleet search: merged coverage {'?' if coverage is None else f'{coverage:.3f}'} at the end, the area "

@@ -1103,13 +1103,22 @@ class ScenarioRun:
             ]
             if listed:
                 d = listed[0]
+                (self.work / "dropouts.json").write_text(  # what the re-plan was given, and the map then
+                    json.dumps({"dropouts": answer, "map": merged}, indent=1)
+                )
                 dropout.update(
                     listed_s=round(self.now(), 2), kind=d.get("kind"), reason=d.get("reason"),
-                    unflown_m2=d.get("area_m2"), searching=answer.get("searching") if answer else None,
+                    unflown_m2=d.get("area_m2") if d.get("area_known", True) else None,
+                    searching=answer.get("searching") if answer else None,
                 )  # fmt: skip
                 self.say(
                     f"the back-end lists {leaving.vehicle_id} as dropped out ({d.get('reason')}, "
-                    f"{d.get('area_m2', 0.0):.0f} m2 unflown): re-planning"
+                    + (
+                        f"{d.get('area_m2', 0.0):.0f} m2 unflown"
+                        if d.get("area_known", True)
+                        else "its part unknown: it reported no search area"
+                    )
+                    + "): re-planning"
                 )
                 self._start_replan()
 

@@ -174,6 +174,34 @@ def test_a_vehicle_going_home_and_one_gone_silent_are_marked_with_their_unflown_
     assert store.dropouts("m9") is None
 
 
+def test_a_vehicle_that_left_before_reporting_its_part_is_listed_with_its_part_unknown_not_as_none_unflown(
+    state: StateStore,
+) -> None:
+    """drone-3 of a fleet run went home before any status of it carried its search area: listed, its part
+    unknown (never "0 m2 unflown", which tells the operator nothing is left), and not as searching."""
+    clock = [1000.0]
+    store = SessionStore(state, dropout_s=30.0, clock=lambda: clock[0])
+    west = _rect(0, 0, 100, 40)
+    store.set_status(
+        "d1",
+        VehicleStatusIn(mission_id="m1", state="SEARCHING", search=SearchStatus(area=west, mode="AUTO")),
+    )
+    store.set_status(
+        "d2", VehicleStatusIn(mission_id="m1", state="SEARCHING", search=SearchStatus(mode="AUTO"))
+    )
+    answer = store.dropouts("m1")
+    assert answer is not None and answer.dropouts == [] and answer.searching == ["d1"]
+    clock[0] = 1005.0
+    store.set_status(
+        "d2", VehicleStatusIn(mission_id="m1", state="SEARCHING", search=SearchStatus(mode="RTL"))
+    )
+    answer = store.dropouts("m1")
+    assert answer is not None and answer.searching == ["d1"]
+    assert [(d.vehicle_id, d.reason, d.area_known, d.unflown, d.since) for d in answer.dropouts] == [
+        ("d2", "mode RTL", False, [], 1005.0)
+    ]
+
+
 # ---------------------------------------------------------------------------------- a real back-end
 def _post(url: str, vehicle: str, body: dict[str, Any]) -> None:
     answer = requests.post(
