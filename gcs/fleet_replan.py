@@ -206,8 +206,13 @@ def replan_area(dropouts: Sequence[_Dropout]) -> tuple[list[LatLon], str]:
     while len(outline.exterior.coords) - 1 > MAX_CORNERS and tolerance < 1e5:
         outline = outline.simplify(tolerance, preserve_topology=True)
         tolerance *= 2
-    corners = [frame.latlon(x, y) for x, y in list(outline.exterior.coords)[:-1]]
-    return [(round(lat, 7), round(lon, 7)) for lat, lon in corners], "; ".join(notes)
+    latlons = [frame.latlon(x, y) for x, y in list(outline.exterior.coords)[:-1]]
+    rounded = [(round(lat, 7), round(lon, 7)) for lat, lon in latlons]
+    # Rounding to 1 cm can make two corners of the back-end's outline one (the survey refuses a repeated corner).
+    corners = [c for i, c in enumerate(rounded) if c != rounded[i - 1]]
+    if len(set(corners)) < 3:
+        return [], ""
+    return corners, "; ".join(notes)
 
 
 # ------------------------------------------------------------------------------------------ the vehicles

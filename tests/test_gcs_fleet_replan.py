@@ -25,11 +25,12 @@ from behaviors.camera_model import CameraModel
 from behaviors.fleet_split import FleetVehicle, split_area
 from behaviors.geolocation import latlon_to_offset, offset_to_latlon
 from behaviors.mission_items import NAV_WAYPOINT, MissionItem
-from behaviors.survey_planner import SurveySettings
+from behaviors.survey_planner import SurveySettings, check_polygon
 from cloudtrack.mavlink_connection import MavlinkEndpoint
 from cloudtrack.mission_protocol import MissionClient, positions_match
 from gcs import cli as gcs_cli
-from gcs.fleet_replan import split_over
+from gcs import fleet_replan as replan_module
+from gcs.fleet_replan import replan_area, split_over
 from tests.backend_fixtures import SUPERVISOR, TOKENS, backend_config
 from tests.live_backend import serve
 from tests.mavlink_harness import autopilot, wait_for
@@ -502,3 +503,18 @@ def test_watch_replans_each_vehicle_as_it_leaves_once_and_ends_on_sigterm(
         assert out.rstrip().endswith("replan --watch: stopped"), out
         assert SUPERVISOR not in out + err
         assert "error" not in err, err
+
+
+def test_the_unflown_area_never_repeats_a_corner_after_rounding() -> None:
+    """Two corners of the back-end's outline a few millimetres apart are one at the plan's 1 cm: the area is
+    still planned (the survey refuses a repeated corner: a real ArduCopter fleet run exited 2 on it)."""
+    ring = [_at(0, 0), _at(0, 30), _at(0.003, 30.002), _at(80, 30), _at(80, 0)]
+    dropout = replan_module._Dropout(
+        vehicle_id="drone-3", kind="mode", reason="mode RTL", since=1.0, unflown=[ring]
+    )
+    area, note = replan_area([dropout])
+    assert note == "" and len(area) == 4 and len(set(area)) == 4
+    assert all(a != b for a, b in zip(area, area[1:] + area[:1], strict=True))
+    assert check_polygon(area)
+    sliver = [_at(0, 0), _at(0, 0.004), _at(0.004, 0.004)]  # 4 mm: nothing to plan
+    assert replan_area([dropout.model_copy(update={"unflown": [sliver]})]) == ([], "")
