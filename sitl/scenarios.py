@@ -215,9 +215,23 @@ SEARCH_OUTAGE_NEAR_M = 26.0
 SEARCH_OUTAGE_S = 18.0
 SEARCH_OUTAGE_MIN_S = 15.0  # the issue's bound on the outage
 LINK_DROP_SETTINGS = ("safety.heartbeat_timeout_s=0.6",)
-# fleet-search: the search area with lanes 10 m apart (half the camera's 20.6 m swath at 10 m up): 6 lanes, two
-# per vehicle, so the part a vehicle leaves unflown is wide enough to be shared by the two that stay.
-FLEET_SURVEY = SurveySpec(overlap=0.5)
+# fleet-search: lanes 10 m apart (half the camera's 20.6 m swath at 10 m up), three per vehicle: the search
+# area is as wide as the fleet needs. A vehicle going home a third of the way in has flown its first lane,
+# which sees 15 m of its 30 m part; the other 15 m is two lanes, so the re-plan has a share for each of two
+# vehicles. (With two lanes each, the first lane saw all but a 5 m strip: nothing left to re-plan.)
+FLEET_LANES_PER_VEHICLE = 3
+FLEET_LANE_SPACING_M = 10.0
+
+
+def fleet_survey(vehicles: int) -> SurveySpec:
+    """The fleet's search area: the search world's, as wide east-west as `vehicles` parts of
+    FLEET_LANES_PER_VEHICLE lanes, about the same centre."""
+    (south, west), (north, east) = SEARCH_AREA_NE
+    centre, half = (west + east) / 2, vehicles * FLEET_LANES_PER_VEHICLE * FLEET_LANE_SPACING_M / 2
+    return SurveySpec(area_ne=((south, centre - half), (north, centre + half)), overlap=0.5)
+
+
+FLEET_SURVEY = fleet_survey(3)
 
 SCENARIOS: dict[str, Scenario] = {
     s.name: s
@@ -366,7 +380,7 @@ SCENARIOS: dict[str, Scenario] = {
             fleet=FleetSpec(),
             allow_engage=False,  # looking only: the lanes are flown as planned
             follow_s=3.0,
-            max_s=150.0,
+            max_s=180.0,
             miss_rate=0.0,
             companion_settings=(f"camera.search_range_m={FLEET_SURVEY.search_range_m}",),
             checks=(
@@ -509,6 +523,7 @@ def for_autopilots(scenario: Scenario, names: Sequence[str]) -> Scenario:
     return replace(
         scenario,
         vehicles=vehicles,
+        survey=fleet_survey(vehicles),
         fleet=replace(scenario.fleet, leaves=vehicles - 1),
         summary=f"{vehicles} drones search as one fleet ({', '.join(names) if len(set(names)) > 1 else names[0]}): the "
         f"area split {vehicles} ways by one `cloudtrack-gcs survey --fleet`, drone-{vehicles} goes home a third of "
