@@ -107,10 +107,10 @@ class SafetyWatchdog:
         self._thread = threading.Thread(target=self._run, name="safety-watchdog", daemon=True)
         self._thread.start()
 
-    def close(self) -> None:
+    def close(self, timeout_s: float = 2.0) -> None:
         self._stop.set()
         if self._thread is not None:
-            self._thread.join(timeout=2.0)
+            self._thread.join(timeout=timeout_s)
 
     def check(self) -> float:
         """One pass: trip new conditions, clear recovered ones. Returns the time it checked at."""

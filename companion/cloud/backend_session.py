@@ -135,9 +135,12 @@ class BackendSession:
         with self._lock:
             return self._last_success
 
-    def close(self) -> None:
+    def close(self, timeout_s: float = 1.0) -> None:
+        """Stop the rounds; waits up to `timeout_s` for a round in progress (its request is left to end on
+        its own: the thread is a daemon, and nothing it would still send is needed once stopping)."""
         self._stop.set()
-        self._thread.join(timeout=1.0)
+        if self._thread.is_alive():
+            self._thread.join(timeout=timeout_s)
 
     def _run(self) -> None:
         while not self._stop.wait(self._period):

@@ -88,6 +88,9 @@ RELEASE_TIMEOUT_S = 3.0  # after letting go, zeros in GUIDED/OFFBOARD at most th
 OWN_MODE_CHANGE_WINDOW_S = 5.0  # a mode we asked for that shows up this soon is our own change
 STREAM_REQUEST_RETRY_S = 2.0
 TRACKING_STATUS_PERIOD_S = 0.1
+THREAD_STOP_WAIT_S = (
+    2.0  # close(): the most it waits for its threads (reader, streamer, watchdog), all together
+)
 
 
 def _statustext(mav: Any, severity: int, text: bytes, text_id: int, seq: int) -> None:
@@ -202,9 +205,12 @@ class VehicleLink:
         if self._mavsdk is not None:
             self._mavsdk.wait_idle(2.5)  # its stop needs the reader below for PX4's COMMAND_ACK
         self._stop.set()
-        self._watchdog.close()
+        # One deadline for all of them (each loop ends within a receive timeout or a setpoint period once
+        # told), not one per thread in turn.
+        deadline = time.monotonic() + THREAD_STOP_WAIT_S
+        self._watchdog.close(timeout_s=THREAD_STOP_WAIT_S)  # its loop wakes on the stop at once
         for thread in self._threads:
-            thread.join(timeout=2.0)
+            thread.join(timeout=max(0.0, deadline - time.monotonic()))
         if self._mavsdk is not None:
             self._mavsdk.close()
         if self._endpoint is not None:
