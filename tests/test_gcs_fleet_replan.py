@@ -94,21 +94,28 @@ def backend(models_dir: Path) -> Iterator[str]:
     app = create_app(
         backend_config(models_dir, f"auth.tokens={json.dumps(VEHICLE_TOKENS)}", "fleet.dropout_s=3600")
     )
-    reports = {
-        "drone-1": {"area": _rect(-200, 0, -100, 200), "mode": "AUTO"},
-        "drone-2": {"area": _rect(-100, 0, 100, 200), "mode": "MISSION"},
-        "drone-3": {"area": _rect(100, 0, 300, 200), "covered": [_rect(100, 0, 140, 200)], "mode": "RTL"},
-    }
     with serve(app) as url:
-        for vehicle, search in reports.items():
-            answer = requests.post(
-                f"{url}/v1/vehicles/{vehicle}/status",
-                json={"mission_id": "m-43", "state": "SEARCHING", "search": search},
-                headers={"Authorization": f"Bearer {VEHICLE_TOKENS[vehicle]}"},
-                timeout=10,
-            )
-            assert answer.status_code == 200, answer.text[:300]
+        _report_three(url)
         yield url
+
+
+def _report(url: str, vehicle: str, search: dict[str, Any]) -> None:
+    answer = requests.post(
+        f"{url}/v1/vehicles/{vehicle}/status",
+        json={"mission_id": "m-43", "state": "SEARCHING", "search": search},
+        headers={"Authorization": f"Bearer {VEHICLE_TOKENS[vehicle]}"},
+        timeout=10,
+    )
+    assert answer.status_code == 200, answer.text[:300]
+
+
+def _report_three(url: str) -> None:
+    """drone-1 and drone-2 searching their parts, drone-3 gone home (RTL) with its west 40 m covered."""
+    _report(url, "drone-1", {"area": _rect(-200, 0, -100, 200), "mode": "AUTO"})
+    _report(url, "drone-2", {"area": _rect(-100, 0, 100, 200), "mode": "MISSION"})
+    _report(
+        url, "drone-3", {"area": _rect(100, 0, 300, 200), "covered": [_rect(100, 0, 140, 200)], "mode": "RTL"}
+    )
 
 
 def _fleet(tmp_path: Path, ardupilot_port: int, px4_port: int) -> Path:
@@ -418,16 +425,6 @@ def test_a_px4_begins_a_new_mission_at_the_item_sent_as_current() -> None:
             endpoint.close()
 
 
-def _report(url: str, vehicle: str, search: dict[str, Any]) -> None:
-    answer = requests.post(
-        f"{url}/v1/vehicles/{vehicle}/status",
-        json={"mission_id": "m-43", "state": "SEARCHING", "search": search},
-        headers={"Authorization": f"Bearer {VEHICLE_TOKENS[vehicle]}"},
-        timeout=10,
-    )
-    assert answer.status_code == 200, answer.text[:300]
-
-
 def test_watch_replans_each_vehicle_as_it_leaves_once_and_ends_on_sigterm(
     models_dir: Path, token_file: Path, defaults: str, tmp_path: Path
 ) -> None:
@@ -442,13 +439,7 @@ def test_watch_replans_each_vehicle_as_it_leaves_once_and_ends_on_sigterm(
         autopilot("ardupilot") as ardupilot,
         autopilot("px4", system_id=2) as px4,
     ):
-        _report(url, "drone-1", {"area": _rect(-200, 0, -100, 200), "mode": "AUTO"})
-        _report(url, "drone-2", {"area": _rect(-100, 0, 100, 200), "mode": "MISSION"})
-        _report(
-            url,
-            "drone-3",
-            {"area": _rect(100, 0, 300, 200), "covered": [_rect(100, 0, 140, 200)], "mode": "RTL"},
-        )
+        _report_three(url)
         north = [MissionItem.change_speed(3.0), *(_waypoint(n) for n in (150, 300))]
         _upload(ardupilot.link_port("gcs"), 1, "ardupilot", north)
         _upload(px4.link_port("gcs"), 2, "px4", [_waypoint(150)])
