@@ -206,7 +206,6 @@ def test_search_outage_fills_the_pod_map_from_stored_keyframes(models_dir: Path,
 
 
 @pytest.mark.slow
-@pytest.mark.trial  # out of CI until it holds: 2 of 3 runs failed on 2026-11-28 at 86fba79 (docs/sitl.md)
 def test_fleet_search(models_dir: Path, tmp_path: Path) -> None:
     """Issue 43: three mock vehicles, one back-end, one mission. One `cloudtrack-gcs survey --fleet` splits the
     area three ways and uploads each part; drone-3 goes home (RTL) a third of the way into its part, the
