@@ -16,8 +16,8 @@ from behaviors.mission_config import MissionConfig
 from cloudtrack.vehicle_config import SafetyConfig
 from tests.test_mission import AT_STANDOFF, FAR, candidate, cmd, kinds, tracked
 from tests.test_mission import reach as spot_reach
+from tests.test_mission_survey import ELSEWHERE, run
 from tests.test_mission_survey import reach as survey_reach
-from tests.test_mission_survey import run
 
 S = MissionState
 GUARDED = MissionConfig()
@@ -54,10 +54,11 @@ def test_too_new(guard: DecisionGuard, now_s: float, guard_s: float, expected: b
 
 
 def _next_candidate_awaiting(state: State, t: float, cid: str = "c2") -> State:
-    """The back-end's next candidate (answer at t - 0.3), tracked, and at the standoff at `t`: awaiting."""
+    """The back-end's next candidate (answer at t - 0.3), tracked, and at the standoff at `t`: awaiting. It is
+    another person, not where the rejected one was proposed (a rejection holds there too)."""
     assert state.queries, "the search asks the back-end"
-    answer = BackendAnswer(t - 0.3, state.queries[-1][0], 90, (candidate(FAR, cid),))
-    state, _ = run(state, [answer, tracked(t - 0.2, FAR), tracked(t, AT_STANDOFF)], GUARDED)
+    answer = BackendAnswer(t - 0.3, state.queries[-1][0], 90, (candidate(ELSEWHERE, cid),))
+    state, _ = run(state, [answer, tracked(t - 0.2, ELSEWHERE), tracked(t, AT_STANDOFF)], GUARDED)
     assert state.mode is S.AWAITING_SUPERVISOR and state.target is not None
     assert state.target.candidate_id == cid
     return state
