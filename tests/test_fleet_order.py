@@ -5,7 +5,6 @@ leave to command: its mission ends and the autopilot is asked to hold or return)
 
 from __future__ import annotations
 
-import time
 from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
@@ -26,6 +25,7 @@ from companion.cloud.backend_session import BackendSession
 from companion.mission_runner import MissionRunner
 from companion.operator_notices import OperatorNotices
 from tests.live_backend import SUPERVISOR_TOKEN, VEHICLE_TOKENS, serve
+from tests.mavlink_harness import wait_for
 
 
 @pytest.mark.parametrize(
@@ -63,16 +63,6 @@ def backend(models_dir: Path, tmp_path: Path) -> Iterator[str]:
         yield url
 
 
-def _until(condition: Any, timeout_s: float = 20.0) -> Any:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        value = condition()
-        if value:
-            return value
-        time.sleep(0.05)
-    return condition()
-
-
 def test_the_start_sets_on_find_once_and_the_others_are_told_after_a_find(backend: str) -> None:
     sessions = {}
     for vehicle in ("drone-1", "drone-2"):
@@ -83,19 +73,19 @@ def test_the_start_sets_on_find_once_and_the_others_are_told_after_a_find(backen
         for session in sessions.values():
             session.update({"state": "SEARCH", "mission_id": "m-fleet"})
         other.set_on_find("m-fleet", "hold")
-        order = _until(lambda: other.fleet_order())
+        order = wait_for(lambda: other.fleet_order(), 20.0)
         assert order.on_find == "hold" and order.order == "continue" and order.found is None
         finder.set_on_find("m-fleet", "return")  # a second start with another setting: the first stands
         assert (
-            "on_find return refused" in _until(finder.on_find_refused)
+            "on_find return refused" in wait_for(finder.on_find_refused, 20.0)
             and "'hold'" in finder.on_find_refused()
         )
         find = {"candidate_id": "c4", "position": [47.3977, 8.5456], "sigma_m": 3.0, "time": 1000.0,
                 "prompt": "a man in a green shirt", "confirmed_by": "gcs"}  # fmt: skip
         finder.update({"state": "CONFIRMED", "mission_id": "m-fleet", "find": find})
-        told = _until(lambda: (o := other.fleet_order()) is not None and o.order == "hold" and o)
+        told = wait_for(lambda: (o := other.fleet_order()) is not None and o.order == "hold" and o, 20.0)
         assert told.found == "drone-1/c4"
-        own = _until(lambda: (o := finder.fleet_order()) is not None and o.found and o)
+        own = wait_for(lambda: (o := finder.fleet_order()) is not None and o.found and o, 20.0)
         assert own.order == "continue"  # the finder stays with the person
     finally:
         for session in sessions.values():

@@ -32,6 +32,7 @@ from cloudtrack.api_client import BackendClient, crop_to_base64
 from companion.cloud.backend_session import BackendSession
 from companion.mission_runner import MissionRunner
 from tests.live_backend import SUPERVISOR_TOKEN, VEHICLE_TOKENS, serve
+from tests.mavlink_harness import wait_for
 
 CFG = MissionConfig()
 CAM = CFG.camera
@@ -202,16 +203,6 @@ class Vehicle:
         return lambda *args, **kwargs: None
 
 
-def _until(condition: Any, timeout_s: float = 20.0) -> Any:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        value = condition()
-        if value:
-            return value
-        time.sleep(0.05)
-    return condition()
-
-
 def test_a_look_alike_rejected_via_one_vehicle_is_never_proposed_by_another(backend: str) -> None:
     """The supervisor rejects drone-1's candidate on the page (the back-end keeps the place drone-1 reported
     for it); drone-2's companion, searching the same mission, reads it from its /fleet answer and passes over
@@ -240,7 +231,7 @@ def test_a_look_alike_rejected_via_one_vehicle_is_never_proposed_by_another(back
     runner.state = searching()
     try:
         session.update({"state": "SEARCH", "mission_id": "9"})
-        events = _until(lambda: runner._ground_events(time.monotonic()))
+        events = wait_for(lambda: runner._ground_events(time.monotonic()), 20.0)
     finally:
         session.close()
     (event,) = events
