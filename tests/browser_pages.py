@@ -8,7 +8,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from playwright.sync_api import Page, Route, sync_playwright
+from playwright.sync_api import Locator, Page, Route, sync_playwright
 
 CHROMIUM = "/usr/bin/chromium"
 # Without the background-networking flags chromium floods the machine with refused connections.
@@ -50,3 +50,29 @@ def offline_page(width: int = 1400, height: int = 1000) -> Iterator[tuple[Page, 
             yield context.new_page(), outside
         finally:
             browser.close()
+
+
+# Rects of several elements under `root`, read in one animation frame once two frames in a row agree: read
+# one by one, a layout shift between the reads (a panel appearing above) set a box apart from its frame.
+_SETTLED_RECTS = """async (root, selectors) => {
+  const frame = () => new Promise((done) => requestAnimationFrame(done));
+  const read = () => JSON.stringify(selectors.map((s) => {
+    const r = root.querySelector(s).getBoundingClientRect();
+    return {x: r.x, y: r.y, width: r.width, height: r.height};
+  }));
+  let last = read();
+  for (let i = 0; i < 300; i++) {
+    await frame();
+    const now = read();
+    if (now === last) return JSON.parse(now);
+    last = now;
+  }
+  throw new Error("the layout did not settle in 300 frames");
+}"""
+
+
+def settled_boxes(root: Locator, *selectors: str) -> list[dict[str, float]]:
+    """Each selector's box (viewport pixels, as Locator.bounding_box) under root, read together once the
+    layout holds still."""
+    boxes: list[dict[str, float]] = root.evaluate(_SETTLED_RECTS, list(selectors))
+    return boxes

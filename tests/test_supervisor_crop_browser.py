@@ -70,10 +70,9 @@ def test_crop_browser_card_shows_a_12px_person_160px_tall_and_larger_on_click(
         card = page.locator('article.candidate[data-candidate="c-small"]')
         rect = card.locator(".crop-overlay rect")
         expect(rect).to_have_count(1)
-        frame_box = card.locator(".crop-box").bounding_box()
-        image_box = card.locator("img.crop").bounding_box()
-        person = rect.bounding_box()
-        assert frame_box is not None and image_box is not None and person is not None
+        frame_box, image_box, person = browser_pages.settled_boxes(
+            card, ".crop-box", "img.crop", ".crop-overlay rect"
+        )
         # The person (its box) at least 160 px tall on screen, inside the card's visible frame.
         assert person["height"] >= 160, person
         assert frame_box["height"] >= 160 and image_box["height"] >= 160, (frame_box, image_box)
@@ -92,9 +91,7 @@ def test_crop_browser_card_shows_a_12px_person_160px_tall_and_larger_on_click(
         dialog = page.locator("#crop-dialog")
         expect(dialog).to_be_visible()
         expect(dialog.locator(".crop-caption")).to_contain_text("candidate c-small")
-        large = dialog.locator("img.crop").bounding_box()
-        large_rect = dialog.locator(".crop-overlay rect").bounding_box()
-        assert large is not None and large_rect is not None
+        large, large_rect = browser_pages.settled_boxes(dialog, "img.crop", ".crop-overlay rect")
         assert large["height"] > frame_box["height"] * 2 and large["width"] > frame_box["width"] * 2, large
         decoded = cv2.imdecode(
             np.frombuffer(base64.b64decode(crop["crop_jpeg_b64"]), np.uint8), cv2.IMREAD_COLOR
