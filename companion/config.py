@@ -74,6 +74,11 @@ class TrackerConfig(ConfigSection):
     # change sets off while the tracker is on the target. The others (no box, out of the image, a jump)
     # untrust at once.
     weak_loss_signals: list[str] = Field(default_factory=lambda: ["score", "collapsed", "appearance"])
+    # "verified": a trusted track is untrusted ("not_detected") once the chance that the back-end's detector
+    # missed a real target of its size in every answer since the last that found one on it falls below this,
+    # over at least unsupported_min_s (behaviors.track_support; the POD from the detection curve). 0: off.
+    unsupported_miss_chance: float = Field(0.001, ge=0, lt=1)
+    unsupported_min_s: float = Field(2.0, ge=0, le=60)
     # Loss signals in use: tracker_failed, score, left_frame, collapsed, jump, appearance.
     loss_signals: list[str] = Field(
         default_factory=lambda: ["tracker_failed", "score", "left_frame", "collapsed", "jump", "appearance"]

@@ -113,12 +113,17 @@ def run(args: argparse.Namespace) -> int:
     from companion.mavlink.vehicle_link import VehicleLink
     from companion.mission_runner import EventLogObserver, LoopObserver, LoopSettings, MissionRunner
     from companion.vision.frame_sources import SourceError, open_source
-    from companion.vision.tracking_frontend import TrackingFrontend
+    from companion.vision.tracking_frontend import TrackingFrontend, curve_pod
 
     cam = config.camera
     model_dir = resolve_model_dir(args.model_dir or config.tracker.model_dir or None)
     try:
-        frontend = TrackingFrontend.from_config(config.tracker, model_dir)
+        frontend = TrackingFrontend.from_config(
+            config.tracker,
+            model_dir,
+            support_pod=curve_pod(config.search.curve_file),
+            keyframe_width=config.backend.max_keyframe_width,
+        )
         frames = open_source(
             cam.source,
             width=cam.width,

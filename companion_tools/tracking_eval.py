@@ -45,9 +45,11 @@ from companion.vision.trackers import create_tracker
 from companion.vision.tracking_frontend import (
     Policy,
     TrackingFrontend,
+    curve_pod,
     loss_evidence_settings,
     loss_settings,
     reinit_settings,
+    support_settings,
 )
 
 LOST_IOU = 0.1  # a tracker box overlapping the ground truth less than this is off target
@@ -303,6 +305,8 @@ def make_frontend(
         name=name,
         evidence=loss_evidence_settings(cfg),
         loss_model_classes=cfg.loss_model_classes,
+        support=support_settings(cfg),
+        support_pod=curve_pod(),
     )
 
 

@@ -18,7 +18,11 @@ jump, or two signals together, untrust the track at once; one of `[tracker] weak
 shape, colour model) alone only after `loss_persistence_s` of alarm (measured: most of their alarms on
 real footage were a few frames while the tracker was on target); a lost track is trusted again after as
 long without an alarm, or at once when a back-end candidate on the track confirms it. A silent switch to
-a distractor is what the keyframe evidence is for (the policy judges every answer, trusted or not).
+a distractor is what the keyframe evidence is for (the policy judges every answer, trusted or not). A box
+holding on background (a roof the person walked under, ground at the image's edge) that no signal sees is
+untrusted as "not_detected" once the answers' detector misses on it are too unlikely for a real target of
+its size (`behaviors.track_support`, with the shipped detection curve); only a candidate on the track or a
+re-initialisation trusts it again.
 Results while nothing is tracked carry `lost_reason` "idle"; while the first acquisition is still
 catching up, "acquiring".
 """
@@ -38,6 +42,7 @@ import numpy as np
 
 from behaviors.candidate_selection import c_box, select_by_c_box, select_by_score
 from behaviors.detection import Detection, Verdict
+from behaviors.detection_curve import CurveError
 from behaviors.geometry import Box, iou
 from behaviors.loss_evidence import LossEvidence, LossEvidenceSettings, judge_frame
 from behaviors.reinit_policy import (
@@ -52,6 +57,8 @@ from behaviors.reinit_policy import (
     same_object,
 )
 from behaviors.track_result import TrackResult
+from behaviors.track_support import Support, SupportSettings, judge_answer, started
+from cloudtrack.detection_curves import curve_for
 from companion.config import TrackerConfig
 from companion.vision.frame_sources import Frame
 from companion.vision.latency_compensation import CatchUp, FrameRing, KeyframeGoneError
@@ -76,6 +83,26 @@ GEOMETRIC_SIGNALS = frozenset({"left_frame", "collapsed", "jump"})
 
 Policy = Literal["verified", "c_box", "score"]
 POLICIES: tuple[Policy, ...] = ("verified", "c_box", "score")
+NOT_DETECTED = "not_detected"  # the lost reason of a track the detector's answers no longer support
+
+# A target class and its size in keyframe pixels (sqrt(w * h)) -> the chance one answer's detector proposes
+# it; None when there is no curve for that class (its misses are then no evidence).
+PodBySize = Callable[[str, float], "float | None"]
+
+
+def curve_pod(curve_file: str = "") -> PodBySize:
+    """POD by size from the detection curves (the shipped file, or `[search] curve_file`): the curve of a
+    target found and not judged "no", a lower bound on its being proposed at all (behaviors.track_support)."""
+    path = Path(curve_file) if curve_file else None
+
+    def pod(kind: str, size_px: float) -> float | None:
+        try:
+            curve = curve_for(kind, path)
+        except CurveError:
+            return None
+        return curve.probability(size_px, accept_uncertain=True)
+
+    return pod
 
 
 def loss_settings(config: TrackerConfig, tracker_name: str | None = None) -> LossSettings:
@@ -104,6 +131,13 @@ def loss_evidence_settings(config: TrackerConfig) -> LossEvidenceSettings:
     )
 
 
+def support_settings(config: TrackerConfig) -> SupportSettings | None:
+    """The detector-miss test's settings; None when it is off (`unsupported_miss_chance = 0`)."""
+    if config.unsupported_miss_chance <= 0:
+        return None
+    return SupportSettings(config.unsupported_miss_chance, config.unsupported_min_s)
+
+
 def reinit_settings(config: TrackerConfig) -> ReinitSettings:
     return ReinitSettings(
         agree_iou=config.reinit_agree_iou,
@@ -128,6 +162,9 @@ class FrontendStats:
     stale_answers: int = 0  # answers whose keyframe had left the ring
     rejected_candidates: int = 0  # nearest candidate beyond the C_box gate
     confirmations: int = 0  # "verified": answers whose candidate on the track withdrew a latched loss
+    not_detected: int = (
+        0  # "verified": trusted tracks the detector's misses untrusted (behaviors.track_support)
+    )
     decisions: dict[str, int] = field(default_factory=dict)  # "verified": answers per ReinitAction
     verdicts_ignored: int = 0  # tracks whose verifier said "no" to the target it started on
     # "verified": (keyframe, track box, framing_ratio) whenever the track's own candidate decided an
@@ -150,6 +187,9 @@ class TrackingFrontend:
         name: str = "",
         evidence: LossEvidenceSettings | None = None,
         loss_model_classes: Collection[str] | None = None,
+        support: SupportSettings | None = None,
+        support_pod: PodBySize | None = None,
+        keyframe_width: int = 640,
     ) -> None:
         self._make_tracker = make_tracker
         self.loss = LossDetector(settings)
@@ -195,6 +235,14 @@ class TrackingFrontend:
         # One that says "no" to it cannot tell this target apart: its verdicts are not used for this track.
         self._verdicts_checked = False
         self._verdicts_used = True
+        # "verified": the detector's misses on the trusted track (behaviors.track_support); off without
+        # settings or a POD by size. `_kind` is the target's class, as `start` was told.
+        self.support = support if support_pod is not None else None
+        self._support_pod = support_pod
+        self.keyframe_width = keyframe_width
+        self._support = Support()
+        self._not_detected = False
+        self._kind = ""
 
     @classmethod
     def from_config(
@@ -204,6 +252,7 @@ class TrackingFrontend:
         name = tracker_name or config.name
         create_tracker(name, model_dir)  # fail at start-up, not at the first acquisition
         kwargs.setdefault("policy", config.reinit_policy)  # flight and eval fly the configured policy
+        kwargs.setdefault("support_pod", curve_pod())
         return cls(
             lambda: create_tracker(name, model_dir),
             loss_settings(config, name),
@@ -214,6 +263,7 @@ class TrackingFrontend:
             reinit=reinit_settings(config),
             evidence=loss_evidence_settings(config),
             loss_model_classes=config.loss_model_classes,
+            support=support_settings(config),
             **kwargs,  # type: ignore[arg-type]
         )
 
@@ -256,6 +306,7 @@ class TrackingFrontend:
         self._verdicts_checked = False
         self._verdicts_used = True
         self._target_since = keyframe_id
+        self._kind = kind
         return self._begin(keyframe_id, box, keep_template=False)
 
     def apply_candidates(self, keyframe_id: int, detections: Sequence[Detection]) -> Detection | None:
@@ -350,6 +401,8 @@ class TrackingFrontend:
                         self.label,
                         keyframe_id,
                     )
+        if not lost and track_box is not None and self._weigh_support(keyframe, track_box, boxes):
+            lost = True  # from this answer on: a candidate elsewhere may beat it, nothing on it confirms it
         if not self._verdicts_used:
             verdicts = [Verdict.UNCERTAIN] * len(detections)
         verdicts = [Verdict.NO if i in refused else v for i, v in enumerate(verdicts)]
@@ -396,6 +449,41 @@ class TrackingFrontend:
             if not self._begin(keyframe_id, boxes[decision.index], keep_template=False):
                 return None
         return decision
+
+    def _weigh_support(self, keyframe: Frame, track_box: Box, boxes: Sequence[Box]) -> bool:
+        """One answer about a keyframe the track was trusted on, as a look at the tracked box: True when the
+        detector's misses have now untrusted the track ("not_detected", latched until a candidate on the track
+        or a re-initialisation)."""
+        if self.support is None or self._support_pod is None or not track_box.is_valid():
+            return False
+        # Any candidate touching the box: among people standing together the detector frames them differently
+        # from the tracker (measured: vit on group1_1 untrusted on target), while a box on a roof or on bare
+        # ground has none at all.
+        found = any(b.is_valid() and iou(b, track_box) > 0 for b in boxes)
+        size = math.sqrt(track_box.area) * min(1.0, self.keyframe_width / keyframe.image.shape[1])
+        pod = self._support_pod(self._kind, size)
+        if pod is None:
+            return False
+        self._support = judge_answer(
+            self._support, keyframe.frame_id, keyframe.capture_time, found, pod, self.support
+        )
+        if self._not_detected or not self._support.unsupported(keyframe.capture_time, self.support):
+            return False
+        self._not_detected = True
+        self.stats.not_detected += 1
+        log.info(
+            "%sno candidate on the track in %d answers over %.1f s (%d found, %d missed on this track; the curve "
+            "finds a %.0f px %s %.0f %% of the time): the tracker holds what the detector does not see",
+            self.label,
+            self._support.run,
+            keyframe.capture_time - (self._support.since_s or keyframe.capture_time),
+            self._support.hits,
+            self._support.misses,
+            size,
+            self._kind,
+            100 * pod,
+        )
+        return True
 
     def _distance(self, image: np.ndarray, box: Box | None) -> float | None:
         """Appearance distance to the target: as first seen, or as last confirmed, whichever is nearer."""
@@ -445,6 +533,9 @@ class TrackingFrontend:
         and shape references restarted there (the old ones are what fired)."""
         newest = self.ring.newest
         self._lost_reason = ""
+        self._not_detected = False
+        if newest is not None:  # a find on the track's record, and trusted again from the newest frame
+            self._support = judge_answer(self._support, newest.frame_id, newest.capture_time, True, 0.0)
         self.stats.confirmations += 1
         self._evidence = LossEvidence(time_s=newest.capture_time if newest is not None else None)
         if newest is not None and self._last_box is not None:
@@ -464,6 +555,8 @@ class TrackingFrontend:
         self._reinit_state = ReinitState()
         self._confirmed = False
         self._evidence = LossEvidence()
+        self._support = Support()
+        self._not_detected = False
 
     def _begin(self, keyframe_id: int, box: Box, keep_template: bool) -> bool:
         if not box.is_valid():
@@ -530,7 +623,7 @@ class TrackingFrontend:
         self.stats.tracker_updates += 1
         reason = self.loss.check(image, step)
         if self.policy == "verified":
-            reason = self._weigh(frame.capture_time)
+            reason = self._weigh(frame.capture_time) or (NOT_DETECTED if self._not_detected else "")
         if self._lost_reason and self.policy != "verified":
             reason = self._lost_reason
         elif reason:
@@ -565,6 +658,7 @@ class TrackingFrontend:
         step = catch_up.last.step
         self._tracker = catch_up.tracker
         self._lost_reason = ""
+        self._not_detected = False
         self.stats.reinits += 1
         # From its keyframe on, the track is the new one: an answer about a keyframe the catch-up passed
         # through, arriving now, judges the new track's box there (not the replaced track's, nor "no
@@ -572,6 +666,9 @@ class TrackingFrontend:
         for frame_id in [f for f in self._boxes if catch_up.keyframe_id <= f < frame.frame_id]:
             self._boxes[frame_id] = (catch_up.box_at(frame_id), "", False)
         keyframe = self.ring.get(catch_up.keyframe_id)
+        self._support = started(
+            catch_up.keyframe_id, keyframe.capture_time if keyframe else frame.capture_time
+        )
         if keyframe is not None and (self.last_trusted_frame_id or 0) < catch_up.keyframe_id:
             # The box we were told to start on is trusted as of its keyframe, whatever the tracker makes of it.
             self.last_trusted_box = catch_up.keyframe_box
