@@ -74,9 +74,10 @@ class Support:
         )
 
 
-def started(keyframe_id: int, time_s: float) -> Support:
-    """A fresh account for a track started (or re-initialised) on `keyframe_id`, captured at `time_s`."""
-    return Support(since_s=time_s, keyframe_id=keyframe_id)
+def started(keyframe_id: int, time_s: float, found: bool = False) -> Support:
+    """A fresh account for a track started (or re-initialised) on `keyframe_id`, captured at `time_s`;
+    `found`: on a detector's box (that keyframe is the track's first find), not an operator's."""
+    return Support(since_s=time_s, keyframe_id=keyframe_id, hits=1 if found else 0)
 
 
 def found_chance(state: Support, pod: float, settings: SupportSettings = SupportSettings()) -> float:

@@ -193,7 +193,7 @@ class TrackingFrontendLike(Protocol):
 
     def feed(self, frame: Frame) -> TrackResult: ...
 
-    def start(self, keyframe_id: int, box: Any, kind: str = "") -> bool: ...
+    def start(self, keyframe_id: int, box: Any, kind: str = "", detected: bool = False) -> bool: ...
 
     def apply_candidates(self, keyframe_id: int, detections: Sequence[Detection]) -> Detection | None: ...
 
@@ -607,7 +607,8 @@ class MissionRunner:
             )
             if chosen is not None:
                 return
-        self.frontend.start(keyframe, action.box, action.label)
+        detected = bool(action.candidate_id) and action.candidate_id != "operator"
+        self.frontend.start(keyframe, action.box, action.label, detected=detected)
 
     def _judge(self, action: JudgeCandidates) -> None:
         decision = self.frontend.judge_candidates(action.keyframe_id, action.candidates, action.refused)

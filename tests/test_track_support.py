@@ -52,6 +52,17 @@ def test_track_support_counts_each_keyframe_once() -> None:
     assert (state.hits, state.misses, state.run) == (10, 3, 3) and state.unsupported(13.0, SETTINGS)
 
 
+def test_a_track_started_on_a_detection_has_that_find_on_its_record() -> None:
+    # A candidate's box is a look that found the target: misses of a 0.9 person then add up in eight answers,
+    # not the twenty a track from an operator's box (no record) needs.
+    for found, expected in ((True, 8), (False, 20)):
+        state, misses = started(0, 0.0, found=found), 0
+        while not state.unsupported(float(misses), SETTINGS):
+            misses += 1
+            state = judge_answer(state, misses, float(misses), MISS, 0.9, SETTINGS)
+        assert misses == expected, found
+
+
 def test_track_support_learns_the_targets_own_rate() -> None:
     state = started(0, 0.0)
     assert found_chance(state, 0.9, SETTINGS) == pytest.approx(0.9)  # no record: the curve

@@ -208,6 +208,7 @@ class TrackingFrontend:
         self._tracker: Tracker | None = None
         self._catch_up: CatchUp | None = None
         self._catch_up_keeps_template = False
+        self._catch_up_detected = False  # the box being caught up is a detector's (a look that found it)
         self._lost_reason = ""
         self.reinit = reinit or ReinitSettings()
         # "verified": the loss signals are weighed over time (behaviors.loss_evidence), not latched.
@@ -289,11 +290,12 @@ class TrackingFrontend:
             return ""
         return first_reason(self.loss.last_signals, self.loss.settings.enabled)
 
-    def start(self, keyframe_id: int, box: Box, kind: str = "") -> bool:
+    def start(self, keyframe_id: int, box: Box, kind: str = "", detected: bool = False) -> bool:
         """Track `box` as seen in frame `keyframe_id` (a new target: the appearance model restarts). `kind`
         is the target's class (the candidate's detector label): for a class outside `loss_model_classes`
         (the classes the weak loss signals were measured on: people) the aspect test is off and the weak
-        signals untrust nothing ("" keeps the settings as they are)."""
+        signals untrust nothing ("" keeps the settings as they are). `detected`: the box is a back-end
+        candidate's (its keyframe is the track's first find), not an operator's or ground truth's."""
         if kind and self.loss_model_classes is not None:
             modelled = kind in self.loss_model_classes
             self.loss.settings = replace(self.loss.settings, hold_aspect=modelled)
@@ -307,7 +309,7 @@ class TrackingFrontend:
         self._verdicts_used = True
         self._target_since = keyframe_id
         self._kind = kind
-        return self._begin(keyframe_id, box, keep_template=False)
+        return self._begin(keyframe_id, box, keep_template=False, detected=detected)
 
     def apply_candidates(self, keyframe_id: int, detections: Sequence[Detection]) -> Detection | None:
         """Re-initialise on the candidate closest to the last trusted box (C_box), or with policy "score"
@@ -558,7 +560,7 @@ class TrackingFrontend:
         self._support = Support()
         self._not_detected = False
 
-    def _begin(self, keyframe_id: int, box: Box, keep_template: bool) -> bool:
+    def _begin(self, keyframe_id: int, box: Box, keep_template: bool, detected: bool = True) -> bool:
         if not box.is_valid():
             log.warning("%signoring invalid box %s for frame %d", self.label, box, keyframe_id)
             return False
@@ -585,6 +587,7 @@ class TrackingFrontend:
             return False
         self._catch_up = catch_up
         self._catch_up_keeps_template = keep_template
+        self._catch_up_detected = detected
         self._confirmed = False
         return True
 
@@ -667,7 +670,9 @@ class TrackingFrontend:
             self._boxes[frame_id] = (catch_up.box_at(frame_id), "", False)
         keyframe = self.ring.get(catch_up.keyframe_id)
         self._support = started(
-            catch_up.keyframe_id, keyframe.capture_time if keyframe else frame.capture_time
+            catch_up.keyframe_id,
+            keyframe.capture_time if keyframe else frame.capture_time,
+            found=self._catch_up_detected,
         )
         if keyframe is not None and (self.last_trusted_frame_id or 0) < catch_up.keyframe_id:
             # The box we were told to start on is trusted as of its keyframe, whatever the tracker makes of it.
