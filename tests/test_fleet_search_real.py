@@ -7,8 +7,8 @@ one `cloudtrack-gcs survey --fleet` splits the area two ways over the autopilots
 goes home (RTL) a third of the way into its part, the back-end lists it in /dropouts and `cloudtrack-gcs replan`
 puts its unflown part onto drone-1 without taking it out of AUTO. The scenario's checks hold the rest (the
 look-alike rejected once and proposed by no other vehicle, one find, merged coverage >= 0.95). About 2.5-3 min
-each on a 2-core machine; `make trials` runs them (marked `trial`: CI leaves them out while the
-cross-vehicle look-alike check fails, 1 pass in 7 runs so far, docs/sitl.md). The mixed flight starts its
+each on a 2-core machine, in `make test` (no longer `trial`: since the shared rejections by place, the corner
+fix and the clipped estimates they passed 3 of 4 and 4 of 4 runs, docs/sitl.md). The mixed flight starts its
 own PX4 (not the `shares_px4` one: tests/conftest.py stops that before a test without the mark).
 
 The fast tests below check how `--autopilot` names one autopilot per vehicle.
@@ -41,9 +41,8 @@ def _fly_fleet(autopilot: str, models_dir: Path, tmp_path: Path) -> dict[str, An
         progress=lines.append,
     )
     print("\n".join(lines))
-    # Most runs so far (docs/sitl.md) failed one check: the look-alike drone-2's candidate had rejected, proposed
-    # again by drone-1 once the re-plan sent it over drone-2's lanes (the shared rejection memory's appearance
-    # match across views). That fails the test, as any other check does: hence `trial`, out of CI.
+    # Every scenario check counts: the look-alike drone-2's candidate had rejected is never proposed again by
+    # drone-1 once the re-plan sends it over drone-2's lanes (the fleet's rejections by place), one find, coverage.
     failed = [f for f in results["failures"] if not f.startswith("the runner itself paused")]
     assert not failed, (failed, lines[-20:])
     fleet = results["fleet"]
@@ -66,7 +65,6 @@ def _fly_fleet(autopilot: str, models_dir: Path, tmp_path: Path) -> dict[str, An
 
 
 @pytest.mark.slow
-@pytest.mark.trial
 def test_fleet_search_arducopter(models_dir: Path, tmp_path: Path) -> None:
     """Two real ArduCopter SITL instances, system ids 1 and 2, one mission."""
     results = _fly_fleet("arducopter", models_dir, tmp_path)
@@ -79,7 +77,6 @@ def test_fleet_search_arducopter(models_dir: Path, tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.trial
 def test_fleet_search_arducopter_px4_sitl(models_dir: Path, tmp_path: Path) -> None:
     """One real ArduCopter (drone-1) and one real PX4 with SIH (drone-2, which goes home) in one mission."""
     results = _fly_fleet("arducopter,px4-sitl", models_dir, tmp_path)
