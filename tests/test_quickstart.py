@@ -244,7 +244,8 @@ def test_quickstart_area_search_rehearsal_as_written() -> None:
             seen, _ = watch.communicate(timeout=30)
         rest = _stop(stack)
     # The third shell saw the break-off, the survey handed back where it broke off, and the find.
-    left = re.findall(r"LEFT MISSION at item (\d+)", seen)
+    # Only the event lines: the periodic [summary] line repeats the last message ("last: LEFT MISSION ...").
+    left = re.findall(r"^\[\d+/\d+\] LEFT MISSION at item (\d+)", seen, re.MULTILINE)
     assert len(left) == 2 and f"MISSION RESUMED at item {left[0]} (left at {left[0]})" in seen, seen
     assert "[autopilot] mode AUTO" in seen and "FOUND" in seen, seen
     assert stack.returncode == 0 and rest.strip().endswith("stopped"), rest
