@@ -42,7 +42,6 @@ from __future__ import annotations
 
 import argparse
 import re
-import signal
 import sys
 import threading
 import time
@@ -78,6 +77,7 @@ from cloudtrack.mission_protocol import (
     positions_match,
 )
 from cloudtrack.plain_text import without_controls
+from cloudtrack.stop_signals import set_on_signals
 from cloudtrack.vehicle_config import VehicleSections, load_vehicle_sections
 from gcs.fleet_status import (
     BACKEND_ENV,
@@ -570,8 +570,7 @@ def _watch(
     it between rounds (an upload under way is finished, not cut)."""
     stop = threading.Event()
     if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: stop.set())
+        set_on_signals(stop)
     mission = _text(args.mission, 64)
     print(
         f"replan --watch of mission {mission}: asking the back-end every {args.watch_period:g} s, re-planning "

@@ -7,6 +7,7 @@ import logging
 import signal
 import threading
 
+from cloudtrack.stop_signals import set_on_signals
 from sitl.autopilot import PERSONALITIES, AutopilotOptions, SimulatedAutopilot
 from sitl.vehicle_dynamics import Wind
 
@@ -84,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"error: cannot open the autopilot links: {exc}")
         return 2
     stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    set_on_signals(stop, (signal.SIGTERM,))
     sim.start()
     print(
         f"{args.autopilot} autopilot simulator: gcs={args.gcs} companion={args.companion} (Ctrl-C stops)",

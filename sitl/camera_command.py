@@ -17,6 +17,7 @@ import threading
 import time
 
 from behaviors.camera_model import CameraModel
+from cloudtrack.stop_signals import set_on_signals
 
 CAMERA_EXAMPLES = """\
 examples:
@@ -148,7 +149,7 @@ def run_camera(args: argparse.Namespace) -> int:
         print(f"back-end (simulated person detector, local verifier): {backend.url}")
     print(f"camera: {server.url} following {args.autopilot_url} (Ctrl-C stops)", flush=True)
     stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    set_on_signals(stop, (signal.SIGTERM,))
     try:
         while not stop.wait(5.0):
             print(f"  {server.frames_rendered} frames, pose age {follower.age_s():.1f} s", flush=True)

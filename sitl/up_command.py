@@ -30,6 +30,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from cloudtrack.stop_signals import set_on_signals
 from sitl.camera_command import is_mission_start
 
 EXAMPLES = """\
@@ -98,8 +99,7 @@ def run_up(args: argparse.Namespace) -> int:
         return 2
     stack = LocalStack(args)
     stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    set_on_signals(stop)
     try:
         stack.start()
     except (RuntimeError, OSError, ValueError) as exc:

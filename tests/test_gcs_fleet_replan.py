@@ -482,7 +482,13 @@ def test_watch_replans_each_vehicle_as_it_leaves_once_and_ends_on_sigterm(
             assert len(px4.mission.items) - 1 == shares[1]  # drone-2 took nothing more
             assert len(ardupilot.mission.items) - 4 > shares[0]
             watch.send_signal(signal.SIGTERM)
-            assert watch.wait(30) == 0
+            try:
+                code = watch.wait(30)
+            except subprocess.TimeoutExpired:  # once in CI, cause not yet found: say what it was doing
+                watch.kill()
+                watch.wait()
+                code = None
+            assert code == 0, (code, "".join(seen) + "".join(lines.queue), errors.read_text())
         finally:
             if watch.poll() is None:
                 watch.kill()
