@@ -162,9 +162,8 @@ class FrontendStats:
     stale_answers: int = 0  # answers whose keyframe had left the ring
     rejected_candidates: int = 0  # nearest candidate beyond the C_box gate
     confirmations: int = 0  # "verified": answers whose candidate on the track withdrew a latched loss
-    not_detected: int = (
-        0  # "verified": trusted tracks the detector's misses untrusted (behaviors.track_support)
-    )
+    # "verified": trusted tracks the detector's misses untrusted (behaviors.track_support)
+    not_detected: int = 0
     decisions: dict[str, int] = field(default_factory=dict)  # "verified": answers per ReinitAction
     verdicts_ignored: int = 0  # tracks whose verifier said "no" to the target it started on
     # "verified": (keyframe, track box, framing_ratio) whenever the track's own candidate decided an
