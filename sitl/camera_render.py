@@ -165,13 +165,17 @@ def _clip_half_plane(
 
 
 def _person_parts(
-    person: Person, t: float, cam_right: np.ndarray
+    person: Person, t: float, cam_right: np.ndarray, cam_ne: tuple[float, float] | None = None
 ) -> list[tuple[np.ndarray, tuple[int, int, int], str]]:
-    """3D polygons (NED) of a person's body parts with colours; standing/sitting are camera-facing billboards."""
+    """3D polygons (NED) of a person's body parts with colours; standing/sitting are billboards facing the
+    camera (`cam_ne`: across the line of sight, as a round body shows its full width from any side; else
+    along the camera's right axis), with a level top."""
     n, e, heading = person.state_at(t)
     base = np.array([n, e, 0.0])
     up = np.array([0.0, 0.0, -1.0])
     right = np.array([cam_right[0], cam_right[1], 0.0])
+    if cam_ne is not None and math.hypot(n - cam_ne[0], e - cam_ne[1]) > 0.5:
+        right = np.array([-(e - cam_ne[1]), n - cam_ne[0], 0.0])
     norm = float(np.linalg.norm(right))
     right = right / norm if norm > 1e-6 else np.array([0.0, 1.0, 0.0])
 
@@ -191,6 +195,22 @@ def _person_parts(
         angles = np.linspace(0, 2 * math.pi, 10, endpoint=False)
         return np.array([o + radius * (math.cos(a) * right + math.sin(a) * up) for a in angles])
 
+    # A body has depth: from above, the shoulders and the top of the head show, not only a front. Without
+    # them a standing person seen from a survey's height was about a fifth smaller than the person the POD
+    # map sizes (a 1.7 x 0.5 x 0.3 m box, behaviors/apparent_size.py), so the sim found fewer than the map said.
+    away = np.array([right[1], -right[0], 0.0])  # level, away from the camera
+
+    def top(height: float, half_w: float, half_d: float) -> np.ndarray:
+        o = base + height * up
+        return np.array(
+            [o + a * half_d * away + s * half_w * right for a, s in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
+        )
+
+    def crown(centre_h: float, radius: float) -> np.ndarray:
+        o = base + centre_h * up
+        angles = np.linspace(0, 2 * math.pi, 10, endpoint=False)
+        return np.array([o + radius * (math.cos(a) * right + math.sin(a) * away) for a in angles])
+
     shirt, trousers = person.shirt_bgr, person.trousers_bgr
     if person.pose == "standing":
         # Slight stride so walking legs read as two shapes.
@@ -198,13 +218,17 @@ def _person_parts(
             (quad(0.0, 0.9, 0.1, -0.12 * right), trousers, "legs"),
             (quad(0.0, 0.9, 0.1, 0.12 * right), trousers, "legs"),
             (quad(0.85, 1.5, 0.27), shirt, "torso"),
+            (top(1.5, 0.27, 0.15), shirt, "torso"),
             (head(1.64, 0.14), SKIN_BGR, "head"),
+            (crown(1.64, 0.14), SKIN_BGR, "head"),
         ]
     if person.pose == "sitting":
         return [
             (quad(0.0, 0.5, 0.24), trousers, "legs"),
             (quad(0.45, 1.05, 0.27), shirt, "torso"),
+            (top(1.05, 0.27, 0.15), shirt, "torso"),
             (head(1.19, 0.14), SKIN_BGR, "head"),
+            (crown(1.19, 0.14), SKIN_BGR, "head"),
         ]
     # Lying flat along the heading: parts are ground rectangles slightly above the grass.
     along = np.array([math.cos(heading), math.sin(heading), 0.0])
@@ -316,7 +340,7 @@ class Renderer:
         items: list[tuple[float, int, list[tuple[np.ndarray, tuple[int, int, int]]]]] = []
         people = self.world.people
         for idx, person in enumerate(people):
-            parts = _person_parts(person, t, cam_right)
+            parts = _person_parts(person, t, cam_right, (pose.north, pose.east))
             polys: list[tuple[np.ndarray, tuple[int, int, int]]] = []
             depth_sum = 0.0
             for pts3, colour, _ in parts:

@@ -149,6 +149,33 @@ def test_rendered_people_are_judged_by_the_colour_rules_at_every_size_the_random
     assert judged >= 100
 
 
+def test_a_rendered_standing_person_is_the_size_the_maps_model_gives_wherever_the_random_survey_sees_them() -> (
+    None
+):
+    """The POD map sizes a person as a 1.7 x 0.5 x 0.3 m box; the rendered one must be that big too, or the
+    sim's detector finds fewer than the map says for reasons of drawing. A flat figure facing the camera's
+    right axis was up to a fifth smaller off to the side (no top from above, seen edge-on aside)."""
+    from behaviors.apparent_size import TargetShape, apparent_size_px
+
+    spec = placed(SCENARIOS["search"], "random").survey
+    assert spec is not None
+    camera = CameraModel.from_hfov(640, 480, 70.0, MOUNT_PITCH_DEG, stabilised=True)
+    renderer = Renderer(World(1, ()), camera)
+    ratios = []
+    for ahead, lateral in itertools.product((12.0, 18.0, 25.0, 32.0), (-12.0, -6.0, 0.0, 6.0, 12.0)):
+        renderer.world = World(
+            1, (Person("p", "green", "black", "standing", ((ahead, lateral),)),), target_id="p"
+        )
+        frame = renderer.render(VehiclePose(0.0, 0.0, -spec.altitude_m), 0.0, 1)
+        modelled = apparent_size_px(camera, spec.altitude_m, ahead, lateral, TargetShape.person("standing"))
+        if not frame.truth or modelled <= 0:
+            continue  # outside the image or cut by its edge
+        box = frame.truth[0].box
+        ratios.append(math.sqrt(box.w * box.h) / modelled)
+    assert len(ratios) >= 15
+    assert all(0.85 <= r <= 1.15 for r in ratios), [round(r, 2) for r in ratios]
+
+
 # ------------------------------------------------------------------------------------- curve detector
 def test_curve_detector_reports_a_person_in_a_pass_exactly_where_the_curve_beats_the_passs_latent() -> None:
     """One latent per pass: a person reported at a size is reported at every size the curve gives more."""
