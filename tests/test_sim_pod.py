@@ -14,6 +14,7 @@ import pytest
 
 from backend.crops import margin_crop
 from backend.verifiers.attributes import AttributeVerifier
+from behaviors.apparent_size import TargetShape, apparent_size_px
 from behaviors.camera_model import CameraModel
 from behaviors.detection import Verdict
 from behaviors.detection_curve import CurveBin, DetectionCurve, bin_centre, empty_bins
@@ -155,8 +156,6 @@ def test_a_rendered_standing_person_is_the_size_the_maps_model_gives_wherever_th
     """The POD map sizes a person as a 1.7 x 0.5 x 0.3 m box; the rendered one must be that big too, or the
     sim's detector finds fewer than the map says for reasons of drawing. A flat figure facing the camera's
     right axis was up to a fifth smaller off to the side (no top from above, seen edge-on aside)."""
-    from behaviors.apparent_size import TargetShape, apparent_size_px
-
     spec = placed(SCENARIOS["search"], "random").survey
     assert spec is not None
     camera = CameraModel.from_hfov(640, 480, 70.0, MOUNT_PITCH_DEG, stabilised=True)
