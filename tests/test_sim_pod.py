@@ -150,9 +150,7 @@ def test_rendered_people_are_judged_by_the_colour_rules_at_every_size_the_random
     assert judged >= 100
 
 
-def test_a_rendered_standing_person_is_the_size_the_maps_model_gives_wherever_the_random_survey_sees_them() -> (
-    None
-):
+def test_a_rendered_standing_person_is_the_size_the_maps_model_gives() -> None:
     """The POD map sizes a person as a 1.7 x 0.5 x 0.3 m box; the rendered one must be that big too, or the
     sim's detector finds fewer than the map says for reasons of drawing. A flat figure facing the camera's
     right axis was up to a fifth smaller off to the side (no top from above, seen edge-on aside)."""
