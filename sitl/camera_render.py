@@ -190,11 +190,6 @@ def _person_parts(
             ]
         )
 
-    def head(centre_h: float, radius: float, offset: np.ndarray | None = None) -> np.ndarray:
-        o = (base if offset is None else base + offset) + centre_h * up
-        angles = np.linspace(0, 2 * math.pi, 10, endpoint=False)
-        return np.array([o + radius * (math.cos(a) * right + math.sin(a) * up) for a in angles])
-
     # A body has depth: from above, the shoulders and the top of the head show, not only a front. Without
     # them a standing person seen from a survey's height was about a fifth smaller than the person the POD
     # map sizes (a 1.7 x 0.5 x 0.3 m box, behaviors/apparent_size.py), so the sim found fewer than the map said.
@@ -206,10 +201,11 @@ def _person_parts(
             [o + a * half_d * away + s * half_w * right for a, s in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
         )
 
-    def crown(centre_h: float, radius: float) -> np.ndarray:
+    def disc(centre_h: float, radius: float, second: np.ndarray) -> np.ndarray:
+        """A circle `centre_h` up, in the plane of `right` and `second` (up: the head's face; away: its top)."""
         o = base + centre_h * up
         angles = np.linspace(0, 2 * math.pi, 10, endpoint=False)
-        return np.array([o + radius * (math.cos(a) * right + math.sin(a) * away) for a in angles])
+        return np.array([o + radius * (math.cos(a) * right + math.sin(a) * second) for a in angles])
 
     shirt, trousers = person.shirt_bgr, person.trousers_bgr
     if person.pose == "standing":
@@ -219,16 +215,16 @@ def _person_parts(
             (quad(0.0, 0.9, 0.1, 0.12 * right), trousers, "legs"),
             (quad(0.85, 1.5, 0.27), shirt, "torso"),
             (top(1.5, 0.27, 0.15), shirt, "torso"),
-            (head(1.64, 0.14), SKIN_BGR, "head"),
-            (crown(1.64, 0.14), SKIN_BGR, "head"),
+            (disc(1.64, 0.14, up), SKIN_BGR, "head"),
+            (disc(1.64, 0.14, away), SKIN_BGR, "head"),
         ]
     if person.pose == "sitting":
         return [
             (quad(0.0, 0.5, 0.24), trousers, "legs"),
             (quad(0.45, 1.05, 0.27), shirt, "torso"),
             (top(1.05, 0.27, 0.15), shirt, "torso"),
-            (head(1.19, 0.14), SKIN_BGR, "head"),
-            (crown(1.19, 0.14), SKIN_BGR, "head"),
+            (disc(1.19, 0.14, up), SKIN_BGR, "head"),
+            (disc(1.19, 0.14, away), SKIN_BGR, "head"),
         ]
     # Lying flat along the heading: parts are ground rectangles slightly above the grass.
     along = np.array([math.cos(heading), math.sin(heading), 0.0])
