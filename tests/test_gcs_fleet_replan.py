@@ -484,7 +484,9 @@ def test_watch_replans_each_vehicle_as_it_leaves_once_and_ends_on_sigterm(
             watch.send_signal(signal.SIGTERM)
             try:
                 code = watch.wait(30)
-            except subprocess.TimeoutExpired:  # once in CI, cause not yet found: say what it was doing
+            except (
+                subprocess.TimeoutExpired
+            ):  # as once in CI (the handler's deadlock, cloudtrack/stop_signals.py): say what it did
                 watch.kill()
                 watch.wait()
                 code = None
