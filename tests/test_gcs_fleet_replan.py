@@ -484,9 +484,8 @@ def test_watch_replans_each_vehicle_as_it_leaves_once_and_ends_on_sigterm(
             watch.send_signal(signal.SIGTERM)
             try:
                 code = watch.wait(30)
-            except (
-                subprocess.TimeoutExpired
-            ):  # as once in CI (the handler's deadlock, cloudtrack/stop_signals.py): say what it did
+            # As once in CI (the handler's deadlock, cloudtrack/stop_signals.py): say what the watch did.
+            except subprocess.TimeoutExpired:
                 watch.kill()
                 watch.wait()
                 code = None
