@@ -240,8 +240,11 @@ def test_outage_stored_keyframes_never_take_the_last_free_slot() -> None:
         worker.submit(1, image, 1.0, _pose(1.0))
         service.gate.release()
         _answers(worker, 1)  # the link is up
-        _stored(store, range(100, 110))
-        worker.submit(2, image, 2.0, _pose(2.0))
+        # Stored and live arrive together: a worker thread woken late by the answer's notice would otherwise
+        # find the stored ones before the live keyframe is submitted (seen once under `make check`).
+        with worker._cond:  # the worker's own (re-entrant) lock, which `submit` takes too
+            _stored(store, range(100, 110))
+            worker.submit(2, image, 2.0, _pose(2.0))
         _wait(lambda: len(service.calls) == 4, "a live keyframe and two stored ones out")
         assert sorted(service.calls[1:]) == [2, 108, 109]  # the newest stored first
         assert store.counts().waiting == 8
