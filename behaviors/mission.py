@@ -785,9 +785,8 @@ def _answer(state: State, answer: BackendAnswer, config: MissionConfig) -> Resul
         # Every answer for the track goes to the front-end's policy, with what the mission refuses marked;
         # one with no candidate too (as `eval` judges): nothing found on the track is evidence, and it ends
         # the hold an older confirmation has over the track's own loss signals.
-        refused = tuple(
-            i for i, d in enumerate(answer.candidates) if _refused(state, target, d, config, answer)
-        )
+        excluded = _excluded(state, config, answer)
+        refused = tuple(i for i, d in enumerate(answer.candidates) if _refused(target, d, config, excluded))
         actions = (*actions, JudgeCandidates(answer.keyframe_id, answer.candidates, refused))
     return state, actions
 
@@ -959,7 +958,8 @@ def _answer_for_target(
         and not _given_up(state, config)
         and not config.verified_reinit  # the paper's policy: the mission picks the box itself
     ):
-        usable = [d for d in answer.candidates if not _refused(state, target, d, config, answer)]
+        excluded = _excluded(state, config, answer)
+        usable = [d for d in answer.candidates if not _refused(target, d, config, excluded)]
         best = select_by_c_box(target.box, usable)
         gate = config.reinit_gate * (config.camera.width + config.camera.height)
         if best is None or c_box(target.box, best.box) > gate:
@@ -978,16 +978,14 @@ def _judging(state: State, config: MissionConfig) -> bool:
 
 
 def _refused(
-    state: State, target: Target, det: Detection, config: MissionConfig, answer: BackendAnswer
+    target: Target, det: Detection, config: MissionConfig, excluded: Callable[[Detection], bool]
 ) -> bool:
     """A candidate the mission would never re-initialise on. Away from the last box only a "yes" may re-find
     the target, however wide the query's region: anything less could be a distractor anywhere in view.
     Near it, the operator's own target (never checked against the prompt) may be re-found on any verdict,
     others on anything but "no". The rejection memory (supervisor's rejections) is never re-found."""
     near = _centre_inside(det.box, _roi(target.box, config))
-    return not _redetect_verdict_ok(det.verdict, near, target.operator_selected) or _excluded(
-        state, det, config, answer
-    )
+    return not _redetect_verdict_ok(det.verdict, near, target.operator_selected) or excluded(det)
 
 
 def _backend_down(state: State, event: BackendUnreachable) -> Result:
@@ -1243,14 +1241,20 @@ def _arrived(state: State, box: Box, config: MissionConfig) -> bool:
     return distance is not None and abs(distance.ground_m - config.standoff_m) <= config.arrive_tolerance_m
 
 
-def _excluded(state: State, det: Detection, config: MissionConfig, answer: BackendAnswer) -> bool:
-    """Rejected by the supervisor (via this vehicle by id, place or looks; via another of the fleet mission by
-    place), or a find the search already went on from."""
-    position = _position(state, det, config, answer.pose)
-    return any(
-        memory.matches(det.candidate_id, position, det.signature, answer.query_id) is not None
+def _excluded(state: State, config: MissionConfig, answer: BackendAnswer) -> Callable[[Detection], bool]:
+    """Which of the answer's candidates were rejected by the supervisor (via this vehicle by id, place or
+    looks; via another of the fleet mission by place) or are a find the search already went on from. Judged
+    together: of one keyframe's candidates only the nearest takes a rejection by place
+    (`RejectionMemory.matches_each`), so a rejected person does not hide the one beside them."""
+    seen = [
+        (d.candidate_id, _position(state, d, config, answer.pose), d.signature) for d in answer.candidates
+    ]
+    matched = [
+        memory.matches_each(seen, answer.query_id)
         for memory in (state.rejections, state.found, state.fleet_rejections)
-    )
+    ]
+    excluded = [d for i, d in enumerate(answer.candidates) if any(m[i] is not None for m in matched)]
+    return lambda det: any(det is d for d in excluded)
 
 
 def _places(places: Sequence[tuple[str, GeoEstimate | None]], config: MissionConfig) -> RejectionMemory:
@@ -1288,13 +1292,15 @@ def _eligible(
     tracked: Detection | None = None,
 ) -> Callable[[Detection], bool]:
     """Which of the answer's candidates `_choose` may take (see there)."""
+    excluded = _excluded(state, config, answer)
     queued = _places([*((p.candidate_id, p.fix) for p in state.pending), *placed], config)
+    # As a rejection: of the keyframe's others (the tracked one is someone else), the nearest is the one queued.
+    others = [d for d in answer.candidates if d is not tracked]
+    seen = [(d.candidate_id, _position(state, d, config, answer.pose), ()) for d in others]
+    taken = [d for d, match in zip(others, queued.matches_each(seen), strict=True) if match is not None]
 
     def eligible(d: Detection) -> bool:
-        if d is tracked or not d.box.is_valid() or _excluded(state, d, config, answer):
-            return False
-        position = _position(state, d, config, answer.pose)
-        return queued.matches(d.candidate_id, position) is None
+        return d is not tracked and d.box.is_valid() and not excluded(d) and not any(d is t for t in taken)
 
     return eligible
 

@@ -4,11 +4,13 @@ A candidate matches a remembered rejection by the back-end's candidate id, by es
 (within a radius widened by both estimates' uncertainty), or by appearance signature (cosine similarity
 of plain number vectors, e.g. colour histograms). Positions are compared in metres on a local tangent plane.
 
-The radius stands in for appearance, which the companion does not judge, and so hides anyone standing near
-a rejected person. Once the back-end holds the rejection (`RejectedTarget.shared_from_query`) it judges
-appearance in every later answer, and position matches only within two sigma of both estimates. Another
-vehicle's rejection in a fleet mission (`RejectedTarget.via`) is never taken as judged so: the back-end's
-appearance match fails for a look-alike seen from another lane, so the radius holds for it throughout.
+The radius stands in for appearance, which the companion does not judge, and so would hide anyone standing
+near a rejected person; of one keyframe's candidates only the nearest takes a rejection by place
+(`RejectionMemory.matches_each`): two people in one keyframe are two people. Once the back-end holds the
+rejection (`RejectedTarget.shared_from_query`) it judges appearance in every later answer, and position
+matches only within two sigma of both estimates. Another vehicle's rejection in a fleet mission
+(`RejectedTarget.via`) is never taken as judged so: the back-end's appearance match fails for a look-alike
+seen from another lane, so the radius holds for it throughout.
 """
 
 from __future__ import annotations
@@ -66,29 +68,58 @@ class RejectionMemory:
     ) -> RejectedTarget | None:
         """The remembered rejection this candidate looks like, or None. `query_id`: the query whose answer
         the candidate is in (0: none, or not known)."""
-        for entry in self.entries:
-            if candidate_id and entry.candidate_id == candidate_id:
-                return entry
-            judged = bool(entry.shared_from_query) and query_id >= entry.shared_from_query
-            if position is not None and any(
-                at is not None and self._near(at, position, 0.0 if judged else self.radius_m)
-                for at in (entry.position, entry.also_at)
-            ):
-                return entry
-            if (
-                signature
-                and entry.signature
-                and cosine_similarity(entry.signature, signature) >= self.signature_threshold
-            ):
-                return entry
-        return None
+        return self.matches_each(((candidate_id, position, signature),), query_id)[0]
 
-    def _near(self, a: GeoEstimate, b: GeoEstimate, radius_m: float) -> bool:
+    def matches_each(
+        self, candidates: Sequence[tuple[str, GeoEstimate | None, Sequence[float]]], query_id: int = 0
+    ) -> tuple[RejectedTarget | None, ...]:
+        """`matches` for each of one keyframe's candidates, given as (id, position, signature). Two candidates
+        in one keyframe are two people, so a rejection matched by place alone is matched by the nearest of
+        them only: at 30 m the radius and two sigma of both estimates reach 12 m, and a rejected person
+        would otherwise hide the one standing beside them for the rest of the search."""
+        found: list[RejectedTarget | None] = [None] * len(candidates)
+        nearest: dict[int, tuple[float, int]] = {}  # entry -> (metres, candidate) of its nearest place match
+        for i, (candidate_id, position, signature) in enumerate(candidates):
+            for k, entry in enumerate(self.entries):
+                if found[i] is None and (
+                    (candidate_id and entry.candidate_id == candidate_id)
+                    or (
+                        signature
+                        and entry.signature
+                        and cosine_similarity(entry.signature, signature) >= self.signature_threshold
+                    )
+                ):
+                    found[i] = entry
+                metres = self._place_match(entry, position, query_id)
+                if metres is not None and (k not in nearest or metres < nearest[k][0]):
+                    nearest[k] = (metres, i)
+        for k, (_, i) in sorted(nearest.items()):
+            found[i] = found[i] or self.entries[k]
+        return tuple(found)
+
+    def _place_match(
+        self, entry: RejectedTarget, position: GeoEstimate | None, query_id: int
+    ) -> float | None:
+        """How far `position` is from the nearer of `entry`'s places, when near enough to match; else None."""
+        if position is None:
+            return None
+        judged = bool(entry.shared_from_query) and query_id >= entry.shared_from_query
+        radius_m = 0.0 if judged else self.radius_m
+        near = [
+            d
+            for at in (entry.position, entry.also_at)
+            if at is not None and (d := self._near(at, position, radius_m)) is not None
+        ]
+        return min(near, default=None)
+
+    def _near(self, a: GeoEstimate, b: GeoEstimate, radius_m: float) -> float | None:
+        """The distance between `a` and `b` when within `radius_m` widened by their uncertainty; else None."""
         north, east = latlon_to_offset(a.lat_deg, a.lon_deg, b.lat_deg, b.lon_deg)
         sigma = math.hypot(a.sigma_m, b.sigma_m)
         # Two sigma of the combined error, but a very uncertain estimate cannot blank a whole area.
         allowed = radius_m + min(2.0 * sigma, 2.0 * self.radius_m)
-        return math.hypot(north, east) <= allowed
+        distance = math.hypot(north, east)
+        return distance if distance <= allowed else None
 
 
 def cosine_similarity(a: Sequence[float], b: Sequence[float]) -> float:

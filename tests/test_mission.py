@@ -896,6 +896,16 @@ def test_rejection_memory_matching_rules() -> None:
     assert memory.matches(signature=(0.99, 0.05)) is not None
     assert memory.matches(signature=(0.5, 0.5)) is None
     assert memory.matches(signature=(1.0, 0.0, 0.0)) is None  # different length: not comparable
+    # Of one keyframe's candidates, only the nearest takes a rejection by place; id and looks match each.
+    assert memory.matches_each([("a", at(4.0, 0.0), ()), ("b", at(1.0, 0.0), ())]) == (
+        None,
+        memory.entries[0],
+    )
+    assert memory.matches_each([("c1", at(9.0, 0.0), ()), ("b", at(1.0, 0.0), ())]) == memory.entries * 2
+    assert (
+        memory.matches_each([("a", at(1.0, 0.0), ()), ("b", at(20.0, 0.0), (1.0, 0.0))]) == memory.entries * 2
+    )
+    assert memory.matches_each([("a", at(8.0, 0.0), ()), ("b", None, ())]) == (None, None)
     assert cosine_similarity((0.0, 0.0), (1.0, 0.0)) == 0.0 and cosine_similarity((), ()) == 0.0
     assert cosine_similarity((math.nan, 1.0), (1.0, 1.0)) == 0.0
     full = RejectionMemory(capacity=3)
@@ -937,6 +947,23 @@ def test_a_person_beside_a_rejected_look_alike_is_proposed_once_the_back_end_hol
     # The look-alike itself, where it stood: still not proposed.
     same = BackendAnswer(2.4, query.query_id, 66, (candidate(AT_STANDOFF, "c9"),))
     assert step(state, same, CFG)[0].mode is S.SEARCHING
+
+
+def test_a_person_in_one_keyframe_with_a_rejected_look_alike_is_proposed_at_once() -> None:
+    """Two people in one keyframe are two people: the look-alike where it was rejected takes the rejection by
+    place, and the described person 6 m off (within the radius) is proposed at once, before the back-end
+    holds the rejection (CI, search-no-engage: the look-alike rejected before the described person's first
+    "yes", who was then never proposed in the rest of the search). Which of the two is nearer decides, not
+    the order they came in."""
+    state = rejected_then_searching()
+    qid = state.queries[-1][0]
+    beside = candidate(box_at(CFG.standoff_m + 6.0), "c7", score=0.5)
+    for pair in ((candidate(AT_STANDOFF, "c9"), beside), (beside, candidate(AT_STANDOFF, "c9"))):
+        new, actions = step(state, BackendAnswer(2.0, qid, 60, pair), CFG)
+        assert new.mode is S.ACQUIRING
+        assert [a.candidate_id for a in actions if isinstance(a, TrackerInit)] == ["c7"]
+    # Alone, the one 6 m off may still be the look-alike under a new id (the previous test).
+    assert step(state, BackendAnswer(2.0, qid, 60, (beside,)), CFG)[0].mode is S.SEARCHING
 
 
 def test_operator_target_is_re_found_whatever_the_verdict() -> None:
