@@ -144,8 +144,7 @@ class Scenario:
         if not self.decoy:
             return world
         # The look-alike stands nearer the drone than the target, so it is bigger in the image and the
-        # detector scores it higher: it is proposed first and the supervisor rejects it. (Standing: the
-        # local verifier's body model finds no body in the rendered sitting figure and says uncertain.)
+        # detector scores it higher: it is proposed first and the supervisor rejects it.
         decoy = Person("decoy", "green", "blue", "standing", ((8.0, -4.0),))
         return World(
             world.seed,
@@ -248,6 +247,9 @@ SCENARIOS: dict[str, Scenario] = {
             decoy=True,
             follow_s=6.0,
             miss_rate=0.0,
+            # The colour rules judge every rendered look at both: the pose model finds no body in the look-alike
+            # seen this steeply in some keyframes, and the target, proposed first then, was confirmed (CI, 4ba0063).
+            verifier="local-hsv",
             checks=("confirmed_target", "rejected_never_again"),
         ),
         Scenario(
