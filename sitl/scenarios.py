@@ -247,8 +247,8 @@ SCENARIOS: dict[str, Scenario] = {
             decoy=True,
             follow_s=6.0,
             miss_rate=0.0,
-            # The colour rules judge every rendered look at both: the pose model finds no body in the look-alike
-            # seen this steeply in some keyframes, and the target, proposed first then, was confirmed (CI, 4ba0063).
+            # The colour rules judge every rendered look at both: the pose model found no body in the look-alike
+            # seen this steeply at the first keyframe of a CI run, and the target, proposed first, was confirmed.
             verifier="local-hsv",
             checks=("confirmed_target", "rejected_never_again"),
         ),
