@@ -52,9 +52,12 @@ def test_arducopter_search(models_dir: Path, tmp_path: Path) -> None:
     assert m["rejected"] == ["decoy"] and m["confirmed"][:1] == ["target"]
     assert m["time_to_find_s"] is not None and m["time_to_find_s"] > 0
     assert m["find"]["confirmed_by"] == "gcs"
-    # Flown only in GUIDED, none in AUTO: at most one setpoint crosses the hand-back's mode change (seen: 298 of
-    # 299, the last one in flight as AUTO took over).
-    assert m["setpoints_received"] > 0 and m["setpoints_received"] - m["setpoints_accepted"] <= 1
+    # Flown only in GUIDED, none in AUTO: at most one setpoint crosses each departure from GUIDED (the hand-back
+    # after the rejection is one), sent before the HEARTBEAT that shows the new mode; the scenario's own check
+    # counts the same way. A bound of one setpoint in all failed CI at 301 of 303.
+    departures = m["left_active_mode"]
+    assert departures >= 1
+    assert m["setpoints_received"] > 0 and m["setpoints_received"] - m["setpoints_accepted"] <= departures
     breaks = m["mission_breaks"]
     assert breaks and breaks[0]["resumed_at"] == breaks[0]["left_at"] is not None
     assert m["geolocation_error_m"] is not None and m["geolocation_error_m"] <= 3.0
