@@ -220,6 +220,20 @@ class PoseSample:
     heading_deg: float
 
 
+def heading_error_at(
+    estimates: Sequence[PoseSample], truth: Sequence[PoseSample], t: float, max_gap_s: float = 0.1
+) -> float | None:
+    """The autopilot's heading error (deg, signed: estimate minus truth) at time `t`: the estimate nearest in
+    time against the truth sample nearest to it, within `max_gap_s` of each other; None without one."""
+    if not estimates or not truth:
+        return None
+    e = min(estimates, key=lambda s: abs(s.t - t))
+    p = min(truth, key=lambda s: abs(s.t - e.t))
+    if abs(p.t - e.t) > max_gap_s:
+        return None
+    return math.remainder(e.heading_deg - p.heading_deg, 360.0)
+
+
 def estimate_error(
     estimates: Sequence[PoseSample], truth: Sequence[PoseSample], max_gap_s: float = 0.1
 ) -> dict[str, float] | None:

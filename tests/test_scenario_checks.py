@@ -74,3 +74,26 @@ def test_scenario_checks_table(
         assert failures == []
     else:
         assert len(failures) == 1 and failure in failures[0], failures
+
+
+@pytest.mark.parametrize(
+    ("find", "failure"),
+    [
+        ({"error_m": 0.9}, None),
+        ({"error_m": 5.8}, "needs <= 5.00 m"),  # the mock: no ground truth apart from the estimate
+        ({"error_m": 5.8, "heading_error_deg": 0.5, "range_m": 27.4}, "needs <= 5.24 m"),
+        # CI's PX4 find: its heading 12 deg off SIH's truth at 27 m explains 5.7 m of it
+        ({"error_m": 5.8, "heading_error_deg": -12.0, "range_m": 27.4}, None),
+        ({"error_m": 12.0, "heading_error_deg": -12.0, "range_m": 27.4}, "needs <= 10.70 m"),
+    ],
+)
+def test_the_fleet_find_is_graded_apart_from_the_autopilots_heading_error(
+    find: dict[str, Any], failure: str | None
+) -> None:
+    scenario = SCENARIOS["fleet-search"]
+    fleet = {"finds": [{"vehicle_id": "drone-2", "candidate_id": "c1", **find}]}
+    failures = [f for f in assess(scenario, [_outcome()], {}, "mock", fleet) if "find lies" in f]
+    if failure is None:
+        assert not failures
+    else:
+        assert len(failures) == 1 and failure in failures[0]
