@@ -52,6 +52,7 @@ from behaviors.events import (
 )
 from behaviors.geolocation import GeoEstimate, locate_box
 from behaviors.geometry import Box, iou
+from behaviors.live_view import in_view_now
 from behaviors.mission_commands import (
     AbortMission,
     ConfirmCandidate,
@@ -767,6 +768,8 @@ def _answer(state: State, answer: BackendAnswer, config: MissionConfig) -> Resul
         chosen = _choose(state, answer.candidates, config, answer)
         if chosen is None:
             return state, ()
+        if _left_view(state, chosen[0], chosen[1], config):
+            return _out_of_view(state, answer, chosen) if answer.final else (state, ())
         return _acquire(state, *chosen, answer)
     if target is None or not answer.final:  # a fast stage's verdicts only ever start a search's track
         return state, ()
@@ -809,6 +812,26 @@ def _acquire(
     stop: tuple[Action, ...] = (SendSetpoint(Setpoint.zero()),) if commanding(new) else ()
     init = TrackerInit(det.box, answer.keyframe_id, det.candidate_id, label=det.label)
     return new, (*take, *stop, init, *msg)
+
+
+def _left_view(state: State, det: Detection, position: GeoEstimate | None, config: MissionConfig) -> bool:
+    """Whether the candidate has left the camera's view since its keyframe (`behaviors.live_view`): a tracker
+    started on it would catch up onto the background. Unknown (no place, no pose) is in view, as before."""
+    now = state.telemetry
+    return position is not None and now is not None and not in_view_now(config.camera, det.box, position, now)
+
+
+def _out_of_view(
+    state: State, answer: BackendAnswer, chosen: tuple[Detection, GeoEstimate | None, int]
+) -> Result:
+    """A search's candidate that left the view before its answer came: no track (it would start on the
+    background); it awaits the supervisor out of view, placed from its keyframe, as one from the store, and
+    the search goes on. The supervisor decides on its keyframe's crop."""
+    seen = _seen_in(answer, *chosen)
+    state, said = _left_awaiting(state, seen)
+    status = "awaiting" if awaiting_decision(state) is seen else "queued"
+    note = GcsMessage(f"{seen.candidate_id} out of view: decide on keyframe"[:50])
+    return state, (replace(_report(seen, status), keyframe_id=answer.keyframe_id), *said, note)
 
 
 def _seen_in(answer: BackendAnswer, det: Detection, position: GeoEstimate | None, others: int = 0) -> Target:

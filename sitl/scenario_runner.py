@@ -587,11 +587,10 @@ class ScenarioRun:
                     # One put again out of view (left before a decision, once the one after it is decided)
                     # has no box in view: the supervisor judges it as when it was.
                     if v.state == "awaiting_supervisor" or cid not in v.judgements:
-                        # A candidate from a keyframe stored through an outage, or one the search put to the
-                        # supervisor beside a confirmed find the tracker holds (not the tracker's box), is judged
-                        # on that keyframe.
-                        beside = v.state == "confirmed" and e.get("keyframe_id") is not None
-                        frame = int(e.get("keyframe_id", -1)) if e.get("stored") or beside else -1
+                        # A candidate reported with its keyframe is not the tracker's box (one from a keyframe
+                        # stored through an outage, one put to the supervisor beside a confirmed find the
+                        # tracker holds, one that left the view before its answer came): judged on that keyframe.
+                        frame = int(e.get("keyframe_id", -1))
                         if frame < 0:
                             frame = self._frame_of(v, e.get("box"))
                         pid = self._person_at(v, e.get("box"), t, frame)

@@ -29,6 +29,7 @@ from behaviors.actions import (
 from behaviors.detection import Detection, Verdict
 from behaviors.events import BackendAnswer, BackendUnreachable, Event, PilotTakeover, TimerTick
 from behaviors.geolocation import offset_to_latlon
+from behaviors.geometry import Box
 from behaviors.mission import (
     MAX_PENDING,
     MissionState,
@@ -826,7 +827,59 @@ def test_a_candidate_awaiting_a_decision_out_of_view_is_not_proposed_twice_when_
     )
     same, actions = run(state, [again])
     assert same.mode is S.SEARCHING and not [a for a in actions if isinstance(a, TrackerInit)]
+    # Seen where the vehicle now is (its telemetry with the keyframe's pose): still in view, tracked.
     elsewhere = replace(again, pose=auto(3.9, north_m=40.0))
-    other, actions = run(state, [elsewhere])
+    other, actions = run(state, [auto(3.95, north_m=40.0), elsewhere])
     assert other.mode is S.ACQUIRING
     assert [a.candidate_id for a in actions if isinstance(a, TrackerInit)] == ["c5"]
+
+
+# At the image's bottom edge (its foot 10 px above it), the person nearest the vehicle: the first to leave the view.
+AT_BOTTOM = Box.from_center(CAM.cx, CAM.height - 30.0, 16.0, 40.0)
+
+
+@pytest.mark.parametrize("engage", [False, True])
+@pytest.mark.parametrize(
+    ("flown_m", "box", "tracked_now"),
+    [
+        (0.0, AT_BOTTOM, True),  # the vehicle has not moved since the keyframe: in view
+        (5.0, AT_BOTTOM, False),  # flown on 5 m: the person is behind the image's bottom edge
+        (5.0, FAR, True),  # seen 25 m ahead: 20 m ahead now, in view
+        (40.0, FAR, False),  # flown past them
+    ],
+)
+def test_a_candidate_that_left_the_view_before_its_answer_awaits_the_supervisor_without_a_track(
+    engage: bool, flown_m: float, box: Box, tracked_now: bool
+) -> None:
+    """The survey flies on while a keyframe is verified. A tracker started on a keyframe whose person has left
+    the view since catches up onto the background (a seeded search: the described person proposed from the
+    image's bottom edge, the tracker on grass when the supervisor looked, rejected as "none"). Such a candidate
+    is not tracked and the vehicle is not taken: it awaits the supervisor out of view, placed from its keyframe,
+    decided on the keyframe's crop; a confirmation is a find there."""
+    state = reach(S.SEARCHING, engage=engage)
+    query = state.queries[-1][0]
+    answer = BackendAnswer(1.1, query, 33, (candidate(box, "e1"),), pose=auto(0.9))
+    early = replace(answer, final=False)
+    state, _ = run(state, [auto(0.9), auto(1.05, north_m=flown_m)])
+    if tracked_now:
+        new, actions = run(state, [answer])
+        assert new.mode is S.ACQUIRING and [
+            a.candidate_id for a in actions if isinstance(a, TrackerInit)
+        ] == ["e1"]
+        return
+    # The fast stage's answer starts nothing; the final one puts it to the supervisor.
+    same, actions = run(state, [early])
+    assert same.mode is S.SEARCHING and actions == [] and same.pending == ()
+    state, actions = run(state, [answer])
+    assert state.mode is S.SEARCHING and not commanding(state)
+    assert not [a for a in actions if isinstance(a, (TrackerInit, *COMMANDS))]
+    reports = [(a.candidate_id, a.status, a.keyframe_id) for a in actions if isinstance(a, ReportCandidate)]
+    assert reports == [("e1", "awaiting", 33)]
+    assert [a.text for a in actions if isinstance(a, GcsMessage)] == ["e1 out of view: decide on keyframe"]
+    shown = awaiting_decision(state)
+    assert shown is not None and shown.candidate_id == "e1" and shown.position is not None
+    placed = shown.position
+    state, actions = run(state, [cmd(2.0, ConfirmCandidate(by="gcs"))])
+    (found,) = [a for a in actions if isinstance(a, ReportCandidate)]
+    assert found.status == "confirmed" and found.position == placed
+    assert state.pending == () and state.found.entries[-1].candidate_id == "e1"
