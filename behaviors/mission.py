@@ -828,10 +828,17 @@ def _out_of_view(
     background); it awaits the supervisor out of view, placed from its keyframe, as one from the store, and
     the search goes on. The supervisor decides on its keyframe's crop."""
     seen = _seen_in(answer, *chosen)
+    state, actions = _aside(state, seen, answer)
+    return state, (*actions, GcsMessage(f"{seen.candidate_id} out of view: decide on keyframe"[:50]))
+
+
+def _aside(state: State, seen: Target, answer: BackendAnswer) -> Result:
+    """`seen`, a candidate of `answer`'s keyframe the tracker does not hold, awaits the supervisor out of view
+    (`State.pending`), reported with that keyframe (its crop comes from there). "queued", not "awaiting", while
+    another is shown (the tracked one awaiting: a decision naming no candidate is still for it)."""
     state, said = _left_awaiting(state, seen)
     status = "awaiting" if awaiting_decision(state) is seen else "queued"
-    note = GcsMessage(f"{seen.candidate_id} out of view: decide on keyframe"[:50])
-    return state, (replace(_report(seen, status), keyframe_id=answer.keyframe_id), *said, note)
+    return state, (replace(_report(seen, status), keyframe_id=answer.keyframe_id), *said)
 
 
 def _seen_in(answer: BackendAnswer, det: Detection, position: GeoEstimate | None, others: int = 0) -> Target:
@@ -928,13 +935,8 @@ def _propose_other(state: State, target: Target, answer: BackendAnswer, config: 
     chosen = _choose(state, answer.candidates, config, answer, placed, tracked)
     if chosen is None or chosen[1] is None:  # nowhere to place it: nothing to tell it apart by
         return state, ()
-    other = _seen_in(answer, *chosen)
-    state, said = _left_awaiting(state, other)
-    # "queued", not "awaiting", while the tracked one awaits: a decision naming no candidate is still for it;
-    # beside a confirmed find the new one is the one awaiting (as one from the store).
-    status = "awaiting" if awaiting_decision(state) is other else "queued"
-    report = replace(_report(other, status), keyframe_id=answer.keyframe_id)
-    return state, (report, *said)
+    # Beside a confirmed find the new one is the one awaiting (as one from the store).
+    return _aside(state, _seen_in(answer, *chosen), answer)
 
 
 def _from_store(state: State, answer: BackendAnswer, config: MissionConfig) -> Result:
@@ -951,10 +953,9 @@ def _from_store(state: State, answer: BackendAnswer, config: MissionConfig) -> R
     chosen = _choose(state, answer.candidates, config, answer, placed)
     if chosen is None or chosen[1] is None:  # nowhere to place it: nothing to send anyone to
         return state, ()
-    seen = replace(_seen_in(answer, *chosen), last_seen_s=answer.pose.time_s, stored=True)
-    state, said = _left_awaiting(state, seen)
-    status = "awaiting" if awaiting_decision(state) is seen else "queued"  # else after the one shown
-    return state, (replace(_report(seen, status), keyframe_id=answer.keyframe_id), *said)
+    return _aside(
+        state, replace(_seen_in(answer, *chosen), last_seen_s=answer.pose.time_s, stored=True), answer
+    )
 
 
 def _answer_for_target(
