@@ -692,14 +692,13 @@ def _fleet_checks(
         else:
             # The companion places a find from the heading the autopilot tells it: what that heading's own error
             # explains at the range the person was seen from is the autopilot's, not the companion's.
-            told = math.radians(min(abs(finds[0].get("heading_error_deg", 0.0)), 90.0))
-            allowed = FLEET_FIND_MAX_ERROR_M + finds[0].get("range_m", 0.0) * math.sin(told)
-            if finds[0].get("error_m") is None or finds[0]["error_m"] > allowed:
+            error, heading = finds[0].get("error_m"), finds[0].get("heading_error_deg", 0.0)
+            range_m = finds[0].get("range_m", 0.0)
+            allowed = FLEET_FIND_MAX_ERROR_M + range_m * math.sin(math.radians(min(abs(heading), 90.0)))
+            if error is None or error > allowed:
                 failures.append(
-                    f"fleet: the mission's find lies {finds[0].get('error_m')} m from the described person, needs "
-                    f"<= {allowed:.2f} m ({FLEET_FIND_MAX_ERROR_M:g} m, and "
-                    f"{finds[0].get('heading_error_deg', 0.0)} deg of the autopilot's heading error at "
-                    f"{finds[0].get('range_m', 0.0)} m)"
+                    f"fleet: the mission's find lies {error} m from the described person, needs <= {allowed:.2f} m "
+                    f"({FLEET_FIND_MAX_ERROR_M:g} m, and {heading} deg of the autopilot's heading error at {range_m} m)"
                 )
         if not any(o.confirmed_ids and o.confirmed_ids[0] == "target" for o in outcomes):
             failures.append("fleet: no vehicle's candidate of the described person was confirmed")
